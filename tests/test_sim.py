@@ -1,0 +1,328 @@
+"""The rollout (SPEC sections 2 and 4) against the independent scalar reference."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import torchcf
+from tests.conftest import prior_draws, synthetic_pairs
+from tests.reference import simulate_pair
+from torchcf import MODELS, PairSet, simulate
+
+NAMES = list(MODELS)
+
+
+def reference(
+    name, theta_row, pairs: PairSet, n: int, weights=(0.5, 0.3, 0.2), shift: float = 0.0
+):
+    """The scalar reference on pair n; ``shift`` moves the follower back [m]."""
+    series = [
+        s[:, n].numpy()
+        for s in (
+            pairs.x_lead,
+            pairs.v_lead,
+            pairs.x_follow,
+            pairs.v_follow,
+            pairs.a_follow,
+        )
+    ]
+    series[2] = series[2] - shift
+    return simulate_pair(
+        name,
+        [float(v) for v in theta_row],
+        *series,
+        pairs.dt,
+        pairs.leader_length,
+        weights,
+        mask=pairs.mask[:, n].numpy(),
+    )
+
+
+def well_conditioned(name, theta_row, pairs, n, ref) -> bool:
+    """Whether the rollout is insensitive to rounding.
+
+    Some prior draws (FVDM with a tiny interaction length, say) are numerically
+    unstable: a 1e-14 m difference grows exponentially. Starting the follower
+    1e-11 m further back tells them apart: there, two correct implementations that
+    round differently disagree by more than any useful tolerance.
+    """
+    moved = reference(name, theta_row, pairs, n, shift=1e-11)
+    if moved["valid"] != ref["valid"]:
+        return False
+    if not ref["valid"]:
+        return True
+    return abs(moved["score"] - ref["score"]) < 1e-9
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_full_layout_matches_reference(name, pairs):
+    theta = prior_draws(MODELS[name], 12, seed=7)
+    out = simulate(name, theta, pairs, dtype=torch.float64, return_traj=True)
+    assert out.score.shape == (12, pairs.n_pairs)
+    assert out.x.shape == (pairs.n_steps, 12, pairs.n_pairs)
+    compared = 0
+    for j in range(12):
+        for n in range(pairs.n_pairs):
+            ref = reference(name, theta[j], pairs, n)
+            if not well_conditioned(name, theta[j], pairs, n, ref):
+                continue
+            compared += 1
+            assert bool(out.valid[j, n]) == ref["valid"]
+            if not ref["valid"]:
+                assert math.isinf(float(out.score[j, n]))
+                continue
+            for key in ("score", "e_p", "e_v", "e_a"):
+                assert float(getattr(out, key)[j, n]) == pytest.approx(
+                    ref[key], rel=1e-9, abs=1e-9
+                )
+            for key in ("x", "v", "a"):
+                np.testing.assert_allclose(
+                    getattr(out, key)[:, j, n].numpy(), ref[key], rtol=0, atol=1e-6
+                )
+    assert compared >= 0.75 * 12 * pairs.n_pairs
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_paired_equals_gathered_full_layout(name, pairs):
+    theta = prior_draws(MODELS[name], 40, seed=11)
+    index = torch.randint(0, pairs.n_pairs, (40,))
+    full = simulate(name, theta, pairs, dtype=torch.float64, return_traj=True)
+    paired = simulate(name, theta, pairs, index, dtype=torch.float64, return_traj=True)
+    rows = torch.arange(40)
+    for key in ("score", "e_p", "e_v", "e_a", "valid"):
+        torch.testing.assert_close(
+            getattr(paired, key), getattr(full, key)[rows, index]
+        )
+    for key in ("x", "v", "a"):
+        torch.testing.assert_close(
+            getattr(paired, key), getattr(full, key)[:, rows, index]
+        )
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_batched_equals_looped(name, pairs):
+    theta = prior_draws(MODELS[name], 6, seed=5)
+    batched = simulate(name, theta, pairs, dtype=torch.float64)
+    for j in range(6):
+        for n in range(pairs.n_pairs):
+            single = simulate(
+                name, theta[j : j + 1], pairs.subset([n]), dtype=torch.float64
+            )
+            assert torch.equal(single.score[0, 0], batched.score[j, n])
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_float32_close_to_float64(name):
+    pairs = synthetic_pairs(n_pairs=3, n_steps=576, seed=2)
+    theta = prior_draws(MODELS[name], 64, seed=9)
+    high = simulate(name, theta, pairs, dtype=torch.float64)
+    low = simulate(name, theta.float(), pairs)
+    assert low.score.dtype == torch.float32 and high.score.dtype == torch.float64
+    both = high.valid & low.valid
+    # a rollout on the edge of collision may flip validity in float32; rarely
+    assert float((high.valid != low.valid).float().mean()) < 0.02
+    torch.testing.assert_close(
+        low.score[both].double(), high.score[both], rtol=1e-3, atol=1e-3
+    )
+
+
+@pytest.mark.parametrize("chunk_size", [1, 7, 64, 1000])
+def test_result_independent_of_chunk_size(chunk_size, pairs):
+    theta = prior_draws(MODELS["idm"], 40, seed=1, dtype=torch.float32)
+    index = torch.randint(0, pairs.n_pairs, (40,))
+    reference_out = simulate("idm", theta, pairs, index)
+    chunked = simulate("idm", theta, pairs, index, chunk_size=chunk_size)
+    assert torch.equal(chunked.score, reference_out.score)
+    full = simulate("idm", theta, pairs, chunk_size=chunk_size)
+    assert torch.equal(full.score, simulate("idm", theta, pairs).score)
+
+
+def test_permuting_pairs_permutes_outputs(pairs):
+    theta = prior_draws(MODELS["gfm"], 10)
+    order = torch.tensor([2, 0, 3, 1])
+    out = simulate("gfm", theta, pairs, dtype=torch.float64)
+    permuted = simulate("gfm", theta, pairs.subset(order), dtype=torch.float64)
+    torch.testing.assert_close(permuted.score, out.score[:, order])
+
+
+def test_initial_state_is_observed(pairs):
+    theta = prior_draws(MODELS["hl"], 3)
+    out = simulate("hl", theta, pairs, dtype=torch.float64, return_traj=True)
+    torch.testing.assert_close(out.x[0], pairs.x_follow[0].expand(3, -1))
+    torch.testing.assert_close(out.v[0], pairs.v_follow[0].expand(3, -1))
+    # HL records its acceleration state, which starts at the observed value
+    torch.testing.assert_close(out.a[0], pairs.a_follow[0].expand(3, -1))
+
+
+def test_perfect_model_scores_zero():
+    """Observations generated by the engine itself are reproduced exactly."""
+    base = synthetic_pairs(n_pairs=3, n_steps=200, seed=4)
+    theta = torch.tensor([[1.2, 2.0, 30.0, 1.4, 2.0, 4.0]], dtype=torch.float64)
+    sim = simulate("idm", theta, base, dtype=torch.float64, return_traj=True)
+    observed = PairSet.from_arrays(
+        base.x_lead,
+        base.v_lead,
+        base.a_lead,
+        sim.x[:, 0],
+        sim.v[:, 0],
+        sim.a[:, 0],
+        dt=base.dt,
+    )
+    again = simulate("idm", theta, observed, dtype=torch.float64)
+    assert float(again.score.max()) < 1e-9
+
+
+def test_score_weights():
+    pairs = synthetic_pairs(n_pairs=2, n_steps=100)
+    theta = prior_draws(MODELS["ovm"], 4)
+    out = simulate("ovm", theta, pairs, dtype=torch.float64, weights=(1.0, 0.0, 0.0))
+    torch.testing.assert_close(out.score, out.e_p)
+
+
+class TestInvalid:
+    def test_collision_is_invalid_and_scores_inf(self):
+        pairs = synthetic_pairs(n_pairs=2, n_steps=200)
+        # LLCS with a 5 m desired spacing and weak damping drives into the leader
+        # on an oscillating leader; a big desired spacing does not.
+        theta = torch.tensor([[5.0, 2.3, 0.3], [25.0, 0.5, 1.5]], dtype=torch.float64)
+        out = simulate("llcs", theta, pairs, dtype=torch.float64, return_traj=True)
+        for j in range(2):
+            for n in range(2):
+                ref = reference("llcs", theta[j], pairs, n)
+                assert bool(out.valid[j, n]) == ref["valid"]
+        collided = ~out.valid
+        assert bool(collided.any()) and bool(out.valid.any())
+        for key in ("score", "e_p", "e_v", "e_a"):
+            assert bool(torch.isinf(getattr(out, key)[collided]).all())
+
+    def test_spacing_equal_to_zero_is_invalid(self):
+        pairs = synthetic_pairs(n_pairs=1, n_steps=100)
+        # huge spacing gain: the follower reaches the leader within the run
+        theta = torch.tensor([[0.0, 2.3, 0.0]], dtype=torch.float64)
+        out = simulate("llcs", theta, pairs, dtype=torch.float64, return_traj=True)
+        spacing = pairs.x_lead[:, 0] - out.x[:, 0, 0]
+        assert bool((spacing <= 0).any()) and not bool(out.valid[0, 0])
+
+    def test_non_finite_rollout_is_invalid(self):
+        pairs = synthetic_pairs(n_pairs=1, n_steps=50)
+        # FVDM with tiny tau explodes numerically (|u| ~ 1/tau each step)
+        theta = torch.tensor([[1e-30, 0.0, 30.0, 30.0, 0.1, 0.0]], dtype=torch.float32)
+        out = simulate("fvdm", theta, pairs)
+        assert not bool(out.valid[0, 0]) and math.isinf(float(out.score[0, 0]))
+
+    def test_failure_after_the_valid_prefix_is_ignored(self):
+        full = synthetic_pairs(n_pairs=1, n_steps=200)
+        theta = torch.tensor([[5.0, 2.3, 0.3]], dtype=torch.float64)
+        out = simulate("llcs", theta, full, dtype=torch.float64, return_traj=True)
+        spacing = full.x_lead[:, 0] - out.x[:, 0, 0]
+        first_bad = int(torch.nonzero(spacing <= 0)[0])
+        mask = torch.zeros(200, 1, dtype=torch.bool)
+        mask[:first_bad] = True
+        prefix = PairSet.from_arrays(*full.series().values(), dt=full.dt, mask=mask)
+        masked = simulate("llcs", theta, prefix, dtype=torch.float64)
+        assert bool(masked.valid[0, 0])
+
+
+def test_ragged_pair_equals_truncated_pair():
+    pairs = synthetic_pairs(n_pairs=2, n_steps=150, seed=3)
+    lengths = [150, 97]
+    mask = torch.arange(150)[:, None] < torch.tensor(lengths)[None, :]
+    ragged = PairSet.from_arrays(*pairs.series().values(), dt=pairs.dt, mask=mask)
+    theta = prior_draws(MODELS["hl"], 5)
+    out = simulate("hl", theta, ragged, dtype=torch.float64)
+    short = pairs.subset([1])
+    truncated = PairSet.from_arrays(
+        *(s[:97] for s in short.series().values()), dt=pairs.dt
+    )
+    alone = simulate("hl", theta, truncated, dtype=torch.float64)
+    torch.testing.assert_close(out.score[:, 1], alone.score[:, 0])
+    for j in range(5):
+        ref = reference("hl", theta[j], ragged, 1)
+        assert float(out.score[j, 1]) == pytest.approx(ref["score"], rel=1e-9)
+
+
+class TestArguments:
+    def test_theta_shape(self, pairs):
+        with pytest.raises(ValueError, match=r"theta must be \(P, 6\) for idm"):
+            simulate("idm", torch.zeros(3, 5), pairs)
+
+    def test_theta_non_finite(self, pairs):
+        theta = prior_draws(MODELS["idm"], 2)
+        theta[1, 0] = math.nan
+        with pytest.raises(ValueError, match="non-finite"):
+            simulate("idm", theta, pairs)
+
+    def test_pair_index(self, pairs):
+        theta = prior_draws(MODELS["idm"], 3)
+        with pytest.raises(ValueError, match="out of range"):
+            simulate("idm", theta, pairs, torch.tensor([0, 1, 4]))
+        with pytest.raises(ValueError, match="pair_index must have shape"):
+            simulate("idm", theta, pairs, torch.tensor([0, 1]))
+
+    def test_unknown_model(self, pairs):
+        with pytest.raises(torchcf.UnknownModelError, match="valid names"):
+            simulate("krauss", torch.zeros(1, 3), pairs)
+
+    def test_dtype(self, pairs):
+        with pytest.raises(ValueError, match="float32 or torch.float64"):
+            simulate("idm", prior_draws(MODELS["idm"], 1), pairs, dtype=torch.float16)
+
+    def test_default_dtype_follows_theta(self, pairs):
+        theta = prior_draws(MODELS["idm"], 2, dtype=torch.float64)
+        assert simulate("idm", theta, pairs).score.dtype == torch.float64
+        assert simulate("idm", theta.float(), pairs).score.dtype == torch.float32
+
+    def test_empty_theta(self, pairs):
+        out = simulate(
+            "idm", torch.zeros(0, 6), pairs, torch.zeros(0, dtype=torch.long)
+        )
+        assert out.score.shape == (0,)
+
+
+def test_real_data_matches_reference(data_root):
+    pairs = torchcf.load_pairs("car-model-2", split="test", data_root=data_root)
+    for name in NAMES:
+        theta = prior_draws(MODELS[name], 3, seed=13)
+        index = torch.tensor([0, 5, pairs.n_pairs - 1])
+        out = simulate(name, theta, pairs, index, dtype=torch.float64)
+        for j in range(3):
+            ref = reference(name, theta[j], pairs, int(index[j]))
+            assert bool(out.valid[j]) == ref["valid"]
+            if ref["valid"]:
+                assert float(out.score[j]) == pytest.approx(ref["score"], rel=1e-9)
+
+
+@pytest.mark.compile
+@pytest.mark.parametrize("name", ["idm", "hl"])
+def test_compiled_equals_eager(name):
+    pairs = synthetic_pairs(n_pairs=5, n_steps=120)
+    theta = prior_draws(MODELS[name], 256, seed=3, dtype=torch.float32)
+    index = torch.randint(0, 5, (256,))
+    eager = simulate(name, theta, pairs, index, compile=False)
+    compiled = simulate(name, theta, pairs, index, compile=True)
+    assert torch.equal(eager.valid, compiled.valid)
+    torch.testing.assert_close(compiled.score, eager.score, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.compile
+def test_compiled_result_independent_of_chunk_size():
+    pairs = synthetic_pairs(n_pairs=5, n_steps=64)
+    theta = prior_draws(MODELS["fvdm"], 300, seed=4, dtype=torch.float32)
+    index = torch.randint(0, 5, (300,))
+    outs = [
+        simulate("fvdm", theta, pairs, index, compile=True, chunk_size=size)
+        for size in (100, 300)
+    ]
+    assert torch.equal(outs[0].score, outs[1].score)
+
+
+def test_compile_cache_holds_every_model_and_shape():
+    """More than dynamo's default 8 graphs of _block must stay compiled."""
+    from torchcf.sim import _compiled_block
+
+    _compiled_block(MODELS["llcs"], True, 0.1, 5.0, False)
+    assert torch._dynamo.config.recompile_limit >= 64

@@ -1,0 +1,202 @@
+"""Benchmark: simulated particle-steps per second per model (paired layout).
+
+The paper's setting: particles drawn from each model's prior, each simulated on one
+training pair of CAR MODEL II (576 steps at 0.1 s), float32, on ``--threads`` CPU
+threads. For every model it times the fused path (``torch.compile``, compilation
+excluded and reported apart) and the eager fallback, with warm-up runs first and
+the median of ``--repeats`` timed runs.
+
+    python tools/bench_sim.py                      # 1e6 particles, 2 threads
+    python tools/bench_sim.py --particles 2e5 --models idm hl
+
+Writes ``reports/bench_sim.json`` and ``reports/bench_sim.md`` (torch version,
+threads, CPU model, git SHA). Needs the data: ``$TORCHCF_DATA`` or ``--data-root``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+import torchcf
+from torchcf import MODELS, simulate
+
+REPORTS = Path(__file__).resolve().parents[1] / "reports"
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def git_sha() -> str:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            cwd=REPORTS.parent,
+            check=True,
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            cwd=REPORTS.parent,
+            check=True,
+        ).stdout.strip()
+        return out.stdout.strip() + ("-dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def setup(model_name: str, n_particles: int, n_pairs: int, seed: int = 0):
+    """Prior draws and their training pairs, as the ABC run would make them."""
+    model = MODELS[model_name]
+    generator = torch.Generator().manual_seed(seed)
+    bounds = model.prior_bounds(torch.float32)
+    unit = torch.rand(n_particles, model.n_params, generator=generator)
+    theta = bounds[:, 0] + (bounds[:, 1] - bounds[:, 0]) * unit
+    pair_index = torch.randint(0, n_pairs, (n_particles,), generator=generator)
+    return theta, pair_index
+
+
+def time_run(model_name, theta, pairs, pair_index, compile_mode, repeats):
+    """Median wall time of ``repeats`` timed runs, and the invalid fraction."""
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        out = simulate(model_name, theta, pairs, pair_index, compile=compile_mode)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times), times, float((~out.valid).float().mean())
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--particles", type=float, default=1e6)
+    parser.add_argument(
+        "--eager-particles",
+        type=float,
+        default=2e5,
+        help="particles for the (slow) eager runs",
+    )
+    parser.add_argument("--models", nargs="+", default=list(MODELS))
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--data-root", default=None)
+    parser.add_argument("--out", type=Path, default=REPORTS / "bench_sim")
+    args = parser.parse_args(argv)
+
+    torch.set_num_threads(args.threads)
+    pairs = torchcf.load_pairs(
+        "car-model-2", split="train", data_root=args.data_root, drop_duplicates=False
+    )
+    n_particles, n_eager = int(args.particles), int(args.eager_particles)
+    rows = []
+    for name in args.models:
+        theta, index = setup(name, n_particles, pairs.n_pairs)
+        # Warm-up: the first full-size call compiles; its excess over the median
+        # of the timed runs is the compilation cost.
+        start = time.perf_counter()
+        simulate(name, theta, pairs, index, compile=True)
+        first_s = time.perf_counter() - start
+        fused_s, fused_all, invalid = time_run(
+            name, theta, pairs, index, True, args.repeats
+        )
+        compile_s = max(first_s - fused_s, 0.0)
+        simulate(name, theta[:n_eager], pairs, index[:n_eager], compile=False)
+        eager_s, eager_all, _ = time_run(
+            name, theta[:n_eager], pairs, index[:n_eager], False, args.repeats
+        )
+        steps = pairs.n_steps
+        row = {
+            "model": name,
+            "particles": n_particles,
+            "steps": steps,
+            "fused_s": fused_s,
+            "fused_runs_s": fused_all,
+            "fused_steps_per_s": n_particles * steps / fused_s,
+            "eager_particles": n_eager,
+            "eager_s": eager_s,
+            "eager_runs_s": eager_all,
+            "eager_steps_per_s": n_eager * steps / eager_s,
+            "compile_warmup_s": compile_s,
+            "invalid_fraction": invalid,
+        }
+        rows.append(row)
+        print(
+            f"{name:6s} fused {row['fused_steps_per_s']:.3g} /s "
+            f"({fused_s:.2f} s for {n_particles:.0e}), eager "
+            f"{row['eager_steps_per_s']:.3g} /s, compile {compile_s:.1f} s",
+            flush=True,
+        )
+
+    idm = next((r for r in rows if r["model"] == "idm"), None)
+    meta = {
+        "torch": torch.__version__,
+        "torchcf": torchcf.__version__,
+        "python": sys.version.split()[0],
+        "threads": torch.get_num_threads(),
+        "cpu": cpu_model(),
+        "git": git_sha(),
+        "dataset": f"car-model-2 train ({pairs.n_pairs} pairs, {pairs.n_steps} steps)",
+        "dtype": "float32",
+        "layout": "paired",
+        "repeats": args.repeats,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".json").write_text(
+        json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n"
+    )
+    lines = [
+        "# Rollout throughput (paired layout)",
+        "",
+        f"`python tools/bench_sim.py --particles {args.particles:.0e} "
+        f"--threads {args.threads}`; medians of {args.repeats} timed runs after "
+        "warm-up.",
+        "",
+        *(f"- {key}: {value}" for key, value in meta.items()),
+        "",
+        "| model | fused particle-steps/s | fused time [s] | vs IDM | eager "
+        "particle-steps/s | fused / eager | compile [s] | invalid |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        ratio = (
+            r["fused_steps_per_s"] / idm["fused_steps_per_s"] if idm else float("nan")
+        )
+        lines.append(
+            f"| {r['model']} | {r['fused_steps_per_s']:.3g} | {r['fused_s']:.2f} | "
+            f"{ratio:.2f} | {r['eager_steps_per_s']:.3g} | "
+            f"{r['fused_steps_per_s'] / r['eager_steps_per_s']:.1f}x | "
+            f"{r['compile_warmup_s']:.1f} | {r['invalid_fraction']:.3f} |"
+        )
+    lines += [
+        "",
+        f"Particles: {n_particles:.0e} per model (fused), "
+        f"{n_eager:.0e} (eager; throughput is linear in the particle count).",
+        "Compile: the first call's time minus the median (torch.compile's one-off "
+        "cost in this process; inductor caches kernels on disk, so a later process "
+        "compiles faster).",
+        "",
+    ]
+    args.out.with_suffix(".md").write_text("\n".join(lines))
+    print(f"wrote {args.out.with_suffix('.md')}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

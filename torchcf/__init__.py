@@ -1,0 +1,28 @@
+"""torchcf: stochastic hybrid car-following models learned with ABC, in PyTorch.
+
+Public API (re-exports only; see the modules for the details):
+
+- :func:`load_pairs` / :class:`PairSet` / :class:`DataError` (``torchcf.data``),
+- :data:`MODELS` / :func:`get_model` / :class:`CFModel` (``torchcf.models``),
+- :func:`simulate` / :class:`SimOutput` (``torchcf.sim``).
+"""
+
+from .data import DATASETS, DataError, PairSet, load_pairs
+from .models import MODELS, CFModel, UnknownModelError, get_model
+from .sim import SimOutput, simulate
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "DATASETS",
+    "MODELS",
+    "CFModel",
+    "DataError",
+    "PairSet",
+    "SimOutput",
+    "UnknownModelError",
+    "__version__",
+    "get_model",
+    "load_pairs",
+    "simulate",
+]

@@ -1,0 +1,30 @@
+"""Observed car-following data: the PairSet container, the six-CSV reader, and
+the named data sets of the ABC paper.
+
+* :mod:`torchcf.data.pairset`: :class:`PairSet`, (T, N) SI tensors plus a prefix
+  mask, validated on construction; :class:`DataError` for every data problem.
+* :mod:`torchcf.data.reader`: :func:`read_six_csv`, the six-file CSV layout and
+  unit conversion.
+* :mod:`torchcf.data.registry`: :data:`DATASETS` and :func:`load_pairs`, where the
+  files come from (path, ``TORCHCF_DATA``, cache, checked download), the splits
+  and the quirks of each data set.
+"""
+
+from torchcf.data.pairset import DataError, PairSet
+from torchcf.data.reader import read_six_csv
+from torchcf.data.registry import (
+    DATASETS,
+    DatasetSpec,
+    load_pairs,
+    resolve_data_root,
+)
+
+__all__ = [
+    "DATASETS",
+    "DataError",
+    "DatasetSpec",
+    "PairSet",
+    "load_pairs",
+    "read_six_csv",
+    "resolve_data_root",
+]

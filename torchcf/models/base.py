@@ -1,0 +1,168 @@
+"""The car-following model interface shared by every family (SPEC section 3).
+
+A model is a *pure, stateless* function. At every step the rollout hands it
+
+- the parameters ``p`` (a NamedTuple of tensors, one field per parameter, shaped to
+  broadcast against the state: ``(P, 1)`` in the full layout, ``(P,)`` in the paired
+  layout),
+- a :class:`Perception`: what the follower perceives at this step (spacing, own speed,
+  leader speed, own realised acceleration, leader length),
+
+and receives the acceleration command ``u`` (same shape as the state). How a command
+becomes motion is a separate method, :meth:`CFModel.advance`: a point mass by default,
+a first-order actuation lag for HL.
+
+Keeping *perception*, *command* and *realisation* apart is deliberate: an effect (a
+perception delay, a spacing-sensor offset, an actuation lag, acceleration limits) is a
+wrapper that edits the :class:`Perception` before :meth:`CFModel.command`, or replaces
+:meth:`CFModel.advance`, without touching the model's equations.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, ClassVar, NamedTuple
+
+import torch
+from torch import Tensor
+
+
+class ParamSpec(NamedTuple):
+    """One model parameter: its name, unit and default uniform prior bounds."""
+
+    name: str
+    unit: str
+    lower: float
+    upper: float
+    description: str
+
+
+class Perception(NamedTuple):
+    """What the follower perceives at one step; tensors broadcast to the state shape.
+
+    Attributes:
+        spacing: front-to-front spacing ``s = x_lead - x`` [m].
+        v: own speed [m/s].
+        v_lead: leader speed [m/s].
+        a: own realised acceleration state [m/s^2] (used by HL only).
+        leader_length: leader vehicle length ``L`` [m].
+    """
+
+    spacing: Tensor
+    v: Tensor
+    v_lead: Tensor
+    a: Tensor
+    leader_length: float
+
+
+class FollowerState(NamedTuple):
+    """The simulated follower: position [m], speed [m/s], acceleration [m/s^2]."""
+
+    x: Tensor
+    v: Tensor
+    a: Tensor
+
+
+def point_mass_advance(state: FollowerState, u: Tensor, dt: float) -> FollowerState:
+    """Constant-acceleration step over ``dt`` (SPEC section 2, point-mass models).
+
+    ``a(t) = u``, ``v(t+1) = v + u dt``, ``x(t+1) = x + v dt + u dt^2 / 2``.
+    """
+    return FollowerState(
+        x=state.x + state.v * dt + u * (0.5 * dt * dt),
+        v=state.v + u * dt,
+        a=u,
+    )
+
+
+def first_order_lag_advance(
+    state: FollowerState, u: Tensor, lag: Tensor, dt: float
+) -> FollowerState:
+    """Exact zero-order-hold step of a first-order actuation lag (SPEC section 2, HL).
+
+    With ``da/dt = (u - a) / TT`` and ``e = exp(-dt / TT)``:
+    ``a(t+1) = u + (a - u) e``,
+    ``v(t+1) = v + u dt + (a - u) TT (1 - e)``,
+    ``x(t+1) = x + v dt + u dt^2 / 2 + (a - u) TT (dt - TT (1 - e))``.
+
+    Args:
+        state: follower state at t.
+        u: command held over the step [m/s^2].
+        lag: time constant ``TT`` [s], broadcastable to the state.
+        dt: step [s].
+    """
+    decay = torch.exp(-dt / lag)
+    gap_to_command = state.a - u
+    one_minus_decay = 1.0 - decay
+    return FollowerState(
+        x=state.x
+        + state.v * dt
+        + u * (0.5 * dt * dt)
+        + gap_to_command * lag * (dt - lag * one_minus_decay),
+        v=state.v + u * dt + gap_to_command * lag * one_minus_decay,
+        a=u + gap_to_command * decay,
+    )
+
+
+class CFModel:
+    """Base class of a car-following model (see the module docstring).
+
+    Subclasses set :attr:`name`, :attr:`Params` (a NamedTuple whose fields are the
+    parameter names, in the prior files' order), :attr:`param_specs` and implement
+    :meth:`command`.
+    """
+
+    name: ClassVar[str]
+    Params: ClassVar[type]
+    param_specs: ClassVar[tuple[ParamSpec, ...]]
+    #: True when the recorded acceleration is a state of the vehicle (HL's lag) rather
+    #: than the command itself (point-mass models).
+    acceleration_is_state: ClassVar[bool] = False
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return tuple(spec.name for spec in self.param_specs)
+
+    @property
+    def n_params(self) -> int:
+        return len(self.param_specs)
+
+    def prior_bounds(self, dtype: torch.dtype = torch.float64) -> Tensor:
+        """Default uniform prior box, ``(K, 2)`` of (lower, upper)."""
+        return torch.tensor(
+            [[spec.lower, spec.upper] for spec in self.param_specs], dtype=dtype
+        )
+
+    def unpack(self, theta: Tensor, state_ndim: int = 1) -> Any:
+        """Split ``theta: (P, K)`` into the Params NamedTuple.
+
+        Each field is ``(P,)`` followed by ``state_ndim - 1`` singleton dimensions, so
+        parameters broadcast over the pair dimension of the full layout with no
+        ``unsqueeze`` in the physics.
+        """
+        columns = theta.reshape(theta.shape + (1,) * (state_ndim - 1)).unbind(1)
+        # Contiguous copies: strided columns of theta would defeat vectorised loads
+        # in fused kernels; the copy is made once per chunk, not per step.
+        return self.Params(*(column.contiguous() for column in columns))
+
+    def command(self, p: Any, obs: Perception) -> Tensor:
+        """The acceleration command ``u`` [m/s^2], same shape as ``obs.spacing``."""
+        raise NotImplementedError
+
+    def advance(
+        self, p: Any, state: FollowerState, u: Tensor, dt: float
+    ) -> FollowerState:
+        """Realise the command over one step (point mass unless overridden)."""
+        return point_mass_advance(state, u, dt)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({', '.join(self.param_names)})"
+
+
+def spec(
+    name: str, unit: str, lower: float, upper: float, description: str
+) -> ParamSpec:
+    """Shorthand used by the model families to declare a parameter."""
+    if not (math.isfinite(lower) and math.isfinite(upper) and lower <= upper):
+        raise ValueError(f"bad prior bounds for {name}: [{lower}, {upper}]")
+    return ParamSpec(name, unit, float(lower), float(upper), description)

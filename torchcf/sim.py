@@ -1,0 +1,455 @@
+"""The batched rollout: the time loop and the streaming errors, nothing model-specific.
+
+SPEC sections 2 (simulation) and 4 (score). The leader is replayed from data; the
+follower starts from its observed state and is driven by a
+:class:`~torchcf.models.CFModel`.
+Errors are accumulated step by step, so a rollout never stores ``(T, P, N)`` unless the
+caller asks for the trajectory.
+
+Two layouts share one code path:
+
+- **full**: every particle on every pair, state ``(P, N)``;
+- **paired**: particle ``j`` on pair ``pair_index[j]``, state ``(P,)`` (the paper's
+  down-sampled ABC). The observations of step ``t`` are gathered per particle inside
+  the step, never materialised as ``(T, P)``.
+
+Numerics worth knowing:
+
+- Positions are simulated relative to each pair's initial follower position. Spacing
+  and errors are differences, so this changes nothing mathematically, but it keeps
+  float32 positions small (a 2 km road in float32 has a 1e-4 m resolution).
+- Time is processed in blocks of ``BLOCK_STEPS`` steps; the series is padded with
+  masked steps to a multiple of the block. One block is one call of the (optionally
+  ``torch.compile``-fused) block function, which keeps the state in registers over
+  the whole block.
+- The last chunk of particles is padded to the chunk size so every chunk has one
+  shape: no recompilation, and each particle's arithmetic is independent of the
+  chunk size.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import shutil
+import warnings
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple
+
+import torch
+from torch import Tensor
+
+from .models import CFModel, FollowerState, Perception, get_model
+
+#: Steps per block function call (the unit that ``torch.compile`` fuses).
+BLOCK_STEPS = 16
+#: Default number of simulated (particle, pair) cells per chunk.
+DEFAULT_CHUNK_CELLS = 1 << 18
+#: Below this many simulated particle-steps, ``compile="auto"`` stays eager: the
+#: one-off compilation (seconds) would cost more than it saves.
+COMPILE_MIN_STEPS = 2e8
+#: With compilation, chunks are a multiple of this: every element then takes the
+#: vectorised path of the fused kernel, never a scalar tail, so results do not
+#: depend on the chunk size.
+COMPILE_CHUNK_MULTIPLE = 64
+#: Score weights of position, speed and acceleration RMSE (SPEC section 4).
+DEFAULT_WEIGHTS = (0.5, 0.3, 0.2)
+
+# Columns of the observation table (T, N, 6).
+_X_LEAD, _V_LEAD, _X_FOLLOW, _V_FOLLOW, _A_FOLLOW, _MASK = range(6)
+
+if TYPE_CHECKING:
+    from .data import PairSet
+
+CompileMode = bool | Literal["auto"]
+
+
+class SimOutput(NamedTuple):
+    """Result of :func:`simulate`.
+
+    Attributes:
+        score: ``(P, N)`` full layout or ``(P,)`` paired;
+            ``0.5 e_p + 0.3 e_v + 0.2 e_a`` by default, ``+inf`` when invalid.
+        e_p: RMSE of position [m] over the valid steps (``+inf`` when invalid).
+        e_v: RMSE of speed [m/s].
+        e_a: RMSE of acceleration [m/s^2].
+        valid: bool, False when the rollout was invalid (non-finite value or
+            non-positive spacing on a valid step).
+        x: ``(T, P, N)`` or ``(T, P)`` simulated position [m] if ``return_traj``.
+        v: same shape, speed [m/s].
+        a: same shape, recorded acceleration [m/s^2] (HL: the realised state).
+    """
+
+    score: Tensor
+    e_p: Tensor
+    e_v: Tensor
+    e_a: Tensor
+    valid: Tensor
+    x: Tensor | None = None
+    v: Tensor | None = None
+    a: Tensor | None = None
+
+
+class _Accumulators(NamedTuple):
+    """Streaming sums over valid steps, each the state's shape."""
+
+    sq_x: Tensor
+    sq_v: Tensor
+    sq_a: Tensor
+    invalid: Tensor  # bool
+
+
+def _block(
+    model: CFModel,
+    paired: bool,
+    dt: float,
+    leader_length: float,
+    record: bool,
+    params: Any,
+    state: FollowerState,
+    acc: _Accumulators,
+    obs: Tensor,
+    pair_index: Tensor | None,
+) -> tuple[FollowerState, _Accumulators, Tensor | None]:
+    """Advance ``BLOCK_STEPS`` (= ``obs.shape[0]``) steps of SPEC section 2.
+
+    Args:
+        model, paired, dt, leader_length, record: static for a compiled block.
+        params: the model's Params, fields broadcast to the state.
+        state: follower state at the block's first step, ``(P,)`` or ``(P, N)``.
+        acc: streaming sums.
+        obs: ``(S, N, 6)`` observation table of the block's steps.
+        pair_index: ``(P,)`` pair of each particle in the paired layout, else None.
+
+    Returns:
+        the state after the block, the sums, and if ``record`` the
+        ``(S, 3, *state_shape)`` stack of simulated x, v and recorded a.
+    """
+    recorded = []
+    for step in range(obs.shape[0]):
+        # paired: gather this step's columns per particle -> (P, 6);
+        # full: broadcast the pairs over particles -> (1, N, 6).
+        row = obs[step].index_select(0, pair_index) if paired else obs[step][None, :]
+        x_lead, v_lead, x_obs, v_obs, a_obs, step_valid = row.unbind(-1)
+        on_valid_step = step_valid > 0.5
+
+        spacing = x_lead - state.x
+        perception = Perception(spacing, state.v, v_lead, state.a, leader_length)
+        command = model.command(params, perception)
+        acc_recorded = state.a if model.acceleration_is_state else command
+
+        zero = torch.zeros((), dtype=state.x.dtype, device=state.x.device)
+        acc = _Accumulators(
+            sq_x=acc.sq_x + torch.where(on_valid_step, (state.x - x_obs) ** 2, zero),
+            sq_v=acc.sq_v + torch.where(on_valid_step, (state.v - v_obs) ** 2, zero),
+            sq_a=acc.sq_a
+            + torch.where(on_valid_step, (acc_recorded - a_obs) ** 2, zero),
+            # NaN fails isfinite and compares False, so both tests are needed.
+            invalid=acc.invalid
+            | (
+                on_valid_step
+                & (
+                    ~torch.isfinite(state.x)
+                    | ~torch.isfinite(state.v)
+                    | ~torch.isfinite(acc_recorded)
+                    | (spacing <= 0)
+                )
+            ),
+        )
+        if record:
+            recorded.append(torch.stack((state.x, state.v, acc_recorded)))
+
+        moved = model.advance(params, state, command, dt)
+        # No reversing (SPEC 2); torch.maximum/clamp propagate NaN, so an exploding
+        # rollout stays non-finite and is caught as invalid.
+        state = FollowerState(
+            x=torch.maximum(moved.x, state.x),
+            v=torch.clamp(moved.v, min=0.0),
+            a=moved.a,
+        )
+    return state, acc, torch.stack(recorded) if record else None
+
+
+def _rollout_chunk(
+    block_fn: Callable[..., Any],
+    model: CFModel,
+    theta: Tensor,
+    pair_index: Tensor | None,
+    blocks: list[Tensor],
+    n_pairs: int,
+) -> tuple[_Accumulators, Tensor | None]:
+    """Run one chunk of particles over every block; returns sums and trajectory.
+
+    Args:
+        theta: ``(P, K)`` chunk of parameters.
+        pair_index: ``(P,)`` (paired layout) or None (full layout).
+        blocks: ``(S, N, 6)`` observation blocks covering the padded time axis.
+
+    Returns:
+        the sums over valid steps and, if recording, the ``(T_pad, 3, *state)``
+        trajectory.
+    """
+    first = blocks[0][0]  # (N, 6)
+    if pair_index is not None:
+        params = model.unpack(theta, state_ndim=1)  # fields (P,)
+        initial = first.index_select(0, pair_index)  # (P, 6)
+    else:
+        params = model.unpack(theta, state_ndim=2)  # fields (P, 1)
+        initial = first[None, :, :].expand(theta.shape[0], n_pairs, 6)  # (P, N, 6)
+    state = FollowerState(
+        x=initial[..., _X_FOLLOW].contiguous(),
+        v=initial[..., _V_FOLLOW].contiguous(),
+        a=initial[..., _A_FOLLOW].contiguous(),
+    )
+    zeros = torch.zeros_like(state.x)
+    acc = _Accumulators(
+        zeros, zeros.clone(), zeros.clone(), torch.zeros_like(zeros, dtype=torch.bool)
+    )
+    recorded = []
+    for block in blocks:
+        state, acc, block_traj = block_fn(params, state, acc, block, pair_index)
+        if block_traj is not None:
+            recorded.append(block_traj)
+    return acc, torch.cat(recorded) if recorded else None
+
+
+class _BlockRunner:
+    """Calls the block function, compiled when asked; falls back to eager once."""
+
+    def __init__(
+        self,
+        model: CFModel,
+        paired: bool,
+        dt: float,
+        leader_length: float,
+        record: bool,
+        use_compile: bool,
+    ) -> None:
+        self._static = (model, paired, float(dt), float(leader_length), record)
+        self._eager = functools.partial(_block, *self._static)
+        self._compiled = _compiled_block(*self._static) if use_compile else None
+
+    def __call__(self, *args: Any) -> Any:
+        if self._compiled is None:
+            return self._eager(*args)
+        try:
+            return self._compiled(*args)
+        except Exception as error:  # noqa: BLE001 - any compiler failure
+            key = self._static[0].name
+            if key not in _COMPILE_FAILED:
+                _COMPILE_FAILED.add(key)
+                warnings.warn(
+                    f"torch.compile failed for {key} ({type(error).__name__}: "
+                    f"{error}); running eager",
+                    RuntimeWarning,
+                    stacklevel=3,
+                )
+            self._compiled = None
+            return self._eager(*args)
+
+
+def _compiler_available() -> bool:
+    return shutil.which("g++") is not None or shutil.which("c++") is not None
+
+
+@functools.cache
+def _compiled_block(
+    model: CFModel, paired: bool, dt: float, leader_length: float, record: bool
+) -> Callable[..., Any]:
+    # Every model, layout and chunk shape is a separate graph of the same function,
+    # _block; dynamo's default of 8 graphs per function would silently drop the
+    # ninth to eager, so the limit is raised to what a full run can need.
+    dynamo_config = torch._dynamo.config
+    dynamo_config.recompile_limit = max(dynamo_config.recompile_limit, 256)
+    dynamo_config.accumulated_recompile_limit = max(
+        dynamo_config.accumulated_recompile_limit, 1024
+    )
+    block = functools.partial(_block, model, paired, dt, leader_length, record)
+    return torch.compile(block, dynamic=False, fullgraph=True)
+
+
+_COMPILE_FAILED: set[str] = set()
+
+
+def _resolve_compile(compile: CompileMode, device: torch.device, cells: int) -> bool:
+    if compile == "auto":
+        # Compilation costs seconds; it pays on long runs only.
+        return cells >= COMPILE_MIN_STEPS and (
+            device.type == "cuda" or _compiler_available()
+        )
+    return bool(compile)
+
+
+def _observation_table(pairs: PairSet, dtype: torch.dtype, device: torch.device):
+    """The ``(T_pad, N, 6)`` table, the ``(N,)`` origins and valid-step counts.
+
+    Positions are shifted by each pair's initial follower position; ``T`` is padded to
+    a multiple of ``BLOCK_STEPS`` with copies of the last row, marked invalid.
+    """
+    origin = pairs.x_follow[0]  # (N,)
+    table = torch.stack(
+        (
+            pairs.x_lead - origin[None, :],
+            pairs.v_lead,
+            pairs.x_follow - origin[None, :],
+            pairs.v_follow,
+            pairs.a_follow,
+            pairs.mask.to(pairs.x_lead.dtype),
+        ),
+        dim=-1,
+    )  # (T, N, 6)
+    n_pad = -pairs.n_steps % BLOCK_STEPS
+    if n_pad:
+        tail = table[-1:].expand(n_pad, -1, -1).clone()
+        tail[..., _MASK] = 0.0
+        table = torch.cat((table, tail))
+    n_valid = pairs.mask.sum(0)  # (N,)
+    return (
+        table.to(device=device, dtype=dtype).contiguous(),
+        origin.to(device=device, dtype=dtype),
+        n_valid.to(device=device),
+    )
+
+
+def _check_theta(model: CFModel, theta: Tensor) -> None:
+    if theta.ndim != 2 or theta.shape[1] != model.n_params:
+        raise ValueError(
+            f"theta must be (P, {model.n_params}) for {model.name} "
+            f"({', '.join(model.param_names)}), got {tuple(theta.shape)}"
+        )
+    if not bool(torch.isfinite(theta).all()):
+        raise ValueError(f"theta for {model.name} holds non-finite values")
+
+
+def simulate(
+    model: str | CFModel,
+    theta: Tensor,
+    pairs: PairSet,
+    pair_index: Tensor | Sequence[int] | None = None,
+    dtype: torch.dtype | None = None,
+    device: torch.device | str | None = None,
+    return_traj: bool = False,
+    *,
+    weights: Sequence[float] = DEFAULT_WEIGHTS,
+    chunk_size: int | None = None,
+    compile: CompileMode = "auto",
+) -> SimOutput:
+    """Simulate particles of one model on leader-follower pairs and score them.
+
+    SPEC sections 2 and 4: the follower starts from its observed state, the model's
+    command drives it (point mass or HL's lag), speed is clamped at zero and position
+    never decreases; a rollout with a non-finite value or non-positive spacing on a
+    valid step is invalid and scores ``+inf``. The score is
+    ``w_p e_p + w_v e_v + w_a e_a`` of the RMSE of position, speed and acceleration over
+    the valid steps.
+
+    Args:
+        model: registry name (``"idm"``...) or a model instance.
+        theta: ``(P, K)`` parameters in the model's order (``model.param_names``).
+        pairs: the observed pairs ``(T, N)``.
+        pair_index: ``(P,)`` pair of each particle (paired layout); None simulates
+            every particle on every pair (full layout).
+        dtype: float32 or float64; default: theta's float dtype, else float32.
+        device: default: theta's device.
+        return_traj: also return the simulated ``x, v, a``, time-first.
+        weights: score weights of (position, speed, acceleration).
+        chunk_size: particles per chunk; default about ``2**18`` simulated cells. The
+            result does not depend on it.
+        compile: fuse the time step with ``torch.compile``: True, False or "auto"
+            (only for long CPU runs with a C++ compiler, or CUDA). Falls back to
+            eager with a warning if compilation fails.
+
+    Returns:
+        :class:`SimOutput` with ``(P, N)`` (full) or ``(P,)`` (paired) fields.
+    """
+    model = get_model(model)
+    theta = torch.as_tensor(theta)
+    if dtype is None:
+        dtype = theta.dtype if theta.is_floating_point() else torch.float32
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+    device = torch.device(device) if device is not None else theta.device
+    _check_theta(model, theta)
+    if len(weights) != 3:
+        raise ValueError(f"weights must be 3 numbers (p, v, a), got {weights!r}")
+    theta = theta.to(device=device, dtype=dtype)
+    n_particles = theta.shape[0]
+
+    paired = pair_index is not None
+    if paired:
+        pair_index = torch.as_tensor(pair_index, device=device).long()
+        if pair_index.shape != (n_particles,):
+            raise ValueError(
+                f"pair_index must have shape ({n_particles},), "
+                f"got {tuple(pair_index.shape)}"
+            )
+        if n_particles and (
+            int(pair_index.min()) < 0 or int(pair_index.max()) >= pairs.n_pairs
+        ):
+            raise ValueError(f"pair_index out of range [0, {pairs.n_pairs})")
+    cells_per_particle = 1 if paired else pairs.n_pairs
+    if chunk_size is None:
+        chunk_size = max(1, DEFAULT_CHUNK_CELLS // cells_per_particle)
+    if chunk_size <= 0:
+        raise ValueError(f"chunk_size must be positive, got {chunk_size}")
+    chunk_size = min(chunk_size, max(n_particles, 1))
+    use_compile = _resolve_compile(
+        compile, device, n_particles * cells_per_particle * pairs.n_steps
+    )
+    if use_compile:
+        chunk_size = -(-chunk_size // COMPILE_CHUNK_MULTIPLE) * COMPILE_CHUNK_MULTIPLE
+
+    table, origin, n_valid = _observation_table(pairs, dtype, device)
+    # Contiguous blocks: a compiled block then sees the same layout at every call.
+    blocks = [block.clone() for block in table.split(BLOCK_STEPS)]
+    block_fn = _BlockRunner(
+        model, paired, pairs.dt, pairs.leader_length, return_traj, use_compile
+    )
+
+    state_shape = (n_particles,) if paired else (n_particles, pairs.n_pairs)
+    outputs = {
+        name: torch.empty(state_shape, dtype=dtype, device=device)
+        for name in ("e_p", "e_v", "e_a")
+    }
+    invalid = torch.empty(state_shape, dtype=torch.bool, device=device)
+    traj = (
+        torch.empty((pairs.n_steps, 3, *state_shape), dtype=dtype, device=device)
+        if return_traj
+        else None
+    )
+
+    for start in range(0, n_particles, chunk_size):
+        stop = min(start + chunk_size, n_particles)
+        chunk_theta = theta[start:stop]
+        chunk_index = pair_index[start:stop] if paired else None
+        n_fill = chunk_size - (stop - start)
+        if n_fill:
+            # Pad to the chunk size with copies of the first particle (one shape
+            # for the compiled block); the padding is dropped below.
+            chunk_theta = torch.cat((chunk_theta, chunk_theta[:1].expand(n_fill, -1)))
+            if paired:
+                chunk_index = torch.cat((chunk_index, chunk_index[:1].expand(n_fill)))
+        sums, chunk_traj = _rollout_chunk(
+            block_fn, model, chunk_theta, chunk_index, blocks, pairs.n_pairs
+        )
+        keep = slice(0, stop - start)
+        counts = (n_valid[chunk_index] if paired else n_valid[None, :]).clamp(min=1)
+        outputs["e_p"][start:stop] = torch.sqrt(sums.sq_x / counts)[keep]
+        outputs["e_v"][start:stop] = torch.sqrt(sums.sq_v / counts)[keep]
+        outputs["e_a"][start:stop] = torch.sqrt(sums.sq_a / counts)[keep]
+        invalid[start:stop] = sums.invalid[keep]
+        if traj is not None:
+            traj[:, :, start:stop] = chunk_traj[: pairs.n_steps, :, keep]
+
+    inf = torch.tensor(math.inf, dtype=dtype, device=device)
+    e_p, e_v, e_a = (
+        torch.where(invalid, inf, outputs[k]) for k in ("e_p", "e_v", "e_a")
+    )
+    w_p, w_v, w_a = (float(w) for w in weights)
+    score = torch.where(invalid, inf, w_p * e_p + w_v * e_v + w_a * e_a)
+    result = SimOutput(score=score, e_p=e_p, e_v=e_v, e_a=e_a, valid=~invalid)
+    if traj is None:
+        return result
+    # Back from per-pair relative positions to road positions.
+    shift = origin[pair_index] if paired else origin[None, :]
+    return result._replace(x=traj[:, 0] + shift, v=traj[:, 1], a=traj[:, 2])
