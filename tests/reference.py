@@ -16,6 +16,7 @@ MPC is not covered. Everything is float64 / Python floats.
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -81,6 +82,15 @@ PRIORS: dict[str, list[tuple[str, float, float]]] = {
         ("ka", -3.0, 0.0),
         ("l", 3.0, 8.0),
     ],
+    # MPC_uniform.csv
+    "mpc": [
+        ("tau", 0.6, 1.4),
+        ("R", 0.3, 1.7),
+        ("alpha", 0.3, 1.7),
+        ("l", 3.0, 7.0),
+        ("amin", -5.0, -3.0),
+        ("amax", 3.0, 5.0),
+    ],
 }
 
 POINT_MASS_MODELS = ("ovm", "gfm", "fvdm", "idm", "llctg", "llcs")
@@ -100,8 +110,13 @@ def command(
     v_lead: float,
     a: float,
     L: float,
+    dt: float = 0.1,
+    horizon: int = 5,
 ) -> float:
     """Acceleration command ``u`` of one particle (SPEC section 3, table).
+
+    MPC (``dt`` and ``horizon`` are its prediction step and horizon) is solved
+    exactly by :func:`mpc_command`.
 
     ``s = x_l - x`` is the front-to-front spacing, ``dv = v_lead - v``, ``a`` the
     follower's realised acceleration state (used by HL only), ``L`` the leader
@@ -136,6 +151,8 @@ def command(
         if model == "hl":
             tau, _TT, ks, kv, ka, l_gap = p
             return ks * (s - v * tau - l_gap) + kv * dv + ka * a
+        if model == "mpc":
+            return mpc_command(p, s, v, v_lead, dt, horizon)
     except (OverflowError, ValueError, ZeroDivisionError):
         return math.nan
     raise ValueError(f"unknown model {model!r}")
@@ -195,7 +212,7 @@ def simulate_pair(
     for t in range(T - 1):
         # Section 2: the command from the state at t and the leader at t.
         s = float(x_lead[t]) - x[t]
-        u = command(model, theta, s, v[t], float(v_lead[t]), a[t], L)
+        u = command(model, theta, s, v[t], float(v_lead[t]), a[t], L, dt=dt)
         try:
             if is_hl:
                 # Exact zero-order hold of da/dt = (u - a) / TT over one step.
@@ -228,7 +245,9 @@ def simulate_pair(
     if not is_hl:
         # Section 2: at t = T-1 the command at the final state.
         s = float(x_lead[T - 1]) - x[T - 1]
-        a[T - 1] = command(model, theta, s, v[T - 1], float(v_lead[T - 1]), 0.0, L)
+        a[T - 1] = command(
+            model, theta, s, v[T - 1], float(v_lead[T - 1]), 0.0, L, dt=dt
+        )
 
     # Section 2, invalid: any non-finite simulated value, or spacing <= 0, at a
     # valid step.
@@ -354,3 +373,86 @@ if __name__ == "__main__":
     err = max(abs(p - q) for p, q in zip(exact, fine, strict=True))
     print(f"HL exact step vs RK4: max abs diff {err:.2e}")
     assert err < 1e-12
+
+
+# ---------------------------------------------------------------------------- MPC
+def mpc_cost(theta, z0, inputs, dt: float) -> float:
+    """SPEC 3's MPC cost, by simulating the prediction model step by step.
+
+    ``z_{k+1} = A z_k + B u_k``, ``A = [[1, dt], [0, 1]]``,
+    ``B = [-tau dt - dt - dt^2/2, -dt]``; cost
+    ``sum_{k=1..K} z_k' diag(1, alpha) z_k + R sum_k u_k^2``.
+    """
+    tau, R, alpha = theta[0], theta[1], theta[2]
+    b_s, b_v = -tau * dt - dt - dt * dt / 2.0, -dt
+    e, w = float(z0[0]), float(z0[1])
+    cost = 0.0
+    for u in inputs:
+        e, w = e + dt * w + b_s * u, w + b_v * u
+        cost += e * e + alpha * w * w + R * u * u
+    return cost
+
+
+def mpc_qp(theta, z0, dt: float, horizon: int) -> tuple[np.ndarray, np.ndarray]:
+    """Hessian H and gradient g at 0 of :func:`mpc_cost` (exact: it is quadratic)."""
+    zero = np.zeros(horizon)
+    c0 = mpc_cost(theta, z0, zero, dt)
+    unit = np.eye(horizon)
+    single = [mpc_cost(theta, z0, unit[i], dt) for i in range(horizon)]
+    minus = [mpc_cost(theta, z0, -unit[i], dt) for i in range(horizon)]
+    g = np.array([(single[i] - minus[i]) / 2.0 for i in range(horizon)])
+    H = np.empty((horizon, horizon))
+    for i in range(horizon):
+        for j in range(horizon):
+            both = mpc_cost(theta, z0, unit[i] + unit[j], dt)
+            H[i, j] = both - single[i] - single[j] + c0
+    return H, g
+
+
+def solve_box_qp_exact(H, g, lower, upper) -> np.ndarray:
+    """argmin 1/2 u'Hu + g'u on a box, by enumerating active sets (small n only).
+
+    For each assignment of every variable to {free, lower, upper} (fewest active
+    first), solve the reduced system and accept the first point satisfying the
+    KKT conditions; for a strictly convex QP it is the unique minimiser.
+    """
+    n = len(g)
+    assignments = sorted(
+        itertools.product((0, -1, 1), repeat=n), key=lambda a: sum(map(abs, a))
+    )
+    for assignment in assignments:
+        u = np.zeros(n)
+        free = [i for i in range(n) if assignment[i] == 0]
+        for i in range(n):
+            if assignment[i] < 0:
+                u[i] = lower[i]
+            elif assignment[i] > 0:
+                u[i] = upper[i]
+        if free:
+            fixed = [i for i in range(n) if assignment[i] != 0]
+            rhs = -g[free] - H[np.ix_(free, fixed)] @ u[fixed]
+            u[free] = np.linalg.solve(H[np.ix_(free, free)], rhs)
+            tol = 1e-12 * (1.0 + np.abs(u[free]).max())
+            if np.any(u[free] < lower[free] - tol) or np.any(
+                u[free] > upper[free] + tol
+            ):
+                continue
+        gradient = H @ u + g  # = -multiplier; >= 0 at a lower, <= 0 at an upper bound
+        scale = 1e-9 * (1.0 + np.abs(gradient).max())
+        ok = all(
+            (assignment[i] >= 0 or gradient[i] >= -scale)
+            and (assignment[i] <= 0 or gradient[i] <= scale)
+            for i in range(n)
+        )
+        if ok:
+            return u
+    raise RuntimeError("no active set satisfies the KKT conditions")
+
+
+def mpc_command(theta, s: float, v: float, v_lead: float, dt: float, horizon: int):
+    """First input of the exact MPC solution (SPEC section 3)."""
+    tau, _R, _alpha, l_gap, amin, amax = theta
+    z0 = (s - v * tau - l_gap, v_lead - v)
+    H, g = mpc_qp(theta, z0, dt, horizon)
+    lower, upper = np.full(horizon, amin), np.full(horizon, amax)
+    return float(solve_box_qp_exact(H, g, lower, upper)[0])

@@ -108,21 +108,23 @@ def _block(
     params: Any,
     state: FollowerState,
     acc: _Accumulators,
+    memory: Any,
     obs: Tensor,
     pair_index: Tensor | None,
-) -> tuple[FollowerState, _Accumulators, Tensor | None]:
+) -> tuple[FollowerState, _Accumulators, Any, Tensor | None]:
     """Advance ``BLOCK_STEPS`` (= ``obs.shape[0]``) steps of SPEC section 2.
 
     Args:
         model, paired, dt, leader_length, record: static for a compiled block.
-        params: the model's Params, fields broadcast to the state.
+        params: the model's prepared Params, fields broadcast to the state.
         state: follower state at the block's first step, ``(P,)`` or ``(P, N)``.
         acc: streaming sums.
+        memory: what a stateful controller carries between steps (usually None).
         obs: ``(S, N, 6)`` observation table of the block's steps.
         pair_index: ``(P,)`` pair of each particle in the paired layout, else None.
 
     Returns:
-        the state after the block, the sums, and if ``record`` the
+        the state after the block, the sums, the memory, and if ``record`` the
         ``(S, 3, *state_shape)`` stack of simulated x, v and recorded a.
     """
     recorded = []
@@ -135,7 +137,7 @@ def _block(
 
         spacing = x_lead - state.x
         perception = Perception(spacing, state.v, v_lead, state.a, leader_length)
-        command = model.command(params, perception)
+        command, memory = model.command_with_memory(params, perception, memory)
         acc_recorded = state.a if model.acceleration_is_state else command
 
         zero = torch.zeros((), dtype=state.x.dtype, device=state.x.device)
@@ -167,7 +169,7 @@ def _block(
             v=torch.clamp(moved.v, min=0.0),
             a=moved.a,
         )
-    return state, acc, torch.stack(recorded) if record else None
+    return state, acc, memory, torch.stack(recorded) if record else None
 
 
 def _rollout_chunk(
@@ -177,6 +179,7 @@ def _rollout_chunk(
     pair_index: Tensor | None,
     blocks: list[Tensor],
     n_pairs: int,
+    dt: float,
 ) -> tuple[_Accumulators, Tensor | None]:
     """Run one chunk of particles over every block; returns sums and trajectory.
 
@@ -201,13 +204,17 @@ def _rollout_chunk(
         v=initial[..., _V_FOLLOW].contiguous(),
         a=initial[..., _A_FOLLOW].contiguous(),
     )
+    params = model.prepare(params, dt, tuple(state.x.shape))
+    memory = model.initial_memory(params, tuple(state.x.shape))
     zeros = torch.zeros_like(state.x)
     acc = _Accumulators(
         zeros, zeros.clone(), zeros.clone(), torch.zeros_like(zeros, dtype=torch.bool)
     )
     recorded = []
     for block in blocks:
-        state, acc, block_traj = block_fn(params, state, acc, block, pair_index)
+        state, acc, memory, block_traj = block_fn(
+            params, state, acc, memory, block, pair_index
+        )
         if block_traj is not None:
             recorded.append(block_traj)
     return acc, torch.cat(recorded) if recorded else None
@@ -271,7 +278,11 @@ def _compiled_block(
 _COMPILE_FAILED: set[str] = set()
 
 
-def _resolve_compile(compile: CompileMode, device: torch.device, cells: int) -> bool:
+def _resolve_compile(
+    model: CFModel, compile: CompileMode, device: torch.device, cells: int
+) -> bool:
+    if not model.compilable:
+        return False
     if compile == "auto":
         # Compilation costs seconds; it pays on long runs only.
         return cells >= COMPILE_MIN_STEPS and (
@@ -394,7 +405,7 @@ def simulate(
         raise ValueError(f"chunk_size must be positive, got {chunk_size}")
     chunk_size = min(chunk_size, max(n_particles, 1))
     use_compile = _resolve_compile(
-        compile, device, n_particles * cells_per_particle * pairs.n_steps
+        model, compile, device, n_particles * cells_per_particle * pairs.n_steps
     )
     if use_compile:
         chunk_size = -(-chunk_size // COMPILE_CHUNK_MULTIPLE) * COMPILE_CHUNK_MULTIPLE
@@ -430,7 +441,7 @@ def simulate(
             if paired:
                 chunk_index = torch.cat((chunk_index, chunk_index[:1].expand(n_fill)))
         sums, chunk_traj = _rollout_chunk(
-            block_fn, model, chunk_theta, chunk_index, blocks, pairs.n_pairs
+            block_fn, model, chunk_theta, chunk_index, blocks, pairs.n_pairs, pairs.dt
         )
         keep = slice(0, stop - start)
         counts = (n_valid[chunk_index] if paired else n_valid[None, :]).clamp(min=1)

@@ -17,8 +17,21 @@ def perception(spacing, v, v_lead, a=0.0, leader_length=5.0, dtype=torch.float64
     return Perception(as_t(spacing), as_t(v), as_t(v_lead), as_t(a), leader_length)
 
 
+def command_of(model: CFModel, theta, obs: Perception, state_ndim: int = 1, dt=0.1):
+    """``model.command`` after unpacking and preparing ``theta`` as the rollout does."""
+    shape = torch.broadcast_shapes(
+        *(torch.as_tensor(f).shape for f in obs[:4]),
+        (theta.shape[0],) + (1,) * (state_ndim - 1),
+    )
+    params = model.prepare(model.unpack(theta, state_ndim=state_ndim), dt, shape)
+    return model.command(params, obs)
+
+
 class CFModelContract:
     """Shapes, dtype, finiteness over the prior, batch invariance, reference values."""
+
+    #: tolerance against the scalar reference (MPC's iterative solver: 1e-4)
+    rtol = 1e-12
 
     def make_model(self) -> CFModel:
         raise NotImplementedError
@@ -43,8 +56,8 @@ class CFModelContract:
     def test_shape_dtype_and_finite_over_prior(self, model, dtype, state_ndim):
         n_particles, n_pairs = 64, 3
         theta = prior_draws(model, n_particles, dtype=dtype)
-        params = model.unpack(theta, state_ndim=state_ndim)
         shape = (n_particles,) if state_ndim == 1 else (n_particles, n_pairs)
+        params = model.prepare(model.unpack(theta, state_ndim=state_ndim), 0.1, shape)
         generator = torch.Generator().manual_seed(1)
         spacing = 5.5 + 60 * torch.rand(shape, generator=generator, dtype=dtype)
         v = 30 * torch.rand(shape, generator=generator, dtype=dtype)
@@ -62,23 +75,23 @@ class CFModelContract:
         obs = perception(
             torch.linspace(6, 60, 16), torch.linspace(0, 25, 16), 12.0, 0.3
         )
-        batched = model.command(model.unpack(theta), obs)
+        batched = command_of(model, theta, obs)
         for j in range(16):
             single_obs = Perception(
                 *(f[j] if torch.is_tensor(f) and f.ndim else f for f in obs)
             )
-            single = model.command(model.unpack(theta[j : j + 1]), single_obs)
+            single = command_of(model, theta[j : j + 1], single_obs)
             torch.testing.assert_close(batched[j], single[0], rtol=0, atol=0)
 
     def test_full_layout_broadcasts_particles_over_pairs(self, model):
         theta = prior_draws(model, 8)
         spacing = torch.tensor([[10.0, 30.0, 50.0]], dtype=torch.float64)  # (1, N)
         obs = perception(spacing, 15.0, 14.0, 0.2)
-        full = model.command(model.unpack(theta, state_ndim=2), obs)  # (P, N)
+        full = command_of(model, theta, obs, state_ndim=2)  # (P, N)
         assert full.shape == (8, 3)
         for n in range(3):
-            paired = model.command(
-                model.unpack(theta), perception(spacing[0, n], 15.0, 14.0, 0.2)
+            paired = command_of(
+                model, theta, perception(spacing[0, n], 15.0, 14.0, 0.2)
             )
             torch.testing.assert_close(full[:, n], paired)
 
@@ -90,7 +103,7 @@ class CFModelContract:
         v = 35 * torch.rand(32, generator=generator, dtype=torch.float64)
         v_lead = 35 * torch.rand(32, generator=generator, dtype=torch.float64)
         a = 2 * torch.randn(32, generator=generator, dtype=torch.float64)
-        u = model.command(model.unpack(theta), Perception(spacing, v, v_lead, a, 5.0))
+        u = command_of(model, theta, Perception(spacing, v, v_lead, a, 5.0))
         for j in range(32):
             expected = reference_command(
                 model.name,
@@ -100,12 +113,13 @@ class CFModelContract:
                 float(v_lead[j]),
                 float(a[j]),
                 5.0,
+                dt=0.1,
             )
-            assert math.isclose(float(u[j]), expected, rel_tol=1e-12, abs_tol=1e-12)
+            assert math.isclose(
+                float(u[j]), expected, rel_tol=self.rtol, abs_tol=self.rtol
+            )
 
     def test_gradients(self, model):
         theta = prior_draws(model, 4).requires_grad_(True)
         obs = perception([12.0, 25.0, 40.0, 33.0], 14.0, 13.0, 0.1)
-        torch.autograd.gradcheck(
-            lambda th: model.command(model.unpack(th), obs), (theta,)
-        )
+        torch.autograd.gradcheck(lambda th: command_of(model, th, obs), (theta,))

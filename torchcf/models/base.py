@@ -118,6 +118,9 @@ class CFModel:
     #: True when the recorded acceleration is a state of the vehicle (HL's lag) rather
     #: than the command itself (point-mass models).
     acceleration_is_state: ClassVar[bool] = False
+    #: False when the command has data-dependent control flow (MPC's QP solver):
+    #: the rollout then never hands it to ``torch.compile``.
+    compilable: ClassVar[bool] = True
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -145,9 +148,33 @@ class CFModel:
         # in fused kernels; the copy is made once per chunk, not per step.
         return self.Params(*(column.contiguous() for column in columns))
 
+    def prepare(self, p: Any, dt: float, state_shape: tuple[int, ...]) -> Any:
+        """Per-particle precomputation, once per chunk of particles (default: none).
+
+        Whatever it returns is handed to :meth:`command` and :meth:`advance` in place
+        of the unpacked parameters for every step of the chunk (MPC factorises its
+        QP here).
+        """
+        return p
+
     def command(self, p: Any, obs: Perception) -> Tensor:
         """The acceleration command ``u`` [m/s^2], same shape as ``obs.spacing``."""
         raise NotImplementedError
+
+    def initial_memory(self, p: Any, state_shape: tuple[int, ...]) -> Any:
+        """What a stateful controller carries between steps (default: nothing).
+
+        Memory may only make the command cheaper (MPC warm-starts its solver from
+        the previous solution); the command must not depend on it beyond the
+        solver's tolerance.
+        """
+        return None
+
+    def command_with_memory(
+        self, p: Any, obs: Perception, memory: Any
+    ) -> tuple[Tensor, Any]:
+        """The command and the memory for the next step; see :meth:`initial_memory`."""
+        return self.command(p, obs), memory
 
     def advance(
         self, p: Any, state: FollowerState, u: Tensor, dt: float
