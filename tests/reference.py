@@ -417,6 +417,8 @@ def solve_box_qp_exact(H, g, lower, upper) -> np.ndarray:
     KKT conditions; for a strictly convex QP it is the unique minimiser.
     """
     n = len(g)
+    if n > 6:  # 3^n active sets is too many: bounded least squares (scipy's BVLS)
+        return _solve_box_qp_bvls(H, g, lower, upper)
     assignments = sorted(
         itertools.product((0, -1, 1), repeat=n), key=lambda a: sum(map(abs, a))
     )
@@ -447,6 +449,16 @@ def solve_box_qp_exact(H, g, lower, upper) -> np.ndarray:
         if ok:
             return u
     raise RuntimeError("no active set satisfies the KKT conditions")
+
+
+def _solve_box_qp_bvls(H, g, lower, upper) -> np.ndarray:
+    """The same QP as bounded least squares ``||L'u + L^-1 g||^2``, ``H = L L'``."""
+    from scipy.optimize import lsq_linear
+
+    chol = np.linalg.cholesky(H)
+    target = -np.linalg.solve(chol, g)
+    result = lsq_linear(chol.T, target, bounds=(lower, upper), method="bvls", tol=1e-14)
+    return result.x
 
 
 def mpc_command(theta, s: float, v: float, v_lead: float, dt: float, horizon: int):

@@ -43,8 +43,6 @@ from .models import CFModel, FollowerState, Perception, get_model
 
 #: Steps per block function call (the unit that ``torch.compile`` fuses).
 BLOCK_STEPS = 16
-#: Default number of simulated (particle, pair) cells per chunk.
-DEFAULT_CHUNK_CELLS = 1 << 18
 #: Below this many simulated particle-steps, ``compile="auto"`` stays eager: the
 #: one-off compilation (seconds) would cost more than it saves.
 COMPILE_MIN_STEPS = 2e8
@@ -364,8 +362,8 @@ def simulate(
         device: default: theta's device.
         return_traj: also return the simulated ``x, v, a``, time-first.
         weights: score weights of (position, speed, acceleration).
-        chunk_size: particles per chunk; default about ``2**18`` simulated cells. The
-            result does not depend on it.
+        chunk_size: particles per chunk; default ``model.chunk_cells`` simulated
+            cells (``2**18``; MPC ``2**20``). The result does not depend on it.
         compile: fuse the time step with ``torch.compile``: True, False or "auto"
             (only for long CPU runs with a C++ compiler, or CUDA). Falls back to
             eager with a warning if compilation fails.
@@ -400,7 +398,7 @@ def simulate(
             raise ValueError(f"pair_index out of range [0, {pairs.n_pairs})")
     cells_per_particle = 1 if paired else pairs.n_pairs
     if chunk_size is None:
-        chunk_size = max(1, DEFAULT_CHUNK_CELLS // cells_per_particle)
+        chunk_size = max(1, model.chunk_cells // cells_per_particle)
     if chunk_size <= 0:
         raise ValueError(f"chunk_size must be positive, got {chunk_size}")
     chunk_size = min(chunk_size, max(n_particles, 1))

@@ -16,9 +16,11 @@ from .base import (
 )
 from .hdv import FVDM, GFM, IDM, OVM
 from .linear import HL, LLCS, LLCTG
+from .mpc import MPC
 
 MODELS: dict[str, CFModel] = {
-    model.name: model for model in (OVM(), GFM(), FVDM(), IDM(), LLCTG(), LLCS(), HL())
+    model.name: model
+    for model in (OVM(), GFM(), FVDM(), IDM(), LLCTG(), LLCS(), HL(), MPC())
 }
 
 

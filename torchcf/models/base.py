@@ -121,6 +121,9 @@ class CFModel:
     #: False when the command has data-dependent control flow (MPC's QP solver):
     #: the rollout then never hands it to ``torch.compile``.
     compilable: ClassVar[bool] = True
+    #: Simulated cells per chunk when the caller does not choose (memory vs.
+    #: per-step overhead; MPC's per-step solver calls favour big chunks).
+    chunk_cells: ClassVar[int] = 1 << 18
 
     @property
     def param_names(self) -> tuple[str, ...]:

@@ -1,0 +1,562 @@
+"""Batched QP solver: OSQP-form ADMM against exact and OSQP references.
+
+The MPC QPs (SPEC section 3) are checked in bulk against an exact active-set
+enumeration (K = 5: all 3^5 choices of free / lower / upper per input, each one's KKT
+conditions checked), which is itself checked against OSQP at tight tolerances; K = 20
+and general constraint matrices are checked against OSQP directly.
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import NamedTuple
+
+import numpy as np
+import pytest
+import torch
+from torch import Tensor
+
+from torchcf.qp import BoxQP, QPResult, QPSettings, QPStatus, solve_qp_batch
+
+DT = 0.1  # [s]
+#: SPEC section 3 priors (uniform) of the MPC parameters that shape the QP.
+PRIOR = {
+    "tau": (0.6, 1.4),
+    "R": (0.3, 1.7),
+    "alpha": (0.3, 1.7),
+    "amin": (-5.0, -3.0),
+    "amax": (3.0, 5.0),
+}
+DTYPES = (torch.float32, torch.float64)
+#: |u0 - u0_ref| allowed by SPEC section 3 [m/s^2].
+U0_TOL = {torch.float32: 1e-3, torch.float64: 1e-4}
+
+
+def mpc_qp_matrices(
+    tau: Tensor, R: Tensor, alpha: Tensor, dt: float, horizon: int = 5
+) -> tuple[Tensor, Tensor]:
+    """Hessian and linear-term map of the condensed MPC QP (copy of the model's).
+
+    ``z_{k+1} = A z_k + B u_k``, ``A = [[1, dt], [0, 1]]``,
+    ``B = [-tau dt - dt - dt^2/2, -dt]``; the cost
+    ``sum_{k=1..K} z_k' Q z_k + R sum_{k=0..K-1} u_k^2`` is
+    ``1/2 U' H U + (G z0)' U + const``.
+
+    Args:
+        tau, R, alpha: (B,) time gap [s], input weight, speed-error weight.
+        dt: step [s].
+        horizon: K.
+
+    Returns:
+        H: (B, K, K) symmetric positive definite; G: (B, K, 2).
+    """
+    batch = tau.shape[0]
+    dtype, device = tau.dtype, tau.device
+    b1 = -tau * dt - dt - 0.5 * dt * dt  # (B,)
+    b2 = torch.full_like(tau, -dt)  # (B,)
+    gamma = torch.zeros(batch, 2 * horizon, horizon, dtype=dtype, device=device)
+    phi = torch.zeros(2 * horizon, 2, dtype=dtype, device=device)
+    for k in range(1, horizon + 1):
+        phi[2 * (k - 1)] = torch.tensor([1.0, k * dt], dtype=dtype)
+        phi[2 * (k - 1) + 1] = torch.tensor([0.0, 1.0], dtype=dtype)
+        for j in range(k):
+            power = k - 1 - j  # A^power B = [b1 + power dt b2, b2]
+            gamma[:, 2 * (k - 1), j] = b1 + power * dt * b2
+            gamma[:, 2 * (k - 1) + 1, j] = b2
+    weights = torch.stack((torch.ones_like(alpha), alpha), dim=1)  # (B, 2)
+    qbar = weights.repeat(1, horizon)  # (B, 2K) diagonal of Qbar
+    weighted = gamma * qbar[:, :, None]  # (B, 2K, K) = Qbar Gamma
+    eye = torch.eye(horizon, dtype=dtype, device=device)
+    hessian = 2.0 * (gamma.transpose(1, 2) @ weighted + R[:, None, None] * eye)
+    linear = 2.0 * weighted.transpose(1, 2) @ phi  # (B, K, 2)
+    return hessian, linear
+
+
+class MPCBatch(NamedTuple):
+    """A batch of MPC QPs ``min 1/2 U'HU + q'U s.t. lower <= U <= upper`` (float64)."""
+
+    H: Tensor  # (B, K, K)
+    G: Tensor  # (B, K, 2)
+    z0: Tensor  # (B, 2) [spacing error m, dv m/s]
+    tau: Tensor  # (B,)
+    lower: Tensor  # (B, K)
+    upper: Tensor  # (B, K)
+
+    @property
+    def q(self) -> Tensor:
+        return (self.G @ self.z0[:, :, None])[:, :, 0]  # (B, K)
+
+    def take(self, idx: Tensor) -> MPCBatch:
+        return MPCBatch(*(t[idx] for t in self))
+
+
+def mpc_batch(n: int, horizon: int, seed: int) -> MPCBatch:
+    """``n`` MPC QPs with parameters from the SPEC prior.
+
+    ``z0 = [s - v tau - l, dv]`` is a two-part mixture: half from realistic
+    car-following ranges (spacing error in [-30, 40] m, dv in [-8, 8] m/s; about 85 %
+    of these saturate an input), half near equilibrium ([-5, 5] m, [-1.5, 1.5] m/s;
+    mostly interior). About half of the QPs then have active bounds, so both the
+    exact fast path and ADMM are exercised. (The standstill distance l only enters
+    through the spacing error, which is drawn directly.)
+    """
+    generator = torch.Generator().manual_seed(seed)
+
+    def uniform(low: float, high: float, size: int = n) -> Tensor:
+        unit = torch.rand(size, generator=generator, dtype=torch.float64)
+        return low + (high - low) * unit
+
+    p = {name: uniform(*bounds) for name, bounds in PRIOR.items()}
+    H, G = mpc_qp_matrices(p["tau"], p["R"], p["alpha"], DT, horizon)
+    near = torch.arange(n) % 2 == 1
+    spacing_error = torch.where(near, uniform(-5.0, 5.0), uniform(-30.0, 40.0))
+    dv = torch.where(near, uniform(-1.5, 1.5), uniform(-8.0, 8.0))
+    z0 = torch.stack((spacing_error, dv), dim=1)
+    lower = p["amin"][:, None].expand(n, horizon).contiguous()
+    upper = p["amax"][:, None].expand(n, horizon).contiguous()
+    return MPCBatch(H, G, z0, p["tau"], lower, upper)
+
+
+def exact_box_qp(H: Tensor, q: Tensor, lower: Tensor, upper: Tensor) -> Tensor:
+    """Exact minimiser of strictly convex box QPs by active-set enumeration (float64).
+
+    For each of the ``3^n`` patterns (free / at lower / at upper per variable) solve
+    the reduced system and keep the pattern whose point is feasible with multipliers
+    of the right sign: the KKT conditions, which have one solution.
+
+    Returns:
+        (B, n).
+    """
+    batch, n = q.shape
+    solution = torch.full((batch, n), torch.nan, dtype=torch.float64)
+    found = torch.zeros(batch, dtype=torch.bool)
+    tol = 1e-9
+    for pattern in itertools.product((0, 1, 2), repeat=n):
+        at = torch.tensor(pattern)[None, :].expand(batch, n)  # (B, n)
+        at_lower, at_upper = at == 1, at == 2
+        active = at_lower | at_upper
+        free = (~active).double()
+        fixed = torch.where(at_lower, lower, upper) * active
+        system = H * free[:, :, None] * free[:, None, :]
+        system = system + torch.diag_embed(active.double())
+        rhs = fixed + free * (-q - (H @ fixed[:, :, None])[:, :, 0])
+        x = torch.linalg.solve(system, rhs)
+        y = -((H @ x[:, :, None])[:, :, 0] + q) * active  # multipliers
+        kkt = (
+            ((x >= lower - tol) & (x <= upper + tol)).all(1)
+            & ((y <= tol) | ~at_lower).all(1)
+            & ((y >= -tol) | ~at_upper).all(1)
+        )
+        solution[kkt & ~found] = x[kkt & ~found]
+        found |= kkt
+    assert bool(found.all()), "enumeration found no KKT point"
+    return solution
+
+
+def osqp_reference(
+    P: Tensor, q: Tensor, A: Tensor, lower: Tensor, upper: Tensor
+) -> np.ndarray:
+    """OSQP at eps 1e-10 with polishing, one instance at a time (float64)."""
+    osqp = pytest.importorskip("osqp")
+    sparse = pytest.importorskip("scipy.sparse")
+    solutions = []
+    for i in range(q.shape[0]):
+        solver = osqp.OSQP()
+        solver.setup(
+            sparse.triu(sparse.csc_matrix(P[i].double().numpy()), format="csc"),
+            q[i].double().numpy(),
+            sparse.csc_matrix(A[i].double().numpy()),
+            lower[i].double().numpy(),
+            upper[i].double().numpy(),
+            eps_abs=1e-10,
+            eps_rel=1e-10,
+            polish=True,
+            max_iter=1_000_000,
+            verbose=False,
+        )
+        result = solver.solve()
+        assert result.info.status == "solved", result.info.status
+        solutions.append(result.x)
+    return np.stack(solutions)
+
+
+def eye_batch(batch: int, n: int, dtype: torch.dtype = torch.float64) -> Tensor:
+    return torch.eye(n, dtype=dtype).expand(batch, n, n).contiguous()
+
+
+def has_active_bounds(mpc: MPCBatch) -> Tensor:
+    """(B,) True where the unconstrained minimiser violates a bound."""
+    free = -torch.linalg.solve(mpc.H, mpc.q)
+    return ~((free >= mpc.lower) & (free <= mpc.upper)).all(1)
+
+
+def random_feasible_qps(
+    batch: int, n: int, m: int, seed: int
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """General QPs with one-sided, two-sided and equality rows around a feasible x.
+
+    A quarter of the instances have a rank-2 (singular) ``P``.
+    """
+    generator = torch.Generator().manual_seed(seed)
+
+    def normal(*shape: int) -> Tensor:
+        return torch.randn(*shape, generator=generator, dtype=torch.float64)
+
+    factor = normal(batch, n, n)
+    P = factor @ factor.transpose(1, 2) / n
+    low_rank = factor[: batch // 4, :, :2]
+    P[: batch // 4] = low_rank @ low_rank.transpose(1, 2)
+    q = 3.0 * normal(batch, n)
+    A = normal(batch, m, n)
+    ax = (A @ normal(batch, n)[:, :, None])[:, :, 0]  # (B, m) A x_feasible
+    gap = torch.rand(batch, m, 2, generator=generator, dtype=torch.float64)
+    lower, upper = ax - 2.0 * gap[..., 0], ax + 2.0 * gap[..., 1]
+    lower[:, :2] = -torch.inf
+    upper[:, 2:4] = torch.inf
+    equality = torch.arange(batch) % 3 == 0
+    lower[equality, 4] = upper[equality, 4] = ax[equality, 4]
+    return P, q, A, lower, upper
+
+
+# --------------------------------------------------------------------------------------
+# MPC QPs against exact references.
+
+
+@pytest.fixture(scope="module")
+def mpc5() -> tuple[MPCBatch, Tensor]:
+    """10 000 K = 5 MPC QPs and their exact solutions."""
+    mpc = mpc_batch(10_000, horizon=5, seed=11)
+    return mpc, exact_box_qp(mpc.H, mpc.q, mpc.lower, mpc.upper)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_mpc_k5_matches_exact_solution(mpc5, dtype):
+    mpc, exact = mpc5
+    result = BoxQP(mpc.H.to(dtype)).solve(
+        mpc.q.to(dtype), mpc.lower.to(dtype), mpc.upper.to(dtype)
+    )
+    active = has_active_bounds(mpc)
+    err = (result.x[:, 0].double() - exact[:, 0]).abs()
+    report = (
+        f"{dtype}: max |u0 err| {err.max():.2e} over {len(err)} QPs, "
+        f"{int(active.sum())} ({float(active.double().mean()):.0%}) with active "
+        f"bounds, {int(result.polished.sum())} polished, "
+        f"mean ADMM iterations {result.n_iter[active].double().mean():.1f}"
+    )
+    assert float(active.double().mean()) >= 0.2, report
+    assert bool((result.status == QPStatus.SOLVED).all()), report
+    assert float(err.max()) <= U0_TOL[dtype], report
+    assert bool((result.n_iter[~active] == 0).all()), "fast path missed: " + report
+    assert result.x.dtype == dtype
+
+
+def test_enumeration_agrees_with_osqp(mpc5):
+    mpc, exact = mpc5
+    idx = torch.arange(500)
+    sub = mpc.take(idx)
+    reference = osqp_reference(sub.H, sub.q, eye_batch(500, 5), sub.lower, sub.upper)
+    assert float(has_active_bounds(sub).double().mean()) >= 0.2
+    np.testing.assert_allclose(exact[idx].numpy(), reference, rtol=0, atol=1e-7)
+
+
+@pytest.fixture(scope="module")
+def mpc20() -> tuple[MPCBatch, np.ndarray]:
+    mpc = mpc_batch(500, horizon=20, seed=12)
+    eye = eye_batch(500, 20)
+    return mpc, osqp_reference(mpc.H, mpc.q, eye, mpc.lower, mpc.upper)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_mpc_k20_matches_osqp(mpc20, dtype):
+    mpc, reference = mpc20
+    result = BoxQP(mpc.H.to(dtype)).solve(
+        mpc.q.to(dtype), mpc.lower.to(dtype), mpc.upper.to(dtype)
+    )
+    active = has_active_bounds(mpc)
+    err = (result.x[:, 0].double() - torch.from_numpy(reference[:, 0])).abs()
+    report = (
+        f"{dtype}: max |u0 err| {err.max():.2e} over {len(err)} QPs, "
+        f"{int(active.sum())} ({float(active.double().mean()):.0%}) with active bounds"
+    )
+    assert float(active.double().mean()) >= 0.2, report
+    assert bool((result.status == QPStatus.SOLVED).all()), report
+    assert float(err.max()) <= U0_TOL[dtype], report
+
+
+# --------------------------------------------------------------------------------------
+# Batch invariance, fast path, warm start, index.
+
+
+def assert_same_result(batched: QPResult, alone: QPResult, atol: float) -> None:
+    torch.testing.assert_close(batched.x, alone.x, rtol=0, atol=atol)
+    torch.testing.assert_close(batched.y, alone.y, rtol=0, atol=atol)
+    assert torch.equal(batched.status, alone.status)
+    assert torch.equal(batched.n_iter, alone.n_iter)
+
+
+def test_box_qp_batched_equals_one_by_one():
+    mpc = mpc_batch(32, horizon=5, seed=3)
+    batched = BoxQP(mpc.H).solve(mpc.q, mpc.lower, mpc.upper)
+    assert 0 < int((batched.n_iter > 0).sum()) < 32  # both paths are covered
+    for i in range(32):
+        one = slice(i, i + 1)
+        alone = BoxQP(mpc.H[one]).solve(mpc.q[one], mpc.lower[one], mpc.upper[one])
+        assert_same_result(QPResult(*(t[one] for t in batched)), alone, atol=1e-12)
+
+
+def test_general_batched_equals_one_by_one():
+    P, q, A, lower, upper = random_feasible_qps(24, n=6, m=10, seed=4)
+    batched = solve_qp_batch(P, q, A, lower, upper)
+    assert bool((batched.status == QPStatus.SOLVED).all())
+    for i in range(24):
+        one = slice(i, i + 1)
+        alone = solve_qp_batch(P[one], q[one], A[one], lower[one], upper[one])
+        assert_same_result(QPResult(*(t[one] for t in batched)), alone, atol=1e-12)
+
+
+def test_fast_path_agrees_with_admm():
+    mpc = mpc_batch(400, horizon=5, seed=5)
+    lower, upper = mpc.lower.clone(), mpc.upper.clone()
+    lower[:50], upper[:50] = -torch.inf, torch.inf  # unconstrained
+    lower[50:100, 2:] = -torch.inf  # one-sided rows
+    fast = BoxQP(mpc.H).solve(mpc.q, lower, upper)
+    admm = solve_qp_batch(mpc.H, mpc.q, eye_batch(400, 5), lower, upper)
+    on_fast_path = fast.n_iter == 0
+    assert int(on_fast_path.sum()) > 100
+    assert bool((admm.n_iter > 0).all())
+    assert bool((fast.status == QPStatus.SOLVED).all())
+    assert bool((admm.status == QPStatus.SOLVED).all())
+    torch.testing.assert_close(fast.x, admm.x, rtol=0, atol=1e-9)
+    torch.testing.assert_close(fast.y, admm.y, rtol=0, atol=1e-8)
+    unconstrained = -torch.linalg.solve(mpc.H, mpc.q)
+    torch.testing.assert_close(BoxQP(mpc.H).unconstrained(mpc.q), unconstrained)
+    torch.testing.assert_close(fast.x[:50], unconstrained[:50])
+
+
+def test_warm_start_from_shifted_plan_lowers_iterations():
+    """The receding-horizon warm start of the MPC: next step, shifted previous plan."""
+    mpc = mpc_batch(2000, horizon=5, seed=6)
+    solver = BoxQP(mpc.H)
+    first = solver.solve(mpc.q, mpc.lower, mpc.upper)
+    # One step of the prediction model (leader acceleration drawn, not zero).
+    u0 = first.x[:, 0]
+    generator = torch.Generator().manual_seed(7)
+    a_lead = 0.3 * torch.randn(2000, generator=generator, dtype=torch.float64)
+    spacing_error = (
+        mpc.z0[:, 0] + DT * mpc.z0[:, 1] + (-mpc.tau * DT - DT - 0.5 * DT**2) * u0
+    )
+    dv = mpc.z0[:, 1] - DT * u0 + DT * a_lead
+    nxt = mpc._replace(z0=torch.stack((spacing_error, dv), dim=1))
+
+    def shift(v: Tensor) -> Tensor:
+        return torch.cat((v[:, 1:], v[:, -1:]), dim=1)
+
+    cold = solver.solve(nxt.q, nxt.lower, nxt.upper)
+    warm = solver.solve(
+        nxt.q, nxt.lower, nxt.upper, x0=shift(first.x), y0=shift(first.y)
+    )
+    admm = (cold.n_iter > 0) | (warm.n_iter > 0)
+    cold_mean = float(cold.n_iter[admm].double().mean())
+    warm_mean = float(warm.n_iter[admm].double().mean())
+    assert warm_mean < 0.9 * cold_mean, (warm_mean, cold_mean)
+    assert bool((warm.status == QPStatus.SOLVED).all())
+    torch.testing.assert_close(warm.x, cold.x, rtol=0, atol=1e-9)
+
+
+def test_warm_start_from_perturbed_solution_lowers_iterations():
+    P, q, A, lower, upper = random_feasible_qps(64, n=6, m=10, seed=8)
+    generator = torch.Generator().manual_seed(9)
+    perturbed = q + 0.01 * torch.randn(q.shape, generator=generator, dtype=q.dtype)
+    previous = solve_qp_batch(P, perturbed, A, lower, upper)
+    cold = solve_qp_batch(P, q, A, lower, upper)
+    warm = solve_qp_batch(P, q, A, lower, upper, x0=previous.x, y0=previous.y)
+    assert float(warm.n_iter.double().mean()) < 0.8 * float(cold.n_iter.double().mean())
+    torch.testing.assert_close(warm.x, cold.x, rtol=0, atol=1e-8)
+
+
+def test_index_solves_the_gathered_sub_batch():
+    mpc = mpc_batch(50, horizon=5, seed=10)
+    idx = torch.tensor([3, 7, 8, 20, 21, 33, 41, 49])
+    sub = mpc.take(idx)
+    via_index = BoxQP(mpc.H).solve(sub.q, sub.lower, sub.upper, index=idx)
+    gathered = BoxQP(sub.H).solve(sub.q, sub.lower, sub.upper)
+    assert_same_result(via_index, gathered, atol=1e-12)
+    torch.testing.assert_close(
+        BoxQP(mpc.H).unconstrained(sub.q, index=idx), BoxQP(sub.H).unconstrained(sub.q)
+    )
+
+
+# --------------------------------------------------------------------------------------
+# General constraints, infeasibility, status.
+
+
+def test_general_qps_match_osqp():
+    P, q, A, lower, upper = random_feasible_qps(60, n=6, m=10, seed=13)
+    result = solve_qp_batch(P, q, A, lower, upper)
+    reference = osqp_reference(P, q, A, lower, upper)
+    assert bool((result.status == QPStatus.SOLVED).all())
+    np.testing.assert_allclose(result.x.numpy(), reference, rtol=0, atol=1e-4)
+    # z is A x projected onto the bounds.
+    ax = (A @ result.x[:, :, None])[:, :, 0]
+    torch.testing.assert_close(result.z, torch.clamp(ax, lower, upper))
+
+
+def test_primal_infeasible():
+    """x1 + x2 >= 3 and x1 + x2 <= 1."""
+    P = torch.eye(2, dtype=torch.float64)[None]
+    A = torch.tensor([[[1.0, 1.0], [1.0, 1.0]]], dtype=torch.float64)
+    lower = torch.tensor([[3.0, -torch.inf]], dtype=torch.float64)
+    upper = torch.tensor([[torch.inf, 1.0]], dtype=torch.float64)
+    q = torch.tensor([[1.0, -1.0]], dtype=torch.float64)
+    result = solve_qp_batch(P, q, A, lower, upper)
+    assert int(result.status[0]) == QPStatus.PRIMAL_INFEASIBLE
+    certificate = result.y[0]  # A'y = 0 and u'y+ + l'y- < 0
+    assert float((A[0].T @ certificate).abs().max()) < 1e-6
+    assert (
+        float(certificate[1].clamp(min=0) * 1.0 + certificate[0].clamp(max=0) * 3.0) < 0
+    )
+
+
+def test_dual_infeasible():
+    """P = 0, q = (-1, 0) and nothing bounds x1: the objective is unbounded below."""
+    P = torch.zeros(1, 2, 2, dtype=torch.float64)
+    q = torch.tensor([[-1.0, 0.0]], dtype=torch.float64)
+    A = torch.tensor([[[0.0, 1.0]]], dtype=torch.float64)
+    lower = torch.tensor([[-1.0]], dtype=torch.float64)
+    upper = torch.tensor([[1.0]], dtype=torch.float64)
+    result = solve_qp_batch(P, q, A, lower, upper)
+    assert int(result.status[0]) == QPStatus.DUAL_INFEASIBLE
+    torch.testing.assert_close(result.x[0], torch.tensor([1.0, 0.0], dtype=P.dtype))
+
+
+def mixed_batch() -> tuple[Tensor, ...]:
+    """Easy, hard (ill-conditioned), primal and dual infeasible QPs, n = m = 2."""
+    inf = torch.inf
+    P = torch.tensor(
+        [
+            [[1.0, 0.0], [0.0, 1.0]],  # easy
+            [[1e4, 0.0], [0.0, 1e-2]],  # hard: condition number 1e6
+            [[1.0, 0.0], [0.0, 1.0]],  # primal infeasible
+            [[0.0, 0.0], [0.0, 0.0]],  # dual infeasible
+        ],
+        dtype=torch.float64,
+    )
+    q = torch.tensor(
+        [[0.1, -0.2], [1.0, -1.0], [1.0, -1.0], [-1.0, 0.0]], dtype=torch.float64
+    )
+    A = torch.tensor(
+        [
+            [[1.0, 0.0], [0.0, 1.0]],
+            [[1.0, 1.0], [1.0, -1.0]],
+            [[1.0, 1.0], [1.0, 1.0]],
+            [[0.0, 1.0], [0.0, 1.0]],
+        ],
+        dtype=torch.float64,
+    )
+    lower = torch.tensor(
+        [[-1.0, -1.0], [-inf, -50.0], [3.0, -inf], [-1.0, -inf]], dtype=torch.float64
+    )
+    upper = torch.tensor(
+        [[1.0, 1.0], [1.0, 50.0], [inf, 1.0], [1.0, 2.0]], dtype=torch.float64
+    )
+    return P, q, A, lower, upper
+
+
+def test_mixed_batch_reports_status_and_iterations_per_instance():
+    P, q, A, lower, upper = mixed_batch()
+    result = solve_qp_batch(P, q, A, lower, upper)
+    expected = [
+        QPStatus.SOLVED,
+        QPStatus.SOLVED,
+        QPStatus.PRIMAL_INFEASIBLE,
+        QPStatus.DUAL_INFEASIBLE,
+    ]
+    assert result.status.tolist() == [int(s) for s in expected]
+    assert int(result.n_iter[0]) < int(result.n_iter[1])  # easy before hard
+    for i in range(4):
+        one = slice(i, i + 1)
+        alone = solve_qp_batch(P[one], q[one], A[one], lower[one], upper[one])
+        assert torch.equal(alone.status, result.status[one])
+        assert torch.equal(alone.n_iter, result.n_iter[one])
+    # The solved ones are right.
+    reference = osqp_reference(P[:2], q[:2], A[:2], lower[:2], upper[:2])
+    np.testing.assert_allclose(result.x[:2].numpy(), reference, rtol=0, atol=1e-6)
+    # Cut the iterations: the hard instance stops at MAX_ITER, the others do not.
+    short = solve_qp_batch(P, q, A, lower, upper, settings=QPSettings(max_iter=10))
+    assert int(short.status[0]) == QPStatus.SOLVED
+    assert int(short.status[1]) == QPStatus.MAX_ITER
+    assert int(short.n_iter[1]) == 10
+
+
+def test_equality_constrained_qp_matches_kkt_solve():
+    generator = torch.Generator().manual_seed(14)
+    batch, n, m = 16, 6, 3
+    factor = torch.randn(batch, n, n, generator=generator, dtype=torch.float64)
+    P = factor @ factor.transpose(1, 2) / n + 0.1 * torch.eye(n, dtype=torch.float64)
+    q = torch.randn(batch, n, generator=generator, dtype=torch.float64)
+    A = torch.randn(batch, m, n, generator=generator, dtype=torch.float64)
+    b = torch.randn(batch, m, generator=generator, dtype=torch.float64)
+    kkt = torch.cat(
+        (
+            torch.cat((P, A.transpose(1, 2)), dim=2),
+            torch.cat((A, torch.zeros(batch, m, m, dtype=torch.float64)), dim=2),
+        ),
+        dim=1,
+    )
+    solution = torch.linalg.solve(kkt, torch.cat((-q, b), dim=1))
+    result = solve_qp_batch(P, q, A, b, b)
+    assert bool((result.status == QPStatus.SOLVED).all())
+    torch.testing.assert_close(result.x, solution[:, :n], rtol=0, atol=1e-8)
+    torch.testing.assert_close(result.y, solution[:, n:], rtol=0, atol=1e-7)
+
+
+# --------------------------------------------------------------------------------------
+# Dtype, device, settings.
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_output_dtypes(dtype):
+    mpc = mpc_batch(40, horizon=5, seed=15)
+    P, q, A, lower, upper = random_feasible_qps(8, n=6, m=10, seed=16)
+    results = (
+        BoxQP(mpc.H.to(dtype)).solve(
+            mpc.q.to(dtype), mpc.lower.to(dtype), mpc.upper.to(dtype)
+        ),
+        solve_qp_batch(
+            P.to(dtype), q.to(dtype), A.to(dtype), lower.to(dtype), upper.to(dtype)
+        ),
+    )
+    for result in results:
+        assert result.x.dtype == result.y.dtype == result.z.dtype == dtype
+        assert result.n_iter.dtype == result.status.dtype == torch.int64
+        assert result.polished.dtype == torch.bool
+        assert bool((result.status == QPStatus.SOLVED).all())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_matches_cpu():
+    mpc = mpc_batch(256, horizon=5, seed=17)
+    cpu = BoxQP(mpc.H).solve(mpc.q, mpc.lower, mpc.upper)
+    device = torch.device("cuda")
+    gpu = BoxQP(mpc.H.to(device)).solve(
+        mpc.q.to(device), mpc.lower.to(device), mpc.upper.to(device)
+    )
+    assert gpu.x.device.type == "cuda"
+    torch.testing.assert_close(gpu.x.cpu(), cpu.x, rtol=0, atol=1e-9)
+    P, q, A, lower, upper = (t.to(device) for t in mixed_batch())
+    assert solve_qp_batch(P, q, A, lower, upper).status.tolist() == [0, 0, 2, 3]
+
+
+def test_settings_are_validated():
+    with pytest.raises(ValueError, match="alpha"):
+        QPSettings(alpha=2.5)
+    with pytest.raises(ValueError):
+        QPSettings(rho=0.0)
+    with pytest.raises(ValueError, match="shape"):
+        BoxQP(torch.eye(3)[None]).solve(
+            torch.zeros(1, 2), torch.zeros(1, 2), torch.ones(1, 2)
+        )
+    with pytest.raises(ValueError, match="lower bound"):
+        BoxQP(torch.eye(2)[None]).solve(
+            torch.zeros(1, 2), torch.ones(1, 2), torch.zeros(1, 2)
+        )
