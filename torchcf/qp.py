@@ -17,8 +17,11 @@ Two entry points:
 
 - :func:`solve_qp_batch` for a general ``A: (B, m, n)``;
 - :class:`BoxQP` for ``A = I``, which factorises once per ``P`` and reuses the factors
-  for every ``(q, l, u)``; instances whose unconstrained minimiser is inside the box
-  skip ADMM altogether.
+  for every ``(q, l, u)``. Before ADMM it tries two exact shortcuts: the unconstrained
+  minimiser, and an exact solve on the active set it guesses (from the warm start or
+  from the bounds the unconstrained minimiser violates), corrected by a few
+  primal-dual active-set steps and kept only where the KKT conditions hold. On the
+  MPC QPs these finish nearly every instance, so ADMM is the fallback.
 
 Internally every tensor is *batch-last* (``(n, B)``, ``(n, n, B)``): a matrix-vector
 product is then ``n`` fused multiply-adds over contiguous ``B``-vectors, about four
@@ -26,10 +29,21 @@ times faster on CPU than ``bmm`` with ``5 x 5`` matrices, and the explicit Chole
 below is a loop over ``n`` of elementwise operations over the batch instead of one
 LAPACK call per matrix. The public API is batch-first.
 
-Finished instances are frozen by writing them out at the check where they finish and
-dropping them from the working set (compaction). That keeps their converged value, as
-``torch.where(running[:, None], new, old)`` would, and also stops paying for their
-iterations, which ``torch.where`` (it evaluates both branches) would not.
+Finished instances are frozen by writing them out at the check where they finish;
+the working set is compacted once a fifth of it has finished. That keeps their
+converged value, as ``torch.where(running[:, None], new, old)`` would, and also stops
+paying for their iterations, which ``torch.where`` (it evaluates both branches) would
+not.
+
+Numerics worth knowing:
+
+- Relative tolerances are raised by ``_ROUNDOFF_ULPS`` machine epsilons: in float32
+  the residuals of badly scaled instances (``|q| ~ 500``) bottom out near 1e-5
+  relative, and ADMM would otherwise run to max_iter on round-off. An instance whose
+  residuals stall for ``_STALL_CHECKS`` checks is accepted at ``_STALL_ULPS``
+  epsilons. Both floors are negligible in float64.
+- Polishing and the active-set stage accept a point only if it satisfies the KKT
+  conditions to round-off, so their answers are exact, not ADMM-accurate.
 """
 
 from __future__ import annotations
@@ -37,7 +51,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import torch
 from torch import Tensor
@@ -54,6 +68,8 @@ _POLISH_DELTA = 1e-6
 _POLISH_REFINE = 3
 #: Polish attempts per instance (the first from ADMM's active set, then corrections).
 _POLISH_PASSES = 4
+#: Exact active-set solves per instance in BoxQP's second stage.
+_ACTIVE_SET_PASSES = 5
 #: Relative tolerances are raised by this many machine epsilons (see :func:`_admm`).
 _ROUNDOFF_ULPS = 100
 #: Compact the ADMM working set once this fraction of it has finished.
@@ -135,9 +151,11 @@ class QPResult(NamedTuple):
         y: (B, m) multipliers of ``l <= Ax <= u``: positive where the upper bound is
             active, negative where the lower one is (``Px + q + A'y = 0``).
         z: (B, m) ``Ax`` projected onto ``[l, u]``.
-        n_iter: (B,) int64 ADMM iterations (0 for BoxQP's exact fast path).
+        n_iter: (B,) int64 ADMM iterations (0 where BoxQP's fast path or active-set
+            stage solved the instance).
         status: (B,) int64 :class:`QPStatus` values.
-        polished: (B,) bool, True where the returned point is the accepted polish.
+        polished: (B,) bool, True where the returned point is an exact solve on an
+            active set (the polish after ADMM, or BoxQP's active-set stage).
     """
 
     x: Tensor
@@ -182,12 +200,6 @@ def _put_(t: Tensor, idx: Tensor, src: Tensor) -> Tensor:
     """Replace instances ``idx`` of contiguous batch-last ``t`` by ``src``, in place."""
     t.view(-1, t.shape[-1]).index_copy_(1, idx, src.reshape(-1, idx.numel()))
     return t
-
-
-def _eye_like(M: Tensor) -> Tensor:
-    """(n, n, 1) identity that broadcasts against ``M: (n, n, B)``."""
-    n = M.shape[0]
-    return torch.eye(n, dtype=M.dtype, device=M.device)[:, :, None]
 
 
 def _cholesky(M: Tensor, strict: bool = True) -> tuple[Tensor, Tensor]:
@@ -342,10 +354,8 @@ class _Outcome(NamedTuple):
     y: Tensor
     n_iter: Tensor  # (B,)
     status: Tensor  # (B,)
-    prim_res: Tensor  # (B,) residuals and tolerances at the last check
+    prim_res: Tensor  # (B,) residuals at the last check
     dual_res: Tensor
-    prim_tol: Tensor
-    dual_tol: Tensor
 
 
 def _admm_step(
@@ -389,7 +399,8 @@ def _primal_certificate(data: _Data, dy: Tensor, eps: float) -> tuple[Tensor, Te
     dy = torch.where(no_upper, dy.clamp(max=0), dy)
     dy = torch.where(no_lower, dy.clamp(min=0), dy)
     norm = _inf_norm(dy)
-    # Zero the infinite bounds where they meet a zero entry: 1e30 * 0 stays 0.
+    # After the projection an infinite bound only meets zero entries; the where
+    # keeps +-1e30 * 0 out of the sum all the same.
     upper = torch.where(no_upper, torch.zeros_like(dy), data.u * dy.clamp(min=0))
     lower = torch.where(no_lower, torch.zeros_like(dy), data.l * dy.clamp(max=0))
     support = (upper + lower).sum(0)
@@ -451,8 +462,6 @@ def _admm(
         "status": torch.full((batch,), int(QPStatus.MAX_ITER), device=device),
         "prim_res": zeros.clone(),
         "dual_res": zeros.clone(),
-        "prim_tol": zeros.clone(),
-        "dual_tol": zeros.clone(),
     }
     # Residuals below about a hundred ulps of the quantities they difference are
     # round-off (float32 reaches it on badly scaled instances): never ask for less.
@@ -468,7 +477,7 @@ def _admm(
     running = torch.ones(batch, dtype=torch.bool, device=device)
     rho_vec = _rho_vector(rho, data)
     done_iter = 0
-    while done_iter < settings.max_iter:
+    while batch and done_iter < settings.max_iter:
         steps = min(settings.check_every, settings.max_iter - done_iter)
         for _ in range(steps - 1):
             state = _admm_step(data, state, rho_vec, inverse, settings)
@@ -500,10 +509,10 @@ def _admm(
         prim_inf, prim_cert = _primal_certificate(
             data, state.y - previous.y, settings.eps_prim_inf
         )
-        prim_inf &= ~prim_ok
+        prim_inf &= ~prim_ok & ~solved  # OSQP tests it only while not converged
         dual_cert = state.x - previous.x
         dual_inf = _dual_certificate(data, dual_cert, settings.eps_dual_inf)
-        dual_inf &= ~dual_ok & ~prim_inf
+        dual_inf &= ~dual_ok & ~solved & ~prim_inf
 
         finished = solved | prim_inf | dual_inf
         if done_iter >= settings.max_iter:
@@ -524,13 +533,8 @@ def _admm(
             out_z[:, where] = state.z[:, rows]
             out["status"][where] = status
             out["n_iter"][where] = done_iter
-            for name, value in (
-                ("prim_res", prim_res),
-                ("dual_res", dual_res),
-                ("prim_tol", prim_tol),
-                ("dual_tol", dual_tol),
-            ):
-                out[name][where] = value[rows]
+            out["prim_res"][where] = prim_res[rows]
+            out["dual_res"][where] = dual_res[rows]
             running[rows] = False
             n_running = int(running.sum())
             if not n_running:
@@ -580,13 +584,22 @@ def _active_set(data: _Data, z: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
     return lower | (equality & ~upper), upper
 
 
-def _polish_box(data: _Data, lower: Tensor, upper: Tensor) -> tuple[Tensor, Tensor]:
+def _polish_box(
+    data: _Data, lower: Tensor, upper: Tensor, definite: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
     """Exact solve with the active variables fixed at their bounds (A = I).
 
     With ``F`` the free variables: ``P_FF x_F = -q_F - P_FA x_A``. The system is
     written at full size, the active rows and columns replaced by the identity, so the
-    whole batch is one Cholesky; ``P_FF + delta I`` is factorised (``P`` may be only
-    semidefinite) and iterative refinement removes the ``delta``.
+    whole batch is one Cholesky. Where ``P`` may be only semidefinite,
+    ``P_FF + delta I`` is factorised and iterative refinement removes the ``delta``
+    (OSQP's polish); where ``P`` is known to be definite, ``P_FF`` is factorised as
+    it is and one solve is exact.
+
+    Args:
+        data: the problems (``A is None``).
+        lower, upper: (n, B) bool, the variables fixed at each bound.
+        definite: optional (B,) bool, True where ``P`` is positive definite.
 
     Returns:
         x: (n, B); y: (n, B) multipliers, ``-(Px + q)`` on active rows, 0 elsewhere.
@@ -594,20 +607,20 @@ def _polish_box(data: _Data, lower: Tensor, upper: Tensor) -> tuple[Tensor, Tens
     active = lower | upper
     free = (~active).to(data.P.dtype)  # (n, B)
     fixed = torch.where(lower, data.l, data.u) * active  # (n, B) x_A, 0 where free
-    mask = free[:, None, :] * free[None, :, :]  # (n, n, B)
-    reduced = data.P * mask  # P_FF, zero elsewhere
-    regular = reduced.clone()
-    diag = torch.where(active, torch.ones_like(free), _POLISH_DELTA * free)  # (n, B)
-    torch.diagonal(regular, 0, 0, 1).add_(diag.T)
+    # [P_FF + delta, 0; 0, I]: P_FF in place, identity on the active rows/columns.
+    regular = data.P * free[:, None, :]
+    regular.mul_(free[None, :, :])
+    delta = free * _POLISH_DELTA  # (n, B)
+    if definite is not None:
+        delta = delta * ~definite
+    torch.diagonal(regular, 0, 0, 1).add_((active + delta).T)
     L, _ = _cholesky(regular, False)
     rhs = fixed + free * (-data.q - _mv(data.P, fixed))
-
-    def apply(v: Tensor) -> Tensor:  # the unregularised reduced operator
-        return _mv(reduced, v) + active * v
-
     x = _cholesky_solve(L, rhs)
-    for _ in range(_POLISH_REFINE):
-        x = x + _cholesky_solve(L, rhs - apply(x))
+    if definite is None or not bool(definite.all()):
+        for _ in range(_POLISH_REFINE):
+            residual = rhs - _mv(regular, x) + delta * x  # of the exact system
+            x = x + _cholesky_solve(L, residual)
     y = -(_mv(data.P, x) + data.q) * active
     return x, y
 
@@ -650,84 +663,158 @@ def _polish_general(data: _Data, lower: Tensor, upper: Tensor) -> tuple[Tensor, 
     return sol[:n], sol[n:]
 
 
-def _polish(data: _Data, outcome: _Outcome) -> tuple[_Outcome, Tensor]:
-    """Polish the SOLVED instances; keep the ADMM point where polishing fails.
+class _Refined(NamedTuple):
+    """Accepted exact solutions: ``rows`` of the batch and their iterate."""
 
-    The polished point is accepted per instance only if its residuals are no larger
-    than the ADMM point's (or below a round-off floor) and every active multiplier has
-    the sign of its bound (a wrong sign means the guessed active set was wrong).
-    A rejected instance gets up to ``_POLISH_PASSES - 1`` more tries, each after one
-    primal-dual active-set correction (Hintermueller, Ito & Kunisch 2002): bounds with
-    a wrong-signed multiplier are freed and bounds the polished point violates are
-    fixed. ADMM's guess usually misses only weakly active bounds (multipliers near
-    its tolerance), which one correction repairs.
+    rows: Tensor  # (b,) int64
+    x: Tensor  # (n, b)
+    z: Tensor  # (m, b)
+    y: Tensor  # (m, b)
 
-    Returns:
-        the outcome with accepted points replaced, and polished: (B,) bool.
+
+def _refine(
+    data: _Data,
+    lower: Tensor,
+    upper: Tensor,
+    settings: QPSettings,
+    passes: int,
+    prim_ref: Tensor | None = None,
+    dual_ref: Tensor | None = None,
+    definite: Tensor | None = None,
+) -> _Refined:
+    """Exact solves on a guessed active set, accepted per instance if optimal.
+
+    A solution is accepted if its primal and dual residuals (OSQP's) are below
+    ``prim_ref`` / ``dual_ref`` or a round-off floor, and every active multiplier
+    has the sign of its bound up to that floor (a wrong sign means the guessed active
+    set was wrong): then it satisfies the KKT conditions. A rejected instance gets up
+    to ``passes - 1`` more tries, each after one primal-dual active-set step
+    (Hintermueller, Ito & Kunisch 2002): bounds with a wrong-signed multiplier are
+    freed and bounds the solution violates are fixed.
+
+    Args:
+        data: the problems.
+        lower, upper: (m, B) bool, the guessed active bounds.
+        settings: for the tolerances that cap the round-off floor.
+        passes: solves per instance at most.
+        prim_ref, dual_ref: optional (B,) residuals to beat (default: the floor).
+        definite: optional (B,) bool, P positive definite (box problems only).
     """
-    batch = data.q.shape[-1]
-    polished = torch.zeros(batch, dtype=torch.bool, device=data.q.device)
-    rows = (outcome.status == QPStatus.SOLVED).nonzero().squeeze(1)
-    if not rows.numel():
-        return outcome, polished
-    out_x, out_z, out_y = outcome.x.clone(), outcome.z.clone(), outcome.y.clone()
-    sub = data.take(rows)
-    lower, upper = _active_set(sub, outcome.z[:, rows], outcome.y[:, rows])
-    ulp = 100 * torch.finfo(data.q.dtype).eps
-    for attempt in range(_POLISH_PASSES):
-        if sub.A is None:
-            x, y = _polish_box(sub, lower, upper)
+    rows = torch.arange(data.q.shape[-1], device=data.q.device)
+    ulp = torch.finfo(data.q.dtype).eps
+    eps_rel = settings.eps_rel + _ROUNDOFF_ULPS * ulp
+    accepted: list[_Refined] = []
+    for attempt in range(passes):
+        if data.A is None:
+            x, y = _polish_box(data, lower, upper, definite)
         else:
-            x, y = _polish_general(sub, lower, upper)
-        ax = sub.Ax(x)
-        z = torch.clamp(ax, sub.l, sub.u)
-        px, aty = _mv(sub.P, x), sub.Aty(y)
+            x, y = _polish_general(data, lower, upper)
+        ax = data.Ax(x)
+        z = torch.clamp(ax, data.l, data.u)
+        px, aty = _mv(data.P, x), data.Aty(y)
         prim_res = _inf_norm(ax - z)
-        dual_res = _inf_norm(px + sub.q + aty)
-        # Round-off floor of the residuals: a few ulps of the quantities they cancel.
+        dual_res = _inf_norm(px + data.q + aty)
+        # Round-off floor: a hundred ulps of the quantities the residuals difference,
+        # capped at the termination tolerance.
+        prim_scale = torch.maximum(_inf_norm(ax), _inf_norm(z))
+        dual_scale = torch.maximum(_inf_norm(px), _inf_norm(data.q))
+        dual_scale = torch.maximum(dual_scale, _inf_norm(aty))
         prim_floor = torch.minimum(
-            ulp * (1 + torch.maximum(_inf_norm(ax), _inf_norm(z))),
-            outcome.prim_tol[rows],
+            100 * ulp * (1 + prim_scale), settings.eps_abs + eps_rel * prim_scale
         )
         dual_floor = torch.minimum(
-            ulp * (1 + torch.maximum(_inf_norm(px), _inf_norm(sub.q))),
-            outcome.dual_tol[rows],
+            100 * ulp * (1 + dual_scale), settings.eps_abs + eps_rel * dual_scale
         )
-        equality = sub.l == sub.u
-        wrong_sign = (lower & (y > 0)) | (upper & (y < 0))  # (m, B)
-        sign_error = torch.where(wrong_sign & ~equality, y.abs(), 0).amax(0)
+        prim_bound, dual_bound = prim_floor, dual_floor
+        if prim_ref is not None and dual_ref is not None:
+            prim_bound = torch.maximum(prim_floor, prim_ref)
+            dual_bound = torch.maximum(dual_floor, dual_ref)
+        equality = data.l == data.u
+        wrong_sign = ((lower & (y > 0)) | (upper & (y < 0))) & ~equality  # (m, B)
+        sign_error = torch.where(wrong_sign, y.abs(), 0).amax(0)
         accept = (
-            (prim_res <= torch.maximum(outcome.prim_res[rows], prim_floor))
-            & (dual_res <= torch.maximum(outcome.dual_res[rows], dual_floor))
+            (prim_res <= prim_bound)
+            & (dual_res <= dual_bound)
             & (sign_error <= dual_floor)
             & torch.isfinite(x).all(0)
             & torch.isfinite(y).all(0)
         )
-        take = rows[accept]
-        out_x[:, take], out_z[:, take], out_y[:, take] = (
-            x[:, accept],
-            z[:, accept],
-            y[:, accept],
-        )
-        polished[take] = True
+        take = accept.nonzero().squeeze(1)
+        if take.numel():
+            accepted.append(
+                _Refined(rows[take], _take(x, take), _take(z, take), _take(y, take))
+            )
         retry = (~accept).nonzero().squeeze(1)
-        if not retry.numel() or attempt == _POLISH_PASSES - 1:
+        if not retry.numel() or attempt == passes - 1:
             break
-        # The active-set correction, on the rejected instances only.
-        lower = (lower & ~(wrong_sign & ~equality)) | (ax < sub.l)
-        upper = (upper & ~(wrong_sign & ~equality)) | (ax > sub.u)
-        upper &= ~lower
-        rows, sub = rows[retry], sub.take(retry)
-        lower, upper = lower[:, retry], upper[:, retry]
-    return outcome._replace(x=out_x, z=out_z, y=out_y), polished
+        # The active-set step, on the rejected instances only.
+        lower = (lower & ~wrong_sign) | (ax < data.l)
+        upper = ((upper & ~wrong_sign) | (ax > data.u)) & ~lower
+        rows, data = rows[retry], data.take(retry)
+        lower, upper = _take(lower, retry), _take(upper, retry)
+        if prim_ref is not None and dual_ref is not None:
+            prim_ref, dual_ref = prim_ref[retry], dual_ref[retry]
+        if definite is not None:
+            definite = definite[retry]
+    if not accepted:
+        empty = data.q[:, :0]
+        return _Refined(rows[:0], empty, data.l[:, :0], data.l[:, :0])
+    return _Refined(*(torch.cat(parts, -1) for parts in zip(*accepted, strict=True)))
+
+
+def _polish(
+    data: _Data,
+    outcome: _Outcome,
+    settings: QPSettings,
+    definite: Tensor | None = None,
+) -> tuple[_Outcome, Tensor]:
+    """OSQP's polish of the SOLVED instances; the ADMM point stays where it fails.
+
+    The active set is guessed from the ADMM iterate (:func:`_active_set`) and
+    :func:`_refine` must beat the ADMM point's residuals. ADMM's guess usually misses
+    only weakly active bounds (multipliers near its tolerance), which one active-set
+    step repairs.
+
+    Returns:
+        the outcome with accepted points replaced, and polished: (B,) bool.
+    """
+    polished = torch.zeros_like(outcome.n_iter, dtype=torch.bool)
+    rows = (outcome.status == QPStatus.SOLVED).nonzero().squeeze(1)
+    if not rows.numel():
+        return outcome, polished
+    sub = data.take(rows)
+    lower, upper = _active_set(sub, _take(outcome.z, rows), _take(outcome.y, rows))
+    refined = _refine(
+        sub,
+        lower,
+        upper,
+        settings,
+        _POLISH_PASSES,
+        outcome.prim_res[rows],
+        outcome.dual_res[rows],
+        None if definite is None else definite[rows],
+    )
+    take = rows[refined.rows]
+    polished[take] = True
+    return outcome._replace(
+        x=outcome.x.index_copy(-1, take, refined.x),
+        z=outcome.z.index_copy(-1, take, refined.z),
+        y=outcome.y.index_copy(-1, take, refined.y),
+    ), polished
 
 
 def _solve(
-    data: _Data, state: _State, rho: Tensor, inverse: Tensor, settings: QPSettings
+    data: _Data,
+    state: _State,
+    rho: Tensor,
+    inverse: Tensor,
+    settings: QPSettings,
+    definite: Tensor | None = None,
 ) -> tuple[_Outcome, Tensor]:
+    """ADMM, then the polish if the settings ask for it."""
     outcome = _admm(data, state, rho, inverse, settings)
     if settings.polish:
-        return _polish(data, outcome)
+        return _polish(data, outcome, settings, definite)
     return outcome, torch.zeros_like(outcome.n_iter, dtype=torch.bool)
 
 
@@ -735,8 +822,12 @@ def _start(data: _Data, x0: Tensor | None, y0: Tensor | None, n: int, m: int) ->
     """Starting iterate (batch-last): ``x0`` or 0, ``y0`` or 0, ``z = proj(A x)``."""
     batch = data.q.shape[-1]
     like = data.q
-    x = like.new_zeros(n, batch) if x0 is None else x0.T.to(like.dtype).clone()
-    y = like.new_zeros(m, batch) if y0 is None else y0.T.to(like.dtype).clone()
+    # A plain clone() of the transposed input would keep its (1, n) strides and slow
+    # every later elementwise operation; the copy must be contiguous batch-last.
+    dense = torch.contiguous_format
+    x = like.new_zeros(n, batch) if x0 is None else x0.T.to(like.dtype)
+    y = like.new_zeros(m, batch) if y0 is None else y0.T.to(like.dtype)
+    x, y = x.clone(memory_format=dense), y.clone(memory_format=dense)
     z = torch.clamp(data.Ax(x), data.l, data.u)
     return _State(x, z, y)
 
@@ -755,14 +846,12 @@ def _check(name: str, t: Tensor | None, shape: tuple[int, ...]) -> None:
         raise ValueError(f"{name} has shape {tuple(t.shape)}, expected {shape}")
 
 
-def _result(outcome: _Outcome, polished: Tensor) -> QPResult:
+def _result(
+    x: Tensor, y: Tensor, z: Tensor, n_iter: Tensor, status: Tensor, polished: Tensor
+) -> QPResult:
+    """Batch-first, contiguous result from batch-last iterates."""
     return QPResult(
-        x=outcome.x.T,
-        y=outcome.y.T,
-        z=outcome.z.T,
-        n_iter=outcome.n_iter,
-        status=outcome.status,
-        polished=polished,
+        x.T.contiguous(), y.T.contiguous(), z.T.contiguous(), n_iter, status, polished
     )
 
 
@@ -815,7 +904,10 @@ def solve_qp_batch(
     rho = q.new_full((batch,), settings.rho)
     inverse = _kkt_inverse(data, _rho_vector(rho, data), settings.sigma)
     state = _start(data, x0, y0, n, m)
-    return _result(*_solve(data, state, rho, inverse, settings))
+    outcome, polished = _solve(data, state, rho, inverse, settings)
+    return _result(
+        outcome.x, outcome.y, outcome.z, outcome.n_iter, outcome.status, polished
+    )
 
 
 class BoxQP:
@@ -830,19 +922,22 @@ class BoxQP:
     Args:
         P: (B, n, n) symmetric positive semidefinite (definite for the fast path).
         settings: solver settings; default :class:`QPSettings()`.
+
+    Attributes:
+        P: (B, n, n) the Hessians as given.
+        settings: the solver settings.
     """
 
     def __init__(self, P: Tensor, settings: QPSettings | None = None) -> None:
         if P.ndim != 3 or P.shape[1] != P.shape[2]:
             raise ValueError(f"P must be (B, n, n), got {tuple(P.shape)}")
         self.settings = settings or QPSettings()
-        self.P = P
+        self.P = P  # (B, n, n) as given
         self._P = P.permute(1, 2, 0).contiguous()  # (n, n, B)
         self._p_inverse, self._definite = _spd_inverse(self._P)
-        eye = _eye_like(self._P)
-        self._kkt, _ = _spd_inverse(
-            self._P + (self.settings.sigma + self.settings.rho) * eye
-        )
+        kkt = self._P.clone()
+        torch.diagonal(kkt, 0, 0, 1).add_(self.settings.sigma + self.settings.rho)
+        self._kkt, _ = _spd_inverse(kkt)
 
     @property
     def batch_size(self) -> int:
@@ -865,7 +960,7 @@ class BoxQP:
         inverse = self._p_inverse
         if index is not None:
             inverse = _take(inverse, index)
-        return -_mv(inverse, q.T).T
+        return -_mv(inverse, q.T.to(inverse.dtype)).T
 
     def solve(
         self,
@@ -876,24 +971,41 @@ class BoxQP:
         x0: Tensor | None = None,
         y0: Tensor | None = None,
         index: Tensor | None = None,
+        method: Literal["auto", "admm"] = "auto",
     ) -> QPResult:
         """Solve the instances ``index`` (default: all) for the given ``q, l, u``.
 
-        Instances whose unconstrained minimiser ``-P^{-1} q`` lies in ``[l, u]`` get it
-        directly (SOLVED, ``n_iter = 0``, ``y = 0``, not ``polished``); ADMM runs on the
-        rest only.
+        ``method="auto"`` runs three stages, each on what the previous one left:
+
+        1. exact fast path: where ``-P^{-1} q`` lies in ``[l, u]`` it is the solution
+           (SOLVED, ``n_iter = 0``, ``y = 0``, not ``polished``);
+        2. active set: the bounds that ``-P^{-1} q`` violates (or, with ``x0``, the
+           bounds ``x0`` sits on) are fixed and the reduced system solved exactly,
+           with up to ``_ACTIVE_SET_PASSES - 1`` primal-dual active-set corrections
+           (Hintermueller, Ito & Kunisch 2002); a solution is kept only where it
+           satisfies the KKT conditions to round-off (SOLVED, ``n_iter = 0``,
+           ``polished``). On the MPC QPs this finishes almost every instance;
+        3. ADMM and polish (:func:`solve_qp_batch`) on the rest, started from
+           ``x0, y0``; without ``y0``, from ``x0`` (or ``-P^{-1} q``) clipped to
+           the box, with the multipliers ``-(Px + q)`` on its rows at a bound.
+
+        ``method="admm"`` runs stage 3 alone, from ``x0, y0`` or zeros as OSQP does:
+        the same result as ``solve_qp_batch`` with ``A = I``.
 
         Args:
             q: (b, n) with ``b = B`` or ``len(index)``.
             l, u: (b, n) bounds, ``-inf`` / ``+inf`` allowed.
-            x0, y0: (b, n) optional warm start (ignored by the fast path).
+            x0, y0: (b, n) optional warm start (the MPC passes its previous plan,
+                shifted by one step, as ``x0`` alone).
             index: optional (b,) int64 rows of the batch to solve; the cached factors
                 are gathered.
+            method: "auto" or "admm", see above.
 
         Returns:
             :class:`QPResult` with ``b`` rows.
         """
-        settings = self.settings
+        if method not in ("auto", "admm"):
+            raise ValueError(f"method must be 'auto' or 'admm', got {method!r}")
         n = self.n
         batch = self.batch_size if index is None else index.shape[0]
         for name, t in (("q", q), ("l", l), ("u", u), ("x0", x0), ("y0", y0)):
@@ -904,67 +1016,100 @@ class BoxQP:
         dtype = p_inverse.dtype
         lower, upper = _bounds(l, u, dtype)
         q_t = q.T.to(dtype).contiguous()
+        x0_t = None if x0 is None else x0.T.to(dtype).contiguous()
+        y0_t = None if y0 is None else y0.T.to(dtype).contiguous()
 
-        # Exact fast path: the unconstrained minimiser is feasible, hence optimal.
         x_free = -_mv(p_inverse, q_t)  # (n, b)
-        inside = definite & ((x_free >= lower) & (x_free <= upper)).all(0)
         x, z, y = x_free.clone(), x_free.clone(), torch.zeros_like(x_free)
         n_iter = torch.zeros(batch, dtype=torch.int64, device=q.device)
         status = torch.full_like(n_iter, int(QPStatus.SOLVED))
         polished = torch.zeros(batch, dtype=torch.bool, device=q.device)
+        if method == "auto":
+            # Stage 1: the unconstrained minimiser is feasible, hence optimal.
+            inside = definite & ((x_free >= lower) & (x_free <= upper)).all(0)
+            rest = (~inside).nonzero().squeeze(1)
+        else:
+            rest = torch.arange(batch, device=q.device)
+        if not rest.numel():
+            return _result(x, y, z, n_iter, status, polished)
 
-        rest = (~inside).nonzero().squeeze(1)
-        if rest.numel():
-            cached = rest if index is None else index[rest]
-            data = _Data(
-                _take(self._P, cached),
-                q_t[:, rest],
-                None,
-                lower[:, rest],
-                upper[:, rest],
-            )
-            rho = q_t.new_full((rest.numel(),), settings.rho)
-            kkt = _take(self._kkt, cached)
-            # Equality or free rows change rho_vec: refactorise those instances only.
-            special = (~_uniform_rows(data)).nonzero().squeeze(1)
-            if special.numel():
-                sub = data.take(special)
-                sub_kkt = _kkt_inverse(
-                    sub, _rho_vector(rho[special], sub), settings.sigma
-                )
-                _put_(kkt, special, sub_kkt)
-            if x0 is None and y0 is None:
-                state = self._default_start(data, x_free[:, rest], definite[rest])
-            else:
-                state = _start(
-                    data,
-                    None if x0 is None else x0[rest],
-                    None if y0 is None else y0[rest],
-                    n,
-                    n,
-                )
-            outcome, sub_polished = _solve(data, state, rho, kkt, settings)
-            x[:, rest], z[:, rest], y[:, rest] = outcome.x, outcome.z, outcome.y
-            n_iter[rest] = outcome.n_iter
-            status[rest] = outcome.status
-            polished[rest] = sub_polished
-        return QPResult(
-            x=x.T, y=y.T, z=z.T, n_iter=n_iter, status=status, polished=polished
+        cached = rest if index is None else index[rest]
+        data = _Data(
+            _take(self._P, cached), q_t[:, rest], None, lower[:, rest], upper[:, rest]
         )
+        if method == "auto":
+            # Stage 2: exact solves on the guessed active set.
+            guess = x_free[:, rest] if x0_t is None else x0_t[:, rest]
+            strict = x0_t is None  # x0 sits on its bounds; -P^{-1} q violates them
+            at_lower = guess < data.l if strict else guess <= data.l
+            at_upper = (guess > data.u if strict else guess >= data.u) & ~at_lower
+            refined = _refine(
+                data,
+                at_lower,
+                at_upper,
+                self.settings,
+                _ACTIVE_SET_PASSES,
+                definite=definite[rest],
+            )
+            done = rest[refined.rows]
+            x[:, done], z[:, done], y[:, done] = refined.x, refined.z, refined.y
+            polished[done] = True
+            left = torch.ones(rest.numel(), dtype=torch.bool, device=q.device)
+            left[refined.rows] = False
+            keep = left.nonzero().squeeze(1)
+            if not keep.numel():
+                return _result(x, y, z, n_iter, status, polished)
+            rest, cached, data = rest[keep], cached[keep], data.take(keep)
 
-    @staticmethod
-    def _default_start(data: _Data, x_free: Tensor, definite: Tensor) -> _State:
-        """The clipped unconstrained minimiser and the multipliers of its clipped rows.
+        # Stage 3: ADMM and polish.
+        settings = self.settings
+        rho = q_t.new_full((rest.numel(),), settings.rho)
+        kkt = _take(self._kkt, cached)
+        # Equality or free rows change rho_vec: refactorise those instances only.
+        special = (~_uniform_rows(data)).nonzero().squeeze(1)
+        if special.numel():
+            sub = data.take(special)
+            sub_kkt = _kkt_inverse(sub, _rho_vector(rho[special], sub), settings.sigma)
+            _put_(kkt, special, sub_kkt)
+        if method == "admm" or y0_t is not None:
+            state = _start(
+                data,
+                None if x0 is None else x0[rest],
+                None if y0 is None else y0[rest],
+                n,
+                n,
+            )
+        else:
+            point = x_free[:, rest] if x0_t is None else x0_t[:, rest]
+            usable = definite[rest] if x0_t is None else torch.ones_like(definite[rest])
+            state = _dual_feasible_start(data, point, usable)
+        outcome, sub_polished = _solve(
+            data, state, rho, kkt, settings, definite=definite[rest]
+        )
+        x[:, rest], z[:, rest], y[:, rest] = outcome.x, outcome.z, outcome.y
+        n_iter[rest] = outcome.n_iter
+        status[rest] = outcome.status
+        polished[rest] = sub_polished
+        return _result(x, y, z, n_iter, status, polished)
 
-        ``y = -(Px + q)`` on the clipped rows makes the start dual feasible; it costs
-        one matrix-vector product and saves ADMM about a fifth of its iterations on
-        the MPC QP (more with a well-chosen rho).
-        """
-        x = torch.clamp(x_free, data.l, data.u)
-        x = torch.where(definite[None], x, torch.zeros_like(x))  # x_free is garbage
-        clipped = x != x_free
-        y = torch.where(clipped, -(_mv(data.P, x) + data.q), torch.zeros_like(x))
-        return _State(x, x.clone(), y)
+
+def _dual_feasible_start(data: _Data, point: Tensor, usable: Tensor) -> _State:
+    """ADMM start (A = I): ``point`` clipped to the box, and the multipliers
+    ``y = -(Px + q)`` on the rows at a bound, which make it dual feasible.
+
+    Costs one matrix-vector product and saves ADMM about a fifth of its iterations
+    on the MPC QP against a start from zeros.
+
+    Args:
+        data: the problems.
+        point: (n, B) the point to clip (``-P^{-1} q`` or the warm start).
+        usable: (B,) bool, False where ``point`` is garbage (singular ``P``): zeros.
+    """
+    x = torch.clamp(point, data.l, data.u)
+    x = torch.where(usable[None], x, torch.zeros_like(x))
+    at_bound = (x <= data.l) | (x >= data.u)
+    y = torch.where(at_bound, -(_mv(data.P, x) + data.q), torch.zeros_like(x))
+    return _State(x, x.clone(), y)
 
 
 __all__ = ["INFTY", "BoxQP", "QPResult", "QPSettings", "QPStatus", "solve_qp_batch"]

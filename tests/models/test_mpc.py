@@ -164,8 +164,8 @@ def test_first_input_against_osqp_on_10000_instances(dtype, tol):
 
 @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-4), (torch.float32, 1e-3)])
 def test_admm_alone_meets_the_accuracy(dtype, tol):
-    """Without the active-set stage every constrained instance goes through ADMM."""
-    model = MPC(active_set_steps=0)
+    """With method="admm" every constrained instance goes through ADMM."""
+    model = MPC(method="admm")
     theta, obs = _random_mpc_states(model, 1500, seed=5, dtype=dtype)
     u0 = command_of(model, theta, obs)
     reference, active_share = _osqp_first_inputs(theta, obs)
@@ -176,5 +176,5 @@ def test_admm_alone_meets_the_accuracy(dtype, tol):
 def test_stages_agree():
     theta, obs = _random_mpc_states(MODELS["mpc"], 2000, seed=9, dtype=torch.float64)
     with_active_set = command_of(MODELS["mpc"], theta, obs)
-    admm_only = command_of(MPC(active_set_steps=0), theta, obs)
+    admm_only = command_of(MPC(method="admm"), theta, obs)
     torch.testing.assert_close(with_active_set, admm_only, atol=1e-5, rtol=0)

@@ -18,7 +18,7 @@ step warm-starts from the previous solution shifted by one step.
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import torch
 from torch import Tensor
@@ -66,97 +66,6 @@ def mpc_qp_matrices(
     return hessian, linear
 
 
-# --------------------------------------------------------------------------------------
-# The active-set stage between the fast path and ADMM.
-class ActiveSetResult(NamedTuple):
-    """Outcome of :func:`solve_box_active_set`.
-
-    Attributes:
-        x: (b, n) last iterate.
-        y: (b, n) multipliers (positive at an active upper bound, negative at a lower).
-        solved: (b,) bool, True where ``x`` satisfies the KKT conditions exactly
-            (up to rounding): the active set was found.
-        n_steps: (b,) int64 active-set steps taken.
-    """
-
-    x: Tensor
-    y: Tensor
-    solved: Tensor
-    n_steps: Tensor
-
-
-def solve_box_active_set(
-    P: Tensor,
-    q: Tensor,
-    l: Tensor,  # noqa: E741
-    u: Tensor,
-    x: Tensor,
-    *,
-    max_steps: int = 8,
-) -> ActiveSetResult:
-    """Primal-dual active-set method for ``min 1/2 x'Px + q'x s.t. l <= x <= u``.
-
-    Hintermueller, Ito & Kunisch (2002), a semismooth Newton method: with the
-    multiplier ``y = -(Px + q)`` on the active set, step k guesses
-    ``upper = {y + c (x - u) > 0}``, ``lower = {y + c (x - l) < 0}`` (``c = diag P``
-    makes the test unit-free), fixes those variables at their bound, solves the
-    reduced system exactly for the free ones and stops when the guess is
-    self-consistent and the KKT conditions hold. On the small, strictly convex box
-    QPs of MPC it finds the exact solution in two or three steps from the clipped
-    unconstrained minimiser; instances it does not settle are left to ADMM.
-
-    Args:
-        P: (b, n, n) symmetric positive definite.
-        q, l, u: (b, n).
-        x: (b, n) starting point (e.g. the unconstrained minimiser, or the last
-            step's solution).
-        max_steps: active-set steps at most.
-
-    Returns:
-        :class:`ActiveSetResult`.
-    """
-    n = q.shape[1]
-    eye = torch.eye(n, dtype=P.dtype, device=P.device).expand_as(P)
-    scale = torch.diagonal(P, dim1=1, dim2=2)  # (b, n)
-    y = torch.zeros_like(q)
-    tol = 1e-10 if q.dtype == torch.float64 else 1e-5
-    solved = torch.zeros(q.shape[0], dtype=torch.bool, device=q.device)
-    n_steps = torch.zeros(q.shape[0], dtype=torch.int64, device=q.device)
-    for _ in range(max_steps):
-        at_upper = y + scale * (x - u) > 0  # (b, n)
-        at_lower = (y + scale * (x - l) < 0) & ~at_upper
-        active = at_upper | at_lower
-        fixed = torch.where(at_upper, u, torch.where(at_lower, l, torch.zeros_like(x)))
-        # Reduced system, kept n x n and symmetric positive definite: the rows and
-        # columns of fixed variables become identity, their values move to the
-        # right-hand side.
-        free_pair = ~active[:, :, None] & ~active[:, None, :]
-        reduced = torch.where(free_pair, P, eye)
-        rhs = torch.where(active, fixed, -q - _bmv(P, fixed))
-        factor, info = torch.linalg.cholesky_ex(reduced)
-        step = torch.cholesky_solve(rhs[:, :, None], factor).squeeze(-1)
-        step = torch.where(active, fixed, step)
-        gradient = _bmv(P, step) + q
-        x_new = torch.where(solved[:, None], x, step)
-        y = torch.where(solved[:, None], y, torch.where(active, -gradient, 0.0))
-        x = x_new
-        n_steps += (~solved).long()
-        # KKT: primal feasible, multipliers of the right sign, stationary (by
-        # construction on the free set).
-        slack = tol * (1.0 + x.abs())
-        feasible = ((x >= l - slack) & (x <= u + slack)).all(1)
-        signs = ((~at_upper | (y >= -slack)) & (~at_lower | (y <= slack))).all(1)
-        solved = solved | (feasible & signs & (info == 0))
-        if bool(solved.all()):
-            break
-    return ActiveSetResult(x=x, y=y, solved=solved, n_steps=n_steps)
-
-
-def _bmv(M: Tensor, v: Tensor) -> Tensor:
-    """Batch-first matrix-vector product: (b, r, c) x (b, c) -> (b, r)."""
-    return (M @ v[:, :, None]).squeeze(-1)
-
-
 class MPCParams(NamedTuple):
     tau: Tensor
     R: Tensor
@@ -184,7 +93,6 @@ class MPCMemory(NamedTuple):
     """The last step's solution; shifted by one step it warm-starts the next."""
 
     inputs: Tensor  # (C, K)
-    duals: Tensor  # (C, K), zero where no bound was active
 
 
 #: Solver settings: tight enough that u_0 meets SPEC's 1e-4 (float64) / 1e-3
@@ -196,14 +104,15 @@ class MPC(CFModel):
     """Model predictive controller with a constant-time-gap spacing policy.
 
     Every step solves the QP in three stages, each exact where it applies: the
-    unconstrained minimiser where it lies inside the box; else a few primal-dual
-    active-set steps (:func:`solve_box_active_set`); else warm-started ADMM
-    (:class:`~torchcf.qp.BoxQP`).
+    unconstrained minimiser where it lies inside the box (a precomputed linear map
+    of ``z_0``); else :class:`~torchcf.qp.BoxQP`'s active-set steps; else its
+    warm-started ADMM.
 
     Args:
         horizon: prediction horizon K [steps].
         settings: ADMM settings.
-        active_set_steps: active-set steps before ADMM takes over (0: ADMM only).
+        method: ``"auto"`` (the stages above) or ``"admm"`` (ADMM alone after the
+            fast path; for testing the solver).
     """
 
     name = "mpc"
@@ -223,13 +132,15 @@ class MPC(CFModel):
         self,
         horizon: int = 5,
         settings: QPSettings | None = None,
-        active_set_steps: int = 8,
+        method: Literal["auto", "admm"] = "auto",
     ) -> None:
         if horizon < 1:
             raise ValueError(f"MPC horizon must be >= 1, got {horizon}")
         self.horizon = int(horizon)
         self.settings = settings or MPC_QP_SETTINGS
-        self.active_set_steps = int(active_set_steps)
+        if method not in ("auto", "admm"):
+            raise ValueError(f"method must be 'auto' or 'admm', got {method!r}")
+        self.method = method
 
     def prepare(
         self, p: MPCParams, dt: float, state_shape: tuple[int, ...]
@@ -272,54 +183,29 @@ class MPC(CFModel):
         )  # (C, K)
         lowest, highest = torch.aminmax(inputs, dim=1)
         outside = (lowest < q.amin) | (highest > q.amax)
-        duals = (
-            torch.zeros_like(inputs)
-            if memory is None
-            else memory.duals.masked_fill(~outside[:, None], 0.0)
-        )
         rest = outside.nonzero().squeeze(1)
         if rest.numel():
             z0 = torch.stack((spacing_error[rest], speed_difference[rest]), dim=1)
             linear_term = torch.einsum("ckj,cj->ck", p.linear[rest], z0)  # (b, K)
             bound_shape = (rest.numel(), self.horizon)
-            lower = q.amin[rest, None].expand(bound_shape)
-            upper = q.amax[rest, None].expand(bound_shape)
-            # Active-set steps from the unconstrained minimiser settle almost every
-            # instance exactly; ADMM only gets the few they do not.
-            settled = solve_box_active_set(
-                p.solver.P.index_select(0, rest),
-                linear_term,
-                lower,
-                upper,
-                inputs[rest],
-                max_steps=self.active_set_steps,
-            )
-            inputs = inputs.index_copy(0, rest, settled.x)
-            duals = duals.index_copy(0, rest, settled.y)
-            keep = ~settled.solved
-            rest, linear_term = rest[keep], linear_term[keep]
-            lower, upper = lower[keep], upper[keep]
-            bound_shape = (rest.numel(), self.horizon)
-        if rest.numel():
             warm = None
             if memory is not None:
-                # Receding horizon: the rest of the last plan is this step's guess.
+                # Receding horizon: the rest of the last plan is this step's guess
+                # (BoxQP derives the duals from it, which starts ADMM better than
+                # shifted duals would).
                 last = memory.inputs[rest]
                 warm = torch.cat((last[:, 1:], last[:, -1:]), dim=1)
-                last_duals = memory.duals[rest]
-                warm_duals = torch.cat((last_duals[:, 1:], last_duals[:, -1:]), dim=1)
             result = p.solver.solve(
                 linear_term,
-                lower,
-                upper,
+                q.amin[rest, None].expand(bound_shape),
+                q.amax[rest, None].expand(bound_shape),
                 x0=warm,
-                y0=None if memory is None else warm_duals,
                 index=rest,
+                method=self.method,
             )
             inputs = inputs.index_copy(0, rest, result.x)
-            duals = duals.index_copy(0, rest, result.y)
         command = inputs[:, 0].reshape(p.state_shape)
-        return command, MPCMemory(inputs=inputs, duals=duals)
+        return command, MPCMemory(inputs=inputs)
 
     def command(self, p: Any, obs: Perception) -> Tensor:
         return self.command_with_memory(p, obs, None)[0]
