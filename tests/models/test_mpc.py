@@ -8,7 +8,8 @@ import torch
 
 from tests.conftest import prior_draws, synthetic_pairs
 from tests.models.contract import CFModelContract, command_of, perception
-from tests.reference import mpc_qp, simulate_pair
+from tests.reference import mpc_qp
+from tests.test_sim import reference as pair_reference
 from torchcf import simulate
 from torchcf.models import MODELS
 from torchcf.models.mpc import MPC, mpc_qp_matrices
@@ -75,17 +76,7 @@ def test_rollout_matches_exact_reference(dtype, tol):
     out = simulate("mpc", theta.to(dtype), pairs, return_traj=True)
     for j in range(3):
         for n in range(2):
-            series = [
-                s[:, n].numpy()
-                for s in (
-                    pairs.x_lead,
-                    pairs.v_lead,
-                    pairs.x_follow,
-                    pairs.v_follow,
-                    pairs.a_follow,
-                )
-            ]
-            ref = simulate_pair("mpc", theta[j].tolist(), *series, pairs.dt, 5.0)
+            ref = pair_reference("mpc", theta[j], pairs, n)
             assert bool(out.valid[j, n]) == ref["valid"]
             np.testing.assert_allclose(
                 out.a[:, j, n].double().numpy(), ref["a"], atol=tol
