@@ -152,15 +152,16 @@ class MPC(CFModel):
         hessian, linear = mpc_qp_matrices(
             flat.tau, flat.R, flat.alpha, dt, self.horizon
         )
+        solver = BoxQP(hessian, self.settings)
         # The unconstrained minimiser is linear in z_0: U* = -H^{-1} G z_0. With
-        # this (K, 2) map per cell the common case costs two multiply-adds per input.
-        free_map = -torch.linalg.solve(hessian, linear)  # (C, K, 2)
+        # this (K, 2) map per cell (from the solver's cached inverse) the common
+        # case costs two multiply-adds per input.
         return MPCPrepared(
             params=flat,
-            solver=BoxQP(hessian, self.settings),
+            solver=solver,
             linear=linear,
-            free_spacing=free_map[:, :, 0].contiguous(),
-            free_speed=free_map[:, :, 1].contiguous(),
+            free_spacing=solver.unconstrained(linear[:, :, 0]).contiguous(),
+            free_speed=solver.unconstrained(linear[:, :, 1]).contiguous(),
             state_shape=tuple(state_shape),
         )
 
