@@ -603,3 +603,127 @@ def test_settings_are_validated():
         BoxQP(torch.eye(2)[None]).solve(
             torch.zeros(1, 2), torch.ones(1, 2), torch.zeros(1, 2)
         )
+
+
+# --------------------------------------------------------------------------------------
+# Internals of the box-QP stages: each against a dense solve of its own.
+
+
+def _random_spd(batch: int, n: int, seed: int, dtype=torch.float64) -> Tensor:
+    """(n, n, B) batch-last symmetric positive definite matrices."""
+    generator = torch.Generator().manual_seed(seed)
+    root = torch.randn(batch, n, n, generator=generator, dtype=dtype)
+    spd = root @ root.transpose(1, 2) + n * torch.eye(n, dtype=dtype)
+    return spd.permute(1, 2, 0).contiguous()
+
+
+@pytest.mark.parametrize("batch", [3, 200])  # LAPACK path and elementwise path
+def test_cholesky_factors_and_flags_singular(batch):
+    from torchcf.qp import _cholesky, _cholesky_solve, _ul_cholesky
+
+    n = 6
+    M = _random_spd(batch, n, 0)
+    M[:, :, 0] = 0.0  # instance 0 is singular: zero row and column
+    L, ok = _cholesky(M)
+    assert not bool(ok[0]) and bool(ok[1:].all())
+    dense = M.permute(2, 0, 1)[1:]
+    lower = torch.tril(L.permute(2, 0, 1)[1:])
+    torch.testing.assert_close(lower @ lower.transpose(1, 2), dense)
+    U, ok_upper = _ul_cholesky(M)
+    upper = torch.triu(U.permute(2, 0, 1)[1:])
+    torch.testing.assert_close(upper @ upper.transpose(1, 2), dense)
+    assert bool((ok_upper == ok).all())
+    rhs = torch.randn(n, batch, dtype=M.dtype)
+    x = _cholesky_solve(L, rhs)[:, 1:]
+    torch.testing.assert_close(dense @ x.T[:, :, None], rhs[:, 1:].T[:, :, None])
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_leading_solve_matches_the_reduced_system(dtype):
+    """x_F = P_FF^{-1} (-q_F - P_FA x_A) for a leading block A of every length."""
+    from torchcf.qp import _is_leading, _Leading, _leading_solve, _ul_cholesky
+
+    n, batch = 7, 64
+    generator = torch.Generator().manual_seed(3)
+    P = _random_spd(batch, n, 1)
+    q = 10 * torch.randn(n, batch, generator=generator, dtype=torch.float64)
+    lo = -torch.rand(n, batch, generator=generator, dtype=torch.float64)
+    hi = torch.rand(n, batch, generator=generator, dtype=torch.float64)
+    depth = torch.arange(batch) % (n + 1)  # 0 .. n fixed rows
+    active = torch.arange(n)[:, None] < depth[None]
+    side = torch.rand(n, batch, generator=generator) < 0.5
+    lower, upper = active & side, active & ~side
+    assert bool(_is_leading(active).all())
+    U, ok = _ul_cholesky(P.to(dtype))
+    assert bool(ok.all())
+    data = _Leading(U, q.to(dtype), lo.to(dtype), hi.to(dtype))
+    x, y, px = _leading_solve(data, lower, upper)
+    for b in range(batch):
+        k = int(depth[b])
+        Pb, qb = P[:, :, b], q[:, b]
+        fixed = torch.where(lower[:, b], lo[:, b], hi[:, b])[:k]
+        expect = torch.empty(n, dtype=torch.float64)
+        expect[:k] = fixed
+        if k < n:
+            rhs = -qb[k:] - Pb[k:, :k] @ fixed
+            expect[k:] = torch.linalg.solve(Pb[k:, k:], rhs)
+        tol = 1e-10 if dtype == torch.float64 else 2e-4
+        torch.testing.assert_close(x[:, b].double(), expect, atol=tol, rtol=tol)
+        multiplier = -(Pb @ expect + qb)
+        multiplier[k:] = 0
+        torch.testing.assert_close(
+            y[:, b].double(), multiplier, atol=tol * 100, rtol=tol
+        )
+        torch.testing.assert_close(
+            px[:, b].double(), Pb @ expect, atol=tol * 100, rtol=tol
+        )
+
+
+def test_is_leading():
+    from torchcf.qp import _is_leading
+
+    columns = [[1, 1, 0], [0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 1], [1, 0, 1]]
+    active = torch.tensor(columns, dtype=torch.bool).T  # (n = 3, B = 6)
+    assert _is_leading(active).tolist() == [True, True, True, False, True, False]
+
+
+def test_guesses_that_are_not_a_leading_block_are_still_solved():
+    """Random box QPs (not MPC): active bounds anywhere; results match OSQP."""
+    n, batch = 8, 300
+    P = _random_spd(batch, n, 5).permute(2, 0, 1)
+    generator = torch.Generator().manual_seed(6)
+    q = 20 * torch.randn(batch, n, generator=generator, dtype=torch.float64)
+    lower = torch.full((batch, n), -1.0, dtype=torch.float64)
+    upper = torch.full((batch, n), 1.0, dtype=torch.float64)
+    result = BoxQP(P).solve(q, lower, upper)
+    active = (result.x <= lower + 1e-9) | (result.x >= upper - 1e-9)
+    from torchcf.qp import _is_leading
+
+    assert not bool(_is_leading(active.T).all())  # the case under test occurs
+    assert bool((result.status == int(QPStatus.SOLVED)).all())
+    import osqp
+    import scipy.sparse as sparse
+
+    for b in range(0, batch, 10):
+        solver = osqp.OSQP()
+        solver.setup(
+            sparse.csc_matrix(np.triu(P[b].numpy())),
+            q[b].numpy(),
+            sparse.identity(n, format="csc"),
+            lower[b].numpy(),
+            upper[b].numpy(),
+            verbose=False,
+            eps_abs=1e-10,
+            eps_rel=1e-10,
+            max_iter=100000,
+            polishing=True,
+        )
+        reference = solver.solve(raise_error=False).x
+        np.testing.assert_allclose(result.x[b].numpy(), reference, atol=1e-6)
+
+
+def test_tune_malloc_is_idempotent():
+    from torchcf.runtime import tune_malloc
+
+    first = tune_malloc()
+    assert tune_malloc() is first

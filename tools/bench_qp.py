@@ -16,7 +16,9 @@ Writes ``reports/bench_qp.json`` and ``reports/bench_qp.md``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
 import statistics
 import sys
 import time
@@ -28,6 +30,7 @@ import torch
 import torchcf
 from torchcf.models.mpc import MPC, mpc_qp_matrices
 from torchcf.qp import BoxQP, QPStatus
+from torchcf.runtime import tune_malloc
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import cpu_model, git_sha  # noqa: E402
@@ -102,37 +105,56 @@ def time_boxqp(H, G, amin, amax, z0, warm: bool, repeats: int):
 
 def time_osqp(H, G, amin, amax, z0, n_problems: int):
     """Seconds per QP of OSQP: one solver per particle, warm-started step to step."""
+    per_qp = []
+    with _quiet_stdout():  # OSQP 1.x prints polishing notes even with verbose=False
+        for j in range(n_problems):
+            per_qp.append(_osqp_sequence(H[j], G[j], amin[j], amax[j], z0[:, j]))
+    return statistics.median(per_qp)
+
+
+@contextlib.contextmanager
+def _quiet_stdout():
+    """Silence writes to file descriptor 1 (C libraries included)."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    with open(os.devnull, "w") as devnull:
+        os.dup2(devnull.fileno(), 1)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 1)
+            os.close(saved)
+
+
+def _osqp_sequence(H, G, amin, amax, z0) -> float:
+    """Seconds per QP of one OSQP solver over one particle's states (setup excluded)."""
     import osqp
     import scipy.sparse as sparse
 
     horizon = H.shape[1]
-    per_qp = []
-    for j in range(n_problems):
-        P = sparse.csc_matrix(np.triu(H[j].double().numpy()))
-        A = sparse.identity(horizon, format="csc")
-        lower = np.full(horizon, float(amin[j]))
-        upper = np.full(horizon, float(amax[j]))
-        solver = osqp.OSQP()
-        q = (G[j].double() @ z0[0, j].double()).numpy()
-        solver.setup(
-            P,
-            q,
-            A,
-            lower,
-            upper,
-            verbose=False,
-            eps_abs=1e-5,
-            eps_rel=1e-5,
-            warm_starting=True,
-            polishing=True,
-        )
+    P = sparse.csc_matrix(np.triu(H.double().numpy()))
+    A = sparse.identity(horizon, format="csc")
+    lower = np.full(horizon, float(amin))
+    upper = np.full(horizon, float(amax))
+    solver = osqp.OSQP()
+    solver.setup(
+        P,
+        (G.double() @ z0[0].double()).numpy(),
+        A,
+        lower,
+        upper,
+        verbose=False,
+        eps_abs=1e-5,
+        eps_rel=1e-5,
+        warm_starting=True,
+        polishing=True,
+    )
+    solver.solve(raise_error=False)
+    start = time.perf_counter()
+    for step in range(1, z0.shape[0]):
+        solver.update(q=(G.double() @ z0[step].double()).numpy())
         solver.solve(raise_error=False)
-        start = time.perf_counter()
-        for step in range(1, z0.shape[0]):
-            solver.update(q=(G[j].double() @ z0[step, j].double()).numpy())
-            solver.solve(raise_error=False)
-        per_qp.append((time.perf_counter() - start) / (z0.shape[0] - 1))
-    return statistics.median(per_qp)
+    return (time.perf_counter() - start) / (z0.shape[0] - 1)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -141,16 +163,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--osqp-problems", type=int, default=200)
     parser.add_argument("--mpc-particles", type=float, default=1e6)
+    parser.add_argument("--horizons", default="5,20", help="comma-separated K")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--data-root", default=None)
     parser.add_argument("--out", type=Path, default=REPORTS / "bench_qp")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    tune_malloc()
     batch = int(args.batch)
 
     rows = []
-    for horizon in (5, 20):
+    for horizon in (int(k) for k in args.horizons.split(",")):
         for dtype in (torch.float32, torch.float64):
             H, G, amin, amax, z0 = mpc_problems(batch, horizon, args.steps, 0, dtype)
             osqp_s = time_osqp(H, G, amin, amax, z0, args.osqp_problems)

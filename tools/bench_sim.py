@@ -28,6 +28,7 @@ import torch
 
 import torchcf
 from torchcf import MODELS, simulate
+from torchcf.runtime import tune_malloc
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 
@@ -103,6 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     torch.set_num_threads(args.threads)
+    tune_malloc()
     pairs = torchcf.load_pairs(
         "car-model-2", split="train", data_root=args.data_root, drop_duplicates=False
     )

@@ -17,6 +17,7 @@ import time
 import torch
 
 from . import MODELS, DataError, load_pairs, simulate
+from .runtime import tune_malloc
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -33,6 +34,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--particles must be positive, got {args.particles}")
     if args.threads:
         torch.set_num_threads(args.threads)
+    tune_malloc()
 
     try:
         pairs = load_pairs(args.dataset, split="train", data_root=args.data_root)

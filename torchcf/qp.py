@@ -20,8 +20,12 @@ Two entry points:
   for every ``(q, l, u)``. Before ADMM it tries two exact shortcuts: the unconstrained
   minimiser, and an exact solve on the active set it guesses (from the warm start or
   from the bounds the unconstrained minimiser violates), corrected by a few
-  primal-dual active-set steps and kept only where the KKT conditions hold. On the
-  MPC QPs these finish nearly every instance, so ADMM is the fallback.
+  primal-dual active-set steps and kept only where the KKT conditions hold. Where
+  the guessed active bounds are a leading block ``0 .. k-1`` (on the MPC QPs nearly
+  always: the first inputs of the plan saturate) the solve reuses one "UL" Cholesky
+  factor computed per ``P`` (``2 n^2`` multiply-adds, no new factorisation); other
+  guesses refactorise. On the MPC QPs these stages finish nearly every instance, so
+  ADMM is the fallback.
 
 Internally every tensor is *batch-last* (``(n, B)``, ``(n, n, B)``): a matrix-vector
 product is then ``n`` fused multiply-adds over contiguous ``B``-vectors, about four
@@ -70,6 +74,10 @@ _POLISH_REFINE = 3
 _POLISH_PASSES = 4
 #: Exact active-set solves per instance in BoxQP's second stage.
 _ACTIVE_SET_PASSES = 5
+#: Batches up to this size are factorised by LAPACK, one call per matrix.
+_SMALL_BATCH = 64
+#: Compact the leading-block stage's working set once less than this share runs.
+_LEADING_COMPACT = 0.5
 #: Relative tolerances are raised by this many machine epsilons (see :func:`_admm`).
 _ROUNDOFF_ULPS = 100
 #: Compact the ADMM working set once this fraction of it has finished.
@@ -172,6 +180,8 @@ class QPResult(NamedTuple):
 
 def _mv(M: Tensor, v: Tensor) -> Tensor:
     """``M v`` per instance: (r, c, B) x (c, B) -> (r, B)."""
+    if v.shape[-1] <= _SMALL_BATCH:  # a few instances: one batched product
+        return torch.einsum("rcb,cb->rb", M, v)
     out = M[:, 0] * v[0]
     for j in range(1, v.shape[0]):
         out.addcmul_(M[:, j], v[j])
@@ -220,10 +230,16 @@ def _cholesky(M: Tensor, strict: bool = True) -> tuple[Tensor, Tensor]:
             indefinite to working precision).
     """
     n = M.shape[0]
-    L = torch.empty_like(M)  # only the lower triangle is written and read
     floor = torch.diagonal(M).amax(-1).clamp_min(0) * (n * torch.finfo(M.dtype).eps)
     if not strict:
         floor = torch.zeros_like(floor)
+    if M.shape[-1] <= _SMALL_BATCH:
+        # A few matrices: LAPACK per matrix beats n^2 / 2 tiny elementwise calls.
+        L, info = torch.linalg.cholesky_ex(M.permute(2, 0, 1))  # (B, n, n)
+        pivots = torch.diagonal(L, 0, 1, 2).square()  # (B, n)
+        ok = (info == 0) & (pivots > floor[:, None]).all(1)
+        return L.permute(1, 2, 0), ok
+    L = torch.empty_like(M)  # only the lower triangle is written and read
     ok = torch.ones(M.shape[-1], dtype=torch.bool, device=M.device)
     for j in range(n):
         col = M[j:, j].clone()  # (n - j, B)
@@ -240,6 +256,9 @@ def _cholesky(M: Tensor, strict: bool = True) -> tuple[Tensor, Tensor]:
 def _cholesky_solve(L: Tensor, b: Tensor) -> Tensor:
     """Solve ``L L' x = b`` for ``L: (n, n, B)`` lower triangular, ``b: (n, B)``."""
     n = b.shape[0]
+    if b.shape[-1] <= _SMALL_BATCH:
+        x = torch.cholesky_solve(b.T[:, :, None], L.permute(2, 0, 1).tril())
+        return x[:, :, 0].T
     w = b.clone()
     for i in range(n):  # forward: L w = b
         for k in range(i):
@@ -381,7 +400,12 @@ def _admm_step(
 
 
 def _inf_norm(v: Tensor) -> Tensor:
-    return v.abs().amax(0)
+    """Max-norm over the rows: (m, B) -> (B,); NaN propagates.
+
+    Two reductions and no ``|v|`` temporary, which on the CPU costs more than both
+    (``torch.aminmax`` over dim 0 is slower still).
+    """
+    return torch.maximum(v.amax(0), v.amin(0).neg_())
 
 
 def _primal_certificate(data: _Data, dy: Tensor, eps: float) -> tuple[Tensor, Tensor]:
@@ -663,6 +687,193 @@ def _polish_general(data: _Data, lower: Tensor, upper: Tensor) -> tuple[Tensor, 
     return sol[:n], sol[n:]
 
 
+# --------------------------------------------------------------------------------------
+# Box QPs whose active bounds are a leading block: exact solves without refactorising.
+
+
+def _ul_cholesky(M: Tensor) -> tuple[Tensor, Tensor]:
+    """Upper triangular ``U`` with ``M = U U'`` for symmetric ``M: (n, n, B)``.
+
+    It is the Cholesky factor of ``M`` with its rows and columns reversed, and it
+    factorises every trailing block at once: row ``i`` of ``U`` is zero left of
+    ``i``, so ``M[k:, k:] = U[k:, k:] U[k:, k:]'``. Fixing the first ``k`` variables
+    of a box QP therefore needs no new factorisation (see :func:`_leading_solve`).
+
+    Returns:
+        U: (n, n, B), strict lower triangle uninitialised; ok: (B,) bool as in
+        :func:`_cholesky`.
+    """
+    L, ok = _cholesky(M.flip(0, 1))
+    return L.flip(0, 1), ok
+
+
+class _Leading(NamedTuple):
+    """Box QPs (A = I) for :func:`_leading_solve`, batch-last."""
+
+    U: Tensor  # (n, n, B) upper factor, P = U U'
+    q: Tensor  # (n, B)
+    l: Tensor  # (n, B)  # noqa: E741
+    u: Tensor  # (n, B)
+
+    def take(self, idx: Tensor) -> _Leading:
+        return _Leading(*(_take(t, idx) for t in self))
+
+
+def _is_leading(active: Tensor) -> Tensor:
+    """(n, B) bool -> (B,) bool: the True rows are ``0 .. k-1`` for some ``k``."""
+    return ~(active[1:] & ~active[:-1]).any(0)
+
+
+def _leading_solve(
+    data: _Leading, lower: Tensor, upper: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Exact solution with the leading block ``A = {0 .. k-1}`` fixed at its bounds.
+
+    With ``F`` the trailing free block and ``P = U U'`` (:func:`_ul_cholesky`),
+    ``P_FF = U_FF U_FF'`` and ``P_FA = U_FF U_AF'``, so the reduced system
+    ``P_FF x_F = -q_F - P_FA x_A`` is
+
+        x_F = -U_FF'^{-1} (U_FF^{-1} q_F + U_AF' x_A),
+
+    one back substitution, one product with the fixed values and one forward
+    substitution: ``2 n^2`` multiply-adds against ``n^3 / 6`` for a new Cholesky.
+    Each loop runs over columns, one fused operation on ``(rows, B)`` per column.
+
+    Args:
+        data: the problems; lower, upper: (n, B) bool, the fixed bounds, a leading
+            block in every instance (:func:`_is_leading`).
+
+    Returns:
+        x: (n, B); y: (n, B) multipliers ``-(Px + q)`` on the fixed rows, 0 elsewhere;
+        px: (n, B) ``P x`` as ``U (U' x)``.
+    """
+    U, n = data.U, data.q.shape[0]
+    # Masks as 0/1 floats: arithmetic on them is several times faster on CPU than
+    # torch.where with a bool condition.
+    at_lower, at_upper = lower.to(U.dtype), upper.to(U.dtype)
+    active = at_lower + at_upper  # (n, B) 1 on the fixed rows
+    fixed = data.l * at_lower + data.u * at_upper  # (n, B) x_A, 0 on F
+    # g = U^{-1} q by back substitution; rows in F read only rows below them, so
+    # g_F = U_FF^{-1} q_F whatever the leading rows hold.
+    g = data.q.clone()
+    for j in reversed(range(n)):
+        g[j].div_(U[j, j])
+        if j:
+            g[:j].addcmul_(U[:j, j], g[j], value=-1)
+    # w = g + U' x_A (x_A is zero on F): (U' v)_i = sum_{j <= i} U[j, i] v_j.
+    depth = int(active.amax(1).count_nonzero()) if active.numel() else 0
+    w = g.clone()
+    for j in range(depth):
+        w[j:].addcmul_(U[j, j:], fixed[j])
+    # Forward substitution U_FF' x_F = -w_F. The leading rows start at 0 and every
+    # row before them is fixed too, so they stay 0 and feed nothing forward.
+    x = (active - 1).mul_(w)
+    for j in range(n):
+        x[j].div_(U[j, j])
+        if j < n - 1:
+            x[j + 1 :].addcmul_(U[j, j + 1 :], x[j], value=-1)
+    x.add_(fixed)
+    # P x = U (U' x) with U' x = U' x_A = w - g on the fixed rows and
+    # U_FF' x_F = -w_F plus (U' x_A)_F = -g_F on the free ones: t = active w - g.
+    t = w.mul_(active).sub_(g)
+    px = torch.zeros_like(x)
+    for j in range(n):
+        px[: j + 1].addcmul_(U[: j + 1, j], t[j])
+    y = (px + data.q).mul_(-active)
+    return x, y, px
+
+
+class _Unfinished(NamedTuple):
+    """Instances an active-set stage hands on, with its last guess of the bounds."""
+
+    rows: Tensor  # (b,) int64
+    lower: Tensor  # (n, b) bool
+    upper: Tensor  # (n, b) bool
+
+
+def _leading_active_set(
+    data: _Leading,
+    lower: Tensor,
+    upper: Tensor,
+    running: Tensor,
+    settings: QPSettings,
+    passes: int,
+) -> tuple[_Refined, _Unfinished]:
+    """Primal-dual active-set steps (Hintermueller, Ito & Kunisch 2002) by
+    :func:`_leading_solve`, for as long as the guessed active set is a leading block.
+
+    On the MPC QPs it nearly always is: the bounds that bind are the first inputs of
+    the plan. An instance leaves for the general stage (:func:`_refine`) with its
+    current guess once the guess is not a leading block, or after ``passes`` solves.
+
+    Finished instances stay in the working set (their solves are wasted) until less
+    than half of it is running: gathering the factors costs more than solving.
+
+    Args:
+        data: the problems, ``U`` from :func:`_ul_cholesky` (positive definite ``P``).
+        lower, upper: (n, B) bool, the first guess.
+        running: (B,) bool, the instances to solve.
+        settings: for the tolerances of :func:`_kkt_accept`.
+        passes: solves per instance at most.
+
+    Returns:
+        the accepted solutions, and the rest of ``running`` with its last guess.
+    """
+    rows = torch.arange(data.q.shape[-1], device=data.q.device)
+    accepted: list[_Refined] = []
+    unfinished: list[_Unfinished] = []
+
+    def hand_on(which: Tensor) -> None:
+        idx = which.nonzero().squeeze(1)
+        if idx.numel():
+            unfinished.append(
+                _Unfinished(rows[idx], _take(lower, idx), _take(upper, idx))
+            )
+
+    for _ in range(passes):
+        leading = _is_leading(lower | upper)
+        hand_on(running & ~leading)
+        running = running & leading
+        count = int(running.sum())
+        if not count:
+            break
+        if count < _LEADING_COMPACT * running.numel():
+            keep = running.nonzero().squeeze(1)
+            rows, data = rows[keep], data.take(keep)
+            lower, upper = _take(lower, keep), _take(upper, keep)
+            running = running[keep]
+        x, y, px = _leading_solve(data, lower, upper)
+        z = torch.clamp(x, data.l, data.u)
+        accept, wrong_sign = _kkt_accept(
+            data, x, y, x, z, px, y, lower, upper, settings
+        )
+        accept &= running
+        take = accept.nonzero().squeeze(1)
+        if take.numel():
+            accepted.append(
+                _Refined(rows[take], _take(x, take), _take(z, take), _take(y, take))
+            )
+        running = running & ~accept
+        # The active-set step (only running instances' guesses matter).
+        lower = (lower & ~wrong_sign) | (x < data.l)
+        upper = ((upper & ~wrong_sign) | (x > data.u)) & ~lower
+    else:
+        hand_on(running)
+    n = data.q.shape[0]
+    empty = data.q.new_empty(n, 0)
+    done = (
+        _Refined(*(torch.cat(parts, -1) for parts in zip(*accepted, strict=True)))
+        if accepted
+        else _Refined(rows[:0], empty, empty, empty)
+    )
+    left = (
+        _Unfinished(*(torch.cat(parts, -1) for parts in zip(*unfinished, strict=True)))
+        if unfinished
+        else _Unfinished(rows[:0], lower[:, :0], upper[:, :0])
+    )
+    return done, left
+
+
 class _Refined(NamedTuple):
     """Accepted exact solutions: ``rows`` of the batch and their iterate."""
 
@@ -670,6 +881,74 @@ class _Refined(NamedTuple):
     x: Tensor  # (n, b)
     z: Tensor  # (m, b)
     y: Tensor  # (m, b)
+
+
+def _kkt_accept(
+    data: _Data | _Leading,
+    x: Tensor,
+    y: Tensor,
+    ax: Tensor,
+    z: Tensor,
+    px: Tensor,
+    aty: Tensor,
+    lower: Tensor,
+    upper: Tensor,
+    settings: QPSettings,
+    prim_ref: Tensor | None = None,
+    dual_ref: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Is ``(x, y)`` optimal for the guessed active set ``lower | upper``?
+
+    Accepted where the primal and dual residuals (OSQP's) are below ``prim_ref`` /
+    ``dual_ref`` or a round-off floor, and every active multiplier has the sign of its
+    bound up to that floor (a wrong sign means the guessed active set was wrong): then
+    the KKT conditions hold.
+
+    Args:
+        data: the problems (only ``q, l, u`` are read); x: (n, B);
+        y, ax = A x, z = clamp(ax, l, u): (m, B); px, aty: (n, B) ``P x``, ``A'y``;
+        lower, upper: (m, B) bool, the guessed active bounds.
+
+    Returns:
+        accept: (B,) bool; wrong_sign: (m, B) bool, active bounds whose multiplier
+        has the wrong sign.
+    """
+    ulp = torch.finfo(data.q.dtype).eps
+    eps_rel = settings.eps_rel + _ROUNDOFF_ULPS * ulp
+    # Bool-mask where() and bool reductions over rows are slow on CPU; everything
+    # below is float arithmetic, comparisons and float reductions.
+    prim_res = _inf_norm(ax - z)
+    dual_res = _inf_norm(px + data.q + aty)
+    # Round-off floor: a hundred ulps of the quantities the residuals difference,
+    # capped at the termination tolerance.
+    x_norm, y_norm = _inf_norm(x), _inf_norm(y)
+    prim_scale = torch.maximum(_inf_norm(ax), _inf_norm(z))
+    dual_scale = torch.maximum(_inf_norm(px), _inf_norm(data.q))
+    dual_scale = torch.maximum(dual_scale, _inf_norm(aty))
+    prim_floor = torch.minimum(
+        100 * ulp * (1 + prim_scale), settings.eps_abs + eps_rel * prim_scale
+    )
+    dual_floor = torch.minimum(
+        100 * ulp * (1 + dual_scale), settings.eps_abs + eps_rel * dual_scale
+    )
+    prim_bound, dual_bound = prim_floor, dual_floor
+    if prim_ref is not None and dual_ref is not None:
+        prim_bound = torch.maximum(prim_floor, prim_ref)
+        dual_bound = torch.maximum(dual_floor, dual_ref)
+    inequality = data.l != data.u  # an equality row's multiplier has either sign
+    lower, upper = lower & inequality, upper & inequality
+    wrong_sign = (lower & (y > 0)) | (upper & (y < 0))  # (m, B)
+    sign_error = torch.maximum(
+        (y * lower.to(y.dtype)).amax(0), (y * upper.to(y.dtype)).amin(0).neg_()
+    )  # >= 0 wherever a row is inactive; a clean active row gives <= 0
+    accept = (
+        (prim_res <= prim_bound)
+        & (dual_res <= dual_bound)
+        & (sign_error <= dual_floor)
+        & torch.isfinite(x_norm)  # amax propagates NaN
+        & torch.isfinite(y_norm)
+    )
+    return accept, wrong_sign
 
 
 def _refine(
@@ -701,8 +980,6 @@ def _refine(
         definite: optional (B,) bool, P positive definite (box problems only).
     """
     rows = torch.arange(data.q.shape[-1], device=data.q.device)
-    ulp = torch.finfo(data.q.dtype).eps
-    eps_rel = settings.eps_rel + _ROUNDOFF_ULPS * ulp
     accepted: list[_Refined] = []
     for attempt in range(passes):
         if data.A is None:
@@ -711,33 +988,19 @@ def _refine(
             x, y = _polish_general(data, lower, upper)
         ax = data.Ax(x)
         z = torch.clamp(ax, data.l, data.u)
-        px, aty = _mv(data.P, x), data.Aty(y)
-        prim_res = _inf_norm(ax - z)
-        dual_res = _inf_norm(px + data.q + aty)
-        # Round-off floor: a hundred ulps of the quantities the residuals difference,
-        # capped at the termination tolerance.
-        prim_scale = torch.maximum(_inf_norm(ax), _inf_norm(z))
-        dual_scale = torch.maximum(_inf_norm(px), _inf_norm(data.q))
-        dual_scale = torch.maximum(dual_scale, _inf_norm(aty))
-        prim_floor = torch.minimum(
-            100 * ulp * (1 + prim_scale), settings.eps_abs + eps_rel * prim_scale
-        )
-        dual_floor = torch.minimum(
-            100 * ulp * (1 + dual_scale), settings.eps_abs + eps_rel * dual_scale
-        )
-        prim_bound, dual_bound = prim_floor, dual_floor
-        if prim_ref is not None and dual_ref is not None:
-            prim_bound = torch.maximum(prim_floor, prim_ref)
-            dual_bound = torch.maximum(dual_floor, dual_ref)
-        equality = data.l == data.u
-        wrong_sign = ((lower & (y > 0)) | (upper & (y < 0))) & ~equality  # (m, B)
-        sign_error = torch.where(wrong_sign, y.abs(), 0).amax(0)
-        accept = (
-            (prim_res <= prim_bound)
-            & (dual_res <= dual_bound)
-            & (sign_error <= dual_floor)
-            & torch.isfinite(x).all(0)
-            & torch.isfinite(y).all(0)
+        accept, wrong_sign = _kkt_accept(
+            data,
+            x,
+            y,
+            ax,
+            z,
+            _mv(data.P, x),
+            data.Aty(y),
+            lower,
+            upper,
+            settings,
+            prim_ref,
+            dual_ref,
         )
         take = accept.nonzero().squeeze(1)
         if take.numel():
@@ -935,6 +1198,8 @@ class BoxQP:
         self.P = P  # (B, n, n) as given
         self._P = P.permute(1, 2, 0).contiguous()  # (n, n, B)
         self._p_inverse, self._definite = _spd_inverse(self._P)
+        self._upper, upper_ok = _ul_cholesky(self._P)
+        self._definite &= upper_ok
         kkt = self._P.clone()
         torch.diagonal(kkt, 0, 0, 1).add_(self.settings.sigma + self.settings.rho)
         self._kkt, _ = _spd_inverse(kkt)
@@ -1034,15 +1299,47 @@ class BoxQP:
             return _result(x, y, z, n_iter, status, polished)
 
         cached = rest if index is None else index[rest]
-        data = _Data(
-            _take(self._P, cached), q_t[:, rest], None, lower[:, rest], upper[:, rest]
-        )
         if method == "auto":
-            # Stage 2: exact solves on the guessed active set.
-            guess = x_free[:, rest] if x0_t is None else x0_t[:, rest]
+            # Stage 2: exact solves on the guessed active set, first by the leading-
+            # block solve, then by refactorising for guesses that are not a leading
+            # block (and for singular P).
+            guess = x_free if x0_t is None else x0_t
             strict = x0_t is None  # x0 sits on its bounds; -P^{-1} q violates them
-            at_lower = guess < data.l if strict else guess <= data.l
-            at_upper = (guess > data.u if strict else guess >= data.u) & ~at_lower
+            at_lower = guess < lower if strict else guess <= lower  # (n, b)
+            at_upper = (guess > upper if strict else guess >= upper) & ~at_lower
+            # The leading-block stage runs on the whole batch, masked: gathering the
+            # factors of ``rest`` would cost more than solving again the instances
+            # that stage 1 finished.
+            running = torch.zeros_like(definite)
+            running[rest] = definite[rest]
+            factor = self._upper if index is None else _take(self._upper, index)
+            refined, unfinished = _leading_active_set(
+                _Leading(factor, q_t, lower, upper),
+                at_lower,
+                at_upper,
+                running,
+                self.settings,
+                _ACTIVE_SET_PASSES,
+            )
+            done = refined.rows
+            x[:, done], z[:, done], y[:, done] = refined.x, refined.z, refined.y
+            polished[done] = True
+            # What is left (as batch positions), and its last guesses.
+            other = rest[~definite[rest]]
+            left = torch.cat((unfinished.rows, other))
+            if not left.numel():
+                return _result(x, y, z, n_iter, status, polished)
+            at_lower = torch.cat((unfinished.lower, at_lower[:, other]), -1)
+            at_upper = torch.cat((unfinished.upper, at_upper[:, other]), -1)
+            rest = left
+            cached = rest if index is None else index[rest]
+            data = _Data(
+                _take(self._P, cached),
+                q_t[:, rest],
+                None,
+                lower[:, rest],
+                upper[:, rest],
+            )
             refined = _refine(
                 data,
                 at_lower,
@@ -1060,6 +1357,14 @@ class BoxQP:
             if not keep.numel():
                 return _result(x, y, z, n_iter, status, polished)
             rest, cached, data = rest[keep], cached[keep], data.take(keep)
+        else:
+            data = _Data(
+                _take(self._P, cached),
+                q_t[:, rest],
+                None,
+                lower[:, rest],
+                upper[:, rest],
+            )
 
         # Stage 3: ADMM and polish.
         settings = self.settings
