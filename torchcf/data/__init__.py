@@ -8,6 +8,8 @@ the named data sets of the ABC paper.
 * :mod:`torchcf.data.registry`: :data:`DATASETS` and :func:`load_pairs`, where the
   files come from (path, ``TORCHCF_DATA``, cache, checked download), the splits
   and the quirks of each data set.
+* :mod:`torchcf.data.splits`: :func:`load_split` and :func:`kfold_split`, the
+  training / test pairs of a run (the data set's own split or seeded k-fold).
 """
 
 from torchcf.data.pairset import DataError, PairSet
@@ -18,13 +20,16 @@ from torchcf.data.registry import (
     load_pairs,
     resolve_data_root,
 )
+from torchcf.data.splits import kfold_split, load_split
 
 __all__ = [
     "DATASETS",
     "DataError",
     "DatasetSpec",
     "PairSet",
+    "kfold_split",
     "load_pairs",
+    "load_split",
     "read_six_csv",
     "resolve_data_root",
 ]

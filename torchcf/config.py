@@ -1,0 +1,721 @@
+"""The configuration of a training run: ``python -m torchcf.train CONFIG``.
+
+A run is described by one JSON object, validated by :class:`TrainConfig`::
+
+    {
+      "data": {"name": "car-model-2"},
+      "models": ["idm", {"name": "hl", "prior": {"tau": [0.1, 1.0]}}],
+      "abc": {"n_particles": 200000, "top_n": 5},
+      "device": "cuda"
+    }
+
+Every section rejects unknown keys, so a misspelled or misplaced key fails at load
+time instead of being silently ignored. :func:`load_config` reads a file, applies
+command-line overrides (``--set abc.n_particles=200000``, see
+:func:`apply_overrides`) and validates; every problem is a :class:`ConfigError`
+with a one-line message that names the key, e.g.
+``abc.n_particles: must be > 0, got -5``.
+
+:func:`config_hash` fingerprints the settings that determine the result, so a
+resumed run can refuse a different configuration; :func:`resolved_json` is the
+validated configuration as written beside the results.
+
+Command line::
+
+    python -m torchcf.config --schema                  # the JSON schema
+    python -m torchcf.config CONFIG [--set k=v ...]    # resolved config and hash
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import difflib
+import hashlib
+import json
+import sys
+import typing
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import torch
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from torchcf.data.reader import UNITS, unit_factor
+from torchcf.data.registry import DATASETS
+from torchcf.models import MODELS, get_model
+
+__all__ = [
+    "ABCConfig",
+    "ConfigError",
+    "DataConfig",
+    "EvalConfig",
+    "ModelSpec",
+    "TrainConfig",
+    "apply_overrides",
+    "config_hash",
+    "load_config",
+    "main",
+    "resolved_json",
+    "validate_config",
+]
+
+
+class ConfigError(ValueError):
+    """A run configuration is unreadable or invalid; the message is one line."""
+
+    def __init__(self, message: str) -> None:
+        # One line whatever the source: the CLIs print it after "error: ".
+        super().__init__(" ".join(str(message).split()))
+
+
+# Shared by every section: unknown keys are errors, values are immutable after
+# validation, and NaN / Infinity (which Python's json accepts) never pass.
+_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+_PositiveInt = Annotated[int, Field(gt=0)]
+_NonNegativeFloat = Annotated[float, Field(ge=0)]
+
+
+# --------------------------------------------------------------------- sections
+class DataConfig(BaseModel):
+    """Which observed pairs to train and test on (``torchcf.data.load_split``)."""
+
+    model_config = _STRICT
+
+    name: str | None = Field(
+        None,
+        description=(
+            f"Registered data set: one of {', '.join(DATASETS)}. "
+            "Exactly one of name and path."
+        ),
+    )
+    path: str | None = Field(
+        None,
+        min_length=1,
+        description=(
+            "Folder in the six-CSV layout (with Trajectory/ and Testing/ for "
+            "split='dataset'). Exactly one of name and path."
+        ),
+    )
+    root: str | None = Field(
+        None,
+        min_length=1,
+        description=(
+            "Data root holding HDV/ and AV/, for a name only; None looks in "
+            "$TORCHCF_DATA, then the cache, then downloads."
+        ),
+    )
+    units: str | None = Field(
+        None,
+        description=(
+            f"Unit system of the files: one of {', '.join(UNITS)}; None takes the "
+            "registry's (name) or meta.json's (path), else 'm'."
+        ),
+    )
+    dt: float | None = Field(
+        None,
+        gt=0,
+        description="Sampling interval [s]; None takes the registry's or meta.json's.",
+    )
+    leader_length: float | None = Field(
+        None,
+        gt=0,
+        description="Leader vehicle length [m]; None takes the registry's or 5.0.",
+    )
+    drop_duplicates: bool = Field(
+        True,
+        description=(
+            "Keep only the first copy of identical pairs, and drop test pairs "
+            "that duplicate a training pair."
+        ),
+    )
+    min_spacing: float | None = Field(
+        None,
+        ge=0,
+        description=(
+            "Drop pairs whose minimum front-to-front spacing is under this [m]; "
+            "None keeps all."
+        ),
+    )
+    split: Literal["dataset", "kfold"] = Field(
+        "dataset",
+        description=(
+            "'dataset': the data set's own Trajectory/ (train) and Testing/ (test); "
+            "'kfold': seeded k-fold over the pairs of the full set."
+        ),
+    )
+    folds: int = Field(3, ge=2, description="Number of folds (split='kfold').")
+    fold: int = Field(
+        0, ge=0, description="Fold used as the test set, 0 <= fold < folds."
+    )
+    split_seed: int = Field(
+        0, description="Seed of the k-fold permutation of the pairs."
+    )
+
+    @field_validator("name")
+    @classmethod
+    def _known_dataset(cls, name: str | None) -> str | None:
+        if name is not None and name not in DATASETS:
+            raise ValueError(
+                f"unknown dataset {name!r} (known: {', '.join(DATASETS)}); "
+                "use path for a folder"
+            )
+        return name
+
+    @field_validator("units")
+    @classmethod
+    def _known_units(cls, units: str | None) -> str | None:
+        if units is not None:
+            unit_factor(units)  # DataError (a ValueError) names the valid ones
+        return units
+
+    @model_validator(mode="after")
+    def _consistent(self) -> DataConfig:
+        if (self.name is None) == (self.path is None):
+            raise ValueError(
+                "give exactly one of name (a registered data set) and path (a folder)"
+            )
+        if self.root is not None and self.name is None:
+            raise ValueError("root is only used with name, not with path")
+        if self.fold >= self.folds:
+            raise ValueError(f"fold must be < folds={self.folds}, got {self.fold}")
+        if self.split == "dataset":
+            # Unused k-fold settings would otherwise be ignored silently (and
+            # change the config hash for nothing).
+            defaults = type(self).model_fields
+            changed = [
+                k
+                for k in ("folds", "fold", "split_seed")
+                if getattr(self, k) != defaults[k].default
+            ]
+            if changed:
+                raise ValueError(
+                    f"{', '.join(changed)}: only used with split='kfold', not "
+                    "split='dataset'"
+                )
+        return self
+
+
+class ModelSpec(BaseModel):
+    """One car-following model to calibrate, with optional prior overrides."""
+
+    model_config = _STRICT
+
+    name: str = Field(
+        description=f"Registered model: one of {', '.join(MODELS)} (case-insensitive)."
+    )
+    prior: dict[str, tuple[float, float]] | None = Field(
+        None,
+        description=(
+            "Uniform prior [low, high] per parameter, replacing the model's default "
+            "box for the parameters named (units as the model's parameters)."
+        ),
+    )
+
+    @field_validator("name")
+    @classmethod
+    def _known_model(cls, name: str) -> str:
+        if name.lower() not in MODELS:
+            raise ValueError(f"unknown model {name!r} (known: {', '.join(MODELS)})")
+        return name.lower()  # the registry key, so 'IDM' and 'idm' hash alike
+
+    @field_validator("prior")
+    @classmethod
+    def _known_params(
+        cls, prior: dict[str, tuple[float, float]] | None, info: ValidationInfo
+    ) -> dict[str, tuple[float, float]] | None:
+        name = info.data.get("name")
+        if prior is None or name is None:  # a bad name is already reported
+            return prior or None  # {} means no override, as None does
+        known = get_model(name).param_names
+        for key, (low, high) in prior.items():
+            if key not in known:
+                raise ValueError(
+                    f"unknown parameter {key!r} for {name} (known: {', '.join(known)})"
+                )
+            if not low < high:
+                raise ValueError(f"{key}: needs low < high, got [{low}, {high}]")
+        return prior or None
+
+    def bounds(self, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """The uniform prior box with the overrides applied.
+
+        Args:
+            dtype: dtype of the result.
+
+        Returns:
+            (K, 2) tensor of (low, high) per parameter, in the model's order.
+        """
+        model = get_model(self.name)
+        box = model.prior_bounds(dtype)  # (K, 2)
+        for key, (low, high) in (self.prior or {}).items():
+            box[model.param_names.index(key)] = torch.tensor([low, high], dtype=dtype)
+        return box
+
+
+class ABCConfig(BaseModel):
+    """ABC rejection sampling: particles, buffers and selection (SPEC section 5)."""
+
+    model_config = _STRICT
+
+    n_particles: int = Field(
+        1_000_000, gt=0, description="Prior draws simulated per model."
+    )
+    layout: Literal["paired", "full"] = Field(
+        "paired",
+        description=(
+            "'paired': each particle on one training pair drawn from the seed "
+            "(the paper's down-sampled mode); 'full': every particle on every pair."
+        ),
+    )
+    top_n: int = Field(
+        5,
+        gt=0,
+        description="Particles kept per training pair and model (N of the paper).",
+    )
+    sensitivity_n: list[_PositiveInt] = Field(
+        [5, 10, 15],
+        min_length=1,
+        description="Alternative top_n values evaluated from the same buffers.",
+    )
+    chunk_size: int | None = Field(
+        None,
+        gt=0,
+        description="Particles simulated per chunk; None takes the model's default.",
+    )
+    seed: int = Field(
+        0, ge=0, description="Seed of the counter-based particle and pair streams."
+    )
+    selection: Literal["per_pair", "global"] = Field(
+        "per_pair",
+        description=(
+            "'per_pair': the hybrid keeps the top_n best across models on every "
+            "training pair; 'global': the paper's variant, the global_size best "
+            "of the merged set."
+        ),
+    )
+    global_size: int | None = Field(
+        None,
+        gt=0,
+        description=(
+            "Size of the global selection (selection='global' only); None means "
+            "top_n x the number of training pairs, the per-pair set's size."
+        ),
+    )
+    weights: tuple[_NonNegativeFloat, _NonNegativeFloat, _NonNegativeFloat] = Field(
+        (0.5, 0.3, 0.2),
+        description=(
+            "Score weights of the position [1/m], speed [s/m] and acceleration "
+            "[s^2/m] RMSE: g = w_p e_p + w_v e_v + w_a e_a; sum > 0."
+        ),
+    )
+    checkpoint_every: float = Field(
+        60.0, gt=0, description="Wall-clock interval between checkpoints [s]."
+    )
+
+    @field_validator("weights")
+    @classmethod
+    def _some_weight(
+        cls, weights: tuple[float, float, float]
+    ) -> tuple[float, float, float]:
+        if sum(weights) <= 0:
+            raise ValueError(f"must not all be 0, got {list(weights)}")
+        return weights
+
+    @model_validator(mode="after")
+    def _global_only(self) -> ABCConfig:
+        if self.global_size is not None and self.selection != "global":
+            raise ValueError(
+                f"global_size={self.global_size} only applies with selection='global'"
+            )
+        return self
+
+    @property
+    def buffer_size(self) -> int:
+        """Capacity of each streaming buffer: the largest N any selection needs."""
+        return max(self.top_n, *self.sensitivity_n)
+
+
+class EvalConfig(BaseModel):
+    """Evaluation of the learned particle set on the test pairs (SPEC section 6)."""
+
+    model_config = _STRICT
+
+    beta: float = Field(
+        0.15,
+        ge=0,
+        le=1,
+        description=(
+            "beta of the beta-WS distance: particle marginals >= beta / n_particles "
+            "[1]; 0 gives the minimum distance, 1 the WS distance."
+        ),
+    )
+    sinkhorn_reg: float = Field(
+        0.05, gt=0, description="Entropic regularisation of Sinkhorn [score units]."
+    )
+    sinkhorn_max_iter: int = Field(
+        10000, gt=0, description="Iteration cap of the Sinkhorn solver."
+    )
+
+
+def _models_schema(schema: dict[str, Any]) -> None:
+    """JSON schema of ``models``: items are a name or a ModelSpec object."""
+    schema["items"] = {"anyOf": [{"enum": list(MODELS)}, schema["items"]]}
+
+
+class TrainConfig(BaseModel):
+    """A whole training run: ``python -m torchcf.train CONFIG``."""
+
+    model_config = _STRICT
+
+    data: DataConfig = Field(description="The observed pairs and their split.")
+    models: list[ModelSpec] = Field(
+        [ModelSpec(name=name) for name in MODELS],
+        min_length=1,
+        description=(
+            "Models to calibrate, each once: a name (shorthand for {'name': ...}) "
+            "or a ModelSpec object. Default: all registered models."
+        ),
+        json_schema_extra=_models_schema,
+    )
+    abc: ABCConfig = Field(ABCConfig(), description="ABC sampling.")
+    eval: EvalConfig = Field(EvalConfig(), description="Evaluation on the test pairs.")
+    output: str | None = Field(
+        None,
+        min_length=1,
+        description=(
+            "Output directory; None means runs/<config file stem>. The CLI's "
+            "--out overrides it."
+        ),
+    )
+    device: str = Field(
+        "cpu",
+        description=(
+            "torch device, e.g. 'cpu', 'cuda', 'cuda:1' (availability is checked "
+            "when the run starts)."
+        ),
+    )
+    dtype: Literal["float32", "float64"] = Field(
+        "float32", description="Floating dtype of the simulation."
+    )
+    threads: int | None = Field(
+        None, gt=0, description="CPU threads for torch; None keeps torch's default."
+    )
+    compile: Literal["auto", "on", "off"] = Field(
+        "auto",
+        description=(
+            "torch.compile of the rollout: 'auto' where it pays off, 'on' always "
+            "(where the model allows), 'off' never."
+        ),
+    )
+
+    @field_validator("models", mode="before")
+    @classmethod
+    def _shorthand(cls, models: Any) -> Any:
+        if isinstance(models, list):
+            return [{"name": m} if isinstance(m, str) else m for m in models]
+        return models
+
+    @field_validator("models")
+    @classmethod
+    def _unique(cls, models: list[ModelSpec]) -> list[ModelSpec]:
+        names = [m.name for m in models]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise ValueError(f"each model at most once, got {', '.join(twice)} twice")
+        return models
+
+    @field_validator("device")
+    @classmethod
+    def _torch_device(cls, device: str) -> str:
+        try:
+            return str(torch.device(device))
+        except (RuntimeError, ValueError) as err:
+            raise ValueError(f"not a torch device: {device!r} ({err})") from None
+
+    @property
+    def torch_dtype(self) -> torch.dtype:
+        """:attr:`dtype` as a ``torch.dtype``."""
+        return getattr(torch, self.dtype)
+
+
+# ----------------------------------------------------------------- functions
+def load_config(path: str | Path, overrides: Sequence[str] = ()) -> TrainConfig:
+    """Read, override and validate a JSON run configuration.
+
+    Args:
+        path: the JSON file.
+        overrides: ``dotted.key=VALUE`` items (see :func:`apply_overrides`).
+
+    Returns:
+        The validated configuration; ``output`` defaults to ``runs/<file stem>``.
+
+    Raises:
+        ConfigError: unreadable file, invalid JSON, not an object, a bad override
+            or an invalid configuration.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"config file '{path}' not found") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"cannot read config file '{path}': {err}") from None
+    try:
+        raw = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ConfigError(
+            f"'{path}' is not valid JSON: {err.msg} at line {err.lineno} "
+            f"column {err.colno}"
+        ) from None
+    if not isinstance(raw, dict):
+        raise ConfigError(f"'{path}' must hold a JSON object, got {type(raw).__name__}")
+    raw = apply_overrides(raw, overrides)
+    if raw.get("output") is None:
+        raw["output"] = (Path("runs") / path.stem).as_posix()
+    return validate_config(raw)
+
+
+def validate_config(raw: dict[str, Any]) -> TrainConfig:
+    """Validate a configuration object, every error as one :class:`ConfigError`."""
+    try:
+        return TrainConfig.model_validate(raw)
+    except ValidationError as err:
+        raise ConfigError(_describe(err)) from None
+
+
+def apply_overrides(raw: dict[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
+    """Set ``dotted.key=VALUE`` items in a copy of a configuration object.
+
+    VALUE is parsed as JSON (``200000``, ``[1, 0, 0]``, ``true``, ``null``), and
+    taken as a plain string where it is not JSON, so ``device=cpu`` needs no
+    quotes. Missing intermediate objects are created; a numeric component
+    indexes an existing list (``models.0.name=idm``), and a model given by name
+    becomes an object when a key inside it is set.
+
+    Args:
+        raw: the configuration object, not modified.
+        overrides: the items, applied in order.
+
+    Returns:
+        A new configuration object.
+
+    Raises:
+        ConfigError: an item without ``=``, an empty key or component, or a path
+            through a value that is neither an object nor a list.
+    """
+    out = copy.deepcopy(raw)
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        parts = key.strip().split(".")
+        if not sep or not all(parts):
+            raise ConfigError(f"override {item!r}: expected dotted.key=VALUE")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            value = text
+        node: dict[str, Any] | list[Any] = out
+        for depth, part in enumerate(parts[:-1]):
+            node = _child(node, part, item, ".".join(parts[: depth + 1]))
+        if isinstance(node, dict):
+            node[parts[-1]] = value
+        else:
+            node[_index(node, parts[-1], item, key)] = value
+    return out
+
+
+def _child(
+    node: dict[str, Any] | list[Any], part: str, item: str, where: str
+) -> dict[str, Any] | list[Any]:
+    """``node[part]`` for an override, created as ``{}`` when missing."""
+    if isinstance(node, dict):
+        if node.get(part) is None:
+            node[part] = {}
+        child = node[part]
+    else:
+        index = _index(node, part, item, where)
+        if isinstance(node[index], str):
+            # The models shorthand: "idm" becomes {"name": "idm"}.
+            node[index] = {"name": node[index]}
+        child = node[index]
+    if not isinstance(child, dict | list):
+        raise ConfigError(f"override {item!r}: {where} is {child!r}, not an object")
+    return child
+
+
+def _index(node: list[Any], part: str, item: str, where: str) -> int:
+    if not part.isdigit() or int(part) >= len(node):
+        raise ConfigError(
+            f"override {item!r}: {where}: {part!r} is not an index of a list "
+            f"of {len(node)}"
+        )
+    return int(part)
+
+
+# Settings that change how a run is executed or reported but not what it learns:
+# left out of the hash so that a run can resume with them changed.
+_NOT_HASHED: dict[str, Any] = {
+    "output": True,
+    "threads": True,
+    "eval": True,
+    # The result does not depend on the chunk size (tested), nor on where the data
+    # folder lies: a run may be resumed with other values of these.
+    "abc": {"checkpoint_every", "chunk_size"},
+    "data": {"root"},
+}
+
+
+def config_hash(cfg: TrainConfig) -> str:
+    """Fingerprint of the settings that determine the learned particle sets.
+
+    Everything except ``output``, ``threads``, ``abc.checkpoint_every``,
+    ``abc.chunk_size``, ``data.root`` and ``eval`` (none changes the result).
+    Shorthand and object forms, key order and ``1`` vs ``1.0`` give the same hash.
+
+    Returns:
+        The first 16 hex digits of the SHA-256 of the canonical JSON.
+    """
+    payload = cfg.model_dump(mode="json", exclude=_NOT_HASHED)
+    text = json.dumps(payload, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
+
+
+def resolved_json(cfg: TrainConfig) -> dict[str, Any]:
+    """The configuration as plain JSON data (models as objects), every default
+    filled in; :func:`load_config` of it gives ``cfg`` back."""
+    return cfg.model_dump(mode="json")
+
+
+# ------------------------------------------------------------- error messages
+def _describe(err: ValidationError) -> str:
+    """One line for a ValidationError: the first three problems, joined by "; "."""
+    errors = err.errors(include_url=False)
+    text = "; ".join(_describe_one(e) for e in errors[:3])
+    if len(errors) > 3:
+        text += f"; and {len(errors) - 3} more"
+    return text
+
+
+def _describe_one(error: Any) -> str:
+    loc = _dotted(error["loc"])
+    kind, ctx, value = error["type"], error.get("ctx", {}), error.get("input")
+    got = f", got {_short(value)}"
+    if kind == "missing":
+        return f"{loc}: required"
+    if kind == "extra_forbidden":
+        return f"{loc}: unknown key{_known_keys(error['loc'])}"
+    if kind in _BOUNDS:
+        op, name = _BOUNDS[kind]
+        return f"{loc}: must be {op} {ctx[name]}{got}"
+    if kind == "too_short" and ctx.get("min_length") == 1:
+        return f"{loc}: must not be empty"
+    if kind == "value_error":
+        # Our validators' messages already carry the value.
+        return f"{loc}: {error['msg'].removeprefix('Value error, ')}"
+    msg = error["msg"]
+    return f"{loc}: {msg[:1].lower()}{msg[1:]}{got}"
+
+
+_BOUNDS = {
+    "greater_than": (">", "gt"),
+    "greater_than_equal": (">=", "ge"),
+    "less_than": ("<", "lt"),
+    "less_than_equal": ("<=", "le"),
+}
+
+
+def _dotted(loc: Sequence[int | str]) -> str:
+    """``('models', 2, 'prior')`` -> ``models[2].prior``; () -> ``config``."""
+    text = ""
+    for part in loc:
+        text += f"[{part}]" if isinstance(part, int) else f".{part}"
+    return text.lstrip(".") or "config"
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _known_keys(loc: Sequence[int | str]) -> str:
+    """`` (known: ...)`` for an unknown key, with a guess at the intended one."""
+    section: Any = TrainConfig
+    for part in loc[:-1]:
+        if isinstance(part, int):
+            continue
+        field = section.model_fields.get(part)
+        section = _section(field.annotation) if field is not None else None
+        if section is None:
+            return ""
+    known = list(section.model_fields)
+    guess = difflib.get_close_matches(str(loc[-1]), known, n=1)
+    hint = f"; did you mean {guess[0]!r}?" if guess else ""
+    return f" (known: {', '.join(known)}){hint}"
+
+
+def _section(annotation: Any) -> type[BaseModel] | None:
+    """The config class inside an annotation (``list[ModelSpec]`` -> ModelSpec)."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in typing.get_args(annotation):
+        found = _section(arg)
+        if found is not None:
+            return found
+    return None
+
+
+# ---------------------------------------------------------------------- CLI
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m torchcf.config``: print the schema, or a resolved config.
+
+    Returns:
+        0 on success, 2 on a bad configuration (``error: <one line>`` on stderr).
+    """
+    parser = argparse.ArgumentParser(
+        prog="python -m torchcf.config",
+        description=(
+            "Validate a torchcf run configuration and print it resolved (every "
+            "default filled in) with its hash, or print the JSON schema."
+        ),
+    )
+    parser.add_argument("config", nargs="?", help="JSON run configuration")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a dotted key with a JSON value (repeatable)",
+    )
+    parser.add_argument(
+        "--schema", action="store_true", help="print the JSON schema and exit"
+    )
+    args = parser.parse_args(argv)
+    if args.schema:
+        print(json.dumps(TrainConfig.model_json_schema(), indent=2))
+        return 0
+    if args.config is None:
+        parser.error("give a CONFIG file or --schema")
+    try:
+        cfg = load_config(args.config, args.overrides)
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(
+        json.dumps({"config": resolved_json(cfg), "hash": config_hash(cfg)}, indent=2)
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,336 @@
+"""TensorBoard logging of one training run: ABC progress, posteriors and the hybrid.
+
+:class:`RunLogger` wraps one :class:`~torch.utils.tensorboard.SummaryWriter`. The tags:
+
+========================================  ============  =============================
+tag                                       kind          step
+========================================  ============  =============================
+``abc/particles/<model>``                 scalar        particles processed so far
+``abc/threshold/<model>``                 scalar        particles processed so far
+``abc/particles_per_s/<model>``           scalar        particles processed so far
+``abc/invalid_rate/<model>``              scalar        particles processed so far
+``posterior/<model>/<param>``             histogram     0
+``hybrid/shares``, ``hybrid/pairwise``    image (HWC)   0
+``hybrid/share/<model>``                  scalar        0
+``hybrid/sensitivity/N=<n>/<model>``      scalar        0
+``<tag>/text_summary``                    text          0
+``_hparams_/...``                         hparams       0
+========================================  ============  =============================
+
+A disabled logger is a no-op throughout and imports neither TensorBoard nor
+matplotlib. On resume, ``purge_step`` makes TensorBoard discard the events a killed
+run wrote at or past the checkpoint's step.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from torch import Tensor
+
+if TYPE_CHECKING:
+    from torch.utils.tensorboard import SummaryWriter
+
+__all__ = ["RunLogger", "markdown_summary"]
+
+HParamValue = float | int | str | bool
+
+
+class RunLogger:
+    """TensorBoard writer for one training run.
+
+    Args:
+        logdir: the run's folder (created when enabled); all events, hparams included,
+            go into this one folder.
+        enabled: when False every method does nothing and no file is written.
+        purge_step: passed to ``SummaryWriter``: events of an earlier, killed run with
+            a step at or past it are discarded (use the checkpoint's step on resume).
+    """
+
+    def __init__(
+        self,
+        logdir: str | Path,
+        *,
+        enabled: bool = True,
+        purge_step: int | None = None,
+    ) -> None:
+        self.logdir = Path(logdir)
+        self._writer: SummaryWriter | None = None
+        if enabled:
+            # Imported here so that a disabled logger does not pay for TensorBoard.
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._writer = SummaryWriter(str(self.logdir), purge_step=purge_step)
+
+    @property
+    def enabled(self) -> bool:
+        """False when disabled or closed."""
+        return self._writer is not None
+
+    def progress(
+        self,
+        model: str,
+        *,
+        particles: int,
+        threshold: float,
+        particles_per_s: float,
+        invalid_rate: float,
+    ) -> None:
+        """ABC progress of one model, at step ``particles``.
+
+        Args:
+            model: model name.
+            particles: number of this model's particles processed so far (the step).
+            threshold: current acceptance distance; inf until a particle is accepted.
+            particles_per_s: throughput [1/s].
+            invalid_rate: fraction of particles rejected as invalid, in [0, 1].
+
+        Non-finite values (the threshold before the first acceptance, a rate over zero
+        seconds) are skipped: an inf point would flatten the whole curve.
+        """
+        if self._writer is None:
+            return
+        values = {
+            "particles": particles,
+            "threshold": threshold,
+            "particles_per_s": particles_per_s,
+            "invalid_rate": invalid_rate,
+        }
+        step = int(particles)
+        for name, value in values.items():
+            value = float(value)
+            if math.isfinite(value):
+                self._writer.add_scalar(f"abc/{name}/{model}", value, global_step=step)
+
+    def posterior(self, model: str, param_names: Sequence[str], theta: Tensor) -> None:
+        """One histogram per parameter of the accepted particles.
+
+        Args:
+            model: model name.
+            param_names: the K parameter names, in the column order of ``theta``.
+            theta: (P, K) accepted parameters; nothing is logged when P == 0.
+        """
+        if self._writer is None:
+            return
+        if theta.ndim != 2 or theta.shape[1] != len(param_names):
+            raise ValueError(
+                f"theta has shape {tuple(theta.shape)}, expected "
+                f"(P, {len(param_names)}) for parameters {list(param_names)}"
+            )
+        if theta.shape[0] == 0:
+            return
+        values = theta.detach().cpu().numpy()  # (P, K)
+        for k, name in enumerate(param_names):
+            column = values[:, k]
+            # np.histogram rejects NaN/inf (its range would not be finite).
+            column = column[np.isfinite(column)]
+            if column.size:
+                self._writer.add_histogram(f"posterior/{model}/{name}", column)
+
+    def hybrid(
+        self,
+        shares: Mapping[str, float],
+        pairwise_models: Sequence[str],
+        pairwise_table: Sequence[Sequence[float]] | Tensor | np.ndarray,
+        sensitivity: Mapping[int, Mapping[str, float]] | None = None,
+    ) -> None:
+        """The hybrid model: share figures and share scalars.
+
+        Args:
+            shares: model name -> share in [0, 1].
+            pairwise_models: the M models of ``pairwise_table``.
+            pairwise_table: (M, M) share of row model i in the hybrid of {i, j}.
+            sensitivity: optional N (number of accepted particles) -> shares.
+        """
+        if self._writer is None:
+            return
+        from .plots import figure_to_array, pairwise_figure, shares_figure
+
+        self._writer.add_image(
+            "hybrid/shares", figure_to_array(shares_figure(shares)), dataformats="HWC"
+        )
+        self._writer.add_image(
+            "hybrid/pairwise",
+            figure_to_array(pairwise_figure(pairwise_models, pairwise_table)),
+            dataformats="HWC",
+        )
+        for model, share in shares.items():
+            self._writer.add_scalar(f"hybrid/share/{model}", float(share))
+        for n, by_model in (sensitivity or {}).items():
+            for model, share in by_model.items():
+                self._writer.add_scalar(
+                    f"hybrid/sensitivity/N={n}/{model}", float(share)
+                )
+
+    def text(self, tag: str, markdown: str) -> None:
+        """Markdown text (TensorBoard stores it under ``<tag>/text_summary``)."""
+        if self._writer is None:
+            return
+        self._writer.add_text(tag, markdown)
+
+    def hparams(
+        self,
+        hparams: Mapping[str, HParamValue | Any],
+        metrics: Mapping[str, float],
+    ) -> None:
+        """Hyper-parameters and final metrics for TensorBoard's HPARAMS tab.
+
+        Unlike ``SummaryWriter.add_hparams``, which opens a second writer (in a
+        timestamped sub-folder unless given a ``run_name``), the summaries go through
+        this run's own writer: one event file, one run, and ``purge_step`` applies.
+        The metrics are also written as scalars, which the HPARAMS tab reads.
+
+        Args:
+            hparams: name -> value. Values other than int/float/str/bool are written
+                with ``str()`` (NumPy scalars as their Python value), None as "none".
+                TensorBoard's encoder stores bools as 1.0/0.0.
+            metrics: metric tag -> value; use tags not logged elsewhere.
+        """
+        if self._writer is None:
+            return
+        from torch.utils.tensorboard.summary import hparams as hparams_summary
+
+        hparam_dict = {str(k): _hparam_value(v) for k, v in hparams.items()}
+        metric_dict = {str(k): float(v) for k, v in metrics.items()}
+        file_writer = self._writer.file_writer
+        assert file_writer is not None  # set in SummaryWriter.__init__
+        for summary in hparams_summary(hparam_dict, metric_dict):
+            file_writer.add_summary(summary)
+        for tag, value in metric_dict.items():
+            self._writer.add_scalar(tag, value)
+
+    def flush(self) -> None:
+        if self._writer is not None:
+            self._writer.flush()
+
+    def close(self) -> None:
+        """Flush and close; later calls do nothing. Idempotent."""
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+
+    def __enter__(self) -> RunLogger:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+def _hparam_value(value: Any) -> HParamValue:
+    if value is None:
+        return "none"
+    if isinstance(value, np.generic):
+        value = value.item()
+    elif isinstance(value, Tensor) and value.numel() == 1:
+        value = value.item()
+    if isinstance(value, bool | int | float | str):
+        return value
+    return str(value)
+
+
+def _fmt(value: Any) -> str:
+    if value is None:
+        return "–"
+    if isinstance(value, Tensor) and value.numel() == 1:
+        value = value.item()
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, bool):
+        return str(value)
+    if isinstance(value, int):
+        return f"{value:,}"
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return str(value)
+        return f"{value:.4g}"
+    return str(value).replace("|", "\\|")
+
+
+def _fmt_share(value: Any) -> str:
+    if value is None:
+        return "–"
+    return f"{100.0 * float(value):.1f} %"
+
+
+_PER_MODEL_COLUMNS = (
+    ("best_score", "best score"),
+    ("threshold", "threshold"),
+    ("invalid", "invalid"),
+    ("particles", "particles"),
+    ("seconds", "seconds"),
+    ("particles_per_s", "particles/s"),
+)
+
+
+def markdown_summary(summary: Mapping[str, Any]) -> str:
+    """Render a run summary as Markdown for TensorBoard's TEXT tab.
+
+    Args:
+        summary: ``{"dataset", "n_train", "shares": {model: fraction}, "per_model":
+            {model: {"best_score", "threshold", "invalid", "particles", "seconds",
+            "particles_per_s"}}, "sensitivity": {N: {model: share}}}``; every key
+            is optional, missing values show as "–".
+
+    Returns:
+        Markdown: a header line, one table with a row per model and, with
+        ``sensitivity``, a second table with a column per N.
+    """
+    shares: Mapping[str, Any] = summary.get("shares") or {}
+    per_model: Mapping[str, Mapping[str, Any]] = summary.get("per_model") or {}
+    sensitivity: Mapping[Any, Mapping[str, Any]] = summary.get("sensitivity") or {}
+
+    lines = [
+        f"**dataset:** {_fmt(summary.get('dataset'))} · "
+        f"**training pairs:** {_fmt(summary.get('n_train'))}",
+        "",
+    ]
+    # Models in first-seen order: the shares first, then any model only in per_model.
+    models = list(dict.fromkeys([*shares, *per_model]))
+    if models:
+        header = ["model", "share", *(label for _, label in _PER_MODEL_COLUMNS)]
+        lines += [_row(header), _row(["---"] + ["---:"] * (len(header) - 1))]
+        for model in models:
+            stats = per_model.get(model) or {}
+            cells = [_fmt(stats.get(key)) for key, _ in _PER_MODEL_COLUMNS]
+            lines.append(_row([_fmt(model), _fmt_share(shares.get(model)), *cells]))
+    else:
+        lines.append("_no model results_")
+
+    if sensitivity:
+        ns = sorted(sensitivity, key=_sort_key)
+        sens_models = list(
+            dict.fromkeys([*models, *(m for n in ns for m in sensitivity[n])])
+        )
+        lines += [
+            "",
+            "**share sensitivity to N (accepted particles):**",
+            "",
+            _row(["model", *(f"N={n}" for n in ns)]),
+            _row(["---"] + ["---:"] * len(ns)),
+        ]
+        for model in sens_models:
+            cells = [_fmt_share(sensitivity[n].get(model)) for n in ns]
+            lines.append(_row([_fmt(model), *cells]))
+    return "\n".join(lines) + "\n"
+
+
+def _row(cells: Sequence[str]) -> str:
+    return "| " + " | ".join(cells) + " |"
+
+
+def _sort_key(n: Any) -> tuple[int, float | str]:
+    # N keys may come back from JSON as strings; numeric ones sort numerically.
+    try:
+        return (0, float(n))
+    except (TypeError, ValueError):
+        return (1, str(n))

@@ -1,0 +1,169 @@
+"""Streaming per-pair top-N buffer of ABC rejection (SPEC section 5).
+
+For every training pair the buffer keeps the ``capacity`` particles with the lowest
+score, ties broken by the lower particle index, and never stores the others: its
+memory is ``n_pairs x capacity`` whatever the number of particles streamed through
+it, and its content equals a full sort of all scores, whatever order and chunking
+the particles arrive in.
+
+Invalid particles (score ``+inf``) never enter. Slots not yet filled hold score
+``+inf`` and index ``-1``; a pair with fewer than ``capacity`` valid particles keeps
+empty slots.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+
+
+def lexsort(*keys: Tensor) -> Tensor:
+    """Permutation sorting by ``keys[0]``, then ``keys[1]``, ... (all (M,)).
+
+    Stable sorts from the least significant key up (like ``numpy.lexsort`` with
+    the keys reversed).
+    """
+    order = torch.arange(keys[0].shape[0], device=keys[0].device)
+    for key in reversed(keys):
+        order = order[torch.sort(key[order], stable=True).indices]
+    return order
+
+
+class TopN:
+    """The ``capacity`` best ``(score, index)`` entries of each of ``n_pairs`` pairs.
+
+    Args:
+        n_pairs: number of pairs.
+        capacity: entries kept per pair (the largest N that will be asked for).
+        n_params: parameters per particle (stored with each entry).
+        device: where the buffer lives.
+
+    Attributes:
+        score: (n_pairs, capacity) float64, ascending per pair; ``+inf`` = empty.
+        index: (n_pairs, capacity) int64 particle index; ``-1`` = empty.
+        theta: (n_pairs, capacity, n_params) float64 parameters.
+    """
+
+    def __init__(
+        self,
+        n_pairs: int,
+        capacity: int,
+        n_params: int,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        if n_pairs < 1 or capacity < 1:
+            raise ValueError(f"need n_pairs, capacity >= 1, got {n_pairs}, {capacity}")
+        self.score = torch.full((n_pairs, capacity), torch.inf, dtype=torch.float64)
+        self.score = self.score.to(device)
+        self.index = torch.full(
+            (n_pairs, capacity), -1, dtype=torch.int64, device=device
+        )
+        self.theta = torch.zeros(
+            n_pairs, capacity, n_params, dtype=torch.float64, device=device
+        )
+
+    @property
+    def n_pairs(self) -> int:
+        return self.score.shape[0]
+
+    @property
+    def capacity(self) -> int:
+        return self.score.shape[1]
+
+    def threshold(self) -> Tensor:
+        """(n_pairs,) score a new particle must not exceed to enter (``+inf``
+        while a pair has an empty slot)."""
+        return self.score[:, -1]
+
+    def push(self, pair: Tensor, score: Tensor, index: Tensor, theta: Tensor) -> int:
+        """Offer candidates; keeps the buffer equal to the best of everything seen.
+
+        Args:
+            pair: (M,) int64 pair position of each candidate.
+            score: (M,) scores (any float dtype; NaN and +inf are rejected).
+            index: (M,) int64 particle indices (unique per pair).
+            theta: (M, n_params) parameters.
+
+        Returns:
+            The number of candidates that passed the threshold test (entered or
+            were compared exactly).
+        """
+        device = self.score.device
+        score = score.to(device=device, dtype=torch.float64)
+        pair = pair.to(device)
+        # Only candidates at or under their pair's current threshold can enter (a
+        # tie may still win on the index); this keeps the exact merge small.
+        keep = torch.isfinite(score) & (score <= self.threshold()[pair])
+        survivors = keep.nonzero().squeeze(1)
+        if not survivors.numel():
+            return 0
+        n_pairs, capacity = self.score.shape
+        all_pair = torch.cat(
+            (
+                torch.arange(n_pairs, device=device).repeat_interleave(capacity),
+                pair[survivors],
+            )
+        )
+        all_score = torch.cat((self.score.reshape(-1), score[survivors]))
+        all_index = torch.cat((self.index.reshape(-1), index.to(device)[survivors]))
+        all_theta = torch.cat(
+            (
+                self.theta.reshape(-1, self.theta.shape[-1]),
+                theta.to(device=device, dtype=torch.float64)[survivors],
+            )
+        )
+        # Empty slots (index -1, score inf) sort after every real entry of the pair.
+        empty = (all_index < 0).to(torch.int64)
+        order = lexsort(all_pair, all_score, empty, all_index)
+        sorted_pair = all_pair[order]
+        # Rank within the pair: position minus the pair's first position.
+        counts = torch.bincount(sorted_pair, minlength=n_pairs)
+        starts = torch.cumsum(counts, 0) - counts
+        rank = torch.arange(order.numel(), device=device) - starts[sorted_pair]
+        take = rank < capacity
+        slot = sorted_pair[take] * capacity + rank[take]
+        chosen = order[take]
+        self.score.view(-1)[slot] = all_score[chosen]
+        self.index.view(-1)[slot] = all_index[chosen]
+        self.theta.view(-1, self.theta.shape[-1])[slot] = all_theta[chosen]
+        return int(survivors.numel())
+
+    def push_full(self, score: Tensor, index: Tensor, theta: Tensor) -> int:
+        """Offer particles simulated on every pair (full layout).
+
+        Args:
+            score: (P, n_pairs) scores; index: (P,) particle indices;
+            theta: (P, n_params).
+        """
+        device = self.score.device
+        score = score.to(device=device, dtype=torch.float64)
+        keep = torch.isfinite(score) & (score <= self.threshold()[None, :])
+        rows, cols = keep.nonzero(as_tuple=True)
+        if not rows.numel():
+            return 0
+        rows_cpu = rows.to(index.device)
+        return self.push(cols, score[rows, cols], index[rows_cpu], theta[rows_cpu])
+
+    def first(self, n: int) -> tuple[Tensor, Tensor, Tensor]:
+        """The best ``n <= capacity`` entries per pair: score, index, theta."""
+        if not 1 <= n <= self.capacity:
+            raise ValueError(f"n must be in [1, {self.capacity}], got {n}")
+        return self.score[:, :n], self.index[:, :n], self.theta[:, :n]
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"score": self.score, "index": self.index, "theta": self.theta}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        for name in ("score", "index", "theta"):
+            value = state[name]
+            if value.shape != getattr(self, name).shape:
+                raise ValueError(
+                    f"buffer {name}: shape {tuple(value.shape)} in the checkpoint, "
+                    f"{tuple(getattr(self, name).shape)} expected"
+                )
+            setattr(self, name, value.to(getattr(self, name).device).clone())
+
+
+__all__ = ["TopN", "lexsort"]

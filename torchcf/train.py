@@ -1,0 +1,519 @@
+"""ABC rejection with hybrid model selection: ``python -m torchcf.train CONFIG``.
+
+    python -m torchcf.train configs/carII.json
+    python -m torchcf.train configs/smoke.json --set abc.n_particles=50000
+    python -m torchcf.train configs/carII.json --resume      # after a crash or kill -9
+
+For every model of the config, ``abc.n_particles`` particles are drawn from its
+uniform prior (:mod:`torchcf.streams`), simulated on the training pairs
+(:func:`torchcf.simulate`, paired or full layout) and offered to per-pair top-N
+buffers (:mod:`torchcf.topn`); the hybrid, its shares, the pairwise table and the
+sensitivity over N are then read from the buffers (:mod:`torchcf.hybrid`).
+
+The output directory receives ``config.json`` (resolved), ``checkpoint.pt``
+(rewritten atomically every ``abc.checkpoint_every`` seconds and after each model),
+TensorBoard event files under ``tb/``, and at the end ``posterior.pt``
+(:mod:`torchcf.posterior`) and ``summary.json``, written last: a directory without
+``summary.json`` holds an unfinished run.
+
+Exit codes: 0 done; 2 bad config, data or arguments (one line on stderr); 130
+interrupted (resume with ``--resume``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from . import __version__
+from .config import ConfigError, TrainConfig, config_hash, load_config, resolved_json
+from .data import DataError, PairSet, load_split
+from .hybrid import Selection, pairwise_table, select
+from .models import get_model
+from .models.base import CFModel
+from .posterior import (
+    ModelParticles,
+    Posterior,
+    atomic_torch_save,
+    atomic_write_text,
+)
+from .runtime import tune_malloc
+from .sim import COMPILE_CHUNK_MULTIPLE, _resolve_compile, simulate
+from .streams import ParticleStream
+from .tblog import RunLogger, markdown_summary
+from .topn import TopN
+
+CHECKPOINT_FORMAT = "torchcf.checkpoint/1"
+
+
+class RunError(RuntimeError):
+    """A run that cannot start or continue as asked (one-line message)."""
+
+
+@dataclass
+class ModelProgress:
+    """One model's state in a run (saved in the checkpoint)."""
+
+    next: int = 0  # particles 0 .. next-1 are in the buffer
+    invalid: int = 0  # invalid rollouts among them (cells, in the full layout)
+    seconds: float = 0.0  # simulation and selection time spent on them
+    done: bool = False
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "next": self.next,
+            "invalid": self.invalid,
+            "seconds": self.seconds,
+            "done": self.done,
+        }
+
+
+@dataclass
+class RunState:
+    """Everything a checkpoint holds."""
+
+    config_hash: str
+    progress: dict[str, ModelProgress] = field(default_factory=dict)
+    buffers: dict[str, TopN] = field(default_factory=dict)
+    #: buffer state dicts read from a checkpoint, until the buffers are built
+    saved_buffers: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    def save(self, path: Path) -> None:
+        atomic_torch_save(
+            {
+                "format": CHECKPOINT_FORMAT,
+                "config_hash": self.config_hash,
+                "progress": {k: v.as_dict() for k, v in self.progress.items()},
+                "buffers": {k: b.state_dict() for k, b in self.buffers.items()},
+            },
+            path,
+        )
+
+
+# --------------------------------------------------------------------------------------
+# Set-up
+
+
+def _device(cfg: TrainConfig) -> torch.device:
+    device = torch.device(cfg.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"device: {cfg.device!r} asked for but CUDA is not available")
+    return device
+
+
+def _chunk_size(
+    cfg: TrainConfig, model: CFModel, pairs: PairSet, compiled: bool
+) -> int:
+    """Particles per simulate call: the config's, else the model's cell budget."""
+    cells = 1 if cfg.abc.layout == "paired" else pairs.n_pairs
+    chunk = cfg.abc.chunk_size or max(1, model.chunk_cells // cells)
+    chunk = min(chunk, cfg.abc.n_particles)
+    if compiled:  # compiled blocks want whole vector lanes (see torchcf.sim)
+        chunk = -(-chunk // COMPILE_CHUNK_MULTIPLE) * COMPILE_CHUNK_MULTIPLE
+    return chunk
+
+
+def _compile_mode(
+    cfg: TrainConfig, model: CFModel, device: torch.device, pairs
+) -> bool:
+    if cfg.compile == "on":
+        return model.compilable
+    if cfg.compile == "off":
+        return False
+    cells = cfg.abc.n_particles * pairs.n_steps
+    if cfg.abc.layout == "full":
+        cells *= pairs.n_pairs
+    return _resolve_compile(model, "auto", device, cells)
+
+
+def _open_run(cfg: TrainConfig, out: Path, resume: bool) -> RunState:
+    """Check the output directory against ``--resume`` and load the checkpoint."""
+    digest = config_hash(cfg)
+    checkpoint = out / "checkpoint.pt"
+    if resume:
+        if not checkpoint.exists():
+            raise RunError(f"--resume: no checkpoint.pt in {out}")
+        try:
+            raw = torch.load(checkpoint, map_location="cpu", weights_only=True)
+        except Exception as error:  # noqa: BLE001 - any unreadable file
+            raise RunError(f"--resume: cannot read {checkpoint}: {error}") from None
+        if not isinstance(raw, dict) or raw.get("format") != CHECKPOINT_FORMAT:
+            raise RunError(f"--resume: {checkpoint} is not a torchcf checkpoint")
+        if raw["config_hash"] != digest:
+            raise RunError(
+                f"--resume: {out} was run with a different config (hash "
+                f"{raw['config_hash']}, this config {digest}); use another --out"
+            )
+        state = RunState(digest)
+        for name, progress in raw["progress"].items():
+            state.progress[name] = ModelProgress(**progress)
+        state.saved_buffers = raw["buffers"]
+        return state
+    if checkpoint.exists() or (out / "summary.json").exists():
+        raise RunError(
+            f"{out} already holds a run; pass --resume to continue it, or --out "
+            "for a new directory"
+        )
+    return RunState(digest)
+
+
+# --------------------------------------------------------------------------------------
+# The ABC rejection of one model
+
+
+def _run_model(
+    cfg: TrainConfig,
+    index: int,
+    pairs: PairSet,
+    state: RunState,
+    checkpoint: Path,
+    logger: RunLogger,
+    device: torch.device,
+    dtype: torch.dtype,
+    last_save: list[float],
+) -> None:
+    spec = cfg.models[index]
+    name = spec.name
+    model = get_model(name)
+    buffer = state.buffers[name]
+    progress = state.progress[name]
+    if progress.done:
+        return
+    n_total = cfg.abc.n_particles
+    paired = cfg.abc.layout == "paired"
+    stream = ParticleStream(
+        name,
+        spec.bounds(torch.float64),
+        cfg.abc.seed,
+        pairs.n_pairs if paired else None,
+    )
+    compiled = _compile_mode(cfg, model, device, pairs)
+    chunk = _chunk_size(cfg, model, pairs, compiled)
+    cells_per_particle = 1 if paired else pairs.n_pairs
+    bar = tqdm(
+        total=n_total,
+        initial=progress.next,
+        desc=f"{name:>5}",
+        unit="particle",
+        unit_scale=True,
+        dynamic_ncols=True,
+        file=sys.stderr,
+        # In a log file (no terminal) a line every 30 s instead of a live bar.
+        mininterval=0.1 if sys.stderr.isatty() else 30.0,
+    )
+    with bar:
+        for start in range(progress.next, n_total, chunk):
+            began = time.perf_counter()
+            # Always a whole chunk: a compiled block then sees one shape per model.
+            theta, pair = stream.draw(start, start + chunk)
+            real = min(start + chunk, n_total) - start
+            out = simulate(
+                model,
+                theta.to(dtype),
+                pairs,
+                pair,
+                dtype=dtype,
+                device=device,
+                weights=cfg.abc.weights,
+                chunk_size=chunk,
+                compile=compiled,
+            )
+            particle = torch.arange(start, start + real)
+            score = out.score[:real]
+            if paired:
+                buffer.push(pair[:real], score, particle, theta[:real])
+            else:
+                buffer.push_full(score, particle, theta[:real])
+            progress.invalid += int((~out.valid[:real]).sum())
+            progress.next = start + real
+            progress.seconds += time.perf_counter() - began
+            bar.update(real)
+            rate = progress.next / max(progress.seconds, 1e-9)
+            invalid_rate = progress.invalid / (progress.next * cells_per_particle)
+            bar.set_postfix_str(f"invalid {invalid_rate:.1%}", refresh=False)
+            logger.progress(
+                name,
+                particles=progress.next,
+                threshold=float(buffer.threshold().mean()),
+                particles_per_s=rate,
+                invalid_rate=invalid_rate,
+            )
+            if time.perf_counter() - last_save[0] >= cfg.abc.checkpoint_every:
+                state.save(checkpoint)
+                last_save[0] = time.perf_counter()
+    progress.done = True
+    state.save(checkpoint)
+    last_save[0] = time.perf_counter()
+
+
+# --------------------------------------------------------------------------------------
+# Results
+
+
+def _hybrid_posterior(
+    cfg: TrainConfig, pairs: PairSet, state: RunState, selection: Selection
+) -> Posterior:
+    names = [spec.name for spec in cfg.models]
+    pair_ids = torch.as_tensor(pairs.pair_ids, dtype=torch.int64)
+    n = cfg.abc.top_n
+    hybrid = {}
+    buffers = {}
+    for m, name in enumerate(names):
+        buffer = state.buffers[name]
+        score, index, theta = buffer.first(n)
+        member = selection.member[m]  # (n_pairs, n)
+        rows, ranks = member.nonzero(as_tuple=True)
+        param_names = tuple(get_model(name).param_names)
+        hybrid[name] = ModelParticles(
+            param_names,
+            theta[rows, ranks].clone(),
+            score[rows, ranks].clone(),
+            pair_ids[rows],
+            index[rows, ranks].clone(),
+        )
+        buffers[name] = {"param_names": list(param_names), **buffer.state_dict()}
+    return Posterior(
+        dataset=_dataset_label(cfg),
+        selection=cfg.abc.selection,
+        top_n=n,
+        models=tuple(names),
+        shares=selection.shares(),
+        train_pair_ids=pair_ids,
+        hybrid=hybrid,
+        buffers=buffers,
+    )
+
+
+def _dataset_label(cfg: TrainConfig) -> str:
+    return cfg.data.name if cfg.data.name is not None else str(cfg.data.path)
+
+
+def _summary(
+    cfg: TrainConfig,
+    train: PairSet,
+    test: PairSet,
+    state: RunState,
+    posterior: Posterior,
+    table: torch.Tensor,
+    sensitivity: dict[int, dict[str, float]],
+    wall: float,
+) -> dict[str, Any]:
+    names = list(posterior.models)
+    cells = 1 if cfg.abc.layout == "paired" else train.n_pairs
+    per_model = {}
+    for name in names:
+        buffer, progress = state.buffers[name], state.progress[name]
+        nth = buffer.first(cfg.abc.top_n)[0][:, -1]  # N-th best score per pair
+        finite = nth[torch.isfinite(nth)]
+        per_model[name] = {
+            "particles": progress.next,
+            "invalid": progress.invalid,
+            "invalid_rate": progress.invalid / max(progress.next * cells, 1),
+            "seconds": round(progress.seconds, 3),
+            "particles_per_s": progress.next / max(progress.seconds, 1e-9),
+            "best_score": _finite_or_none(float(buffer.score[:, 0].min())),
+            "threshold": _finite_or_none(float(finite.mean()))
+            if finite.numel()
+            else None,
+            "threshold_max": _finite_or_none(float(nth.max())),
+            "thresholds": [_finite_or_none(float(v)) for v in nth],
+            "pairs_short_of_n": int((~torch.isfinite(nth)).sum()),
+        }
+    return {
+        "dataset": _dataset_label(cfg),
+        "layout": cfg.abc.layout,
+        "selection": cfg.abc.selection,
+        "top_n": cfg.abc.top_n,
+        "n_particles": cfg.abc.n_particles,
+        "n_train": train.n_pairs,
+        "n_test": test.n_pairs,
+        "train_pair_ids": [int(i) for i in train.pair_ids],
+        "test_pair_ids": [int(i) for i in test.pair_ids],
+        "models": names,
+        "shares": posterior.shares,
+        "hybrid_size": sum(len(p) for p in posterior.hybrid.values()),
+        "pairwise": {
+            "models": names,
+            "table": [[round(float(v), 6) for v in row] for row in table],
+            "meaning": "table[i][j]: share of models[i] in the hybrid of {i, j} alone",
+        },
+        "sensitivity": {str(k): v for k, v in sensitivity.items()},
+        "per_model": per_model,
+        "seconds_total": round(sum(p.seconds for p in state.progress.values()), 3),
+        "seconds_wall_this_process": round(wall, 3),
+        "config_hash": config_hash(cfg),
+        "versions": {
+            "torchcf": __version__,
+            "torch": torch.__version__,
+            "numpy": np.__version__,
+            "python": platform.python_version(),
+        },
+    }
+
+
+def _finite_or_none(value: float) -> float | None:
+    return value if math.isfinite(value) else None
+
+
+# --------------------------------------------------------------------------------------
+# Entry points
+
+
+def train(
+    cfg: TrainConfig,
+    out: str | Path,
+    *,
+    resume: bool = False,
+    pairs: tuple[PairSet, PairSet] | None = None,
+) -> dict[str, Any]:
+    """Run (or resume) the ABC rejection and hybrid selection of ``cfg`` into ``out``.
+
+    Args:
+        cfg: the run's configuration.
+        out: output directory.
+        resume: continue the run in ``out`` (same config) instead of refusing it.
+        pairs: optional ``(train, test)`` pair sets to use instead of loading
+            ``cfg.data`` (which then only labels the run; the config hash that
+            guards ``resume`` does not cover these pairs).
+
+    Returns:
+        The summary (also written to ``out/summary.json``).
+
+    Raises:
+        ConfigError, DataError, RunError: bad config, data or output directory.
+    """
+    began = time.perf_counter()
+    out = Path(out)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    tune_malloc()
+    device = _device(cfg)
+    dtype = getattr(torch, cfg.dtype)
+    if max(cfg.abc.top_n, *cfg.abc.sensitivity_n) > cfg.abc.n_particles:
+        raise ConfigError(
+            f"abc.n_particles: {cfg.abc.n_particles} is fewer than the N asked for"
+        )
+    state = _open_run(cfg, out, resume)  # before the data: fail fast
+    train_pairs, test_pairs = load_split(cfg.data) if pairs is None else pairs
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(
+        out / "config.json", json.dumps(resolved_json(cfg), indent=2) + "\n"
+    )
+    checkpoint = out / "checkpoint.pt"
+
+    for spec in cfg.models:
+        n_params = len(get_model(spec.name).param_names)
+        buffer = TopN(train_pairs.n_pairs, cfg.abc.buffer_size, n_params)
+        if spec.name in state.saved_buffers:
+            buffer.load_state_dict(state.saved_buffers[spec.name])
+        state.buffers[spec.name] = buffer
+        state.progress.setdefault(spec.name, ModelProgress())
+
+    with RunLogger(out / "tb") as logger:
+        last_save = [time.perf_counter()]
+        for index in range(len(cfg.models)):
+            _run_model(
+                cfg,
+                index,
+                train_pairs,
+                state,
+                checkpoint,
+                logger,
+                device,
+                dtype,
+                last_save,
+            )
+        names = [spec.name for spec in cfg.models]
+        buffers = [state.buffers[name] for name in names]
+        kwargs = {"mode": cfg.abc.selection, "global_size": cfg.abc.global_size}
+        selection = select(buffers, names, cfg.abc.top_n, **kwargs)
+        table = pairwise_table(buffers, names, cfg.abc.top_n, **kwargs)
+        sensitivity = {
+            n: select(buffers, names, n, **kwargs).shares()
+            for n in sorted(set(cfg.abc.sensitivity_n))
+        }
+        posterior = _hybrid_posterior(cfg, train_pairs, state, selection)
+        summary = _summary(
+            cfg,
+            train_pairs,
+            test_pairs,
+            state,
+            posterior,
+            table,
+            sensitivity,
+            time.perf_counter() - began,
+        )
+        for name in names:
+            particles = posterior.hybrid[name]
+            logger.posterior(name, particles.param_names, particles.theta)
+        logger.hybrid(posterior.shares, names, table, sensitivity)
+        logger.text("summary", markdown_summary(summary))
+        logger.hparams(
+            {
+                "dataset": summary["dataset"],
+                "layout": cfg.abc.layout,
+                "n_particles": cfg.abc.n_particles,
+                "top_n": cfg.abc.top_n,
+                "seed": cfg.abc.seed,
+                "dtype": cfg.dtype,
+                "models": ",".join(names),
+            },
+            {f"share/{name}": share for name, share in posterior.shares.items()},
+        )
+    posterior.save(out / "posterior.pt")
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m torchcf.train",
+        description="ABC rejection and hybrid model selection on car-following data.",
+    )
+    parser.add_argument("config", help="JSON config (see configs/ and --schema)")
+    parser.add_argument("--out", default=None, help="output directory")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=JSON",
+        help="override a config field, e.g. --set abc.n_particles=200000",
+    )
+    parser.add_argument(
+        "--resume", action="store_true", help="continue the run in the output directory"
+    )
+    args = parser.parse_args(argv)
+    try:
+        cfg = load_config(args.config, args.overrides)
+        out = Path(args.out) if args.out is not None else Path(cfg.output)
+        summary = train(cfg, out, resume=args.resume)
+    except (ConfigError, DataError, RunError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted: continue with --resume", file=sys.stderr)
+        return 130
+    width = max(len(name) for name in summary["shares"])
+    print(f"hybrid shares ({summary['dataset']}, N = {summary['top_n']}):")
+    for name, share in summary["shares"].items():
+        seconds = summary["per_model"][name]["seconds"]
+        print(f"  {name:<{width}}  {share:6.1%}   ({seconds:.1f} s)")
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
