@@ -65,7 +65,7 @@ def mixture() -> PairSet:
 
 def test_recovers_a_known_mixture(mixture, tmp_path):
     cfg = config(n_particles=30000, chunk_size=8192)
-    summary = train(cfg, tmp_path / "run", pairs=(mixture, mixture))
+    summary = train(cfg, tmp_path / "run", pairs=(mixture, mixture), evaluate=False)
     shares = summary["shares"]
     assert shares["idm"] == pytest.approx(0.6, abs=0.1)
     assert shares["hl"] == pytest.approx(0.4, abs=0.1)
@@ -81,7 +81,7 @@ def test_recovers_a_known_mixture(mixture, tmp_path):
 
 def test_buffers_equal_a_brute_force_sort(mixture, tmp_path):
     cfg = config(n_particles=3000, chunk_size=700)
-    train(cfg, tmp_path / "run", pairs=(mixture, mixture))
+    train(cfg, tmp_path / "run", pairs=(mixture, mixture), evaluate=False)
     posterior = Posterior.load(tmp_path / "run" / "posterior.pt")
     for name in ("idm", "hl"):
         spec = next(s for s in cfg.models if s.name == name)
@@ -112,7 +112,7 @@ def test_result_does_not_depend_on_the_chunk_size(mixture, tmp_path, layout):
     for chunk in (257, 1000):
         cfg = config(n_particles=1500, chunk_size=chunk, layout=layout)
         out = tmp_path / f"{layout}-{chunk}"
-        summary = train(cfg, out, pairs=(mixture, mixture))
+        summary = train(cfg, out, pairs=(mixture, mixture), evaluate=False)
         results.append((summary["shares"], Posterior.load(out / "posterior.pt")))
     (shares_a, post_a), (shares_b, post_b) = results
     assert shares_a == shares_b
@@ -129,7 +129,9 @@ def test_result_does_not_depend_on_the_number_of_threads(mixture, tmp_path):
             cfg = config(n_particles=1500, chunk_size=600).model_copy(
                 update={"threads": threads}
             )
-            train(cfg, tmp_path / f"t{threads}", pairs=(mixture, mixture))
+            train(
+                cfg, tmp_path / f"t{threads}", pairs=(mixture, mixture), evaluate=False
+            )
             posteriors.append(Posterior.load(tmp_path / f"t{threads}" / "posterior.pt"))
     finally:
         torch.set_num_threads(before)
@@ -149,6 +151,12 @@ def test_outputs_and_event_tags(mixture, tmp_path):
     out = tmp_path / "run"
     summary = train(cfg, out, pairs=(mixture, mixture))
     on_disk = json.loads((out / "summary.json").read_text())
+    metrics = json.loads((out / "metrics.json").read_text())
+    for entry in ("idm", "hl", "hybrid"):
+        assert set(metrics[entry]) >= {"e_p", "e_v", "e_a", "min", "beta_ws", "ws"}
+    for name in ("table.md", "shares.png", "pairwise.png", "radar.png"):
+        assert (out / "report" / name).stat().st_size > 0
+    assert (out / "report" / "error_evolution.png").exists()
     assert on_disk["shares"] == summary["shares"]
     assert set(on_disk["per_model"]["idm"]) >= {
         "best_score",
@@ -168,7 +176,8 @@ def test_outputs_and_event_tags(mixture, tmp_path):
         tags["scalars"]
     )
     assert "posterior/idm/v0" in tags["histograms"]
-    assert {"hybrid/shares", "hybrid/pairwise"} <= set(tags["images"])
+    assert {"hybrid/shares", "hybrid/pairwise", "eval/radar"} <= set(tags["images"])
+    assert "eval/ws/hybrid" in tags["scalars"]
 
 
 def test_existing_run_is_refused_and_resume_of_a_finished_run_is_idempotent(
@@ -178,14 +187,14 @@ def test_existing_run_is_refused_and_resume_of_a_finished_run_is_idempotent(
 
     cfg = config(n_particles=1000, chunk_size=500)
     out = tmp_path / "run"
-    first = train(cfg, out, pairs=(mixture, mixture))
+    first = train(cfg, out, pairs=(mixture, mixture), evaluate=False)
     with pytest.raises(RunError, match="already holds a run"):
-        train(cfg, out, pairs=(mixture, mixture))
-    again = train(cfg, out, resume=True, pairs=(mixture, mixture))
+        train(cfg, out, pairs=(mixture, mixture), evaluate=False)
+    again = train(cfg, out, resume=True, pairs=(mixture, mixture), evaluate=False)
     assert again["shares"] == first["shares"]
     other = config(n_particles=1000, chunk_size=500, seed=2)
     with pytest.raises(RunError, match="different config"):
-        train(other, out, resume=True, pairs=(mixture, mixture))
+        train(other, out, resume=True, pairs=(mixture, mixture), evaluate=False)
 
 
 # --------------------------------------------------------------------------------------

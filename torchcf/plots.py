@@ -1,4 +1,8 @@
-"""Figures of the hybrid model: per-model shares and the pairwise share table.
+"""Figures of the hybrid model: shares, pairwise shares, radar charts, error evolution.
+
+:func:`shares_figure` and :func:`pairwise_figure` show the learned hybrid (paper
+Fig. 3), :func:`error_evolution_figure` the position error of the particles on one test
+pair (Fig. 4) and :func:`radar_figure` the six normalised metrics per model (Figs. 5-6).
 
 Every figure is a bare :class:`matplotlib.figure.Figure` with its own Agg canvas:
 nothing touches ``pyplot``'s global state, so the functions are thread-safe and need
@@ -8,8 +12,11 @@ TensorBoard and :func:`save_figure` writes it as a PNG.
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
+import textwrap
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -18,9 +25,47 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from torch import Tensor
 
-__all__ = ["figure_to_array", "pairwise_figure", "save_figure", "shares_figure"]
+__all__ = [
+    "RADAR_KEYS",
+    "RADAR_LABELS",
+    "error_evolution_figure",
+    "figure_to_array",
+    "pairwise_figure",
+    "radar_area_share",
+    "radar_figure",
+    "radar_values",
+    "save_figure",
+    "shares_figure",
+]
 
 _DPI = 100
+
+RADAR_KEYS = ("e_p", "e_v", "e_a", "min", "beta_ws", "ws")
+RADAR_LABELS = (
+    "avg position error",
+    "avg speed error",
+    "avg acceleration error",
+    "minimum distance",
+    "0.15-WS",
+    "WS",
+)
+_HYBRID = "hybrid"
+_RADAR_COLUMNS = 3
+# Above this many particles the individual error lines are replaced by a min-max band:
+# hundreds of overlapping lines are slow to draw and read as one grey blob anyway.
+_MAX_PARTICLE_LINES = 200
+# The paper's red/blue/green/purple first; no grey, which is taken by "all particles".
+_BEST_COLOURS = (
+    "tab:red",
+    "tab:blue",
+    "tab:green",
+    "tab:purple",
+    "tab:orange",
+    "tab:brown",
+    "tab:pink",
+    "tab:olive",
+    "tab:cyan",
+)
 
 
 def _new_figure(width: float, height: float) -> Figure:
@@ -98,6 +143,226 @@ def pairwise_figure(
             ax.text(j, i, f"{value:.2f}", ha="center", va="center", color=colour)
     ax.set_title("Pairwise shares (row model vs column model)")
     fig.colorbar(image, ax=ax, label="share of row model")
+    return fig
+
+
+def _is_hybrid(name: str) -> bool:
+    return name.lower() == _HYBRID
+
+
+def _float_or_nan(value: float | None) -> float:
+    return math.nan if value is None else float(value)
+
+
+def radar_values(
+    metrics: Mapping[str, Mapping[str, float]], keys: Sequence[str] = RADAR_KEYS
+) -> dict[str, list[float]]:
+    """Normalise each metric linearly across the entries to [0, 1], 1 = best.
+
+    For metric ``k`` with finite values ranging over ``[lo, hi]`` across the entries,
+    entry ``e`` scores ``(hi - v) / (hi - lo)``: the lowest error gets 1 and the
+    highest 0. When all finite values are equal (or only one is finite) they all get 1.
+    A non-finite value (``inf`` marks an infeasible or invalid fit) or a missing key
+    counts as the worst, 0, and takes no part in ``lo`` and ``hi``.
+
+    Args:
+        metrics: entry name -> metric name -> value (lower is better).
+        keys: the metrics to normalise, in vertex order.
+
+    Returns:
+        entry name -> one value in [0, 1] per key, entries in the order of ``metrics``.
+    """
+    names = list(metrics)
+    # (entries, keys) raw values; a missing key (or None) reads as NaN: "not finite".
+    raw = np.array(
+        [[_float_or_nan(metrics[name].get(key)) for key in keys] for name in names],
+        dtype=np.float64,
+    ).reshape(len(names), len(keys))
+    finite = np.isfinite(raw)
+    normalised = np.zeros_like(raw)
+    for j in range(len(keys)):
+        column = raw[finite[:, j], j]
+        if column.size == 0:
+            continue
+        lo, hi = column.min(), column.max()
+        span = hi - lo
+        scaled = (hi - raw[:, j]) / span if span > 0 else np.ones(len(names))
+        normalised[:, j] = np.where(finite[:, j], scaled, 0.0)
+    return {name: normalised[i].tolist() for i, name in enumerate(names)}
+
+
+def radar_area_share(values: Sequence[float]) -> float:
+    """Area of the radar polygon over the area of the unit polygon, in [0, 1].
+
+    With ``n`` vertices at equal angles, the polygon of radii ``r_i`` has area
+    ``sin(2 pi / n) / 2 * sum_i r_i r_{i+1}`` (cyclic) and the unit polygon
+    ``sin(2 pi / n) / 2 * n``, so the share is ``sum_i r_i r_{i+1} / n``.
+    """
+    radii = np.asarray(values, dtype=np.float64)
+    if radii.ndim != 1 or radii.size < 3:
+        raise ValueError(f"a radar polygon needs at least 3 values, got {radii.shape}")
+    return float(np.sum(radii * np.roll(radii, -1)) / radii.size)
+
+
+def radar_figure(
+    metrics: Mapping[str, Mapping[str, float]],
+    keys: Sequence[str] = RADAR_KEYS,
+    labels: Sequence[str] = RADAR_LABELS,
+    title: str | None = None,
+) -> Figure:
+    """Small-multiple radar (hexagon) charts of the normalised metrics (Figs. 5-6).
+
+    One panel per entry of ``metrics`` in its order, three per row. Each vertex is one
+    metric normalised by :func:`radar_values` (1 = best at the outline, 0 = worst at
+    the centre), so a larger shaded area is a better model. The ``"hybrid"`` entry is
+    drawn in a distinct colour. Each panel's title gives the entry name and its
+    ``overall`` score, the area share of :func:`radar_area_share`.
+
+    Args:
+        metrics: entry name -> metric name -> value (lower is better; ``inf`` =
+            infeasible or invalid), e.g. the eight models and ``"hybrid"``.
+        keys: the metrics, one vertex each, clockwise from the top.
+        labels: vertex labels, one per key.
+        title: optional figure title.
+
+    Returns:
+        The figure.
+    """
+    if not metrics:
+        raise ValueError("radar_figure needs at least one entry")
+    if len(labels) != len(keys):
+        raise ValueError(f"{len(labels)} labels for {len(keys)} keys")
+    if len(keys) < 3:
+        raise ValueError(f"a radar chart needs at least 3 metrics, got {len(keys)}")
+    values = radar_values(metrics, keys)
+    n_entries = len(values)
+    n_cols = min(_RADAR_COLUMNS, n_entries)
+    n_rows = math.ceil(n_entries / n_cols)
+    fig = _new_figure(3.0 * n_cols, 3.0 * n_rows + (0.3 if title else 0.0))
+    axes = fig.subplots(n_rows, n_cols, squeeze=False)
+
+    # Vertices clockwise from the top; the last vertex repeats the first to close.
+    n_keys = len(keys)
+    angles = np.pi / 2 - 2 * np.pi * np.arange(n_keys + 1) / n_keys  # (n_keys + 1,)
+    cos, sin = np.cos(angles), np.sin(angles)
+    wrapped = ["\n".join(textwrap.wrap(label, 12)) for label in labels]
+    for ax, (name, radii) in zip(axes.flat, values.items(), strict=False):
+        colour = "tab:blue" if _is_hybrid(name) else "tab:orange"
+        for level in (0.25, 0.5, 0.75):
+            ax.plot(level * cos, level * sin, color="0.85", lw=0.6)
+        for k in range(n_keys):
+            ax.plot([0.0, cos[k]], [0.0, sin[k]], color="0.85", lw=0.6)
+        ax.plot(cos, sin, color="0.3", lw=1.0)
+        closed = np.append(radii, radii[0])  # (n_keys + 1,)
+        ax.fill(closed * cos, closed * sin, color=colour, alpha=0.45, lw=0)
+        ax.plot(closed * cos, closed * sin, color=colour, lw=1.2)
+        for k in range(n_keys):
+            # Labels sit outside the outline, anchored on the side facing the centre.
+            x, y = 1.12 * cos[k], 1.12 * sin[k]
+            ha = "center" if abs(x) < 1e-6 else ("left" if x > 0 else "right")
+            va = "center" if abs(y) < 0.5 else ("bottom" if y > 0 else "top")
+            ax.text(x, y, wrapped[k], ha=ha, va=va, fontsize=6.5, color="0.25")
+        share = radar_area_share(radii)
+        ax.set_title(
+            f"{name}  (overall {share:.2f})",
+            fontsize=9,
+            fontweight="bold" if _is_hybrid(name) else "normal",
+            color=colour if _is_hybrid(name) else "black",
+        )
+        ax.set_xlim(-1.75, 1.75)
+        ax.set_ylim(-1.45, 1.45)
+        ax.set_aspect("equal")
+        ax.axis("off")
+    for ax in axes.flat[n_entries:]:
+        ax.set_visible(False)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def _as_array(values: np.ndarray | Tensor | Sequence[float]) -> np.ndarray:
+    if isinstance(values, Tensor):
+        values = values.detach().cpu().numpy()
+    return np.asarray(values, dtype=np.float64)
+
+
+def error_evolution_figure(
+    time: np.ndarray | Tensor,
+    errors: np.ndarray | Tensor,
+    scores: np.ndarray | Tensor,
+    best_fraction: float = 0.05,
+    title: str | None = None,
+    ylabel: str = "position error [m]",
+) -> Figure:
+    """Error evolution of all particles on one test pair (paper Fig. 4).
+
+    All particles are drawn as thin light-grey lines, or as a min-max band when there
+    are more than 200 of them, with their median; the best ``best_fraction`` of the
+    particles by score are drawn on top in colour. NaN errors (invalid or padded steps)
+    leave gaps.
+
+    Args:
+        time: (T,) time [s].
+        errors: (P, T) simulated minus observed follower position [m] (or any error
+            named by ``ylabel``), NaN where not defined.
+        scores: (P,) particle scores, lower is better (NaN sorts last).
+        best_fraction: share of particles highlighted, in (0, 1]; at least one.
+        title: optional axes title.
+        ylabel: y axis label.
+
+    Returns:
+        The figure.
+    """
+    time = _as_array(time)
+    errors = _as_array(errors)
+    scores = _as_array(scores)
+    if time.ndim != 1 or errors.ndim != 2 or errors.shape[1] != time.shape[0]:
+        raise ValueError(
+            f"errors must be (P, T) with T = len(time) = {time.shape}, "
+            f"got {errors.shape}"
+        )
+    n_particles = errors.shape[0]
+    if n_particles == 0:
+        raise ValueError("error_evolution_figure needs at least one particle")
+    if scores.shape != (n_particles,):
+        raise ValueError(f"scores must be ({n_particles},), got {scores.shape}")
+    if not 0.0 < best_fraction <= 1.0:
+        raise ValueError(f"best_fraction must be in (0, 1], got {best_fraction}")
+    n_best = min(n_particles, max(1, round(best_fraction * n_particles)))
+    # Stable argsort puts NaN scores last, so invalid particles are never "best".
+    best = np.argsort(scores, kind="stable")[:n_best]
+
+    fig = _new_figure(7.0, 4.0)
+    ax = fig.add_subplot()
+    all_label = f"all particles (n={n_particles})"
+    if n_particles > _MAX_PARTICLE_LINES:
+        finite = np.isfinite(errors)
+        lower = np.where(finite, errors, np.inf).min(axis=0)  # (T,)
+        upper = np.where(finite, errors, -np.inf).max(axis=0)  # (T,)
+        # Steps with no finite error are gaps, not an infinite band.
+        lower[~finite.any(axis=0)] = np.nan
+        upper[~finite.any(axis=0)] = np.nan
+        ax.fill_between(time, lower, upper, color="0.85", lw=0, label=all_label)
+    else:
+        lines = ax.plot(time, errors.T, color="0.75", lw=0.5, alpha=0.8)
+        lines[0].set_label(all_label)
+    with warnings.catch_warnings():
+        # nanmedian warns on steps where every particle is NaN; those stay gaps.
+        warnings.simplefilter("ignore", RuntimeWarning)
+        median = np.nanmedian(errors, axis=0)  # (T,)
+    # Above the coloured lines: with many particles the best ones hide the median.
+    ax.plot(time, median, color="0.2", lw=1.2, ls="--", label="median (all)", zorder=3)
+    colours = [_BEST_COLOURS[i % len(_BEST_COLOURS)] for i in range(n_best)]
+    for rank, (index, colour) in enumerate(zip(best, colours, strict=True)):
+        label = f"best {best_fraction * 100:g} % (n={n_best})" if rank == 0 else None
+        ax.plot(time, errors[index], color=colour, lw=1.0, label=label)
+    ax.axhline(0.0, color="black", lw=0.6)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
     return fig
 
 

@@ -13,6 +13,8 @@ tag                                       kind          step
 ``hybrid/shares``, ``hybrid/pairwise``    image (HWC)   0
 ``hybrid/share/<model>``                  scalar        0
 ``hybrid/sensitivity/N=<n>/<model>``      scalar        0
+``eval/<figure>``                         image (HWC)   0
+``eval/<metric>/<model or hybrid>``       scalar        0
 ``<tag>/text_summary``                    text          0
 ``_hparams_/...``                         hparams       0
 ========================================  ============  =============================
@@ -166,6 +168,31 @@ class RunLogger:
                 self._writer.add_scalar(
                     f"hybrid/sensitivity/N={n}/{model}", float(share)
                 )
+
+    def evaluation(
+        self,
+        figures: Mapping[str, Any],
+        metrics: Mapping[str, Mapping[str, float]],
+    ) -> None:
+        """Test-split evaluation: figures as images ``eval/<name>`` and the finite
+        metrics as scalars ``eval/<metric>/<entry>`` (entry: a model or "hybrid").
+
+        Args:
+            figures: name -> matplotlib Figure.
+            metrics: entry -> {metric name: value}.
+        """
+        if self._writer is None:
+            return
+        from .plots import figure_to_array
+
+        for name, figure in figures.items():
+            self._writer.add_image(
+                f"eval/{name}", figure_to_array(figure), dataformats="HWC"
+            )
+        for entry, values in metrics.items():
+            for key, value in values.items():
+                if isinstance(value, int | float) and math.isfinite(value):
+                    self._writer.add_scalar(f"eval/{key}/{entry}", float(value))
 
     def text(self, tag: str, markdown: str) -> None:
         """Markdown text (TensorBoard stores it under ``<tag>/text_summary``)."""

@@ -40,6 +40,7 @@ from tqdm import tqdm
 from . import __version__
 from .config import ConfigError, TrainConfig, config_hash, load_config, resolved_json
 from .data import DataError, PairSet, load_split
+from .evaluate import EvaluationError, evaluate_run
 from .hybrid import Selection, pairwise_table, select
 from .models import get_model
 from .models.base import CFModel
@@ -377,6 +378,7 @@ def train(
     *,
     resume: bool = False,
     pairs: tuple[PairSet, PairSet] | None = None,
+    evaluate: bool = True,
 ) -> dict[str, Any]:
     """Run (or resume) the ABC rejection and hybrid selection of ``cfg`` into ``out``.
 
@@ -387,6 +389,8 @@ def train(
         pairs: optional ``(train, test)`` pair sets to use instead of loading
             ``cfg.data`` (which then only labels the run; the config hash that
             guards ``resume`` does not cover these pairs).
+        evaluate: then evaluate the result on the test pairs
+            (:func:`torchcf.evaluate.evaluate_run`: ``metrics.json``, ``report/``).
 
     Returns:
         The summary (also written to ``out/summary.json``).
@@ -474,6 +478,8 @@ def train(
         )
     posterior.save(out / "posterior.pt")
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    if evaluate:
+        evaluate_run(out, pairs=(train_pairs, test_pairs))
     return summary
 
 
@@ -495,12 +501,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--resume", action="store_true", help="continue the run in the output directory"
     )
+    parser.add_argument(
+        "--no-eval",
+        action="store_true",
+        help="skip the test-split evaluation (python -m torchcf.evaluate DIR later)",
+    )
     args = parser.parse_args(argv)
     try:
         cfg = load_config(args.config, args.overrides)
         out = Path(args.out) if args.out is not None else Path(cfg.output)
-        summary = train(cfg, out, resume=args.resume)
-    except (ConfigError, DataError, RunError) as error:
+        summary = train(cfg, out, resume=args.resume, evaluate=not args.no_eval)
+    except (ConfigError, DataError, RunError, EvaluationError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -1,0 +1,305 @@
+"""Test-split evaluation of a trained run: ``python -m torchcf.evaluate RUN_DIR``.
+
+SPEC section 6. Every particle of a learned set is simulated on every test pair
+(full layout), giving the cost matrix ``C`` (particles x test pairs) of scores and
+the matching ``e_p, e_v, e_a``; :func:`torchcf.metrics.evaluate_costs` turns them
+into the average errors, the minimum distance, the beta-WS, the WS and Sinkhorn.
+
+Learned sets evaluated: ``"hybrid"`` (``Theta_hybrid`` of ``posterior.pt``) and every
+single model, represented by its own N best particles per training pair (the model
+learned alone, as in the paper's comparison).
+
+Writes ``RUN_DIR/metrics.json`` and a report folder (default ``RUN_DIR/report``):
+``table.md`` (the paper's Appendix Tables 4-6), ``shares.png`` (Fig. 3a-c),
+``pairwise.png`` (Fig. 3d-f), ``error_evolution.png`` (Fig. 4: position error of the
+best 5 % of the hybrid's particles against all of them on one test pair) and
+``radar.png`` (Figs. 5-6); the figures and metrics are also logged to the run's
+TensorBoard folder. The trainer calls :func:`evaluate_run` at the end of a run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .config import ConfigError, TrainConfig, validate_config
+from .data import DataError, PairSet, load_split
+from .metrics import evaluate_costs
+from .plots import (
+    error_evolution_figure,
+    pairwise_figure,
+    radar_figure,
+    save_figure,
+    shares_figure,
+)
+from .posterior import Posterior, atomic_write_text
+from .report import metrics_table
+from .sim import simulate
+from .tblog import RunLogger
+
+
+class EvaluationError(RuntimeError):
+    """A run directory that cannot be evaluated (one-line message)."""
+
+
+def single_model_particles(posterior: Posterior, name: str) -> Tensor:
+    """A model learned alone: its N best particles on every training pair.
+
+    Returns:
+        (n, K) float64, the finite-score entries of the first N buffer slots.
+    """
+    buffer = posterior.buffers[name]
+    n = posterior.top_n
+    score = buffer["score"][:, :n].reshape(-1)
+    theta = buffer["theta"][:, :n].reshape(-1, buffer["theta"].shape[-1])
+    return theta[torch.isfinite(score)]
+
+
+def cost_matrices(
+    model: str,
+    theta: Tensor,
+    test: PairSet,
+    *,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str = "cpu",
+    weights: Sequence[float] = (0.5, 0.3, 0.2),
+) -> dict[str, np.ndarray]:
+    """Score, e_p, e_v, e_a of every particle on every test pair: (P, n_test) each."""
+    out = simulate(
+        model, theta.to(dtype), test, dtype=dtype, device=device, weights=weights
+    )
+    return {
+        key: getattr(out, key).double().cpu().numpy()
+        for key in ("score", "e_p", "e_v", "e_a")
+    }
+
+
+def _stack(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+
+
+def evaluate_posterior(
+    posterior: Posterior,
+    test: PairSet,
+    cfg: TrainConfig,
+) -> tuple[dict[str, dict[str, Any]], dict[str, dict[str, np.ndarray]]]:
+    """Metrics of the hybrid and of every single model on ``test``.
+
+    Returns:
+        metrics: ``{"hybrid" | model: evaluate_costs(...)}``;
+        costs: the cost matrices of each entry (hybrid rows in model order).
+    """
+    dtype = getattr(torch, cfg.dtype)
+    kwargs = {"dtype": dtype, "device": cfg.device, "weights": cfg.abc.weights}
+    metrics: dict[str, dict[str, Any]] = {}
+    costs: dict[str, dict[str, np.ndarray]] = {}
+    hybrid_parts = []
+    for name in posterior.models:
+        single = single_model_particles(posterior, name)
+        if single.shape[0]:
+            costs[name] = cost_matrices(name, single, test, **kwargs)
+            metrics[name] = _metrics(costs[name], cfg)
+        particles = posterior.hybrid[name]
+        if len(particles):
+            hybrid_parts.append(cost_matrices(name, particles.theta, test, **kwargs))
+    if not hybrid_parts:
+        raise EvaluationError("the hybrid particle set is empty")
+    costs["hybrid"] = _stack(hybrid_parts)
+    metrics["hybrid"] = _metrics(costs["hybrid"], cfg)
+    return metrics, costs
+
+
+def _metrics(cost: dict[str, np.ndarray], cfg: TrainConfig) -> dict[str, Any]:
+    return evaluate_costs(
+        cost["score"],
+        cost["e_p"],
+        cost["e_v"],
+        cost["e_a"],
+        beta=cfg.eval.beta,
+        sinkhorn_reg=cfg.eval.sinkhorn_reg,
+    )
+
+
+def position_errors(
+    posterior: Posterior, test: PairSet, pair: int, cfg: TrainConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fig. 4 data: simulated minus observed follower position of every hybrid
+    particle on test pair ``pair``.
+
+    Returns:
+        time (T,) [s]; errors (P, T) [m], NaN past the pair's valid steps and for
+        invalid rollouts; scores (P,).
+    """
+    one = test.subset([pair])
+    dtype = getattr(torch, cfg.dtype)
+    errors, scores = [], []
+    for name in posterior.models:
+        theta = posterior.hybrid[name].theta
+        if not theta.shape[0]:
+            continue
+        out = simulate(
+            name,
+            theta.to(dtype),
+            one,
+            dtype=dtype,
+            device=cfg.device,
+            return_traj=True,
+            weights=cfg.abc.weights,
+        )
+        x = out.x[:, :, 0].double().cpu()  # (T, P)
+        err = (x - one.x_follow[:, :1]).T.numpy()  # (P, T)
+        err[:, ~one.mask[:, 0].numpy()] = np.nan
+        err[~out.valid[:, 0].cpu().numpy()] = np.nan
+        errors.append(err)
+        scores.append(out.score[:, 0].double().cpu().numpy())
+    time = np.arange(one.n_steps) * one.dt
+    return time, np.concatenate(errors), np.concatenate(scores)
+
+
+def _load_run(run_dir: Path) -> tuple[TrainConfig, Posterior, dict[str, Any]]:
+    for name in ("config.json", "posterior.pt", "summary.json"):
+        if not (run_dir / name).exists():
+            raise EvaluationError(
+                f"{run_dir} holds no finished run (no {name}); train it first"
+            )
+    try:
+        raw = json.loads((run_dir / "config.json").read_text())
+    except json.JSONDecodeError as error:
+        raise EvaluationError(f"{run_dir / 'config.json'}: {error}") from None
+    cfg = validate_config(raw)
+    try:
+        posterior = Posterior.load(run_dir / "posterior.pt")
+    except (ValueError, RuntimeError, OSError) as error:
+        raise EvaluationError(str(error)) from None
+    summary = json.loads((run_dir / "summary.json").read_text())
+    return cfg, posterior, summary
+
+
+def evaluate_run(
+    run_dir: str | Path,
+    *,
+    report_dir: str | Path | None = None,
+    pairs: tuple[PairSet, PairSet] | None = None,
+    figure_pair: int | None = None,
+    tensorboard: bool = True,
+) -> dict[str, Any]:
+    """Evaluate the finished run in ``run_dir``; write metrics.json and the report.
+
+    Args:
+        run_dir: a trainer output directory.
+        report_dir: where the report goes (default ``run_dir/report``).
+        pairs: optional ``(train, test)`` instead of loading the run's data config.
+        figure_pair: the test pair (position) of the Fig. 4 figure; default the one
+            whose best hybrid particle is closest to the median over pairs.
+        tensorboard: also log to ``run_dir/tb``.
+
+    Returns:
+        The metrics (also in ``run_dir/metrics.json``).
+    """
+    run_dir = Path(run_dir)
+    cfg, posterior, summary = _load_run(run_dir)
+    test = load_split(cfg.data)[1] if pairs is None else pairs[1]
+    metrics, costs = evaluate_posterior(posterior, test, cfg)
+    entries = [*[m for m in posterior.models if m in metrics], "hybrid"]
+    result = {
+        "dataset": summary["dataset"],
+        "n_test": test.n_pairs,
+        "test_pair_ids": [int(i) for i in test.pair_ids],
+        "beta": cfg.eval.beta,
+        "sinkhorn_reg": cfg.eval.sinkhorn_reg,
+        **{entry: metrics[entry] for entry in entries},
+    }
+    atomic_write_text(
+        run_dir / "metrics.json", json.dumps(_jsonable(result), indent=2) + "\n"
+    )
+
+    report = Path(report_dir) if report_dir is not None else run_dir / "report"
+    report.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(
+        report / "table.md",
+        f"# {summary['dataset']}: test-split evaluation\n\n"
+        f"{test.n_pairs} test pairs; single models: each model's own "
+        f"{posterior.top_n} best particles per training pair; hybrid: "
+        f"{sum(len(p) for p in posterior.hybrid.values())} particles.\n\n"
+        + metrics_table(metrics, entries)
+        + "\n",
+    )
+    if figure_pair is None:
+        best = costs["hybrid"]["score"].min(axis=0)  # (n_test,)
+        finite = np.where(np.isfinite(best), best, np.inf)
+        figure_pair = int(
+            np.argmin(np.abs(finite - np.median(best[np.isfinite(best)])))
+        )
+    time, errors, scores = position_errors(posterior, test, figure_pair, cfg)
+    pair_id = int(test.pair_ids[figure_pair])
+    figures = {
+        "shares": shares_figure(posterior.shares),
+        "pairwise": pairwise_figure(
+            summary["pairwise"]["models"], summary["pairwise"]["table"]
+        ),
+        "error_evolution": error_evolution_figure(
+            time,
+            errors,
+            scores,
+            title=f"Hybrid, test pair {pair_id}: position error",
+        ),
+        "radar": radar_figure({entry: metrics[entry] for entry in entries}),
+    }
+    for name, figure in figures.items():
+        save_figure(figure, report / f"{name}.png")
+    if tensorboard:
+        with RunLogger(run_dir / "tb") as logger:
+            logger.evaluation(figures, {e: metrics[e] for e in entries})
+    return result
+
+
+def _jsonable(value: Any) -> Any:
+    """inf and NaN as strings ("inf", "nan"): JSON has no such numbers."""
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return "nan" if np.isnan(value) else ("inf" if value > 0 else "-inf")
+    if isinstance(value, np.generic):
+        return _jsonable(value.item())
+    return value
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m torchcf.evaluate",
+        description="Evaluate a trained run on its test pairs (SPEC section 6).",
+    )
+    parser.add_argument("run_dir", type=Path)
+    parser.add_argument("--report", type=Path, default=None, help="report folder")
+    parser.add_argument("--pair", type=int, default=None, help="test pair of Fig. 4")
+    args = parser.parse_args(argv)
+    try:
+        result = evaluate_run(
+            args.run_dir, report_dir=args.report, figure_pair=args.pair
+        )
+    except (EvaluationError, ConfigError, DataError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    print(f"{'':8} {'e_p':>8} {'min':>8} {'0.15-WS':>8} {'WS':>8}")
+    for entry, m in result.items():
+        if isinstance(m, dict) and "ws" in m:
+            print(
+                f"{entry:8} {m['e_p']:8.3f} {m['min']:8.3f} {m['beta_ws']:8.3f} "
+                f"{m['ws']:8.3f}"
+            )
+    print(f"wrote {args.run_dir / 'metrics.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
