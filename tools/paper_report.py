@@ -20,6 +20,7 @@ from pathlib import Path
 from torchcf.report import metrics_table, relative_difference
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
+FOOT = 0.3048  # [m]
 MODELS = ("ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc", "hybrid")
 KEYS = ("e_p", "e_v", "e_a", "min", "beta_ws", "ws")
 
@@ -100,9 +101,8 @@ def main(argv: list[str] | None = None) -> int:
     lines = [
         f"# {args.dataset}: torchcf against the paper's Appendix Table",
         "",
-        f"Ours from `{args.run_dir}` "
-        + ("(mean over the cross-validation folds)" if args.crossval else "")
-        + "; each cell reads `ours / paper`.",
+        f"Ours from `{args.run_dir}`"
+        + (" (mean over the cross-validation folds)." if args.crossval else "."),
         "",
         metrics_table(ours, order, paper=paper),
         "",
@@ -116,6 +116,29 @@ def main(argv: list[str] | None = None) -> int:
             f"{differences.get(entry, {}).get(k, float('nan')):+.0%}" for k in KEYS
         ]
         lines.append(f"| {entry} | " + " | ".join(cells) + " |")
+    if args.dataset == "ngsim":
+        # The NGSIM files are in feet: the paper's errors and distances are most likely
+        # in feet (ft, ft/s, ft/s^2) although its table says metres. Every metric is
+        # linear in a common unit scale (g = 0.5 e_p + 0.3 e_v + 0.2 e_a), so ours
+        # convert by one factor.
+        in_feet = {e: {k: v / FOOT for k, v in m.items()} for e, m in ours.items()}
+        differences = relative_difference(in_feet, paper)
+        lines += [
+            "",
+            "## Ours converted to feet (x 3.2808), the paper's likely unit",
+            "",
+            metrics_table(in_feet, order, paper=paper),
+            "",
+            "Relative difference (ours in feet - paper) / paper:",
+            "",
+            "| entry | " + " | ".join(KEYS) + " |",
+            "|---" * (len(KEYS) + 1) + "|",
+        ]
+        for entry in order:
+            cells = [
+                f"{differences.get(entry, {}).get(k, float('nan')):+.0%}" for k in KEYS
+            ]
+            lines.append(f"| {entry} | " + " | ".join(cells) + " |")
     (out / "comparison.md").write_text("\n".join(lines) + "\n")
     (out / "metrics.json").write_text(json.dumps(raw, indent=2) + "\n")
 

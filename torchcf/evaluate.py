@@ -118,6 +118,14 @@ def evaluate_posterior(
 
 
 def _metrics(cost: dict[str, np.ndarray], cfg: TrainConfig) -> dict[str, Any]:
+    """evaluate_costs, plus ``particles_never_valid``: particles whose rollout is
+    invalid on every test pair. One such particle makes WS and beta-WS (beta > 0)
+    infinite (its mandatory mass has nowhere to go), which is reported as such."""
+    never = int((~np.isfinite(cost["score"])).all(axis=1).sum())
+    return {"particles_never_valid": never, **_costs(cost, cfg)}
+
+
+def _costs(cost: dict[str, np.ndarray], cfg: TrainConfig) -> dict[str, Any]:
     return evaluate_costs(
         cost["score"],
         cost["e_p"],

@@ -1,0 +1,125 @@
+"""Test-split evaluation and cross-validation of trained runs."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchcf.config import TrainConfig
+from torchcf.crossval import aggregate, crossval, fold_config
+from torchcf.evaluate import (
+    cost_matrices,
+    evaluate_run,
+    main,
+    single_model_particles,
+)
+from torchcf.metrics import evaluate_costs
+from torchcf.posterior import Posterior
+from torchcf.train import train
+
+from .conftest import synthetic_pairs
+
+
+def small_config(**abc) -> TrainConfig:
+    settings = {
+        "n_particles": 1500,
+        "chunk_size": 500,
+        "top_n": 3,
+        "sensitivity_n": [3],
+    }
+    settings.update(abc)
+    return TrainConfig.model_validate(
+        {
+            "data": {"name": "car-model-2"},
+            "models": ["idm", "llctg"],
+            "abc": settings,
+            "compile": "off",
+        }
+    )
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A small finished run on synthetic train / test pairs, not yet evaluated."""
+    train_pairs = synthetic_pairs(n_pairs=6, n_steps=200, seed=1)
+    test_pairs = synthetic_pairs(n_pairs=4, n_steps=200, seed=2)
+    out = tmp_path_factory.mktemp("run")
+    cfg = small_config()
+    train(cfg, out, pairs=(train_pairs, test_pairs), evaluate=False)
+    return cfg, out, train_pairs, test_pairs
+
+
+def test_single_model_set_is_its_first_n_finite_buffer_entries(trained):
+    _, out, train_pairs, _ = trained
+    posterior = Posterior.load(out / "posterior.pt")
+    theta = single_model_particles(posterior, "idm")
+    buffer = posterior.buffers["idm"]
+    finite = torch.isfinite(buffer["score"][:, :3])
+    assert theta.shape == (int(finite.sum()), 6)
+    assert torch.equal(theta, buffer["theta"][:, :3][finite])
+
+
+def test_metrics_equal_a_direct_computation(trained):
+    cfg, out, train_pairs, test_pairs = trained
+    result = evaluate_run(out, pairs=(train_pairs, test_pairs), tensorboard=False)
+    posterior = Posterior.load(out / "posterior.pt")
+    # hybrid: every model's hybrid particles, stacked in model order
+    parts = [
+        cost_matrices(name, posterior.hybrid[name].theta, test_pairs)
+        for name in posterior.models
+        if len(posterior.hybrid[name])
+    ]
+    stacked = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    expect = evaluate_costs(
+        stacked["score"], stacked["e_p"], stacked["e_v"], stacked["e_a"], beta=0.15
+    )
+    for key in ("e_p", "min", "beta_ws", "ws"):
+        assert result["hybrid"][key] == pytest.approx(expect[key], rel=1e-12)
+    on_disk = json.loads((out / "metrics.json").read_text())
+    assert set(on_disk) >= {"hybrid", "idm", "llctg", "n_test", "test_pair_ids"}
+    assert on_disk["n_test"] == 4
+    for name in ("table.md", "shares.png", "pairwise.png", "radar.png"):
+        assert (out / "report" / name).exists()
+    table = (out / "report" / "table.md").read_text()
+    assert "WS" in table and "IDM" in table
+
+
+def test_evaluate_cli_refuses_an_unfinished_run(tmp_path, capsys):
+    assert main([str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "no finished run" in err and "\n" not in err
+
+
+def test_aggregate_is_the_mean_over_folds_and_keeps_inf():
+    folds = [
+        {"hybrid": {"ws": 1.0, "min": 0.5}, "n_test": 3},
+        {"hybrid": {"ws": 3.0, "min": "inf"}, "n_test": 3},
+    ]
+    result = aggregate(folds)
+    assert result["folds"] == 2
+    assert result["hybrid"]["ws"] == 2.0 and result["hybrid"]["ws_folds_finite"] == 2
+    assert math.isinf(result["hybrid"]["min"])
+    assert result["hybrid"]["min_folds_finite"] == 1
+
+
+def test_fold_config():
+    cfg = fold_config(small_config(), 3, 2)
+    assert (cfg.data.split, cfg.data.folds, cfg.data.fold) == ("kfold", 3, 2)
+
+
+def test_crossval_runs_every_fold_on_real_data(data_root, tmp_path):
+    cfg = small_config(n_particles=600, chunk_size=600)
+    result = crossval(cfg, tmp_path / "cv", folds=2)
+    assert result["folds"] == 2
+    for fold in range(2):
+        metrics = json.loads(
+            (tmp_path / "cv" / f"fold{fold}" / "metrics.json").read_text()
+        )
+        assert "hybrid" in metrics
+    on_disk = json.loads((tmp_path / "cv" / "metrics.json").read_text())
+    assert on_disk["hybrid"]["ws"] == pytest.approx(result["hybrid"]["ws"])
+    assert (tmp_path / "cv" / "report" / "table.md").exists()
