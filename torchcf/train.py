@@ -364,6 +364,11 @@ def _summary(
     }
 
 
+def _fmt(value: Any) -> str:
+    """A metric for the console: 3 decimals, or as stored ("inf")."""
+    return f"{value:.3f}" if isinstance(value, int | float) else str(value)
+
+
 def _finite_or_none(value: float) -> float | None:
     return value if math.isfinite(value) else None
 
@@ -522,6 +527,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     for name, share in summary["shares"].items():
         seconds = summary["per_model"][name]["seconds"]
         print(f"  {name:<{width}}  {share:6.1%}   ({seconds:.1f} s)")
+    metrics_path = out / "metrics.json"
+    if not args.no_eval and metrics_path.exists():
+        metrics = json.loads(metrics_path.read_text())
+        hybrid = {k: _fmt(v) for k, v in metrics["hybrid"].items()}
+        print(
+            f"test split ({metrics['n_test']} pairs), hybrid: WS {hybrid['ws']}, "
+            f"0.15-WS {hybrid['beta_ws']}, minimum distance {hybrid['min']}"
+        )
     print(f"wrote {out}")
     return 0
 
