@@ -21,7 +21,7 @@ from typing import Any
 from .config import ConfigError, TrainConfig, load_config
 from .data import DataError
 from .evaluate import EvaluationError
-from .posterior import atomic_write_text
+from .posterior import atomic_write_text, json_safe
 from .report import metrics_table
 from .train import RunError, train
 
@@ -77,7 +77,7 @@ def crossval(
         fold_metrics.append(json.loads((fold_dir / "metrics.json").read_text()))
     result = aggregate(fold_metrics)
     atomic_write_text(
-        out / "metrics.json", json.dumps(_jsonable(result), indent=2) + "\n"
+        out / "metrics.json", json.dumps(json_safe(result), indent=2) + "\n"
     )
     entries = [k for k, v in result.items() if isinstance(v, dict)]
     report = out / "report"
@@ -89,14 +89,6 @@ def crossval(
         + "\n",
     )
     return result
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, float) and not math.isfinite(value):
-        return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
-    return value
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -40,7 +40,7 @@ from .plots import (
     save_figure,
     shares_figure,
 )
-from .posterior import Posterior, atomic_write_text
+from .posterior import Posterior, atomic_write_text, json_safe
 from .report import metrics_table
 from .sim import simulate
 from .tblog import RunLogger
@@ -226,7 +226,7 @@ def evaluate_run(
         **{entry: metrics[entry] for entry in entries},
     }
     atomic_write_text(
-        run_dir / "metrics.json", json.dumps(_jsonable(result), indent=2) + "\n"
+        run_dir / "metrics.json", json.dumps(json_safe(result), indent=2) + "\n"
     )
 
     report = Path(report_dir) if report_dir is not None else run_dir / "report"
@@ -267,19 +267,6 @@ def evaluate_run(
         with RunLogger(run_dir / "tb") as logger:
             logger.evaluation(figures, {e: metrics[e] for e in entries})
     return result
-
-
-def _jsonable(value: Any) -> Any:
-    """inf and NaN as strings ("inf", "nan"): JSON has no such numbers."""
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, float) and not np.isfinite(value):
-        return "nan" if np.isnan(value) else ("inf" if value > 0 else "-inf")
-    if isinstance(value, np.generic):
-        return _jsonable(value.item())
-    return value
 
 
 def main(argv: Sequence[str] | None = None) -> int:

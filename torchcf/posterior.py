@@ -24,11 +24,13 @@ config nor torchcf's classes to read it:
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -136,10 +138,25 @@ def atomic_write_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
+def json_safe(value: Any) -> Any:
+    """``value`` with non-finite floats as the strings "inf", "-inf", "nan" (JSON has
+    no such numbers) and numpy scalars as Python numbers, recursively."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
+    return value
+
+
 __all__ = [
     "FORMAT",
     "ModelParticles",
     "Posterior",
     "atomic_torch_save",
     "atomic_write_text",
+    "json_safe",
 ]

@@ -1227,6 +1227,22 @@ class BoxQP:
             inverse = _take(inverse, index)
         return -_mv(inverse, q.T.to(inverse.dtype)).T
 
+    def _working_set(
+        self,
+        rest: Tensor,
+        index: Tensor | None,
+        q_t: Tensor,
+        lower: Tensor,
+        upper: Tensor,
+    ) -> tuple[Tensor, _Data]:
+        """The problems ``rest`` (positions in this call's batch): their rows of the
+        cached factors and their batch-last data."""
+        cached = rest if index is None else index[rest]
+        data = _Data(
+            _take(self._P, cached), q_t[:, rest], None, lower[:, rest], upper[:, rest]
+        )
+        return cached, data
+
     def solve(
         self,
         q: Tensor,
@@ -1332,14 +1348,7 @@ class BoxQP:
             at_lower = torch.cat((unfinished.lower, at_lower[:, other]), -1)
             at_upper = torch.cat((unfinished.upper, at_upper[:, other]), -1)
             rest = left
-            cached = rest if index is None else index[rest]
-            data = _Data(
-                _take(self._P, cached),
-                q_t[:, rest],
-                None,
-                lower[:, rest],
-                upper[:, rest],
-            )
+            cached, data = self._working_set(rest, index, q_t, lower, upper)
             refined = _refine(
                 data,
                 at_lower,
@@ -1358,13 +1367,7 @@ class BoxQP:
                 return _result(x, y, z, n_iter, status, polished)
             rest, cached, data = rest[keep], cached[keep], data.take(keep)
         else:
-            data = _Data(
-                _take(self._P, cached),
-                q_t[:, rest],
-                None,
-                lower[:, rest],
-                upper[:, rest],
-            )
+            cached, data = self._working_set(rest, index, q_t, lower, upper)
 
         # Stage 3: ADMM and polish.
         settings = self.settings
