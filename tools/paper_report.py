@@ -77,6 +77,25 @@ def _number(value) -> float:
     return float(value) if isinstance(value, str) else value
 
 
+def _comparison(ours, paper, order, label: str) -> list[str]:
+    """The side-by-side table and the relative differences, as Markdown lines."""
+    differences = relative_difference(ours, paper)
+    lines = [
+        metrics_table(ours, order, paper=paper),
+        "",
+        f"Relative difference ({label} - paper) / paper:",
+        "",
+        "| entry | " + " | ".join(KEYS) + " |",
+        "|---" * (len(KEYS) + 1) + "|",
+    ]
+    for entry in order:
+        cells = [
+            f"{differences.get(entry, {}).get(k, float('nan')):+.0%}" for k in KEYS
+        ]
+        lines.append(f"| {entry} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path)
@@ -97,48 +116,26 @@ def main(argv: list[str] | None = None) -> int:
     }
     paper = paper_metrics(args.dataset)
     order = [entry for entry in MODELS if entry in ours]
-    differences = relative_difference(ours, paper)
     lines = [
         f"# {args.dataset}: torchcf against the paper's Appendix Table",
         "",
         f"Ours from `{args.run_dir}`"
         + (" (mean over the cross-validation folds)." if args.crossval else "."),
         "",
-        metrics_table(ours, order, paper=paper),
-        "",
-        "Relative difference (ours - paper) / paper:",
-        "",
-        "| entry | " + " | ".join(KEYS) + " |",
-        "|---" * (len(KEYS) + 1) + "|",
+        *_comparison(ours, paper, order, "ours"),
     ]
-    for entry in order:
-        cells = [
-            f"{differences.get(entry, {}).get(k, float('nan')):+.0%}" for k in KEYS
-        ]
-        lines.append(f"| {entry} | " + " | ".join(cells) + " |")
     if args.dataset == "ngsim":
         # The NGSIM files are in feet: the paper's errors and distances are most likely
         # in feet (ft, ft/s, ft/s^2) although its table says metres. Every metric is
         # linear in a common unit scale (g = 0.5 e_p + 0.3 e_v + 0.2 e_a), so ours
         # convert by one factor.
         in_feet = {e: {k: v / FOOT for k, v in m.items()} for e, m in ours.items()}
-        differences = relative_difference(in_feet, paper)
         lines += [
             "",
             "## Ours converted to feet (x 3.2808), the paper's likely unit",
             "",
-            metrics_table(in_feet, order, paper=paper),
-            "",
-            "Relative difference (ours in feet - paper) / paper:",
-            "",
-            "| entry | " + " | ".join(KEYS) + " |",
-            "|---" * (len(KEYS) + 1) + "|",
+            *_comparison(in_feet, paper, order, "ours in feet"),
         ]
-        for entry in order:
-            cells = [
-                f"{differences.get(entry, {}).get(k, float('nan')):+.0%}" for k in KEYS
-            ]
-            lines.append(f"| {entry} | " + " | ".join(cells) + " |")
     (out / "comparison.md").write_text("\n".join(lines) + "\n")
     (out / "metrics.json").write_text(json.dumps(raw, indent=2) + "\n")
 

@@ -19,11 +19,9 @@ from pathlib import Path
 from typing import Any
 
 from .config import ConfigError, TrainConfig, load_config
-from .data import DataError
-from .evaluate import EvaluationError
 from .posterior import atomic_write_text, json_safe
 from .report import metrics_table
-from .train import RunError, train
+from .train import USER_ERRORS, train
 
 METRIC_KEYS = ("e_p", "e_v", "e_a", "min", "beta_ws", "ws", "sinkhorn")
 
@@ -110,7 +108,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ConfigError(f"--folds: need at least 2, got {folds}")
         out = Path(args.out) if args.out is not None else Path(f"{cfg.output}-cv")
         result = crossval(cfg, out, folds=folds, resume=args.resume)
-    except (ConfigError, DataError, RunError, EvaluationError) as error:
+    except USER_ERRORS as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

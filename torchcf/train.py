@@ -63,6 +63,11 @@ class RunError(RuntimeError):
     """A run that cannot start or continue as asked (one-line message)."""
 
 
+#: Errors of the user's making (config, data, output directory): the command-line
+#: entry points print them as one line and exit with code 2.
+USER_ERRORS = (ConfigError, DataError, RunError, EvaluationError)
+
+
 @dataclass
 class ModelProgress:
     """One model's state in a run (saved in the checkpoint)."""
@@ -516,7 +521,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         cfg = load_config(args.config, args.overrides)
         out = Path(args.out) if args.out is not None else Path(cfg.output)
         summary = train(cfg, out, resume=args.resume, evaluate=not args.no_eval)
-    except (ConfigError, DataError, RunError, EvaluationError) as error:
+    except USER_ERRORS as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
