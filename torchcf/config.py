@@ -52,7 +52,8 @@ from pydantic import (
 
 from torchcf.data.reader import UNITS, unit_factor
 from torchcf.data.registry import DATASETS
-from torchcf.models import MODELS, get_model
+from torchcf.models import EFFECTS, MODELS, UnknownModelError, get_model
+from torchcf.models.effects import parse_effect
 
 __all__ = [
     "ABCConfig",
@@ -212,7 +213,12 @@ class ModelSpec(BaseModel):
     model_config = _STRICT
 
     name: str = Field(
-        description=f"Registered model: one of {', '.join(MODELS)} (case-insensitive)."
+        description=(
+            f"Registered model: one of {', '.join(MODELS)} (case-insensitive), "
+            "optionally augmented with effects: '<model>+<effect>+...' with effects "
+            f"from {', '.join(EFFECTS)} (e.g. 'idm+delay', "
+            "'llctg+grade(start=0,end=600,knots=4)')."
+        )
     )
     prior: dict[str, tuple[float, float]] | None = Field(
         None,
@@ -225,9 +231,13 @@ class ModelSpec(BaseModel):
     @field_validator("name")
     @classmethod
     def _known_model(cls, name: str) -> str:
-        if name.lower() not in MODELS:
-            raise ValueError(f"unknown model {name!r} (known: {', '.join(MODELS)})")
-        return name.lower()  # the registry key, so 'IDM' and 'idm' hash alike
+        try:
+            model = get_model(name)
+        except UnknownModelError as error:
+            raise ValueError(str(error)) from None
+        # The canonical name, so 'IDM' and 'idm', 'idm+lag+delay' and
+        # 'idm+delay+lag' hash alike.
+        return model.name
 
     @field_validator("prior")
     @classmethod
@@ -246,6 +256,13 @@ class ModelSpec(BaseModel):
             if not low < high:
                 raise ValueError(f"{key}: needs low < high, got [{low}, {high}]")
         return prior or None
+
+    @model_validator(mode="after")
+    def _runnable_bounds(self) -> ModelSpec:
+        model = get_model(self.name)
+        if hasattr(model, "check_bounds"):  # effects limit their priors
+            model.check_bounds(self.bounds())
+        return self
 
     def bounds(self, dtype: torch.dtype = torch.float64) -> torch.Tensor:
         """The uniform prior box with the overrides applied.
@@ -368,9 +385,95 @@ class EvalConfig(BaseModel):
     )
 
 
+class DiagnoseConfig(BaseModel):
+    """Close the loop after training (``python -m torchcf.diagnose RUN_DIR``).
+
+    Residual diagnosis of the run's hybrid, attribution of candidate effects by
+    their out-of-sample gain in small ABC runs, re-calibration with the chosen
+    effects and evaluation on the test split (:mod:`torchcf.diagnose`).
+    """
+
+    model_config = _STRICT
+
+    run_after_training: bool = Field(
+        False, description="Run the loop at the end of python -m torchcf.train."
+    )
+    effects: list[str] = Field(
+        list(EFFECTS),
+        min_length=1,
+        description=(
+            f"Candidate effects, from {', '.join(EFFECTS)}; options in brackets, "
+            "e.g. 'grade(knots=4)' (a grade without start/end spans the training "
+            "pairs' road section)."
+        ),
+    )
+    models: Literal["active", "all"] = Field(
+        "active",
+        description=(
+            "Pool models that get the effects: 'active' = those whose share of the "
+            "run's hybrid is at least min_share, 'all' = every model of the run."
+        ),
+    )
+    min_share: float = Field(
+        0.05, ge=0, le=1, description="Share that makes a model 'active' [1]."
+    )
+    n_particles: int = Field(
+        50_000,
+        gt=0,
+        description="Particles per model variant in each attribution ABC run.",
+    )
+    fit_fraction: float = Field(
+        0.6,
+        gt=0.1,
+        lt=0.95,
+        description=(
+            "Attribution fits the first fit_fraction of every training pair's "
+            "steps and scores the fitted particles on the rest (out of sample)."
+        ),
+    )
+    alpha: float = Field(
+        0.05,
+        gt=0,
+        lt=1,
+        description="Family-wise significance level (Bonferroni over the effects).",
+    )
+    min_gain: float = Field(
+        0.05,
+        ge=0,
+        lt=1,
+        description="Smallest relative out-of-sample score drop that counts [1].",
+    )
+    max_effects: int = Field(
+        1, gt=0, description="Chosen effects at most (best gains first)."
+    )
+    permutations: int = Field(
+        20_000, ge=1000, description="Sign-flip permutations of the gain test."
+    )
+    recalibrate_particles: int | None = Field(
+        None,
+        gt=0,
+        description="Particles per model when re-calibrating; None = abc.n_particles.",
+    )
+
+    @field_validator("effects")
+    @classmethod
+    def _known_effects(cls, effects: list[str]) -> list[str]:
+        # parse_effect raises ValueError naming a bad effect or option.
+        names = [parse_effect(token).name for token in effects]
+        if len(set(names)) != len(names):
+            raise ValueError(f"an effect is listed twice: {effects}")
+        return [token.strip().lower() for token in effects]
+
+
 def _models_schema(schema: dict[str, Any]) -> None:
     """JSON schema of ``models``: items are a name or a ModelSpec object."""
-    schema["items"] = {"anyOf": [{"enum": list(MODELS)}, schema["items"]]}
+    schema["items"] = {
+        "anyOf": [
+            {"enum": list(MODELS)},
+            {"type": "string", "pattern": "^[A-Za-z]+(\\+.+)+$"},
+            schema["items"],
+        ]
+    }
 
 
 class TrainConfig(BaseModel):
@@ -390,6 +493,9 @@ class TrainConfig(BaseModel):
     )
     abc: ABCConfig = Field(ABCConfig(), description="ABC sampling.")
     eval: EvalConfig = Field(EvalConfig(), description="Evaluation on the test pairs.")
+    diagnose: DiagnoseConfig = Field(
+        DiagnoseConfig(), description="Closing the loop (residuals -> effects)."
+    )
     output: str | None = Field(
         None,
         min_length=1,
@@ -568,6 +674,7 @@ _NOT_HASHED: dict[str, Any] = {
     "output": True,
     "threads": True,
     "eval": True,
+    "diagnose": True,
     # The result does not depend on the chunk size (tested), nor on where the data
     # folder lies: a run may be resumed with other values of these.
     "abc": {"checkpoint_every", "chunk_size"},

@@ -172,7 +172,8 @@ def position_errors(
     return time, np.concatenate(errors), np.concatenate(scores)
 
 
-def _load_run(run_dir: Path) -> tuple[TrainConfig, Posterior, dict[str, Any]]:
+def load_run(run_dir: Path) -> tuple[TrainConfig, Posterior, dict[str, Any]]:
+    """The config, posterior and summary of a finished run; EvaluationError if not."""
     for name in ("config.json", "posterior.pt", "summary.json"):
         if not (run_dir / name).exists():
             raise EvaluationError(
@@ -213,7 +214,7 @@ def evaluate_run(
         The metrics (also in ``run_dir/metrics.json``).
     """
     run_dir = Path(run_dir)
-    cfg, posterior, summary = _load_run(run_dir)
+    cfg, posterior, summary = load_run(run_dir)
     test = load_split(cfg.data)[1] if pairs is None else pairs[1]
     metrics, costs = evaluate_posterior(posterior, test, cfg)
     entries = [*[m for m in posterior.models if m in metrics], "hybrid"]

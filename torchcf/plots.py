@@ -28,6 +28,10 @@ from torch import Tensor
 __all__ = [
     "RADAR_KEYS",
     "RADAR_LABELS",
+    "before_after_figure",
+    "effects_figure",
+    "loop_figures",
+    "residuals_figure",
     "error_evolution_figure",
     "figure_to_array",
     "pairwise_figure",
@@ -364,6 +368,101 @@ def error_evolution_figure(
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)
     return fig
+
+
+# ----------------------------------------------------------- closing the loop
+def effects_figure(ranked: Sequence[Mapping[str, object]]) -> Figure:
+    """Out-of-sample gain of every candidate effect; chosen/significant in colour.
+
+    Args:
+        ranked: rows with ``effect``, ``gain`` (relative drop [1]), ``p_value`` and
+            ``significant`` (``torchcf.diagnose.attribute_effects``).
+    """
+    labels = [str(r["effect"]) for r in ranked]
+    gains = [100.0 * float(r["gain"]) for r in ranked]
+    colours = ["tab:green" if r["significant"] else "tab:gray" for r in ranked]
+    fig = _new_figure(max(4.5, 0.9 * len(labels) + 2.0), 3.6)
+    ax = fig.add_subplot()
+    bars = ax.bar(range(len(labels)), gains, color=colours)
+    ax.bar_label(
+        bars,
+        labels=[f"p={float(r['p_value']):.2g}" for r in ranked],
+        padding=2,
+        fontsize=7,
+    )
+    ax.axhline(0.0, color="black", linewidth=0.8)
+    ax.set_xticks(range(len(labels)), labels, rotation=30, ha="right")
+    ax.set_ylabel("out-of-sample score drop [%]")
+    ax.set_title("Candidate effects (green: significant)")
+    ax.grid(axis="y", alpha=0.3)
+    return fig
+
+
+def before_after_figure(
+    before: Mapping[str, float | None], after: Mapping[str, float | None]
+) -> Figure:
+    """Test-split metrics of the hybrid before and after the loop, side by side."""
+    keys = [k for k in RADAR_KEYS if k in before]
+    fig = _new_figure(max(5.0, 1.1 * len(keys) + 1.5), 3.4)
+    ax = fig.add_subplot()
+    x = np.arange(len(keys))
+    for offset, (label, metrics, colour) in zip(
+        (-0.2, 0.2),
+        (("before", before, "tab:gray"), ("after", after, "tab:blue")),
+        strict=True,
+    ):
+        values = [_float_or_nan(metrics.get(k)) for k in keys]
+        ax.bar(x + offset, values, width=0.4, label=label, color=colour)
+    ax.set_xticks(x, [RADAR_LABELS[RADAR_KEYS.index(k)] for k in keys], fontsize=8)
+    ax.set_title("Hybrid on the test split")
+    ax.legend()
+    ax.grid(axis="y", alpha=0.3)
+    return fig
+
+
+def residuals_figure(
+    before: Sequence[np.ndarray],
+    after: Sequence[np.ndarray] | None,
+    dt: float,
+    n_pairs: int = 3,
+    unit: str = "m",
+) -> Figure:
+    """Residual series of the first ``n_pairs`` pairs, before (and after) the loop."""
+    shown = min(n_pairs, len(before))
+    fig = _new_figure(7.0, 1.9 * max(shown, 1) + 0.6)
+    for i in range(shown):
+        ax = fig.add_subplot(shown, 1, i + 1)
+        t = np.arange(len(before[i])) * dt
+        ax.plot(t, before[i], color="tab:gray", linewidth=1.0, label="before")
+        if after is not None and i < len(after):
+            t_after = np.arange(len(after[i])) * dt
+            ax.plot(t_after, after[i], color="tab:blue", linewidth=1.0, label="after")
+        ax.axhline(0.0, color="black", linewidth=0.6)
+        ax.set_ylabel(f"residual [{unit}]")
+        if i == 0:
+            ax.legend(fontsize=8)
+            ax.set_title("Spacing residual (observed - simulated), training pairs")
+    if fig.axes:
+        fig.axes[-1].set_xlabel("time [s]")
+    return fig
+
+
+def loop_figures(
+    result: Mapping[str, object],
+    series_before: Mapping[str, Sequence[np.ndarray]],
+    series_after: Mapping[str, Sequence[np.ndarray]] | None,
+    dt: float,
+) -> dict[str, Figure]:
+    """The figures of ``loop.md``: effects, before_after, residuals."""
+    return {
+        "effects": effects_figure(result["effects_ranked"]),
+        "before_after": before_after_figure(result["before"], result["after"]),
+        "residuals": residuals_figure(
+            series_before["spacing"],
+            series_after["spacing"] if series_after is not None else None,
+            dt,
+        ),
+    }
 
 
 def figure_to_array(fig: Figure) -> np.ndarray:

@@ -109,6 +109,7 @@ def _block(
     memory: Any,
     obs: Tensor,
     pair_index: Tensor | None,
+    origin: Tensor | None,
 ) -> tuple[FollowerState, _Accumulators, Any, Tensor | None]:
     """Advance ``BLOCK_STEPS`` (= ``obs.shape[0]``) steps of SPEC section 2.
 
@@ -120,6 +121,9 @@ def _block(
         memory: what a stateful controller carries between steps (usually None).
         obs: ``(S, N, 6)`` observation table of the block's steps.
         pair_index: ``(P,)`` pair of each particle in the paired layout, else None.
+        origin: road position [m] of each cell's relative frame, broadcastable to
+            the state, for models that perceive their road position
+            (``model.uses_position``); else None.
 
     Returns:
         the state after the block, the sums, the memory, and if ``record`` the
@@ -134,7 +138,10 @@ def _block(
         on_valid_step = step_valid > 0.5
 
         spacing = x_lead - state.x
-        perception = Perception(spacing, state.v, v_lead, state.a, leader_length)
+        position = state.x + origin if origin is not None else None
+        perception = Perception(
+            spacing, state.v, v_lead, state.a, leader_length, position
+        )
         command, memory = model.command_with_memory(params, perception, memory)
         acc_recorded = state.a if model.acceleration_is_state else command
 
@@ -176,8 +183,9 @@ def _rollout_chunk(
     theta: Tensor,
     pair_index: Tensor | None,
     blocks: list[Tensor],
-    n_pairs: int,
+    origin: Tensor,
     dt: float,
+    leader_length: float,
 ) -> tuple[_Accumulators, Tensor | None]:
     """Run one chunk of particles over every block; returns sums and trajectory.
 
@@ -185,25 +193,38 @@ def _rollout_chunk(
         theta: ``(P, K)`` chunk of parameters.
         pair_index: ``(P,)`` (paired layout) or None (full layout).
         blocks: ``(S, N, 6)`` observation blocks covering the padded time axis.
+        origin: ``(N,)`` road position of each pair's relative frame [m].
 
     Returns:
         the sums over valid steps and, if recording, the ``(T_pad, 3, *state)``
         trajectory.
     """
     first = blocks[0][0]  # (N, 6)
+    cell_origin = None
+    if model.uses_position:
+        cell_origin = origin[pair_index] if pair_index is not None else origin[None]
     if pair_index is not None:
         params = model.unpack(theta, state_ndim=1)  # fields (P,)
         initial = first.index_select(0, pair_index)  # (P, 6)
     else:
         params = model.unpack(theta, state_ndim=2)  # fields (P, 1)
-        initial = first[None, :, :].expand(theta.shape[0], n_pairs, 6)  # (P, N, 6)
+        initial = first[None, :, :].expand(theta.shape[0], -1, -1)  # (P, N, 6)
     state = FollowerState(
         x=initial[..., _X_FOLLOW].contiguous(),
         v=initial[..., _V_FOLLOW].contiguous(),
         a=initial[..., _A_FOLLOW].contiguous(),
     )
     params = model.prepare(params, dt, tuple(state.x.shape))
-    memory = model.initial_memory(params, tuple(state.x.shape))
+    x_lead, v_lead = initial[..., _X_LEAD], initial[..., _V_LEAD]
+    first_perception = Perception(
+        spacing=x_lead - state.x,
+        v=state.v,
+        v_lead=v_lead.contiguous(),
+        a=state.a,
+        leader_length=leader_length,
+        position=state.x + cell_origin if cell_origin is not None else None,
+    )
+    memory = model.initial_memory(params, first_perception)
     zeros = torch.zeros_like(state.x)
     acc = _Accumulators(
         zeros, zeros.clone(), zeros.clone(), torch.zeros_like(zeros, dtype=torch.bool)
@@ -211,7 +232,7 @@ def _rollout_chunk(
     recorded = []
     for block in blocks:
         state, acc, memory, block_traj = block_fn(
-            params, state, acc, memory, block, pair_index
+            params, state, acc, memory, block, pair_index, cell_origin
         )
         if block_traj is not None:
             recorded.append(block_traj)
@@ -439,7 +460,14 @@ def simulate(
             if paired:
                 chunk_index = torch.cat((chunk_index, chunk_index[:1].expand(n_fill)))
         sums, chunk_traj = _rollout_chunk(
-            block_fn, model, chunk_theta, chunk_index, blocks, pairs.n_pairs, pairs.dt
+            block_fn,
+            model,
+            chunk_theta,
+            chunk_index,
+            blocks,
+            origin,
+            pairs.dt,
+            pairs.leader_length,
         )
         keep = slice(0, stop - start)
         counts = (n_valid[chunk_index] if paired else n_valid[None, :]).clamp(min=1)

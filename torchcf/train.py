@@ -40,6 +40,7 @@ from tqdm import tqdm
 from . import __version__
 from .config import ConfigError, TrainConfig, config_hash, load_config, resolved_json
 from .data import DataError, PairSet, load_split
+from .diagnose import DiagnoseError, diagnose_run
 from .evaluate import EvaluationError, evaluate_run
 from .hybrid import Selection, pairwise_table, select
 from .models import get_model
@@ -65,7 +66,7 @@ class RunError(RuntimeError):
 
 #: Errors of the user's making (config, data, output directory): the command-line
 #: entry points print them as one line and exit with code 2.
-USER_ERRORS = (ConfigError, DataError, RunError, EvaluationError)
+USER_ERRORS = (ConfigError, DataError, RunError, EvaluationError, DiagnoseError)
 
 
 @dataclass
@@ -400,7 +401,9 @@ def train(
             ``cfg.data`` (which then only labels the run; the config hash that
             guards ``resume`` does not cover these pairs).
         evaluate: then evaluate the result on the test pairs
-            (:func:`torchcf.evaluate.evaluate_run`: ``metrics.json``, ``report/``).
+            (:func:`torchcf.evaluate.evaluate_run`: ``metrics.json``, ``report/``)
+            and, with ``diagnose.run_after_training``, close the loop
+            (:func:`torchcf.diagnose.diagnose_run`: ``loop.json``, ``loop.md``).
 
     Returns:
         The summary (also written to ``out/summary.json``).
@@ -490,6 +493,8 @@ def train(
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     if evaluate:
         evaluate_run(out, pairs=(train_pairs, test_pairs))
+        if cfg.diagnose.run_after_training:
+            diagnose_run(out, pairs=(train_pairs, test_pairs))
     return summary
 
 

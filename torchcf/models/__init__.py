@@ -14,6 +14,7 @@ from .base import (
     first_order_lag_advance,
     point_mass_advance,
 )
+from .effects import EFFECTS, AugmentedModel, Effect, parse_effect
 from .hdv import FVDM, GFM, IDM, OVM
 from .linear import HL, LLCS, LLCTG
 from .mpc import MPC
@@ -31,20 +32,59 @@ class UnknownModelError(KeyError, ValueError):
         return str(self.args[0])
 
 
+_AUGMENTED: dict[str, AugmentedModel] = {}
+
+
 def get_model(name_or_model: str | CFModel) -> CFModel:
-    """Look a model up by name (case-insensitive); a CFModel is returned as is."""
+    """Look a model up by name (case-insensitive); a CFModel is returned as is.
+
+    ``"<model>+<effect>+..."`` (e.g. ``"idm+delay"``) is the pool model wrapped by
+    the effects of :mod:`torchcf.models.effects`; its canonical name (effects in
+    their canonical order) is the returned model's ``name``.
+    """
     if isinstance(name_or_model, CFModel):
         return name_or_model
-    key = str(name_or_model).lower()
-    if key not in MODELS:
+    key = str(name_or_model).strip().lower()
+    if key in MODELS:
+        return MODELS[key]
+    if key in _AUGMENTED:
+        return _AUGMENTED[key]
+    base_name, *tokens = _split_name(key)
+    if base_name not in MODELS:
+        where = f" in {name_or_model!r}" if tokens else ""
         raise UnknownModelError(
-            f"unknown model {name_or_model!r}; valid names: {', '.join(MODELS)}"
+            f"unknown model {base_name!r}{where}; valid names: {', '.join(MODELS)}"
         )
-    return MODELS[key]
+    if not tokens:
+        raise UnknownModelError(f"unknown model {name_or_model!r}")
+    try:
+        model = AugmentedModel(MODELS[base_name], [parse_effect(t) for t in tokens])
+    except ValueError as error:
+        raise UnknownModelError(str(error)) from None
+    # One instance per canonical name (compiled graphs are cached per instance).
+    model = _AUGMENTED.setdefault(model.name, model)
+    _AUGMENTED[key] = model
+    return model
+
+
+def _split_name(key: str) -> list[str]:
+    """Split ``"idm+grade(end=600,knots=4)+lag"`` at the '+' outside parentheses."""
+    parts, depth, current = [], 0, ""
+    for char in key:
+        depth += (char == "(") - (char == ")")
+        if char == "+" and depth == 0:
+            parts.append(current)
+            current = ""
+        else:
+            current += char
+    return [part.strip() for part in parts + [current]]
 
 
 __all__ = [
+    "EFFECTS",
     "MODELS",
+    "AugmentedModel",
+    "Effect",
     "CFModel",
     "FollowerState",
     "ParamSpec",

@@ -6,7 +6,7 @@ A model is a *pure, stateless* function. At every step the rollout hands it
   broadcast against the state: ``(P, 1)`` in the full layout, ``(P,)`` in the paired
   layout),
 - a :class:`Perception`: what the follower perceives at this step (spacing, own speed,
-  leader speed, own realised acceleration, leader length),
+  leader speed, own realised acceleration, leader length, own road position),
 
 and receives the acceleration command ``u`` (same shape as the state). How a command
 becomes motion is a separate method, :meth:`CFModel.advance`: a point mass by default,
@@ -14,8 +14,9 @@ a first-order actuation lag for HL.
 
 Keeping *perception*, *command* and *realisation* apart is deliberate: an effect (a
 perception delay, a spacing-sensor offset, an actuation lag, acceleration limits) is a
-wrapper that edits the :class:`Perception` before :meth:`CFModel.command`, or replaces
-:meth:`CFModel.advance`, without touching the model's equations.
+wrapper that edits the :class:`Perception` before :meth:`CFModel.command`, edits the
+command after it, or replaces :meth:`CFModel.advance`, without touching the model's
+equations (:mod:`torchcf.models.effects`).
 """
 
 from __future__ import annotations
@@ -46,6 +47,9 @@ class Perception(NamedTuple):
         v_lead: leader speed [m/s].
         a: own realised acceleration state [m/s^2] (used by HL only).
         leader_length: leader vehicle length ``L`` [m].
+        position: own front-bumper position along the road [m], in the data's
+            frame (what a road-grade profile is a function of); None where the
+            caller has no road frame (models must not need it).
     """
 
     spacing: Tensor
@@ -53,6 +57,7 @@ class Perception(NamedTuple):
     v_lead: Tensor
     a: Tensor
     leader_length: float
+    position: Tensor | None = None
 
 
 class FollowerState(NamedTuple):
@@ -121,6 +126,9 @@ class CFModel:
     #: False when the command has data-dependent control flow (MPC's QP solver):
     #: the rollout then never hands it to ``torch.compile``.
     compilable: ClassVar[bool] = True
+    #: True when the model reads ``Perception.position`` (a road-grade profile);
+    #: the rollout computes the absolute position only for such models.
+    uses_position: ClassVar[bool] = False
     #: Simulated cells per chunk when the caller does not choose (memory vs.
     #: per-step overhead; MPC's per-step solver calls favour big chunks).
     chunk_cells: ClassVar[int] = 1 << 18
@@ -164,12 +172,19 @@ class CFModel:
         """The acceleration command ``u`` [m/s^2], same shape as ``obs.spacing``."""
         raise NotImplementedError
 
-    def initial_memory(self, p: Any, state_shape: tuple[int, ...]) -> Any:
-        """What a stateful controller carries between steps (default: nothing).
+    def initial_memory(self, p: Any, first: Perception) -> Any:
+        """What a stateful model carries between steps (default: nothing).
 
-        Memory may only make the command cheaper (MPC warm-starts its solver from
-        the previous solution); the command must not depend on it beyond the
-        solver's tolerance.
+        Two kinds exist: memory that only makes the command cheaper (MPC
+        warm-starts its solver from the previous plan; the command does not depend
+        on it beyond the solver's tolerance), and memory that is part of the model
+        (a perception delay's history). Either way it is a pytree of tensors whose
+        shapes are fixed for a rollout, so a compiled time step sees one structure.
+
+        Args:
+            p: the prepared parameters (what :meth:`prepare` returned).
+            first: the perception at the first step; its tensors have the state's
+                shape.
         """
         return None
 

@@ -1,0 +1,480 @@
+"""Effects: composable augmentations of any car-following model.
+
+An effect adds something no candidate model has — a perception delay, an actuation
+lag, a sensor offset, a road grade... — with its own named parameters and uniform
+priors, without touching the model's equations. It acts at one of three places of
+the step (:mod:`torchcf.models.base`):
+
+- **perception** (:meth:`Effect.perceive`): edits what the follower perceives before
+  the model's command (``offset``, ``delay``); may carry memory between steps;
+- **command** (:meth:`Effect.act`): edits the command after the model
+  (``asymmetry``, ``saturation``, ``resistance``, ``grade``);
+- **realisation** (:meth:`Effect.advance`): replaces how the command becomes motion
+  (``lag``).
+
+:class:`AugmentedModel` composes a pool model with effects; its registry name is
+``"<model>+<effect>+..."`` (e.g. ``"idm+delay"``), effects in the canonical order of
+:data:`EFFECTS`, so the same augmentation always has one name. Effects with options
+write them in the name: ``"llctg+grade(start=0,end=600,knots=4)"``.
+
+Adding an effect is one small class: subclass :class:`Effect`, declare ``name``,
+``stage`` and ``param_specs`` (names prefixed so they cannot collide with a model's),
+implement the hook of its stage, and list it in :data:`EFFECTS`.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections import namedtuple
+from typing import Any, ClassVar, Literal
+
+import torch
+from torch import Tensor
+
+from .base import (
+    CFModel,
+    FollowerState,
+    ParamSpec,
+    Perception,
+    first_order_lag_advance,
+    spec,
+)
+
+#: Standard gravity [m/s^2] (road grade -> acceleration).
+GRAVITY = 9.81
+
+Stage = Literal["perception", "command", "realisation"]
+
+
+class Effect:
+    """Base class of an effect (see the module docstring).
+
+    Subclasses declare :attr:`name`, :attr:`stage`, :attr:`param_specs` and override
+    the hook of their stage. ``q`` below is the tuple of the effect's own parameter
+    tensors (in :attr:`param_specs` order, each broadcast to the state's shape), as
+    returned by :meth:`prepare`.
+    """
+
+    name: ClassVar[str]
+    stage: ClassVar[Stage]
+    param_specs: tuple[ParamSpec, ...] = ()
+    #: True when the effect reads ``Perception.position``.
+    uses_position: ClassVar[bool] = False
+    #: True when the recorded acceleration becomes a state of the vehicle.
+    acceleration_is_state: ClassVar[bool] = False
+
+    def options(self) -> dict[str, float | int]:
+        """Constructor options that differ from the defaults (they enter the name)."""
+        return {}
+
+    @property
+    def token(self) -> str:
+        """The effect's part of a model name: ``name`` or ``name(key=value,...)``."""
+        options = self.options()
+        if not options:
+            return self.name
+        items = ",".join(f"{k}={_number(v)}" for k, v in options.items())
+        return f"{self.name}({items})"
+
+    def prepare(self, q: tuple[Tensor, ...], dt: float) -> Any:
+        """Per-chunk precomputation from the effect's parameters (default: none)."""
+        return q
+
+    def initial_memory(self, q: Any, first: Perception) -> Any:
+        """Memory carried between steps (perception effects only; default none)."""
+        return None
+
+    def perceive(self, q: Any, obs: Perception, memory: Any) -> tuple[Perception, Any]:
+        """Perception stage: the edited perception and the next memory."""
+        return obs, memory
+
+    def act(self, q: Any, obs: Perception, u: Tensor) -> Tensor:
+        """Command stage: the edited command [m/s^2]; ``obs`` is the true state."""
+        return u
+
+    def advance(
+        self, q: Any, state: FollowerState, u: Tensor, dt: float
+    ) -> FollowerState:
+        """Realisation stage: how the command moves the vehicle over ``dt``."""
+        raise NotImplementedError
+
+    def check(self, base: CFModel) -> None:
+        """Raise ValueError when the effect cannot wrap ``base``."""
+
+    def check_bounds(self, box: Tensor) -> None:
+        """Raise ValueError for prior bounds the effect cannot run ((K, 2) box)."""
+
+    def __repr__(self) -> str:
+        return self.token
+
+
+def _number(value: float) -> str:
+    """The shortest of ``%g``-style forms that reads back as ``value`` exactly.
+
+    A name is the model's identity (configs, results): parsing it again must give
+    the same effect, so ``1234.567`` may not become ``1234.57``.
+    """
+    return next(
+        text for digits in range(6, 18) if float(text := f"{value:.{digits}g}") == value
+    )
+
+
+class Offset(Effect):
+    """A constant spacing-sensor offset: the follower perceives ``s + d_offset``."""
+
+    name = "offset"
+    stage = "perception"
+    param_specs = (spec("d_offset", "m", -6.0, 6.0, "spacing-sensor offset"),)
+
+    def perceive(self, q, obs, memory):
+        (d_offset,) = q
+        return obs._replace(spacing=obs.spacing + d_offset), memory
+
+
+class DelayMemory(namedtuple("DelayMemory", ["spacing", "v_lead"])):
+    """Histories ``(D, *state)``: entry k is the value k steps ago (0 = now)."""
+
+
+class Delay(Effect):
+    """Perception delay: spacing and leader speed are perceived ``t_delay`` late.
+
+    The model sees ``s(t - t_delay)`` and ``v_lead(t - t_delay)`` (own speed and
+    acceleration are current), linearly interpolated between the recorded steps:
+    with ``t_delay / dt = k + f``, ``(1 - f) h[k] + f h[k + 1]`` where ``h[k]`` is the
+    value ``k`` steps ago. Before the first step the history is the first
+    perception (a steady past).
+
+    Args:
+        max_delay: longest delay the history holds [s]; priors must stay below it.
+    """
+
+    name = "delay"
+    stage = "perception"
+    param_specs = (spec("t_delay", "s", 0.0, 1.5, "perception delay"),)
+
+    def __init__(self, max_delay: float = 2.0) -> None:
+        if not max_delay > 0:
+            raise ValueError(f"delay: max_delay must be > 0, got {max_delay}")
+        self.max_delay = float(max_delay)
+
+    def options(self):
+        return {} if self.max_delay == 2.0 else {"max_delay": self.max_delay}
+
+    def check_bounds(self, box):
+        low, high = float(box[0, 0]), float(box[0, 1])
+        if low < 0 or high > self.max_delay:
+            raise ValueError(
+                f"delay: t_delay prior [{low:g}, {high:g}] s must lie in "
+                f"[0, max_delay = {self.max_delay:g}] (raise it with "
+                f"'delay(max_delay=...)')"
+            )
+
+    def prepare(self, q, dt):
+        (t_delay,) = q
+        if bool(((t_delay < 0) | (t_delay > self.max_delay)).any()):
+            raise ValueError(f"delay: t_delay outside [0, {self.max_delay:g}] s")
+        depth = math.ceil(self.max_delay / dt) + 2  # entries 0..ceil + one spare
+        steps = t_delay / dt
+        whole = torch.floor(steps)
+        fraction = steps - whole
+        k = torch.arange(depth, dtype=t_delay.dtype, device=t_delay.device)
+        k = k.reshape((depth,) + (1,) * t_delay.ndim)
+        # Interpolation weights over the history: (D, *param shape), two nonzeros.
+        weights = torch.where(k == whole, 1.0 - fraction, 0.0) + torch.where(
+            k == whole + 1.0, fraction, 0.0
+        )
+        return (weights.contiguous(),)
+
+    def initial_memory(self, q, first):
+        (weights,) = q
+        depth = weights.shape[0]
+        shape = torch.broadcast_shapes(first.spacing.shape, first.v_lead.shape)
+        return DelayMemory(
+            *(
+                value.expand(shape).unsqueeze(0).expand((depth, *shape)).contiguous()
+                for value in (first.spacing, first.v_lead)
+            )
+        )
+
+    def perceive(self, q, obs, memory):
+        (weights,) = q
+        # The leader's speed arrives broadcast over particles in the full layout.
+        shape = memory.spacing.shape[1:]
+        spacing = torch.cat((obs.spacing.expand(shape)[None], memory.spacing[:-1]))
+        v_lead = torch.cat((obs.v_lead.expand(shape)[None], memory.v_lead[:-1]))
+        delayed = obs._replace(
+            spacing=(weights * spacing).sum(0), v_lead=(weights * v_lead).sum(0)
+        )
+        return delayed, DelayMemory(spacing, v_lead)
+
+
+class Asymmetry(Effect):
+    """Separate gains when closing in and when falling back.
+
+    ``u' = g_close u`` while the follower closes in (``v_lead < v``), else
+    ``u' = g_open u``.
+    """
+
+    name = "asymmetry"
+    stage = "command"
+    param_specs = (
+        spec("g_close", "1", 0.5, 2.0, "command gain while closing in"),
+        spec("g_open", "1", 0.5, 2.0, "command gain while falling back"),
+    )
+
+    def act(self, q, obs, u):
+        g_close, g_open = q
+        return u * torch.where(obs.v_lead < obs.v, g_close, g_open)
+
+
+class Saturation(Effect):
+    """Acceleration limits: ``u' = min(max(u, a_low), a_high)``."""
+
+    name = "saturation"
+    stage = "command"
+    param_specs = (
+        spec("a_low", "m/s^2", -8.0, -1.0, "strongest deceleration"),
+        spec("a_high", "m/s^2", 0.5, 4.0, "strongest acceleration"),
+    )
+
+    def act(self, q, obs, u):
+        a_low, a_high = q
+        return torch.minimum(torch.maximum(u, a_low), a_high)
+
+
+class Resistance(Effect):
+    """Speed-dependent drag the driver does not compensate: ``u' = u - c_drag v^2``."""
+
+    name = "resistance"
+    stage = "command"
+    param_specs = (spec("c_drag", "1/m", 0.0, 2e-3, "quadratic drag coefficient"),)
+
+    def act(self, q, obs, u):
+        (c_drag,) = q
+        return u - c_drag * obs.v * obs.v
+
+
+class Grade(Effect):
+    """A road profile: ``u' = u - g G(x)`` with the grade ``G`` a function of position.
+
+    ``G`` is piecewise linear in the follower's road position ``x`` between
+    ``knots`` equally spaced points from ``start`` to ``end`` [m] (constant beyond),
+    its values there the parameters ``grade_0 ...`` (rise over run; 0.03 is a 3 %
+    uphill). The profile is a function of the position only, so every pair
+    recorded on the road sees the same profile. ``g = 9.81 m/s^2``.
+
+    Args:
+        start, end: the road section the profile covers [m] (data frame).
+        knots: number of profile points (>= 1; 1 is a constant grade).
+    """
+
+    name = "grade"
+    stage = "command"
+    uses_position = True
+
+    def __init__(self, start: float = 0.0, end: float = 2000.0, knots: int = 3):
+        if knots != int(knots) or knots < 1:
+            raise ValueError(f"grade: knots must be an integer >= 1, got {knots:g}")
+        knots = int(knots)
+        if knots > 1 and not end > start:
+            raise ValueError(f"grade: needs end > start, got [{start:g}, {end:g}]")
+        self.start, self.end, self.knots = float(start), float(end), knots
+        self.param_specs = tuple(
+            spec(f"grade_{k}", "1", -0.08, 0.08, f"road grade at {position:g} m")
+            for k, position in enumerate(self.knot_positions)
+        )
+
+    @property
+    def knot_positions(self) -> list[float]:
+        if self.knots == 1:
+            return [self.start]
+        step = (self.end - self.start) / (self.knots - 1)
+        return [self.start + k * step for k in range(self.knots)]
+
+    def options(self):
+        defaults = {"start": 0.0, "end": 2000.0, "knots": 3}
+        current = {"start": self.start, "end": self.end, "knots": self.knots}
+        return {k: v for k, v in current.items() if v != defaults[k]}
+
+    def profile(self, q: tuple[Tensor, ...], position: Tensor) -> Tensor:
+        """The grade ``G(position)`` (hat-function interpolation of the knots)."""
+        if self.knots == 1:
+            return q[0] + 0.0 * position
+        spacing = (self.end - self.start) / (self.knots - 1)
+        x = torch.clamp(position, self.start, self.end)
+        grade = 0.0
+        for value, knot in zip(q, self.knot_positions, strict=True):
+            hat = torch.clamp(1.0 - torch.abs(x - knot) / spacing, min=0.0)
+            grade = grade + value * hat
+        return grade
+
+    def act(self, q, obs, u):
+        if obs.position is None:
+            raise ValueError("grade: the rollout gave no road position")
+        return u - GRAVITY * self.profile(q, obs.position)
+
+
+class Lag(Effect):
+    """First-order actuation lag: ``da/dt = (u - a) / t_lag`` (exact zero-order hold).
+
+    The recorded acceleration becomes the realised state ``a``. Not for HL, which
+    has its own lag.
+    """
+
+    name = "lag"
+    stage = "realisation"
+    acceleration_is_state = True
+    param_specs = (spec("t_lag", "s", 0.05, 1.5, "actuation time constant"),)
+
+    def check(self, base):
+        if base.acceleration_is_state:
+            raise ValueError(f"lag: {base.name} already has an actuation lag")
+
+    def check_bounds(self, box):
+        if float(box[0, 0]) <= 0:
+            raise ValueError("lag: t_lag prior must be > 0 (it divides)")
+
+    def advance(self, q, state, u, dt):
+        (t_lag,) = q
+        return first_order_lag_advance(state, u, t_lag, dt)
+
+
+#: Registered effects, in the canonical order of a composite name (perception
+#: effects first, then command effects in the order they apply, then realisation).
+EFFECTS: dict[str, type[Effect]] = {
+    cls.name: cls
+    for cls in (Offset, Delay, Asymmetry, Saturation, Resistance, Grade, Lag)
+}
+_STAGE_ORDER = {"perception": 0, "command": 1, "realisation": 2}
+
+
+class AugmentedModel(CFModel):
+    """A pool model wrapped by effects; parameters = the model's, then each effect's.
+
+    Args:
+        base: the wrapped model (not itself augmented).
+        effects: at most one of each kind and at most one realisation effect.
+    """
+
+    def __init__(self, base: CFModel, effects: list[Effect]) -> None:
+        if isinstance(base, AugmentedModel):
+            raise ValueError("wrap the pool model, not an augmented model")
+        if not effects:
+            raise ValueError("an augmented model needs at least one effect")
+        order = list(EFFECTS)
+        effects = sorted(effects, key=lambda e: order.index(e.name))
+        names = [e.name for e in effects]
+        if len(set(names)) != len(names):
+            raise ValueError(f"effect listed twice in {base.name}+{'+'.join(names)}")
+        for effect in effects:
+            effect.check(base)
+        self.base = base
+        self.effects = tuple(effects)
+        self.name = "+".join([base.name] + [e.token for e in effects])
+        self.param_specs = base.param_specs + tuple(
+            p for e in effects for p in e.param_specs
+        )
+        names = [p.name for p in self.param_specs]
+        if len(set(names)) != len(names):
+            raise ValueError(f"{self.name}: parameter names collide: {names}")
+        self.Params = namedtuple(  # noqa: PYI024 - built per composition
+            "AugmentedParams", names
+        )
+        self.acceleration_is_state = base.acceleration_is_state or any(
+            e.acceleration_is_state for e in effects
+        )
+        self.compilable = base.compilable
+        self.chunk_cells = base.chunk_cells
+        self.uses_position = base.uses_position or any(e.uses_position for e in effects)
+        self._realiser = next((e for e in effects if e.stage == "realisation"), None)
+        # Parameter slices: the base's first, then each effect's.
+        bounds, start = [], base.n_params
+        for effect in effects:
+            bounds.append(slice(start, start + len(effect.param_specs)))
+            start += len(effect.param_specs)
+        self._slices = tuple(bounds)
+
+    def check_bounds(self, box: Tensor) -> None:
+        """Raise ValueError when a prior box (K, 2) is outside what the effects run."""
+        for effect, part in zip(self.effects, self._slices, strict=True):
+            effect.check_bounds(box[part])
+
+    def prepare(self, p, dt, state_shape):
+        fields = tuple(p)
+        base = self.base.prepare(
+            self.base.Params(*fields[: self.base.n_params]), dt, state_shape
+        )
+        own = tuple(
+            effect.prepare(fields[part], dt)
+            for effect, part in zip(self.effects, self._slices, strict=True)
+        )
+        return _Prepared(base, own)
+
+    def initial_memory(self, p, first):
+        # Each effect's memory starts from the perception as the earlier
+        # perception effects hand it on (a delay's steady past includes an
+        # offset), and the base's from what it perceives at the first step.
+        perceived, memories = first, []
+        for effect, q in zip(self.effects, p.effects, strict=True):
+            memory = effect.initial_memory(q, perceived)
+            if effect.stage == "perception":
+                perceived, _ = effect.perceive(q, perceived, memory)
+            memories.append(memory)
+        return self.base.initial_memory(p.base, perceived), tuple(memories)
+
+    def command_with_memory(self, p, obs, memory):
+        base_memory, effect_memory = memory if memory is not None else (None, None)
+        if effect_memory is None:
+            effect_memory = (None,) * len(self.effects)
+        perceived, next_memory = obs, []
+        for effect, q, mem in zip(self.effects, p.effects, effect_memory, strict=True):
+            if effect.stage == "perception":
+                perceived, mem = effect.perceive(q, perceived, mem)
+            next_memory.append(mem)
+        u, base_memory = self.base.command_with_memory(p.base, perceived, base_memory)
+        for effect, q in zip(self.effects, p.effects, strict=True):
+            if effect.stage == "command":
+                u = effect.act(q, obs, u)
+        return u, (base_memory, tuple(next_memory))
+
+    def command(self, p, obs):
+        """The command for ``obs`` with a steady past (a delay then sees ``obs``)."""
+        return self.command_with_memory(p, obs, self.initial_memory(p, obs))[0]
+
+    def advance(self, p, state, u, dt):
+        if self._realiser is not None:
+            index = self.effects.index(self._realiser)
+            return self._realiser.advance(p.effects[index], state, u, dt)
+        return self.base.advance(p.base, state, u, dt)
+
+    def __repr__(self) -> str:
+        return f"AugmentedModel({self.name})"
+
+
+_Prepared = namedtuple("_Prepared", ["base", "effects"])
+
+_TOKEN = re.compile(r"^([a-z_]+)(?:\((.*)\))?$")
+
+
+def parse_effect(token: str) -> Effect:
+    """One effect from its name token: ``"delay"`` or ``"grade(end=600,knots=4)"``."""
+    match = _TOKEN.match(token.strip().lower())
+    if match is None or match.group(1) not in EFFECTS:
+        raise ValueError(
+            f"unknown effect {token!r}; valid effects: {', '.join(EFFECTS)}"
+        )
+    cls = EFFECTS[match.group(1)]
+    options: dict[str, float] = {}
+    for item in filter(None, (match.group(2) or "").split(",")):
+        key, sep, value = item.partition("=")
+        try:
+            options[key.strip()] = float(value)
+        except ValueError:
+            sep = ""
+        if not sep:
+            raise ValueError(f"effect {token!r}: options are key=number, got {item!r}")
+    try:
+        return cls(**options)
+    except TypeError as error:
+        raise ValueError(f"effect {token!r}: {error}") from None
