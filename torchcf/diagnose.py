@@ -606,6 +606,7 @@ def diagnose_run(
         "effects_ranked": ranked,
         "chosen": chosen,
         "alpha": cfg.diagnose.alpha,
+        "fit_fraction": cfg.diagnose.fit_fraction,
         "min_gain": cfg.diagnose.min_gain,
         "before": before_metrics["hybrid"],
         "residuals_before": residuals_before,
@@ -688,7 +689,12 @@ def loop_markdown(result: dict[str, Any], figures: dict[str, str]) -> str:
         f"Significance: p < alpha / n_effects = {result['alpha']} / "
         f"{len(result['effects_ranked'])}, gain >= {result['min_gain']:.0%}.",
         "",
-        "## Effects ranked by out-of-sample gain",
+        "## Candidate effects, ranked by the consistency of their out-of-sample gain",
+        "",
+        "gain: relative drop of the summed validation score (last "
+        f"{1 - result['fit_fraction']:.0%} of every training pair) when the pool "
+        "models' variants with the effect join the pool, at equal particle budget; "
+        "statistic: t of the per-pair drops; p-value: one-sided sign-flip test.",
         "",
         "| effect | gain | statistic | p-value | score before | score after "
         "| pairs | chosen |",
@@ -727,7 +733,8 @@ def loop_markdown(result: dict[str, Any], figures: dict[str, str]) -> str:
         lines += [f"Shares after: {shares}.", ""]
     else:
         lines += [
-            "**No effect chosen**: none has a significant out-of-sample gain.",
+            "**No effect chosen**: none has a significant out-of-sample gain, so "
+            "nothing is re-calibrated ('after' = 'before').",
             "",
         ]
     lines += [
