@@ -404,6 +404,95 @@ def test_shifted_plan_warm_start_helps_the_active_set_stage():
     torch.testing.assert_close(warm.x, cold.x, rtol=0, atol=1e-9)
 
 
+def _leading_work(monkeypatch) -> dict[str, int]:
+    """Count the instances the leading-block stage re-solves after its first pass
+    (new solves and rank-one boundary steps)."""
+    import torchcf.qp as qp
+
+    work = {"first": 0, "later": 0}
+    solve, step = qp._leading_solve, qp._boundary_step
+
+    def counted_solve(data, lower, upper):
+        work["later" if work["first"] else "first"] += lower.shape[1]
+        return solve(data, lower, upper)
+
+    def counted_step(data, solution, j, lower, upper):
+        work["later"] += j.numel()
+        return step(data, solution, j, lower, upper)
+
+    monkeypatch.setattr(qp, "_leading_solve", counted_solve)
+    monkeypatch.setattr(qp, "_boundary_step", counted_step)
+    return work
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_active_guess_gives_the_same_solution(dtype):
+    """Any guess of the active set, right or wrong, gives the same solution."""
+    mpc = mpc_batch(1500, horizon=20, seed=22)
+    mpc = MPCBatch(*(t.to(dtype) for t in mpc))
+    solver = BoxQP(mpc.H)
+    first = solver.solve(mpc.q, mpc.lower, mpc.upper)
+    nxt = next_mpc_step(mpc, first.x[:, 0], seed=23)
+    reference = solver.solve(nxt.q, nxt.lower, nxt.upper)
+    generator = torch.Generator().manual_seed(24)
+    noise = torch.randn(first.x.shape, generator=generator, dtype=dtype)
+    guesses = {
+        "previous plan": first.x,
+        "shifted plan": shift(first.x),
+        "all at the lower bound": nxt.lower,
+        "all at the upper bound": nxt.upper,
+        "alternating": torch.where(
+            torch.arange(20) % 2 == 0, nxt.lower, nxt.upper
+        ),  # never a leading block
+        "random": 5 * noise,
+        "none active": torch.zeros_like(first.x),
+    }
+    tol = 1e-9 if dtype == torch.float64 else 2e-3
+    for name, guess in guesses.items():
+        result = solver.solve(
+            nxt.q, nxt.lower, nxt.upper, x0=shift(first.x), active_guess=guess
+        )
+        assert bool((result.status == QPStatus.SOLVED).all()), name
+        if name in ("previous plan", "shifted plan"):
+            assert bool((result.n_iter == 0).all()), name  # no ADMM needed
+        torch.testing.assert_close(result.x, reference.x, rtol=0, atol=tol, msg=name)
+    with pytest.raises(ValueError, match="active_guess"):
+        solver.solve(nxt.q, nxt.lower, nxt.upper, active_guess=first.x[:, :3])
+
+
+def test_unshifted_plan_is_the_better_active_set_guess(monkeypatch):
+    """K = 20, states drifting as in tools/bench_qp.py (saturation persists): the
+    last plan's own active set needs fewer re-solves than the shifted plan's, and
+    a cold start more still. (In a closed loop, where the applied input moves the
+    state as the plan predicted, the shifted plan can be the better guess; the
+    solution is the same either way.)"""
+    mpc = mpc_batch(2000, horizon=20, seed=25)
+    generator = torch.Generator().manual_seed(26)
+    solver = BoxQP(mpc.H)
+    plan = solver.solve(mpc.q, mpc.lower, mpc.upper).x
+    work = {}
+    for _ in range(3):
+        drift = 0.3 * torch.randn(
+            mpc.z0.shape, generator=generator, dtype=torch.float64
+        )
+        mpc = mpc._replace(z0=mpc.z0 + drift)
+        guesses = {"unshifted": plan, "shifted": shift(plan), "cold": None}
+        results = {}
+        for name, guess in guesses.items():
+            counted = _leading_work(monkeypatch)
+            x0 = None if guess is None else shift(plan)
+            results[name] = solver.solve(
+                mpc.q, mpc.lower, mpc.upper, x0=x0, active_guess=guess
+            )
+            work[name] = work.get(name, 0) + counted["later"]
+            monkeypatch.undo()
+        for result in results.values():
+            torch.testing.assert_close(result.x, results["cold"].x, rtol=0, atol=1e-9)
+        plan = results["unshifted"].x
+    assert work["unshifted"] < 0.7 * work["shifted"], work
+    assert work["shifted"] < work["cold"], work
+
+
 def test_warm_start_from_perturbed_solution_lowers_iterations():
     P, q, A, lower, upper = random_feasible_qps(64, n=6, m=10, seed=8)
     generator = torch.Generator().manual_seed(9)
@@ -617,7 +706,7 @@ def _random_spd(batch: int, n: int, seed: int, dtype=torch.float64) -> Tensor:
     return spd.permute(1, 2, 0).contiguous()
 
 
-@pytest.mark.parametrize("batch", [3, 200])  # LAPACK path and elementwise path
+@pytest.mark.parametrize("batch", [3, 1500])  # LAPACK path and elementwise path
 def test_cholesky_factors_and_flags_singular(batch):
     from torchcf.qp import _cholesky, _cholesky_solve, _ul_cholesky
 
@@ -641,7 +730,7 @@ def test_cholesky_factors_and_flags_singular(batch):
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_leading_solve_matches_the_reduced_system(dtype):
     """x_F = P_FF^{-1} (-q_F - P_FA x_A) for a leading block A of every length."""
-    from torchcf.qp import _is_leading, _Leading, _leading_solve, _ul_cholesky
+    from torchcf.qp import _is_leading, _leading_data, _leading_factor, _leading_solve
 
     n, batch = 7, 64
     generator = torch.Generator().manual_seed(3)
@@ -654,10 +743,12 @@ def test_leading_solve_matches_the_reduced_system(dtype):
     side = torch.rand(n, batch, generator=generator) < 0.5
     lower, upper = active & side, active & ~side
     assert bool(_is_leading(active).all())
-    U, ok = _ul_cholesky(P.to(dtype))
+    factor, ok = _leading_factor(P.to(dtype))
     assert bool(ok.all())
-    data = _Leading(U, q.to(dtype), lo.to(dtype), hi.to(dtype))
-    x, y, px = _leading_solve(data, lower, upper)
+    data = _leading_data(factor, q.to(dtype), lo.to(dtype), hi.to(dtype), QPSettings())
+    solution = _leading_solve(data, lower, upper)
+    assert torch.equal(solution.k, depth)
+    tol = 1e-10 if dtype == torch.float64 else 2e-4
     for b in range(batch):
         k = int(depth[b])
         Pb, qb = P[:, :, b], q[:, b]
@@ -667,16 +758,110 @@ def test_leading_solve_matches_the_reduced_system(dtype):
         if k < n:
             rhs = -qb[k:] - Pb[k:, :k] @ fixed
             expect[k:] = torch.linalg.solve(Pb[k:, k:], rhs)
-        tol = 1e-10 if dtype == torch.float64 else 2e-4
-        torch.testing.assert_close(x[:, b].double(), expect, atol=tol, rtol=tol)
+        torch.testing.assert_close(
+            solution.x[:, b].double(), expect, atol=tol, rtol=tol
+        )
         multiplier = -(Pb @ expect + qb)
         multiplier[k:] = 0
         torch.testing.assert_close(
-            y[:, b].double(), multiplier, atol=tol * 100, rtol=tol
+            solution.y[:, b].double(), multiplier, atol=tol * 100, rtol=tol
         )
+        sign = lower[:, b].double() - upper[:, b].double()
         torch.testing.assert_close(
-            px[:, b].double(), Pb @ expect, atol=tol * 100, rtol=tol
+            solution.signed[:, b].double(), multiplier * sign, atol=tol * 100, rtol=tol
         )
+        # The stationarity residual of the free rows, looked up by k, is round-off.
+        stationarity = (Pb @ solution.x[:, b].double() + qb)[k:]
+        looked_up = float(data.call.tail_residual[k, b])
+        assert looked_up <= 100 * torch.finfo(dtype).eps * (1 + float(qb.abs().max()))
+        if k < n:
+            assert float(stationarity.abs().max()) <= tol * 100 + looked_up
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("batch,bad", [(400, 4), (40, 10)])  # few gathered; all
+def test_tail_residual_bounds_the_back_substitution(dtype, batch, bad):
+    """The table of the free rows' residual: a bound of |U g - q| where that bound
+    clears the acceptance floor, the residual itself where it does not (here the
+    first ``bad`` instances, ill-conditioned)."""
+    from torchcf.qp import (
+        _back_substitute,
+        _leading_data,
+        _leading_factor,
+        _roundoff_floor,
+        _tail_residual,
+    )
+
+    n = 9
+    generator = torch.Generator().manual_seed(7)
+    P = _random_spd(batch, n, 3).permute(2, 0, 1)  # (B, n, n)
+    basis, _ = torch.linalg.qr(torch.randn(bad, n, n, generator=generator).double())
+    spectrum = torch.logspace(-2, 2, n, dtype=torch.float64)
+    P[:bad] = basis @ torch.diag_embed(spectrum.expand(bad, n)) @ basis.transpose(1, 2)
+    P = P.permute(1, 2, 0).contiguous().to(dtype)
+    q = (10 * torch.randn(n, batch, generator=generator).double()).to(dtype)
+    factor, ok = _leading_factor(P)
+    assert bool(ok.all())
+    lo, hi = -torch.ones(n, batch, dtype=dtype), torch.ones(n, batch, dtype=dtype)
+    settings = QPSettings()
+    table = _leading_data(factor, q, lo, hi, settings).call.tail_residual
+    g = _back_substitute(factor.U, factor.inv_diag, q)
+    computed = _tail_residual(factor.U, g, q)
+    assert table.shape == (n + 1, batch) and bool((table[n] == 0).all())
+    # The residual of the computed g, evaluated in float64, is under the table.
+    residual = torch.einsum("ijb,jb->ib", factor.U.double(), g.double()) - q.double()
+    tail = residual.abs().flip(0).cummax(0).values.flip(0)
+    slack = 4 * torch.finfo(dtype).eps * (1 + q.double().abs().amax(0))
+    assert bool((tail <= table[:n].double() + slack).all())
+    # The ill-conditioned instances' bounds would not clear the floor: computed.
+    floor = _roundoff_floor(q.abs().amax(0), settings)
+    bound_cleared = table[0] <= floor
+    assert torch.equal(table[:, :bad], computed[:, :bad])
+    assert bool(bound_cleared[bad:].all())  # and the rest stay acceptable
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_boundary_step_matches_a_new_solve(dtype):
+    """Fixing the next bound, or freeing the last one, of a leading block by the
+    rank-one update gives the solve on the new block."""
+    from torchcf.qp import (
+        _boundary_step,
+        _leading_data,
+        _leading_factor,
+        _leading_solve,
+    )
+
+    n, batch = 7, 96
+    generator = torch.Generator().manual_seed(4)
+    P = _random_spd(batch, n, 2).to(dtype)
+    q = (10 * torch.randn(n, batch, generator=generator, dtype=torch.float64)).to(dtype)
+    lo = -torch.rand(n, batch, generator=generator, dtype=torch.float64).to(dtype)
+    hi = torch.rand(n, batch, generator=generator, dtype=torch.float64).to(dtype)
+    k = torch.arange(batch) % (n + 1)  # 0 .. n fixed rows
+    grow = (torch.arange(batch) % 2 == 0) & (k < n) | (k == 0)  # else shrink
+    j = torch.where(grow, k, k - 1)
+    side = torch.rand(n, batch, generator=generator) < 0.5
+    rows = torch.arange(n)[:, None]
+    before, after = rows < k[None], rows < torch.where(grow, k + 1, k - 1)[None]
+    factor, ok = _leading_factor(P)
+    assert bool(ok.all())
+    data = _leading_data(factor, q, lo, hi, QPSettings())
+    start = _leading_solve(data, before & side, before & ~side)
+    stepped = _boundary_step(data, start, j, after & side, after & ~side)
+    direct = _leading_solve(data, after & side, after & ~side)
+    tol = 1e-10 if dtype == torch.float64 else 1e-3
+    torch.testing.assert_close(stepped.x, direct.x, atol=tol, rtol=tol)
+    torch.testing.assert_close(stepped.y, direct.y, atol=tol * 10, rtol=tol)
+    torch.testing.assert_close(stepped.signed, direct.signed, atol=tol * 10, rtol=tol)
+    assert torch.equal(stepped.k, direct.k)
+    fixed = torch.where(side, lo, hi)
+    assert torch.equal(stepped.x[after], fixed[after])  # exactly on the bounds
+    # ... so the guess is recovered from x and k, as the compacted passes do.
+    from torchcf.qp import _leading_guess
+
+    for solution, block in ((start, before), (stepped, after), (direct, after)):
+        lower, upper = _leading_guess(data, solution.x, solution.k)
+        assert torch.equal(lower, block & side) and torch.equal(upper, block & ~side)
 
 
 def test_is_leading():

@@ -169,3 +169,35 @@ def test_stages_agree():
     with_active_set = command_of(MODELS["mpc"], theta, obs)
     admm_only = command_of(MPC(method="admm"), theta, obs)
     torch.testing.assert_close(with_active_set, admm_only, atol=1e-5, rtol=0)
+
+
+def test_warm_start_from_the_last_plan(monkeypatch):
+    """Step to step the MPC hands BoxQP the last plan as its active-set guess and
+    the plan shifted by one step as ADMM's start; the commands are those of a cold
+    solve."""
+    from torchcf.qp import BoxQP
+
+    model = MODELS["mpc"]
+    theta, obs = _random_mpc_states(model, 800, seed=31, dtype=torch.float64)
+    params = model.prepare(model.unpack(theta), 0.1, (800,))
+    calls = []
+    solve = BoxQP.solve
+
+    def recording(self, q, l, u, **kwargs):  # noqa: E741
+        calls.append(kwargs)
+        return solve(self, q, l, u, **kwargs)
+
+    monkeypatch.setattr(BoxQP, "solve", recording)
+    _, memory = model.command_with_memory(params, obs, None)
+    moved = obs._replace(spacing=obs.spacing + 0.4, v_lead=obs.v_lead - 0.1)
+    command, _ = model.command_with_memory(params, moved, memory)
+    first, second = calls
+    assert first["active_guess"] is None and first["x0"] is None
+    index = second["index"]
+    last = memory.inputs[index]
+    torch.testing.assert_close(second["active_guess"], last, rtol=0, atol=0)
+    shifted = torch.cat((last[:, 1:], last[:, -1:]), dim=1)
+    torch.testing.assert_close(second["x0"], shifted, rtol=0, atol=0)
+    monkeypatch.undo()
+    cold = model.command_with_memory(params, moved, None)[0]
+    torch.testing.assert_close(command, cold, rtol=0, atol=1e-9)

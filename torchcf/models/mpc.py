@@ -12,7 +12,8 @@ acceleration assumed zero (the paper's Appendix Table 3, as printed):
 and applies the first input ``u_0``. Condensed, this is a box-constrained QP in the
 K inputs whose Hessian depends on the particle only (:func:`mpc_qp_matrices`): it is
 factorised once per particle (:meth:`MPC.prepare`) and reused at every step, and each
-step warm-starts from the previous solution shifted by one step.
+step warm-starts from the previous solution: its active set is the first guess of
+the active-set stage, and, shifted by one step, it starts ADMM.
 """
 
 from __future__ import annotations
@@ -189,11 +190,12 @@ class MPC(CFModel):
             z0 = torch.stack((spacing_error[rest], speed_difference[rest]), dim=1)
             linear_term = torch.einsum("ckj,cj->ck", p.linear[rest], z0)  # (b, K)
             bound_shape = (rest.numel(), self.horizon)
-            warm = None
+            warm = last = None
             if memory is not None:
-                # Receding horizon: the rest of the last plan is this step's guess
-                # (BoxQP derives the duals from it, which starts ADMM better than
-                # shifted duals would).
+                # Receding horizon: the rest of the last plan starts ADMM (BoxQP
+                # derives the duals from it, which starts ADMM better than shifted
+                # duals would). The last plan itself, unshifted, is the better guess
+                # of the active set: saturated inputs tend to stay saturated.
                 last = memory.inputs[rest]
                 warm = torch.cat((last[:, 1:], last[:, -1:]), dim=1)
             result = p.solver.solve(
@@ -203,6 +205,7 @@ class MPC(CFModel):
                 x0=warm,
                 index=rest,
                 method=self.method,
+                active_guess=last,
             )
             inputs = inputs.index_copy(0, rest, result.x)
         command = inputs[:, 0].reshape(p.state_shape)
