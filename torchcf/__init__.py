@@ -4,11 +4,15 @@ Public API (re-exports only; see the modules for the details):
 
 - :func:`load_pairs` / :class:`PairSet` / :class:`DataError` (``torchcf.data``),
 - :data:`MODELS` / :func:`get_model` / :class:`CFModel` (``torchcf.models``),
-- :func:`simulate` / :class:`SimOutput` (``torchcf.sim``).
+- :func:`simulate` / :class:`SimOutput` (``torchcf.sim``),
+- :class:`HybridSampler` (``torchcf.sampler``): the learned model as an
+  ``nn.Module``; traffic models that use it are in ``torchcf.traffic``.
 """
 
+from . import traffic
 from .data import DATASETS, DataError, PairSet, load_pairs
 from .models import MODELS, CFModel, UnknownModelError, get_model
+from .sampler import HybridSampler
 from .sim import SimOutput, simulate
 
 __version__ = "0.1.0"
@@ -18,6 +22,7 @@ __all__ = [
     "MODELS",
     "CFModel",
     "DataError",
+    "HybridSampler",
     "PairSet",
     "SimOutput",
     "UnknownModelError",
@@ -25,4 +30,5 @@ __all__ = [
     "get_model",
     "load_pairs",
     "simulate",
+    "traffic",
 ]

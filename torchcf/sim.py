@@ -166,15 +166,39 @@ def _block(
         if record:
             recorded.append(torch.stack((state.x, state.v, acc_recorded)))
 
-        moved = model.advance(params, state, command, dt)
-        # No reversing (SPEC 2); torch.maximum/clamp propagate NaN, so an exploding
-        # rollout stays non-finite and is caught as invalid.
-        state = FollowerState(
-            x=torch.maximum(moved.x, state.x),
-            v=torch.clamp(moved.v, min=0.0),
-            a=moved.a,
-        )
+        state = realise(model, params, state, command, dt)
     return state, acc, memory, torch.stack(recorded) if record else None
+
+
+def realise(
+    model: CFModel, params: Any, state: FollowerState, command: Tensor, dt: float
+) -> FollowerState:
+    """One step of SPEC section 2's state update: the command becomes motion.
+
+    The model's own realisation (``model.advance``: a point mass, HL's or the
+    ``lag`` effect's exact first-order lag), then no reversing:
+    ``v(t+1) = max(v(t+1), 0)``, ``x(t+1) = max(x(t+1), x(t))``. The rollout and
+    :class:`torchcf.HybridSampler` both step through this function.
+
+    Args:
+        model: the model.
+        params: its prepared parameters (:meth:`CFModel.prepare`), broadcast to
+            the state.
+        state: the follower at t; position [m], speed [m/s], acceleration [m/s^2].
+        command: the command ``u(t)`` [m/s^2], the state's shape.
+        dt: step [s].
+
+    Returns:
+        the follower at t + 1, the state's shape.
+    """
+    moved = model.advance(params, state, command, dt)
+    # torch.maximum/clamp propagate NaN, so an exploding rollout stays non-finite
+    # and is caught as invalid.
+    return FollowerState(
+        x=torch.maximum(moved.x, state.x),
+        v=torch.clamp(moved.v, min=0.0),
+        a=moved.a,
+    )
 
 
 def _rollout_chunk(
