@@ -296,3 +296,22 @@ def test_cli_resume_with_a_different_config_is_refused(data_root, tmp_path):
     assert [line for line in refused.stderr.splitlines() if "error" in line] == [
         refused.stderr.strip()
     ]
+
+
+def test_cuda_chunks_are_larger_by_default():
+    """On CUDA a chunk holds at least CUDA_CHUNK_CELLS cells (launch overhead),
+    unless the config sets one; no GPU is touched."""
+    from torchcf.models import get_model
+    from torchcf.train import CUDA_CHUNK_CELLS, _chunk_size
+
+    pairs = synthetic_pairs(n_pairs=4, n_steps=50)
+    model = get_model("idm")
+    cuda, cpu = torch.device("cuda"), torch.device("cpu")
+    big = config(n_particles=10_000_000)
+    assert _chunk_size(big, model, pairs, False, cpu) == model.chunk_cells
+    assert _chunk_size(big, model, pairs, False, cuda) == CUDA_CHUNK_CELLS
+    full = config(n_particles=10_000_000, layout="full")
+    assert _chunk_size(full, model, pairs, False, cuda) == CUDA_CHUNK_CELLS // 4
+    assert _chunk_size(config(n_particles=1000), model, pairs, False, cuda) == 1000
+    fixed = config(n_particles=10_000_000, chunk_size=4096)
+    assert _chunk_size(fixed, model, pairs, False, cuda) == 4096

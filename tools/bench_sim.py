@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import statistics
 import subprocess
@@ -62,6 +63,33 @@ def git_sha() -> str:
         return out.stdout.strip() + ("-dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
+
+
+def device_name(device: str) -> str:
+    """The accelerator's name for a CUDA device, else the CPU model."""
+    if torch.device(device).type == "cuda" and torch.cuda.is_available():
+        return torch.cuda.get_device_name(torch.device(device))
+    return cpu_model()
+
+
+def bench_meta(argv: list[str], threads: int, device: str = "cpu") -> dict:
+    """What a benchmark report records about its run: the exact command, versions,
+    threads, machine and git revision (compare runs on the same machine only)."""
+    import numpy
+
+    return {
+        "command": " ".join(["python", *argv]),
+        "torch": torch.__version__,
+        "torchcf": torchcf.__version__,
+        "numpy": numpy.__version__,
+        "python": sys.version.split()[0],
+        "threads": threads,
+        "device": device,
+        "machine": device_name(device),
+        "cpu": cpu_model(),
+        "cpu_count": os.cpu_count(),
+        "git": git_sha(),
+    }
 
 
 def setup(model_name: str, n_particles: int, n_pairs: int, seed: int = 0):

@@ -1,13 +1,16 @@
 """Benchmark: a whole training run, timed from outside.
 
-Runs ``python -m torchcf.train CONFIG --out DIR`` in a child process, measures its
-wall time and peak resident memory, and writes the per-model times, rates, invalid
-counts and the shares found to ``reports/train_<config>.{json,md}``. It runs twice:
+Runs ``python -m torchcf.train CONFIG --out DIR`` in a child process (under
+``torchrun`` with ``--nproc K``), measures its wall time and peak resident memory
+(the largest process), and writes the per-model times, rates, invalid counts and
+the shares found to ``reports/bench/train_<config>.{json,md}``. It runs twice:
 first with an empty ``torch.compile`` (inductor) cache, as on a fresh machine, then
 again with the cache that run filled, as for every later run.
 
     python tools/bench_train.py configs/carII.json   # the paper's CAR MODEL II run
     python tools/bench_train.py configs/smoke.json --threads 2
+    python tools/bench_train.py configs/carII.json --nproc 2 --threads 1  # torchrun
+    python tools/bench_train.py configs/carII.json --set device=cuda --no-cold
 """
 
 from __future__ import annotations
@@ -23,18 +26,27 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_sim import cpu_model, git_sha  # noqa: E402
+from bench_sim import bench_meta  # noqa: E402
 
-REPORTS = Path(__file__).resolve().parents[1] / "reports"
+REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
 
 
 def _run(args, stem: str, env: dict[str, str]) -> dict | None:
     """One training run in a child process: wall time, peak RSS, its summary."""
     run_dir = Path(tempfile.mkdtemp(prefix=f"torchcf-{stem}-"))
+    launcher = ["-m", "torchcf.train"]
+    if args.nproc > 1:
+        launcher = [
+            "-m",
+            "torch.distributed.run",
+            "--standalone",
+            "--nproc-per-node",
+            str(args.nproc),
+            *launcher,
+        ]
     command = [
         sys.executable,
-        "-m",
-        "torchcf.train",
+        *launcher,
         str(args.config),
         "--out",
         str(run_dir / "run"),
@@ -61,34 +73,45 @@ def _run(args, stem: str, env: dict[str, str]) -> dict | None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("config", type=Path)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=2, help="per process")
+    parser.add_argument(
+        "--nproc", type=int, default=1, help="processes (torchrun) on this machine"
+    )
+    parser.add_argument(
+        "--no-cold",
+        action="store_true",
+        help="skip the empty-cache run: one run with the machine's inductor cache",
+    )
     parser.add_argument("--set", dest="overrides", action="append", default=[])
     parser.add_argument("--out", type=Path, default=None, help="report path stem")
     args = parser.parse_args(argv)
     stem = args.config.stem
-    report = args.out or REPORTS / f"train_{stem}"
+    suffix = f"_x{args.nproc}" if args.nproc > 1 else ""
+    report = args.out or REPORTS / f"train_{stem}{suffix}"
 
     cache = Path(tempfile.mkdtemp(prefix="torchcf-inductor-"))
+    env = {} if args.no_cold else {"TORCHINDUCTOR_CACHE_DIR": str(cache)}
+    if args.nproc > 1:
+        env["OMP_NUM_THREADS"] = str(args.threads)
     runs = {}
-    for label in ("cold", "warm"):
-        run = _run(args, stem, {"TORCHINDUCTOR_CACHE_DIR": str(cache)})
+    for label in ("warm",) if args.no_cold else ("cold", "warm"):
+        run = _run(args, stem, env)
         if run is None:
             return 1
         runs[label] = run
     shutil.rmtree(cache, ignore_errors=True)
+    if "cold" not in runs:
+        runs["cold"] = runs["warm"]
     summary = runs["warm"]["summary"]
     if runs["cold"]["summary"]["shares"] != summary["shares"]:
         print("the two runs found different shares", file=sys.stderr)
         return 1
 
-    meta = {
-        "command": "python tools/bench_train.py "
-        + " ".join([str(args.config), *(f"--set {o}" for o in args.overrides)]),
-        "threads": args.threads,
-        "cpu": cpu_model(),
-        "git": git_sha(),
-        "torch": summary["versions"]["torch"],
-    }
+    device = next(
+        (o.split("=", 1)[1] for o in args.overrides if o.startswith("device=")), "cpu"
+    )
+    meta = bench_meta(["tools/bench_train.py", *sys.argv[1:]], args.threads, device)
+    meta["processes"] = args.nproc
     wall = runs["warm"]["wall_seconds"]
     cold_wall = runs["cold"]["wall_seconds"]
     peak_mib = max(run["peak_rss_mib"] for run in runs.values())
@@ -115,13 +138,20 @@ def main(argv: list[str] | None = None) -> int:
         f"{summary['n_particles']:,} particles per model, layout {summary['layout']}, "
         f"N = {summary['top_n']}.",
         "",
-        f"**Wall time {cold_wall:.0f} s ({cold_wall / 60:.1f} min) on a fresh "
-        f"machine** (empty compile cache) and **{wall:.0f} s ({wall / 60:.1f} min) "
-        "once the cache holds the compiled kernels**, for the whole process (data "
-        "loading, compilation, simulation, selection, outputs); peak resident memory "
-        f"{peak_mib:.0f} MiB. Both runs found the same shares.",
+        (
+            f"**Wall time {wall:.0f} s ({wall / 60:.1f} min)** with the machine's "
+            "compile cache"
+            if args.no_cold
+            else f"**Wall time {cold_wall:.0f} s ({cold_wall / 60:.1f} min) on a "
+            f"fresh machine** (empty compile cache) and **{wall:.0f} s "
+            f"({wall / 60:.1f} min) once the cache holds the compiled kernels**"
+        )
+        + f", {args.nproc} process(es) x {args.threads} thread(s), for the whole "
+        "run (start-up, data loading, compilation, simulation, selection, outputs, "
+        f"test-split evaluation); peak resident memory {peak_mib:.0f} MiB (largest "
+        "process)." + ("" if args.no_cold else " Both runs found the same shares."),
         "",
-        "Per model (seconds: cold cache / warm cache):",
+        "Per model:" if args.no_cold else "Per model (seconds: cold / warm cache):",
         "",
         "| model | share | seconds | particles/s (warm) | invalid rollouts | "
         "best score | threshold (mean N-th best) |",

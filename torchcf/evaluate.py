@@ -9,12 +9,13 @@ Learned sets evaluated: ``"hybrid"`` (``Theta_hybrid`` of ``posterior.pt``) and 
 single model, represented by its own N best particles per training pair (the model
 learned alone, as in the paper's comparison).
 
-Writes ``RUN_DIR/metrics.json`` and a report folder (default ``RUN_DIR/report``):
-``table.md`` (the paper's Appendix Tables 4-6), ``shares.png`` (Fig. 3a-c),
-``pairwise.png`` (Fig. 3d-f), ``error_evolution.png`` (Fig. 4: position error of the
-best 5 % of the hybrid's particles against all of them on one test pair) and
-``radar.png`` (Figs. 5-6); the figures and metrics are also logged to the run's
-TensorBoard folder. The trainer calls :func:`evaluate_run` at the end of a run.
+Writes a report folder (default ``RUN_DIR/report``): ``table.md`` (the paper's
+Appendix Tables 4-6), ``shares.png`` (Fig. 3a-c), ``pairwise.png`` (Fig. 3d-f),
+``error_evolution.png`` (Fig. 4: position error of the best 5 % of the hybrid's
+particles against all of them on one test pair) and ``radar.png`` (Figs. 5-6); the
+figures and metrics are also logged to the run's TensorBoard folder; and last
+``RUN_DIR/metrics.json``, so that a run directory with ``metrics.json`` holds a
+complete evaluation. The trainer calls :func:`evaluate_run` at the end of a run.
 """
 
 from __future__ import annotations
@@ -40,7 +41,13 @@ from .plots import (
     save_figure,
     shares_figure,
 )
-from .posterior import Posterior, atomic_write_text, json_safe
+from .posterior import (
+    Posterior,
+    PosteriorError,
+    WriteError,
+    atomic_write_text,
+    json_safe,
+)
 from .report import metrics_table
 from .sim import simulate
 from .tblog import RunLogger
@@ -173,23 +180,49 @@ def position_errors(
 
 
 def load_run(run_dir: Path) -> tuple[TrainConfig, Posterior, dict[str, Any]]:
-    """The config, posterior and summary of a finished run; EvaluationError if not."""
+    """The config, posterior and summary of a finished run.
+
+    Raises:
+        EvaluationError: a file is missing, unreadable or corrupted (one line
+            naming it).
+        ConfigError: ``config.json`` is not a valid configuration.
+    """
+    run_dir = Path(run_dir)
     for name in ("config.json", "posterior.pt", "summary.json"):
         if not (run_dir / name).exists():
             raise EvaluationError(
                 f"{run_dir} holds no finished run (no {name}); train it first"
             )
+    raw = _read_json_object(run_dir / "config.json")
     try:
-        raw = json.loads((run_dir / "config.json").read_text())
-    except json.JSONDecodeError as error:
-        raise EvaluationError(f"{run_dir / 'config.json'}: {error}") from None
-    cfg = validate_config(raw)
+        cfg = validate_config(raw)
+    except ConfigError as error:
+        raise ConfigError(f"{run_dir / 'config.json'}: {error}") from None
     try:
         posterior = Posterior.load(run_dir / "posterior.pt")
-    except (ValueError, RuntimeError, OSError) as error:
+    except PosteriorError as error:
         raise EvaluationError(str(error)) from None
-    summary = json.loads((run_dir / "summary.json").read_text())
+    summary = _read_json_object(run_dir / "summary.json")
+    for key in ("dataset", "pairwise"):
+        if key not in summary:
+            raise EvaluationError(f"{run_dir / 'summary.json'}: no {key!r} entry")
     return cfg, posterior, summary
+
+
+def _read_json_object(path: Path) -> dict[str, Any]:
+    """A JSON object from ``path``; EvaluationError naming the file otherwise."""
+    try:
+        raw = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as error:
+        raise EvaluationError(f"cannot read {path}: {error}") from None
+    except json.JSONDecodeError as error:
+        raise EvaluationError(
+            f"{path} is corrupted: {error.msg} at line {error.lineno} column "
+            f"{error.colno}"
+        ) from None
+    if not isinstance(raw, dict):
+        raise EvaluationError(f"{path} is corrupted: not a JSON object")
+    return raw
 
 
 def evaluate_run(
@@ -211,11 +244,20 @@ def evaluate_run(
         tensorboard: also log to ``run_dir/tb``.
 
     Returns:
-        The metrics (also in ``run_dir/metrics.json``).
+        The metrics (also in ``run_dir/metrics.json``, written last: a run
+        directory with ``metrics.json`` holds its whole report).
+
+    Raises:
+        EvaluationError, ConfigError, DataError: an unfinished or corrupted run,
+            or data that cannot be loaded.
+        WriteError: an output could not be written.
     """
     run_dir = Path(run_dir)
     cfg, posterior, summary = load_run(run_dir)
     test = load_split(cfg.data)[1] if pairs is None else pairs[1]
+    # A stale metrics.json of an earlier evaluation must not outlive a failure of
+    # this one and pass for its result.
+    _remove(run_dir / "metrics.json")
     metrics, costs = evaluate_posterior(posterior, test, cfg)
     entries = [*[m for m in posterior.models if m in metrics], "hybrid"]
     result = {
@@ -226,12 +268,12 @@ def evaluate_run(
         "sinkhorn_reg": cfg.eval.sinkhorn_reg,
         **{entry: metrics[entry] for entry in entries},
     }
-    atomic_write_text(
-        run_dir / "metrics.json", json.dumps(json_safe(result), indent=2) + "\n"
-    )
 
     report = Path(report_dir) if report_dir is not None else run_dir / "report"
-    report.mkdir(parents=True, exist_ok=True)
+    try:
+        report.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise WriteError(f"cannot write {report}: {error.strerror or error}") from None
     atomic_write_text(
         report / "table.md",
         f"# {summary['dataset']}: test-split evaluation\n\n"
@@ -263,11 +305,27 @@ def evaluate_run(
         "radar": radar_figure({entry: metrics[entry] for entry in entries}),
     }
     for name, figure in figures.items():
-        save_figure(figure, report / f"{name}.png")
+        path = report / f"{name}.png"
+        try:
+            save_figure(figure, path)
+        except OSError as error:
+            raise WriteError(
+                f"cannot write {path}: {error.strerror or error}"
+            ) from None
     if tensorboard:
         with RunLogger(run_dir / "tb") as logger:
             logger.evaluation(figures, {e: metrics[e] for e in entries})
+    atomic_write_text(
+        run_dir / "metrics.json", json.dumps(json_safe(result), indent=2) + "\n"
+    )
     return result
+
+
+def _remove(path: Path) -> None:
+    try:
+        path.unlink(missing_ok=True)
+    except OSError as error:
+        raise WriteError(f"cannot remove {path}: {error.strerror or error}") from None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -283,8 +341,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         result = evaluate_run(
             args.run_dir, report_dir=args.report, figure_pair=args.pair
         )
-    except (EvaluationError, ConfigError, DataError) as error:
-        print(f"error: {error}", file=sys.stderr)
+    except (EvaluationError, ConfigError, DataError, WriteError, OSError) as error:
+        # OSError: the machine's (a file system failing underneath), not a bug.
+        print(f"error: {' '.join(str(error).split())}", file=sys.stderr)
         return 2
     print(f"{'':8} {'e_p':>8} {'min':>8} {'0.15-WS':>8} {'WS':>8}")
     for entry, m in result.items():

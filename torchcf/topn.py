@@ -9,6 +9,11 @@ the particles arrive in.
 Invalid particles (score ``+inf``) never enter. Slots not yet filled hold score
 ``+inf`` and index ``-1``; a pair with fewer than ``capacity`` valid particles keeps
 empty slots.
+
+Offering an entry the buffer already holds (same pair, score and particle index)
+changes nothing, so replicas of a buffer that saw different particles merge exactly
+(:meth:`TopN.merge`): the distributed trainer (:mod:`torchcf.distributed`) relies
+on it.
 """
 
 from __future__ import annotations
@@ -83,7 +88,9 @@ class TopN:
         Args:
             pair: (M,) int64 pair position of each candidate.
             score: (M,) scores (any float dtype; NaN and +inf are rejected).
-            index: (M,) int64 particle indices (unique per pair).
+            index: (M,) int64 particle indices; a (pair, index) already held, or
+                repeated among the candidates, is kept once (a particle's score
+                and parameters are a function of its index).
             theta: (M, n_params) parameters.
 
         Returns:
@@ -117,6 +124,16 @@ class TopN:
         # Empty slots (index -1, score inf) sort after every real entry of the pair.
         empty = (all_index < 0).to(torch.int64)
         order = lexsort(all_pair, all_score, empty, all_index)
+        # Copies of one entry are adjacent in this order; keep the first only.
+        sorted_index = all_index[order]
+        copy = torch.zeros_like(order, dtype=torch.bool)
+        copy[1:] = (
+            (all_pair[order[1:]] == all_pair[order[:-1]])
+            & (sorted_index[1:] == sorted_index[:-1])
+            & (all_score[order[1:]] == all_score[order[:-1]])
+            & (sorted_index[1:] >= 0)
+        )
+        order = order[~copy]
         sorted_pair = all_pair[order]
         # Rank within the pair: position minus the pair's first position.
         counts = torch.bincount(sorted_pair, minlength=n_pairs)
@@ -145,6 +162,29 @@ class TopN:
             return 0
         rows_cpu = rows.to(index.device)
         return self.push(cols, score[rows, cols], index[rows_cpu], theta[rows_cpu])
+
+    def merge(self, score: Tensor, index: Tensor, theta: Tensor) -> None:
+        """Merge replicas of this buffer: keep the best of everything they hold.
+
+        Each replica is a buffer of the same shape that saw other particles (or
+        some of the same); the result equals one buffer that saw all of them, so
+        every process that merges the same replicas holds the same buffer.
+
+        Args:
+            score: (R, n_pairs, capacity) the replicas' scores.
+            index: (R, n_pairs, capacity) int64 particle indices (-1 = empty).
+            theta: (R, n_pairs, capacity, n_params) parameters.
+        """
+        expected = (self.n_pairs, self.capacity)
+        if score.shape[1:] != expected or index.shape != score.shape:
+            raise ValueError(
+                f"replicas must be (R, {expected[0]}, {expected[1]}), got "
+                f"{tuple(score.shape)} and {tuple(index.shape)}"
+            )
+        pair = torch.arange(self.n_pairs, device=index.device)[None, :, None]
+        pair = pair.expand_as(index)  # (R, n_pairs, capacity)
+        held = index >= 0
+        self.push(pair[held], score[held], index[held], theta[held])
 
     def first(self, n: int) -> tuple[Tensor, Tensor, Tensor]:
         """The best ``n <= capacity`` entries per pair: score, index, theta."""

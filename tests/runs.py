@@ -1,0 +1,84 @@
+"""Tiny runs for the command-line tests: a six-CSV data folder and a config.
+
+The data are synthetic (``tests.conftest.synthetic_pairs``), so the tests that use
+them need neither ``TORCHCF_DATA`` nor the network, and they are small enough that
+a whole run (two models, a few thousand particles, evaluation) takes seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from torchcf.data.reader import FILES
+
+from .conftest import synthetic_pairs
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def write_data(folder: Path, n_pairs: int = 8, n_steps: int = 120) -> Path:
+    """Write a synthetic pair set as six CSV files plus ``meta.json`` (dt = 0.1 s).
+
+    Returns:
+        ``folder`` (created).
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    pairs = synthetic_pairs(n_pairs=n_pairs, n_steps=n_steps, seed=7)
+    for field, name in FILES.items():
+        values = getattr(pairs, field).numpy()  # (T, N)
+        np.savetxt(folder / name, values, delimiter=",", fmt="%.17g")
+    (folder / "meta.json").write_text(json.dumps({"dt": 0.1, "units": "m"}))
+    return folder
+
+
+def write_config(
+    path: Path, data: Path, *, abc: dict[str, Any] | None = None, **top: Any
+) -> Path:
+    """A run config on the folder ``data`` (k-fold split: 3 folds, fold 0).
+
+    Args:
+        path: where to write the JSON.
+        data: a folder from :func:`write_data`.
+        abc: overrides of the ``abc`` section.
+        top: overrides of top-level keys.
+    """
+    settings = {
+        "n_particles": 3000,
+        "chunk_size": 500,
+        "top_n": 3,
+        "sensitivity_n": [3],
+        "seed": 2,
+        "checkpoint_every": 1000.0,
+    }
+    settings.update(abc or {})
+    raw = {
+        "data": {"path": str(data), "split": "kfold", "folds": 3, "fold": 0},
+        "models": ["idm", "llcs"],
+        "abc": settings,
+        "compile": "off",
+        "threads": 1,
+        **top,
+    }
+    path.write_text(json.dumps(raw))
+    return path
+
+
+def run_module(
+    module: str, *args: str, env: dict[str, str] | None = None, timeout: float = 300
+) -> subprocess.CompletedProcess[str]:
+    """``python -m module args`` from the repository root, output captured."""
+    return subprocess.run(
+        [sys.executable, "-m", module, *args],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        env={**os.environ, **(env or {})},
+        timeout=timeout,
+    )

@@ -1,0 +1,136 @@
+"""``device: "cuda"``: simulation, training, evaluation and the diagnosis loop.
+
+Skipped without a CUDA GPU. On one (the lent device machine), run
+``pytest -q tests/test_cuda.py``: the GPU must give the CPU's numbers (float64 to
+rounding, float32 within its precision), the trainer's buffers on the GPU must
+hold the particles the CPU run keeps, and the whole pipeline must run there. With
+two GPUs or more, torchrun with nccl must equal one process.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from torchcf import MODELS, simulate
+from torchcf.config import validate_config
+from torchcf.posterior import Posterior
+from torchcf.train import train
+
+from .conftest import prior_draws, synthetic_pairs
+from .runs import run_module, write_config, write_data
+
+pytestmark = pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a CUDA GPU"
+)
+
+
+def _config(**top):
+    raw = {
+        "data": {"path": "synthetic"},  # unused: the tests pass the pairs
+        "models": ["idm", "hl", "mpc"],
+        "abc": {"n_particles": 6000, "top_n": 3, "sensitivity_n": [3], "seed": 4},
+        "compile": "off",
+        "device": "cuda",
+        **top,
+    }
+    return validate_config(raw)
+
+
+@pytest.mark.parametrize("layout", ["paired", "full"])
+@pytest.mark.parametrize("name", list(MODELS))
+def test_simulate_on_cuda_equals_cpu(name, layout):
+    pairs = synthetic_pairs(n_pairs=5, n_steps=200, seed=3)
+    theta = prior_draws(MODELS[name], 300, seed=1)
+    index = torch.arange(300) % pairs.n_pairs if layout == "paired" else None
+    for dtype, rtol in ((torch.float64, 1e-9), (torch.float32, 2e-3)):
+        cpu = simulate(name, theta.to(dtype), pairs, index, dtype=dtype)
+        gpu = simulate(name, theta.to(dtype), pairs, index, dtype=dtype, device="cuda")
+        assert gpu.score.device.type == "cuda" and gpu.score.dtype == dtype
+        both = cpu.valid & gpu.valid.cpu()
+        # float32 rollouts at the edge of validity may tip either way; nearly all
+        # must agree, and where both are valid the scores must match.
+        assert float((cpu.valid != gpu.valid.cpu()).float().mean()) <= 0.01
+        torch.testing.assert_close(
+            gpu.score.cpu()[both], cpu.score[both], rtol=rtol, atol=1e-6
+        )
+
+
+@pytest.mark.compile
+def test_compiled_rollout_on_cuda():
+    pairs = synthetic_pairs(n_pairs=5, n_steps=100, seed=3)
+    theta = prior_draws(MODELS["idm"], 4096, seed=2, dtype=torch.float32)
+    index = torch.arange(4096) % pairs.n_pairs
+    eager = simulate("idm", theta, pairs, index, device="cuda", compile=False)
+    fused = simulate("idm", theta, pairs, index, device="cuda", compile=True)
+    both = eager.valid & fused.valid
+    torch.testing.assert_close(fused.score[both], eager.score[both], rtol=1e-4, atol=0)
+
+
+def test_training_on_cuda_keeps_the_cpu_particles(tmp_path):
+    """float64 on both: the same particles win on every pair."""
+    pairs = synthetic_pairs(n_pairs=6, n_steps=200, seed=1)
+    runs = []
+    for i, device in enumerate(("cpu", "cuda")):
+        cfg = _config(device=device, dtype="float64")
+        train(cfg, tmp_path / f"run{i}", pairs=(pairs, pairs), evaluate=False)
+        runs.append(Posterior.load(tmp_path / f"run{i}" / "posterior.pt"))
+    on_cpu, on_gpu = runs
+    for name in on_cpu.models:
+        cpu, gpu = on_cpu.buffers[name], on_gpu.buffers[name]
+        assert torch.equal(cpu["index"], gpu["index"]), name
+        torch.testing.assert_close(gpu["score"], cpu["score"], rtol=1e-9, atol=0)
+    assert on_cpu.shares == on_gpu.shares
+
+
+def test_training_evaluation_and_diagnosis_on_cuda(tmp_path):
+    from torchcf.diagnose import diagnose_run
+
+    train_pairs = synthetic_pairs(n_pairs=6, n_steps=200, seed=1)
+    test_pairs = synthetic_pairs(n_pairs=4, n_steps=200, seed=2)
+    cfg = _config(diagnose={"n_particles": 3000, "effects": ["delay", "lag"]})
+    out = tmp_path / "run"
+    summary = train(cfg, out, pairs=(train_pairs, test_pairs))
+    assert sum(summary["shares"].values()) == pytest.approx(1.0)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["n_test"] == 4 and metrics["hybrid"]["ws"] != "inf"
+    # The GPU's float32 scores of the kept particles, re-scored on the CPU.
+    posterior = Posterior.load(out / "posterior.pt")
+    for name, particles in posterior.hybrid.items():
+        if not len(particles):
+            continue
+        positions = [train_pairs.pair_ids.index(int(p)) for p in particles.pair_ids]
+        cpu = simulate(name, particles.theta, train_pairs, positions)
+        torch.testing.assert_close(cpu.score, particles.score, rtol=2e-3, atol=1e-5)
+    result = diagnose_run(out, pairs=(train_pairs, test_pairs), progress=False)
+    assert (out / "loop.json").exists() and "effects_ranked" in result
+
+
+@pytest.mark.skipif(
+    torch.cuda.device_count() < 2, reason="torchrun with nccl needs two GPUs"
+)
+def test_two_gpus_equal_one(tmp_path):
+    data = write_data(tmp_path / "pairs")
+    config = write_config(tmp_path / "cfg.json", data, device="cuda")
+    one = run_module("torchcf.train", str(config), "--out", str(tmp_path / "one"))
+    assert one.returncode == 0, one.stderr[-3000:]
+    two = run_module(
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc-per-node",
+        "2",
+        "-m",
+        "torchcf.train",
+        str(config),
+        "--out",
+        str(tmp_path / "two"),
+        env={"OMP_NUM_THREADS": "1"},
+    )
+    assert two.returncode == 0, two.stderr[-3000:]
+    a = Posterior.load(tmp_path / "one" / "posterior.pt")
+    b = Posterior.load(tmp_path / "two" / "posterior.pt")
+    for name in a.models:
+        for key in ("score", "index", "theta"):
+            assert torch.equal(a.buffers[name][key], b.buffers[name][key])
