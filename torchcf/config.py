@@ -420,7 +420,29 @@ class DiagnoseConfig(BaseModel):
     n_particles: int = Field(
         50_000,
         gt=0,
-        description="Particles per model variant in each attribution ABC run.",
+        description=(
+            "Prior draws per pool model in the attribution's small ABC run (its "
+            "per-pair best particles seed the local comparison)."
+        ),
+    )
+    population: int = Field(
+        20,
+        gt=0,
+        description=(
+            "Particles per pair each attribution arm keeps and refines by local "
+            "search (at least abc.top_n are kept)."
+        ),
+    )
+    local_copies: int = Field(
+        32,
+        gt=0,
+        description=(
+            "Perturbed copies of every kept particle per local-search round (and "
+            "values per round of a shared effect's search)."
+        ),
+    )
+    rounds: int = Field(
+        6, ge=0, description="Local-search rounds of each attribution arm."
     )
     fit_fraction: float = Field(
         0.6,

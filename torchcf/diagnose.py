@@ -10,14 +10,15 @@ and
    cross-correlation with the leader's acceleration and the speed difference
    (0-3 s), dependence on own speed and speed squared, on the sign of the speed
    difference, on the spacing level, on the road position and on time;
-2. **attributes**: for every candidate effect E of :mod:`torchcf.models.effects`,
-   a small ABC run fits the *active* pool models B and their augmented variants
-   ``m+E`` on the first ``fit_fraction`` of every training pair's steps; per pair
-   the N best particles of B alone and of B together with the ``m+E`` (the
-   hybrid's per-pair selection, so the originals compete) are then scored on the
-   rest of the pair, out of sample. The gain of E is the relative drop of the
-   summed per-pair validation score; its p-value is a one-sided sign-flip
-   permutation test of the per-pair drops. An effect is chosen when its p-value
+2. **attributes**: for every candidate effect E of :mod:`torchcf.models.effects`
+   two arms are fitted on the first ``fit_fraction`` of every training pair's
+   steps at equal budgets — the *active* pool models B alone, and B with their
+   augmented variants ``m+E`` — each by a small ABC run followed by local search
+   (:func:`attribute_effects`); per pair the N best particles of each arm (the
+   hybrid's per-pair selection, so the originals compete) are scored on the rest
+   of the pair, out of sample. The gain of E is the relative drop of the summed
+   per-pair validation score; its p-value is a one-sided sign-flip permutation
+   test of the per-pair log score ratios. An effect is chosen when its p-value
    is below ``alpha / n_effects`` (Bonferroni: with no effect present the answer
    is "none" with probability >= 1 - alpha) and its gain at least ``min_gain``;
 3. **re-calibrates** the run's pool plus ``m+E`` for the chosen effects (a full
@@ -62,6 +63,15 @@ from .topn import TopN
 FORMAT = "torchcf.loop/1"
 #: Particles simulated per call in the attribution runs.
 ATTRIBUTION_CHUNK = 1 << 16
+#: Standard deviations of the local search's perturbations, as fractions of each
+#: parameter's prior width (copy c uses entry c % 3).
+LOCAL_SCALES = (0.1, 0.03, 0.01)
+#: Search rounds, and values per round, for the one value of a shared (road)
+#: effect.
+SHARED_ROUNDS = 3
+SHARED_VALUES = 64
+#: Relative fit score counted for a pair whose candidates are all invalid.
+INVALID_RATIO = 10.0
 #: Shortest out-of-sample window that counts for a pair [steps].
 MIN_VALIDATION_STEPS = 20
 #: Which residual structure points to which effect (for the report only).
@@ -258,80 +268,125 @@ def resolve_effect(token: str, pairs: PairSet) -> str:
 
 
 @dataclasses.dataclass
-class _Fit:
-    """The per-pair top-N of one model variant on the fit windows."""
+class _Candidates:
+    """Particles of one model (or variant) on the fit windows, with their scores.
+
+    ``theta`` (Q, n_params) float64; ``pair`` (Q,) training-pair index of each;
+    ``score`` (Q,) float64 fit-window score (``inf`` for an invalid rollout).
+    """
 
     name: str
-    score: Tensor  # (n_pairs, N)
-    theta: Tensor  # (n_pairs, N, K)
+    theta: Tensor
+    pair: Tensor
+    score: Tensor
+
+
+def _model_bounds(name: str, priors: dict[str, Tensor]) -> Tensor:
+    """Prior box (n_params, 2) of a model or variant, with the run's prior
+    overrides of its pool model."""
+    model = get_model(name)
+    bounds = model.prior_bounds(torch.float64)
+    base = model.base.name if hasattr(model, "base") else model.name
+    if base in priors:
+        bounds[: priors[base].shape[0]] = priors[base]
+    return bounds
+
+
+def _fit_scores(
+    name: str, theta: Tensor, pair: Tensor, pairs: PairSet, cfg: TrainConfig
+) -> Tensor:
+    """Scores (Q,) float64 of particles ``theta`` (Q, n_params), each simulated on
+    its own pair ``pair`` (Q,) of ``pairs`` (the paired layout)."""
+    dtype = getattr(torch, cfg.dtype)
+    scores = []
+    for first in range(0, theta.shape[0], ATTRIBUTION_CHUNK):
+        rows = slice(first, first + ATTRIBUTION_CHUNK)
+        out = simulate(
+            name,
+            theta[rows].to(dtype),
+            pairs,
+            pair[rows],
+            dtype=dtype,
+            device=cfg.device,
+            weights=cfg.abc.weights,
+        )
+        scores.append(out.score.double().cpu())
+    return torch.cat(scores) if scores else torch.empty(0, dtype=torch.float64)
 
 
 def _small_abc(
     name: str,
-    pairs: PairSet,
+    fit: PairSet,
     budgets: Sequence[int],
-    top_n: int,
+    keep: int,
     cfg: TrainConfig,
     bounds: Tensor,
-) -> list[_Fit]:
-    """Paired ABC rejection of one model variant on ``pairs`` (streamed top-N).
+    fixed: Tensor | None = None,
+) -> list[_Candidates]:
+    """Paired ABC rejection of one model (or variant) on the fit windows.
 
     Args:
-        budgets: increasing particle counts; the result holds the top-N after
-            the first ``budgets[i]`` particles of the model's stream, for each i.
+        budgets: increasing particle counts; result ``i`` holds the ``keep`` best
+            per pair of the first ``budgets[i]`` prior draws of the model's
+            stream (top-N streamed, nothing else stored).
+        bounds: the prior box of the drawn parameters (n_drawn, 2).
+        fixed: values (n_params - n_drawn,) of the last parameters, the same for
+            every particle (a shared effect's value).
     """
     model = get_model(name)
-    stream = ParticleStream(model.name, bounds, cfg.abc.seed, pairs.n_pairs)
-    buffer = TopN(pairs.n_pairs, top_n, model.n_params)
-    dtype = getattr(torch, cfg.dtype)
-    fits, start = [], 0
+    stream = ParticleStream(model.name, bounds, cfg.abc.seed, fit.n_pairs)
+    buffer = TopN(fit.n_pairs, keep, model.n_params)
+    results, start = [], 0
     for budget in budgets:
         for first in range(start, budget, ATTRIBUTION_CHUNK):
             stop = min(first + ATTRIBUTION_CHUNK, budget)
             theta, pair = stream.draw(first, stop)
-            out = simulate(
-                model,
-                theta.to(dtype),
-                pairs,
-                pair,
-                dtype=dtype,
-                device=cfg.device,
-                weights=cfg.abc.weights,
-            )
-            score = out.score.double().cpu()
+            if fixed is not None:
+                theta = torch.cat((theta, fixed.expand(theta.shape[0], -1)), dim=1)
+            score = _fit_scores(model.name, theta, pair, fit, cfg)
             buffer.push(pair, score, torch.arange(first, stop), theta)
         start = budget
-        score, _, theta = buffer.first(top_n)
-        fits.append(_Fit(model.name, score.clone(), theta.clone()))
-    return fits
+        score, _, theta = buffer.first(keep)  # (n_pairs, keep), (.., n_params)
+        results.append(
+            _Candidates(
+                model.name,
+                theta.reshape(-1, model.n_params).clone(),
+                torch.arange(fit.n_pairs).repeat_interleave(keep),
+                score.reshape(-1).clone(),
+            )
+        )
+    return results
 
 
-def _select(fits: list[_Fit], top_n: int) -> list[list[tuple[str, Tensor, float]]]:
-    """Per pair, the N best particles over the variants (ties: variant order)."""
-    scores = torch.cat([f.score for f in fits], dim=1)  # (n_pairs, V N)
-    order = torch.sort(scores, dim=1, stable=True).indices[:, :top_n]
-    chosen = []
-    for j in range(scores.shape[0]):
-        picks = []
-        for flat in order[j].tolist():
-            fit = fits[flat // top_n]
-            slot = flat % top_n
-            if math.isfinite(float(fit.score[j, slot])):
-                picks.append((fit.name, fit.theta[j, slot], float(fit.score[j, slot])))
-        chosen.append(picks)
+Picks = list[list[tuple[str, Tensor, float]]]
+
+
+def _select(candidates: Sequence[_Candidates], n_pairs: int, top_n: int) -> Picks:
+    """Per pair, the N best finite-score candidates over all sets: the hybrid's
+    per-pair selection (ties go to the earlier set, then the earlier row)."""
+    score = torch.cat([c.score for c in candidates])
+    pair = torch.cat([c.pair for c in candidates])
+    which = torch.cat(
+        [torch.full((c.score.numel(),), k) for k, c in enumerate(candidates)]
+    )
+    row = torch.cat([torch.arange(c.score.numel()) for c in candidates])
+    order = torch.sort(score, stable=True).indices
+    order = order[torch.sort(pair[order], stable=True).indices]  # pair, then score
+    chosen: Picks = [[] for _ in range(n_pairs)]
+    for flat in order.tolist():
+        j, value = int(pair[flat]), float(score[flat])
+        if len(chosen[j]) < top_n and math.isfinite(value):
+            c = candidates[int(which[flat])]
+            chosen[j].append((c.name, c.theta[int(row[flat])], value))
     return chosen
 
 
-def _validation_scores(
-    picks: list[list[tuple[str, Tensor, float]]],
-    validation: PairSet,
-    cfg: TrainConfig,
-) -> np.ndarray:
+def _validation_scores(picks: Picks, validation: PairSet, cfg: TrainConfig):
     """Median out-of-sample score of each pair's picks on its validation window.
 
     Returns:
-        (n_pairs,) float64; ``inf`` where more than half the picks are invalid or
-        a pair has no pick.
+        (n_pairs,) float64 ndarray; ``inf`` where more than half the picks are
+        invalid or a pair has no pick.
     """
     grouped: dict[str, tuple[list[Tensor], list[int], list[tuple[int, int]]]] = {}
     for j, pair_picks in enumerate(picks):
@@ -342,18 +397,10 @@ def _validation_scores(
             where.append((j, slot))
     width = max((len(p) for p in picks), default=0)
     table = np.full((len(picks), max(width, 1)), np.inf)
-    dtype = getattr(torch, cfg.dtype)
     for name, (thetas, positions, where) in grouped.items():
-        out = simulate(
-            name,
-            torch.stack(thetas).to(dtype),
-            validation,
-            torch.tensor(positions),
-            dtype=dtype,
-            device=cfg.device,
-            weights=cfg.abc.weights,
-        )
-        scores = out.score.double().cpu().tolist()
+        scores = _fit_scores(
+            name, torch.stack(thetas), torch.tensor(positions), validation, cfg
+        ).tolist()
         for (j, slot), score in zip(where, scores, strict=True):
             table[j, slot] = score
     return np.array(
@@ -404,6 +451,179 @@ def augmented_variants(pool: Sequence[str], effect: str) -> list[str]:
     return names
 
 
+# ------------------------------------------------------------ the local stage
+def _jitter(
+    theta: Tensor, bounds: Tensor, copies: int, generator: torch.Generator
+) -> Tensor:
+    """``copies`` perturbations of every member ``theta`` (S, d): (S, copies, d).
+
+    Copy c moves each parameter by a normal step whose standard deviation is
+    ``LOCAL_SCALES[c % 3]`` times the parameter's prior width, clipped to the prior
+    box ``bounds`` (d, 2): a coarse-to-fine mix around the member, as the kernel of
+    sequential ABC. A zero-width row (a fixed parameter) stays fixed.
+    """
+    s, d = theta.shape
+    width = bounds[:, 1] - bounds[:, 0]
+    scale = torch.tensor(LOCAL_SCALES, dtype=torch.float64)[
+        torch.arange(copies) % len(LOCAL_SCALES)
+    ]
+    noise = torch.randn(s, copies, d, generator=generator, dtype=torch.float64)
+    moved = theta[:, None, :] + noise * scale[None, :, None] * width
+    return torch.maximum(torch.minimum(moved, bounds[:, 1]), bounds[:, 0])
+
+
+def _uniform(bounds: Tensor, shape: tuple[int, ...], generator: torch.Generator):
+    """Uniform draws (*shape, K) float64 in the box ``bounds`` (K, 2)."""
+    u = torch.rand(*shape, bounds.shape[0], generator=generator, dtype=torch.float64)
+    return bounds[:, 0] + u * (bounds[:, 1] - bounds[:, 0])
+
+
+def _as_sets(picks: Picks) -> list[_Candidates]:
+    """Per-pair picks regrouped by model name into candidate sets."""
+    grouped: dict[str, tuple[list[Tensor], list[int], list[float]]] = {}
+    for j, pair_picks in enumerate(picks):
+        for name, theta, score in pair_picks:
+            thetas, pairs, scores = grouped.setdefault(name, ([], [], []))
+            thetas.append(theta)
+            pairs.append(j)
+            scores.append(score)
+    return [
+        _Candidates(
+            name,
+            torch.stack(thetas).double(),
+            torch.tensor(pairs),
+            torch.tensor(scores, dtype=torch.float64),
+        )
+        for name, (thetas, pairs, scores) in grouped.items()
+    ]
+
+
+def _refine(
+    start: list[_Candidates],
+    bounds: dict[str, Tensor],
+    fit: PairSet,
+    cfg: TrainConfig,
+    generator: torch.Generator,
+) -> list[_Candidates]:
+    """Sequential local search of one arm: ``rounds`` times, every pair's
+    ``population`` best members (over the arm's models) get ``local_copies``
+    perturbed copies each (:func:`_jitter`), scored on the fit windows.
+
+    Every arm spends the same budget per pair and round, so arms differ by their
+    models only.
+
+    Returns:
+        the arm's final population (per pair its ``population`` best) as sets.
+    """
+    settings = cfg.diagnose
+    n_pairs = fit.n_pairs
+    members = _as_sets(_select(start, n_pairs, settings.population))
+    for _ in range(settings.rounds):
+        copies = []
+        for member in members:
+            moved = _jitter(
+                member.theta, bounds[member.name], settings.local_copies, generator
+            )
+            theta = moved.reshape(-1, moved.shape[-1])
+            pair = member.pair.repeat_interleave(settings.local_copies)
+            score = _fit_scores(member.name, theta, pair, fit, cfg)
+            copies.append(_Candidates(member.name, theta, pair, score))
+        members = _as_sets(_select(members + copies, n_pairs, settings.population))
+    return members
+
+
+def _variant_of(model: str, effect: str) -> str | None:
+    names = augmented_variants([model], effect)
+    return names[0] if names else None
+
+
+def _shared_value(
+    effect: str,
+    members: list[_Candidates],
+    bounds: dict[str, Tensor],
+    fit: PairSet,
+    cfg: TrainConfig,
+    generator: torch.Generator,
+) -> tuple[Tensor, Tensor]:
+    """The one value of a shared (road) effect's parameters for all pairs.
+
+    Searched over the pool arm's final population (``members``):
+    ``SHARED_ROUNDS`` rounds of ``SHARED_VALUES`` values, the first uniform over the
+    effect's prior, each later one uniform in a box around the best so far with
+    half the width. Value c is tried with every member's c-th coarse perturbation
+    (the base parameters may have absorbed part of the effect). A value's
+    objective is the sum over pairs of its best fit score relative to the pair's
+    best member, so every pair weighs alike.
+
+    Returns:
+        the value (K,) and the box (K, 2) of the last round's resolution around
+        it (the effect's prior in the arm and the re-calibration).
+    """
+    spec = parse_effect(effect)
+    prior = torch.tensor(
+        [[p.lower, p.upper] for p in spec.param_specs], dtype=torch.float64
+    )  # (K, 2)
+    m, n_pairs = SHARED_VALUES, fit.n_pairs
+    reference = torch.full((n_pairs,), math.inf, dtype=torch.float64)
+    for member in members:
+        reference = reference.scatter_reduce(0, member.pair, member.score, "amin")
+    usable = torch.isfinite(reference) & (reference > 0)
+    low, high = prior[:, 0], prior[:, 1]
+    best, best_objective, half = None, math.inf, (high - low) / 2
+    for _ in range(SHARED_ROUNDS):
+        box = prior
+        if best is not None:
+            box = torch.stack(
+                (torch.maximum(best - half, low), torch.minimum(best + half, high)), 1
+            )
+        values = _uniform(box, (m,), generator)  # (M, K)
+        per_pair = torch.full((n_pairs, m), math.inf, dtype=torch.float64)
+        for member in members:
+            variant = _variant_of(member.name, effect)
+            if variant is None:
+                continue
+            s = member.theta.shape[0]
+            base = _jitter(member.theta, bounds[member.name], m, generator)
+            theta = torch.cat((base, values[None].expand(s, m, -1)), dim=-1)
+            pair = member.pair.repeat_interleave(m)
+            score = _fit_scores(
+                variant, theta.reshape(s * m, -1), pair, fit, cfg
+            ).reshape(s, m)
+            index = member.pair[:, None].expand(s, m)
+            per_pair = per_pair.scatter_reduce(0, index, score, "amin")
+        ratio = per_pair[usable] / reference[usable, None]
+        ratio = torch.where(torch.isfinite(ratio), ratio, INVALID_RATIO)
+        objective = ratio.sum(0)  # (M,)
+        k = int(torch.argmin(objective))
+        if float(objective[k]) < best_objective:
+            best, best_objective = values[k], float(objective[k])
+        half = half / 2
+    box = torch.stack(
+        (torch.maximum(best - half, low), torch.minimum(best + half, high)), 1
+    )
+    return best, box
+
+
+def _finite_or_none(value: float) -> float | None:
+    return value if math.isfinite(value) else None
+
+
+def _estimate(picks: Picks, effect: str) -> dict[str, float]:
+    """Median of the effect's parameters over the picks of its variants."""
+    names = [p.name for p in parse_effect(effect).param_specs]
+    token = effect.split("(")[0]
+    values = [
+        theta[-len(names) :]
+        for pair_picks in picks
+        for name, theta, _ in pair_picks
+        if token in [t.split("(")[0] for t in name.split("+")[1:]]
+    ]
+    if not values:
+        return {}
+    median = torch.stack(values).median(dim=0).values
+    return dict(zip(names, median.tolist(), strict=True))
+
+
 def attribute_effects(
     cfg: TrainConfig,
     pool: list[str],
@@ -414,70 +634,118 @@ def attribute_effects(
 ) -> list[dict[str, Any]]:
     """Rank the candidate effects by their out-of-sample gain (module docstring).
 
+    Two *arms* per effect E, fitted on the fit windows at equal budgets:
+
+    - the pool alone: a small ABC run of ``2 n`` prior draws per pool model;
+    - the pool with E: the pool's first ``n`` draws plus ``n`` of each ``m+E``
+      (for a shared effect, ``m+E`` with E fixed at the value
+      :func:`_shared_value` finds, as the road is one for all pairs).
+
+    Each arm then refines its per-pair best by sequential local search
+    (:func:`_refine`, the same budget for both), so that the arms are compared
+    near their best fits rather than at the luck of prior draws. Per pair the N
+    best particles of each arm (the hybrid's selection: the originals compete
+    with the variants) are scored on the validation windows, out of sample; the
+    per-pair drops of the median score are tested by sign flips over pairs.
+
     Args:
         cfg: the run's config (its ``diagnose`` section sets the budget).
-        pool: the pool models B that get each effect.
+        pool: the pool models that get each effect.
         effects: effect tokens (options resolved, see :func:`resolve_effect`).
         train_pairs: the run's training pairs.
 
     Returns:
-        rows sorted by the statistic: ``name, statistic, gain, p_value, significant,
-        score_before, score_after, n_pairs, variants``.
+        rows sorted by the statistic: ``name, effect, statistic, gain, p_value,
+        significant, score_before, score_after, n_pairs, variants, estimate`` (the
+        median of the effect's parameters over the picks that carry it) and, for
+        a shared effect, ``shared`` (its value and re-calibration prior).
     """
     settings = cfg.diagnose
     fit, validation = split_in_time(train_pairs, settings.fit_fraction)
-    top_n = cfg.abc.top_n
+    top_n, n_pairs, n = cfg.abc.top_n, train_pairs.n_pairs, settings.n_particles
+    keep = max(settings.population, top_n)
     priors = {spec.name: spec.bounds(torch.float64) for spec in cfg.models}
-    n = settings.n_particles
-    variants = {e: augmented_variants(pool, e) for e in effects}
-    names = pool + [name for group in variants.values() for name in group]
-    # Equal budgets: the pool with an effect is the pool's n particles plus n of
-    # each variant, so the pool alone gets 2 n, or any extra flexibility would
-    # look like a gain.
-    fits: dict[str, _Fit] = {}
-    doubled: dict[str, _Fit] = {}
-    bar = tqdm(names, desc="attribution", unit="variant", disable=not progress)
-    for name in bar:
-        bar.set_postfix_str(name, refresh=True)
-        model = get_model(name)
-        bounds = model.prior_bounds(torch.float64)
-        base = model.base.name if hasattr(model, "base") else model.name
-        if base in priors:  # the run's prior overrides of the pool model
-            bounds[: priors[base].shape[0]] = priors[base]
-        budgets = (n, 2 * n) if name in pool else (n,)
-        result = _small_abc(name, fit, budgets, top_n, cfg, bounds)
-        fits[name] = result[0]
-        if name in pool:
-            doubled[name] = result[1]
-    before = _validation_scores(
-        _select([doubled[m] for m in pool], top_n), validation, cfg
+    bounds = {name: _model_bounds(name, priors) for name in pool}
+    generator = torch.Generator().manual_seed(cfg.abc.seed)
+    bar = tqdm(
+        total=len(pool) + 1 + len(effects),
+        desc="attribution",
+        unit="stage",
+        disable=not progress,
     )
+    half, full = [], []
+    for name in pool:
+        bar.set_postfix_str(f"ABC {name}", refresh=True)
+        first, both = _small_abc(name, fit, (n, 2 * n), keep, cfg, bounds[name])
+        half.append(first)
+        full.append(both)
+        bar.update()
+    bar.set_postfix_str("pool", refresh=True)
+    pool_members = _refine(full, bounds, fit, cfg, generator)
+    before = _validation_scores(_select(pool_members, n_pairs, top_n), validation, cfg)
+    bar.update()
     rows = []
     for effect in effects:
-        group = [fits[m] for m in pool] + [fits[v] for v in variants[effect]]
-        after = _validation_scores(_select(group, top_n), validation, cfg)
-        if not variants[effect]:  # no pool model can take the effect
-            after = before.copy()
-        usable = np.isfinite(before) & np.isfinite(after)
-        drops = before[usable] - after[usable]
-        if drops.size < 2:
+        bar.set_postfix_str(effect, refresh=True)
+        variants = augmented_variants(pool, effect)
+        shared = None
+        arm_bounds = dict(bounds)
+        if parse_effect(effect).shared and variants:
+            value, box = _shared_value(
+                effect, pool_members, bounds, fit, cfg, generator
+            )
+            names = [p.name for p in parse_effect(effect).param_specs]
+            shared = {
+                "value": dict(zip(names, value.tolist(), strict=True)),
+                "prior": {
+                    k: tuple(b) for k, b in zip(names, box.tolist(), strict=True)
+                },
+            }
+        start = list(half)
+        for variant in variants:
+            box = _model_bounds(variant, priors)
+            fixed = None
+            if shared is not None:  # the road's value, the same for every particle
+                d = get_model(variant).base.n_params
+                box[d:] = value[:, None].expand(-1, 2)
+                fixed = value
+            arm_bounds[variant] = box
+            draw = box if fixed is None else box[: box.shape[0] - fixed.numel()]
+            start += _small_abc(variant, fit, (n,), keep, cfg, draw, fixed)
+        members = _refine(start, arm_bounds, fit, cfg, generator)
+        picks = _select(members, n_pairs, top_n)
+        after = _validation_scores(picks, validation, cfg) if variants else before
+        bar.update()
+        usable = np.isfinite(before) & np.isfinite(after) & (after > 0)
+        # The test takes each pair's log score ratio, so that every pair weighs
+        # alike (scores differ by an order of magnitude between pairs); the gain
+        # is the drop of the summed score.
+        drops = np.log(before[usable] / after[usable])
+        if drops.size < 2 or not variants:
             statistic, p_value, gain = 0.0, 1.0, 0.0
         else:
             statistic, p_value = sign_flip_test(drops, settings.permutations)
-            gain = float(drops.sum() / before[usable].sum())
-        rows.append(
-            {
-                "name": effect.split("(")[0],
-                "effect": effect,
-                "statistic": statistic,
-                "gain": gain,
-                "p_value": p_value,
-                "score_before": float(before[usable].mean()) if usable.any() else None,
-                "score_after": float(after[usable].mean()) if usable.any() else None,
-                "n_pairs": int(usable.sum()),
-                "variants": variants[effect],
-            }
-        )
+            gain = float((before[usable] - after[usable]).sum() / before[usable].sum())
+        row = {
+            "name": effect.split("(")[0],
+            "effect": effect,
+            "statistic": statistic,
+            "gain": gain,
+            "p_value": p_value,
+            "score_before": float(before[usable].mean()) if usable.any() else None,
+            "score_after": float(after[usable].mean()) if usable.any() else None,
+            "n_pairs": int(usable.sum()),
+            "variants": variants,
+            "estimate": _estimate(picks, effect),
+            "per_pair": {
+                "before": [_finite_or_none(v) for v in before.tolist()],
+                "after": [_finite_or_none(v) for v in after.tolist()],
+            },
+        }
+        if shared is not None:
+            row["shared"] = shared
+        rows.append(row)
+    bar.close()
     threshold = settings.alpha / len(effects)
     for row in rows:
         row["significant"] = bool(
@@ -500,8 +768,18 @@ def _active_models(cfg: TrainConfig, posterior: Posterior) -> list[str]:
 
 
 def _recalibration_config(
-    cfg: TrainConfig, pool: list[str], chosen: list[str]
+    cfg: TrainConfig,
+    pool: list[str],
+    chosen: list[str],
+    effect_priors: dict[str, dict[str, tuple[float, float]]] | None = None,
 ) -> TrainConfig:
+    """The run's config plus ``m+E`` of every chosen effect E, for re-calibration.
+
+    Args:
+        effect_priors: per effect token, prior boxes of its parameters replacing
+            the defaults (a shared effect's value found by the attribution: the
+            road is one, so its profile is not re-drawn per particle).
+    """
     raw = cfg.model_dump(mode="json")
     present = {spec["name"] for spec in raw["models"]}
     for effect in chosen:
@@ -511,6 +789,9 @@ def _recalibration_config(
                 prior = next(
                     (s["prior"] for s in raw["models"] if s["name"] == name), None
                 )
+                extra = (effect_priors or {}).get(effect)
+                if extra:
+                    prior = {**(prior or {}), **{k: list(v) for k, v in extra.items()}}
                 raw["models"].append({"name": variant, "prior": prior})
                 present.add(variant)
     if cfg.diagnose.recalibrate_particles is not None:
@@ -613,7 +894,10 @@ def diagnose_run(
     }
     series_after = None
     if chosen:
-        after_cfg = _recalibration_config(cfg, pool, chosen)
+        effect_priors = {
+            r["effect"]: r["shared"]["prior"] for r in ranked if "shared" in r
+        }
+        after_cfg = _recalibration_config(cfg, pool, chosen, effect_priors)
         after_dir = run_dir / "loop" / "after"
         train(
             after_cfg,
@@ -666,7 +950,20 @@ def _write_report(
     )
 
 
+def _metric(value: Any) -> float | None:
+    """A metric from ``metrics.json`` as a float (non-finite ones are stored as the
+    strings "inf" / "nan")."""
+    if isinstance(value, (int, float, str)):
+        try:
+            return float(value)
+        except ValueError:
+            return None
+    return None
+
+
 def _fmt(value: Any, digits: int = 3) -> str:
+    if isinstance(value, str) and _metric(value) is not None:
+        value = _metric(value)
     if value is None:
         return "—"
     if isinstance(value, float):
@@ -693,19 +990,24 @@ def loop_markdown(result: dict[str, Any], figures: dict[str, str]) -> str:
         "",
         "gain: relative drop of the summed validation score (last "
         f"{1 - result['fit_fraction']:.0%} of every training pair) when the pool "
-        "models' variants with the effect join the pool, at equal particle budget; "
-        "statistic: t of the per-pair drops; p-value: one-sided sign-flip test.",
+        "models' variants with the effect join the pool, at equal particle budget "
+        "(small ABC, then local search); statistic: t of the per-pair log score "
+        "ratios; p-value: one-sided sign-flip test; estimate: median of the "
+        "effect's parameters over the picks that carry it (a road effect: its one "
+        "profile, fitted jointly over the pairs).",
         "",
         "| effect | gain | statistic | p-value | score before | score after "
-        "| pairs | chosen |",
-        "|---|---|---|---|---|---|---|---|",
+        "| pairs | estimate | chosen |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for row in result["effects_ranked"]:
+        estimate = row.get("shared", {}).get("value") or row.get("estimate") or {}
         lines.append(
             f"| {row['effect']} | {row['gain']:+.1%} | {_fmt(row['statistic'], 2)} | "
             f"{_fmt(row['p_value'], 2)} | {_fmt(row['score_before'])} | "
             f"{_fmt(row['score_after'])} | {row['n_pairs']} | "
-            f"{'**yes**' if row['effect'] in result['chosen'] else ''} |"
+            + ", ".join(f"{k} {_fmt(v)}" for k, v in estimate.items())
+            + f" | {'**yes**' if row['effect'] in result['chosen'] else ''} |"
         )
     lines += ["", f"![effects]({figures['effects']})", ""]
     if result["chosen"]:
@@ -750,9 +1052,19 @@ def loop_markdown(result: dict[str, Any], figures: dict[str, str]) -> str:
             + " | ".join(_fmt(metrics.get(key)) for key, _ in METRIC_COLUMNS)
             + " |"
         )
-    ws_before, ws_after = result["before"].get("ws"), result["after"].get("ws")
-    if ws_before and ws_after is not None and math.isfinite(ws_before):
-        lines += ["", f"WS change: {(ws_after - ws_before) / ws_before:+.1%}."]
+    for key, label in (("ws", "WS"), ("min", "Minimum distance")):
+        before, after = (
+            _metric(result["before"].get(key)),
+            _metric(result["after"].get(key)),
+        )
+        if before and after is not None and math.isfinite(before):
+            lines += ["", f"{label} change: {(after - before) / before:+.1%}."]
+        elif key == "ws":
+            lines += [
+                "",
+                "WS: not finite (a hybrid particle is invalid on every "
+                "test pair, SPEC); see the minimum distance.",
+            ]
     lines += ["", f"![before and after]({figures['before_after']})", ""]
     lines += [
         "## Residual diagnostics (training pairs, best hybrid particle per pair)",

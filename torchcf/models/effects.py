@@ -63,6 +63,9 @@ class Effect:
     uses_position: ClassVar[bool] = False
     #: True when the recorded acceleration becomes a state of the vehicle.
     acceleration_is_state: ClassVar[bool] = False
+    #: True when the parameters describe the road, not the driver, so every pair
+    #: recorded there shares one value (the diagnosis fits them jointly).
+    shared: ClassVar[bool] = False
 
     def options(self) -> dict[str, float | int]:
         """Constructor options that differ from the defaults (they enter the name)."""
@@ -272,6 +275,7 @@ class Grade(Effect):
     name = "grade"
     stage = "command"
     uses_position = True
+    shared = True
 
     def __init__(self, start: float = 0.0, end: float = 2000.0, knots: int = 3):
         if knots != int(knots) or knots < 1:
