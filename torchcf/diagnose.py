@@ -1004,7 +1004,7 @@ def loop_markdown(result: dict[str, Any], figures: dict[str, str]) -> str:
         estimate = row.get("shared", {}).get("value") or row.get("estimate") or {}
         lines.append(
             f"| {row['effect']} | {row['gain']:+.1%} | {_fmt(row['statistic'], 2)} | "
-            f"{_fmt(row['p_value'], 2)} | {_fmt(row['score_before'])} | "
+            f"{row['p_value']:.2g} | {_fmt(row['score_before'])} | "
             f"{_fmt(row['score_after'])} | {row['n_pairs']} | "
             + ", ".join(f"{k} {_fmt(v)}" for k, v in estimate.items())
             + f" | {'**yes**' if row['effect'] in result['chosen'] else ''} |"
