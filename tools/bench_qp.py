@@ -17,9 +17,7 @@ Writes ``reports/bench_qp.json`` and ``reports/bench_qp.md``.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
-import os
 import statistics
 import sys
 import time
@@ -35,6 +33,7 @@ from torchcf.runtime import tune_malloc
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import cpu_model, git_sha  # noqa: E402
+from peer_numpy import quiet_stdout  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 
@@ -109,24 +108,10 @@ def time_boxqp(H, G, amin, amax, z0, warm: bool, repeats: int):
 def time_osqp(H, G, amin, amax, z0, n_problems: int):
     """Seconds per QP of OSQP: one solver per particle, warm-started step to step."""
     per_qp = []
-    with _quiet_stdout():  # OSQP 1.x prints polishing notes even with verbose=False
+    with quiet_stdout():  # OSQP 1.x prints polishing notes even with verbose=False
         for j in range(n_problems):
             per_qp.append(_osqp_sequence(H[j], G[j], amin[j], amax[j], z0[:, j]))
     return statistics.median(per_qp)
-
-
-@contextlib.contextmanager
-def _quiet_stdout():
-    """Silence writes to file descriptor 1 (C libraries included)."""
-    sys.stdout.flush()
-    saved = os.dup(1)
-    with open(os.devnull, "w") as devnull:
-        os.dup2(devnull.fileno(), 1)
-        try:
-            yield
-        finally:
-            os.dup2(saved, 1)
-            os.close(saved)
 
 
 def _osqp_sequence(H, G, amin, amax, z0) -> float:

@@ -31,13 +31,12 @@ from pathlib import Path
 
 import torch
 
-import torchcf
 from torchcf import HybridSampler
 from torchcf.runtime import tune_malloc
 from torchcf.traffic import ring_initial_state, ring_road
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_sim import cpu_model, git_sha  # noqa: E402
+from bench_sim import bench_meta  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_POSTERIORS = [
@@ -192,21 +191,15 @@ def main(argv: list[str] | None = None) -> int:
                 flush=True,
             )
 
+    arguments = argv if argv is not None else sys.argv[1:]
     meta = {
-        "command": "python tools/bench_traffic.py "
-        + " ".join(
-            shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:])
+        **bench_meta(
+            ["tools/bench_traffic.py", *(shlex.quote(a) for a in arguments)],
+            args.threads,
+            str(device),
         ),
-        "torch": torch.__version__,
-        "torchcf": torchcf.__version__,
-        "python": sys.version.split()[0],
-        "threads": args.threads,
-        "cpu": cpu_model(),
-        "device": str(device)
-        + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""),
         "load_average_before": [round(x, 2) for x in load_before],
         "load_average_after": [round(x, 2) for x in os.getloadavg()],
-        "git": git_sha(),
         "dtype": str(first.dtype).replace("torch.", ""),
         "ring": f"1 x {n_vehicles} vehicles, {SPACING:g} m apart, {SPEED:g} m/s",
         "dt": first.dt,

@@ -421,8 +421,9 @@ class DiagnoseConfig(BaseModel):
         50_000,
         gt=0,
         description=(
-            "Prior draws per pool model in the attribution's small ABC run (its "
-            "per-pair best particles seed the local comparison)."
+            "n: prior draws per pool model and per variant in the attribution's "
+            "small ABC runs (the pool alone gets 2 n per model, for equal budgets); "
+            "their per-pair best start the local search."
         ),
     )
     population: int = Field(
@@ -436,10 +437,7 @@ class DiagnoseConfig(BaseModel):
     local_copies: int = Field(
         32,
         gt=0,
-        description=(
-            "Perturbed copies of every kept particle per local-search round (and "
-            "values per round of a shared effect's search)."
-        ),
+        description=("Perturbed copies of every kept particle per local-search round."),
     )
     rounds: int = Field(
         6, ge=0, description="Local-search rounds of each attribution arm."
