@@ -19,9 +19,10 @@ import numpy as np
 import pytest
 import torch
 
-from torchcf.config import validate_config
+from torchcf.config import resolved_json, validate_config
 from torchcf.diagnose import (
     DiagnoseError,
+    _reuse_recalibration,
     best_particles,
     diagnose_run,
     main,
@@ -156,6 +157,33 @@ def test_best_particles_picks_the_lowest_score_per_pair(tmp_path):
             )
             here = particles.score[(particles.theta == row).all(1)]
             assert math.isclose(float(here.min()), lowest)
+
+
+def test_an_earlier_recalibration_is_resumed_only_when_it_is_this_one(tmp_path):
+    """A loop run again resumes its own re-calibration but removes one left by an
+    earlier loop that chose another effect, prior or budget, or nothing."""
+    this, other = _config(), _config(n_particles=N_PARTICLES // 2)
+
+    def earlier(cfg, checkpoint=True):
+        after = tmp_path / "loop" / "after"
+        after.mkdir(parents=True, exist_ok=True)
+        (after / "config.json").write_text(json.dumps(resolved_json(cfg)))
+        if checkpoint:
+            (after / "checkpoint.pt").write_bytes(b"partial")
+        return after
+
+    assert _reuse_recalibration(tmp_path / "loop" / "after", this) is False
+    assert _reuse_recalibration(after := earlier(this), this) is True
+    assert after.exists()
+    assert _reuse_recalibration(earlier(other), this) is False
+    assert not after.exists()
+    assert _reuse_recalibration(earlier(this, checkpoint=False), this) is False
+    assert not after.exists()
+    (earlier(this) / "config.json").write_text("{not json")
+    assert _reuse_recalibration(after, this) is False
+    assert not after.exists()
+    assert _reuse_recalibration(earlier(this), None) is False
+    assert not after.exists()
 
 
 def test_sign_flip_test_calibration():

@@ -11,6 +11,7 @@ import torch
 
 from torchcf.plots import (
     RADAR_KEYS,
+    before_after_figure,
     error_evolution_figure,
     figure_to_array,
     radar_area_share,
@@ -80,6 +81,18 @@ def test_radar_area_share() -> None:
 
 def test_radar_figure_renders() -> None:
     _assert_rgb(figure_to_array(radar_figure(_nine_entries(), title="NGSIM")))
+
+
+def test_before_after_figure_marks_infinite_metrics(recwarn) -> None:
+    """An infinite WS (NGSIM: a particle invalid on every test pair) is drawn as a
+    marked gap, without numerical warnings from matplotlib."""
+    before = dict(zip(RADAR_KEYS, [6.9, 1.2, 0.6, 1.26, 1.3, math.inf], strict=True))
+    after = {**before, "min": 1.24}
+    fig = before_after_figure(before, after)
+    _assert_rgb(figure_to_array(fig))
+    texts = [t.get_text() for t in fig.axes[0].texts]
+    assert texts.count("inf") == 2
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
 
 
 def test_radar_figure_rejects_bad_labels() -> None:

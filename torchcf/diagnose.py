@@ -35,6 +35,7 @@ import argparse
 import dataclasses
 import json
 import math
+import shutil
 import sys
 import time
 from collections.abc import Sequence
@@ -47,7 +48,13 @@ from torch import Tensor
 from tqdm import tqdm
 
 from . import residuals as rt
-from .config import ConfigError, TrainConfig, apply_overrides, validate_config
+from .config import (
+    ConfigError,
+    TrainConfig,
+    apply_overrides,
+    config_hash,
+    validate_config,
+)
 from .data import PairSet, load_split
 from .evaluate import load_run
 from .models import UnknownModelError, get_model
@@ -893,16 +900,16 @@ def diagnose_run(
         "residuals_before": residuals_before,
     }
     series_after = None
+    after_dir = run_dir / "loop" / "after"
     if chosen:
         effect_priors = {
             r["effect"]: r["shared"]["prior"] for r in ranked if "shared" in r
         }
         after_cfg = _recalibration_config(cfg, pool, chosen, effect_priors)
-        after_dir = run_dir / "loop" / "after"
         train(
             after_cfg,
             after_dir,
-            resume=(after_dir / "config.json").exists(),
+            resume=_reuse_recalibration(after_dir, after_cfg),
             pairs=(train_pairs, test_pairs),
         )
         after_posterior = Posterior.load(after_dir / "posterior.pt")
@@ -916,6 +923,7 @@ def diagnose_run(
             "residuals_after": residuals_after,
         }
     else:
+        _reuse_recalibration(after_dir, None)
         result |= {
             "after": before_metrics["hybrid"],
             "after_run": None,
@@ -1092,6 +1100,32 @@ def _effect_text(effect: Any) -> str:
 
 
 # --------------------------------------------------------------------------- CLI
+def _reuse_recalibration(after_dir: Path, after_cfg: TrainConfig | None) -> bool:
+    """Whether ``after_dir`` holds (part of) this very re-calibration, to resume.
+
+    A loop run again may choose another effect, another shared-effect prior or
+    nothing at all; a re-calibration left from an earlier loop is then removed, so
+    that ``RUN_DIR/loop/after`` never shows a run that ``loop.json`` does not
+    describe, and training does not refuse the directory.
+
+    Args:
+        after_dir: ``RUN_DIR/loop/after``, written only by the loop.
+        after_cfg: this loop's re-calibration config; None when nothing is chosen.
+    """
+    if not after_dir.exists():
+        return False
+    if after_cfg is not None and (after_dir / "checkpoint.pt").exists():
+        try:
+            raw = json.loads((after_dir / "config.json").read_text(encoding="utf-8"))
+            if config_hash(validate_config(raw)) == config_hash(after_cfg):
+                return True
+        except (OSError, ValueError):  # ConfigError and JSONDecodeError included
+            pass  # unreadable: it cannot be resumed, so it is stale as well
+    shutil.rmtree(after_dir)
+    print(f"note: removed the earlier re-calibration in {after_dir}", file=sys.stderr)
+    return False
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m torchcf.diagnose",

@@ -411,9 +411,16 @@ def before_after_figure(
         (("before", before, "tab:gray"), ("after", after, "tab:blue")),
         strict=True,
     ):
-        values = [_float_or_nan(metrics.get(k)) for k in keys]
+        values = np.array([_float_or_nan(metrics.get(k)) for k in keys])
+        # An infinite metric (a particle invalid on every test pair, SPEC) has no
+        # bar height; it is drawn as a marked gap so the figure does not lie.
+        infinite = np.isinf(values)
+        values[infinite] = math.nan
         ax.bar(x + offset, values, width=0.4, label=label, color=colour)
+        for xi in x[infinite]:
+            ax.annotate("inf", (xi + offset, 0.0), ha="center", va="bottom", fontsize=7)
     ax.set_xticks(x, [RADAR_LABELS[RADAR_KEYS.index(k)] for k in keys], fontsize=8)
+    ax.set_xlim(-0.6, len(keys) - 0.4)  # NaN bars do not widen the axis
     ax.set_title("Hybrid on the test split")
     ax.legend()
     ax.grid(axis="y", alpha=0.3)
