@@ -1099,7 +1099,6 @@ def _effect_text(effect: Any) -> str:
     return _fmt(effect)
 
 
-# --------------------------------------------------------------------------- CLI
 def _reuse_recalibration(after_dir: Path, after_cfg: TrainConfig | None) -> bool:
     """Whether ``after_dir`` holds (part of) this very re-calibration, to resume.
 
@@ -1126,6 +1125,7 @@ def _reuse_recalibration(after_dir: Path, after_cfg: TrainConfig | None) -> bool
     return False
 
 
+# --------------------------------------------------------------------------- CLI
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m torchcf.diagnose",
