@@ -119,6 +119,7 @@ def test_control_set_yields_no_effect(loops):
 
 def test_cli_and_bad_input(loops, tmp_path, capsys):
     out, _ = loops("control")
+    capsys.readouterr()  # the loop's own progress bars, when this test runs alone
     assert main([str(tmp_path / "missing")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error:") and "\n" not in err
