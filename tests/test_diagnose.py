@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchcf.config import resolved_json, validate_config
+from torchcf.config import ConfigError, resolved_json, validate_config
 from torchcf.diagnose import (
     DiagnoseError,
     _reuse_recalibration,
@@ -282,6 +282,24 @@ def test_local_search_spends_its_budget_and_never_loses_a_fit(monkeypatch):
 
     assert bool((best(members) <= best(start)).all())
     assert sum(m.score.numel() for m in members) == 4 * 3
+
+
+def test_diagnose_seed_replaces_the_runs_seed_in_the_attribution():
+    """diagnose.seed (None = abc.seed) draws another prior sample: a check that
+    the loop's answer is not the luck of one stream."""
+    import torchcf.diagnose as dg
+
+    pairs = synthetic_pairs("idm", IDM_TRUTH, 3, 100, seed=9)
+    bounds = dg._model_bounds("idm", {})
+
+    def drawn(**diagnose):
+        return dg._small_abc("idm", pairs, (50,), 2, _config(**diagnose), bounds)[0]
+
+    default, same, other = drawn(), drawn(seed=0), drawn(seed=1)
+    assert torch.equal(default.theta, same.theta)  # abc.seed is 0
+    assert not torch.equal(default.theta, other.theta)
+    with pytest.raises(ConfigError, match="seed"):
+        _config(seed=-1)
 
 
 def test_shared_value_finds_a_constant_grade():

@@ -469,6 +469,14 @@ class DiagnoseConfig(BaseModel):
     permutations: int = Field(
         20_000, ge=1000, description="Sign-flip permutations of the gain test."
     )
+    seed: int | None = Field(
+        None,
+        ge=0,
+        description=(
+            "Seed of the attribution's prior draws and local search; None = "
+            "abc.seed. Another seed checks that the answer is not luck."
+        ),
+    )
     recalibrate_particles: int | None = Field(
         None,
         gt=0,

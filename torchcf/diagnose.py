@@ -321,6 +321,11 @@ def _fit_scores(
     return torch.cat(scores) if scores else torch.empty(0, dtype=torch.float64)
 
 
+def _attribution_seed(cfg: TrainConfig) -> int:
+    """``diagnose.seed``, or the run's ``abc.seed`` when it is not set."""
+    return cfg.abc.seed if cfg.diagnose.seed is None else cfg.diagnose.seed
+
+
 def _small_abc(
     name: str,
     fit: PairSet,
@@ -341,7 +346,7 @@ def _small_abc(
             every particle (a shared effect's value).
     """
     model = get_model(name)
-    stream = ParticleStream(model.name, bounds, cfg.abc.seed, fit.n_pairs)
+    stream = ParticleStream(model.name, bounds, _attribution_seed(cfg), fit.n_pairs)
     buffer = TopN(fit.n_pairs, keep, model.n_params)
     results, start = [], 0
     for budget in budgets:
@@ -673,7 +678,7 @@ def attribute_effects(
     keep = max(settings.population, top_n)
     priors = {spec.name: spec.bounds(torch.float64) for spec in cfg.models}
     bounds = {name: _model_bounds(name, priors) for name in pool}
-    generator = torch.Generator().manual_seed(cfg.abc.seed)
+    generator = torch.Generator().manual_seed(_attribution_seed(cfg))
     bar = tqdm(
         total=len(pool) + 1 + len(effects),
         desc="attribution",
