@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_sim import bench_meta  # noqa: E402
+from bench_sim import bench_meta, write_report  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
 
@@ -129,8 +129,6 @@ def main(argv: list[str] | None = None) -> int:
         "chunk_size": args.chunk_size or "model default",
     }
     result = {"meta": meta, "rows": rows, "ratio": ratio, "target": args.target}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
     verdict = "met" if ratio <= args.target else "NOT met"
     lines = [
         "# Peak memory of the streaming trainer against the particle count",
@@ -155,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
         f"**{ratio:.3f}** (target <= {args.target}: {verdict}).",
         "",
     ]
-    args.out.with_suffix(".md").write_text("\n".join(lines))
+    write_report(args.out, result, "\n".join(lines))
     print(f"ratio {ratio:.3f} (target <= {args.target}: {verdict})")
     print(f"wrote {args.out.with_suffix('.md')}")
     return 0 if ratio <= args.target else 1

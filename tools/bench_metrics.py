@@ -23,7 +23,6 @@ Writes ``reports/bench_metrics.json`` and ``reports/bench_metrics.md``.
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import statistics
 import sys
@@ -41,7 +40,7 @@ import torchcf
 from torchcf.metrics import beta_wasserstein, min_distance, sinkhorn, wasserstein
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_sim import cpu_model, git_sha  # noqa: E402
+from bench_sim import cpu_model, git_sha, write_report  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 DEFAULT_SIZES = ["225x18", "525x45", "5000x1000"]
@@ -277,11 +276,11 @@ def main(argv: list[str] | None = None) -> int:
         "repeats": args.repeats,
         "costs": f"gamma(2, 1.5) per cell, seed {args.seed}",
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(
-        json.dumps({"meta": meta, "command": command, "rows": rows}, indent=2) + "\n"
+    write_report(
+        args.out,
+        {"meta": meta, "command": command, "rows": rows},
+        markdown(rows, meta, command, args),
     )
-    args.out.with_suffix(".md").write_text(markdown(rows, meta, command, args))
     print(f"wrote {args.out.with_suffix('.md')}")
     return 0
 

@@ -29,7 +29,6 @@ the data: ``$TORCHCF_DATA`` or ``--data-root``.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import statistics
 import sys
@@ -40,7 +39,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_sim import bench_meta, setup  # noqa: E402
+from bench_sim import bench_meta, setup, write_report  # noqa: E402
 from peer_numpy import quiet_stdout, simulate_one  # noqa: E402
 
 import torchcf  # noqa: E402
@@ -184,11 +183,9 @@ def main(argv: list[str] | None = None) -> int:
         "layout": "paired",
         "repeats": args.repeats,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(
-        json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n"
+    write_report(
+        args.out, {"meta": meta, "rows": rows}, markdown(meta, rows, args.threads)
     )
-    args.out.with_suffix(".md").write_text(markdown(meta, rows, args.threads))
     print(f"wrote {args.out.with_suffix('.md')}")
     return 0
 

@@ -32,7 +32,7 @@ from torchcf.qp import BoxQP, QPStatus
 from torchcf.runtime import tune_malloc
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_sim import cpu_model, git_sha  # noqa: E402
+from bench_sim import cpu_model, git_sha, write_report  # noqa: E402
 from peer_numpy import quiet_stdout  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
@@ -214,10 +214,6 @@ def main(argv: list[str] | None = None) -> int:
         "git": git_sha(),
         "osqp": __import__("osqp").__version__,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(
-        json.dumps({"meta": meta, "qp": rows, "mpc_rollout": rollout}, indent=2) + "\n"
-    )
     lines = [
         "# Batched box-QP solver and MPC rollout",
         "",
@@ -257,7 +253,8 @@ def main(argv: list[str] | None = None) -> int:
         f"{mpc_s:.1f} s, {rollout['particle_steps_per_s']:.3g} particle-steps/s.",
         "",
     ]
-    args.out.with_suffix(".md").write_text("\n".join(lines))
+    payload = {"meta": meta, "qp": rows, "mpc_rollout": rollout}
+    write_report(args.out, payload, "\n".join(lines))
     print(f"wrote {args.out.with_suffix('.md')}")
     return 0
 

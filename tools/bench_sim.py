@@ -92,6 +92,13 @@ def bench_meta(argv: list[str], threads: int, device: str = "cpu") -> dict:
     }
 
 
+def write_report(out: Path, payload: dict, markdown: str) -> None:
+    """Write a benchmark's ``out.json`` (``payload``) and ``out.md`` (``markdown``)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(payload, indent=2) + "\n")
+    out.with_suffix(".md").write_text(markdown)
+
+
 def setup(model_name: str, n_particles: int, n_pairs: int, seed: int = 0):
     """Prior draws and their training pairs, as the ABC run would make them."""
     model = MODELS[model_name]
@@ -189,10 +196,6 @@ def main(argv: list[str] | None = None) -> int:
         "layout": "paired",
         "repeats": args.repeats,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(
-        json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n"
-    )
     lines = [
         "# Rollout throughput (paired layout)",
         "",
@@ -225,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
         "compiles faster).",
         "",
     ]
-    args.out.with_suffix(".md").write_text("\n".join(lines))
+    write_report(args.out, {"meta": meta, "rows": rows}, "\n".join(lines))
     print(f"wrote {args.out.with_suffix('.md')}")
     return 0
 

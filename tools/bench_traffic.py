@@ -21,7 +21,6 @@ a one-line error (exit 2).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shlex
 import statistics
@@ -36,7 +35,7 @@ from torchcf.runtime import tune_malloc
 from torchcf.traffic import ring_initial_state, ring_road
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_sim import bench_meta  # noqa: E402
+from bench_sim import bench_meta, write_report  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_POSTERIORS = [
@@ -205,10 +204,6 @@ def main(argv: list[str] | None = None) -> int:
         "dt": first.dt,
         "repeats": args.repeats,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(
-        json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n"
-    )
     lines = [
         "# Ring-road throughput of the HybridSampler",
         "",
@@ -239,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
         "on the same, quiet machine only.",
         "",
     ]
-    args.out.with_suffix(".md").write_text("\n".join(lines))
+    write_report(args.out, {"meta": meta, "rows": rows}, "\n".join(lines))
     return 0
 
 

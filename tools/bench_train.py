@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_sim import bench_meta  # noqa: E402
+from bench_sim import bench_meta, write_report  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
 
@@ -125,8 +125,6 @@ def main(argv: list[str] | None = None) -> int:
         },
         "summary": summary,
     }
-    report.parent.mkdir(parents=True, exist_ok=True)
-    report.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
     lines = [
         f"# Training run: `{args.config}`",
         "",
@@ -173,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         "eager: its QP solver is not compiled).",
         "",
     ]
-    report.with_suffix(".md").write_text("\n".join(lines))
+    write_report(report, result, "\n".join(lines))
     print(f"wrote {report.with_suffix('.md')}")
     return 0
 
