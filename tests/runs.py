@@ -82,3 +82,18 @@ def run_module(
         env={**os.environ, **(env or {})},
         timeout=timeout,
     )
+
+
+def torchrun_train(*args: str) -> subprocess.CompletedProcess[str]:
+    """``torchrun --standalone --nproc-per-node 2 -m torchcf.train args``, one
+    thread per process, output captured."""
+    return run_module(
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc-per-node",
+        "2",
+        "-m",
+        "torchcf.train",
+        *args,
+        env={"OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"},
+    )

@@ -20,7 +20,7 @@ from torchcf.posterior import Posterior
 from torchcf.train import train
 
 from .conftest import prior_draws, synthetic_pairs
-from .runs import run_module, write_config, write_data
+from .runs import run_module, torchrun_train, write_config, write_data
 
 pytestmark = pytest.mark.skipif(
     not torch.cuda.is_available(), reason="needs a CUDA GPU"
@@ -116,18 +116,7 @@ def test_two_gpus_equal_one(tmp_path):
     config = write_config(tmp_path / "cfg.json", data, device="cuda")
     one = run_module("torchcf.train", str(config), "--out", str(tmp_path / "one"))
     assert one.returncode == 0, one.stderr[-3000:]
-    two = run_module(
-        "torch.distributed.run",
-        "--standalone",
-        "--nproc-per-node",
-        "2",
-        "-m",
-        "torchcf.train",
-        str(config),
-        "--out",
-        str(tmp_path / "two"),
-        env={"OMP_NUM_THREADS": "1"},
-    )
+    two = torchrun_train(str(config), "--out", str(tmp_path / "two"))
     assert two.returncode == 0, two.stderr[-3000:]
     a = Posterior.load(tmp_path / "one" / "posterior.pt")
     b = Posterior.load(tmp_path / "two" / "posterior.pt")

@@ -23,7 +23,7 @@ from torchcf.posterior import Posterior
 from torchcf.topn import TopN
 from torchcf.train import train
 
-from .runs import run_module, write_config, write_data
+from .runs import torchrun_train, write_config, write_data
 
 # ------------------------------------------------------------------ the pieces
 
@@ -180,21 +180,6 @@ def test_rank_0_results_and_errors_reach_every_rank(monkeypatch):
 # ------------------------------------------------------------------ torchrun
 
 
-def _torchrun(*args: str) -> tuple[int, str, str]:
-    result = run_module(
-        "torch.distributed.run",
-        "--standalone",
-        "--nproc-per-node",
-        "2",
-        "-m",
-        "torchcf.train",
-        *args,
-        env={"OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"},
-        timeout=300,
-    )
-    return result.returncode, result.stdout, result.stderr
-
-
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """A single-process reference run, and a run cut short after two chunks."""
@@ -231,11 +216,9 @@ def test_two_processes_resume_and_equal_a_single_process(runs):
     checkpoint), shares the rest of IDM and all of LLCS, and ends with the outputs
     of the uninterrupted single-process run, bit for bit."""
     config, reference, partial = runs
-    code, stdout, stderr = _torchrun(
-        str(config), "--out", str(partial), "--resume", "--no-eval"
-    )
-    assert code == 0, stderr[-3000:]
-    assert stdout.count("hybrid shares") == 1, stdout  # rank 0 alone reports
+    two = torchrun_train(str(config), "--out", str(partial), "--resume", "--no-eval")
+    assert two.returncode == 0, two.stderr[-3000:]
+    assert two.stdout.count("hybrid shares") == 1, two.stdout  # rank 0 alone reports
     # The evaluation is rank 0's alone, a single-process step: run here, it saves
     # the 2 x 10 s of importing the plotting stack in the children.
     evaluate_run(partial)

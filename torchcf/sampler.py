@@ -48,7 +48,7 @@ from torch.utils import _pytree as pytree
 
 from .models import AugmentedModel, CFModel, FollowerState, Perception, get_model
 from .posterior import Posterior
-from .sim import realise
+from .sim import check_theta, realise
 
 #: The base class realises a command as a point mass (it ignores its parameters):
 #: :meth:`HybridSampler.advance` moves every vehicle with it at once, then
@@ -154,13 +154,7 @@ class HybridSampler(nn.Module):
         model_ids, rows = [], []
         for m, (model, theta) in enumerate(zip(self.models, particles, strict=True)):
             theta = torch.as_tensor(theta)
-            if theta.ndim != 2 or theta.shape[1] != model.n_params:
-                raise ValueError(
-                    f"particles of {model.name} must be (P, {model.n_params}) "
-                    f"({', '.join(model.param_names)}), got {tuple(theta.shape)}"
-                )
-            if not bool(torch.isfinite(theta).all()):
-                raise ValueError(f"particles of {model.name} hold non-finite values")
+            check_theta(model, theta, what="particles")
             self.register_buffer(f"theta_{m}", theta.to(dtype).clone())
             model_ids.append(torch.full((theta.shape[0],), m, dtype=torch.long))
             rows.append(torch.arange(theta.shape[0]))

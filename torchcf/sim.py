@@ -365,14 +365,16 @@ def _observation_table(pairs: PairSet, dtype: torch.dtype, device: torch.device)
     )
 
 
-def _check_theta(model: CFModel, theta: Tensor) -> None:
+def check_theta(model: CFModel, theta: Tensor, what: str = "theta") -> None:
+    """ValueError (one line, naming ``what``) unless ``theta`` is a finite
+    (P, n_params) particle matrix of ``model``."""
     if theta.ndim != 2 or theta.shape[1] != model.n_params:
         raise ValueError(
-            f"theta must be (P, {model.n_params}) for {model.name} "
+            f"{what} must be (P, {model.n_params}) for {model.name} "
             f"({', '.join(model.param_names)}), got {tuple(theta.shape)}"
         )
     if not bool(torch.isfinite(theta).all()):
-        raise ValueError(f"theta for {model.name} holds non-finite values")
+        raise ValueError(f"{what} for {model.name} holds non-finite values")
 
 
 def simulate(
@@ -423,7 +425,7 @@ def simulate(
     if dtype not in (torch.float32, torch.float64):
         raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
     device = torch.device(device) if device is not None else theta.device
-    _check_theta(model, theta)
+    check_theta(model, theta)
     if len(weights) != 3:
         raise ValueError(f"weights must be 3 numbers (p, v, a), got {weights!r}")
     theta = theta.to(device=device, dtype=dtype)
