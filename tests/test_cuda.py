@@ -86,7 +86,7 @@ def test_training_on_cuda_keeps_the_cpu_particles(tmp_path):
 
 
 def test_training_evaluation_and_diagnosis_on_cuda(tmp_path):
-    from torchcf.diagnose import diagnose_run
+    from torchcf.diagnose.loop import diagnose_run
 
     train_pairs = synthetic_pairs(n_pairs=6, n_steps=200, seed=1)
     test_pairs = synthetic_pairs(n_pairs=4, n_steps=200, seed=2)

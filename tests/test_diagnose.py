@@ -20,7 +20,8 @@ import pytest
 import torch
 
 from torchcf.config import ConfigError, resolved_json, validate_config
-from torchcf.diagnose import (
+from torchcf.data.synthetic import synthetic_pairs
+from torchcf.diagnose.loop import (
     DiagnoseError,
     _reuse_recalibration,
     best_particles,
@@ -32,7 +33,6 @@ from torchcf.diagnose import (
     split_in_time,
 )
 from torchcf.posterior import Posterior
-from torchcf.synthetic import synthetic_pairs
 from torchcf.train import train
 
 IDM_TRUTH = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
@@ -217,7 +217,7 @@ def test_bare_grade_spans_the_road_section():
 
 # ------------------------------------------------------------- attribution parts
 def _candidates(name, theta, pair, score):
-    from torchcf.diagnose import _Candidates
+    from torchcf.diagnose.loop import _Candidates
 
     return _Candidates(
         name,
@@ -228,7 +228,7 @@ def _candidates(name, theta, pair, score):
 
 
 def test_select_takes_the_best_per_pair_over_sets():
-    from torchcf.diagnose import _select
+    from torchcf.diagnose.loop import _select
 
     a = _candidates("idm", [[1.0], [2.0], [3.0], [4.0]], [0, 0, 1, 1], [0.5, 0.2, 9, 1])
     b = _candidates("llctg", [[5.0], [6.0], [7.0]], [0, 1, 1], [0.2, math.inf, 0.1])
@@ -241,7 +241,7 @@ def test_select_takes_the_best_per_pair_over_sets():
 
 
 def test_jitter_stays_in_the_prior_and_keeps_fixed_parameters():
-    from torchcf.diagnose import LOCAL_SCALES, _jitter
+    from torchcf.diagnose.loop import LOCAL_SCALES, _jitter
 
     theta = torch.tensor([[0.5, 2.0, 1.0], [0.0, 3.0, 1.0]], dtype=torch.float64)
     bounds = torch.tensor([[0.0, 1.0], [0.0, 10.0], [1.0, 1.0]], dtype=torch.float64)
@@ -255,7 +255,7 @@ def test_jitter_stays_in_the_prior_and_keeps_fixed_parameters():
 
 
 def test_local_search_spends_its_budget_and_never_loses_a_fit(monkeypatch):
-    import torchcf.diagnose as dg
+    import torchcf.diagnose.loop as dg
 
     pairs = synthetic_pairs("idm", IDM_TRUTH, 4, 150, seed=9)
     cfg = _config(population=3, local_copies=5, rounds=2)
@@ -287,7 +287,7 @@ def test_local_search_spends_its_budget_and_never_loses_a_fit(monkeypatch):
 def test_diagnose_seed_replaces_the_runs_seed_in_the_attribution():
     """diagnose.seed (None = abc.seed) draws another prior sample: a check that
     the loop's answer is not the luck of one stream."""
-    import torchcf.diagnose as dg
+    import torchcf.diagnose.loop as dg
 
     pairs = synthetic_pairs("idm", IDM_TRUTH, 3, 100, seed=9)
     bounds = dg._model_bounds("idm", {})
@@ -305,7 +305,7 @@ def test_diagnose_seed_replaces_the_runs_seed_in_the_attribution():
 def test_shared_value_finds_a_constant_grade():
     """Data from LLCTG on a 4 % grade; members = the true LLCTG parameters: the
     joint search over pairs returns a grade near 4 %."""
-    from torchcf.diagnose import _model_bounds, _shared_value
+    from torchcf.diagnose.loop import _model_bounds, _shared_value
 
     effect = "grade(start=0,end=1000,knots=1)"
     pairs = synthetic_pairs(f"llctg+{effect}", LLCTG_TRUTH + [0.04], 6, 300, seed=4)

@@ -16,11 +16,11 @@ import pytest
 import torch
 
 import torchcf.train as train_module
+from torchcf.abc.distributed import SINGLE, Group, GroupError, init_from_env
+from torchcf.abc.topn import TopN
 from torchcf.config import load_config
-from torchcf.distributed import SINGLE, Group, GroupError, init_from_env
 from torchcf.evaluate import evaluate_run
 from torchcf.posterior import Posterior
-from torchcf.topn import TopN
 from torchcf.train import train
 
 from .runs import torchrun_train, write_config, write_data
@@ -124,7 +124,7 @@ def test_a_single_process_group_is_inert(monkeypatch):
 
 def _as_rank(monkeypatch, rank: int, payload: list) -> Group:
     """A rank of a two-process group whose broadcast hands out ``payload``."""
-    import torchcf.distributed as module
+    import torchcf.abc.distributed as module
 
     def broadcast(objects, src, device=None):
         assert src == 0

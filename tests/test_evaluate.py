@@ -17,7 +17,7 @@ from torchcf.evaluate import (
     main,
     single_model_particles,
 )
-from torchcf.metrics import evaluate_costs
+from torchcf.evaluation.metrics import evaluate_costs
 from torchcf.posterior import Posterior
 from torchcf.train import train
 

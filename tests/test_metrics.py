@@ -10,7 +10,7 @@ import scipy.sparse as sp
 import torch
 from scipy.optimize import linprog
 
-from torchcf.metrics import (
+from torchcf.evaluation.metrics import (
     average_errors,
     beta_wasserstein,
     evaluate_costs,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchcf.plots import (
+from torchcf.evaluation.plots import (
     RADAR_KEYS,
     before_after_figure,
     error_evolution_figure,
@@ -18,7 +18,7 @@ from torchcf.plots import (
     radar_figure,
     radar_values,
 )
-from torchcf.report import METRIC_COLUMNS, metrics_table, relative_difference
+from torchcf.evaluation.report import METRIC_COLUMNS, metrics_table, relative_difference
 
 MODELS = ("ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc", "hybrid")
 

@@ -10,7 +10,7 @@ import pytest
 import torch
 from scipy import stats
 
-from torchcf import residuals as rs
+from torchcf.diagnose import residuals as rs
 
 DT = 0.1
 

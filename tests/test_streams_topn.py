@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchcf.hybrid import pairwise_table, select, select_global, select_per_pair
-from torchcf.streams import STREAM_BLOCK, ParticleStream, block_seed, uniforms
-from torchcf.topn import TopN, lexsort
+from torchcf.abc.hybrid import pairwise_table, select, select_global, select_per_pair
+from torchcf.abc.streams import STREAM_BLOCK, ParticleStream, block_seed, uniforms
+from torchcf.abc.topn import TopN, lexsort
 
 # --------------------------------------------------------------------------------------
 # Streams

@@ -14,7 +14,12 @@ from tensorboard.backend.event_processing.event_accumulator import (
 )
 from tensorboard.plugins.hparams import plugin_data_pb2
 
-from torchcf.plots import figure_to_array, pairwise_figure, save_figure, shares_figure
+from torchcf.evaluation.plots import (
+    figure_to_array,
+    pairwise_figure,
+    save_figure,
+    shares_figure,
+)
 from torchcf.tblog import RunLogger, markdown_summary
 
 MODELS = ("idm", "gfm")

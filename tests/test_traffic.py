@@ -8,8 +8,8 @@ import torch
 from tests.conftest import synthetic_pairs
 from tests.test_sampler import make_posterior
 from torchcf import HybridSampler, PairSet, simulate
-from torchcf.synthetic import leader_profiles
-from torchcf.traffic import (
+from torchcf.data.synthetic import leader_profiles
+from torchcf.traffic.scenarios import (
     RingState,
     pair_leader,
     platoon,

@@ -14,9 +14,9 @@ import pytest
 import torch
 
 from torchcf import PairSet, simulate
+from torchcf.abc.streams import ParticleStream
 from torchcf.config import TrainConfig
 from torchcf.posterior import Posterior
-from torchcf.streams import ParticleStream
 from torchcf.train import main, train
 
 from .conftest import synthetic_pairs

@@ -37,7 +37,12 @@ import torch
 from scipy.optimize import linprog
 
 import torchcf
-from torchcf.metrics import beta_wasserstein, min_distance, sinkhorn, wasserstein
+from torchcf.evaluation.metrics import (
+    beta_wasserstein,
+    min_distance,
+    sinkhorn,
+    wasserstein,
+)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import cpu_model, git_sha, write_report  # noqa: E402

@@ -32,7 +32,7 @@ import torch
 
 from torchcf import HybridSampler
 from torchcf.runtime import tune_malloc
-from torchcf.traffic import ring_initial_state, ring_road
+from torchcf.traffic.scenarios import ring_initial_state, ring_road
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402

@@ -17,7 +17,7 @@ import json
 import shutil
 from pathlib import Path
 
-from torchcf.report import metrics_table, relative_difference
+from torchcf.evaluation.report import metrics_table, relative_difference
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 FOOT = 0.3048  # [m]

@@ -39,7 +39,7 @@ from matplotlib.collections import LineCollection  # noqa: E402
 
 from torchcf import HybridSampler  # noqa: E402
 from torchcf.posterior import json_safe  # noqa: E402
-from torchcf.traffic import platoon, ring_road  # noqa: E402
+from torchcf.traffic.scenarios import platoon, ring_road  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 LABELS = {"ngsim": "NGSIM I-80 hybrid", "carII": "CAR MODEL II hybrid"}

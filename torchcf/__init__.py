@@ -12,8 +12,8 @@ Public API (re-exports only; see the modules for the details):
 from . import traffic
 from .data import DATASETS, DataError, PairSet, load_pairs
 from .models import MODELS, CFModel, UnknownModelError, get_model
-from .sampler import HybridSampler
 from .sim import SimOutput, simulate
+from .traffic.sampler import HybridSampler
 
 __version__ = "0.1.0"
 

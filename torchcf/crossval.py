@@ -19,8 +19,8 @@ from pathlib import Path
 from typing import Any
 
 from .config import ConfigError, TrainConfig, load_config
+from .evaluation.report import metrics_table
 from .posterior import atomic_write_text, json_safe
-from .report import metrics_table
 from .train import USER_ERRORS, train
 
 METRIC_KEYS = ("e_p", "e_v", "e_a", "min", "beta_ws", "ws", "sinkhorn")

@@ -33,14 +33,15 @@ from torch import Tensor
 
 from .config import ConfigError, TrainConfig, validate_config
 from .data import DataError, PairSet, load_split
-from .metrics import evaluate_costs
-from .plots import (
+from .evaluation.metrics import evaluate_costs
+from .evaluation.plots import (
     error_evolution_figure,
     pairwise_figure,
     radar_figure,
     save_figure,
     shares_figure,
 )
+from .evaluation.report import metrics_table
 from .posterior import (
     Posterior,
     PosteriorError,
@@ -48,7 +49,6 @@ from .posterior import (
     atomic_write_text,
     json_safe,
 )
-from .report import metrics_table
 from .sim import simulate
 from .tblog import RunLogger
 

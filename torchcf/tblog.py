@@ -151,7 +151,7 @@ class RunLogger:
         """
         if self._writer is None:
             return
-        from .plots import figure_to_array, pairwise_figure, shares_figure
+        from .evaluation.plots import figure_to_array, pairwise_figure, shares_figure
 
         self._writer.add_image(
             "hybrid/shares", figure_to_array(shares_figure(shares)), dataformats="HWC"
@@ -183,7 +183,7 @@ class RunLogger:
         """
         if self._writer is None:
             return
-        from .plots import figure_to_array
+        from .evaluation.plots import figure_to_array
 
         for name, figure in figures.items():
             self._writer.add_image(

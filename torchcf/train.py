@@ -46,12 +46,14 @@ import torch
 from tqdm import tqdm
 
 from . import __version__
+from .abc.distributed import SINGLE, Group, GroupError, init_from_env
+from .abc.hybrid import Selection, pairwise_table, select
+from .abc.streams import ParticleStream
+from .abc.topn import TopN
 from .config import ConfigError, TrainConfig, config_hash, load_config, resolved_json
 from .data import DataError, PairSet, load_split
-from .diagnose import DiagnoseError, diagnose_run
-from .distributed import SINGLE, Group, GroupError, init_from_env
+from .diagnose.loop import DiagnoseError, diagnose_run
 from .evaluate import EvaluationError, evaluate_run
-from .hybrid import Selection, pairwise_table, select
 from .models import get_model
 from .models.base import CFModel
 from .posterior import (
@@ -64,9 +66,7 @@ from .posterior import (
 )
 from .runtime import tune_malloc
 from .sim import COMPILE_CHUNK_MULTIPLE, _resolve_compile, simulate
-from .streams import ParticleStream
 from .tblog import RunLogger, markdown_summary
-from .topn import TopN
 
 CHECKPOINT_FORMAT = "torchcf.checkpoint/1"
 #: Default simulated cells per chunk on CUDA (at least): a GPU runs one kernel per

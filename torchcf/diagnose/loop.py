@@ -47,25 +47,25 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from . import residuals as rt
-from .config import (
+from ..abc.streams import ParticleStream
+from ..abc.topn import TopN
+from ..config import (
     ConfigError,
     TrainConfig,
     apply_overrides,
     config_hash,
     validate_config,
 )
-from .data import PairSet, load_split
-from .evaluate import load_run
-from .models import UnknownModelError, get_model
-from .models.effects import Grade, parse_effect
-from .plots import loop_figures, save_figure
-from .posterior import Posterior, atomic_write_text, json_safe
-from .report import METRIC_COLUMNS
-from .sim import simulate
-from .streams import ParticleStream
-from .tblog import RunLogger
-from .topn import TopN
+from ..data import PairSet, load_split
+from ..evaluate import load_run
+from ..evaluation.plots import loop_figures, save_figure
+from ..evaluation.report import METRIC_COLUMNS
+from ..models import UnknownModelError, get_model
+from ..models.effects import Grade, parse_effect
+from ..posterior import Posterior, atomic_write_text, json_safe
+from ..sim import simulate
+from ..tblog import RunLogger
+from . import residuals as rt
 
 FORMAT = "torchcf.loop/1"
 #: Particles simulated per call in the attribution runs.
@@ -866,7 +866,7 @@ def diagnose_run(
     Returns:
         the loop result (also in ``run_dir/loop.json``).
     """
-    from .train import train  # not at the top: the trainer imports this module
+    from ..train import train  # not at the top: the trainer imports this module
 
     began = time.perf_counter()
     run_dir = Path(run_dir)
@@ -1148,7 +1148,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--threads", type=int, default=None, help="CPU threads")
     args = parser.parse_args(argv)
-    from .train import USER_ERRORS
+    from ..train import USER_ERRORS
 
     if args.threads is not None:
         if args.threads < 1:

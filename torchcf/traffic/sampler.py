@@ -46,9 +46,9 @@ import torch
 from torch import Tensor, nn
 from torch.utils import _pytree as pytree
 
-from .models import AugmentedModel, CFModel, FollowerState, Perception, get_model
-from .posterior import Posterior
-from .sim import check_theta, realise
+from ..models import AugmentedModel, CFModel, FollowerState, Perception, get_model
+from ..posterior import Posterior
+from ..sim import check_theta, realise
 
 #: The base class realises a command as a point mass (it ignores its parameters):
 #: :meth:`HybridSampler.advance` moves every vehicle with it at once, then
@@ -758,7 +758,7 @@ def _increasing_root(
 
 def _data_constants(dataset: str, run_dir: Path) -> tuple[float | None, float | None]:
     """``(dt, leader_length)`` of a posterior's data set, where they can be known."""
-    from .data import DATASETS
+    from ..data import DATASETS
 
     if dataset in DATASETS:
         spec = DATASETS[dataset]

@@ -44,11 +44,11 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import torch
 from torch import Tensor
 
-from .models import FollowerState
+from ..models import FollowerState
 from .sampler import HybridSampler, _increasing_root
 
 if TYPE_CHECKING:
-    from .data import PairSet
+    from ..data import PairSet
 
 
 class RingState(NamedTuple):

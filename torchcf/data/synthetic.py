@@ -15,9 +15,9 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from .data import PairSet
-from .models import get_model
-from .sim import simulate
+from ..models import get_model
+from ..sim import simulate
+from . import PairSet
 
 
 def leader_profiles(

@@ -1,0 +1,1 @@
+"""The ABC engine (placeholder docstring, completed with the engine)."""
