@@ -407,10 +407,11 @@ def test_shifted_plan_warm_start_helps_the_active_set_stage():
 def _leading_work(monkeypatch) -> dict[str, int]:
     """Count the instances the leading-block stage re-solves after its first pass
     (new solves and rank-one boundary steps)."""
-    import torchcf.qp as qp
+    # The active-set stage looks the two up in its own module: patched there.
+    import torchcf.qp.active_set as active_set
 
     work = {"first": 0, "later": 0}
-    solve, step = qp._leading_solve, qp._boundary_step
+    solve, step = active_set._leading_solve, active_set._boundary_step
 
     def counted_solve(data, lower, upper):
         work["later" if work["first"] else "first"] += lower.shape[1]
@@ -420,8 +421,8 @@ def _leading_work(monkeypatch) -> dict[str, int]:
         work["later"] += j.numel()
         return step(data, solution, j, lower, upper)
 
-    monkeypatch.setattr(qp, "_leading_solve", counted_solve)
-    monkeypatch.setattr(qp, "_boundary_step", counted_step)
+    monkeypatch.setattr(active_set, "_leading_solve", counted_solve)
+    monkeypatch.setattr(active_set, "_boundary_step", counted_step)
     return work
 
 
@@ -708,7 +709,7 @@ def _random_spd(batch: int, n: int, seed: int, dtype=torch.float64) -> Tensor:
 
 @pytest.mark.parametrize("batch", [3, 1500])  # LAPACK path and elementwise path
 def test_cholesky_factors_and_flags_singular(batch):
-    from torchcf.qp import _cholesky, _cholesky_solve, _ul_cholesky
+    from torchcf.qp.kernels import _cholesky, _cholesky_solve, _ul_cholesky
 
     n = 6
     M = _random_spd(batch, n, 0)
@@ -730,7 +731,12 @@ def test_cholesky_factors_and_flags_singular(batch):
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_leading_solve_matches_the_reduced_system(dtype):
     """x_F = P_FF^{-1} (-q_F - P_FA x_A) for a leading block A of every length."""
-    from torchcf.qp import _is_leading, _leading_data, _leading_factor, _leading_solve
+    from torchcf.qp.leading import (
+        _is_leading,
+        _leading_data,
+        _leading_factor,
+        _leading_solve,
+    )
 
     n, batch = 7, 64
     generator = torch.Generator().manual_seed(3)
@@ -784,13 +790,9 @@ def test_tail_residual_bounds_the_back_substitution(dtype, batch, bad):
     """The table of the free rows' residual: a bound of |U g - q| where that bound
     clears the acceptance floor, the residual itself where it does not (here the
     first ``bad`` instances, ill-conditioned)."""
-    from torchcf.qp import (
-        _back_substitute,
-        _leading_data,
-        _leading_factor,
-        _roundoff_floor,
-        _tail_residual,
-    )
+    from torchcf.qp.kernels import _back_substitute, _tail_residual
+    from torchcf.qp.leading import _leading_data, _leading_factor
+    from torchcf.qp.problem import _roundoff_floor
 
     n = 9
     generator = torch.Generator().manual_seed(7)
@@ -824,7 +826,7 @@ def test_tail_residual_bounds_the_back_substitution(dtype, batch, bad):
 def test_boundary_step_matches_a_new_solve(dtype):
     """Fixing the next bound, or freeing the last one, of a leading block by the
     rank-one update gives the solve on the new block."""
-    from torchcf.qp import (
+    from torchcf.qp.leading import (
         _boundary_step,
         _leading_data,
         _leading_factor,
@@ -857,7 +859,7 @@ def test_boundary_step_matches_a_new_solve(dtype):
     fixed = torch.where(side, lo, hi)
     assert torch.equal(stepped.x[after], fixed[after])  # exactly on the bounds
     # ... so the guess is recovered from x and k, as the compacted passes do.
-    from torchcf.qp import _leading_guess
+    from torchcf.qp.leading import _leading_guess
 
     for solution, block in ((start, before), (stepped, after), (direct, after)):
         lower, upper = _leading_guess(data, solution.x, solution.k)
@@ -865,7 +867,7 @@ def test_boundary_step_matches_a_new_solve(dtype):
 
 
 def test_is_leading():
-    from torchcf.qp import _is_leading
+    from torchcf.qp.leading import _is_leading
 
     columns = [[1, 1, 0], [0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 1], [1, 0, 1]]
     active = torch.tensor(columns, dtype=torch.bool).T  # (n = 3, B = 6)
@@ -882,7 +884,7 @@ def test_guesses_that_are_not_a_leading_block_are_still_solved():
     upper = torch.full((batch, n), 1.0, dtype=torch.float64)
     result = BoxQP(P).solve(q, lower, upper)
     active = (result.x <= lower + 1e-9) | (result.x >= upper - 1e-9)
-    from torchcf.qp import _is_leading
+    from torchcf.qp.leading import _is_leading
 
     assert not bool(_is_leading(active.T).all())  # the case under test occurs
     assert bool((result.status == int(QPStatus.SOLVED)).all())

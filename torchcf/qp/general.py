@@ -1,0 +1,77 @@
+"""The public solver for a general constraint matrix: :func:`solve_qp_batch`.
+
+Imports every lower layer it needs (:mod:`~torchcf.qp.problem`,
+:mod:`~torchcf.qp.admm`, :mod:`~torchcf.qp.polish`); nothing imports it but the
+package's ``__init__``.
+"""
+
+from __future__ import annotations
+
+from torch import Tensor
+
+from .admm import _kkt_inverse, _osqp_start, _rho_vector
+from .polish import _admm_then_polish
+from .problem import (
+    QPResult,
+    QPSettings,
+    _batch_first_result,
+    _batch_last_bounds,
+    _check_shape,
+    _ProblemData,
+)
+
+
+def solve_qp_batch(
+    P: Tensor,
+    q: Tensor,
+    A: Tensor,
+    l: Tensor,  # noqa: E741
+    u: Tensor,
+    *,
+    settings: QPSettings | None = None,
+    x0: Tensor | None = None,
+    y0: Tensor | None = None,
+) -> QPResult:
+    """Solve ``min 1/2 x'Px + q'x s.t. l <= Ax <= u`` for a batch of instances.
+
+    OSQP's ADMM (Stellato et al. 2020, Algorithm 1) per instance, with per-instance
+    termination, adaptive rho, infeasibility detection and polishing; see
+    :mod:`torchcf.qp`. Bounds may be ``-inf`` / ``+inf``; rows with ``l == u`` are
+    equalities.
+
+    Args:
+        P: (B, n, n) symmetric positive semidefinite.
+        q: (B, n).
+        A: (B, m, n).
+        l, u: (B, m) bounds, ``l <= u``.
+        settings: solver settings; default :class:`QPSettings()`.
+        x0, y0: (B, n), (B, m) optional warm start of the primal and dual iterate.
+
+    Returns:
+        :class:`QPResult` in the dtype and on the device of ``q``.
+    """
+    settings = settings or QPSettings()
+    batch, n = q.shape
+    m = A.shape[1]
+    _check_shape("P", P, (batch, n, n))
+    _check_shape("A", A, (batch, m, n))
+    _check_shape("l", l, (batch, m))
+    _check_shape("u", u, (batch, m))
+    _check_shape("x0", x0, (batch, n))
+    _check_shape("y0", y0, (batch, m))
+    dtype = q.dtype
+    lower, upper, _ = _batch_last_bounds(l, u, dtype)
+    data = _ProblemData(
+        P=P.to(dtype).permute(1, 2, 0).contiguous(),
+        q=q.T.contiguous(),
+        A=A.to(dtype).permute(1, 2, 0).contiguous(),
+        l=lower,
+        u=upper,
+    )
+    rho = q.new_full((batch,), settings.rho)
+    inverse = _kkt_inverse(data, _rho_vector(rho, data), settings.sigma)
+    start = _osqp_start(data, x0, y0, n, m)
+    outcome, polished = _admm_then_polish(data, start, rho, inverse, settings)
+    return _batch_first_result(
+        outcome.x, outcome.y, outcome.z, outcome.n_iter, outcome.status, polished
+    )
