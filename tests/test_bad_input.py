@@ -22,8 +22,8 @@ import pytest
 import torch
 
 from torchcf import evaluate as evaluate_cli
-from torchcf import train as train_cli
 from torchcf.posterior import Posterior
+from torchcf.train import __main__ as train_cli
 
 from .runs import run_module, write_config, write_data
 

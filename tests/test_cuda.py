@@ -16,6 +16,7 @@ import torch
 
 from torchcf import MODELS, simulate
 from torchcf.config import validate_config
+from torchcf.pipeline import run_study
 from torchcf.posterior import Posterior
 from torchcf.train import train
 
@@ -75,7 +76,7 @@ def test_training_on_cuda_keeps_the_cpu_particles(tmp_path):
     runs = []
     for i, device in enumerate(("cpu", "cuda")):
         cfg = _config(device=device, dtype="float64")
-        train(cfg, tmp_path / f"run{i}", pairs=(pairs, pairs), evaluate=False)
+        train(cfg, tmp_path / f"run{i}", pairs=(pairs, pairs))
         runs.append(Posterior.load(tmp_path / f"run{i}" / "posterior.pt"))
     on_cpu, on_gpu = runs
     for name in on_cpu.models:
@@ -92,7 +93,7 @@ def test_training_evaluation_and_diagnosis_on_cuda(tmp_path):
     test_pairs = synthetic_pairs(n_pairs=4, n_steps=200, seed=2)
     cfg = _config(diagnose={"n_particles": 3000, "effects": ["delay", "lag"]})
     out = tmp_path / "run"
-    summary = train(cfg, out, pairs=(train_pairs, test_pairs))
+    summary = run_study(cfg, out, pairs=(train_pairs, test_pairs))
     assert sum(summary["shares"].values()) == pytest.approx(1.0)
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["n_test"] == 4 and metrics["hybrid"]["ws"] != "inf"

@@ -15,13 +15,13 @@ import sys
 import pytest
 import torch
 
-import torchcf.train as train_module
+import torchcf.abc.rejection as rejection_module
 from torchcf.abc.distributed import SINGLE, Group, GroupError, init_from_env
 from torchcf.abc.topn import TopN
 from torchcf.config import load_config
 from torchcf.evaluate import evaluate_run
+from torchcf.pipeline import run_study
 from torchcf.posterior import Posterior
-from torchcf.train import train
 
 from .runs import torchrun_train, write_config, write_data
 
@@ -188,11 +188,11 @@ def runs(tmp_path_factory):
     config = write_config(root / "cfg.json", data, abc={"checkpoint_every": 1e-9})
     cfg = load_config(config)
     reference = root / "single"
-    train(cfg, reference)
+    run_study(cfg, reference)
 
     partial = root / "partial"
     calls = [0]
-    real = train_module.simulate
+    real = rejection_module.simulate
 
     def interrupted(*args, **kwargs):
         calls[0] += 1
@@ -201,9 +201,9 @@ def runs(tmp_path_factory):
         return real(*args, **kwargs)
 
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(train_module, "simulate", interrupted)
+        patch.setattr(rejection_module, "simulate", interrupted)
         with pytest.raises(KeyboardInterrupt):
-            train(cfg, partial)
+            run_study(cfg, partial)
     saved = torch.load(partial / "checkpoint.pt", weights_only=True)
     assert saved["progress"]["idm"]["next"] == 1000
     assert "llcs" not in saved["progress"] or not saved["progress"]["llcs"]["next"]

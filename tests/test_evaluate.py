@@ -49,7 +49,7 @@ def trained(tmp_path_factory):
     test_pairs = synthetic_pairs(n_pairs=4, n_steps=200, seed=2)
     out = tmp_path_factory.mktemp("run")
     cfg = small_config()
-    train(cfg, out, pairs=(train_pairs, test_pairs), evaluate=False)
+    train(cfg, out, pairs=(train_pairs, test_pairs))  # training only
     return cfg, out, train_pairs, test_pairs
 
 

@@ -8,7 +8,7 @@ import torch
 from tests.conftest import synthetic_pairs
 from tests.test_sampler import make_posterior
 from torchcf import HybridSampler, PairSet, simulate
-from torchcf.data.synthetic import leader_profiles
+from torchcf.synthetic import leader_profiles
 from torchcf.traffic.scenarios import (
     RingState,
     pair_leader,

@@ -16,8 +16,10 @@ import torch
 from torchcf import PairSet, simulate
 from torchcf.abc.streams import ParticleStream
 from torchcf.config import TrainConfig
+from torchcf.pipeline import run_study
 from torchcf.posterior import Posterior
-from torchcf.train import main, train
+from torchcf.train import train
+from torchcf.train.__main__ import main
 
 from .conftest import synthetic_pairs
 
@@ -65,7 +67,7 @@ def mixture() -> PairSet:
 
 def test_recovers_a_known_mixture(mixture, tmp_path):
     cfg = config(n_particles=30000, chunk_size=8192)
-    summary = train(cfg, tmp_path / "run", pairs=(mixture, mixture), evaluate=False)
+    summary = train(cfg, tmp_path / "run", pairs=(mixture, mixture))
     shares = summary["shares"]
     assert shares["idm"] == pytest.approx(0.6, abs=0.1)
     assert shares["hl"] == pytest.approx(0.4, abs=0.1)
@@ -81,7 +83,7 @@ def test_recovers_a_known_mixture(mixture, tmp_path):
 
 def test_buffers_equal_a_brute_force_sort(mixture, tmp_path):
     cfg = config(n_particles=3000, chunk_size=700)
-    train(cfg, tmp_path / "run", pairs=(mixture, mixture), evaluate=False)
+    train(cfg, tmp_path / "run", pairs=(mixture, mixture))
     posterior = Posterior.load(tmp_path / "run" / "posterior.pt")
     for name in ("idm", "hl"):
         spec = next(s for s in cfg.models if s.name == name)
@@ -112,7 +114,7 @@ def test_result_does_not_depend_on_the_chunk_size(mixture, tmp_path, layout):
     for chunk in (257, 1000):
         cfg = config(n_particles=1500, chunk_size=chunk, layout=layout)
         out = tmp_path / f"{layout}-{chunk}"
-        summary = train(cfg, out, pairs=(mixture, mixture), evaluate=False)
+        summary = train(cfg, out, pairs=(mixture, mixture))
         results.append((summary["shares"], Posterior.load(out / "posterior.pt")))
     (shares_a, post_a), (shares_b, post_b) = results
     assert shares_a == shares_b
@@ -130,7 +132,7 @@ def test_result_does_not_depend_on_the_number_of_threads(mixture, tmp_path):
                 update={"threads": threads}
             )
             train(
-                cfg, tmp_path / f"t{threads}", pairs=(mixture, mixture), evaluate=False
+                cfg, tmp_path / f"t{threads}", pairs=(mixture, mixture)
             )
             posteriors.append(Posterior.load(tmp_path / f"t{threads}" / "posterior.pt"))
     finally:
@@ -149,7 +151,7 @@ def test_outputs_and_event_tags(mixture, tmp_path):
 
     cfg = config(n_particles=2000, chunk_size=500, sensitivity_n=[5, 10])
     out = tmp_path / "run"
-    summary = train(cfg, out, pairs=(mixture, mixture))
+    summary = run_study(cfg, out, pairs=(mixture, mixture))
     on_disk = json.loads((out / "summary.json").read_text())
     metrics = json.loads((out / "metrics.json").read_text())
     for entry in ("idm", "hl", "hybrid"):
@@ -187,14 +189,14 @@ def test_existing_run_is_refused_and_resume_of_a_finished_run_is_idempotent(
 
     cfg = config(n_particles=1000, chunk_size=500)
     out = tmp_path / "run"
-    first = train(cfg, out, pairs=(mixture, mixture), evaluate=False)
+    first = train(cfg, out, pairs=(mixture, mixture))
     with pytest.raises(RunError, match="already holds a run"):
-        train(cfg, out, pairs=(mixture, mixture), evaluate=False)
-    again = train(cfg, out, resume=True, pairs=(mixture, mixture), evaluate=False)
+        train(cfg, out, pairs=(mixture, mixture))
+    again = train(cfg, out, resume=True, pairs=(mixture, mixture))
     assert again["shares"] == first["shares"]
     other = config(n_particles=1000, chunk_size=500, seed=2)
     with pytest.raises(RunError, match="different config"):
-        train(other, out, resume=True, pairs=(mixture, mixture), evaluate=False)
+        train(other, out, resume=True, pairs=(mixture, mixture))
 
 
 # --------------------------------------------------------------------------------------
@@ -301,12 +303,18 @@ def test_cli_resume_with_a_different_config_is_refused(data_root, tmp_path):
 def test_cuda_chunks_are_larger_by_default():
     """On CUDA a chunk holds at least CUDA_CHUNK_CELLS cells (launch overhead),
     unless the config sets one; no GPU is touched."""
+    from torchcf.abc.rejection import CUDA_CHUNK_CELLS
     from torchcf.models import get_model
-    from torchcf.train import CUDA_CHUNK_CELLS, _chunk_size
+    from torchcf.train import rollout_of
 
     pairs = synthetic_pairs(n_pairs=4, n_steps=50)
     model = get_model("idm")
     cuda, cpu = torch.device("cuda"), torch.device("cpu")
+
+    def _chunk_size(cfg, model, pairs, compiled, device):
+        rollout = rollout_of(cfg, pairs, device)
+        return rollout.chunk(model, cfg.abc.n_particles, compiled)
+
     big = config(n_particles=10_000_000)
     assert _chunk_size(big, model, pairs, False, cpu) == model.chunk_cells
     assert _chunk_size(big, model, pairs, False, cuda) == CUDA_CHUNK_CELLS

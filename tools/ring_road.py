@@ -38,7 +38,7 @@ import torch  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
 from torchcf import HybridSampler  # noqa: E402
-from torchcf.posterior import json_safe  # noqa: E402
+from torchcf.files import json_safe  # noqa: E402
 from torchcf.traffic.scenarios import platoon, ring_road  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -33,7 +33,6 @@ import copy
 import difflib
 import hashlib
 import json
-import sys
 import typing
 from collections.abc import Sequence
 from pathlib import Path
@@ -50,8 +49,10 @@ from pydantic import (
     model_validator,
 )
 
+from torchcf.cli import run_main
 from torchcf.data.reader import UNITS, unit_factor
 from torchcf.data.registry import DATASETS
+from torchcf.errors import TorchcfError
 from torchcf.models import EFFECTS, MODELS, UnknownModelError, get_model
 from torchcf.models.effects import parse_effect
 
@@ -71,7 +72,7 @@ __all__ = [
 ]
 
 
-class ConfigError(ValueError):
+class ConfigError(TorchcfError, ValueError):
     """A run configuration is unreadable or invalid; the message is one line."""
 
     def __init__(self, message: str) -> None:
@@ -841,15 +842,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if args.config is None:
         parser.error("give a CONFIG file or --schema")
-    try:
+
+    def body() -> int:
         cfg = load_config(args.config, args.overrides)
-    except ConfigError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    print(
-        json.dumps({"config": resolved_json(cfg), "hash": config_hash(cfg)}, indent=2)
-    )
-    return 0
+        resolved = {"config": resolved_json(cfg), "hash": config_hash(cfg)}
+        print(json.dumps(resolved, indent=2))
+        return 0
+
+    return run_main(body)
 
 
 if __name__ == "__main__":

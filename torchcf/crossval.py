@@ -1,27 +1,29 @@
 """k-fold cross-validation: ``python -m torchcf.crossval CONFIG [--folds 3]``.
 
 Trains and evaluates one run per fold (``data.split = "kfold"``, ``data.fold = i``,
-pairs partitioned by ``data.split_seed``) into ``OUT/fold<i>/``, then aggregates the
-folds' metrics by the mean, as the paper does (SPEC section 6), into
-``OUT/metrics.json`` and ``OUT/report/table.md``. Each fold is an ordinary run
-directory: an interrupted cross-validation continues with ``--resume`` (finished
-folds are kept, the unfinished one resumes from its checkpoint).
+pairs partitioned by ``data.split_seed``; :func:`torchcf.pipeline.run_study`, the
+loop included with ``diagnose.run_after_training``) into ``OUT/fold<i>/``, then
+aggregates the folds' metrics by the mean, as the paper does (SPEC section 6),
+into ``OUT/report/table.md`` and, last, ``OUT/metrics.json``. Each fold is an
+ordinary run directory: an interrupted cross-validation continues with
+``--resume`` (finished folds are kept, the unfinished one resumes from its
+checkpoint). The layout is :mod:`torchcf.rundir`'s.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from .cli import run_main
 from .config import ConfigError, TrainConfig, load_config
 from .evaluation.report import metrics_table
-from .posterior import atomic_write_text, json_safe
-from .train import USER_ERRORS, train
+from .files import atomic_write_text, ensure_directory
+from .pipeline import run_study
+from .rundir import RunDir
 
 METRIC_KEYS = ("e_p", "e_v", "e_a", "min", "beta_ws", "ws", "sinkhorn")
 
@@ -61,31 +63,37 @@ def _number(value: Any) -> float:
 
 
 def crossval(
-    cfg: TrainConfig, out: str | Path, *, folds: int, resume: bool = False
+    cfg: TrainConfig, out: str | Path | RunDir, *, folds: int, resume: bool = False
 ) -> dict[str, Any]:
-    """Run every fold and aggregate; returns the aggregated metrics."""
-    out = Path(out)
+    """Run every fold and aggregate; returns the aggregated metrics.
+
+    Raises:
+        RunFileError: a fold's files cannot be read (a corrupted metrics.json),
+            or an output cannot be written.
+        ConfigError, DataError, ...: as the training of a fold raises them.
+    """
+    out = RunDir(out)
+    out.probe()  # a full disk or a missing permission fails before any fold
+    out.discard_metrics()  # an earlier mean must not pass for this one's
     fold_metrics = []
     for fold in range(folds):
-        fold_dir = out / f"fold{fold}"
-        fold_cfg = fold_config(cfg, folds, fold)
-        if not (fold_dir / "metrics.json").exists():
-            started = (fold_dir / "checkpoint.pt").exists()
-            train(fold_cfg, fold_dir, resume=resume and started)
-        fold_metrics.append(json.loads((fold_dir / "metrics.json").read_text()))
+        fold_dir = out.fold(fold)
+        if not fold_dir.is_evaluated():
+            started = fold_dir.has_checkpoint()
+            run_study(
+                fold_config(cfg, folds, fold), fold_dir.path, resume=resume and started
+            )
+        fold_metrics.append(fold_dir.read_metrics())
     result = aggregate(fold_metrics)
-    atomic_write_text(
-        out / "metrics.json", json.dumps(json_safe(result), indent=2) + "\n"
-    )
     entries = [k for k, v in result.items() if isinstance(v, dict)]
-    report = out / "report"
-    report.mkdir(parents=True, exist_ok=True)
+    report = ensure_directory(out.report_dir, "report directory")
     atomic_write_text(
         report / "table.md",
         f"# {folds}-fold cross-validation (mean over folds)\n\n"
         + metrics_table({e: result[e] for e in entries}, entries)
         + "\n",
     )
+    out.write_metrics(result)  # last: its presence says the cross-validation ended
     return result
 
 
@@ -101,26 +109,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--set", dest="overrides", action="append", default=[])
     parser.add_argument("--resume", action="store_true")
     args = parser.parse_args(argv)
-    try:
+
+    def body() -> int:
         cfg = load_config(args.config, args.overrides)
         folds = args.folds if args.folds is not None else cfg.data.folds
         if folds < 2:
             raise ConfigError(f"--folds: need at least 2, got {folds}")
         out = Path(args.out) if args.out is not None else Path(f"{cfg.output}-cv")
         result = crossval(cfg, out, folds=folds, resume=args.resume)
-    except USER_ERRORS as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("interrupted: continue with --resume", file=sys.stderr)
-        return 130
-    hybrid = result["hybrid"]
-    print(
-        f"{folds}-fold mean, hybrid: WS {hybrid['ws']:.3f}, 0.15-WS "
-        f"{hybrid['beta_ws']:.3f}, min {hybrid['min']:.3f}"
-    )
-    print(f"wrote {out}")
-    return 0
+        hybrid = result["hybrid"]
+        print(
+            f"{folds}-fold mean, hybrid: WS {hybrid['ws']:.3f}, 0.15-WS "
+            f"{hybrid['beta_ws']:.3f}, min {hybrid['min']:.3f}"
+        )
+        print(f"wrote {out}")
+        return 0
+
+    return run_main(body, interrupted="interrupted: continue with --resume")
 
 
 if __name__ == "__main__":

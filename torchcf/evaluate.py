@@ -15,14 +15,13 @@ Appendix Tables 4-6), ``shares.png`` (Fig. 3a-c), ``pairwise.png`` (Fig. 3d-f),
 particles against all of them on one test pair) and ``radar.png`` (Figs. 5-6); the
 figures and metrics are also logged to the run's TensorBoard folder; and last
 ``RUN_DIR/metrics.json``, so that a run directory with ``metrics.json`` holds a
-complete evaluation. The trainer calls :func:`evaluate_run` at the end of a run.
+complete evaluation (the layout: :mod:`torchcf.rundir`). :mod:`torchcf.pipeline`
+calls :func:`evaluate_run` after training.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -31,8 +30,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .config import ConfigError, TrainConfig, validate_config
-from .data import DataError, PairSet, load_split
+from .cli import run_main
+from .config import TrainConfig
+from .data import PairSet, load_split
+from .errors import TorchcfError
 from .evaluation.metrics import evaluate_costs
 from .evaluation.plots import (
     error_evolution_figure,
@@ -42,18 +43,14 @@ from .evaluation.plots import (
     shares_figure,
 )
 from .evaluation.report import metrics_table
-from .posterior import (
-    Posterior,
-    PosteriorError,
-    WriteError,
-    atomic_write_text,
-    json_safe,
-)
+from .files import atomic_write_text, ensure_directory, writing
+from .posterior import Posterior
+from .rundir import RunDir
 from .sim import simulate
 from .tblog import RunLogger
 
 
-class EvaluationError(RuntimeError):
+class EvaluationError(TorchcfError, RuntimeError):
     """A run directory that cannot be evaluated (one-line message)."""
 
 
@@ -179,54 +176,8 @@ def position_errors(
     return time, np.concatenate(errors), np.concatenate(scores)
 
 
-def load_run(run_dir: Path) -> tuple[TrainConfig, Posterior, dict[str, Any]]:
-    """The config, posterior and summary of a finished run.
-
-    Raises:
-        EvaluationError: a file is missing, unreadable or corrupted (one line
-            naming it).
-        ConfigError: ``config.json`` is not a valid configuration.
-    """
-    run_dir = Path(run_dir)
-    for name in ("config.json", "posterior.pt", "summary.json"):
-        if not (run_dir / name).exists():
-            raise EvaluationError(
-                f"{run_dir} holds no finished run (no {name}); train it first"
-            )
-    raw = _read_json_object(run_dir / "config.json")
-    try:
-        cfg = validate_config(raw)
-    except ConfigError as error:
-        raise ConfigError(f"{run_dir / 'config.json'}: {error}") from None
-    try:
-        posterior = Posterior.load(run_dir / "posterior.pt")
-    except PosteriorError as error:
-        raise EvaluationError(str(error)) from None
-    summary = _read_json_object(run_dir / "summary.json")
-    for key in ("dataset", "pairwise"):
-        if key not in summary:
-            raise EvaluationError(f"{run_dir / 'summary.json'}: no {key!r} entry")
-    return cfg, posterior, summary
-
-
-def _read_json_object(path: Path) -> dict[str, Any]:
-    """A JSON object from ``path``; EvaluationError naming the file otherwise."""
-    try:
-        raw = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as error:
-        raise EvaluationError(f"cannot read {path}: {error}") from None
-    except json.JSONDecodeError as error:
-        raise EvaluationError(
-            f"{path} is corrupted: {error.msg} at line {error.lineno} column "
-            f"{error.colno}"
-        ) from None
-    if not isinstance(raw, dict):
-        raise EvaluationError(f"{path} is corrupted: not a JSON object")
-    return raw
-
-
 def evaluate_run(
-    run_dir: str | Path,
+    run_dir: str | Path | RunDir,
     *,
     report_dir: str | Path | None = None,
     pairs: tuple[PairSet, PairSet] | None = None,
@@ -236,7 +187,7 @@ def evaluate_run(
     """Evaluate the finished run in ``run_dir``; write metrics.json and the report.
 
     Args:
-        run_dir: a trainer output directory.
+        run_dir: a trainer output directory (:class:`~torchcf.rundir.RunDir`).
         report_dir: where the report goes (default ``run_dir/report``).
         pairs: optional ``(train, test)`` instead of loading the run's data config.
         figure_pair: the test pair (position) of the Fig. 4 figure; default the one
@@ -248,16 +199,23 @@ def evaluate_run(
         directory with ``metrics.json`` holds its whole report).
 
     Raises:
-        EvaluationError, ConfigError, DataError: an unfinished or corrupted run,
-            or data that cannot be loaded.
-        WriteError: an output could not be written.
+        RunFileError: an unfinished or corrupted run, or an output that cannot be
+            written (a full disk, a directory without permission).
+        ConfigError, DataError: the run's config is invalid, or its data cannot
+            be loaded.
+        EvaluationError: the hybrid particle set is empty.
     """
-    run_dir = Path(run_dir)
-    cfg, posterior, summary = load_run(run_dir)
+    run = RunDir(run_dir)
+    cfg, posterior, summary = run.load_run()
+    report = Path(report_dir) if report_dir is not None else run.report_dir
+    # The outputs' folders must take files before the data are loaded: fail fast
+    # (and leave no empty report folder if the data then fail).
+    run.probe()
+    ensure_directory(report, "report directory", keep=False)
     test = load_split(cfg.data)[1] if pairs is None else pairs[1]
     # A stale metrics.json of an earlier evaluation must not outlive a failure of
     # this one and pass for its result.
-    _remove(run_dir / "metrics.json")
+    run.discard_metrics()
     metrics, costs = evaluate_posterior(posterior, test, cfg)
     entries = [*[m for m in posterior.models if m in metrics], "hybrid"]
     result = {
@@ -269,11 +227,7 @@ def evaluate_run(
         **{entry: metrics[entry] for entry in entries},
     }
 
-    report = Path(report_dir) if report_dir is not None else run_dir / "report"
-    try:
-        report.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        raise WriteError(f"cannot write {report}: {error.strerror or error}") from None
+    ensure_directory(report, "report directory")
     atomic_write_text(
         report / "table.md",
         f"# {summary['dataset']}: test-split evaluation\n\n"
@@ -306,26 +260,13 @@ def evaluate_run(
     }
     for name, figure in figures.items():
         path = report / f"{name}.png"
-        try:
+        with writing(path):
             save_figure(figure, path)
-        except OSError as error:
-            raise WriteError(
-                f"cannot write {path}: {error.strerror or error}"
-            ) from None
     if tensorboard:
-        with RunLogger(run_dir / "tb") as logger:
+        with writing(run.tb_dir), RunLogger(run.tb_dir) as logger:
             logger.evaluation(figures, {e: metrics[e] for e in entries})
-    atomic_write_text(
-        run_dir / "metrics.json", json.dumps(json_safe(result), indent=2) + "\n"
-    )
+    run.write_metrics(result)
     return result
-
-
-def _remove(path: Path) -> None:
-    try:
-        path.unlink(missing_ok=True)
-    except OSError as error:
-        raise WriteError(f"cannot remove {path}: {error.strerror or error}") from None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -337,23 +278,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--report", type=Path, default=None, help="report folder")
     parser.add_argument("--pair", type=int, default=None, help="test pair of Fig. 4")
     args = parser.parse_args(argv)
-    try:
+
+    def body() -> int:
         result = evaluate_run(
             args.run_dir, report_dir=args.report, figure_pair=args.pair
         )
-    except (EvaluationError, ConfigError, DataError, WriteError, OSError) as error:
-        # OSError: the machine's (a file system failing underneath), not a bug.
-        print(f"error: {' '.join(str(error).split())}", file=sys.stderr)
-        return 2
-    print(f"{'':8} {'e_p':>8} {'min':>8} {'0.15-WS':>8} {'WS':>8}")
-    for entry, m in result.items():
-        if isinstance(m, dict) and "ws" in m:
-            print(
-                f"{entry:8} {m['e_p']:8.3f} {m['min']:8.3f} {m['beta_ws']:8.3f} "
-                f"{m['ws']:8.3f}"
-            )
-    print(f"wrote {args.run_dir / 'metrics.json'}")
-    return 0
+        print(f"{'':8} {'e_p':>8} {'min':>8} {'0.15-WS':>8} {'WS':>8}")
+        for entry, m in result.items():
+            if isinstance(m, dict) and "ws" in m:
+                print(
+                    f"{entry:8} {m['e_p']:8.3f} {m['min']:8.3f} "
+                    f"{m['beta_ws']:8.3f} {m['ws']:8.3f}"
+                )
+        print(f"wrote {RunDir(args.run_dir).metrics_json}")
+        return 0
+
+    return run_main(body)
 
 
 if __name__ == "__main__":

@@ -24,31 +24,15 @@ config nor torchcf's classes to read it:
 
 from __future__ import annotations
 
-import contextlib
-import math
 import os
-from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
-import numpy as np
-import torch
 from torch import Tensor
 
+from .files import RunFileError, atomic_torch_save, read_torch
+
 FORMAT = "torchcf.posterior/1"
-
-
-class WriteError(RuntimeError):
-    """An output file could not be written (disk full, no permission...).
-
-    The message is one line naming the file and the operating system's reason;
-    the file is left as it was before the write (see :func:`atomic_torch_save`).
-    """
-
-
-class PosteriorError(ValueError):
-    """A file that is not a readable ``posterior.pt`` (one-line message)."""
 
 
 @dataclass(frozen=True)
@@ -101,33 +85,32 @@ class Posterior:
         }
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Write atomically (temporary file, then rename)."""
-        atomic_torch_save(self.to_dict(), Path(path))
+        """Write atomically (temporary file, then rename).
+
+        Raises:
+            RunFileError: it cannot be written (a full disk: the previous file is
+                kept intact).
+        """
+        atomic_torch_save(self.to_dict(), path)
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Posterior:
         """Read a ``posterior.pt``.
 
         Raises:
-            PosteriorError: the file is missing, unreadable, truncated, or not a
+            RunFileError: the file is missing, unreadable, truncated, or not a
                 torchcf posterior of this format (one-line message).
         """
-        try:
-            raw = torch.load(Path(path), map_location="cpu", weights_only=True)
-        except FileNotFoundError:
-            raise PosteriorError(f"{path}: no such file") from None
-        except Exception as error:  # noqa: BLE001 - unpickling raises anything
-            raise PosteriorError(
-                f"{path}: unreadable or corrupted ({_one_line(error)})"
-            ) from None
+        raw = read_torch(path)
         if not isinstance(raw, dict) or raw.get("format") != FORMAT:
-            raise PosteriorError(f"{path}: not a torchcf posterior ({FORMAT})")
+            raise RunFileError(f"{path}: not a torchcf posterior ({FORMAT})")
         try:
             return cls._from_dict(raw)
         except (KeyError, TypeError, ValueError, AttributeError) as error:
-            raise PosteriorError(
+            reason = " ".join(str(error).split())
+            raise RunFileError(
                 f"{path}: malformed torchcf posterior ({type(error).__name__}: "
-                f"{_one_line(error)})"
+                f"{reason})"
             ) from None
 
     @classmethod
@@ -161,71 +144,4 @@ class Posterior:
         )
 
 
-def atomic_torch_save(obj: Any, path: Path) -> None:
-    """``torch.save`` to ``path`` so that a crash never leaves a partial file.
-
-    The data goes to a temporary file beside ``path``, is flushed to disk, and
-    replaces ``path`` in one rename: ``path`` holds either its old content or the
-    new one, never a mix, whatever interrupts the write (kill -9, a full disk).
-
-    Raises:
-        WriteError: the write failed (the temporary file is removed and ``path``
-            keeps its previous content).
-    """
-    _atomic_write(Path(path), lambda handle: torch.save(obj, handle), "wb")
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write a text file atomically (as :func:`atomic_torch_save`)."""
-    _atomic_write(Path(path), lambda handle: handle.write(text), "w")
-
-
-def _atomic_write(path: Path, write: Callable[[IO[Any]], Any], mode: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
-        encoding = None if "b" in mode else "utf-8"
-        with open(tmp, mode, encoding=encoding) as handle:
-            write(handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except OSError as error:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        reason = error.strerror or _one_line(error)
-        raise WriteError(f"cannot write {path}: {reason}") from None
-    except BaseException:
-        # Interrupted (Ctrl-C) or failed otherwise: no stray temporary file.
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
-
-
-def _one_line(error: BaseException) -> str:
-    return " ".join(str(error).split()) or type(error).__name__
-
-
-def json_safe(value: Any) -> Any:
-    """``value`` with non-finite floats as the strings "inf", "-inf", "nan" (JSON has
-    no such numbers) and numpy scalars as Python numbers, recursively."""
-    if isinstance(value, dict):
-        return {k: json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [json_safe(v) for v in value]
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
-    return value
-
-
-__all__ = [
-    "FORMAT",
-    "ModelParticles",
-    "Posterior",
-    "PosteriorError",
-    "WriteError",
-    "atomic_torch_save",
-    "atomic_write_text",
-    "json_safe",
-]
+__all__ = ["FORMAT", "ModelParticles", "Posterior"]

@@ -119,7 +119,7 @@ def _block(
         state: follower state at the block's first step, ``(P,)`` or ``(P, N)``.
         acc: streaming sums.
         memory: what a stateful controller carries between steps (usually None).
-        obs: ``(S, N, 6)`` observation table of the block's steps.
+        obs: ``(BLOCK_STEPS, N, 6)`` observation table of the block's steps.
         pair_index: ``(P,)`` pair of each particle in the paired layout, else None.
         origin: road position [m] of each cell's relative frame, broadcastable to
             the state, for models that perceive their road position
@@ -127,7 +127,7 @@ def _block(
 
     Returns:
         the state after the block, the sums, the memory, and if ``record`` the
-        ``(S, 3, *state_shape)`` stack of simulated x, v and recorded a.
+        ``(BLOCK_STEPS, 3, *state)`` stack of simulated x, v and recorded a.
     """
     recorded = []
     for step in range(obs.shape[0]):
@@ -216,7 +216,8 @@ def _rollout_chunk(
     Args:
         theta: ``(P, K)`` chunk of parameters.
         pair_index: ``(P,)`` (paired layout) or None (full layout).
-        blocks: ``(S, N, 6)`` observation blocks covering the padded time axis.
+        blocks: ``(BLOCK_STEPS, N, 6)`` observation blocks covering the padded time
+            axis.
         origin: ``(N,)`` road position of each pair's relative frame [m].
 
     Returns:
@@ -321,9 +322,13 @@ def _compiled_block(
 _COMPILE_FAILED: set[str] = set()
 
 
-def _resolve_compile(
+def resolve_compile(
     model: CFModel, compile: CompileMode, device: torch.device, cells: int
 ) -> bool:
+    """Whether a rollout of ``cells`` simulated steps in all (particles x pairs x
+    steps) of ``model`` runs compiled: ``compile`` True/False as asked (a model
+    that cannot compile never does), "auto" from :data:`COMPILE_MIN_STEPS` cells
+    on, where a C++ compiler (CPU) or CUDA is there."""
     if not model.compilable:
         return False
     if compile == "auto":
@@ -338,7 +343,8 @@ def _observation_table(pairs: PairSet, dtype: torch.dtype, device: torch.device)
     """The ``(T_pad, N, 6)`` table, the ``(N,)`` origins and valid-step counts.
 
     Positions are shifted by each pair's initial follower position; ``T`` is padded to
-    a multiple of ``BLOCK_STEPS`` with copies of the last row, marked invalid.
+    ``T_pad``, a multiple of ``BLOCK_STEPS``, with copies of the last row, marked
+    invalid.
     """
     origin = pairs.x_follow[0]  # (N,)
     table = torch.stack(
@@ -367,7 +373,7 @@ def _observation_table(pairs: PairSet, dtype: torch.dtype, device: torch.device)
 
 def check_theta(model: CFModel, theta: Tensor, what: str = "theta") -> None:
     """ValueError (one line, naming ``what``) unless ``theta`` is a finite
-    (P, n_params) particle matrix of ``model``."""
+    (P, K) particle matrix of ``model`` (K = ``model.n_params``)."""
     if theta.ndim != 2 or theta.shape[1] != model.n_params:
         raise ValueError(
             f"{what} must be (P, {model.n_params}) for {model.name} "
@@ -449,7 +455,7 @@ def simulate(
     if chunk_size <= 0:
         raise ValueError(f"chunk_size must be positive, got {chunk_size}")
     chunk_size = min(chunk_size, max(n_particles, 1))
-    use_compile = _resolve_compile(
+    use_compile = resolve_compile(
         model, compile, device, n_particles * cells_per_particle * pairs.n_steps
     )
     if use_compile:

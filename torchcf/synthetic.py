@@ -15,9 +15,9 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from ..models import get_model
-from ..sim import simulate
-from . import PairSet
+from .data import PairSet
+from .models import get_model
+from .sim import simulate
 
 
 def leader_profiles(
@@ -29,7 +29,8 @@ def leader_profiles(
     cruise: tuple[float, float] = (10.0, 22.0),
     start: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Leader position, speed and acceleration, ``(T, N)`` float64 each.
+    """Leader position, speed and acceleration, ``(T, N)`` float64 each (T =
+    ``n_steps``, N = ``n_pairs``).
 
     Speed = cruise + three random sinusoids (periods 8-40 s, amplitudes 0.5-2.5
     m/s) + two braking events (a 1.5-3 m/s^2 deceleration for 1-2.5 s, then
@@ -89,7 +90,8 @@ def synthetic_pairs(
 
     Args:
         model: registry name, effects allowed (``"idm+delay"``).
-        theta: ``(K,)`` one particle for every pair, or ``(n_pairs, K)``.
+        theta: ``(K,)`` one particle for every pair, or ``(N, K)`` (N = ``n_pairs``),
+            one per pair.
         initial_gap: range of the initial time gap [s]; the follower starts at
             the leader's speed, ``gap * v + 8`` m behind it.
         noise: standard deviation of white noise added to the recorded follower

@@ -147,7 +147,8 @@ class RunLogger:
             shares: model name -> share in [0, 1].
             pairwise_models: the M models of ``pairwise_table``.
             pairwise_table: (M, M) share of row model i in the hybrid of {i, j}.
-            sensitivity: optional N (number of accepted particles) -> shares.
+            sensitivity: optional top-N size ``n`` (accepted particles per pair)
+                -> shares; logged under the tag ``hybrid/sensitivity/N=<n>``.
         """
         if self._writer is None:
             return
@@ -305,12 +306,12 @@ def markdown_summary(summary: Mapping[str, Any]) -> str:
     Args:
         summary: ``{"dataset", "n_train", "shares": {model: fraction}, "per_model":
             {model: {"best_score", "threshold", "invalid", "particles", "seconds",
-            "particles_per_s"}}, "sensitivity": {N: {model: share}}}``; every key
+            "particles_per_s"}}, "sensitivity": {n: {model: share}}}``; every key
             is optional, missing values show as "–".
 
     Returns:
         Markdown: a header line, one table with a row per model and, with
-        ``sensitivity``, a second table with a column per N.
+        ``sensitivity``, a second table with a column per top-N size ``n``.
     """
     shares: Mapping[str, Any] = summary.get("shares") or {}
     per_model: Mapping[str, Mapping[str, Any]] = summary.get("per_model") or {}
@@ -356,7 +357,7 @@ def _row(cells: Sequence[str]) -> str:
 
 
 def _sort_key(n: Any) -> tuple[int, float | str]:
-    # N keys may come back from JSON as strings; numeric ones sort numerically.
+    # Keys n may come back from JSON as strings; numeric ones sort numerically.
     try:
         return (0, float(n))
     except (TypeError, ValueError):

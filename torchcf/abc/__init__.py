@@ -1,1 +1,66 @@
-"""The ABC engine (placeholder docstring, completed with the engine)."""
+"""The one ABC engine: prior streams -> rollouts -> per-pair top-N -> the hybrid.
+
+Used alike by training (:mod:`torchcf.train`), cross-validation and the diagnosis
+loop (:mod:`torchcf.diagnose`). Layers, each importing only those above it:
+
+- :mod:`~torchcf.abc.streams`: counter-based prior streams (particle j of model m,
+  and its pair, is a pure function of ``(seed, m, j)``);
+- :mod:`~torchcf.abc.topn`: :class:`TopN`, the streaming per-pair buffer of the
+  ``n`` best ``(score, particle index)``;
+- :mod:`~torchcf.abc.distributed`: :class:`Group`, the processes of a ``torchrun``
+  that share a stream (shards of a round, buffers merged after it);
+- :mod:`~torchcf.abc.rejection`: :class:`Rollout` (how particles are simulated)
+  and :func:`run_rejection`, the chunked draw -> simulate -> push loop;
+- :mod:`~torchcf.abc.hybrid`: the hybrid's selection with the one tie rule (score,
+  then particle index, then the model's position), shares, the pairwise table and
+  the learned set (:func:`hybrid_posterior`);
+- :mod:`~torchcf.abc.particles`: :class:`Particles`, particle sets kept as tensors
+  outside a buffer (a local search), and :func:`best_per_pair` over them.
+
+Re-exports only.
+"""
+
+from .distributed import SINGLE, Group, GroupError, init_from_env
+from .hybrid import (
+    Selection,
+    hybrid_posterior,
+    pairwise_table,
+    rank_per_pair,
+    select,
+    select_global,
+    select_per_pair,
+)
+from .particles import Particles, best_per_pair
+from .rejection import (
+    CUDA_CHUNK_CELLS,
+    ModelProgress,
+    Rollout,
+    prior_stream,
+    run_rejection,
+)
+from .streams import ParticleStream
+from .topn import TopN, lexsort
+
+__all__ = [
+    "CUDA_CHUNK_CELLS",
+    "SINGLE",
+    "Group",
+    "GroupError",
+    "ModelProgress",
+    "ParticleStream",
+    "Particles",
+    "Rollout",
+    "Selection",
+    "TopN",
+    "best_per_pair",
+    "hybrid_posterior",
+    "init_from_env",
+    "lexsort",
+    "pairwise_table",
+    "prior_stream",
+    "rank_per_pair",
+    "run_rejection",
+    "select",
+    "select_global",
+    "select_per_pair",
+]

@@ -19,7 +19,7 @@ How the trainer shares a run (:func:`torchcf.train.train`):
   score, bit for bit.
 * After each round the ranks' replicas of the model's per-pair top-N buffer are
   merged (:meth:`Group.end_round`: an all-gather, then
-  :meth:`torchcf.topn.TopN.merge`, ties broken by particle index) and the invalid
+  :meth:`torchcf.abc.topn.TopN.merge`, ties broken by particle index) and the invalid
   counts summed. Every rank then holds the buffer that one process holds after the
   same particles: the result is identical to a single-process run, and a checkpoint
   written at a round boundary is an ordinary checkpoint (a run may be resumed with
@@ -43,6 +43,7 @@ import torch
 import torch.distributed as dist
 from torch import Tensor
 
+from ..errors import TorchcfError
 from .topn import TopN
 
 __all__ = ["SINGLE", "Group", "GroupError", "init_from_env"]
@@ -54,7 +55,7 @@ T = TypeVar("T")
 TIMEOUT = timedelta(minutes=30)
 
 
-class GroupError(RuntimeError):
+class GroupError(TorchcfError, RuntimeError):
     """The process group cannot be joined, or rank 0 failed (one-line message)."""
 
 
@@ -171,8 +172,8 @@ class Group:
             dist.destroy_process_group()
 
     def _all_gather(self, tensor: Tensor) -> Tensor:
-        """``(world_size, *tensor.shape)`` stack of every rank's ``tensor`` (on
-        ``tensor``'s device)."""
+        """``(R, *tensor.shape)`` stack of every rank's ``tensor``, R = ``world_size``
+        replicas (on ``tensor``'s device)."""
         local = tensor.to(self.device).contiguous()
         parts = [torch.empty_like(local) for _ in range(self.world_size)]
         dist.all_gather(parts, local)

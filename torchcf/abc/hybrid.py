@@ -1,19 +1,22 @@
 """Hybrid model selection from the per-model top-N buffers (SPEC section 5).
 
-Per pair (default): merge the models' N best particles on that pair and keep the N
-best across models; ``Theta_hybrid`` is the union over pairs (``N x n_pairs``
-entries, a particle accepted on two pairs counting twice). The share ``beta_m`` of
-model m is its fraction of ``Theta_hybrid``.
+Per pair (default): merge the models' ``n`` best particles on that pair (``n``:
+the top-N size, config ``abc.top_n``) and keep the ``n`` best across models;
+``Theta_hybrid`` is the union over the N pairs (``n x N`` entries, a particle
+accepted on two pairs counting twice). The share ``beta_m`` of model m is its
+fraction of ``Theta_hybrid``.
 
-Global (the paper's Eq. 6-7): merge every model's per-pair N best into one set and
-keep its ``N^A`` best, whatever their pairs.
+Global (the paper's Eq. 6-7): merge every model's per-pair ``n`` best into one set
+and keep its ``N^A`` best (the paper's symbol), whatever their pairs.
 
 Ties: by score, then lower particle index (SPEC), then the model's position in the
 run's model list (the SPEC leaves ties across models open: particle indices of
 different models are different streams), then the pair.
 
 Everything here reads buffers only: the pairwise table (the hybrid built from two
-models alone) and the sensitivity over N need no new simulation.
+models alone) and the sensitivity over ``n`` need no new simulation.
+
+Shapes: M models, N pairs, ``n`` entries per pair, Q candidates (:mod:`torchcf.typing`).
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..models import get_model
+from ..posterior import ModelParticles, Posterior
 from .topn import TopN, lexsort
 
 
@@ -32,7 +37,7 @@ class Selection:
     """Members of a hybrid: which buffer entries were kept.
 
     Attributes:
-        member: (M, n_pairs, N) bool, entry ``[m, p, r]`` = the ``r``-th best
+        member: (M, N, n) bool, entry ``[m, p, r]`` = the ``r``-th best
             particle of model ``m`` on pair ``p`` is in the hybrid.
         models: the model names, in buffer order.
     """
@@ -55,10 +60,39 @@ class Selection:
 
 
 def _stack(buffers: Sequence[TopN], n: int) -> tuple[Tensor, Tensor]:
-    """Scores and indices of the first ``n`` entries: (M, n_pairs, n) each."""
+    """Scores and indices of the first ``n`` entries: (M, N, n) each."""
     scores = torch.stack([b.first(n)[0] for b in buffers])
     indices = torch.stack([b.first(n)[1] for b in buffers])
     return scores, indices
+
+
+def rank_per_pair(
+    score: Tensor, index: Tensor, source: Tensor, pair: Tensor, n: int
+) -> tuple[Tensor, Tensor]:
+    """The one tie rule of torchcf: per pair, candidates ordered by score, then the
+    lower particle index, then the source (the model's position in the run's list).
+
+    Args:
+        score: (Q,) float64 candidates' scores (``+inf``: invalid or empty slot).
+        index: (Q,) int64 particle indices.
+        source: (Q,) int64 position of each candidate's model (or set).
+        pair: (Q,) int64 pair of each candidate.
+        n: candidates kept per pair.
+
+    Returns:
+        ``member`` (Q,) bool: among the ``n`` best of its pair and finite; and
+        ``order`` (Q,) int64: the candidates sorted by pair, then the tie rule.
+    """
+    order = lexsort(pair, score, index, source)  # (Q,) pair-major
+    sorted_pair = pair[order]
+    count = torch.bincount(
+        sorted_pair, minlength=int(pair.max()) + 1 if pair.numel() else 0
+    )
+    first_of_pair = torch.cumsum(count, 0) - count  # (N,)
+    rank = torch.arange(order.numel()) - first_of_pair[sorted_pair]
+    member = torch.zeros_like(score, dtype=torch.bool)
+    member[order] = (rank < n) & torch.isfinite(score[order])
+    return member, order
 
 
 def select_per_pair(
@@ -69,20 +103,15 @@ def select_per_pair(
     Args:
         buffers: one :class:`TopN` per model (same pairs, capacity >= n).
         models: their names.
-        n: N.
+        n: entries kept per pair (the top-N size).
     """
-    scores, indices = _stack(buffers, n)  # (M, P, n)
-    n_models, n_pairs, _ = scores.shape
-    # Per pair, candidates in (model, rank) order: (P, M * n).
-    cand_score = scores.permute(1, 0, 2).reshape(n_pairs, -1)
-    cand_index = indices.permute(1, 0, 2).reshape(n_pairs, -1)
-    cand_model = torch.arange(n_models).repeat_interleave(n).expand(n_pairs, -1)
-    member = torch.zeros(n_pairs, n_models * n, dtype=torch.bool)
-    for p in range(n_pairs):  # n_pairs is small (tens); each sort is M * n long
-        order = lexsort(cand_score[p], cand_index[p], cand_model[p])[:n]
-        member[p, order] = torch.isfinite(cand_score[p, order])
-    member = member.reshape(n_pairs, n_models, n).permute(1, 0, 2)
-    return Selection(member.contiguous(), tuple(models))
+    scores, indices = _stack(buffers, n)  # (M, N, n)
+    model = torch.arange(scores.shape[0])[:, None, None].expand_as(scores)
+    pair = torch.arange(scores.shape[1])[None, :, None].expand_as(scores)
+    member, _ = rank_per_pair(
+        scores.reshape(-1), indices.reshape(-1), model.reshape(-1), pair.reshape(-1), n
+    )
+    return Selection(member.reshape(scores.shape), tuple(models))
 
 
 def select_global(
@@ -91,7 +120,7 @@ def select_global(
     """Global hybrid: the ``size`` (``N^A``) best of all models' per-pair ``n`` best."""
     if size < 1:
         raise ValueError(f"size (N^A) must be >= 1, got {size}")
-    scores, indices = _stack(buffers, n)  # (M, P, n)
+    scores, indices = _stack(buffers, n)  # (M, N, n)
     n_models, n_pairs, _ = scores.shape
     model = torch.arange(n_models)[:, None, None].expand_as(scores)
     pair = torch.arange(n_pairs)[None, :, None].expand_as(scores)
@@ -152,8 +181,59 @@ def pairwise_table(
     return table
 
 
+def hybrid_posterior(
+    buffers: Sequence[TopN],
+    models: Sequence[str],
+    selection: Selection,
+    n: int,
+    train_pair_ids: Tensor,
+    *,
+    dataset: str,
+    mode: str,
+) -> Posterior:
+    """The learned set: the hybrid's members with their scores, pairs and stream
+    indices, and every model's full buffer.
+
+    Args:
+        buffers: one :class:`TopN` per model, in the run's model order.
+        models: their names.
+        selection: the hybrid (:func:`select` over the same buffers and ``n``).
+        n: entries kept per pair (the top-N size).
+        train_pair_ids: (N,) int64 data-set ids of the training pairs.
+        dataset: the data set's label.
+        mode: the selection mode ("per_pair" or "global").
+    """
+    hybrid = {}
+    saved = {}
+    for m, (name, buffer) in enumerate(zip(models, buffers, strict=True)):
+        score, index, theta = buffer.first(n)
+        # member[m] is (N, n); rows, ranks: (Q,) each, model m's Q members.
+        rows, ranks = selection.member[m].nonzero(as_tuple=True)
+        param_names = tuple(get_model(name).param_names)
+        hybrid[name] = ModelParticles(
+            param_names,
+            theta[rows, ranks].clone(),
+            score[rows, ranks].clone(),
+            train_pair_ids[rows],
+            index[rows, ranks].clone(),
+        )
+        saved[name] = {"param_names": list(param_names), **buffer.state_dict()}
+    return Posterior(
+        dataset=dataset,
+        selection=mode,
+        top_n=n,
+        models=tuple(models),
+        shares=selection.shares(),
+        train_pair_ids=train_pair_ids,
+        hybrid=hybrid,
+        buffers=saved,
+    )
+
+
 __all__ = [
     "Selection",
+    "hybrid_posterior",
+    "rank_per_pair",
     "pairwise_table",
     "select",
     "select_global",

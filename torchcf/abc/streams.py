@@ -97,8 +97,9 @@ class ParticleStream:
         """Particles ``start .. stop-1``.
 
         Returns:
-            theta: (n, K) float64, ``low + (high - low) u``;
-            pair: (n,) int64 uniform over ``0 .. n_pairs-1`` (paired), else None.
+            theta: (stop - start, K) float64, ``low + (high - low) u``;
+            pair: (stop - start,) int64 uniform over ``0 .. n_pairs-1`` (paired), else
+                None.
         """
         k = self.bounds.shape[0]
         u = uniforms(self.seed, self.model, start, stop, k + 1)

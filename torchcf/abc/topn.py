@@ -2,9 +2,9 @@
 
 For every training pair the buffer keeps the ``capacity`` particles with the lowest
 score, ties broken by the lower particle index, and never stores the others: its
-memory is ``n_pairs x capacity`` whatever the number of particles streamed through
-it, and its content equals a full sort of all scores, whatever order and chunking
-the particles arrive in.
+memory is ``N x capacity`` for N pairs, whatever the number of particles streamed
+through it, and its content equals a full sort of all scores, whatever order and
+chunking the particles arrive in.
 
 Invalid particles (score ``+inf``) never enter. Slots not yet filled hold score
 ``+inf`` and index ``-1``; a pair with fewer than ``capacity`` valid particles keeps
@@ -12,8 +12,8 @@ empty slots.
 
 Offering an entry the buffer already holds (same pair, score and particle index)
 changes nothing, so replicas of a buffer that saw different particles merge exactly
-(:meth:`TopN.merge`): the distributed trainer (:mod:`torchcf.distributed`) relies
-on it.
+(:meth:`TopN.merge`): the distributed trainer (:mod:`torchcf.abc.distributed`)
+relies on it.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from torch import Tensor
 
 
 def lexsort(*keys: Tensor) -> Tensor:
-    """Permutation sorting by ``keys[0]``, then ``keys[1]``, ... (all (M,)).
+    """Permutation sorting by ``keys[0]``, then ``keys[1]``, ... (1-D, one length).
 
     Stable sorts from the least significant key up (like ``numpy.lexsort`` with
     the keys reversed).
@@ -37,18 +37,19 @@ def lexsort(*keys: Tensor) -> Tensor:
 
 
 class TopN:
-    """The ``capacity`` best ``(score, index)`` entries of each of ``n_pairs`` pairs.
+    """The ``capacity`` best ``(score, index)`` entries of each of N pairs.
 
     Args:
-        n_pairs: number of pairs.
-        capacity: entries kept per pair (the largest N that will be asked for).
-        n_params: parameters per particle (stored with each entry).
+        n_pairs: number of pairs, N.
+        capacity: entries kept per pair (the largest ``n`` :meth:`first` will be
+            asked for).
+        n_params: parameters per particle, K (stored with each entry).
         device: where the buffer lives.
 
     Attributes:
-        score: (n_pairs, capacity) float64, ascending per pair; ``+inf`` = empty.
-        index: (n_pairs, capacity) int64 particle index; ``-1`` = empty.
-        theta: (n_pairs, capacity, n_params) float64 parameters.
+        score: (N, capacity) float64, ascending per pair; ``+inf`` = empty.
+        index: (N, capacity) int64 particle index; ``-1`` = empty.
+        theta: (N, capacity, K) float64 parameters.
     """
 
     def __init__(
@@ -78,7 +79,7 @@ class TopN:
         return self.score.shape[1]
 
     def threshold(self) -> Tensor:
-        """(n_pairs,) score a new particle must not exceed to enter (``+inf``
+        """(N,) score a new particle must not exceed to enter (``+inf``
         while a pair has an empty slot)."""
         return self.score[:, -1]
 
@@ -86,12 +87,12 @@ class TopN:
         """Offer candidates; keeps the buffer equal to the best of everything seen.
 
         Args:
-            pair: (M,) int64 pair position of each candidate.
-            score: (M,) scores (any float dtype; NaN and +inf are rejected).
-            index: (M,) int64 particle indices; a (pair, index) already held, or
+            pair: (Q,) int64 pair position of each candidate.
+            score: (Q,) scores (any float dtype; NaN and +inf are rejected).
+            index: (Q,) int64 particle indices; a (pair, index) already held, or
                 repeated among the candidates, is kept once (a particle's score
                 and parameters are a function of its index).
-            theta: (M, n_params) parameters.
+            theta: (Q, K) parameters.
 
         Returns:
             The number of candidates that passed the threshold test (entered or
@@ -151,8 +152,8 @@ class TopN:
         """Offer particles simulated on every pair (full layout).
 
         Args:
-            score: (P, n_pairs) scores; index: (P,) particle indices;
-            theta: (P, n_params).
+            score: (P, N) scores; index: (P,) particle indices;
+            theta: (P, K).
         """
         device = self.score.device
         score = score.to(device=device, dtype=torch.float64)
@@ -171,9 +172,9 @@ class TopN:
         every process that merges the same replicas holds the same buffer.
 
         Args:
-            score: (R, n_pairs, capacity) the replicas' scores.
-            index: (R, n_pairs, capacity) int64 particle indices (-1 = empty).
-            theta: (R, n_pairs, capacity, n_params) parameters.
+            score: (R, N, capacity) the replicas' scores.
+            index: (R, N, capacity) int64 particle indices (-1 = empty).
+            theta: (R, N, capacity, K) parameters.
         """
         expected = (self.n_pairs, self.capacity)
         if score.shape[1:] != expected or index.shape != score.shape:
@@ -182,7 +183,7 @@ class TopN:
                 f"{tuple(score.shape)} and {tuple(index.shape)}"
             )
         pair = torch.arange(self.n_pairs, device=index.device)[None, :, None]
-        pair = pair.expand_as(index)  # (R, n_pairs, capacity)
+        pair = pair.expand_as(index)  # (R, N, capacity)
         held = index >= 0
         self.push(pair[held], score[held], index[held], theta[held])
 

@@ -27,6 +27,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchcf.errors import TorchcfError
+
 __all__ = ["DataError", "PairSet", "SERIES"]
 
 #: Field names of the six observed series, in the canonical order.
@@ -42,7 +44,7 @@ SERIES: tuple[str, ...] = (
 _SPLITS = (None, "train", "test")
 
 
-class DataError(ValueError):
+class DataError(TorchcfError, ValueError):
     """Observed data is missing, malformed or physically impossible."""
 
 
@@ -241,11 +243,11 @@ class PairSet:
         """The pairs at positions ``index`` (0-based positions in this set).
 
         Args:
-            index: (M,) positions (ints or a LongTensor; negatives count from the
-                end), or an (N,) bool tensor selecting pairs.
+            index: (N',) positions (ints or a LongTensor; negatives count from the
+                end), or an (N,) bool tensor selecting N' pairs.
 
         Returns:
-            A PairSet of M pairs with the same T; ``pair_ids`` follow the pairs.
+            A PairSet of N' pairs with the same T; ``pair_ids`` follow the pairs.
 
         Raises:
             IndexError: a position is out of range.

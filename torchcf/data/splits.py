@@ -46,8 +46,9 @@ def kfold_split(
         seed: seed of the permutation; the same seed gives the same folds.
 
     Returns:
-        ``(train, test)``: (T, N - M) and (T, M) PairSets, each in ascending order
-        of position in ``pairs``, with ``split`` set to "train" and "test".
+        ``(train, test)``: (T, N - N_test) and (T, N_test) PairSets (N_test: the
+        fold's pairs), each in ascending order of position in ``pairs``, with
+        ``split`` set to "train" and "test".
 
     Raises:
         DataError: ``folds < 2``, ``fold`` out of range, or fewer pairs than folds

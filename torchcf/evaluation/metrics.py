@@ -196,12 +196,13 @@ def _solve_restricted(
     """Exact plan of the balanced problem that avoids the ``inf`` cells of ``cost``.
 
     Args:
-        a: (R,) row masses; b: (N,) column masses (same total).
-        cost: (R, N) costs, ``inf`` = forbidden.
+        a: (P',) row masses (P' = P, or P + 1 with beta-WS's free row); b: (N,)
+            column masses (same total).
+        cost: (P', N) costs, ``inf`` = forbidden.
         max_iter: network-simplex pivots allowed.
 
     Returns:
-        (R, N) optimal plan, or ``None`` when no plan avoids the forbidden cells.
+        (P', N) optimal plan, or ``None`` when no plan avoids the forbidden cells.
     """
     valid = np.isfinite(cost)
     if valid.all():

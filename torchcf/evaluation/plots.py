@@ -177,7 +177,8 @@ def radar_values(
         entry name -> one value in [0, 1] per key, entries in the order of ``metrics``.
     """
     names = list(metrics)
-    # (entries, keys) raw values; a missing key (or None) reads as NaN: "not finite".
+    # (len(names), len(keys)) raw values; a missing key (or None) reads as NaN:
+    # "not finite".
     raw = np.array(
         [[_float_or_nan(metrics[name].get(key)) for key in keys] for name in names],
         dtype=np.float64,

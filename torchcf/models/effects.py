@@ -136,7 +136,7 @@ class Offset(Effect):
 
 
 class DelayMemory(namedtuple("DelayMemory", ["spacing", "v_lead"])):
-    """Histories ``(D, *state)``: entry k is the value k steps ago (0 = now)."""
+    """Histories ``(D, *state)``, D steps deep: entry k is the value k steps ago."""
 
 
 class Delay(Effect):
@@ -350,7 +350,6 @@ EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
     for cls in (Offset, Delay, Asymmetry, Saturation, Resistance, Grade, Lag)
 }
-_STAGE_ORDER = {"perception": 0, "command": 1, "realisation": 2}
 
 
 class AugmentedModel(CFModel):

@@ -14,6 +14,9 @@ K inputs whose Hessian depends on the particle only (:func:`mpc_qp_matrices`): i
 factorised once per particle (:meth:`MPC.prepare`) and reused at every step, and each
 step warm-starts from the previous solution: its active set is the first guess of
 the active-set stage, and, shifted by one step, it starts ADMM.
+
+Shapes (:mod:`torchcf.typing`): ``B`` QPs, one per simulated cell, each in the
+``n = K`` inputs of the horizon (the QP's ``n`` variables).
 """
 
 from __future__ import annotations
@@ -43,14 +46,14 @@ def mpc_qp_matrices(
         R: (B,) input weight.
         alpha: (B,) speed-difference weight.
         dt: step [s].
-        horizon: K.
+        horizon: K, the QP's ``n`` inputs.
 
     Returns:
-        H: (B, K, K) symmetric positive definite; G: (B, K, 2).
+        H: (B, n, n) symmetric positive definite; G: (B, n, 2), ``n = K``.
     """
     batch, dtype, device = tau.shape[0], tau.dtype, tau.device
-    b_spacing = -tau * dt - dt - 0.5 * dt * dt  # (B,) first entry of B
-    b_speed = -dt  # second entry of B
+    b_spacing = -tau * dt - dt - 0.5 * dt * dt  # (B,) first entry of matrix B
+    b_speed = -dt  # second entry of matrix B
     gamma = torch.zeros(batch, 2 * horizon, horizon, dtype=dtype, device=device)
     phi = torch.zeros(2 * horizon, 2, dtype=dtype, device=device)
     for k in range(1, horizon + 1):
@@ -63,7 +66,7 @@ def mpc_qp_matrices(
     weighted = gamma * state_weights.repeat(1, horizon)[:, :, None]  # Qbar Gamma
     eye = torch.eye(horizon, dtype=dtype, device=device)
     hessian = 2.0 * (gamma.transpose(1, 2) @ weighted + R[:, None, None] * eye)
-    linear = 2.0 * weighted.transpose(1, 2) @ phi  # (B, K, 2)
+    linear = 2.0 * weighted.transpose(1, 2) @ phi  # (B, n, 2)
     return hessian, linear
 
 
@@ -79,21 +82,21 @@ class MPCParams(NamedTuple):
 class MPCPrepared(NamedTuple):
     """An MPC chunk ready to run: flattened parameters and the factorised QPs.
 
-    Every field is over the C = prod(state shape) simulated cells.
+    Every field is over the B = prod(state shape) simulated cells, one QP each.
     """
 
-    params: MPCParams  # fields (C,)
-    solver: BoxQP  # C box QPs of size K
-    linear: Tensor  # (C, K, 2): q = linear @ z_0
-    free_spacing: Tensor  # (C, K): unconstrained U* = free_spacing e + free_speed dv
-    free_speed: Tensor  # (C, K)
+    params: MPCParams  # fields (B,)
+    solver: BoxQP  # B box QPs of n = K variables
+    linear: Tensor  # (B, n, 2): q = linear @ z_0
+    free_spacing: Tensor  # (B, n): unconstrained U* = free_spacing e + free_speed dv
+    free_speed: Tensor  # (B, n)
     state_shape: tuple[int, ...]
 
 
 class MPCMemory(NamedTuple):
     """The last step's solution; shifted by one step it warm-starts the next."""
 
-    inputs: Tensor  # (C, K)
+    inputs: Tensor  # (B, n)
 
 
 #: Solver settings: tight enough that u_0 meets SPEC's 1e-4 (float64) / 1e-3
@@ -110,7 +113,7 @@ class MPC(CFModel):
     warm-started ADMM.
 
     Args:
-        horizon: prediction horizon K [steps].
+        horizon: prediction horizon K [steps], the QP's ``n`` variables.
         settings: ADMM settings.
         method: ``"auto"`` (the stages above) or ``"admm"`` (ADMM alone after the
             fast path; for testing the solver).
@@ -149,13 +152,13 @@ class MPC(CFModel):
         n_cells = math.prod(state_shape)
         flat = MPCParams(
             *(field.expand(state_shape).reshape(n_cells) for field in p)
-        )  # fields (C,)
+        )  # fields (B,)
         hessian, linear = mpc_qp_matrices(
             flat.tau, flat.R, flat.alpha, dt, self.horizon
         )
         solver = BoxQP(hessian, self.settings)
         # The unconstrained minimiser is linear in z_0: U* = -H^{-1} G z_0. With
-        # this (K, 2) map per cell (from the solver's cached inverse) the common
+        # this (n, 2) map per cell (from the solver's cached inverse) the common
         # case costs two multiply-adds per input.
         return MPCPrepared(
             params=flat,
@@ -172,23 +175,23 @@ class MPC(CFModel):
         if not isinstance(p, MPCPrepared):
             raise TypeError("MPC.command needs MPC.prepare(params, dt, state_shape)")
         spacing, v, v_lead = (
-            torch.broadcast_to(t, p.state_shape).reshape(-1)  # (C,)
+            torch.broadcast_to(t, p.state_shape).reshape(-1)  # (B,)
             for t in (obs.spacing, obs.v, obs.v_lead)
         )
         q = p.params
-        spacing_error = spacing - v * q.tau - q.l  # (C,)
-        speed_difference = v_lead - v  # (C,)
+        spacing_error = spacing - v * q.tau - q.l  # (B,)
+        speed_difference = v_lead - v  # (B,)
         # Exact fast path: an unconstrained minimiser inside the box is the solution.
         inputs = (
             p.free_spacing * spacing_error[:, None]
             + p.free_speed * speed_difference[:, None]
-        )  # (C, K)
+        )  # (B, n)
         lowest, highest = torch.aminmax(inputs, dim=1)
         outside = (lowest < q.amin) | (highest > q.amax)
         rest = outside.nonzero().squeeze(1)
         if rest.numel():
             z0 = torch.stack((spacing_error[rest], speed_difference[rest]), dim=1)
-            linear_term = torch.einsum("ckj,cj->ck", p.linear[rest], z0)  # (b, K)
+            linear_term = torch.einsum("ckj,cj->ck", p.linear[rest], z0)  # (b, n)
             bound_shape = (rest.numel(), self.horizon)
             warm = last = None
             if memory is not None:

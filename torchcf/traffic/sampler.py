@@ -35,7 +35,6 @@ tensor has that shape. Internally the vehicles are flattened to ``(V,)``.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Sequence
@@ -46,8 +45,10 @@ import torch
 from torch import Tensor, nn
 from torch.utils import _pytree as pytree
 
+from ..files import RunFileError
 from ..models import AugmentedModel, CFModel, FollowerState, Perception, get_model
 from ..posterior import Posterior
+from ..rundir import RunDir
 from ..sim import check_theta, realise
 
 #: The base class realises a command as a point mass (it ignores its parameters):
@@ -197,7 +198,7 @@ class HybridSampler(nn.Module):
         """
         path = Path(path)
         if path.is_dir():
-            path = path / "posterior.pt"
+            path = RunDir(path).posterior_pt
         if not path.is_file():
             raise ValueError(f"{path}: no such posterior file")
         posterior = Posterior.load(path)
@@ -763,11 +764,10 @@ def _data_constants(dataset: str, run_dir: Path) -> tuple[float | None, float | 
     if dataset in DATASETS:
         spec = DATASETS[dataset]
         return spec.dt, spec.leader_length
-    config = run_dir / "config.json"
     try:
-        data = json.loads(config.read_text())["data"]
+        data = RunDir(run_dir).read_config_json()["data"]
         return data.get("dt"), data.get("leader_length")
-    except (OSError, ValueError, KeyError, TypeError):
+    except (RunFileError, KeyError, TypeError, AttributeError):
         return None, None
 
 

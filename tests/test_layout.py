@@ -1,0 +1,148 @@
+"""The house's layout: no import cycles, imports point down the pipeline.
+
+Read from the source (every ``import`` statement, at any depth, so a
+function-level import that dodges a cycle counts too), not by importing.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1] / "torchcf"
+
+#: The pipeline's stages, in the data's order: a module may import its own stage
+#: and the stages before it, never a later one. (Checked per top-level name under
+#: ``torchcf``; a name missing here is a new module that must be placed.)
+STAGES = [
+    {"errors", "typing", "runtime", "files", "cli"},  # plumbing
+    {"data", "qp"},  # pairs in; the MPC's solver
+    {"models"},
+    {"sim", "synthetic"},  # the rollout; pairs made by it
+    {"config", "posterior", "rundir"},  # the run's config and files
+    {"abc"},  # the ABC engine
+    {"evaluation", "metrics", "tblog"},
+    {"evaluate", "diagnose"},
+    {"traffic"},
+    {"train"},
+    {"pipeline", "crossval", "cli", "demo", "__init__"},  # the top
+]
+#: Command-line modules: the top of the house, imported by nothing in it.
+CLI_MODULES = {
+    "torchcf.train.__main__",
+    "torchcf.diagnose.__main__",
+}
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT.parent).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _modules() -> dict[str, Path]:
+    return {_module_name(p): p for p in ROOT.rglob("*.py")}
+
+
+def _imports(name: str, path: Path, known: set[str]) -> set[str]:
+    """The torchcf modules ``name`` imports (resolved relative imports; ``from
+    package import submodule`` names the submodule)."""
+    is_package = path.name == "__init__.py"
+    package = name.split(".") if is_package else name.split(".")[:-1]
+    found = set()
+    tree = ast.parse(path.read_text(), str(path))
+    for node in _runtime_nodes(tree):
+        if isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package[: len(package) - node.level + 1]
+                module = ".".join(base + ([node.module] if node.module else []))
+            else:
+                module = node.module or ""
+            targets = [module] + [f"{module}.{a.name}" for a in node.names]
+        else:
+            continue
+        for target in targets:
+            while target and target not in known:
+                target = target.rpartition(".")[0]
+            if target.startswith("torchcf") and target != name:
+                found.add(target)
+    return found
+
+
+def _runtime_nodes(tree: ast.AST):
+    """Every node except those under ``if TYPE_CHECKING:`` (never imported)."""
+    for node in ast.iter_child_nodes(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            yield from (n for child in node.orelse for n in ast.walk(child))
+            continue
+        yield node
+        yield from _runtime_nodes(node)
+
+
+def _graph() -> dict[str, set[str]]:
+    modules = _modules()
+    known = set(modules)
+    return {name: _imports(name, path, known) for name, path in modules.items()}
+
+
+def _stage(module: str) -> int:
+    if module in CLI_MODULES:
+        return len(STAGES)
+    top = module.split(".")[1] if "." in module else "__init__"
+    for rank, names in enumerate(STAGES):
+        if top in names:
+            return rank
+    pytest.fail(f"{module}: place torchcf.{top} in a stage of tests/test_layout.py")
+
+
+def test_no_import_cycle():
+    graph = _graph()
+    state: dict[str, int] = {}  # 1 on the stack, 2 done
+
+    def visit(module: str, stack: list[str]) -> None:
+        state[module] = 1
+        for target in sorted(graph[module]):
+            if state.get(target) == 1:
+                cycle = stack[stack.index(target) :] + [target]
+                pytest.fail("import cycle: " + " -> ".join(cycle))
+            if target not in state:
+                visit(target, [*stack, target])
+        state[module] = 2
+
+    for module in sorted(graph):
+        if module not in state:
+            visit(module, [module])
+
+
+def test_imports_point_down_the_pipeline():
+    wrong = []
+    for module, targets in _graph().items():
+        if module == "torchcf":  # the public API re-exports from every stage
+            continue
+        for target in targets:
+            if target != "torchcf" and _stage(target) > _stage(module):
+                wrong.append(f"{module} -> {target}")
+    assert not wrong, "imports up the pipeline:\n" + "\n".join(sorted(wrong))
+
+
+def test_nothing_imports_a_command_line():
+    importers = [
+        f"{module} -> {target}"
+        for module, targets in _graph().items()
+        for target in targets
+        if target in CLI_MODULES
+    ]
+    assert not importers, importers
+
+
+def test_the_graph_sees_relative_and_function_level_imports():
+    """The checks above can fail: the parser finds what they look for."""
+    graph = _graph()
+    assert "torchcf.abc.rejection" in graph["torchcf.train.run"]
+    assert "torchcf.sim" in graph["torchcf.abc.rejection"]
+    assert "torchcf.pipeline" in graph["torchcf.train.__main__"]

@@ -1,0 +1,265 @@
+"""The rejection engine: draw -> simulate -> keep the n best per pair (SPEC section 5).
+
+One loop serves every caller — training (:mod:`torchcf.train`), cross-validation
+and the diagnosis loop's attribution (:mod:`torchcf.diagnose.attribution`):
+
+1. **draw** particles ``start .. stop - 1`` of a model's counter-based prior stream
+   (:class:`~torchcf.abc.streams.ParticleStream`: a particle, and in the paired
+   layout its training pair, is a pure function of ``(seed, model, index)``);
+2. **simulate** them on the pairs (:func:`torchcf.simulate`) and score them;
+3. **push** them into the model's per-pair buffer
+   (:class:`~torchcf.abc.topn.TopN`, exactly the ``n`` best by ``(score, index)``).
+
+Particles are processed in *rounds* of one chunk per process (one chunk in a single
+process, see :class:`~torchcf.abc.distributed.Group`); a round always simulates a
+whole chunk, so a compiled block sees one shape and every process simulates the
+chunks a single process would. The buffers after particle ``j`` are therefore the
+same whatever the chunk size, the number of processes or where a run was cut and
+resumed.
+
+The engine knows nothing of checkpoints, progress bars or run directories: a
+caller passes :class:`ModelProgress` (where to continue, what was counted) and
+callbacks that run between rounds.
+
+Shapes: P particles, N pairs, K parameters (:mod:`torchcf.typing`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import torch
+from torch import Tensor
+
+from ..data import PairSet
+from ..models import CFModel, get_model
+from ..sim import COMPILE_CHUNK_MULTIPLE, DEFAULT_WEIGHTS, resolve_compile, simulate
+from .distributed import SINGLE, Group
+from .streams import ParticleStream
+from .topn import TopN
+
+#: Default simulated cells per chunk on CUDA (at least): a GPU runs one kernel per
+#: operation and step whatever the chunk, so larger chunks amortise the launches.
+#: The result does not depend on it (chunk-size invariance).
+CUDA_CHUNK_CELLS = 2**21
+
+CompileChoice = Literal["auto", "on", "off"]
+
+
+@dataclass(frozen=True)
+class Rollout:
+    """How particles are simulated and scored: the pairs, the layout, the precision.
+
+    Attributes:
+        pairs: the pairs particles are fitted to ``(T, N)``.
+        paired: particle j is simulated on its own pair (the paper's layout); False:
+            on every pair (the full layout, ``(P, N)`` scores).
+        dtype: simulation precision (scores are kept in float64).
+        device: where the rollout runs.
+        weights: score weights of (position, speed, acceleration).
+        compile: ``"on"``, ``"off"`` or ``"auto"`` (fuse the time loop with
+            ``torch.compile`` when a model's whole stream is long enough to pay).
+        chunk_size: particles per simulate call; None: the model's cell budget
+            (:attr:`CFModel.chunk_cells`, at least :data:`CUDA_CHUNK_CELLS` on CUDA).
+    """
+
+    pairs: PairSet
+    paired: bool = True
+    dtype: torch.dtype = torch.float32
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+    weights: tuple[float, float, float] = DEFAULT_WEIGHTS
+    compile: CompileChoice = "auto"
+    chunk_size: int | None = None
+
+    @property
+    def cells_per_particle(self) -> int:
+        """Rollouts per particle: 1 (paired) or N (full)."""
+        return 1 if self.paired else self.pairs.n_pairs
+
+    def compiled(self, model: CFModel, n_particles: int) -> bool:
+        """Whether a stream of ``n_particles`` of ``model`` runs compiled."""
+        if self.compile == "on":
+            return model.compilable
+        if self.compile == "off":
+            return False
+        cells = n_particles * self.cells_per_particle * self.pairs.n_steps
+        return resolve_compile(model, "auto", self.device, cells)
+
+    def chunk(self, model: CFModel, n_particles: int, compiled: bool) -> int:
+        """Particles per simulate call for a stream of ``n_particles``."""
+        budget = model.chunk_cells
+        if self.device.type == "cuda":
+            budget = max(budget, CUDA_CHUNK_CELLS)
+        chunk = self.chunk_size or max(1, budget // self.cells_per_particle)
+        chunk = min(chunk, n_particles)
+        if compiled:  # compiled blocks want whole vector lanes (see torchcf.sim)
+            chunk = -(-chunk // COMPILE_CHUNK_MULTIPLE) * COMPILE_CHUNK_MULTIPLE
+        return chunk
+
+    def score(
+        self,
+        model: CFModel,
+        theta: Tensor,
+        pair: Tensor | None,
+        *,
+        chunk: int | None = None,
+        compiled: bool = False,
+    ) -> tuple[Tensor, Tensor]:
+        """Scores of particles ``theta (P, K)`` (float64) on their pairs.
+
+        Args:
+            pair: (P,) pair of each particle (paired layout), None for the full one.
+            chunk: particles per simulate call (default: :meth:`chunk`).
+
+        Returns:
+            ``score`` (P,) or (P, N) float64 on the rollout's device, ``+inf`` for an
+            invalid rollout, and ``valid`` of the same shape.
+        """
+        if chunk is None:
+            chunk = self.chunk(model, max(theta.shape[0], 1), compiled)
+        out = simulate(
+            model,
+            theta.to(self.dtype),
+            self.pairs,
+            pair,
+            dtype=self.dtype,
+            device=self.device,
+            weights=self.weights,
+            chunk_size=chunk,
+            compile=compiled,
+        )
+        return out.score.double(), out.valid
+
+
+@dataclass
+class ModelProgress:
+    """How far one model's stream went (a checkpoint holds it).
+
+    Attributes:
+        next: particles ``0 .. next - 1`` have been offered to the buffer.
+        invalid: invalid rollouts among them (cells, in the full layout).
+        seconds: simulation and selection time spent on them.
+        done: the stream is finished.
+    """
+
+    next: int = 0
+    invalid: int = 0
+    seconds: float = 0.0
+    done: bool = False
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "next": self.next,
+            "invalid": self.invalid,
+            "seconds": self.seconds,
+            "done": self.done,
+        }
+
+
+def prior_stream(
+    name: str, bounds: Tensor, seed: int, rollout: Rollout
+) -> ParticleStream:
+    """The model's prior stream for the rollout's layout (a pair per particle when
+    paired)."""
+    n_pairs = rollout.pairs.n_pairs if rollout.paired else None
+    return ParticleStream(name, bounds, seed, n_pairs)
+
+
+def run_rejection(
+    stream: ParticleStream,
+    buffer: TopN,
+    rollout: Rollout,
+    n_particles: int,
+    progress: ModelProgress,
+    *,
+    model: str | CFModel | None = None,
+    fixed: Tensor | None = None,
+    group: Group = SINGLE,
+    plan_particles: int | None = None,
+    checkpoint_due: Callable[[], bool] | None = None,
+    after_round: Callable[[ModelProgress, bool], None] | None = None,
+) -> None:
+    """Stream particles ``progress.next .. n_particles - 1`` through ``buffer``.
+
+    Args:
+        stream: the model's prior stream (:func:`prior_stream`); draws the first
+            ``K_drawn`` parameters.
+        buffer: the model's per-pair buffer (every rank holds a replica; merged
+            after every round).
+        rollout: how particles are simulated.
+        n_particles: where the stream stops.
+        progress: where to start; updated after every round.
+        model: the simulated model (default: the stream's name). A variant whose
+            last parameters are ``fixed`` draws only the others.
+        fixed: ``(K - K_drawn,)`` values appended to every drawn particle (a shared
+            effect's one value for all pairs).
+        group: the processes sharing the stream.
+        plan_particles: the stream length that sets the chunk and the compile
+            choice (default ``n_particles``; a caller that stops a stream at
+            several budgets passes the last, so every budget uses one chunk).
+        checkpoint_due: asked on rank 0's clock after every round (every rank
+            learns rank 0's answer).
+        after_round: called after every round with the progress and whether a
+            checkpoint is due.
+    """
+    simulated = get_model(model if model is not None else stream.model)
+    planned = plan_particles if plan_particles is not None else n_particles
+    compiled = rollout.compiled(simulated, planned)
+    chunk = rollout.chunk(simulated, planned, compiled)
+    round_size = chunk * group.world_size
+    for first in range(progress.next, n_particles, round_size):
+        began = time.perf_counter()
+        start, stop = group.shard(first, n_particles, chunk)
+        invalid = 0
+        if start < stop:
+            invalid = _push_chunk(
+                stream, buffer, rollout, simulated, start, stop, chunk, compiled, fixed
+            )
+        due = checkpoint_due() if checkpoint_due is not None else False
+        invalid, due = group.end_round(buffer, invalid, due)
+        progress.invalid += invalid
+        progress.next = min(first + round_size, n_particles)
+        progress.seconds += time.perf_counter() - began
+        if after_round is not None:
+            after_round(progress, due)
+
+
+def _push_chunk(
+    stream: ParticleStream,
+    buffer: TopN,
+    rollout: Rollout,
+    model: CFModel,
+    start: int,
+    stop: int,
+    chunk: int,
+    compiled: bool,
+    fixed: Tensor | None,
+) -> int:
+    """Draw, simulate and push particles ``start .. stop - 1``; their invalid count.
+
+    Always a whole chunk is simulated (one shape per model for a compiled block);
+    the particles past ``stop`` are dropped.
+    """
+    theta, pair = stream.draw(start, start + chunk)  # (chunk, K_drawn), (chunk,)
+    if fixed is not None:
+        theta = torch.cat((theta, fixed.expand(theta.shape[0], -1)), dim=1)
+    score, valid = rollout.score(model, theta, pair, chunk=chunk, compiled=compiled)
+    real = stop - start
+    particle = torch.arange(start, stop)
+    if rollout.paired:
+        buffer.push(pair[:real], score[:real], particle, theta[:real])
+    else:
+        buffer.push_full(score[:real], particle, theta[:real])
+    return int((~valid[:real]).sum())
+
+
+__all__ = [
+    "CUDA_CHUNK_CELLS",
+    "ModelProgress",
+    "Rollout",
+    "prior_stream",
+    "run_rejection",
+]

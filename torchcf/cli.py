@@ -1,0 +1,77 @@
+"""One policy for every command line (``python -m torchcf.<x>``).
+
+:func:`run_main` runs a command's body and maps its failures to exit codes:
+
+- 0: done;
+- 2: an error of the user's making or of the machine — a
+  :class:`~torchcf.errors.TorchcfError` (bad config, data, arguments, run
+  directory, a corrupted or unwritable file) or an ``OSError`` (a file system or
+  device failing underneath) — printed as ``error: <one line>`` on stderr, never a
+  traceback;
+- 130: interrupted (Ctrl-C), with a hint on how to continue.
+
+Anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+
+from .errors import TorchcfError
+
+#: Exit code of an error of the user's making or of the machine.
+EXIT_USER_ERROR = 2
+#: Exit code of an interrupted command (128 + SIGINT).
+EXIT_INTERRUPTED = 130
+
+
+def one_line(error: BaseException) -> str:
+    """The error's message on one line (its class name when it has none)."""
+    return " ".join(str(error).split()) or type(error).__name__
+
+
+def print_error(message: str) -> None:
+    """``error: <message>`` on stderr."""
+    print(f"error: {message}", file=sys.stderr)
+
+
+def run_main(
+    body: Callable[[], int],
+    *,
+    report: Callable[[BaseException], None] | None = None,
+    interrupted: str = "interrupted",
+) -> int:
+    """Run a command's ``body`` under the one policy (module docstring).
+
+    Args:
+        body: the command; returns its exit code (0 on success).
+        report: prints a user or machine error (default ``error: <one line>``);
+            a distributed command names the rank or stays silent on ranks whose
+            error rank 0 reports.
+        interrupted: the line printed on Ctrl-C (say how to continue).
+
+    Returns:
+        the exit code.
+    """
+    try:
+        return body()
+    except (TorchcfError, OSError) as error:
+        (report or _print)(error)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print(interrupted, file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _print(error: BaseException) -> None:
+    print_error(one_line(error))
+
+
+__all__ = [
+    "EXIT_INTERRUPTED",
+    "EXIT_USER_ERROR",
+    "one_line",
+    "print_error",
+    "run_main",
+]

@@ -1,0 +1,124 @@
+"""The study, in one place: train -> evaluate -> close the loop.
+
+Each stage is a library function that does its own work only:
+:func:`torchcf.train.train` writes the learned set, :func:`torchcf.evaluate.
+evaluate_run` the test-split metrics, :mod:`torchcf.diagnose.loop` the diagnosis
+(:func:`~torchcf.diagnose.loop.plan_loop` up to the choice of effects,
+:func:`~torchcf.diagnose.loop.finish_loop` after the re-calibration). This module
+chains them; the command lines (``python -m torchcf.train``, ``crossval``,
+``diagnose``) call it, and nothing below it runs another stage.
+
+The pairs are loaded once (on rank 0, after the output directory has been
+checked) and handed to every stage.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from .abc.distributed import SINGLE, Group
+from .config import TrainConfig
+from .data import PairSet, load_split
+from .diagnose.loop import finish_loop, plan_loop
+from .evaluate import evaluate_run
+from .train import open_run, train
+
+
+def train_and_evaluate(
+    cfg: TrainConfig,
+    out: str | Path,
+    *,
+    resume: bool = False,
+    pairs: tuple[PairSet, PairSet] | None = None,
+    evaluate: bool = True,
+    group: Group = SINGLE,
+) -> dict[str, Any]:
+    """Train ``cfg`` into ``out``, then (rank 0) evaluate it on the test pairs.
+
+    Args:
+        cfg: the run's configuration.
+        out: output directory.
+        resume: continue the run in ``out``.
+        pairs: ``(train, test)`` instead of loading ``cfg.data``.
+        evaluate: run the test-split evaluation after training.
+        group: the processes sharing the training (:mod:`torchcf.abc.distributed`).
+
+    Returns:
+        the training summary (``summary.json``), on every rank.
+    """
+    out = Path(out)
+    if pairs is None:
+        # The output directory is checked before the data are read (fail fast);
+        # train checks it again, cheaply, as it must when called alone.
+        group.on_main(open_run, cfg, out, resume)
+        pairs = group.on_main(load_split, cfg.data)
+    summary = train(cfg, out, resume=resume, pairs=pairs, group=group)
+    if evaluate and group.is_main:
+        evaluate_run(out, pairs=pairs)
+    return summary
+
+
+def run_study(
+    cfg: TrainConfig,
+    out: str | Path,
+    *,
+    resume: bool = False,
+    pairs: tuple[PairSet, PairSet] | None = None,
+    evaluate: bool = True,
+    group: Group = SINGLE,
+) -> dict[str, Any]:
+    """The study of a config: :func:`train_and_evaluate`, then, with
+    ``diagnose.run_after_training`` (and an evaluation), :func:`close_loop` on
+    rank 0.
+
+    Returns:
+        the training summary, on every rank.
+    """
+    out = Path(out)
+    if pairs is None:
+        group.on_main(open_run, cfg, out, resume)
+        pairs = group.on_main(load_split, cfg.data)
+    summary = train_and_evaluate(
+        cfg, out, resume=resume, pairs=pairs, evaluate=evaluate, group=group
+    )
+    if evaluate and cfg.diagnose.run_after_training and group.is_main:
+        close_loop(out, pairs=pairs)
+    return summary
+
+
+def close_loop(
+    run_dir: str | Path,
+    overrides: Sequence[str] = (),
+    *,
+    pairs: tuple[PairSet, PairSet] | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Close the loop on a finished, evaluated run (:mod:`torchcf.diagnose`).
+
+    Diagnose and attribute (:func:`~torchcf.diagnose.loop.plan_loop`); if effects
+    are chosen, re-calibrate the pool with them into ``RUN_DIR/loop/after`` and
+    evaluate it; then report (:func:`~torchcf.diagnose.loop.finish_loop`).
+
+    Args:
+        run_dir: a trained and evaluated run directory.
+        overrides: ``diagnose.key=VALUE`` items applied to the run's config.
+        pairs: ``(train, test)`` instead of loading the run's data.
+        progress: show progress bars.
+
+    Returns:
+        the loop result (also in ``RUN_DIR/loop.json``).
+    """
+    plan = plan_loop(run_dir, overrides, pairs=pairs, progress=progress)
+    if plan.recalibration is not None:
+        train_and_evaluate(
+            plan.recalibration,
+            plan.run.recalibration_dir,
+            resume=plan.resume_recalibration,
+            pairs=(plan.train_pairs, plan.test_pairs),
+        )
+    return finish_loop(plan)
+
+
+__all__ = ["close_loop", "run_study", "train_and_evaluate"]

@@ -1,0 +1,349 @@
+"""The run directory: the one place that knows its files, their names and layout.
+
+A run directory, as the commands leave it::
+
+    RUN_DIR/
+    ├── config.json       train     the resolved configuration (written first)
+    ├── checkpoint.pt     train     ABC progress and buffers, rewritten during the
+    │                               run and kept after it (``--resume``)
+    ├── tb/               train, evaluate, diagnose: TensorBoard event files
+    ├── posterior.pt      train     the learned particle set (torchcf.posterior)
+    ├── summary.json      train     written LAST by training: the run is trained
+    ├── report/           evaluate  table.md, shares.png, pairwise.png,
+    │                               error_evolution.png, radar.png
+    ├── metrics.json      evaluate  written LAST by the evaluation: it is evaluated
+    ├── loop/             diagnose  the loop's figures (*.png)
+    │   └── after/        diagnose  the re-calibration, itself a run directory
+    ├── loop.md           diagnose  the loop's report
+    └── loop.json         diagnose  written LAST by the loop: the loop finished
+
+A cross-validation (``python -m torchcf.crossval``) writes one run directory per
+fold, ``OUT/fold<i>/``, then the folds' mean in ``OUT/report/table.md`` and, last,
+``OUT/metrics.json``.
+
+Each step's last file marks its completion, so a directory never looks more
+finished than it is: every file is written atomically (:mod:`torchcf.files`: a
+temporary file renamed into place; a full disk keeps the previous checkpoint
+intact), and a file that cannot be read or written is a
+:class:`~torchcf.files.RunFileError` with one line naming it (a configuration
+that is readable but invalid: a :class:`~torchcf.config.ConfigError`).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from .files import (
+    RunFileError,
+    atomic_torch_save,
+    atomic_write_text,
+    ensure_directory,
+    read_json_object,
+    read_torch,
+    remove_file,
+    write_json,
+)
+from .posterior import Posterior
+
+# torchcf.config is imported where a config is written or read, not with this
+# module: the sampler (imported by ``import torchcf``) reads run directories, and
+# ``python -m torchcf.config`` must not find torchcf.config imported already.
+if TYPE_CHECKING:
+    from .config import TrainConfig
+
+#: Entries that every ``summary.json`` holds (the evaluation reads them).
+SUMMARY_KEYS = ("dataset", "pairwise")
+
+
+class RunDir:
+    """One run directory (module docstring): its paths, and its files read and
+    written.
+
+    Args:
+        path: the directory; nothing is touched until a method reads or writes.
+    """
+
+    __slots__ = ("_path",)
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self._path = Path(path)
+
+    def __fspath__(self) -> str:
+        return os.fspath(self._path)
+
+    def __repr__(self) -> str:
+        return f"RunDir({str(self._path)!r})"
+
+    def __str__(self) -> str:
+        return str(self._path)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, RunDir) and other._path == self._path
+
+    def __hash__(self) -> int:
+        return hash(self._path)
+
+    # ------------------------------------------------------------------ paths
+    @property
+    def path(self) -> Path:
+        """The directory."""
+        return self._path
+
+    @property
+    def config_json(self) -> Path:
+        return self._path / "config.json"
+
+    @property
+    def checkpoint(self) -> Path:
+        return self._path / "checkpoint.pt"
+
+    @property
+    def posterior_pt(self) -> Path:
+        return self._path / "posterior.pt"
+
+    @property
+    def summary_json(self) -> Path:
+        return self._path / "summary.json"
+
+    @property
+    def metrics_json(self) -> Path:
+        return self._path / "metrics.json"
+
+    @property
+    def report_dir(self) -> Path:
+        return self._path / "report"
+
+    @property
+    def tb_dir(self) -> Path:
+        return self._path / "tb"
+
+    @property
+    def loop_json(self) -> Path:
+        return self._path / "loop.json"
+
+    @property
+    def loop_md(self) -> Path:
+        return self._path / "loop.md"
+
+    @property
+    def loop_dir(self) -> Path:
+        return self._path / "loop"
+
+    @property
+    def recalibration_dir(self) -> Path:
+        """``loop/after``: the diagnosis loop's re-calibration (a run directory)."""
+        return self.loop_dir / "after"
+
+    def fold(self, index: int) -> RunDir:
+        """The run directory of fold ``index`` of a cross-validation in this one."""
+        return RunDir(self._path / f"fold{index}")
+
+    # ------------------------------------------------------------------ state
+    def prepare(self) -> RunDir:
+        """Create the directory and check, with a real write, that files can be
+        written in it: a full disk or a missing permission fails here, before any
+        data is loaded.
+
+        Returns:
+            self.
+
+        Raises:
+            RunFileError: the path exists and is not a directory, cannot be
+                created, or cannot be written.
+        """
+        ensure_directory(self._path, "output directory")
+        return self
+
+    def probe(self) -> None:
+        """Check as :meth:`prepare` does (the same errors), then remove the
+        directories it created: a command checks its output before it loads any
+        data, and leaves nothing behind if the data then fail.
+
+        Raises:
+            RunFileError: as :meth:`prepare`.
+        """
+        ensure_directory(self._path, "output directory", keep=False)
+
+    def holds_run(self) -> bool:
+        """Whether a run started here (a checkpoint) or finished (a summary)."""
+        return self.checkpoint.exists() or self.summary_json.exists()
+
+    def has_checkpoint(self) -> bool:
+        return self.checkpoint.exists()
+
+    def is_trained(self) -> bool:
+        """Whether training finished (``summary.json``, its last file)."""
+        return self.summary_json.exists()
+
+    def is_evaluated(self) -> bool:
+        """Whether the evaluation finished (``metrics.json``, its last file)."""
+        return self.metrics_json.exists()
+
+    def is_looped(self) -> bool:
+        """Whether the diagnosis loop finished (``loop.json``, its last file)."""
+        return self.loop_json.exists()
+
+    # ----------------------------------------------------------------- config
+    def write_config(self, cfg: TrainConfig | dict[str, Any]) -> None:
+        """``config.json``: the resolved configuration (a TrainConfig, or its
+        :func:`~torchcf.config.resolved_json` object)."""
+        from .config import TrainConfig, resolved_json  # not at the top (see there)
+
+        raw = resolved_json(cfg) if isinstance(cfg, TrainConfig) else cfg
+        write_json(self.config_json, raw)
+
+    def read_config(self) -> TrainConfig:
+        """The run's validated configuration.
+
+        Raises:
+            RunFileError: ``config.json`` missing, unreadable or corrupted.
+            ConfigError: not a valid configuration (message naming the file).
+        """
+        from .config import ConfigError, validate_config  # not at the top (see there)
+
+        raw = self.read_config_json()
+        try:
+            return validate_config(raw)
+        except ConfigError as error:
+            raise ConfigError(f"{self.config_json}: {error}") from None
+
+    def read_config_json(self) -> dict[str, Any]:
+        """``config.json`` as a JSON object, not validated.
+
+        Raises:
+            RunFileError: missing, unreadable or corrupted.
+        """
+        self._require(self.config_json, f"{self._path} holds no run (no config.json)")
+        return read_json_object(self.config_json)
+
+    # ------------------------------------------------------------- checkpoint
+    def save_checkpoint(self, obj: dict[str, Any]) -> None:
+        """``checkpoint.pt`` (a full disk keeps the previous one intact)."""
+        atomic_torch_save(obj, self.checkpoint)
+
+    def load_checkpoint(self) -> dict[str, Any]:
+        """The checkpoint as saved (its format is the trainer's to check).
+
+        Raises:
+            RunFileError: missing, unreadable, truncated, corrupted, or not a
+                dictionary.
+        """
+        self._require(self.checkpoint, f"no checkpoint.pt in {self._path}")
+        raw = read_torch(self.checkpoint)
+        if not isinstance(raw, dict):
+            raise RunFileError(
+                f"{self.checkpoint} is corrupted: a {type(raw).__name__}, not a "
+                "checkpoint"
+            )
+        return raw
+
+    # -------------------------------------------------------------- posterior
+    def save_posterior(self, posterior: Posterior) -> None:
+        """``posterior.pt``."""
+        posterior.save(self.posterior_pt)
+
+    def load_posterior(self) -> Posterior:
+        """The learned particle set.
+
+        Raises:
+            RunFileError: missing, unreadable, truncated or not a posterior.
+        """
+        self._require(self.posterior_pt, self._unfinished("posterior.pt"))
+        return Posterior.load(self.posterior_pt)
+
+    # ---------------------------------------------------------------- summary
+    def write_summary(self, summary: dict[str, Any]) -> None:
+        """``summary.json``, the last file of training."""
+        write_json(self.summary_json, summary)
+
+    def read_summary(self) -> dict[str, Any]:
+        """The training summary.
+
+        Raises:
+            RunFileError: missing (the run is not trained), unreadable,
+                truncated, not an object, or without its ``dataset`` or
+                ``pairwise`` entry.
+        """
+        self._require(self.summary_json, self._unfinished("summary.json"))
+        summary = read_json_object(self.summary_json)
+        for key in SUMMARY_KEYS:
+            if key not in summary:
+                raise RunFileError(f"{self.summary_json}: no {key!r} entry")
+        return summary
+
+    # ---------------------------------------------------------------- metrics
+    def write_metrics(self, metrics: dict[str, Any]) -> None:
+        """``metrics.json``, the last file of the evaluation."""
+        write_json(self.metrics_json, metrics)
+
+    def read_metrics(self) -> dict[str, Any]:
+        """The evaluation's metrics.
+
+        Raises:
+            RunFileError: missing (not evaluated), unreadable, truncated, not an
+                object, or without its ``hybrid`` entry.
+        """
+        self._require(
+            self.metrics_json,
+            f"{self._path} is not evaluated (no metrics.json); run "
+            f"python -m torchcf.evaluate {self._path}",
+        )
+        metrics = read_json_object(self.metrics_json)
+        if not isinstance(metrics.get("hybrid"), dict):
+            raise RunFileError(f"{self.metrics_json} is corrupted: no 'hybrid' entry")
+        return metrics
+
+    def discard_metrics(self) -> None:
+        """Remove ``metrics.json``: a stale evaluation must not outlive a failure
+        of the next one and pass for its result.
+
+        Raises:
+            RunFileError: it cannot be removed.
+        """
+        remove_file(self.metrics_json)
+
+    # ------------------------------------------------------------------- loop
+    def write_loop(self, result: dict[str, Any], markdown: str) -> None:
+        """``loop.md``, then ``loop.json`` last: its presence says the loop
+        finished."""
+        atomic_write_text(self.loop_md, markdown)
+        write_json(self.loop_json, result)
+
+    def read_loop(self) -> dict[str, Any]:
+        """The diagnosis loop's result.
+
+        Raises:
+            RunFileError: missing (the loop has not finished), unreadable,
+                truncated or not an object.
+        """
+        self._require(
+            self.loop_json, f"{self._path}: the loop has not finished (no loop.json)"
+        )
+        return read_json_object(self.loop_json)
+
+    # --------------------------------------------------------------- the run
+    def load_run(self) -> tuple[TrainConfig, Posterior, dict[str, Any]]:
+        """The configuration, posterior and summary of a finished run.
+
+        Raises:
+            RunFileError: one of the three missing (the run is not finished),
+                unreadable or corrupted (one line naming it).
+            ConfigError: ``config.json`` is not a valid configuration.
+        """
+        for path in (self.config_json, self.posterior_pt, self.summary_json):
+            self._require(path, self._unfinished(path.name))
+        return self.read_config(), self.load_posterior(), self.read_summary()
+
+    # ---------------------------------------------------------------- helpers
+    def _unfinished(self, name: str) -> str:
+        return f"{self._path} holds no finished run (no {name}); train it first"
+
+    @staticmethod
+    def _require(path: Path, message: str) -> None:
+        if not path.exists():
+            raise RunFileError(message)
+
+
+__all__ = ["SUMMARY_KEYS", "RunDir"]

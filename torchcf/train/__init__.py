@@ -1,0 +1,13 @@
+"""A training run: checkpoints, progress, ranks around the ABC engine.
+
+- :mod:`torchcf.train.run`: :func:`train` (one run of a config into a directory,
+  resumable, under ``torchrun`` or alone) and what it is made of;
+- :mod:`torchcf.train.__main__`: ``python -m torchcf.train CONFIG``, which runs the
+  study (:mod:`torchcf.pipeline`).
+
+Re-exports only.
+"""
+
+from .run import RunError, RunState, check_budget, open_run, rollout_of, train
+
+__all__ = ["RunError", "RunState", "check_budget", "open_run", "rollout_of", "train"]
