@@ -496,3 +496,35 @@ def test_crossval_with_a_truncated_fold_metrics(tmp_path, cfg):
     )
     one_error_line(result, str(damaged), "is corrupted")
     assert not out.is_evaluated()
+
+
+@pytest.mark.parametrize("free_kb", [0, 24])
+def test_training_on_a_full_disk(small_fs, tmp_path, free_kb):
+    """``python -m torchcf.train`` with ``--out`` on a small file system that is
+    full (0 kB left: found by the probe, before any data is read) or fills up
+    during the run (24 kB left: a checkpoint or the posterior does not fit, and
+    torch.save's RuntimeError underneath is the machine's error): one line, exit
+    code 2, no temporary file, and what was written before still readable."""
+    config = write_config(tmp_path / "cfg.json", write_data(tmp_path / "pairs"))
+    fill(small_fs)
+    if free_kb:
+        with open(small_fs / "filler", "r+b") as handle:
+            handle.truncate(os.path.getsize(small_fs / "filler") - free_kb * 1024)
+    out = small_fs / "run"
+    result = run_module("torchcf.train", str(config), "--out", str(out), "--no-eval")
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    lines = [line for line in result.stderr.splitlines() if "particle" not in line]
+    lines = [line for line in lines if line.strip()]  # less the progress bars
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    assert "No space left on device" in lines[0] and str(out) in lines[0]
+    no_temporary_files(small_fs)
+    run = RunDir(out)
+    assert not run.is_trained()
+    if free_kb:
+        assert "holds the data" not in result.stderr
+        assert run.read_config().abc.top_n == 3  # config.json went in whole
+        if run.checkpoint.exists():
+            assert run.load_checkpoint()["format"] == "torchcf.checkpoint/1"
+    else:
+        assert not out.exists()
+        assert "train" not in result.stderr.split("error:")[0]  # no data notes

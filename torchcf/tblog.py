@@ -22,12 +22,20 @@ tag                                       kind          step
 A disabled logger is a no-op throughout and imports neither TensorBoard nor
 matplotlib. On resume, ``purge_step`` makes TensorBoard discard the events a killed
 run wrote at or past the checkpoint's step.
+
+**Write failures.** TensorBoard writes its events from a background thread; a
+failure there (a full disk) would print that thread's traceback and surface later
+as a bare ``OSError`` in whatever call came next. The logger keeps the thread
+quiet (:func:`_quiet_writer_threads`) and reports the failure from its own
+methods as one :class:`~torchcf.files.RunFileError` naming the event directory.
 """
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Mapping, Sequence
+import threading
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
@@ -35,12 +43,45 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from torch import Tensor
 
+from .files import RunFileError, writing
+
 if TYPE_CHECKING:
     from torch.utils.tensorboard import SummaryWriter
 
 __all__ = ["RunLogger", "markdown_summary"]
 
 HParamValue = float | int | str | bool
+
+
+def _quiet_writer_threads() -> None:
+    """Keep TensorBoard's writer thread from printing the traceback of an
+    ``OSError`` (idempotent). The thread stores the error and TensorBoard raises it
+    again in the next call of the writing thread, where :class:`RunLogger`
+    reports it."""
+    previous = threading.excepthook
+    if getattr(previous, "torchcf_quiet", False):
+        return
+
+    def hook(args: threading.ExceptHookArgs) -> None:
+        writer_thread = type(args.thread).__name__ == "_AsyncWriterThread"
+        if writer_thread and isinstance(args.exc_value, OSError):
+            return
+        previous(args)
+
+    hook.torchcf_quiet = True  # type: ignore[attr-defined]
+    threading.excepthook = hook
+
+
+def _reports_write_errors(method: Callable[..., Any]) -> Callable[..., Any]:
+    """A RunLogger method whose ``OSError`` (the event file cannot be written)
+    becomes a RunFileError naming the event directory."""
+
+    @functools.wraps(method)
+    def wrapped(self: RunLogger, *args: Any, **kwargs: Any) -> Any:
+        with writing(self.logdir):
+            return method(self, *args, **kwargs)
+
+    return wrapped
 
 
 class RunLogger:
@@ -67,13 +108,16 @@ class RunLogger:
             # Imported here so that a disabled logger does not pay for TensorBoard.
             from torch.utils.tensorboard import SummaryWriter
 
-            self._writer = SummaryWriter(str(self.logdir), purge_step=purge_step)
+            _quiet_writer_threads()
+            with writing(self.logdir):
+                self._writer = SummaryWriter(str(self.logdir), purge_step=purge_step)
 
     @property
     def enabled(self) -> bool:
         """False when disabled or closed."""
         return self._writer is not None
 
+    @_reports_write_errors
     def progress(
         self,
         model: str,
@@ -109,6 +153,7 @@ class RunLogger:
             if math.isfinite(value):
                 self._writer.add_scalar(f"abc/{name}/{model}", value, global_step=step)
 
+    @_reports_write_errors
     def posterior(self, model: str, param_names: Sequence[str], theta: Tensor) -> None:
         """One histogram per parameter of the accepted particles.
 
@@ -134,6 +179,7 @@ class RunLogger:
             if column.size:
                 self._writer.add_histogram(f"posterior/{model}/{name}", column)
 
+    @_reports_write_errors
     def hybrid(
         self,
         shares: Mapping[str, float],
@@ -170,6 +216,7 @@ class RunLogger:
                     f"hybrid/sensitivity/N={n}/{model}", float(share)
                 )
 
+    @_reports_write_errors
     def evaluation(
         self,
         figures: Mapping[str, Any],
@@ -195,12 +242,14 @@ class RunLogger:
                 if isinstance(value, int | float) and math.isfinite(value):
                     self._writer.add_scalar(f"eval/{key}/{entry}", float(value))
 
+    @_reports_write_errors
     def text(self, tag: str, markdown: str) -> None:
         """Markdown text (TensorBoard stores it under ``<tag>/text_summary``)."""
         if self._writer is None:
             return
         self._writer.add_text(tag, markdown)
 
+    @_reports_write_errors
     def hparams(
         self,
         hparams: Mapping[str, HParamValue | Any],
@@ -232,15 +281,17 @@ class RunLogger:
         for tag, value in metric_dict.items():
             self._writer.add_scalar(tag, value)
 
+    @_reports_write_errors
     def flush(self) -> None:
         if self._writer is not None:
             self._writer.flush()
 
+    @_reports_write_errors
     def close(self) -> None:
         """Flush and close; later calls do nothing. Idempotent."""
-        if self._writer is not None:
-            self._writer.close()
-            self._writer = None
+        writer, self._writer = self._writer, None
+        if writer is not None:
+            writer.close()
 
     def __enter__(self) -> RunLogger:
         return self
@@ -251,7 +302,13 @@ class RunLogger:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        self.close()
+        if exc is None:
+            self.close()
+            return
+        try:  # the error under way is the one to report, not a second one here
+            self.close()
+        except RunFileError:
+            pass
 
 
 def _hparam_value(value: Any) -> HParamValue:
