@@ -200,6 +200,12 @@ class CFModel:
         """Realise the command over one step (point mass unless overridden)."""
         return point_mass_advance(state, u, dt)
 
+    @property
+    def realises_as_point_mass(self) -> bool:
+        """Whether :meth:`advance` is the point mass, whatever the parameters (a
+        simulation of several models may then move their vehicles in one call)."""
+        return type(self).advance is CFModel.advance
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}({', '.join(self.param_names)})"
 

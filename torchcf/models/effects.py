@@ -398,6 +398,11 @@ class AugmentedModel(CFModel):
             start += len(effect.param_specs)
         self._slices = tuple(bounds)
 
+    @property
+    def realises_as_point_mass(self) -> bool:
+        """The base's realisation, unless an effect realises the command itself."""
+        return self._realiser is None and self.base.realises_as_point_mass
+
     def check_bounds(self, box: Tensor) -> None:
         """Raise ValueError when a prior box (K, 2) is outside what the effects run."""
         for effect, part in zip(self.effects, self._slices, strict=True):

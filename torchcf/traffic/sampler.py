@@ -45,8 +45,9 @@ import torch
 from torch import Tensor, nn
 from torch.utils import _pytree as pytree
 
+from ..data import DATASETS
 from ..files import RunFileError
-from ..models import AugmentedModel, CFModel, FollowerState, Perception, get_model
+from ..models import CFModel, FollowerState, Perception, get_model
 from ..posterior import Posterior
 from ..rundir import RunDir
 from ..sim import check_theta, realise
@@ -55,15 +56,6 @@ from ..sim import check_theta, realise
 #: :meth:`HybridSampler.advance` moves every vehicle with it at once, then
 #: overwrites the groups whose model has its own realisation.
 _POINT_MASS = CFModel()
-
-
-def _has_point_mass_advance(model: CFModel) -> bool:
-    """Whether ``model.advance`` is the base class's point mass."""
-    if isinstance(model, AugmentedModel):
-        return all(
-            e.stage != "realisation" for e in model.effects
-        ) and _has_point_mass_advance(model.base)
-    return type(model).advance is CFModel.advance
 
 
 def _command(
@@ -542,11 +534,11 @@ class HybridSampler(nn.Module):
         state = FollowerState(*(t.reshape(-1) for t in (x, v, a)))  # (V,) each
         u = u.reshape(-1)
         moved = None
-        if any(_has_point_mass_advance(g.model) for g in self._groups):
+        if any(g.model.realises_as_point_mass for g in self._groups):
             # Every vehicle as a point mass in one pass; lag groups overwrite below.
             moved = realise(_POINT_MASS, None, state, u, self.dt)
         for group in self._groups:
-            if _has_point_mass_advance(group.model):
+            if group.model.realises_as_point_mass:
                 continue
             if group.covers_all:
                 moved = realise(group.model, group.prepared, state, u, self.dt)
@@ -594,7 +586,7 @@ class HybridSampler(nn.Module):
             ``vehicle_shape`` speed [m/s].
         """
         spacing = self._steady_tensor(spacing)
-        return _increasing_root(
+        return increasing_root(
             lambda v: -self._steady_command(spacing, v, position),
             torch.zeros_like(spacing),
             torch.full_like(spacing, v_max),
@@ -634,7 +626,7 @@ class HybridSampler(nn.Module):
         high = torch.zeros_like(v) + torch.as_tensor(
             s_max, dtype=v.dtype, device=v.device
         )
-        return _increasing_root(
+        return increasing_root(
             lambda spacing: self._steady_command(spacing, v, position),
             torch.full_like(v, s_min),
             high,
@@ -737,7 +729,7 @@ class HybridSampler(nn.Module):
         )
 
 
-def _increasing_root(
+def increasing_root(
     f, low: Tensor, high: Tensor, iterations: int, *, bracket: bool = False
 ) -> Tensor | tuple[Tensor, Tensor]:
     """Elementwise bisection for ``f(x) = 0`` with ``f`` increasing on ``[low, high]``.
@@ -759,8 +751,6 @@ def _increasing_root(
 
 def _data_constants(dataset: str, run_dir: Path) -> tuple[float | None, float | None]:
     """``(dt, leader_length)`` of a posterior's data set, where they can be known."""
-    from ..data import DATASETS
-
     if dataset in DATASETS:
         spec = DATASETS[dataset]
         return spec.dt, spec.leader_length
@@ -771,4 +761,4 @@ def _data_constants(dataset: str, run_dir: Path) -> tuple[float | None, float | 
         return None, None
 
 
-__all__ = ["HybridSampler"]
+__all__ = ["HybridSampler", "increasing_root"]

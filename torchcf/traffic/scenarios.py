@@ -45,7 +45,7 @@ import torch
 from torch import Tensor
 
 from ..models import FollowerState
-from .sampler import HybridSampler, _increasing_root
+from .sampler import HybridSampler, increasing_root
 
 if TYPE_CHECKING:
     from ..data import PairSet
@@ -401,7 +401,7 @@ def ring_initial_state(
             )
             return steady.sum(dim=1) - ring[:, 0]
 
-        v_low, v_high = _increasing_root(
+        v_low, v_high = increasing_root(
             excess,
             torch.zeros(n_scenarios, dtype=dtype, device=device),
             torch.full((n_scenarios,), v_max, dtype=dtype, device=device),
