@@ -87,7 +87,7 @@ def test_training_on_cuda_keeps_the_cpu_particles(tmp_path):
 
 
 def test_training_evaluation_and_diagnosis_on_cuda(tmp_path):
-    from torchcf.diagnose.loop import diagnose_run
+    from torchcf.pipeline import close_loop
 
     train_pairs = synthetic_pairs(n_pairs=6, n_steps=200, seed=1)
     test_pairs = synthetic_pairs(n_pairs=4, n_steps=200, seed=2)
@@ -105,7 +105,7 @@ def test_training_evaluation_and_diagnosis_on_cuda(tmp_path):
         positions = [train_pairs.pair_ids.index(int(p)) for p in particles.pair_ids]
         cpu = simulate(name, particles.theta, train_pairs, positions)
         torch.testing.assert_close(cpu.score, particles.score, rtol=2e-3, atol=1e-5)
-    result = diagnose_run(out, pairs=(train_pairs, test_pairs), progress=False)
+    result = close_loop(out, pairs=(train_pairs, test_pairs), progress=False)
     assert (out / "loop.json").exists() and "effects_ranked" in result
 
 

@@ -411,7 +411,7 @@ def _leading_work(monkeypatch) -> dict[str, int]:
     import torchcf.qp.active_set as active_set
 
     work = {"first": 0, "later": 0}
-    solve, step = active_set._leading_solve, active_set._boundary_step
+    solve, step = active_set.leading_solve, active_set.boundary_step
 
     def counted_solve(data, lower, upper):
         work["later" if work["first"] else "first"] += lower.shape[1]
@@ -421,8 +421,8 @@ def _leading_work(monkeypatch) -> dict[str, int]:
         work["later"] += j.numel()
         return step(data, solution, j, lower, upper)
 
-    monkeypatch.setattr(active_set, "_leading_solve", counted_solve)
-    monkeypatch.setattr(active_set, "_boundary_step", counted_step)
+    monkeypatch.setattr(active_set, "leading_solve", counted_solve)
+    monkeypatch.setattr(active_set, "boundary_step", counted_step)
     return work
 
 
@@ -709,22 +709,22 @@ def _random_spd(batch: int, n: int, seed: int, dtype=torch.float64) -> Tensor:
 
 @pytest.mark.parametrize("batch", [3, 1500])  # LAPACK path and elementwise path
 def test_cholesky_factors_and_flags_singular(batch):
-    from torchcf.qp.kernels import _cholesky, _cholesky_solve, _ul_cholesky
+    from torchcf.qp.kernels import cholesky, cholesky_solve, ul_cholesky
 
     n = 6
     M = _random_spd(batch, n, 0)
     M[:, :, 0] = 0.0  # instance 0 is singular: zero row and column
-    L, ok = _cholesky(M)
+    L, ok = cholesky(M)
     assert not bool(ok[0]) and bool(ok[1:].all())
     dense = M.permute(2, 0, 1)[1:]
     lower = torch.tril(L.permute(2, 0, 1)[1:])
     torch.testing.assert_close(lower @ lower.transpose(1, 2), dense)
-    U, ok_upper = _ul_cholesky(M)
+    U, ok_upper = ul_cholesky(M)
     upper = torch.triu(U.permute(2, 0, 1)[1:])
     torch.testing.assert_close(upper @ upper.transpose(1, 2), dense)
     assert bool((ok_upper == ok).all())
     rhs = torch.randn(n, batch, dtype=M.dtype)
-    x = _cholesky_solve(L, rhs)[:, 1:]
+    x = cholesky_solve(L, rhs)[:, 1:]
     torch.testing.assert_close(dense @ x.T[:, :, None], rhs[:, 1:].T[:, :, None])
 
 
@@ -732,10 +732,10 @@ def test_cholesky_factors_and_flags_singular(batch):
 def test_leading_solve_matches_the_reduced_system(dtype):
     """x_F = P_FF^{-1} (-q_F - P_FA x_A) for a leading block A of every length."""
     from torchcf.qp.leading import (
-        _is_leading,
-        _leading_data,
-        _leading_factor,
-        _leading_solve,
+        is_leading,
+        leading_data,
+        leading_factor,
+        leading_solve,
     )
 
     n, batch = 7, 64
@@ -748,11 +748,11 @@ def test_leading_solve_matches_the_reduced_system(dtype):
     active = torch.arange(n)[:, None] < depth[None]
     side = torch.rand(n, batch, generator=generator) < 0.5
     lower, upper = active & side, active & ~side
-    assert bool(_is_leading(active).all())
-    factor, ok = _leading_factor(P.to(dtype))
+    assert bool(is_leading(active).all())
+    factor, ok = leading_factor(P.to(dtype))
     assert bool(ok.all())
-    data = _leading_data(factor, q.to(dtype), lo.to(dtype), hi.to(dtype), QPSettings())
-    solution = _leading_solve(data, lower, upper)
+    data = leading_data(factor, q.to(dtype), lo.to(dtype), hi.to(dtype), QPSettings())
+    solution = leading_solve(data, lower, upper)
     assert torch.equal(solution.k, depth)
     tol = 1e-10 if dtype == torch.float64 else 2e-4
     for b in range(batch):
@@ -790,9 +790,9 @@ def test_tail_residual_bounds_the_back_substitution(dtype, batch, bad):
     """The table of the free rows' residual: a bound of |U g - q| where that bound
     clears the acceptance floor, the residual itself where it does not (here the
     first ``bad`` instances, ill-conditioned)."""
-    from torchcf.qp.kernels import _back_substitute, _tail_residual
-    from torchcf.qp.leading import _leading_data, _leading_factor
-    from torchcf.qp.problem import _roundoff_floor
+    from torchcf.qp.kernels import back_substitute, tail_residuals
+    from torchcf.qp.leading import leading_data, leading_factor
+    from torchcf.qp.problem import roundoff_floor
 
     n = 9
     generator = torch.Generator().manual_seed(7)
@@ -802,13 +802,13 @@ def test_tail_residual_bounds_the_back_substitution(dtype, batch, bad):
     P[:bad] = basis @ torch.diag_embed(spectrum.expand(bad, n)) @ basis.transpose(1, 2)
     P = P.permute(1, 2, 0).contiguous().to(dtype)
     q = (10 * torch.randn(n, batch, generator=generator).double()).to(dtype)
-    factor, ok = _leading_factor(P)
+    factor, ok = leading_factor(P)
     assert bool(ok.all())
     lo, hi = -torch.ones(n, batch, dtype=dtype), torch.ones(n, batch, dtype=dtype)
     settings = QPSettings()
-    table = _leading_data(factor, q, lo, hi, settings).call.tail_residual
-    g = _back_substitute(factor.U, factor.inv_diag, q)
-    computed = _tail_residual(factor.U, g, q)
+    table = leading_data(factor, q, lo, hi, settings).call.tail_residual
+    g = back_substitute(factor.U, factor.inv_diag, q)
+    computed = tail_residuals(factor.U, g, q)
     assert table.shape == (n + 1, batch) and bool((table[n] == 0).all())
     # The residual of the computed g, evaluated in float64, is under the table.
     residual = torch.einsum("ijb,jb->ib", factor.U.double(), g.double()) - q.double()
@@ -816,7 +816,7 @@ def test_tail_residual_bounds_the_back_substitution(dtype, batch, bad):
     slack = 4 * torch.finfo(dtype).eps * (1 + q.double().abs().amax(0))
     assert bool((tail <= table[:n].double() + slack).all())
     # The ill-conditioned instances' bounds would not clear the floor: computed.
-    floor = _roundoff_floor(q.abs().amax(0), settings)
+    floor = roundoff_floor(q.abs().amax(0), settings)
     bound_cleared = table[0] <= floor
     assert torch.equal(table[:, :bad], computed[:, :bad])
     assert bool(bound_cleared[bad:].all())  # and the rest stay acceptable
@@ -827,10 +827,10 @@ def test_boundary_step_matches_a_new_solve(dtype):
     """Fixing the next bound, or freeing the last one, of a leading block by the
     rank-one update gives the solve on the new block."""
     from torchcf.qp.leading import (
-        _boundary_step,
-        _leading_data,
-        _leading_factor,
-        _leading_solve,
+        boundary_step,
+        leading_data,
+        leading_factor,
+        leading_solve,
     )
 
     n, batch = 7, 96
@@ -845,12 +845,12 @@ def test_boundary_step_matches_a_new_solve(dtype):
     side = torch.rand(n, batch, generator=generator) < 0.5
     rows = torch.arange(n)[:, None]
     before, after = rows < k[None], rows < torch.where(grow, k + 1, k - 1)[None]
-    factor, ok = _leading_factor(P)
+    factor, ok = leading_factor(P)
     assert bool(ok.all())
-    data = _leading_data(factor, q, lo, hi, QPSettings())
-    start = _leading_solve(data, before & side, before & ~side)
-    stepped = _boundary_step(data, start, j, after & side, after & ~side)
-    direct = _leading_solve(data, after & side, after & ~side)
+    data = leading_data(factor, q, lo, hi, QPSettings())
+    start = leading_solve(data, before & side, before & ~side)
+    stepped = boundary_step(data, start, j, after & side, after & ~side)
+    direct = leading_solve(data, after & side, after & ~side)
     tol = 1e-10 if dtype == torch.float64 else 1e-3
     torch.testing.assert_close(stepped.x, direct.x, atol=tol, rtol=tol)
     torch.testing.assert_close(stepped.y, direct.y, atol=tol * 10, rtol=tol)
@@ -859,19 +859,19 @@ def test_boundary_step_matches_a_new_solve(dtype):
     fixed = torch.where(side, lo, hi)
     assert torch.equal(stepped.x[after], fixed[after])  # exactly on the bounds
     # ... so the guess is recovered from x and k, as the compacted passes do.
-    from torchcf.qp.leading import _leading_guess
+    from torchcf.qp.leading import leading_guess
 
     for solution, block in ((start, before), (stepped, after), (direct, after)):
-        lower, upper = _leading_guess(data, solution.x, solution.k)
+        lower, upper = leading_guess(data, solution.x, solution.k)
         assert torch.equal(lower, block & side) and torch.equal(upper, block & ~side)
 
 
 def test_is_leading():
-    from torchcf.qp.leading import _is_leading
+    from torchcf.qp.leading import is_leading
 
     columns = [[1, 1, 0], [0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 1], [1, 0, 1]]
     active = torch.tensor(columns, dtype=torch.bool).T  # (n = 3, B = 6)
-    assert _is_leading(active).tolist() == [True, True, True, False, True, False]
+    assert is_leading(active).tolist() == [True, True, True, False, True, False]
 
 
 def test_guesses_that_are_not_a_leading_block_are_still_solved():
@@ -884,9 +884,9 @@ def test_guesses_that_are_not_a_leading_block_are_still_solved():
     upper = torch.full((batch, n), 1.0, dtype=torch.float64)
     result = BoxQP(P).solve(q, lower, upper)
     active = (result.x <= lower + 1e-9) | (result.x >= upper - 1e-9)
-    from torchcf.qp.leading import _is_leading
+    from torchcf.qp.leading import is_leading
 
-    assert not bool(_is_leading(active.T).all())  # the case under test occurs
+    assert not bool(is_leading(active.T).all())  # the case under test occurs
     assert bool((result.status == int(QPStatus.SOLVED)).all())
     import osqp
     import scipy.sparse as sparse

@@ -59,7 +59,7 @@ def child(n_particles: int, args: argparse.Namespace) -> dict:
     cfg = validate_config(raw)
     with tempfile.TemporaryDirectory(prefix="torchcf-memory-") as out:
         start = time.perf_counter()
-        summary = train(cfg, Path(out) / "run", evaluate=False)
+        summary = train(cfg, Path(out) / "run")
         seconds = time.perf_counter() - start
     peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
     result = {

@@ -11,12 +11,12 @@ the engine underneath ABC; ``python -m torchcf.train`` builds on it.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 
 import torch
 
-from . import MODELS, DataError, load_pairs, simulate
+from . import MODELS, load_pairs, simulate
+from .cli import run_main
 from .runtime import tune_malloc
 
 
@@ -35,12 +35,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     tune_malloc()
+    return run_main(lambda: _demo(args))
 
-    try:
-        pairs = load_pairs(args.dataset, split="train", data_root=args.data_root)
-    except DataError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
+
+def _demo(args: argparse.Namespace) -> int:
+    """Simulate and print the table (module docstring)."""
+    pairs = load_pairs(args.dataset, split="train", data_root=args.data_root)
     print(
         f"{pairs.name} train: {pairs.n_pairs} pairs x {pairs.n_steps} steps "
         f"(dt {pairs.dt} s); {args.particles} particles per model, paired layout"

@@ -26,6 +26,16 @@ from .evaluate import evaluate_run
 from .train import open_run, train
 
 
+def _checked_pairs(
+    cfg: TrainConfig, out: Path, resume: bool, group: Group
+) -> tuple[PairSet, PairSet]:
+    """The config's ``(train, test)`` pairs, read on rank 0 once the output
+    directory is known to be usable (fail fast: :func:`torchcf.train.open_run`;
+    training checks it again, cheaply, as it must when called alone)."""
+    group.on_main(open_run, cfg, out, resume)
+    return group.on_main(load_split, cfg.data)
+
+
 def train_and_evaluate(
     cfg: TrainConfig,
     out: str | Path,
@@ -50,10 +60,7 @@ def train_and_evaluate(
     """
     out = Path(out)
     if pairs is None:
-        # The output directory is checked before the data are read (fail fast);
-        # train checks it again, cheaply, as it must when called alone.
-        group.on_main(open_run, cfg, out, resume)
-        pairs = group.on_main(load_split, cfg.data)
+        pairs = _checked_pairs(cfg, out, resume, group)
     summary = train(cfg, out, resume=resume, pairs=pairs, group=group)
     if evaluate and group.is_main:
         evaluate_run(out, pairs=pairs)
@@ -78,8 +85,7 @@ def run_study(
     """
     out = Path(out)
     if pairs is None:
-        group.on_main(open_run, cfg, out, resume)
-        pairs = group.on_main(load_split, cfg.data)
+        pairs = _checked_pairs(cfg, out, resume, group)
     summary = train_and_evaluate(
         cfg, out, resume=resume, pairs=pairs, evaluate=evaluate, group=group
     )

@@ -32,7 +32,7 @@ class Particles:
         pair: (Q,) int64 pair position of each particle.
         score: (Q,) float64 score on its pair (``+inf``: invalid).
         index: (Q,) int64 particle index, the tie-breaker among equal scores: the
-            stream index of a prior draw, the row of a perturbed copy.
+            stream index of a prior draw; a perturbed copy inherits its parent's.
     """
 
     model: str

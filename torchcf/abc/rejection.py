@@ -240,10 +240,11 @@ def _push_chunk(
 ) -> int:
     """Draw, simulate and push particles ``start .. stop - 1``; their invalid count.
 
-    Always a whole chunk is simulated (one shape per model for a compiled block);
-    the particles past ``stop`` are dropped.
+    A compiled block simulates a whole chunk (one shape per model: the particles
+    past ``stop`` are simulated and dropped); an eager one only what is asked.
     """
-    theta, pair = stream.draw(start, start + chunk)  # (chunk, K_drawn), (chunk,)
+    drawn = chunk if compiled else stop - start
+    theta, pair = stream.draw(start, start + drawn)  # (drawn, K_drawn), (drawn,)
     if fixed is not None:
         theta = torch.cat((theta, fixed.expand(theta.shape[0], -1)), dim=1)
     score, valid = rollout.score(model, theta, pair, chunk=chunk, compiled=compiled)

@@ -15,7 +15,7 @@ converged value, as ``torch.where(running[:, None], new, old)`` would, and also
 stops paying for their iterations, which ``torch.where`` (it evaluates both
 branches) would not.
 
-Relative tolerances are raised by ``_ROUNDOFF_ULPS`` machine epsilons: in float32
+Relative tolerances are raised by ``ROUNDOFF_ULPS`` machine epsilons: in float32
 the residuals of badly scaled instances (``|q| ~ 500``) bottom out near 1e-5
 relative, and ADMM would otherwise run to max_iter on round-off. An instance whose
 residuals stall for ``_STALL_CHECKS`` checks is accepted at ``_STALL_ULPS``
@@ -34,13 +34,13 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .kernels import _inf_norm, _mv, _put_instances_, _spd_inverse, _take_instances
+from .kernels import inf_norm, mv, put_instances_, spd_inverse, take_instances
 from .problem import (
-    _INF_THRESHOLD,
-    _ROUNDOFF_ULPS,
+    INF_THRESHOLD,
+    ROUNDOFF_ULPS,
+    ProblemData,
     QPSettings,
     QPStatus,
-    _ProblemData,
 )
 
 _RHO_MIN, _RHO_MAX = 1e-6, 1e6
@@ -55,7 +55,7 @@ _STALL_ULPS = 1000
 _STALL_CHECKS = 5
 
 
-class _Iterate(NamedTuple):
+class Iterate(NamedTuple):
     """An ADMM iterate, batch-last."""
 
     x: Tensor  # (n, B)
@@ -63,7 +63,7 @@ class _Iterate(NamedTuple):
     y: Tensor  # (m, B)
 
 
-class _ADMMOutcome(NamedTuple):
+class ADMMOutcome(NamedTuple):
     """ADMM's result for every instance of a call (batch-last, ``B`` instances)."""
 
     x: Tensor  # (n, B) solution, or the dual infeasibility certificate
@@ -79,25 +79,25 @@ class _ADMMOutcome(NamedTuple):
 # rho and the KKT inverse.
 
 
-def _rho_vector(rho: Tensor, data: _ProblemData) -> Tensor:
+def rho_vector(rho: Tensor, data: ProblemData) -> Tensor:
     """Per-row rho (m, B) from the per-instance ``rho: (B,)`` (OSQP's rho_vec):
     ``rho`` on inequality rows, ``_RHO_EQ_OVER_INEQ rho`` on equality rows,
     ``_RHO_MIN`` on rows without bounds."""
     equality = (data.u - data.l) < _RHO_TOL
-    loose = (data.l < -_INF_THRESHOLD) & (data.u > _INF_THRESHOLD)
+    loose = (data.l < -INF_THRESHOLD) & (data.u > INF_THRESHOLD)
     rho_vec = rho[None, :].expand_as(data.l)
     rho_vec = torch.where(equality, _RHO_EQ_OVER_INEQ * rho_vec, rho_vec)
     return torch.where(loose, torch.full_like(rho_vec, _RHO_MIN), rho_vec)
 
 
-def _uniform_rows(data: _ProblemData) -> Tensor:
+def uniform_rows(data: ProblemData) -> Tensor:
     """(B,) True where every row is a plain inequality (rho_vec is rho everywhere)."""
     equality = (data.u - data.l) < _RHO_TOL
-    loose = (data.l < -_INF_THRESHOLD) & (data.u > _INF_THRESHOLD)
+    loose = (data.l < -INF_THRESHOLD) & (data.u > INF_THRESHOLD)
     return ~(equality | loose).any(0)
 
 
-def _kkt_inverse(data: _ProblemData, rho_vec: Tensor, sigma: float) -> Tensor:
+def kkt_inverse(data: ProblemData, rho_vec: Tensor, sigma: float) -> Tensor:
     """``(P + sigma I + A' diag(rho_vec) A)^{-1}``: (n, n, B); ``rho_vec: (m, B)``."""
     if data.A is None:
         M = data.P.clone()
@@ -106,16 +106,16 @@ def _kkt_inverse(data: _ProblemData, rho_vec: Tensor, sigma: float) -> Tensor:
         weighted = data.A * rho_vec[:, None, :]  # (m, n, B)
         M = data.P + torch.einsum("ian,icn->acn", data.A, weighted)
         torch.diagonal(M, 0, 0, 1).add_(sigma)
-    return _spd_inverse(M)[0]
+    return spd_inverse(M)[0]
 
 
 # --------------------------------------------------------------------------------------
 # Starting iterates.
 
 
-def _osqp_start(
-    data: _ProblemData, x0: Tensor | None, y0: Tensor | None, n: int, m: int
-) -> _Iterate:
+def osqp_starting_iterate(
+    data: ProblemData, x0: Tensor | None, y0: Tensor | None, n: int, m: int
+) -> Iterate:
     """OSQP's starting iterate (batch-last) from the batch-first warm start
     ``x0: (B, n)``, ``y0: (B, m)``: ``x0`` or 0, ``y0`` or 0, ``z = proj(A x)``."""
     batch = data.q.shape[-1]
@@ -127,10 +127,10 @@ def _osqp_start(
     y = like.new_zeros(m, batch) if y0 is None else y0.T.to(like.dtype)
     x, y = x.clone(memory_format=dense), y.clone(memory_format=dense)
     z = torch.clamp(data.Ax(x), data.l, data.u)
-    return _Iterate(x, z, y)
+    return Iterate(x, z, y)
 
 
-def _dual_feasible_start(data: _ProblemData, point: Tensor, usable: Tensor) -> _Iterate:
+def dual_feasible_start(data: ProblemData, point: Tensor, usable: Tensor) -> Iterate:
     """ADMM start (A = I): ``point`` clipped to the box, and the multipliers
     ``y = -(Px + q)`` on the rows at a bound, which make it dual feasible.
 
@@ -145,8 +145,8 @@ def _dual_feasible_start(data: _ProblemData, point: Tensor, usable: Tensor) -> _
     x = torch.clamp(point, data.l, data.u)
     x = torch.where(usable[None], x, torch.zeros_like(x))
     at_bound = (x <= data.l) | (x >= data.u)
-    y = torch.where(at_bound, -(_mv(data.P, x) + data.q), torch.zeros_like(x))
-    return _Iterate(x, x.clone(), y)
+    y = torch.where(at_bound, -(mv(data.P, x) + data.q), torch.zeros_like(x))
+    return Iterate(x, x.clone(), y)
 
 
 # --------------------------------------------------------------------------------------
@@ -154,12 +154,12 @@ def _dual_feasible_start(data: _ProblemData, point: Tensor, usable: Tensor) -> _
 
 
 def _admm_step(
-    data: _ProblemData,
-    s: _Iterate,
+    data: ProblemData,
+    s: Iterate,
     rho_vec: Tensor,
     inverse: Tensor,
     settings: QPSettings,
-) -> _Iterate:
+) -> Iterate:
     """One iteration of OSQP's Algorithm 1 with the reduced x-update.
 
     ``(P + sigma I + A' R A) x~ = sigma x - q + A'(R z - y)`` with ``R = diag(rho)``
@@ -170,7 +170,7 @@ def _admm_step(
     alpha = settings.alpha
     rhs = data.Aty(rho_vec * s.z - s.y)
     rhs = rhs.add_(s.x, alpha=settings.sigma).sub_(data.q)
-    x_tilde = _mv(inverse, rhs)
+    x_tilde = mv(inverse, rhs)
     z_tilde = data.Ax(x_tilde)
     x = torch.lerp(s.x, x_tilde, alpha)
     relaxed = torch.lerp(s.z, z_tilde, alpha)
@@ -178,11 +178,11 @@ def _admm_step(
     z = torch.clamp(shifted, data.l, data.u)
     # y + rho (relaxed - z) written as rho (shifted - z): one operation fewer.
     y = (shifted - z).mul_(rho_vec)
-    return _Iterate(x, z, y)
+    return Iterate(x, z, y)
 
 
 def _primal_certificate(
-    data: _ProblemData, dy: Tensor, eps: float
+    data: ProblemData, dy: Tensor, eps: float
 ) -> tuple[Tensor, Tensor]:
     """OSQP's primal infeasibility test on the step ``dy: (m, B)`` of ``y``.
 
@@ -193,11 +193,11 @@ def _primal_certificate(
     Returns:
         infeasible: (B,) bool; certificate: (m, B) the projected ``dy``.
     """
-    no_upper = data.u > _INF_THRESHOLD
-    no_lower = data.l < -_INF_THRESHOLD
+    no_upper = data.u > INF_THRESHOLD
+    no_lower = data.l < -INF_THRESHOLD
     dy = torch.where(no_upper, dy.clamp(max=0), dy)
     dy = torch.where(no_lower, dy.clamp(min=0), dy)
-    norm = _inf_norm(dy)
+    norm = inf_norm(dy)
     # After the projection an infinite bound only meets zero entries; the where
     # keeps +-1e30 * 0 out of the sum all the same.
     upper = torch.where(no_upper, torch.zeros_like(dy), data.u * dy.clamp(min=0))
@@ -206,12 +206,12 @@ def _primal_certificate(
     infeasible = (
         (norm > torch.finfo(dy.dtype).tiny)
         & (support < -eps * norm)
-        & (_inf_norm(data.Aty(dy)) < eps * norm)
+        & (inf_norm(data.Aty(dy)) < eps * norm)
     )
     return infeasible, dy
 
 
-def _dual_certificate(data: _ProblemData, dx: Tensor, eps: float) -> Tensor:
+def _dual_certificate(data: ProblemData, dx: Tensor, eps: float) -> Tensor:
     """OSQP's dual infeasibility (unboundedness) test on the step ``dx: (n, B)`` of
     ``x``.
 
@@ -221,17 +221,17 @@ def _dual_certificate(data: _ProblemData, dx: Tensor, eps: float) -> Tensor:
     Returns:
         (B,) bool.
     """
-    norm = _inf_norm(dx)
+    norm = inf_norm(dx)
     tol = eps * norm
     a_dx = data.Ax(dx)
     in_cone = (
-        ((data.u > _INF_THRESHOLD) | (a_dx <= tol))
-        & ((data.l < -_INF_THRESHOLD) | (a_dx >= -tol))
+        ((data.u > INF_THRESHOLD) | (a_dx <= tol))
+        & ((data.l < -INF_THRESHOLD) | (a_dx >= -tol))
     ).all(0)
     return (
         (norm > torch.finfo(dx.dtype).tiny)
         & ((data.q * dx).sum(0) < -tol)
-        & (_inf_norm(_mv(data.P, dx)) < tol)
+        & (inf_norm(mv(data.P, dx)) < tol)
         & in_cone
     )
 
@@ -269,9 +269,9 @@ class _Progress(NamedTuple):
 
 
 def _check(
-    data: _ProblemData,
-    iterate: _Iterate,
-    previous: _Iterate,
+    data: ProblemData,
+    iterate: Iterate,
+    previous: Iterate,
     progress: _Progress,
     eps_rel: tuple[float, float],
     settings: QPSettings,
@@ -288,12 +288,12 @@ def _check(
             the stalled floor.
     """
     eps_rel_floor, eps_rel_stalled = eps_rel
-    ax, px, aty = data.Ax(iterate.x), _mv(data.P, iterate.x), data.Aty(iterate.y)
-    prim_res = _inf_norm(ax - iterate.z)
-    dual_res = _inf_norm(px + data.q + aty)
-    prim_scale = torch.maximum(_inf_norm(ax), _inf_norm(iterate.z))
+    ax, px, aty = data.Ax(iterate.x), mv(data.P, iterate.x), data.Aty(iterate.y)
+    prim_res = inf_norm(ax - iterate.z)
+    dual_res = inf_norm(px + data.q + aty)
+    prim_scale = torch.maximum(inf_norm(ax), inf_norm(iterate.z))
     dual_scale = torch.maximum(
-        torch.maximum(_inf_norm(px), _inf_norm(aty)), _inf_norm(data.q)
+        torch.maximum(inf_norm(px), inf_norm(aty)), inf_norm(data.q)
     )
     prim_tol = settings.eps_abs + eps_rel_floor * prim_scale
     dual_tol = settings.eps_abs + eps_rel_floor * dual_scale
@@ -331,10 +331,10 @@ class _WorkingSet(NamedTuple):
 
     active: Tensor  # (b,) int64 positions in the call's batch
     running: Tensor  # (b,) bool, False once finished (until the next compaction)
-    data: _ProblemData
-    iterate: _Iterate
+    data: ProblemData
+    iterate: Iterate
     rho: Tensor  # (b,)
-    rho_vec: Tensor  # (m, b) see _rho_vector
+    rho_vec: Tensor  # (m, b) see rho_vector
     inverse: Tensor  # (n, n, b) the KKT inverse for rho_vec
     progress: _Progress
 
@@ -344,22 +344,22 @@ class _WorkingSet(NamedTuple):
             self.active[idx],
             self.running[idx],
             self.data.take(idx),
-            _Iterate(*(_take_instances(t, idx) for t in self.iterate)),
+            Iterate(*(take_instances(t, idx) for t in self.iterate)),
             self.rho[idx],
-            _take_instances(self.rho_vec, idx),
-            _take_instances(self.inverse, idx),
+            take_instances(self.rho_vec, idx),
+            take_instances(self.inverse, idx),
             self.progress.take(idx),
         )
 
 
-def _empty_outcome(start: _Iterate, like: Tensor) -> _ADMMOutcome:
+def _empty_outcome(start: Iterate, like: Tensor) -> ADMMOutcome:
     """The output buffers of ``B`` instances: the start, MAX_ITER, no iterations;
     residuals in the dtype of ``like: (n, B)``."""
     batch = like.shape[-1]
     device = like.device
     out_x, out_z, out_y = (t.clone() for t in start)
     zeros = torch.zeros(batch, dtype=like.dtype, device=device)
-    return _ADMMOutcome(
+    return ADMMOutcome(
         out_x,
         out_z,
         out_y,
@@ -372,7 +372,7 @@ def _empty_outcome(start: _Iterate, like: Tensor) -> _ADMMOutcome:
 
 def _iterate(
     work: _WorkingSet, steps: int, settings: QPSettings
-) -> tuple[_Iterate, _Iterate]:
+) -> tuple[Iterate, Iterate]:
     """``steps`` iterations; returns the iterate before the last one and the last."""
     data, state = work.data, work.iterate
     for _ in range(steps - 1):
@@ -383,7 +383,7 @@ def _iterate(
 
 
 def _write_finished(
-    out: _ADMMOutcome,
+    out: ADMMOutcome,
     rows: Tensor,
     work: _WorkingSet,
     residuals: _Residuals,
@@ -401,8 +401,8 @@ def _write_finished(
     status[verdict.prim_inf[rows]] = int(QPStatus.PRIMAL_INFEASIBLE)
     status[verdict.dual_inf[rows]] = int(QPStatus.DUAL_INFEASIBLE)
     where = work.active[rows]
-    dual_cert = verdict.dual_cert[:, rows] / _inf_norm(verdict.dual_cert[:, rows])
-    prim_cert = verdict.prim_cert[:, rows] / _inf_norm(verdict.prim_cert[:, rows])
+    dual_cert = verdict.dual_cert[:, rows] / inf_norm(verdict.dual_cert[:, rows])
+    prim_cert = verdict.prim_cert[:, rows] / inf_norm(verdict.prim_cert[:, rows])
     out.x[:, where] = torch.where(verdict.dual_inf[rows], dual_cert, state.x[:, rows])
     out.y[:, where] = torch.where(verdict.prim_inf[rows], prim_cert, state.y[:, rows])
     out.z[:, where] = state.z[:, rows]
@@ -431,21 +431,19 @@ def _adapt_rho(
         return work
     rho = rho.index_copy(0, change, new_rho[change])
     sub = work.data.take(change)
-    sub_rho_vec = _rho_vector(rho[change], sub)
-    rho_vec = _put_instances_(work.rho_vec, change, sub_rho_vec)
-    _put_instances_(
-        work.inverse, change, _kkt_inverse(sub, sub_rho_vec, settings.sigma)
-    )
+    sub_rho_vec = rho_vector(rho[change], sub)
+    rho_vec = put_instances_(work.rho_vec, change, sub_rho_vec)
+    put_instances_(work.inverse, change, kkt_inverse(sub, sub_rho_vec, settings.sigma))
     return work._replace(rho=rho, rho_vec=rho_vec)
 
 
-def _admm(
-    data: _ProblemData,
-    state: _Iterate,
+def admm_iterations(
+    data: ProblemData,
+    state: Iterate,
     rho: Tensor,
     inverse: Tensor,
     settings: QPSettings,
-) -> _ADMMOutcome:
+) -> ADMMOutcome:
     """Run ADMM on every instance of ``data`` until each one terminates.
 
     An instance is written to the output at the check where it terminates and stops
@@ -456,7 +454,7 @@ def _admm(
         data: the problems, batch-last.
         state: starting iterate.
         rho: (B,) starting rho per instance.
-        inverse: (n, n, B) KKT inverse for ``rho`` (see :func:`_kkt_inverse`);
+        inverse: (n, n, B) KKT inverse for ``rho`` (see :func:`kkt_inverse`);
             owned by the call: refactorisations overwrite it in place.
         settings: solver settings.
     """
@@ -470,7 +468,7 @@ def _admm(
     # to max_iter on round-off; in float64 both floors are far below any tolerance.
     ulp = torch.finfo(data.q.dtype).eps
     eps_rel = (
-        settings.eps_rel + _ROUNDOFF_ULPS * ulp,
+        settings.eps_rel + ROUNDOFF_ULPS * ulp,
         settings.eps_rel + _STALL_ULPS * ulp,
     )
     work = _WorkingSet(
@@ -479,7 +477,7 @@ def _admm(
         data=data,
         iterate=state,
         rho=rho,
-        rho_vec=_rho_vector(rho, data),
+        rho_vec=rho_vector(rho, data),
         inverse=inverse,
         progress=_Progress(torch.full_like(rho, math.inf), torch.zeros_like(rho)),
     )

@@ -7,10 +7,10 @@ solve runs stages, each on what the previous one left:
    active sets, from the caller's guess (the MPC passes its last plan) or from "no
    bound active", whose solve is the unconstrained minimiser, corrected by
    primal-dual active-set steps, and kept only where the KKT conditions hold;
-2. general exact solves (:func:`torchcf.qp.polish._active_set_solves`) for the
+2. general exact solves (:func:`torchcf.qp.polish.active_set_solves`) for the
    guesses that stopped being a leading block, the instances out of passes and a
    singular ``P``;
-3. ADMM and its polish (:func:`torchcf.qp.polish._admm_then_polish`) on the rest.
+3. ADMM and its polish (:func:`torchcf.qp.polish.admm_then_polish`) on the rest.
 
 On the MPC QPs the first stage finishes nearly every instance, so ADMM is the
 fallback.
@@ -28,35 +28,35 @@ from typing import Literal, NamedTuple
 import torch
 from torch import Tensor
 
-from .active_set import _leading_active_set, _LeadingOutcome, _Unfinished
+from .active_set import LeadingOutcome, Unfinished, leading_active_set
 from .admm import (
-    _dual_feasible_start,
-    _Iterate,
-    _kkt_inverse,
-    _osqp_start,
-    _rho_vector,
-    _uniform_rows,
+    Iterate,
+    dual_feasible_start,
+    kkt_inverse,
+    osqp_starting_iterate,
+    rho_vector,
+    uniform_rows,
 )
 from .kernels import (
-    _cholesky,
-    _cholesky_solve,
-    _is_small_subset,
-    _mv,
-    _put_instances_,
-    _spd_inverse,
-    _take_instances,
-    _transpose,
+    cholesky,
+    cholesky_solve,
+    is_small_subset,
+    mv,
+    put_instances_,
+    spd_inverse,
+    swap_layout,
+    take_instances,
 )
-from .leading import _leading_data, _leading_factor
-from .polish import _AcceptedSolutions, _active_set_solves, _admm_then_polish
+from .leading import leading_data, leading_factor
+from .polish import AcceptedSolutions, active_set_solves, admm_then_polish
 from .problem import (
+    ProblemData,
     QPResult,
     QPSettings,
     QPStatus,
-    _batch_first_result,
-    _batch_last_bounds,
-    _check_shape,
-    _ProblemData,
+    batch_first_result,
+    batch_last_bounds,
+    check_shape,
 )
 
 #: Exact active-set solves per instance in the leading-block and general stages.
@@ -87,13 +87,13 @@ class _Solutions(NamedTuple):
 
     def result(self) -> QPResult:
         """The batch-first :class:`QPResult`."""
-        return _batch_first_result(*self)
+        return batch_first_result(*self)
 
     def put_(self, rows: Tensor, sub: _Solutions) -> None:
         """Overwrite the instances ``rows: (r,)`` with ``sub`` (``r`` instances)."""
-        _put_instances_(self.x, rows, sub.x)
-        _put_instances_(self.y, rows, sub.y)
-        _put_instances_(self.z, rows, sub.z)
+        put_instances_(self.x, rows, sub.x)
+        put_instances_(self.y, rows, sub.y)
+        put_instances_(self.z, rows, sub.z)
         self.n_iter[rows] = sub.n_iter
         self.status[rows] = sub.status
         self.polished[rows] = sub.polished
@@ -119,8 +119,8 @@ def _first_guess(
     l, u = call.given_bounds  # noqa: E741
     point = point.to(dtype)
     below, above = point <= l.to(dtype), point >= u.to(dtype)  # (b, n)
-    at_lower = _transpose(below)
-    return at_lower, _transpose(above).logical_and_(~at_lower)
+    at_lower = swap_layout(below)
+    return at_lower, swap_layout(above).logical_and_(~at_lower)
 
 
 class BoxQP:
@@ -130,7 +130,7 @@ class BoxQP:
     ``P`` (and rho), so it is built once here and reused by every :meth:`solve`; this
     is what the MPC uses: ``P`` depends on the particle only, ``q`` changes every
     time step. Cached per instance: ``P^{-1}`` (for the exact fast path), the
-    leading-block factors of ``P`` (:func:`~torchcf.qp.leading._leading_factor`)
+    leading-block factors of ``P`` (:func:`~torchcf.qp.leading.leading_factor`)
     and ``(P + (sigma + rho) I)^{-1}`` (the ADMM x-update).
 
     Args:
@@ -148,12 +148,12 @@ class BoxQP:
         self.settings = settings or QPSettings()
         self.P = P  # (B, n, n) as given
         self._P = P.permute(1, 2, 0).contiguous()  # (n, n, B)
-        self._p_inverse, self._definite = _spd_inverse(self._P)
-        self._leading, upper_ok = _leading_factor(self._P)
+        self._p_inverse, self._definite = spd_inverse(self._P)
+        self._leading, upper_ok = leading_factor(self._P)
         self._definite &= upper_ok
         kkt = self._P.clone()
         torch.diagonal(kkt, 0, 0, 1).add_(self.settings.sigma + self.settings.rho)
-        self._kkt, _ = _spd_inverse(kkt)
+        self._kkt, _ = spd_inverse(kkt)
 
     @property
     def batch_size(self) -> int:
@@ -175,8 +175,8 @@ class BoxQP:
         """
         inverse = self._p_inverse
         if index is not None:
-            inverse = _take_instances(inverse, index)
-        return -_mv(inverse, q.T.to(inverse.dtype)).T
+            inverse = take_instances(inverse, index)
+        return -mv(inverse, q.T.to(inverse.dtype)).T
 
     def solve(
         self,
@@ -264,11 +264,11 @@ class BoxQP:
         n = self.n
         batch = self.batch_size if index is None else index.shape[0]
         for name, t in (("q", q), ("l", l), ("u", u), *optional.items()):
-            _check_shape(name, t, (batch, n))
+            check_shape(name, t, (batch, n))
         definite = self._definite if index is None else self._definite[index]
         dtype = self._P.dtype
-        lower, upper, equality = _batch_last_bounds(l, u, dtype, keep_broadcast=True)
-        q_t = _transpose(q.to(dtype))
+        lower, upper, equality = batch_last_bounds(l, u, dtype, keep_broadcast=True)
+        q_t = swap_layout(q.to(dtype))
         return _BoxCall(q_t, lower, upper, equality, definite, index, (l, u))
 
     def _exact_stages(
@@ -294,11 +294,11 @@ class BoxQP:
             return solutions, rest
         at_lower = torch.cat((unfinished.lower, at_lower[:, other]), -1)
         at_upper = torch.cat((unfinished.upper, at_upper[:, other]), -1)
-        accepted = self._general_stage(call, _Unfinished(rest, at_lower, at_upper))
+        accepted = self._general_stage(call, Unfinished(rest, at_lower, at_upper))
         done = rest[accepted.rows]
-        _put_instances_(solutions.x, done, accepted.x)
-        _put_instances_(solutions.y, done, accepted.y)
-        _put_instances_(solutions.z, done, accepted.z)
+        put_instances_(solutions.x, done, accepted.x)
+        put_instances_(solutions.y, done, accepted.y)
+        put_instances_(solutions.z, done, accepted.z)
         solutions.polished[done] = True
         left = torch.ones(rest.numel(), dtype=torch.bool, device=rest.device)
         left[accepted.rows] = False
@@ -306,10 +306,10 @@ class BoxQP:
 
     def _leading_stage(
         self, call: _BoxCall, at_lower: Tensor, at_upper: Tensor, passes: int
-    ) -> tuple[_LeadingOutcome, _Unfinished]:
-        """Stage 1 (:func:`~torchcf.qp.active_set._leading_active_set`) on every
+    ) -> tuple[LeadingOutcome, Unfinished]:
+        """Stage 1 (:func:`~torchcf.qp.active_set.leading_active_set`) on every
         instance with a definite ``P``, from the guess ``at_lower, at_upper``."""
-        data = _leading_data(
+        data = leading_data(
             self._leading,
             call.q,
             call.lower,
@@ -319,12 +319,12 @@ class BoxQP:
             call.equality,
             given_bounds=call.given_bounds,
         )
-        return _leading_active_set(
+        return leading_active_set(
             data, at_lower, at_upper, call.definite, self.settings, passes
         )
 
     @staticmethod
-    def _leading_solutions(call: _BoxCall, leading: _LeadingOutcome) -> _Solutions:
+    def _leading_solutions(call: _BoxCall, leading: LeadingOutcome) -> _Solutions:
         """The call's solutions after stage 1: SOLVED, no ADMM iterations,
         ``polished`` where a bound is active (garbage where not ``solved``)."""
         x, y = leading.x, leading.y
@@ -334,14 +334,14 @@ class BoxQP:
         return _Solutions(x, y, z, n_iter, status, leading.constrained)
 
     def _general_stage(
-        self, call: _BoxCall, unfinished: _Unfinished
-    ) -> _AcceptedSolutions:
+        self, call: _BoxCall, unfinished: Unfinished
+    ) -> AcceptedSolutions:
         """Stage 2: exact solves, refactorising, on the ``unfinished`` instances
         from their guesses, with active-set corrections; returns the accepted ones
         (``rows`` index ``unfinished.rows``)."""
         rest = unfinished.rows
         _, data = self._working_set(rest, call)
-        return _active_set_solves(
+        return active_set_solves(
             data,
             unfinished.lower,
             unfinished.upper,
@@ -361,7 +361,7 @@ class BoxQP:
         """Stage 3: ADMM and polish on the instances ``rest: (r,)`` of the call.
 
         Started as OSQP does (``x0, y0`` or zeros) with ``osqp_start``, else from a
-        dual feasible point (:func:`~torchcf.qp.admm._dual_feasible_start`).
+        dual feasible point (:func:`~torchcf.qp.admm.dual_feasible_start`).
         """
         cached, data = self._working_set(rest, call)
         rho = call.q.new_full((rest.numel(),), self.settings.rho)
@@ -370,10 +370,10 @@ class BoxQP:
         if osqp_start:
             x0_rest = None if x0 is None else x0[rest]
             y0_rest = None if y0 is None else y0[rest]
-            start = _osqp_start(data, x0_rest, y0_rest, self.n, self.n)
+            start = osqp_starting_iterate(data, x0_rest, y0_rest, self.n, self.n)
         else:
             start = self._admm_warm_start(cached, data, definite, rest, x0)
-        outcome, polished = _admm_then_polish(
+        outcome, polished = admm_then_polish(
             data, start, rho, kkt, self.settings, definite=definite
         )
         return _Solutions(
@@ -383,55 +383,55 @@ class BoxQP:
     # ----------------------------------------------------------------------------------
     # The working sets of the stages, and ADMM's start and KKT inverse.
 
-    def _working_set(self, rest: Tensor, call: _BoxCall) -> tuple[Tensor, _ProblemData]:
+    def _working_set(self, rest: Tensor, call: _BoxCall) -> tuple[Tensor, ProblemData]:
         """The problems ``rest: (r,)`` (positions in the call): their instances of
         the cached factors, ``cached: (r,)``, and their batch-last data."""
         cached = rest if call.index is None else call.index[rest]
-        if _is_small_subset(cached, self.batch_size):  # from the batch-first P
+        if is_small_subset(cached, self.batch_size):  # from the batch-first P
             P = self.P.index_select(0, cached).to(self._P.dtype).permute(1, 2, 0)
             P = P.contiguous()
         else:
-            P = _take_instances(self._P, cached)
-        data = _ProblemData(
+            P = take_instances(self._P, cached)
+        data = ProblemData(
             P, call.q[:, rest], None, call.lower[:, rest], call.upper[:, rest]
         )
         return cached, data
 
     def _admm_kkt_inverse(
-        self, cached: Tensor, data: _ProblemData, rho: Tensor
+        self, cached: Tensor, data: ProblemData, rho: Tensor
     ) -> Tensor:
         """(n, n, r) ADMM's KKT inverse for the working set: factorised anew for a
         few instances (cheaper than a gather), else gathered from the cache and
         refactorised only where equality or free rows change rho_vec."""
         sigma = self.settings.sigma
-        if _is_small_subset(cached, self.batch_size):
-            return _kkt_inverse(data, _rho_vector(rho, data), sigma)
-        kkt = _take_instances(self._kkt, cached)
-        special = (~_uniform_rows(data)).nonzero().squeeze(1)
+        if is_small_subset(cached, self.batch_size):
+            return kkt_inverse(data, rho_vector(rho, data), sigma)
+        kkt = take_instances(self._kkt, cached)
+        special = (~uniform_rows(data)).nonzero().squeeze(1)
         if special.numel():
             sub = data.take(special)
-            sub_rho = _rho_vector(rho[special], sub)
-            _put_instances_(kkt, special, _kkt_inverse(sub, sub_rho, sigma))
+            sub_rho = rho_vector(rho[special], sub)
+            put_instances_(kkt, special, kkt_inverse(sub, sub_rho, sigma))
         return kkt
 
     def _admm_warm_start(
         self,
         cached: Tensor,
-        data: _ProblemData,
+        data: ProblemData,
         definite: Tensor,
         rest: Tensor,
         x0: Tensor | None,
-    ) -> _Iterate:
+    ) -> Iterate:
         """ADMM's start from ``x0: (b, n)``, else from ``-P^{-1} q``, clipped to the
         box with dual feasible multipliers (``definite: (r,)`` marks where
         ``-P^{-1} q`` is usable)."""
         if x0 is not None:
             usable = torch.ones_like(definite)
-            point = _transpose(x0[rest].to(self._P.dtype))
-            return _dual_feasible_start(data, point, usable)
-        if _is_small_subset(cached, self.batch_size):
-            L, _ = _cholesky(data.P, strict=False)
-            point = _cholesky_solve(L, -data.q)  # -P^{-1} q
+            point = swap_layout(x0[rest].to(self._P.dtype))
+            return dual_feasible_start(data, point, usable)
+        if is_small_subset(cached, self.batch_size):
+            L, _ = cholesky(data.P, strict=False)
+            point = cholesky_solve(L, -data.q)  # -P^{-1} q
         else:
-            point = -_mv(_take_instances(self._p_inverse, cached), data.q)
-        return _dual_feasible_start(data, point, definite)
+            point = -mv(take_instances(self._p_inverse, cached), data.q)
+        return dual_feasible_start(data, point, definite)

@@ -9,15 +9,15 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from .admm import _kkt_inverse, _osqp_start, _rho_vector
-from .polish import _admm_then_polish
+from .admm import kkt_inverse, osqp_starting_iterate, rho_vector
+from .polish import admm_then_polish
 from .problem import (
+    ProblemData,
     QPResult,
     QPSettings,
-    _batch_first_result,
-    _batch_last_bounds,
-    _check_shape,
-    _ProblemData,
+    batch_first_result,
+    batch_last_bounds,
+    check_shape,
 )
 
 
@@ -53,15 +53,15 @@ def solve_qp_batch(
     settings = settings or QPSettings()
     batch, n = q.shape
     m = A.shape[1]
-    _check_shape("P", P, (batch, n, n))
-    _check_shape("A", A, (batch, m, n))
-    _check_shape("l", l, (batch, m))
-    _check_shape("u", u, (batch, m))
-    _check_shape("x0", x0, (batch, n))
-    _check_shape("y0", y0, (batch, m))
+    check_shape("P", P, (batch, n, n))
+    check_shape("A", A, (batch, m, n))
+    check_shape("l", l, (batch, m))
+    check_shape("u", u, (batch, m))
+    check_shape("x0", x0, (batch, n))
+    check_shape("y0", y0, (batch, m))
     dtype = q.dtype
-    lower, upper, _ = _batch_last_bounds(l, u, dtype)
-    data = _ProblemData(
+    lower, upper, _ = batch_last_bounds(l, u, dtype)
+    data = ProblemData(
         P=P.to(dtype).permute(1, 2, 0).contiguous(),
         q=q.T.contiguous(),
         A=A.to(dtype).permute(1, 2, 0).contiguous(),
@@ -69,9 +69,9 @@ def solve_qp_batch(
         u=upper,
     )
     rho = q.new_full((batch,), settings.rho)
-    inverse = _kkt_inverse(data, _rho_vector(rho, data), settings.sigma)
-    start = _osqp_start(data, x0, y0, n, m)
-    outcome, polished = _admm_then_polish(data, start, rho, inverse, settings)
-    return _batch_first_result(
+    inverse = kkt_inverse(data, rho_vector(rho, data), settings.sigma)
+    start = osqp_starting_iterate(data, x0, y0, n, m)
+    outcome, polished = admm_then_polish(data, start, rho, inverse, settings)
+    return batch_first_result(
         outcome.x, outcome.y, outcome.z, outcome.n_iter, outcome.status, polished
     )

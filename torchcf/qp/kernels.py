@@ -18,13 +18,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-#: Batches up to this size multiply by one batched product (see :func:`_mv`).
+#: Batches up to this size multiply by one batched product (see :func:`mv`).
 _SMALL_BATCH = 64
 #: Batches up to this size are factorised and solved by LAPACK, one call per matrix:
 #: the elementwise loops cost a fixed ``n^2 / 2`` tensor operations whatever the
 #: batch, LAPACK a small cost per matrix.
 _LAPACK_BATCH = 1024
-#: Triangular sweeps (:func:`_back_substitute`, the leading-block solve) run over
+#: Triangular sweeps (:func:`back_substitute`, the leading-block solve) run over
 #: batch slices whose accumulator (``(n, b)`` values, read and written once per
 #: column) fits in this many bytes, so that it stays in the last-level cache
 #: between columns.
@@ -35,7 +35,7 @@ _SWEEP_BYTES = 8 << 20
 # Products and norms.
 
 
-def _mv(M: Tensor, v: Tensor) -> Tensor:
+def mv(M: Tensor, v: Tensor) -> Tensor:
     """``M v`` per instance: (r, c, B) x (c, B) -> (r, B)."""
     if v.shape[-1] <= _SMALL_BATCH:  # a few instances: one batched product
         return torch.einsum("rcb,cb->rb", M, v)
@@ -45,7 +45,7 @@ def _mv(M: Tensor, v: Tensor) -> Tensor:
     return out
 
 
-def _rmv(M: Tensor, v: Tensor) -> Tensor:
+def rmv(M: Tensor, v: Tensor) -> Tensor:
     """``M' v`` per instance: (r, c, B) x (r, B) -> (c, B)."""
     out = M[0] * v[0]
     for i in range(1, v.shape[0]):
@@ -53,7 +53,7 @@ def _rmv(M: Tensor, v: Tensor) -> Tensor:
     return out
 
 
-def _inf_norm(v: Tensor) -> Tensor:
+def inf_norm(v: Tensor) -> Tensor:
     """``||v||_inf`` per instance: (m, B) -> (B,); NaN propagates.
 
     Two reductions and no ``|v|`` temporary, which on the CPU costs more than both
@@ -66,7 +66,7 @@ def _inf_norm(v: Tensor) -> Tensor:
 # Selecting instances, and the batch-first / batch-last change of layout.
 
 
-def _take_instances(t: Tensor, idx: Tensor) -> Tensor:
+def take_instances(t: Tensor, idx: Tensor) -> Tensor:
     """Instances ``idx`` of a batch-last tensor: ``(..., B) -> (..., len(idx))``.
 
     Gathering along the last dim of a flat ``(rows, B)`` view is faster than
@@ -76,7 +76,7 @@ def _take_instances(t: Tensor, idx: Tensor) -> Tensor:
     return flat.reshape(*t.shape[:-1], idx.numel())
 
 
-def _is_small_subset(idx: Tensor, batch: int) -> bool:
+def is_small_subset(idx: Tensor, batch: int) -> bool:
     """Is ``idx`` (at most an eighth of ``batch`` instances) few enough to gather
     from batch-first storage instead?
 
@@ -86,7 +86,7 @@ def _is_small_subset(idx: Tensor, batch: int) -> bool:
     return idx.numel() * 8 <= batch
 
 
-def _put_instances_(t: Tensor, idx: Tensor, src: Tensor) -> Tensor:
+def put_instances_(t: Tensor, idx: Tensor, src: Tensor) -> Tensor:
     """Overwrite instances ``idx`` of contiguous batch-last ``t: (..., B)`` with
     ``src: (..., len(idx))``, in place; returns ``t``."""
     if idx.numel():
@@ -94,7 +94,7 @@ def _put_instances_(t: Tensor, idx: Tensor, src: Tensor) -> Tensor:
     return t
 
 
-def _transpose(t: Tensor) -> Tensor:
+def swap_layout(t: Tensor) -> Tensor:
     """Contiguous ``t.T`` of a 2-D tensor: between the batch-first API, ``(B, n)``,
     and the batch-last working layout, ``(n, B)``.
 
@@ -110,7 +110,7 @@ def _transpose(t: Tensor) -> Tensor:
 # Cholesky factorisation, solves and inverse.
 
 
-def _cholesky(M: Tensor, strict: bool = True) -> tuple[Tensor, Tensor]:
+def cholesky(M: Tensor, strict: bool = True) -> tuple[Tensor, Tensor]:
     """Lower Cholesky factor ``L L' = M`` of symmetric ``M: (n, n, B)``, one column
     per step.
 
@@ -152,7 +152,7 @@ def _cholesky(M: Tensor, strict: bool = True) -> tuple[Tensor, Tensor]:
     return L, ok
 
 
-def _cholesky_solve(L: Tensor, b: Tensor) -> Tensor:
+def cholesky_solve(L: Tensor, b: Tensor) -> Tensor:
     """Solve ``L L' x = b`` for ``L: (n, n, B)`` lower triangular, ``b: (n, B)``;
     returns ``x: (n, B)``."""
     n = b.shape[0]
@@ -171,7 +171,7 @@ def _cholesky_solve(L: Tensor, b: Tensor) -> Tensor:
     return w
 
 
-def _spd_inverse(M: Tensor) -> tuple[Tensor, Tensor]:
+def spd_inverse(M: Tensor) -> tuple[Tensor, Tensor]:
     """Explicit inverse of symmetric positive definite ``M: (n, n, B)``.
 
     LAPACK's potri done by hand: ``W = L^{-1}`` row by row, then ``M^{-1} = W' W``,
@@ -180,10 +180,10 @@ def _spd_inverse(M: Tensor) -> tuple[Tensor, Tensor]:
     matrix.
 
     Returns:
-        inverse: (n, n, B); ok: (B,) bool as in :func:`_cholesky`.
+        inverse: (n, n, B); ok: (B,) bool as in :func:`cholesky`.
     """
     n = M.shape[0]
-    L, ok = _cholesky(M)
+    L, ok = cholesky(M)
     if M.shape[-1] <= _LAPACK_BATCH:  # a few matrices: LAPACK's potri per matrix
         inverse = torch.cholesky_inverse(L.permute(2, 0, 1).tril())  # (B, n, n)
         inverse = torch.where(ok[:, None, None], inverse, 0)  # no NaN where not ok
@@ -212,24 +212,24 @@ def _spd_inverse(M: Tensor) -> tuple[Tensor, Tensor]:
 # The "UL" factor and triangular sweeps over it.
 
 
-def _ul_cholesky(M: Tensor) -> tuple[Tensor, Tensor]:
+def ul_cholesky(M: Tensor) -> tuple[Tensor, Tensor]:
     """Upper triangular ``U`` with ``M = U U'`` for symmetric ``M: (n, n, B)``.
 
     It is the Cholesky factor of ``M`` with its rows and columns reversed, and it
     factorises every trailing block at once: row ``i`` of ``U`` is zero left of
     ``i``, so ``M[k:, k:] = U[k:, k:] U[k:, k:]'``. Fixing the first ``k`` variables
     of a box QP therefore needs no new factorisation (see
-    :func:`torchcf.qp.leading._leading_solve`).
+    :func:`torchcf.qp.leading.leading_solve`).
 
     Returns:
         U: (n, n, B), strict lower triangle uninitialised; ok: (B,) bool as in
-        :func:`_cholesky`.
+        :func:`cholesky`.
     """
-    L, ok = _cholesky(M.flip(0, 1))
+    L, ok = cholesky(M.flip(0, 1))
     return L.flip(0, 1), ok
 
 
-def _sweep_slices(t: Tensor) -> list[slice]:
+def sweep_slices(t: Tensor) -> list[slice]:
     """Even batch slices of a sweep's accumulator ``t: (n, B)`` (see
     ``_SWEEP_BYTES``); one slice, the whole batch, where it fits."""
     batch = t.shape[-1]
@@ -238,16 +238,16 @@ def _sweep_slices(t: Tensor) -> list[slice]:
     return [slice(start, start + size) for start in range(0, batch, size)]
 
 
-def _back_substitute(U: Tensor, inv_diag: Tensor, q: Tensor) -> Tensor:
+def back_substitute(U: Tensor, inv_diag: Tensor, q: Tensor) -> Tensor:
     """``g = U^{-1} q``: (n, B), for upper triangular ``U: (n, n, B)``, ``q: (n, B)``.
 
     Column by column, one fused ``(rows, b)`` operation per column and batch slice
-    (:func:`_sweep_slices`): ``n^2 / 2`` multiply-adds. ``inv_diag``: (n, B)
+    (:func:`sweep_slices`): ``n^2 / 2`` multiply-adds. ``inv_diag``: (n, B)
     ``1 / diag(U)``.
     """
     n = q.shape[0]
     g = q.clone()
-    for part in _sweep_slices(g):
+    for part in sweep_slices(g):
         g_, U_, inv_ = g[:, part], U[..., part], inv_diag[:, part]
         for j in reversed(range(n)):
             g_[j].mul_(inv_[j])
@@ -256,7 +256,7 @@ def _back_substitute(U: Tensor, inv_diag: Tensor, q: Tensor) -> Tensor:
     return g
 
 
-def _tail_residual(U: Tensor, g: Tensor, q: Tensor) -> Tensor:
+def tail_residuals(U: Tensor, g: Tensor, q: Tensor) -> Tensor:
     """(n + 1, B): ``max_{i >= k} |U g - q|_i`` in row ``k``, 0 in row ``n``.
 
     The residual is recomputed from ``U: (n, n, B)`` and ``g: (n, B)``, not carried

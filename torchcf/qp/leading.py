@@ -3,21 +3,21 @@ refactorising.
 
 For a box QP (``A = I``) with the active bounds ``A = {0 .. k-1}`` and the free
 block ``F = {k .. n-1}``, the solution solves ``P_FF x_F = -q_F - P_FA x_A``. With
-the "UL" factor ``P = U U'`` (:func:`~torchcf.qp.kernels._ul_cholesky`, computed
+the "UL" factor ``P = U U'`` (:func:`~torchcf.qp.kernels.ul_cholesky`, computed
 once per ``P``) that system is one forward substitution through ``U'``
-(:func:`_leading_solve`: ``n^2 / 2`` multiply-adds for ``x``, ``k^2 / 2`` for the
+(:func:`leading_solve`: ``n^2 / 2`` multiply-adds for ``x``, ``k^2 / 2`` for the
 multipliers, no new factorisation), and a step that fixes or frees the bound at the
 end of the block is a rank-one update from a second per-``P`` factor
-(:func:`_boundary_step`). A point is accepted only where the KKT conditions hold to
-round-off (:func:`_leading_accept`), so the answers are exact.
+(:func:`boundary_step`). A point is accepted only where the KKT conditions hold to
+round-off (:func:`leading_accept`), so the answers are exact.
 
 On the MPC QPs the guessed active sets are nearly always leading blocks: the first
 inputs of the plan saturate. :mod:`torchcf.qp.active_set` iterates these solves.
 
 The data come at three lifetimes, one tuple each: :class:`_LeadingFactor` per
 ``P`` (over the ``B`` instances of a :class:`~torchcf.qp.boxqp.BoxQP`),
-:class:`_LeadingCall` per call (``c`` instances), and :class:`_LeadingWorkingSet`
-per active-set pass (``b`` instances). Solutions are :class:`_LeadingSolution`.
+:class:`_LeadingCall` per call (``c`` instances), and :class:`LeadingWorkingSet`
+per active-set pass (``b`` instances). Solutions are :class:`LeadingSolution`.
 
 Imports :mod:`~torchcf.qp.kernels` and :mod:`~torchcf.qp.problem` only.
 """
@@ -30,24 +30,24 @@ import torch
 from torch import Tensor
 
 from .kernels import (
-    _back_substitute,
-    _inf_norm,
-    _is_small_subset,
-    _put_instances_,
-    _sweep_slices,
-    _tail_residual,
-    _take_instances,
-    _transpose,
-    _ul_cholesky,
+    back_substitute,
+    inf_norm,
+    is_small_subset,
+    put_instances_,
+    swap_layout,
+    sweep_slices,
+    tail_residuals,
+    take_instances,
+    ul_cholesky,
 )
-from .problem import INFTY, QPSettings, _roundoff_floor
+from .problem import INFTY, QPSettings, roundoff_floor
 
 # --------------------------------------------------------------------------------------
 # Per-P factors.
 
 
 class _LeadingFactor(NamedTuple):
-    """Per-``P`` factors of the leading-block solves (:func:`_leading_factor`),
+    """Per-``P`` factors of the leading-block solves (:func:`leading_factor`),
     over the ``B`` instances of the factorised batch."""
 
     U: Tensor  # (n, n, B) upper triangular, P = U U', zero below the diagonal
@@ -55,15 +55,15 @@ class _LeadingFactor(NamedTuple):
     inv_diag: Tensor  # (n, B) 1 / diag(U)
     # (B * n, 2 n): row b n + j is column j of instance b's D = U'^{-1} diag(U)
     # (unit lower triangular), then column j of its U. Batch-first, so that one
-    # instance's column is one contiguous gather (see :func:`_boundary_step`).
+    # instance's column is one contiguous gather (see :func:`boundary_step`).
     columns: Tensor
     # (n + 1, B): max_{i >= k} ||U[i, :]||_1 in row k, 0 in row n; bounds the back
-    # substitution's residual (see :func:`_leading_data`).
+    # substitution's residual (see :func:`leading_data`).
     tail_row_norm: Tensor
 
 
-def _leading_factor(P: Tensor) -> tuple[_LeadingFactor, Tensor]:
-    """The factors of :func:`_leading_solve` and :func:`_boundary_step` for
+def leading_factor(P: Tensor) -> tuple[_LeadingFactor, Tensor]:
+    """The factors of :func:`leading_solve` and :func:`boundary_step` for
     symmetric ``P: (n, n, B)``.
 
     ``D = U'^{-1} diag(U)``: column ``j`` is how the trailing block ``x_{j+1..}``
@@ -73,9 +73,9 @@ def _leading_factor(P: Tensor) -> tuple[_LeadingFactor, Tensor]:
     ``U'`` for all ``n`` columns at once (``n^3 / 6`` multiply-adds per instance).
 
     Returns:
-        the factors; ok: (B,) bool as in :func:`~torchcf.qp.kernels._cholesky`.
+        the factors; ok: (B,) bool as in :func:`~torchcf.qp.kernels.cholesky`.
     """
-    U, ok = _ul_cholesky(P)
+    U, ok = ul_cholesky(P)
     n, batch = P.shape[0], P.shape[-1]
     rows = torch.arange(n, device=P.device)
     upper_triangle = (rows[:, None] <= rows[None, :])[:, :, None]  # (n, n, 1)
@@ -123,7 +123,7 @@ def _step_columns(factor: _LeadingFactor, j: Tensor, cols: Tensor) -> Tensor:
 
 class _LeadingCall(NamedTuple):
     """What the leading-block solves know of one call's ``c`` problems
-    (:func:`_leading_data`); no active set changes it."""
+    (:func:`leading_data`); no active set changes it."""
 
     factor: _LeadingFactor  # over the factors' batch
     cols: Tensor | None  # (c,) int64 the problems' instances of it; None: the same
@@ -137,7 +137,7 @@ class _LeadingCall(NamedTuple):
     given_bounds: tuple[Tensor, Tensor] | None
 
 
-class _LeadingWorkingSet(NamedTuple):
+class LeadingWorkingSet(NamedTuple):
     """A working set of ``b`` of a call's box QPs (A = I), batch-last: the vectors
     every pass reads. The rest stays in ``call``, gathered only for a new solve."""
 
@@ -148,22 +148,22 @@ class _LeadingWorkingSet(NamedTuple):
     q_norm: Tensor  # (b,) ||q||_inf
     inequality: Tensor | None  # (n, b) float, 0 on rows with l == u; None: no such row
 
-    def take(self, idx: Tensor) -> _LeadingWorkingSet:
+    def take(self, idx: Tensor) -> LeadingWorkingSet:
         """Instances ``idx: (b',)`` of the working set."""
         rows = idx if self.rows is None else self.rows[idx]
         inequality = (
-            None if self.inequality is None else _take_instances(self.inequality, idx)
+            None if self.inequality is None else take_instances(self.inequality, idx)
         )
         if self.call.given_bounds is None:
-            l, u = _take_instances(self.l, idx), _take_instances(self.u, idx)  # noqa: E741
+            l, u = take_instances(self.l, idx), take_instances(self.u, idx)  # noqa: E741
         else:  # from the batch-first bounds as given: contiguous rows
             l, u = (  # noqa: E741
-                _transpose(t.index_select(0, rows).to(self.l.dtype)).clamp_(
+                swap_layout(t.index_select(0, rows).to(self.l.dtype)).clamp_(
                     -INFTY, INFTY
                 )
                 for t in self.call.given_bounds
             )
-        return _LeadingWorkingSet(self.call, rows, l, u, self.q_norm[idx], inequality)
+        return LeadingWorkingSet(self.call, rows, l, u, self.q_norm[idx], inequality)
 
     def solve_data(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """``U: (n, n, b), diag, inv_diag, g: (n, b)`` of the working set (gathered
@@ -171,15 +171,15 @@ class _LeadingWorkingSet(NamedTuple):
         call, rows = self.call, self.rows
         if rows is None:
             return call.U, call.diag, call.inv_diag, call.g
-        if _is_small_subset(rows, call.U.shape[-1]):
+        if is_small_subset(rows, call.U.shape[-1]):
             U = _gathered_upper_factor(call.factor, self.factor_cols())
         else:
-            U = _take_instances(call.U, rows)
+            U = take_instances(call.U, rows)
         return (
             U,
-            _take_instances(call.diag, rows),
-            _take_instances(call.inv_diag, rows),
-            _take_instances(call.g, rows),
+            take_instances(call.diag, rows),
+            take_instances(call.inv_diag, rows),
+            take_instances(call.g, rows),
         )
 
     def factor_cols(self) -> Tensor:
@@ -222,7 +222,7 @@ def _tail_residual_table(
     substitution's worth of work, on those instances only.
 
     Args:
-        factor, cols: as in :func:`_leading_data`.
+        factor, cols: as in :func:`leading_data`.
         U: (n, n, c) the problems' factor; g: (n, c) ``U^{-1} q``; q: (n, c).
         q_norm: (c,) ``||q||_inf``.
     """
@@ -232,26 +232,26 @@ def _tail_residual_table(
     gamma = (n + 2) * unit_roundoff / (1 - (n + 2) * unit_roundoff)
     tail_row_norm = factor.tail_row_norm
     if cols is not None:
-        tail_row_norm = _take_instances(tail_row_norm, cols)
-    tail_residual = tail_row_norm * (gamma * _inf_norm(g))  # (n + 1, c) bounds
+        tail_row_norm = take_instances(tail_row_norm, cols)
+    tail_residual = tail_row_norm * (gamma * inf_norm(g))  # (n + 1, c) bounds
     # The dual floor's scale is at least ||q||: where the bound clears the floor at
     # that scale it clears it in any pass.
-    loose = (tail_residual[0] > _roundoff_floor(q_norm, settings)).nonzero()[:, 0]
+    loose = (tail_residual[0] > roundoff_floor(q_norm, settings)).nonzero()[:, 0]
     if loose.numel():
-        if _is_small_subset(loose, q.shape[-1]):
+        if is_small_subset(loose, q.shape[-1]):
             sub_cols = loose if cols is None else cols[loose]
             sub = (
                 _gathered_upper_factor(factor, sub_cols),
-                _take_instances(g, loose),
-                _take_instances(q, loose),
+                take_instances(g, loose),
+                take_instances(q, loose),
             )
-            _put_instances_(tail_residual, loose, _tail_residual(*sub))
+            put_instances_(tail_residual, loose, tail_residuals(*sub))
         else:
-            tail_residual = _tail_residual(U, g, q)
+            tail_residual = tail_residuals(U, g, q)
     return tail_residual
 
 
-def _leading_data(
+def leading_data(
     factor: _LeadingFactor,
     q: Tensor,
     l: Tensor,  # noqa: E741
@@ -260,18 +260,18 @@ def _leading_data(
     cols: Tensor | None = None,
     equality: bool = True,
     given_bounds: tuple[Tensor, Tensor] | None = None,
-) -> _LeadingWorkingSet:
+) -> LeadingWorkingSet:
     """The problems as the leading-block stage's working set, with the per-call
     quantities that no active set changes.
 
     ``g = U^{-1} q`` serves every active-set pass, and so does the residual of that
     back substitution: with the leading block ``A`` fixed, the stationarity residual
     ``P x + q`` on the free rows ``F = {k, ..}`` is ``(U g - q)_F`` (see
-    :func:`_leading_solve`), so its max over ``F`` is a lookup in ``tail_residual``
+    :func:`leading_solve`), so its max over ``F`` is a lookup in ``tail_residual``
     (:func:`_tail_residual_table`).
 
     Args:
-        factor: from :func:`_leading_factor`.
+        factor: from :func:`leading_factor`.
         q, l, u: (n, c) the problems.
         settings: for the acceptance floor.
         cols: optional (c,) instances of ``factor`` that the problems belong to.
@@ -282,41 +282,41 @@ def _leading_data(
     diag, inv_diag = factor.diag, factor.inv_diag
     U = factor.U
     if cols is not None:
-        diag, inv_diag = _take_instances(diag, cols), _take_instances(inv_diag, cols)
-        few = _is_small_subset(cols, factor.diag.shape[-1])
-        U = _gathered_upper_factor(factor, cols) if few else _take_instances(U, cols)
-    g = _back_substitute(U, inv_diag, q)
-    q_norm = _inf_norm(q)
+        diag, inv_diag = take_instances(diag, cols), take_instances(inv_diag, cols)
+        few = is_small_subset(cols, factor.diag.shape[-1])
+        U = _gathered_upper_factor(factor, cols) if few else take_instances(U, cols)
+    g = back_substitute(U, inv_diag, q)
+    q_norm = inf_norm(q)
     tail_residual = _tail_residual_table(factor, cols, U, g, q, q_norm, settings)
     inequality = None
     if equality and bool((l == u).any()):
         inequality = (l != u).to(q.dtype)
     call = _LeadingCall(factor, cols, U, diag, inv_diag, g, tail_residual, given_bounds)
-    return _LeadingWorkingSet(call, None, l, u, q_norm, inequality)
+    return LeadingWorkingSet(call, None, l, u, q_norm, inequality)
 
 
 # --------------------------------------------------------------------------------------
 # Solutions on a leading block.
 
 
-def _is_leading(active: Tensor) -> Tensor:
+def is_leading(active: Tensor) -> Tensor:
     """(n, B) bool -> (B,) bool: the True rows are ``0 .. k-1`` for some ``k``."""
     return ~(active[1:] & ~active[:-1]).any(0)
 
 
-class _LeadingSolution(NamedTuple):
+class LeadingSolution(NamedTuple):
     """An exact solution of ``b`` box QPs on a guessed leading active set."""
 
     x: Tensor  # (n, b)
     y: Tensor  # (n, b) multipliers -(P x + q) on the fixed rows, 0 elsewhere
     # (n, b) y times +1 / -1 on rows fixed at the lower / upper bound, 0 on free and
-    # equality rows (see _signed_multipliers): > 0 where the sign is wrong.
+    # equality rows (see signed_multipliers): > 0 where the sign is wrong.
     signed: Tensor
     k: Tensor  # (b,) int64 fixed rows
 
 
-def _leading_guess(
-    data: _LeadingWorkingSet, x: Tensor, k: Tensor
+def leading_guess(
+    data: LeadingWorkingSet, x: Tensor, k: Tensor
 ) -> tuple[Tensor, Tensor]:
     """The guess a leading-block solution ``x: (n, b)`` with ``k: (b,)`` fixed rows
     was computed on: rows ``< k``, each at the bound it sits on. Exact: the solves
@@ -331,21 +331,21 @@ def _leading_guess(
     return lower, fixed & ~lower
 
 
-def _signed_multipliers(data: _LeadingWorkingSet, y: Tensor, sign: Tensor) -> Tensor:
+def signed_multipliers(data: LeadingWorkingSet, y: Tensor, sign: Tensor) -> Tensor:
     """``y`` times ``sign`` (+1 / -1 on the rows fixed at their lower / upper
     bound, 0 on the free rows; overwritten), 0 on equality rows (whose multiplier
-    may have either sign): ``_LeadingSolution.signed``, (n, b)."""
+    may have either sign): ``LeadingSolution.signed``, (n, b)."""
     if data.inequality is not None:
         sign.mul_(data.inequality)
     return sign.mul_(y)
 
 
-def _leading_solve(
-    data: _LeadingWorkingSet, lower: Tensor, upper: Tensor
-) -> _LeadingSolution:
+def leading_solve(
+    data: LeadingWorkingSet, lower: Tensor, upper: Tensor
+) -> LeadingSolution:
     """Exact solution with the leading block ``A = {0 .. k-1}`` fixed at its bounds.
 
-    With ``F`` the trailing free block and ``P = U U'`` (:func:`_ul_cholesky`),
+    With ``F`` the trailing free block and ``P = U U'`` (:func:`ul_cholesky`),
     ``P_FF = U_FF U_FF'`` and ``P_FA = U_FF U_AF'``, so the reduced system
     ``P_FF x_F = -q_F - P_FA x_A`` reads ``(U' x)_F = -g_F`` with ``g = U^{-1} q``
     (``g_F = U_FF^{-1} q_F``): one forward substitution through the lower triangular
@@ -356,11 +356,11 @@ def _leading_solve(
     back substitution's, ``(P x + q)_F = (U g - q)_F``. Cost: ``n^2 / 2`` multiply-
     adds for ``x`` and ``k^2 / 2`` for ``y`` (the batch pays for its largest ``k``),
     against ``n^3 / 6`` for a new Cholesky. Each loop runs over columns, one fused
-    operation on ``(rows, b)`` per column and batch slice (:func:`_sweep_slices`).
+    operation on ``(rows, b)`` per column and batch slice (:func:`sweep_slices`).
 
     Args:
-        data: the problems (:func:`_leading_data`); lower, upper: (n, b) bool, the
-            fixed bounds, a leading block in every instance (:func:`_is_leading`).
+        data: the problems (:func:`leading_data`); lower, upper: (n, b) bool, the
+            fixed bounds, a leading block in every instance (:func:`is_leading`).
     """
     U, diag, inv_diag, g = data.solve_data()
     n = g.shape[0]
@@ -373,7 +373,7 @@ def _leading_solve(
     # Forward substitution: r_j = -g_j - sum_{i<j} U[i, j] x_i, then x_j = r_j /
     # U[j, j] on F (x_j stays at its bound on A). r_j is final once column j is read.
     r = g.neg()
-    for part in _sweep_slices(r):  # batch slices: see _SWEEP_BYTES
+    for part in sweep_slices(r):  # batch slices: see _SWEEP_BYTES
         x_, r_, U_, solve_ = x[:, part], r[:, part], U[..., part], solve[:, part]
         for j in range(n):
             x_[j].addcmul_(r_[j], solve_[j])
@@ -386,27 +386,27 @@ def _leading_solve(
         # -s_A = r_A - diag_A x_A (r_j holds -g_j - (U' x)_j + U[j, j] x_j), 0 on F.
         minus_s = torch.addcmul(r[:depth], diag[:depth], x[:depth], value=-1)
         minus_s.mul_(active[:depth])
-        for part in _sweep_slices(y):
+        for part in sweep_slices(y):
             y_, U_, m_ = y[:, part], U[..., part], minus_s[:, part]
             for j in range(depth):  # y_A = U_AA (-s_A); rows of F stay 0
                 y_[: j + 1].addcmul_(U_[: j + 1, j], m_[j])
-    signed = _signed_multipliers(data, y, at_lower.sub_(at_upper))
-    return _LeadingSolution(x, y, signed, k)
+    signed = signed_multipliers(data, y, at_lower.sub_(at_upper))
+    return LeadingSolution(x, y, signed, k)
 
 
-def _boundary_step(
-    data: _LeadingWorkingSet,
-    solution: _LeadingSolution,
+def boundary_step(
+    data: LeadingWorkingSet,
+    solution: LeadingSolution,
     j: Tensor,
     lower: Tensor,
     upper: Tensor,
-) -> _LeadingSolution:
+) -> LeadingSolution:
     """The exact solution after fixing or freeing one bound at the end of the block.
 
     With ``A = {0 .. k-1}`` fixed, fixing ``x_k`` at its bound, or freeing
     ``x_{k-1}``, moves ``x_j`` (``j = k`` or ``k - 1``) by some ``delta`` and the
     trailing free block with it, re-optimised: ``x' = x + delta D[:, j]``
-    (:func:`_leading_factor`). Since ``U' D[:, j] = U[j, j] e_j``, the gradient
+    (:func:`leading_factor`). Since ``U' D[:, j] = U[j, j] e_j``, the gradient
     moves by ``P D[:, j] delta = U[:, j] U[j, j] delta``: nothing on the rows after
     ``j``, so they stay stationary; a fixed ``x_j`` gets the multiplier
     ``-U[j, j]^2 delta``, and a freed one becomes stationary for
@@ -437,11 +437,11 @@ def _boundary_step(
     # (Clamped: instances that are not one bound away from the guess get garbage.)
     k = (solution.k + torch.where(grow, 1, -1)).clamp_(0, x.shape[0])
     sign = lower.to(y.dtype).sub_(upper.to(y.dtype))
-    return _LeadingSolution(x, y, _signed_multipliers(data, y, sign), k)
+    return LeadingSolution(x, y, signed_multipliers(data, y, sign), k)
 
 
-def _leading_accept(
-    data: _LeadingWorkingSet, solution: _LeadingSolution, settings: QPSettings
+def leading_accept(
+    data: LeadingWorkingSet, solution: LeadingSolution, settings: QPSettings
 ) -> Tensor:
     """(b,) bool: is the leading-block solution optimal, to round-off?
 
@@ -460,9 +460,9 @@ def _leading_accept(
     prim_ok = prim_res == 0
     outside = (~prim_ok).nonzero()[:, 0]
     if outside.numel():
-        x_norm = _inf_norm(_take_instances(x, outside))
+        x_norm = inf_norm(take_instances(x, outside))
         prim_ok[outside] = (
-            prim_res[outside] <= _roundoff_floor(x_norm, settings)
+            prim_res[outside] <= roundoff_floor(x_norm, settings)
         ) & torch.isfinite(x_norm)
     dual_res = data.tail_residual(solution.k)  # max over F
     # signed y: <= 0 on a correctly signed active row, 0 on F; |signed| = |y| on
@@ -470,8 +470,8 @@ def _leading_accept(
     sign_error = signed.amax(0)
     y_norm = torch.maximum(sign_error, signed.amin(0).neg_())
     if data.inequality is not None:
-        y_norm = _inf_norm(solution.y)
-    dual_floor = _roundoff_floor(torch.maximum(data.q_norm, y_norm), settings)
+        y_norm = inf_norm(solution.y)
+    dual_floor = roundoff_floor(torch.maximum(data.q_norm, y_norm), settings)
     return (
         prim_ok
         & (dual_res <= dual_floor)

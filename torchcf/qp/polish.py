@@ -4,10 +4,10 @@ Given a guess of the active bounds, the QP reduces to an equality-constrained on
 solved exactly (:func:`_polish_box` for ``A = I``, :func:`_polish_general`
 otherwise). The point is accepted per instance only where it satisfies the KKT
 conditions (:func:`_kkt_accept`); a rejected instance gets primal-dual active-set
-corrections (:func:`_active_set_solves`). The polish after ADMM
+corrections (:func:`active_set_solves`). The polish after ADMM
 (:func:`_polish`) guesses the active set from the ADMM iterate and accepts a point
 that beats ADMM's own residuals: nearly always exact, at worst as accurate as ADMM.
-:class:`~torchcf.qp.boxqp.BoxQP` also calls :func:`_active_set_solves` on the
+:class:`~torchcf.qp.boxqp.BoxQP` also calls :func:`active_set_solves` on the
 instances its leading-block stage leaves.
 
 Shapes: ``n`` variables, ``m`` rows, ``B`` instances. Imports
@@ -21,9 +21,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .admm import _admm, _ADMMOutcome, _Iterate
-from .kernels import _cholesky, _cholesky_solve, _inf_norm, _mv, _take_instances
-from .problem import _ROUNDOFF_ULPS, QPSettings, QPStatus, _ProblemData
+from .admm import ADMMOutcome, Iterate, admm_iterations
+from .kernels import cholesky, cholesky_solve, inf_norm, mv, take_instances
+from .problem import ROUNDOFF_ULPS, ProblemData, QPSettings, QPStatus
 
 #: Regularisation and iterative-refinement steps of the polish (OSQP's defaults).
 _POLISH_DELTA = 1e-6
@@ -33,7 +33,7 @@ _POLISH_PASSES = 4
 
 
 def _admm_active_bounds(
-    data: _ProblemData, z: Tensor, y: Tensor
+    data: ProblemData, z: Tensor, y: Tensor
 ) -> tuple[Tensor, Tensor]:
     """OSQP's guess of the active bounds from the ADMM iterate ``z, y: (m, B)``:
     lower, upper, (m, B) bool each.
@@ -52,7 +52,7 @@ def _admm_active_bounds(
 
 
 def _polish_box(
-    data: _ProblemData, lower: Tensor, upper: Tensor, definite: Tensor | None = None
+    data: ProblemData, lower: Tensor, upper: Tensor, definite: Tensor | None = None
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Exact solve with the active variables fixed at their bounds (A = I).
 
@@ -82,20 +82,20 @@ def _polish_box(
     if definite is not None:
         delta = delta * ~definite
     torch.diagonal(regular, 0, 0, 1).add_((active + delta).T)
-    L, _ = _cholesky(regular, False)
-    rhs = fixed + free * (-data.q - _mv(data.P, fixed))
-    x = _cholesky_solve(L, rhs)
+    L, _ = cholesky(regular, False)
+    rhs = fixed + free * (-data.q - mv(data.P, fixed))
+    x = cholesky_solve(L, rhs)
     if definite is None or not bool(definite.all()):
         for _ in range(_POLISH_REFINE):
-            residual = rhs - _mv(regular, x) + delta * x  # of the exact system
-            x = x + _cholesky_solve(L, residual)
-    px = _mv(data.P, x)
+            residual = rhs - mv(regular, x) + delta * x  # of the exact system
+            x = x + cholesky_solve(L, residual)
+    px = mv(data.P, x)
     y = -(px + data.q) * active
     return x, y, px
 
 
 def _polish_general(
-    data: _ProblemData, lower: Tensor, upper: Tensor
+    data: ProblemData, lower: Tensor, upper: Tensor
 ) -> tuple[Tensor, Tensor]:
     """Exact solve of the reduced KKT system of the guessed active set (general A).
 
@@ -138,14 +138,14 @@ def _polish_general(
 
 
 def _exact_solve(
-    data: _ProblemData, lower: Tensor, upper: Tensor, definite: Tensor | None
+    data: ProblemData, lower: Tensor, upper: Tensor, definite: Tensor | None
 ) -> tuple[Tensor, Tensor, Tensor]:
     """``x: (n, B), y: (m, B), P x: (n, B)`` on the guessed active set
     ``lower | upper: (m, B)``, for a box or a general ``A``."""
     if data.A is None:
         return _polish_box(data, lower, upper, definite)
     x, y = _polish_general(data, lower, upper)
-    return x, y, _mv(data.P, x)
+    return x, y, mv(data.P, x)
 
 
 # --------------------------------------------------------------------------------------
@@ -153,7 +153,7 @@ def _exact_solve(
 
 
 def _kkt_accept(
-    data: _ProblemData,
+    data: ProblemData,
     x: Tensor,
     y: Tensor,
     ax: Tensor,
@@ -173,7 +173,7 @@ def _kkt_accept(
     bound up to that floor (a wrong sign means the guessed active set was wrong): then
     the KKT conditions hold. The floor of a residual whose quantities are of size
     ``s`` is ``min(100 eps (1 + s), eps_abs + eps_rel' s)`` (see
-    :func:`~torchcf.qp.problem._roundoff_floor`).
+    :func:`~torchcf.qp.problem.roundoff_floor`).
 
     Args:
         data: the problems (only ``q, l, u`` are read); x: (n, B);
@@ -186,17 +186,17 @@ def _kkt_accept(
         has the wrong sign.
     """
     ulp = torch.finfo(data.q.dtype).eps
-    eps_rel = settings.eps_rel + _ROUNDOFF_ULPS * ulp
+    eps_rel = settings.eps_rel + ROUNDOFF_ULPS * ulp
     # Bool-mask where() and bool reductions over rows are slow on CPU; everything
     # below is float arithmetic, comparisons and float reductions.
-    prim_res = _inf_norm(ax - z)
-    dual_res = _inf_norm(px + data.q + aty)
+    prim_res = inf_norm(ax - z)
+    dual_res = inf_norm(px + data.q + aty)
     # Round-off floor: a hundred ulps of the quantities the residuals difference,
     # capped at the termination tolerance.
-    x_norm, y_norm = _inf_norm(x), _inf_norm(y)
-    prim_scale = torch.maximum(_inf_norm(ax), _inf_norm(z))
-    dual_scale = torch.maximum(_inf_norm(px), _inf_norm(data.q))
-    dual_scale = torch.maximum(dual_scale, _inf_norm(aty))
+    x_norm, y_norm = inf_norm(x), inf_norm(y)
+    prim_scale = torch.maximum(inf_norm(ax), inf_norm(z))
+    dual_scale = torch.maximum(inf_norm(px), inf_norm(data.q))
+    dual_scale = torch.maximum(dual_scale, inf_norm(aty))
     prim_floor = torch.minimum(
         100 * ulp * (1 + prim_scale), settings.eps_abs + eps_rel * prim_scale
     )
@@ -223,7 +223,7 @@ def _kkt_accept(
     return accept, wrong_sign
 
 
-class _AcceptedSolutions(NamedTuple):
+class AcceptedSolutions(NamedTuple):
     """Accepted exact solutions: ``rows`` of the batch and their iterate."""
 
     rows: Tensor  # (b,) int64
@@ -232,8 +232,8 @@ class _AcceptedSolutions(NamedTuple):
     y: Tensor  # (m, b)
 
 
-def _active_set_solves(
-    data: _ProblemData,
+def active_set_solves(
+    data: ProblemData,
     lower: Tensor,
     upper: Tensor,
     settings: QPSettings,
@@ -241,7 +241,7 @@ def _active_set_solves(
     prim_ref: Tensor | None = None,
     dual_ref: Tensor | None = None,
     definite: Tensor | None = None,
-) -> _AcceptedSolutions:
+) -> AcceptedSolutions:
     """Exact solves on a guessed active set, accepted per instance if optimal.
 
     A solution is accepted if its primal and dual residuals (OSQP's) are below
@@ -261,7 +261,7 @@ def _active_set_solves(
         definite: optional (B,) bool, P positive definite (box problems only).
     """
     rows = torch.arange(data.q.shape[-1], device=data.q.device)
-    accepted: list[_AcceptedSolutions] = []
+    accepted: list[AcceptedSolutions] = []
     for attempt in range(passes):
         x, y, px = _exact_solve(data, lower, upper, definite)
         ax = data.Ax(x)
@@ -283,11 +283,11 @@ def _active_set_solves(
         take = accept.nonzero().squeeze(1)
         if take.numel():
             accepted.append(
-                _AcceptedSolutions(
+                AcceptedSolutions(
                     rows[take],
-                    _take_instances(x, take),
-                    _take_instances(z, take),
-                    _take_instances(y, take),
+                    take_instances(x, take),
+                    take_instances(z, take),
+                    take_instances(y, take),
                 )
             )
         retry = (~accept).nonzero().squeeze(1)
@@ -297,15 +297,15 @@ def _active_set_solves(
         lower = (lower & ~wrong_sign) | (ax < data.l)
         upper = ((upper & ~wrong_sign) | (ax > data.u)) & ~lower
         rows, data = rows[retry], data.take(retry)
-        lower, upper = _take_instances(lower, retry), _take_instances(upper, retry)
+        lower, upper = take_instances(lower, retry), take_instances(upper, retry)
         if prim_ref is not None and dual_ref is not None:
             prim_ref, dual_ref = prim_ref[retry], dual_ref[retry]
         if definite is not None:
             definite = definite[retry]
     if not accepted:
         empty = data.q[:, :0]
-        return _AcceptedSolutions(rows[:0], empty, data.l[:, :0], data.l[:, :0])
-    return _AcceptedSolutions(
+        return AcceptedSolutions(rows[:0], empty, data.l[:, :0], data.l[:, :0])
+    return AcceptedSolutions(
         *(torch.cat(parts, -1) for parts in zip(*accepted, strict=True))
     )
 
@@ -315,15 +315,15 @@ def _active_set_solves(
 
 
 def _polish(
-    data: _ProblemData,
-    outcome: _ADMMOutcome,
+    data: ProblemData,
+    outcome: ADMMOutcome,
     settings: QPSettings,
     definite: Tensor | None = None,
-) -> tuple[_ADMMOutcome, Tensor]:
+) -> tuple[ADMMOutcome, Tensor]:
     """OSQP's polish of the SOLVED instances; the ADMM point stays where it fails.
 
     The active set is guessed from the ADMM iterate (:func:`_admm_active_bounds`)
-    and :func:`_active_set_solves` must beat the ADMM point's residuals. ADMM's
+    and :func:`active_set_solves` must beat the ADMM point's residuals. ADMM's
     guess usually misses only weakly active bounds (multipliers near its
     tolerance), which one active-set step repairs.
 
@@ -336,9 +336,9 @@ def _polish(
         return outcome, polished
     sub = data.take(rows)
     lower, upper = _admm_active_bounds(
-        sub, _take_instances(outcome.z, rows), _take_instances(outcome.y, rows)
+        sub, take_instances(outcome.z, rows), take_instances(outcome.y, rows)
     )
-    refined = _active_set_solves(
+    refined = active_set_solves(
         sub,
         lower,
         upper,
@@ -357,21 +357,21 @@ def _polish(
     ), polished
 
 
-def _admm_then_polish(
-    data: _ProblemData,
-    start: _Iterate,
+def admm_then_polish(
+    data: ProblemData,
+    start: Iterate,
     rho: Tensor,
     inverse: Tensor,
     settings: QPSettings,
     definite: Tensor | None = None,
-) -> tuple[_ADMMOutcome, Tensor]:
-    """ADMM from ``start`` (:func:`~torchcf.qp.admm._admm`), then the polish if the
-    settings ask for it.
+) -> tuple[ADMMOutcome, Tensor]:
+    """ADMM from ``start`` (:func:`~torchcf.qp.admm.admm_iterations`), then the
+    polish if the settings ask for it.
 
     Returns:
         the outcome; polished: (B,) bool.
     """
-    outcome = _admm(data, start, rho, inverse, settings)
+    outcome = admm_iterations(data, start, rho, inverse, settings)
     if settings.polish:
         return _polish(data, outcome, settings, definite)
     return outcome, torch.zeros_like(outcome.n_iter, dtype=torch.bool)

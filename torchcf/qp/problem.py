@@ -6,12 +6,12 @@ For ``B`` independent instances of the same shape the solver finds
 
 ``x`` of ``n`` variables, ``m`` constraint rows, ``P`` symmetric positive
 semidefinite. The public types (:class:`QPStatus`, :class:`QPSettings`,
-:class:`QPResult`) are batch-first, ``(B, n)``; :class:`_ProblemData` holds the same
+:class:`QPResult`) are batch-first, ``(B, n)``; :class:`ProblemData` holds the same
 problems batch-last, ``(n, B)``, as every kernel reads them (see
 :mod:`torchcf.qp.kernels`).
 
 Also here: the round-off floor that both the ADMM termination and the exact solves'
-acceptance tests raise their tolerances to (:func:`_roundoff_floor`).
+acceptance tests raise their tolerances to (:func:`roundoff_floor`).
 
 Imports only :mod:`torchcf.qp.kernels`.
 """
@@ -25,16 +25,16 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .kernels import _mv, _rmv, _take_instances, _transpose
+from .kernels import mv, rmv, swap_layout, take_instances
 
 #: Bounds beyond +-this are infinite (OSQP's OSQP_INFTY); +-inf inputs are clamped here.
 INFTY = 1e30
 #: A bound whose magnitude exceeds this is treated as infinite (OSQP: INFTY * 1e-4).
-_INF_THRESHOLD = INFTY * 1e-4
+INF_THRESHOLD = INFTY * 1e-4
 #: Relative tolerances are raised by this many machine epsilons: residuals below a
 #: hundred ulps of the quantities they difference are round-off (see
-#: :func:`torchcf.qp.admm._admm` and :func:`_roundoff_floor`).
-_ROUNDOFF_ULPS = 100
+#: :func:`torchcf.qp.admm.admm_iterations` and :func:`roundoff_floor`).
+ROUNDOFF_ULPS = 100
 
 
 class QPStatus(IntEnum):
@@ -123,7 +123,7 @@ class QPResult(NamedTuple):
     polished: Tensor
 
 
-class _ProblemData(NamedTuple):
+class ProblemData(NamedTuple):
     """A working set of ``B`` QPs, batch-last. ``A is None`` means ``A = I``
     (``m = n``: a box QP)."""
 
@@ -133,29 +133,29 @@ class _ProblemData(NamedTuple):
     l: Tensor  # (m, B), clamped to [-INFTY, INFTY]  # noqa: E741
     u: Tensor  # (m, B)
 
-    def take(self, idx: Tensor) -> _ProblemData:
+    def take(self, idx: Tensor) -> ProblemData:
         """Instances ``idx: (b,)`` of the working set."""
-        return _ProblemData(
-            *(None if t is None else _take_instances(t, idx) for t in self)
+        return ProblemData(
+            *(None if t is None else take_instances(t, idx) for t in self)
         )
 
     def Ax(self, x: Tensor) -> Tensor:
         """``A x``: (n, B) -> (m, B)."""
-        return x if self.A is None else _mv(self.A, x)
+        return x if self.A is None else mv(self.A, x)
 
     def Aty(self, y: Tensor) -> Tensor:
         """``A' y``: (m, B) -> (n, B)."""
-        return y if self.A is None else _rmv(self.A, y)
+        return y if self.A is None else rmv(self.A, y)
 
 
-def _roundoff_floor(scale: Tensor, settings: QPSettings) -> Tensor:
+def roundoff_floor(scale: Tensor, settings: QPSettings) -> Tensor:
     """(B,) the acceptance floor of a residual whose quantities are of size
     ``scale: (B,)``: ``min(100 eps (1 + scale), eps_abs + eps_rel' scale)`` with
-    ``eps_rel' = eps_rel + _ROUNDOFF_ULPS eps`` (``eps`` the machine epsilon), a
+    ``eps_rel' = eps_rel + ROUNDOFF_ULPS eps`` (``eps`` the machine epsilon), a
     hundred ulps of ``scale`` capped at the termination tolerance (see
     :func:`torchcf.qp.polish._kkt_accept`). Increasing in ``scale``."""
     ulp = torch.finfo(scale.dtype).eps
-    eps_rel = settings.eps_rel + _ROUNDOFF_ULPS * ulp
+    eps_rel = settings.eps_rel + ROUNDOFF_ULPS * ulp
     return torch.minimum(100 * ulp * (1 + scale), settings.eps_abs + eps_rel * scale)
 
 
@@ -163,13 +163,13 @@ def _roundoff_floor(scale: Tensor, settings: QPSettings) -> Tensor:
 # Between the batch-first API and the working layout.
 
 
-def _check_shape(name: str, t: Tensor | None, shape: tuple[int, ...]) -> None:
+def check_shape(name: str, t: Tensor | None, shape: tuple[int, ...]) -> None:
     """Raise ValueError unless ``t`` is None or of ``shape``."""
     if t is not None and tuple(t.shape) != shape:
         raise ValueError(f"{name} has shape {tuple(t.shape)}, expected {shape}")
 
 
-def _batch_last_bounds(
+def batch_last_bounds(
     l: Tensor,  # noqa: E741
     u: Tensor,
     dtype: torch.dtype,
@@ -203,11 +203,11 @@ def _batch_last_bounds(
     return lower, upper, least == 0
 
 
-def _batch_first_result(
+def batch_first_result(
     x: Tensor, y: Tensor, z: Tensor, n_iter: Tensor, status: Tensor, polished: Tensor
 ) -> QPResult:
     """Batch-first result from batch-last iterates ``x: (n, B)``, ``y, z: (m, B)``:
     ``x`` contiguous, ``y`` and ``z`` transposed views (a transposing copy costs
     about as much as a pass of the active-set stage, and most callers only read
     ``x``)."""
-    return QPResult(_transpose(x), y.T, z.T, n_iter, status, polished)
+    return QPResult(swap_layout(x), y.T, z.T, n_iter, status, polished)
