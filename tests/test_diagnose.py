@@ -19,20 +19,27 @@ import numpy as np
 import pytest
 import torch
 
+from torchcf.abc.particles import Particles, best_per_pair
 from torchcf.config import ConfigError, resolved_json, validate_config
-from torchcf.data.synthetic import synthetic_pairs
-from torchcf.diagnose.loop import (
+from torchcf.diagnose import (
     DiagnoseError,
-    _reuse_recalibration,
     best_particles,
-    diagnose_run,
-    main,
     residual_series,
     resolve_effect,
+    reuse_recalibration,
     sign_flip_test,
     split_in_time,
 )
+from torchcf.diagnose.__main__ import main
+from torchcf.diagnose.candidates import (
+    attribution_rollout,
+    attribution_seed,
+    model_bounds,
+    prior_particles,
+)
+from torchcf.pipeline import close_loop, train_and_evaluate
 from torchcf.posterior import Posterior
+from torchcf.synthetic import synthetic_pairs
 from torchcf.train import train
 
 IDM_TRUTH = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
@@ -81,8 +88,8 @@ def loops(tmp_path_factory):
             model, theta, _ = CASES[case]
             pairs = _pairs(model, theta)
             out = tmp_path_factory.mktemp(case) / "run"
-            train(_config(), out, pairs=pairs)
-            results[case] = (out, diagnose_run(out, pairs=pairs, progress=False))
+            train_and_evaluate(_config(), out, pairs=pairs)
+            results[case] = (out, close_loop(out, pairs=pairs, progress=False))
         return results[case]
 
     return run
@@ -142,7 +149,7 @@ def test_residuals_vanish_for_the_true_particle():
 
 def test_best_particles_picks_the_lowest_score_per_pair(tmp_path):
     pairs = _pairs("idm", IDM_TRUTH)
-    train(_config(5000), tmp_path / "run", pairs=pairs, evaluate=False)
+    train(_config(5000), tmp_path / "run", pairs=pairs)
     posterior = Posterior.load(tmp_path / "run" / "posterior.pt")
     best = best_particles(posterior, pairs[0])
     covered = torch.cat([position for _, position in best.values()])
@@ -173,17 +180,17 @@ def test_an_earlier_recalibration_is_resumed_only_when_it_is_this_one(tmp_path):
             (after / "checkpoint.pt").write_bytes(b"partial")
         return after
 
-    assert _reuse_recalibration(tmp_path / "loop" / "after", this) is False
-    assert _reuse_recalibration(after := earlier(this), this) is True
+    assert reuse_recalibration(tmp_path / "loop" / "after", this) is False
+    assert reuse_recalibration(after := earlier(this), this) is True
     assert after.exists()
-    assert _reuse_recalibration(earlier(other), this) is False
+    assert reuse_recalibration(earlier(other), this) is False
     assert not after.exists()
-    assert _reuse_recalibration(earlier(this, checkpoint=False), this) is False
+    assert reuse_recalibration(earlier(this, checkpoint=False), this) is False
     assert not after.exists()
     (earlier(this) / "config.json").write_text("{not json")
-    assert _reuse_recalibration(after, this) is False
+    assert reuse_recalibration(after, this) is False
     assert not after.exists()
-    assert _reuse_recalibration(earlier(this), None) is False
+    assert reuse_recalibration(earlier(this), None) is False
     assert not after.exists()
 
 
@@ -217,23 +224,33 @@ def test_bare_grade_spans_the_road_section():
 
 # ------------------------------------------------------------- attribution parts
 def _candidates(name, theta, pair, score):
-    from torchcf.diagnose.loop import _Candidates
-
-    return _Candidates(
+    """Hand-built particles; index 0 for all, so that ties go by set position."""
+    score = torch.as_tensor(score, dtype=torch.float64)
+    return Particles(
         name,
         torch.as_tensor(theta, dtype=torch.float64),
-        torch.as_tensor(pair),
-        torch.as_tensor(score, dtype=torch.float64),
+        torch.as_tensor(pair, dtype=torch.int64),
+        score,
+        torch.zeros(score.numel(), dtype=torch.int64),
     )
 
 
-def test_select_takes_the_best_per_pair_over_sets():
-    from torchcf.diagnose.loop import _select
+def _per_pair(sets, n_pairs):
+    """``(model, theta[0], score)`` per pair, best first: the sets' order (the
+    order in which their models first appear, pair by pair) breaks score ties."""
+    picks = [[] for _ in range(n_pairs)]
+    for s in sets:
+        rows = zip(s.theta, s.pair.tolist(), s.score.tolist(), strict=True)
+        for theta, j, score in rows:
+            picks[j].append((s.model, float(theta[0]), score))
+    return [sorted(p, key=lambda pick: pick[2]) for p in picks]
 
+
+def test_select_takes_the_best_per_pair_over_sets():
     a = _candidates("idm", [[1.0], [2.0], [3.0], [4.0]], [0, 0, 1, 1], [0.5, 0.2, 9, 1])
     b = _candidates("llctg", [[5.0], [6.0], [7.0]], [0, 1, 1], [0.2, math.inf, 0.1])
-    picks = _select([a, b], 3, 2)
-    assert [[(n, float(t[0]), s) for n, t, s in p] for p in picks] == [
+    picks = _per_pair(best_per_pair([a, b], 2), 3)
+    assert picks == [
         [("idm", 2.0, 0.2), ("llctg", 5.0, 0.2)],  # a tie goes to the earlier set
         [("llctg", 7.0, 0.1), ("idm", 4.0, 1.0)],  # inf is never picked
         [],
@@ -241,11 +258,11 @@ def test_select_takes_the_best_per_pair_over_sets():
 
 
 def test_jitter_stays_in_the_prior_and_keeps_fixed_parameters():
-    from torchcf.diagnose.loop import LOCAL_SCALES, _jitter
+    from torchcf.diagnose.search import LOCAL_SCALES, jitter
 
     theta = torch.tensor([[0.5, 2.0, 1.0], [0.0, 3.0, 1.0]], dtype=torch.float64)
     bounds = torch.tensor([[0.0, 1.0], [0.0, 10.0], [1.0, 1.0]], dtype=torch.float64)
-    moved = _jitter(theta, bounds, 3000, torch.Generator().manual_seed(0))
+    moved = jitter(theta, bounds, 3000, torch.Generator().manual_seed(0))
     assert moved.shape == (2, 3000, 3)
     assert bool((moved >= bounds[:, 0]).all() and (moved <= bounds[:, 1]).all())
     assert bool((moved[..., 2] == 1.0).all())  # zero width: fixed
@@ -255,23 +272,27 @@ def test_jitter_stays_in_the_prior_and_keeps_fixed_parameters():
 
 
 def test_local_search_spends_its_budget_and_never_loses_a_fit(monkeypatch):
-    import torchcf.diagnose.loop as dg
+    import torchcf.diagnose.search as search
 
     pairs = synthetic_pairs("idm", IDM_TRUTH, 4, 150, seed=9)
     cfg = _config(population=3, local_copies=5, rounds=2)
-    bounds = {m: dg._model_bounds(m, {}) for m in ("idm", "llctg")}
+    rollout = attribution_rollout(cfg, pairs)
+    bounds = {m: model_bounds(m, {}) for m in ("idm", "llctg")}
+    seed = attribution_seed(cfg)
     start = [
-        dg._small_abc(m, pairs, (200,), 3, cfg, bounds[m])[0] for m in ("idm", "llctg")
+        prior_particles(m, rollout, (200,), 3, bounds[m], seed)[0]
+        for m in ("idm", "llctg")
     ]
     simulated = []
-    scores = dg._fit_scores
+    scores = search.fit_scores
 
-    def counted(name, theta, pair, fit, cfg):
+    def counted(rollout, model, theta, pair):
         simulated.append(theta.shape[0])
-        return scores(name, theta, pair, fit, cfg)
+        return scores(rollout, model, theta, pair)
 
-    monkeypatch.setattr(dg, "_fit_scores", counted)
-    members = dg._refine(start, bounds, pairs, cfg, torch.Generator().manual_seed(1))
+    monkeypatch.setattr(search, "fit_scores", counted)
+    generator = torch.Generator().manual_seed(1)
+    members = search.local_search(start, bounds, rollout, cfg.diagnose, generator)
     assert sum(simulated) == 2 * 4 * 3 * 5  # rounds x pairs x population x copies
 
     def best(sets):
@@ -287,13 +308,16 @@ def test_local_search_spends_its_budget_and_never_loses_a_fit(monkeypatch):
 def test_diagnose_seed_replaces_the_runs_seed_in_the_attribution():
     """diagnose.seed (None = abc.seed) draws another prior sample: a check that
     the loop's answer is not the luck of one stream."""
-    import torchcf.diagnose.loop as dg
-
     pairs = synthetic_pairs("idm", IDM_TRUTH, 3, 100, seed=9)
-    bounds = dg._model_bounds("idm", {})
+    bounds = model_bounds("idm", {})
 
     def drawn(**diagnose):
-        return dg._small_abc("idm", pairs, (50,), 2, _config(**diagnose), bounds)[0]
+        cfg = _config(**diagnose)
+        rollout = attribution_rollout(cfg, pairs)
+        (particles,) = prior_particles(
+            "idm", rollout, (50,), 2, bounds, attribution_seed(cfg)
+        )
+        return particles
 
     default, same, other = drawn(), drawn(seed=0), drawn(seed=1)
     assert torch.equal(default.theta, same.theta)  # abc.seed is 0
@@ -305,16 +329,17 @@ def test_diagnose_seed_replaces_the_runs_seed_in_the_attribution():
 def test_shared_value_finds_a_constant_grade():
     """Data from LLCTG on a 4 % grade; members = the true LLCTG parameters: the
     joint search over pairs returns a grade near 4 %."""
-    from torchcf.diagnose.loop import _model_bounds, _shared_value
+    from torchcf.diagnose.search import shared_value
 
     effect = "grade(start=0,end=1000,knots=1)"
     pairs = synthetic_pairs(f"llctg+{effect}", LLCTG_TRUTH + [0.04], 6, 300, seed=4)
     cfg = _config(local_copies=4)
     score = torch.ones(6, dtype=torch.float64)
     members = [_candidates("llctg", [LLCTG_TRUTH] * 6, range(6), score)]
-    bounds = {"llctg": _model_bounds("llctg", {})}
-    value, box = _shared_value(
-        effect, members, bounds, pairs, cfg, torch.Generator().manual_seed(0)
+    bounds = {"llctg": model_bounds("llctg", {})}
+    rollout = attribution_rollout(cfg, pairs)
+    value, box = shared_value(
+        effect, members, bounds, rollout, torch.Generator().manual_seed(0)
     )
     assert abs(float(value[0]) - 0.04) < 0.01
     assert float(box[0, 0]) <= float(value[0]) <= float(box[0, 1])

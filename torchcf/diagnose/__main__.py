@@ -1,5 +1,76 @@
+"""``python -m torchcf.diagnose RUN_DIR [--set diagnose.KEY=VALUE ...]``: close the
+loop on a finished, evaluated run (:func:`torchcf.pipeline.close_loop`).
+
+Exit codes (:mod:`torchcf.cli`): 0 done; 2 a run that is not trained or evaluated,
+a corrupted file, a bad override or a run that cannot be diagnosed (one line on
+stderr, no traceback); 130 interrupted (run it again: an interrupted
+re-calibration is resumed).
+"""
+
+from __future__ import annotations
+
+import argparse
 import sys
+from collections.abc import Sequence
 
-from .loop import main
+import torch
 
-sys.exit(main())
+from ..cli import print_error, run_main
+from ..pipeline import close_loop
+from ..rundir import RunDir
+from .report import fmt
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m torchcf.diagnose",
+        description="Close the loop on a finished run: residual diagnosis, effect "
+        "attribution, re-calibration; writes RUN_DIR/loop.json and loop.md.",
+    )
+    parser.add_argument("run_dir", help="a trained and evaluated run directory")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="diagnose.KEY=VALUE",
+        help="override a diagnose setting (repeatable), e.g. diagnose.n_particles=1e5",
+    )
+    parser.add_argument("--threads", type=int, default=None, help="CPU threads")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m torchcf.diagnose``.
+
+    Returns:
+        0 done; 2 an error of the user's making or of the machine; 130
+        interrupted.
+    """
+    args = _parser().parse_args(argv)
+    if args.threads is not None:
+        if args.threads < 1:
+            print_error("--threads must be >= 1")
+            return 2
+        torch.set_num_threads(args.threads)
+
+    def body() -> int:
+        _print_result(close_loop(args.run_dir, args.overrides), args.run_dir)
+        return 0
+
+    return run_main(body, interrupted="interrupted: run it again to resume")
+
+
+def _print_result(result: dict, run_dir: str) -> None:
+    print(f"effects ranked ({result['dataset']}):")
+    for row in result["effects_ranked"]:
+        mark = "  <- chosen" if row["effect"] in result["chosen"] else ""
+        gain, p_value = row["gain"], row["p_value"]
+        print(f"  {row['effect']:<28} gain {gain:+7.1%}  p {p_value:.4f}{mark}")
+    ws_before, ws_after = result["before"].get("ws"), result["after"].get("ws")
+    print(f"test WS: before {fmt(ws_before)}, after {fmt(ws_after)}")
+    print(f"wrote {RunDir(run_dir).loop_json} and loop.md")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,178 @@
+"""Residual series of a calibrated run and their structure tests (loop step 1).
+
+Every training pair is driven by its best hybrid particle (:func:`best_particles`);
+the residuals ``observed - simulated`` (spacing [m], speed [m/s], acceleration
+[m/s^2]) and the covariates the effects act on (:func:`residual_series`) are
+tested for structure by :mod:`torchcf.diagnose.residuals`
+(:func:`residual_tests`): autocorrelation (Ljung-Box), lagged cross-correlation
+with the leader's acceleration and the speed difference (0-3 s), dependence on own
+speed and speed squared, on the sign of the speed difference, on the spacing
+level, on the road position and on time.
+
+Shapes: T steps, N pairs, K parameters (:mod:`torchcf.typing`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..abc.particles import Particles, best_per_pair
+from ..data import PairSet
+from ..errors import TorchcfError
+from ..posterior import Posterior
+from ..sim import simulate
+from . import residuals as rt
+
+#: A pair's best particle per model: ``{model: (theta (k, K) float64, pair position
+#: (k,) int64)}``.
+BestParticles = dict[str, tuple[Tensor, Tensor]]
+
+#: The channels tested, residuals ``observed - simulated``.
+CHANNELS = ("spacing", "speed", "acceleration")
+
+
+class DiagnoseError(TorchcfError, RuntimeError):
+    """A run that cannot be diagnosed (one-line message)."""
+
+
+def best_particles(posterior: Posterior, pairs: PairSet) -> BestParticles:
+    """The hybrid's best particle on every training pair, grouped by model.
+
+    Ties go to the model listed first in the run, then to the earlier particle of
+    the model's hybrid set.
+
+    Returns:
+        ``{model: (theta (k, K) float64, pair position (k,) int64)}``, positions
+        ascending, models in the order of their first pair; every pair with a
+        hybrid particle appears under exactly one model.
+    """
+    position_of = {int(pid): i for i, pid in enumerate(pairs.pair_ids)}
+    sets = []
+    for name in posterior.models:  # run order: the set's position breaks ties
+        particles = posterior.hybrid[name]
+        position = torch.tensor(
+            [position_of.get(int(pid), -1) for pid in particles.pair_ids.tolist()],
+            dtype=torch.int64,
+        )
+        known = position >= 0  # (h,) kept for a pair of ``pairs``
+        sets.append(
+            Particles(
+                name,
+                particles.theta[known].double(),
+                position[known],
+                particles.score[known].double(),
+                torch.zeros(int(known.sum()), dtype=torch.int64),  # row order decides
+            )
+        )
+    return {s.model: (s.theta, s.pair) for s in best_per_pair(sets, 1) if len(s)}
+
+
+def residual_series(
+    best: BestParticles, pairs: PairSet, dtype: torch.dtype = torch.float64
+) -> dict[str, list[np.ndarray]]:
+    """Residuals and covariates of every pair driven by its particle, valid steps only.
+
+    Returns:
+        lists (one float64 array per pair, pairs in position order) under
+        ``spacing, speed, acceleration`` (observed - simulated, [m], [m/s],
+        [m/s^2]) and the covariates ``v`` (observed own speed), ``dv`` (leader -
+        follower speed), ``s`` (observed spacing), ``x`` (road position),
+        ``a_lead`` (leader acceleration).
+    """
+    sim_x = torch.full((pairs.n_steps, pairs.n_pairs), math.nan, dtype=torch.float64)
+    sim_v, sim_a = sim_x.clone(), sim_x.clone()
+    for name, (theta, position) in best.items():
+        out = simulate(
+            name, theta.to(dtype), pairs, position, dtype=dtype, return_traj=True
+        )
+        sim_x[:, position] = out.x.double().cpu()
+        sim_v[:, position] = out.v.double().cpu()
+        sim_a[:, position] = out.a.double().cpu()
+    obs = {k: t.double().cpu() for k, t in pairs.series().items()}
+    columns = {
+        # s_obs - s_sim = (x_lead - x_obs) - (x_lead - x_sim) = x_sim - x_obs
+        "spacing": sim_x - obs["x_follow"],
+        "speed": obs["v_follow"] - sim_v,
+        "acceleration": obs["a_follow"] - sim_a,
+        "v": obs["v_follow"],
+        "dv": obs["v_lead"] - obs["v_follow"],
+        "s": obs["x_lead"] - obs["x_follow"],
+        "x": obs["x_follow"],
+        "a_lead": obs["a_lead"],
+    }
+    mask = pairs.mask.cpu()
+    covered = torch.isfinite(sim_x).all(0)  # (N,) pairs with a particle
+    out: dict[str, list[np.ndarray]] = {key: [] for key in columns}
+    for j in torch.nonzero(covered).squeeze(1).tolist():
+        valid = mask[:, j]
+        for key, table in columns.items():
+            out[key].append(table[valid, j].numpy())
+    return out
+
+
+def residual_tests(series: dict[str, list[np.ndarray]], dt: float) -> list[dict]:
+    """The structure tests of every residual channel, as JSON rows.
+
+    Returns:
+        one row per (channel, test): ``channel, test, statistic, p_value, effect,
+        n, n_pairs`` (pooled over pairs).
+    """
+    rows = []
+    for channel in CHANNELS:
+        e = series[channel]
+        tests = {
+            "autocorrelation": lambda e=e: rt.ljung_box(e, lags=10),
+            "xcorr leader acceleration": lambda e=e: rt.cross_correlation(
+                e, series["a_lead"], dt
+            ),
+            "xcorr speed difference": lambda e=e: rt.cross_correlation(
+                e, series["dv"], dt
+            ),
+            "own speed": lambda e=e: rt.speed_dependence(e, series["v"]),
+            "asymmetry": lambda e=e: rt.asymmetry(e, series["dv"]),
+            "spacing level": lambda e=e: rt.spacing_dependence(e, series["s"]),
+            "road position": lambda e=e: rt.position_dependence(e, series["x"]),
+            "drift": lambda e=e: rt.drift(e, dt),
+        }
+        for test, run in tests.items():
+            (row,) = rt.summarize([run()])
+            rows.append(
+                {
+                    "channel": channel,
+                    "test": test,
+                    **{
+                        key: row[key]
+                        for key in ("statistic", "p_value", "effect", "n", "n_pairs")
+                    },
+                }
+            )
+    return rows
+
+
+def diagnose_residuals(
+    posterior: Posterior, pairs: PairSet, dtype: torch.dtype = torch.float64
+) -> tuple[list[dict], dict[str, list[np.ndarray]]]:
+    """Residual series of the hybrid's best particle per pair and their tests.
+
+    Raises:
+        DiagnoseError: no pair has a hybrid particle.
+    """
+    series = residual_series(best_particles(posterior, pairs), pairs, dtype)
+    if not series["spacing"]:
+        raise DiagnoseError("no training pair has a hybrid particle to diagnose")
+    return residual_tests(series, pairs.dt), series
+
+
+__all__ = [
+    "CHANNELS",
+    "BestParticles",
+    "DiagnoseError",
+    "best_particles",
+    "diagnose_residuals",
+    "residual_series",
+    "residual_tests",
+]
