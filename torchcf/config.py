@@ -281,13 +281,57 @@ class ModelSpec(BaseModel):
         return box
 
 
+class SMCConfig(BaseModel):
+    """The sequential refinement (``abc.method = "smc"``, :mod:`torchcf.abc.smc`)."""
+
+    model_config = _STRICT
+
+    population: int = Field(
+        100,
+        gt=1,
+        description="Particles per training pair carried from round to round.",
+    )
+    rounds: int = Field(6, gt=0, description="Refinement rounds after the prior round.")
+    prior_fraction: float = Field(
+        0.25,
+        gt=0,
+        lt=1,
+        description="Share of abc.n_particles drawn from the prior (round 0).",
+    )
+    quantile: float = Field(
+        0.5,
+        gt=0,
+        le=1,
+        description=(
+            "Threshold schedule: a round accepts the proposals scoring at most this "
+            "quantile of the previous population's scores."
+        ),
+    )
+
+
 class ABCConfig(BaseModel):
     """ABC rejection sampling: particles, buffers and selection (SPEC section 5)."""
 
     model_config = _STRICT
 
     n_particles: int = Field(
-        1_000_000, gt=0, description="Prior draws simulated per model."
+        1_000_000,
+        gt=0,
+        description=(
+            "Particles simulated per model: prior draws (rejection), or proposals "
+            "in all rounds (smc; those outside the prior box count unsimulated)."
+        ),
+    )
+    method: Literal["rejection", "smc"] = Field(
+        "rejection",
+        description=(
+            "'rejection': every particle drawn from the prior (the paper's); "
+            "'smc': the same budget spent in rounds that refine, per pair, a "
+            "population around the best fits (see abc.smc)."
+        ),
+    )
+    smc: SMCConfig = Field(
+        default_factory=SMCConfig, description="Settings of the 'smc' method."
     )
     layout: Literal["paired", "full"] = Field(
         "paired",
@@ -349,6 +393,12 @@ class ABCConfig(BaseModel):
         if sum(weights) <= 0:
             raise ValueError(f"must not all be 0, got {list(weights)}")
         return weights
+
+    @model_validator(mode="after")
+    def _smc_is_paired(self) -> ABCConfig:
+        if self.method == "smc" and self.layout != "paired":
+            raise ValueError("method='smc' refines per pair: it needs layout='paired'")
+        return self
 
     @model_validator(mode="after")
     def _global_only(self) -> ABCConfig:
@@ -715,13 +765,18 @@ def config_hash(cfg: TrainConfig) -> str:
     """Fingerprint of the settings that determine the learned particle sets.
 
     Everything except ``output``, ``threads``, ``abc.checkpoint_every``,
-    ``abc.chunk_size``, ``data.root`` and ``eval`` (none changes the result).
+    ``abc.chunk_size``, ``data.root`` and ``eval`` (none changes the result), and
+    ``abc.smc`` in a rejection run.
     Shorthand and object forms, key order and ``1`` vs ``1.0`` give the same hash.
 
     Returns:
         The first 16 hex digits of the SHA-256 of the canonical JSON.
     """
     payload = cfg.model_dump(mode="json", exclude=_NOT_HASHED)
+    if payload["abc"]["method"] == "rejection":
+        # The refinement's settings do not enter a rejection run: its hash stays
+        # what it was before they existed (checkpoints of earlier runs resume).
+        del payload["abc"]["method"], payload["abc"]["smc"]
     text = json.dumps(payload, sort_keys=True, separators=(",", ":"), allow_nan=False)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 

@@ -34,7 +34,7 @@ How the trainer shares a run (:func:`torchcf.train.train`):
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import timedelta
 from typing import Any, TypeVar
@@ -110,14 +110,17 @@ class Group:
         start = min(first + self.rank * chunk, stop)
         return start, min(start + chunk, stop)
 
-    def end_round(self, buffer: TopN, invalid: int, due: bool) -> tuple[int, bool]:
+    def end_round(
+        self, buffers: TopN | Sequence[TopN], invalid: int, due: bool
+    ) -> tuple[int, bool]:
         """Synchronise the ranks at the end of a round.
 
-        Merges the replicas of ``buffer`` in place, so that every rank holds the
+        Merges the replicas of every buffer in place, so that every rank holds the
         best entries of every rank, and sums the invalid counts.
 
         Args:
-            buffer: this rank's replica of the model's buffer.
+            buffers: this rank's replica of the model's buffer (or buffers: the
+                refinement's accepted set too).
             invalid: invalid rollouts in this rank's chunk of the round.
             due: whether a checkpoint is due (rank 0's clock decides).
 
@@ -127,10 +130,11 @@ class Group:
         if not self.distributed:
             return invalid, due
         counts = self._all_gather(torch.tensor([invalid, int(due)], dtype=torch.int64))
-        score = self._all_gather(buffer.score)
-        index = self._all_gather(buffer.index)
-        theta = self._all_gather(buffer.theta)
-        buffer.merge(score, index, theta)
+        for buffer in [buffers] if isinstance(buffers, TopN) else buffers:
+            score = self._all_gather(buffer.score)
+            index = self._all_gather(buffer.index)
+            theta = self._all_gather(buffer.theta)
+            buffer.merge(score, index, theta)
         return int(counts[:, 0].sum()), bool(counts[0, 1])
 
     def on_main(self, fn: Callable[..., T], *args: Any) -> T:

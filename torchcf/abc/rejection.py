@@ -199,7 +199,8 @@ def run_rejection(
         group: the processes sharing the stream.
         plan_particles: the stream length that sets the chunk and the compile
             choice (default ``n_particles``; a caller that stops a stream at
-            several budgets passes the last, so every budget uses one chunk).
+            several budgets passes one of them, the same at every call: the
+            smallest wastes no simulation at the earlier stops).
         checkpoint_due: asked on rank 0's clock after every round (every rank
             learns rank 0's answer).
         after_round: called after every round with the progress and whether a
@@ -240,11 +241,12 @@ def _push_chunk(
 ) -> int:
     """Draw, simulate and push particles ``start .. stop - 1``; their invalid count.
 
-    A compiled block simulates a whole chunk (one shape per model: the particles
-    past ``stop`` are simulated and dropped); an eager one only what is asked.
+    Always a whole chunk is simulated, the particles past ``stop`` dropped: a
+    compiled block sees one shape per model, and every simulate call of a run has
+    one batch size, so that a solver whose kernels depend on the batch size (the
+    MPC's QP picks LAPACK for small batches) rounds the same whatever the chunking.
     """
-    drawn = chunk if compiled else stop - start
-    theta, pair = stream.draw(start, start + drawn)  # (drawn, K_drawn), (drawn,)
+    theta, pair = stream.draw(start, start + chunk)  # (chunk, K_drawn), (chunk,)
     if fixed is not None:
         theta = torch.cat((theta, fixed.expand(theta.shape[0], -1)), dim=1)
     score, valid = rollout.score(model, theta, pair, chunk=chunk, compiled=compiled)

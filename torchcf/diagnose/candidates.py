@@ -122,7 +122,7 @@ def prior_particles(
             progress,
             model=model,
             fixed=fixed,
-            plan_particles=max(budgets),
+            plan_particles=min(budgets),
         )
         sets.append(Particles.from_buffer(model.name, buffer, keep))
     return sets

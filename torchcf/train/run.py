@@ -45,8 +45,19 @@ from tqdm import tqdm
 
 from .. import __version__
 from ..abc.distributed import SINGLE, Group
-from ..abc.hybrid import hybrid_posterior, pairwise_table, select
+from ..abc.hybrid import Selection, hybrid_posterior, pairwise_table, select
 from ..abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
+from ..abc.smc import (
+    SMCSettings,
+    SMCState,
+    evidence_shares,
+    new_state,
+    parameter_buffer,
+    prior_mass,
+    proposals_per_pair,
+    run_smc,
+    smc_budget,
+)
 from ..abc.topn import TopN
 from ..cli import one_line
 from ..config import ConfigError, TrainConfig, config_hash, resolved_json
@@ -73,16 +84,23 @@ class RunState:
     config_hash: str
     progress: dict[str, ModelProgress] = field(default_factory=dict)
     buffers: dict[str, TopN] = field(default_factory=dict)
-    #: buffer state dicts read from a checkpoint, until the buffers are built
+    #: the refinement's state per model (``abc.method = "smc"`` only)
+    smc: dict[str, SMCState] = field(default_factory=dict)
+    #: buffer and refinement state dicts read from a checkpoint, until the
+    #: buffers are built
     saved_buffers: dict[str, dict[str, Any]] = field(default_factory=dict)
+    saved_smc: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def as_checkpoint(self) -> dict[str, Any]:
-        return {
+        checkpoint = {
             "format": CHECKPOINT_FORMAT,
             "config_hash": self.config_hash,
             "progress": {k: v.as_dict() for k, v in self.progress.items()},
             "buffers": {k: b.state_dict() for k, b in self.buffers.items()},
         }
+        if self.smc:
+            checkpoint["smc"] = {k: v.state_dict() for k, v in self.smc.items()}
+        return checkpoint
 
 
 # --------------------------------------------------------------------------------------
@@ -170,6 +188,7 @@ def _checkpoint_state(raw: dict[str, Any], digest: str, path: Path) -> RunState:
             "start again with another --out"
         ) from None
     state.saved_buffers = buffers
+    state.saved_smc = raw.get("smc", {})
     return state
 
 
@@ -181,6 +200,8 @@ def check_budget(cfg: TrainConfig, pairs: PairSet) -> None:
     (``top_n`` or an N of ``sensitivity_n``) can only leave buffers short.
     """
     abc = cfg.abc
+    if abc.method == "smc":
+        _check_smc_budget(cfg, pairs)
     paired = abc.layout == "paired"
     per_pair = abc.n_particles / pairs.n_pairs if paired else abc.n_particles
     for key, n in (("top_n", abc.top_n), ("sensitivity_n", max(abc.sensitivity_n))):
@@ -200,19 +221,51 @@ def check_budget(cfg: TrainConfig, pairs: PairSet) -> None:
         )
 
 
+def _check_smc_budget(cfg: TrainConfig, pairs: PairSet) -> None:
+    """The refinement needs a population per pair from its prior round and at
+    least one proposal per pair and round: ConfigError if the budget is short."""
+    settings = smc_settings(cfg)
+    budget = smc_budget(cfg.abc.n_particles, pairs.n_pairs, settings)
+    need = max(
+        settings.population * pairs.n_pairs / settings.prior_fraction,
+        settings.rounds * pairs.n_pairs / (1 - settings.prior_fraction),
+    )
+    if budget.prior < settings.population * pairs.n_pairs or budget.per_pair < 1:
+        raise ConfigError(
+            f"abc.n_particles = {cfg.abc.n_particles} is too few for method 'smc' "
+            f"on {pairs.n_pairs} training pairs: its prior round must give every "
+            f"pair abc.smc.population = {settings.population} particles on "
+            f"average and every later round a proposal per pair; set "
+            f"abc.n_particles >= {math.ceil(need)} or lower abc.smc.population "
+            "or abc.smc.rounds"
+        )
+
+
+def smc_settings(cfg: TrainConfig) -> SMCSettings:
+    """The refinement's settings of a config."""
+    return SMCSettings(**cfg.abc.smc.model_dump())
+
+
 def _buffers(cfg: TrainConfig, pairs: PairSet, state: RunState, run: RunDir) -> None:
-    """Every model's buffer (from the checkpoint where it has one) and progress."""
+    """Every model's buffer (from the checkpoint where it has one), progress and,
+    for SMC, refinement state (whose buffers carry one more column, ``log r``)."""
+    smc = cfg.abc.method == "smc"
     for spec in cfg.models:
         n_params = len(get_model(spec.name).param_names)
-        buffer = TopN(pairs.n_pairs, cfg.abc.buffer_size, n_params)
-        if spec.name in state.saved_buffers:
-            try:
+        buffer = TopN(pairs.n_pairs, cfg.abc.buffer_size, n_params + smc)
+        refinement = new_state(pairs.n_pairs, smc_settings(cfg), n_params)
+        try:
+            if spec.name in state.saved_buffers:
                 buffer.load_state_dict(state.saved_buffers[spec.name])
-            except (KeyError, ValueError) as error:
-                raise RunError(
-                    f"--resume: {run.checkpoint} does not match this run ({error})"
-                ) from None
+            if smc and spec.name in state.saved_smc:
+                refinement.load_state_dict(state.saved_smc[spec.name])
+        except (KeyError, ValueError, TypeError) as error:
+            raise RunError(
+                f"--resume: {run.checkpoint} does not match this run ({error})"
+            ) from None
         state.buffers[spec.name] = buffer
+        if smc:
+            state.smc[spec.name] = refinement
         state.progress.setdefault(spec.name, ModelProgress())
 
 
@@ -258,8 +311,8 @@ def _stream_model(
     logger: RunLogger,
     group: Group,
 ) -> None:
-    """Run one model's prior stream through its buffer, with a progress bar,
-    TensorBoard scalars and checkpoints between rounds."""
+    """Run one model's particles through its buffer (rejection or SMC), with a
+    progress bar, TensorBoard scalars and checkpoints between rounds."""
     spec = next(s for s in cfg.models if s.name == name)
     buffer, progress = state.buffers[name], state.progress[name]
     if progress.done:
@@ -292,17 +345,34 @@ def _stream_model(
         if due:
             checkpointer.save()
 
+    bounds = spec.bounds(torch.float64)
     with bar:
-        run_rejection(
-            prior_stream(name, spec.bounds(torch.float64), cfg.abc.seed, rollout),
-            buffer,
-            rollout,
-            n_total,
-            progress,
-            group=group,
-            checkpoint_due=checkpointer.due,
-            after_round=after_round,
-        )
+        if cfg.abc.method == "smc":
+            run_smc(
+                name,
+                bounds,
+                cfg.abc.seed,
+                buffer,
+                rollout,
+                n_total,
+                smc_settings(cfg),
+                progress,
+                state.smc[name],
+                group=group,
+                checkpoint_due=checkpointer.due,
+                after_round=after_round,
+            )
+        else:
+            run_rejection(
+                prior_stream(name, bounds, cfg.abc.seed, rollout),
+                buffer,
+                rollout,
+                n_total,
+                progress,
+                group=group,
+                checkpoint_due=checkpointer.due,
+                after_round=after_round,
+            )
     progress.done = True
     checkpointer.save()
 
@@ -468,6 +538,8 @@ def _results(
     """The hybrid (posterior) and the summary, read from the buffers."""
     names = [spec.name for spec in cfg.models]
     buffers = [state.buffers[name] for name in names]
+    if cfg.abc.method == "smc":  # the hybrid reads the parameters alone
+        buffers = [parameter_buffer(b) for b in buffers]
     kwargs = {"mode": cfg.abc.selection, "global_size": cfg.abc.global_size}
     selection = select(buffers, names, cfg.abc.top_n, **kwargs)
     table = pairwise_table(buffers, names, cfg.abc.top_n, **kwargs)
@@ -495,7 +567,49 @@ def _results(
         wall,
         group.world_size,
     )
+    summary["method"] = cfg.abc.method
+    if cfg.abc.method == "smc":
+        summary["smc"] = _smc_summary(cfg, train_pairs, state, selection)
     return posterior, summary
+
+
+def _smc_summary(
+    cfg: TrainConfig, pairs: PairSet, state: RunState, selection: Selection
+) -> dict[str, Any]:
+    """The refinement's settings, budget and the shares with the prior's Occam
+    factor (:func:`torchcf.abc.smc.evidence_shares`)."""
+    names = [spec.name for spec in cfg.models]
+    settings = smc_settings(cfg)
+    budget = smc_budget(cfg.abc.n_particles, pairs.n_pairs, settings)
+    n = cfg.abc.top_n
+    scores = torch.stack([state.buffers[m].first(n)[0] for m in names])  # (M, N, n)
+    member = torch.where(selection.member, scores, -math.inf)
+    tau = member.amax(dim=(0, 2))  # (N,) the hybrid's worst member per pair
+    masses = []
+    for spec in cfg.models:
+        proposals = proposals_per_pair(
+            spec.name, spec.bounds(torch.float64), cfg.abc.seed, budget
+        )
+        masses.append(prior_mass(state.buffers[spec.name], proposals, tau))
+    return {
+        "settings": settings.__dict__,
+        "budget": {
+            "prior_draws": budget.prior,
+            "proposals_per_pair_and_round": budget.per_pair,
+            "rounds": budget.rounds,
+            "proposals": budget.total,
+            "unspent": cfg.abc.n_particles - budget.total,
+        },
+        "evidence_shares": evidence_shares(names, masses),
+        "meaning": (
+            "shares: each model's share of the per-pair top-N slots, as in "
+            "rejection but from a search refined where it fits, so without the "
+            "prior's Occam factor; evidence_shares: importance-sampling estimate of "
+            "each model's prior mass within the hybrid's per-pair threshold, "
+            "normalised per pair and averaged over pairs: what rejection's shares "
+            "estimate, with the Occam factor"
+        ),
+    }
 
 
 def _log_results(

@@ -1,0 +1,554 @@
+"""Sequential refinement: ABC population Monte Carlo per pair (``abc.method = "smc"``).
+
+Rejection (:mod:`torchcf.abc.rejection`) draws every particle from the prior. SMC
+spends the same budget in rounds and concentrates the later ones where the score
+is low, per training pair and per model (Beaumont, Cornuet, Marin & Robert 2009,
+"Adaptive approximate Bayesian computation", Biometrika 96; the threshold schedule
+of Del Moral, Doucet & Jasra 2012):
+
+- **round 0** (``prior_fraction`` of the budget): prior draws of the model's
+  stream, exactly the rejection engine's particles ``0 .. n_0 - 1`` (each on its
+  stream-drawn pair); per pair the ``population`` best form the first population,
+  equally weighted;
+- **round t = 1 .. R**: per pair ``q`` proposals (``q`` = the rest of the budget
+  split evenly over rounds and pairs). Proposal ``j`` of pair ``p`` picks a parent
+  ``theta_i`` of the pair's population with probability ``w_i`` and moves it by
+  ``N(0, Sigma_p)``, ``Sigma_p = 2 Cov_w(population_p) + (1e-3 width)^2`` (twice
+  the weighted covariance, Beaumont et al.'s optimal scale for a Gaussian random
+  walk; the small diagonal keeps a collapsed population proposing). A proposal
+  outside the prior box has prior density 0: it is rejected unsimulated (it still
+  counts in the budget). The others are simulated on their pair in one batched
+  rollout per chunk, whatever their pair.
+- **threshold**: ``eps_t,p`` = the ``quantile`` of the previous population's
+  scores; the proposals with score ``<= eps_t,p`` are accepted and the
+  ``population`` best of them (score, then particle index) form the next
+  population — so the realised threshold is the lower of the two. A pair where no
+  proposal is accepted keeps its population.
+- **weights** (uniform prior ``pi`` on the box of volume ``V``): a particle of
+  round ``t`` carries ``log r = log pi(theta) - log q_t(theta)``, ``q_t(theta) =
+  sum_i w_i N(theta; theta_i, Sigma_p)``, the proposal density it was drawn from
+  (prior draws: ``r = 1``). The next population's weights are ``w ~ r``.
+
+Every simulated particle is also offered to the model's per-pair top-N buffer,
+as in rejection: the hybrid, its shares and every report read those buffers. The
+buffers carry ``log r`` as an extra last column (:func:`parameter_buffer` drops
+it for the posterior).
+
+**Reproducible**: proposal ``j`` of round ``t`` is a pure function of ``(seed,
+model, t, j)`` (counter-based uniforms, :func:`torchcf.abc.streams.uniforms`) and
+of the round's population, which is a function of the buffers of the round
+before; buffers keep exactly the best by ``(score, particle index)``. So the result
+does not depend on the chunk size or the number of processes, and a run resumed
+from a checkpoint at any round boundary or chunk ends identical to an
+uninterrupted one.
+
+**Budget** (per model): ``n_particles`` proposals in all: ``n_0 = round(
+prior_fraction n_particles)`` prior draws, then ``q = floor((n_particles - n_0) /
+(rounds N))`` per pair and round; the rest (fewer than ``rounds N``) is not spent.
+A proposal rejected outside the prior box counts but is not simulated.
+
+**Evidence**: for every buffer entry ``r`` is an importance weight of the prior
+with respect to its proposal, so ``P_m,p(score <= tau) ~ (1 / M_m,p) sum r
+1[score <= tau]`` over the model's proposals on pair ``p`` (``M_m,p`` of them)
+estimates the prior mass of model ``m`` that fits pair ``p`` within ``tau``
+(:func:`evidence_shares`): what rejection's shares measure, with the prior's Occam
+factor.
+
+Shapes: N pairs, K parameters, ``pop`` = ``population`` (:mod:`torchcf.typing`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor
+
+from ..models import CFModel, get_model
+from .distributed import SINGLE, Group
+from .rejection import ModelProgress, Rollout
+from .streams import ParticleStream, uniforms
+from .topn import TopN
+
+#: Relative size (fraction of each parameter's prior width) of the diagonal added
+#: to the kernel covariance: a population collapsed onto one point keeps moving.
+KERNEL_FLOOR = 1e-3
+#: Uniforms are kept this far from 0 and 1 before the normal quantile function.
+_UNIFORM_EDGE = 1e-12
+
+
+@dataclass(frozen=True)
+class SMCSettings:
+    """The refinement's settings (config section ``abc.smc``).
+
+    Attributes:
+        population: particles per pair carried from round to round.
+        rounds: refinement rounds after the prior round.
+        prior_fraction: share of the budget drawn from the prior (round 0).
+        quantile: the next threshold is this quantile of a population's scores.
+    """
+
+    population: int = 100
+    rounds: int = 6
+    prior_fraction: float = 0.25
+    quantile: float = 0.5
+
+
+@dataclass(frozen=True)
+class Budget:
+    """How one model's ``n_particles`` are spent (module docstring).
+
+    Attributes:
+        prior: prior draws of round 0 (``n_0``).
+        per_pair: proposals per pair in every later round (``q``).
+        rounds: later rounds.
+        n_pairs: pairs.
+    """
+
+    prior: int
+    per_pair: int
+    rounds: int
+    n_pairs: int
+
+    @property
+    def per_round(self) -> int:
+        """Proposals of one later round, all pairs."""
+        return self.per_pair * self.n_pairs
+
+    @property
+    def total(self) -> int:
+        """Proposals in all (at most ``n_particles``)."""
+        return self.prior + self.rounds * self.per_round
+
+    def round_size(self, t: int) -> int:
+        """Proposals of round ``t``."""
+        return self.prior if t == 0 else self.per_round
+
+    def first_index(self, t: int) -> int:
+        """Particle index of round ``t``'s first proposal (indices are unique per
+        model: the buffers' tie rule)."""
+        return 0 if t == 0 else self.prior + (t - 1) * self.per_round
+
+
+def smc_budget(n_particles: int, n_pairs: int, settings: SMCSettings) -> Budget:
+    """The budget split of module docstring."""
+    prior = int(round(settings.prior_fraction * n_particles))
+    per_pair = (n_particles - prior) // (settings.rounds * n_pairs)
+    return Budget(prior, per_pair, settings.rounds, n_pairs)
+
+
+@dataclass
+class SMCState:
+    """Where one model's refinement stands (a checkpoint holds it).
+
+    Attributes:
+        round: the round under way (``rounds + 1`` when done).
+        next: proposals of this round already offered.
+        accepted: this round's accepted proposals, per pair the ``population``
+            best; ``theta`` (N, pop, K + 1), its last column ``log r``.
+        population: the previous round's accepted particles (empty in round 0):
+            ``theta`` (N, pop, K + 1) and ``score`` (N, pop), ``+inf`` where a
+            pair has fewer.
+    """
+
+    round: int = 0
+    next: int = 0
+    accepted: TopN | None = None
+    population: dict[str, Tensor] = field(default_factory=dict)
+
+    def state_dict(self) -> dict[str, Any]:
+        assert self.accepted is not None
+        return {
+            "round": self.round,
+            "next": self.next,
+            "accepted": self.accepted.state_dict(),
+            "population": dict(self.population),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a saved state into this one (its buffer already built)."""
+        assert self.accepted is not None
+        self.round = int(state["round"])
+        self.next = int(state["next"])
+        self.accepted.load_state_dict(state["accepted"])
+        self.population = {
+            k: v.to(torch.float64) for k, v in dict(state["population"]).items()
+        }
+
+
+def new_state(n_pairs: int, settings: SMCSettings, n_params: int) -> SMCState:
+    """A refinement at its start (round 0)."""
+    return SMCState(accepted=TopN(n_pairs, settings.population, n_params + 1))
+
+
+def parameter_buffer(buffer: TopN) -> TopN:
+    """The buffer with its ``log r`` column dropped: ``theta`` (N, capacity, K)."""
+    plain = TopN(buffer.n_pairs, buffer.capacity, buffer.theta.shape[-1] - 1)
+    plain.score, plain.index = buffer.score, buffer.index
+    plain.theta = buffer.theta[..., :-1]
+    return plain
+
+
+# ----------------------------------------------------------------- the kernel
+@dataclass(frozen=True)
+class _Kernel:
+    """A round's proposal: per pair a Gaussian mixture around its population.
+
+    Attributes:
+        theta: (N, pop, K) the population.
+        log_w: (N, pop) normalised log weights (``-inf``: no member).
+        cum_w: (N, pop) cumulative weights (the parent's inverse CDF).
+        chol: (N, K, K) lower Cholesky factor ``L`` of ``Sigma_p``.
+        whiten: (N, K, K) ``L^-1``: ``|L^-1 (a - b)|^2`` is the Mahalanobis
+            distance of ``Sigma_p``.
+        white: (N, pop, K) the population whitened, ``L^-1 theta_i``.
+        log_norm: (N,) ``log`` of the Gaussian's normalising constant.
+        empty: (N,) bool, pairs without a population (they draw from the prior).
+    """
+
+    theta: Tensor
+    log_w: Tensor
+    cum_w: Tensor
+    chol: Tensor
+    whiten: Tensor
+    white: Tensor
+    log_norm: Tensor
+    empty: Tensor
+
+
+def _kernel(population: dict[str, Tensor], bounds: Tensor) -> _Kernel:
+    """The proposal of the round after ``population`` (module docstring)."""
+    theta = population["theta"][..., :-1]  # (N, pop, K)
+    member = torch.isfinite(population["score"])  # (N, pop)
+    log_r = torch.where(member, population["theta"][..., -1], -math.inf)
+    log_w = log_r - torch.logsumexp(log_r, dim=1, keepdim=True)  # (N, pop)
+    empty = ~member.any(dim=1)  # (N,)
+    log_w = torch.where(empty[:, None], -math.inf, log_w)
+    w = torch.exp(log_w)  # (N, pop), 0 for non-members
+    mean = (w[..., None] * theta).sum(1, keepdim=True)  # (N, 1, K)
+    centred = torch.where(member[..., None], theta - mean, 0.0)
+    cov = torch.einsum("np,npk,npl->nkl", w, centred, centred)  # (N, K, K)
+    width = bounds[:, 1] - bounds[:, 0]  # (K,)
+    sigma = 2.0 * cov + torch.diag((KERNEL_FLOOR * width) ** 2)
+    chol = torch.linalg.cholesky(sigma)  # (N, K, K)
+    k = theta.shape[-1]
+    log_det = 2.0 * torch.log(torch.diagonal(chol, dim1=1, dim2=2)).sum(1)
+    log_norm = -0.5 * (k * math.log(2 * math.pi) + log_det)  # (N,)
+    eye = torch.eye(k, dtype=chol.dtype).expand_as(chol)
+    whiten = torch.linalg.solve_triangular(chol, eye, upper=False)  # (N, K, K)
+    white = torch.einsum("nkl,npl->npk", whiten, theta)  # (N, pop, K)
+    cum_w = torch.cumsum(w, dim=1)
+    return _Kernel(theta, log_w, cum_w, chol, whiten, white, log_norm, empty)
+
+
+def _propose(
+    kernel: _Kernel, bounds: Tensor, u: Tensor, pair: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Proposals from uniforms ``u`` (Q, 1 + K) on pairs ``pair`` (Q,).
+
+    Column 0 picks the parent (inverse CDF of the pair's weights), columns 1..K
+    the Gaussian step (normal quantiles). A pair without a population draws from
+    the prior instead (columns 1..K as a prior draw).
+
+    Returns:
+        ``theta`` (Q, K) and ``log r`` (Q,) of each proposal (``-inf``: outside
+        the prior box).
+    """
+    low, high = bounds[:, 0], bounds[:, 1]
+    cum = kernel.cum_w[pair]  # (Q, pop)
+    target = u[:, :1] * cum[:, -1:]
+    parent = torch.searchsorted(cum, target).clamp_(max=cum.shape[1] - 1)[:, 0]
+    z = torch.special.ndtri(u[:, 1:].clamp(_UNIFORM_EDGE, 1 - _UNIFORM_EDGE))
+    step = torch.einsum("qkl,ql->qk", kernel.chol[pair], z)  # (Q, K)
+    theta = kernel.theta[pair, parent] + step
+    prior_draw = low + (high - low) * u[:, 1:]
+    from_prior = kernel.empty[pair]
+    theta = torch.where(from_prior[:, None], prior_draw, theta)
+    inside = ((theta >= low) & (theta <= high)).all(dim=1)
+    log_r = torch.where(inside, 0.0, -math.inf)
+    return theta, log_r
+
+
+def log_prior_ratio(
+    kernel: _Kernel, bounds: Tensor, theta: Tensor, pair: Tensor
+) -> Tensor:
+    """``log pi(theta) - log q(theta)`` (Q,) of proposals ``theta`` (Q, K) on
+    pairs ``pair`` (Q,): the importance weight of the uniform prior with respect
+    to the round's proposal (0 where the pair drew from the prior)."""
+    width = bounds[:, 1] - bounds[:, 0]
+    log_prior = -torch.log(width).sum()
+    z = torch.einsum("qkl,ql->qk", kernel.whiten[pair], theta)  # (Q, K)
+    members = kernel.white[pair]  # (Q, pop, K)
+    # |z - z_i|^2 expanded: one batched product instead of Q x pop solves.
+    distance = (
+        (z**2).sum(1, keepdim=True)
+        + (members**2).sum(2)
+        - 2.0 * torch.einsum("qk,qpk->qp", z, members)
+    ).clamp(min=0.0)  # (Q, pop)
+    log_phi = kernel.log_norm[pair, None] - 0.5 * distance  # (Q, pop)
+    log_q = torch.logsumexp(kernel.log_w[pair] + log_phi, dim=1)  # (Q,)
+    ratio = log_prior - log_q
+    return torch.where(kernel.empty[pair], 0.0, ratio)
+
+
+# -------------------------------------------------------------- the rounds
+def run_smc(
+    name: str,
+    bounds: Tensor,
+    seed: int,
+    buffer: TopN,
+    rollout: Rollout,
+    n_particles: int,
+    settings: SMCSettings,
+    progress: ModelProgress,
+    state: SMCState,
+    *,
+    group: Group = SINGLE,
+    checkpoint_due: Callable[[], bool] | None = None,
+    after_round: Callable[[ModelProgress, bool], None] | None = None,
+) -> None:
+    """Run one model's refinement to its end (module docstring).
+
+    Args:
+        name: the model's registry name (keys its streams).
+        bounds: (K, 2) float64 prior box.
+        seed: the run's seed.
+        buffer: the model's per-pair top-N buffer, ``theta`` (N, capacity, K + 1).
+        rollout: how particles are simulated (paired layout).
+        n_particles: the model's budget.
+        settings: the refinement's settings.
+        progress: proposals offered so far (updated after every chunk round).
+        state: where the refinement stands (updated; a checkpoint saves it).
+        group: the processes sharing the work.
+        checkpoint_due, after_round: as in :func:`~torchcf.abc.run_rejection`.
+    """
+    if not rollout.paired:
+        raise ValueError("SMC refines per pair: it needs the paired layout")
+    model = get_model(name)
+    budget = smc_budget(n_particles, rollout.pairs.n_pairs, settings)
+    compiled = rollout.compiled(model, n_particles)
+    chunk = rollout.chunk(model, n_particles, compiled)
+    stream = ParticleStream(name, bounds, seed, rollout.pairs.n_pairs)
+    while state.round <= budget.rounds:
+        kernel = _kernel(state.population, bounds) if state.round else None
+        size = budget.round_size(state.round)
+        round_size = chunk * group.world_size
+        for first in range(state.next, size, round_size):
+            began = time.perf_counter()
+            start, stop = group.shard(first, size, chunk)
+            invalid = 0
+            if start < stop:
+                draw = _prior_draws if kernel is None else _proposals
+                theta, log_r, pair = draw(
+                    stream, kernel, bounds, seed, name, state.round, start, stop, budget
+                )
+                invalid = _offer(
+                    _Chunk(theta, log_r, pair, budget.first_index(state.round) + start),
+                    model,
+                    rollout,
+                    buffer,
+                    state,
+                    settings,
+                    kernel,
+                    bounds,
+                    chunk,
+                    compiled,
+                )
+            due = checkpoint_due() if checkpoint_due is not None else False
+            invalid, due = group.end_round([buffer, state.accepted], invalid, due)
+            state.next = min(first + round_size, size)
+            progress.invalid += invalid
+            progress.next = budget.first_index(state.round) + state.next
+            progress.seconds += time.perf_counter() - began
+            if after_round is not None:
+                after_round(progress, due)
+        if kernel is not None:
+            _weigh_round(kernel, bounds, buffer, state, budget)
+        _next_population(state, settings, rollout.pairs.n_pairs, buffer)
+    progress.next = n_particles  # the unspent rest (fewer than rounds x N)
+
+
+def _prior_draws(
+    stream: ParticleStream,
+    kernel: _Kernel | None,
+    bounds: Tensor,
+    seed: int,
+    name: str,
+    t: int,
+    start: int,
+    stop: int,
+    budget: Budget,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Round 0: the prior stream's particles ``start .. stop - 1`` (``log r = 0``)."""
+    theta, pair = stream.draw(start, stop)
+    return theta, torch.zeros(theta.shape[0], dtype=torch.float64), pair
+
+
+def _proposals(
+    stream: ParticleStream,
+    kernel: _Kernel | None,
+    bounds: Tensor,
+    seed: int,
+    name: str,
+    t: int,
+    start: int,
+    stop: int,
+    budget: Budget,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Round ``t``'s proposals ``start .. stop - 1``, pair-major (``q`` per pair)."""
+    assert kernel is not None
+    k = bounds.shape[0]
+    u = uniforms(seed, f"{name}/smc{t}", start, stop, 1 + k)  # (Q, 1 + K)
+    pair = torch.arange(start, stop) // budget.per_pair
+    theta, log_r = _propose(kernel, bounds, u, pair)
+    return theta, log_r, pair
+
+
+class _Chunk(NamedTuple):
+    """Proposals of one chunk: ``theta`` (Q, K), ``log_r`` (Q,) (``-inf``: outside
+    the prior box), ``pair`` (Q,), and the particle index of the first."""
+
+    theta: Tensor
+    log_r: Tensor
+    pair: Tensor
+    first_index: int
+
+
+def _offer(
+    proposals: _Chunk,
+    model: CFModel,
+    rollout: Rollout,
+    buffer: TopN,
+    state: SMCState,
+    settings: SMCSettings,
+    kernel: _Kernel | None,
+    bounds: Tensor,
+    chunk: int,
+    compiled: bool,
+) -> int:
+    """Simulate the in-box proposals and offer them to both buffers (the
+    accepted set only below the round's threshold); their invalid count."""
+    theta, log_r, pair, first_index = proposals
+    index = first_index + torch.arange(theta.shape[0])
+    inside = torch.isfinite(log_r).nonzero().squeeze(1)
+    if not inside.numel():
+        return 0
+    theta, pair, index = theta[inside], pair[inside], index[inside]
+    # One batch size for every simulate call (as the rejection engine's whole
+    # chunks): a compiled block's one shape, and the MPC's QP kernels, which
+    # depend on the batch size, round the same whatever the chunking.
+    pad = chunk - theta.shape[0]
+    simulated = torch.cat((theta, theta[:1].expand(pad, -1)))
+    pair_sim = torch.cat((pair, pair[:1].expand(pad)))
+    score, valid = rollout.score(
+        model, simulated, pair_sim, chunk=chunk, compiled=compiled
+    )
+    score, valid = score[: theta.shape[0]].cpu(), valid[: theta.shape[0]].cpu()
+    # log r is filled in at the end of the round (_weigh_round), for the entries
+    # that are still held then, in one canonical batch.
+    rows = torch.cat((theta, torch.zeros(theta.shape[0], 1, dtype=theta.dtype)), 1)
+    buffer.push(pair, score, index, rows)
+    epsilon = torch.full((buffer.n_pairs,), math.inf, dtype=torch.float64)
+    if kernel is not None:
+        epsilon = _thresholds(state.population["score"], settings.quantile)
+    accepted = torch.where(score <= epsilon[pair], score, math.inf)
+    state.accepted.push(pair, accepted, index, rows)
+    return int((~valid).sum())
+
+
+def _weigh_round(
+    kernel: _Kernel, bounds: Tensor, buffer: TopN, state: SMCState, budget: Budget
+) -> None:
+    """End of round ``t``: ``log r`` of the round's particles still held in the
+    buffer and the accepted set, computed once, in the buffers' order, so that
+    it does not depend on how the round was chunked or sharded."""
+    first = budget.first_index(state.round)
+    stop = first + budget.round_size(state.round)
+    for held in (buffer, state.accepted):
+        mine = (held.index >= first) & (held.index < stop)  # (N, capacity)
+        rows, slots = mine.nonzero(as_tuple=True)
+        if rows.numel():
+            theta = held.theta[rows, slots, :-1]
+            held.theta[rows, slots, -1] = log_prior_ratio(kernel, bounds, theta, rows)
+
+
+def _thresholds(score: Tensor, quantile: float) -> Tensor:
+    """(N,) the ``quantile`` of each pair's finite population scores (``+inf``
+    for a pair without a population): the lower of the two central order
+    statistics, so that it is a score the population holds."""
+    ordered = torch.sort(score, dim=1).values  # (N, pop), +inf last
+    count = torch.isfinite(ordered).sum(1)  # (N,)
+    rank = torch.floor(quantile * (count - 1).clamp(min=0)).long()
+    value = ordered.gather(1, rank[:, None])[:, 0]
+    return torch.where(count > 0, value, math.inf)
+
+
+def _next_population(
+    state: SMCState, settings: SMCSettings, n_pairs: int, buffer: TopN
+) -> None:
+    """End of a round: its accepted proposals become the population (a pair with
+    none keeps its own); the next round starts."""
+    accepted = {"theta": state.accepted.theta.clone(), "score": state.accepted.score}
+    if state.population:
+        kept = ~torch.isfinite(accepted["score"]).any(dim=1)  # (N,) none accepted
+        for key in ("theta", "score"):
+            accepted[key] = torch.where(
+                kept.view(-1, *[1] * (accepted[key].ndim - 1)),
+                state.population[key],
+                accepted[key],
+            )
+    state.population = {k: v.clone() for k, v in accepted.items()}
+    state.round += 1
+    state.next = 0
+    state.accepted = TopN(n_pairs, settings.population, buffer.theta.shape[-1])
+
+
+# ------------------------------------------------------------- the evidence
+def proposals_per_pair(name: str, bounds: Tensor, seed: int, budget: Budget) -> Tensor:
+    """(N,) int64: how many of the model's proposals went to each pair (the prior
+    round's stream-drawn pairs, then ``q`` per pair and round)."""
+    stream = ParticleStream(name, bounds, seed, budget.n_pairs)
+    counts = torch.zeros(budget.n_pairs, dtype=torch.int64)
+    step = 1 << 20
+    for start in range(0, budget.prior, step):
+        _, pair = stream.draw(start, min(start + step, budget.prior))
+        counts += torch.bincount(pair, minlength=budget.n_pairs)
+    return counts + budget.rounds * budget.per_pair
+
+
+def prior_mass(buffer: TopN, proposals: Tensor, tau: Tensor) -> Tensor:
+    """(N,) the model's prior mass within ``tau`` (N,) per pair: ``(1 / M_p) sum
+    r 1[score <= tau_p]`` over the buffer's entries (module docstring)."""
+    inside = buffer.score <= tau[:, None]  # (N, capacity)
+    r = torch.exp(buffer.theta[..., -1])
+    return torch.where(inside, r, 0.0).sum(1) / proposals.clamp(min=1)
+
+
+def evidence_shares(names: Sequence[str], masses: Sequence[Tensor]) -> dict[str, float]:
+    """Per model, its share of the prior mass that fits, per pair normalised over
+    the models and averaged over the pairs where any model fits."""
+    mass = torch.stack(list(masses))  # (M, N)
+    total = mass.sum(0)  # (N,)
+    fits = total > 0
+    share = (mass[:, fits] / total[fits]).mean(1) if fits.any() else mass[:, 0] * 0
+    return {name: float(s) for name, s in zip(names, share, strict=True)}
+
+
+__all__ = [
+    "KERNEL_FLOOR",
+    "Budget",
+    "SMCSettings",
+    "SMCState",
+    "evidence_shares",
+    "log_prior_ratio",
+    "new_state",
+    "parameter_buffer",
+    "prior_mass",
+    "proposals_per_pair",
+    "run_smc",
+    "smc_budget",
+]
