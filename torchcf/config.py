@@ -291,7 +291,7 @@ class SMCConfig(BaseModel):
         gt=1,
         description="Particles per training pair carried from round to round.",
     )
-    rounds: int = Field(6, gt=0, description="Refinement rounds after the prior round.")
+    rounds: int = Field(12, gt=0, description="Refinement rounds after the prior round.")
     prior_fraction: float = Field(
         0.25,
         gt=0,

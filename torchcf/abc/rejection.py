@@ -241,12 +241,15 @@ def _push_chunk(
 ) -> int:
     """Draw, simulate and push particles ``start .. stop - 1``; their invalid count.
 
-    Always a whole chunk is simulated, the particles past ``stop`` dropped: a
-    compiled block sees one shape per model, and every simulate call of a run has
-    one batch size, so that a solver whose kernels depend on the batch size (the
-    MPC's QP picks LAPACK for small batches) rounds the same whatever the chunking.
+    A whole chunk is simulated (the particles past ``stop`` dropped) where the
+    batch size matters: a compiled block sees one shape per model, and a model
+    whose rollout rounds by batch size (:attr:`CFModel.batch_size_invariant`,
+    the MPC) sees one batch size whatever the chunking. Others simulate only
+    what is asked.
     """
-    theta, pair = stream.draw(start, start + chunk)  # (chunk, K_drawn), (chunk,)
+    fixed_size = compiled or not model.batch_size_invariant
+    drawn = chunk if fixed_size else stop - start
+    theta, pair = stream.draw(start, start + drawn)  # (drawn, K_drawn), (drawn,)
     if fixed is not None:
         theta = torch.cat((theta, fixed.expand(theta.shape[0], -1)), dim=1)
     score, valid = rollout.score(model, theta, pair, chunk=chunk, compiled=compiled)

@@ -93,7 +93,7 @@ class SMCSettings:
     """
 
     population: int = 100
-    rounds: int = 6
+    rounds: int = 12
     prior_fraction: float = 0.25
     quantile: float = 0.5
 
@@ -331,7 +331,9 @@ def run_smc(
     model = get_model(name)
     budget = smc_budget(n_particles, rollout.pairs.n_pairs, settings)
     compiled = rollout.compiled(model, n_particles)
-    chunk = rollout.chunk(model, n_particles, compiled)
+    # Chunks no larger than a refinement round: a round is one batched rollout
+    # (or a few), not a chunk padded far past what it proposes.
+    chunk = rollout.chunk(model, max(budget.per_round, 1), compiled)
     stream = ParticleStream(name, bounds, seed, rollout.pairs.n_pairs)
     while state.round <= budget.rounds:
         kernel = _kernel(state.population, bounds) if state.round else None
@@ -438,10 +440,11 @@ def _offer(
     if not inside.numel():
         return 0
     theta, pair, index = theta[inside], pair[inside], index[inside]
-    # One batch size for every simulate call (as the rejection engine's whole
-    # chunks): a compiled block's one shape, and the MPC's QP kernels, which
-    # depend on the batch size, round the same whatever the chunking.
-    pad = chunk - theta.shape[0]
+    # One batch size for every simulate call where it matters (as the rejection
+    # engine's whole chunks): a compiled block's one shape, and a model that
+    # rounds by batch size (the MPC's QP) rounds the same whatever the chunking.
+    fixed_size = compiled or not model.batch_size_invariant
+    pad = chunk - theta.shape[0] if fixed_size else 0
     simulated = torch.cat((theta, theta[:1].expand(pad, -1)))
     pair_sim = torch.cat((pair, pair[:1].expand(pad)))
     score, valid = rollout.score(

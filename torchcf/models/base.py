@@ -132,6 +132,10 @@ class CFModel:
     #: Simulated cells per chunk when the caller does not choose (memory vs.
     #: per-step overhead; MPC's per-step solver calls favour big chunks).
     chunk_cells: ClassVar[int] = 1 << 18
+    #: Whether a particle's rollout rounds the same whatever the batch it is
+    #: simulated in. False for the MPC, whose QP solver picks its kernels by batch
+    #: size (LAPACK below a size): the engines then simulate fixed-size batches.
+    batch_size_invariant: ClassVar[bool] = True
 
     @property
     def param_names(self) -> tuple[str, ...]:

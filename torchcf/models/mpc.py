@@ -131,6 +131,7 @@ class MPC(CFModel):
     )
     compilable = False
     chunk_cells = 1 << 20
+    batch_size_invariant = False
 
     def __init__(
         self,

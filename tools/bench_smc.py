@@ -1,0 +1,332 @@
+"""Benchmark: time to quality, rejection against SMC (and against pyABC).
+
+Two parts, each writing ``reports/bench/<name>.{json,md}``:
+
+``datasets``: for every config (the paper's three studies), training runs with
+``abc.method = "rejection"`` and ``"smc"`` at several budgets (particles per
+model), on the same training pairs, timed in this process
+(:func:`torchcf.train.train`, no evaluation). Quality is the hybrid's per-pair
+N-th best score (the worst particle it keeps on a pair), averaged over the pairs;
+lower is better. The time to quality of SMC is the wall time of its smallest
+budget whose quality is at least rejection's at its largest budget (the paper's
+1e6), and the speed-up the ratio of the two wall times.
+
+    python tools/bench_smc.py datasets --threads 2
+    python tools/bench_smc.py datasets --configs configs/carII.json \\
+        --rejection 100000 1000000 --smc 50000 100000 200000
+
+``pyabc``: one pair and one model, against the trace that
+``tools/pyabc_baseline.py`` wrote (pyABC's ABCSMC in its own environment, on the
+same pair): the engine (:func:`torchcf.abc.run_smc`, :func:`torchcf.abc.
+run_rejection`, no run directory) at growing budgets until its best score on the
+pair reaches pyABC's best, timed from the first draw to the result.
+
+    python tools/bench_smc.py pyabc --trace reports/bench/pyabc_carII_idm.json
+
+Both use ``compile = "off"`` unless ``--compile`` says otherwise, so that the two
+methods run the same kernels (rejection's long runs would otherwise compile and
+SMC's short ones not).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_sim import bench_meta, write_report  # noqa: E402
+
+from torchcf.abc.rejection import (  # noqa: E402
+    ModelProgress,
+    Rollout,
+    prior_stream,
+    run_rejection,
+)
+from torchcf.abc.smc import SMCSettings, new_state, run_smc  # noqa: E402
+from torchcf.abc.topn import TopN  # noqa: E402
+from torchcf.config import load_config  # noqa: E402
+from torchcf.data import load_pairs, load_split  # noqa: E402
+from torchcf.models import get_model  # noqa: E402
+from torchcf.posterior import Posterior  # noqa: E402
+from torchcf.runtime import tune_malloc  # noqa: E402
+from torchcf.train import train  # noqa: E402
+
+REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
+CONFIGS = ("configs/carII.json", "configs/carI.json", "configs/ngsim.json")
+
+
+# ------------------------------------------------------------------ data sets
+def hybrid_thresholds(posterior: Posterior) -> list[float]:
+    """Per training pair, the worst score the hybrid keeps (its N-th best)."""
+    worst: dict[int, float] = {int(p): -math.inf for p in posterior.train_pair_ids}
+    for particles in posterior.hybrid.values():
+        for pair, score in zip(
+            particles.pair_ids.tolist(), particles.score.tolist(), strict=True
+        ):
+            worst[int(pair)] = max(worst[int(pair)], score)
+    return [worst[int(p)] for p in posterior.train_pair_ids]
+
+
+def one_run(cfg, pairs, method: str, budget: int, overrides: dict) -> dict:
+    """A training run of ``cfg`` with ``method`` at ``budget`` particles per model."""
+    abc = cfg.abc.model_copy(update={"method": method, "n_particles": budget})
+    run_cfg = cfg.model_copy(update={"abc": abc, **overrides})
+    with tempfile.TemporaryDirectory() as folder:
+        began = time.perf_counter()
+        summary = train(run_cfg, Path(folder) / "run", pairs=pairs)
+        seconds = time.perf_counter() - began
+        posterior = Posterior.load(Path(folder) / "run" / "posterior.pt")
+    per_pair = hybrid_thresholds(posterior)
+    finite = [v for v in per_pair if math.isfinite(v)]
+    return {
+        "method": method,
+        "budget": budget,
+        "seconds": seconds,
+        "quality": sum(finite) / len(finite) if finite else math.inf,
+        "per_pair": per_pair,
+        "shares": summary["shares"],
+        "evidence_shares": summary.get("smc", {}).get("evidence_shares"),
+        "model_thresholds": {
+            m: summary["per_model"][m]["threshold"] for m in summary["shares"]
+        },
+    }
+
+
+def time_to_quality(runs: list[dict]) -> dict:
+    """SMC's smallest budget at least as good as rejection's largest, and the
+    ratio of their wall times."""
+    rejection = max((r for r in runs if r["method"] == "rejection"), key=_budget)
+    for run in sorted((r for r in runs if r["method"] == "smc"), key=_budget):
+        if run["quality"] <= rejection["quality"]:
+            better = sum(
+                s <= r
+                for s, r in zip(run["per_pair"], rejection["per_pair"], strict=True)
+            )
+            return {
+                "rejection_budget": rejection["budget"],
+                "rejection_seconds": rejection["seconds"],
+                "smc_budget": run["budget"],
+                "smc_seconds": run["seconds"],
+                "speed_up": rejection["seconds"] / run["seconds"],
+                "budget_ratio": rejection["budget"] / run["budget"],
+                "pairs_at_least_as_good": f"{better}/{len(run['per_pair'])}",
+            }
+    return {"rejection_budget": rejection["budget"], "reached": False}
+
+
+def _budget(run: dict) -> int:
+    return run["budget"]
+
+
+def datasets(args) -> int:
+    overrides = {"threads": args.threads, "compile": args.compile}
+    results = {}
+    for config in args.configs:
+        cfg = load_config(config)
+        pairs = load_split(cfg.data)
+        runs = []
+        plan = [("rejection", b) for b in args.rejection] + [
+            ("smc", b) for b in args.smc
+        ]
+        for method, budget in plan:
+            run = one_run(cfg, pairs, method, budget, overrides)
+            print(
+                f"{cfg.data.name} {method:9s} {budget:>8d}: {run['seconds']:7.1f} s, "
+                f"quality {run['quality']:.4f}",
+                file=sys.stderr,
+            )
+            runs.append(run)
+        results[cfg.data.name] = {
+            "n_train": pairs[0].n_pairs,
+            "models": [m.name for m in cfg.models],
+            "smc": cfg.abc.smc.model_dump(),
+            "runs": runs,
+            "time_to_quality": time_to_quality(runs),
+        }
+    payload = {"meta": bench_meta(sys.argv, args.threads), "results": results}
+    write_report(REPORTS / args.name, payload, datasets_markdown(payload, args))
+    return 0
+
+
+def datasets_markdown(payload: dict, args) -> str:
+    meta = payload["meta"]
+    lines = [
+        "# Time to quality: rejection against SMC",
+        "",
+        f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
+        f"{meta['cpu']}, git {meta['git']}, compile {args.compile}.",
+        "",
+        "Quality: the hybrid's per-pair N-th best score (the worst particle it keeps "
+        "on a training pair), mean over the pairs; lower is better. Budget: "
+        "particles per model (SMC: proposals in all rounds). Seconds: the whole "
+        "training run (8 models, selection, outputs), wall time.",
+        "",
+    ]
+    for name, result in payload["results"].items():
+        ttq = result["time_to_quality"]
+        lines += [
+            f"## {name} ({result['n_train']} training pairs)",
+            "",
+            "| method | budget | seconds | quality | shares | evidence shares (SMC) |",
+            "|---|---|---|---|---|---|",
+        ]
+        for run in result["runs"]:
+            shares = ", ".join(f"{m} {v:.0%}" for m, v in run["shares"].items() if v)
+            evidence = run["evidence_shares"] or {}
+            ev = ", ".join(f"{m} {v:.0%}" for m, v in evidence.items() if v >= 0.005)
+            lines.append(
+                f"| {run['method']} | {run['budget']:,} | {run['seconds']:.1f} | "
+                f"{run['quality']:.4f} | {shares} | {ev} |"
+            )
+        lines.append("")
+        if ttq.get("reached", True):
+            lines.append(
+                f"SMC reaches rejection's {ttq['rejection_budget']:,}-particle quality "
+                f"with {ttq['smc_budget']:,} particles per model: "
+                f"{ttq['smc_seconds']:.1f} s against {ttq['rejection_seconds']:.1f} s, "
+                f"**{ttq['speed_up']:.1f}x sooner** "
+                f"({ttq['budget_ratio']:.0f}x fewer simulations; "
+                f"{ttq['pairs_at_least_as_good']} pairs at least as good)."
+            )
+        else:
+            lines.append(
+                f"No SMC budget tried reaches rejection's "
+                f"{ttq['rejection_budget']:,}-particle quality."
+            )
+        lines.append("")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------- pyABC
+def engine_best(
+    method: str, name: str, pair, budget: int, settings: SMCSettings, dtype
+) -> tuple[float, float]:
+    """(best score, seconds) of the engine alone on one pair."""
+    model = get_model(name)
+    bounds = model.prior_bounds(torch.float64)
+    rollout = Rollout(pair, dtype=dtype, compile="off")
+    began = time.perf_counter()
+    if method == "smc":
+        buffer = TopN(1, 1, model.n_params + 1)
+        state = new_state(1, settings, model.n_params)
+        run_smc(
+            name, bounds, 0, buffer, rollout, budget, settings, ModelProgress(), state
+        )
+    else:
+        buffer = TopN(1, 1, model.n_params)
+        stream = prior_stream(name, bounds, 0, rollout)
+        run_rejection(stream, buffer, rollout, budget, ModelProgress())
+    return float(buffer.score[0, 0]), time.perf_counter() - began
+
+
+def pyabc(args) -> int:
+    trace = json.loads(Path(args.trace).read_text())
+    target, target_seconds = trace["best"]["score"], trace["best"]["seconds"]
+    pairs = load_pairs("car-model-2", split="train")
+    position = list(pairs.pair_ids).index(int(trace["pair"]["pair_id"]))
+    pair = pairs.subset(torch.arange(pairs.n_pairs) == position)
+    dtype = getattr(torch, args.dtype)
+    settings = SMCSettings(population=args.population, rounds=args.rounds)
+    engine_best("smc", "idm", pair, 4 * args.population, settings, dtype)  # warm-up
+    rows, reached = [], {}
+    for method in ("smc", "rejection"):
+        for budget in args.budgets:
+            best, seconds = engine_best(method, "idm", pair, budget, settings, dtype)
+            rows.append(
+                {"method": method, "budget": budget, "best": best, "seconds": seconds}
+            )
+            print(f"{method:9s} {budget:>8d}: best {best:.5f} in {seconds:.3f} s")
+            if best <= target and method not in reached:
+                reached[method] = rows[-1]
+    payload = {
+        "meta": bench_meta(sys.argv, torch.get_num_threads()),
+        "pyabc": {
+            "trace": args.trace,
+            "best": target,
+            "seconds": target_seconds,
+            "version": trace.get("environment", {}).get("pyabc"),
+        },
+        "pair": trace["pair"],
+        "runs": rows,
+        "reached": {
+            m: {**r, "speed_up": target_seconds / r["seconds"]}
+            for m, r in reached.items()
+        },
+    }
+    write_report(REPORTS / args.name, payload, pyabc_markdown(payload, args))
+    return 0
+
+
+def pyabc_markdown(payload: dict, args) -> str:
+    meta, ref = payload["meta"], payload["pyabc"]
+    lines = [
+        "# Time to pyABC's best score on one pair",
+        "",
+        f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
+        f"{meta['cpu']}, git {meta['git']}, {args.dtype}, compile off.",
+        "",
+        f"pyABC {ref['version']} (`{ref['trace']}`, `tools/pyabc_baseline.py`): best "
+        f"score **{ref['best']:.5f}** after {ref['seconds']:.1f} s on CAR MODEL II "
+        f"pair id {payload['pair']['pair_id']}, IDM. torchcf: the engine alone "
+        "(no run directory), best score on the pair after each budget.",
+        "",
+        "| method | budget | best | seconds |",
+        "|---|---|---|---|",
+    ]
+    for run in payload["runs"]:
+        lines.append(
+            f"| {run['method']} | {run['budget']:,} | {run['best']:.5f} | "
+            f"{run['seconds']:.3f} |"
+        )
+    lines.append("")
+    for method, run in payload["reached"].items():
+        lines.append(
+            f"{method}: reaches pyABC's best with {run['budget']:,} particles in "
+            f"{run['seconds']:.3f} s, **{run['speed_up']:.0f}x sooner** than pyABC."
+        )
+    for method in ("smc", "rejection"):
+        if method not in payload["reached"]:
+            lines.append(f"{method}: does not reach pyABC's best in the budgets tried.")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parts = parser.add_subparsers(dest="part", required=True)
+    data = parts.add_parser("datasets", help="rejection vs SMC on the data sets")
+    data.add_argument("--configs", nargs="+", default=list(CONFIGS))
+    data.add_argument("--rejection", nargs="+", type=int, default=[100_000, 1_000_000])
+    data.add_argument(
+        "--smc", nargs="+", type=int, default=[50_000, 100_000, 200_000, 400_000]
+    )
+    data.add_argument("--threads", type=int, default=2)
+    data.add_argument("--compile", default="off", choices=("off", "auto", "on"))
+    data.add_argument("--name", default="smc_datasets")
+    single = parts.add_parser("pyabc", help="the engine against pyABC on one pair")
+    single.add_argument("--trace", default=str(REPORTS / "pyabc_carII_idm.json"))
+    single.add_argument(
+        "--budgets",
+        nargs="+",
+        type=int,
+        default=[2_000, 5_000, 10_000, 20_000, 50_000, 100_000, 200_000, 1_000_000],
+    )
+    single.add_argument("--population", type=int, default=100)
+    single.add_argument("--rounds", type=int, default=12)
+    single.add_argument("--dtype", default="float64", choices=("float32", "float64"))
+    single.add_argument("--threads", type=int, default=1)
+    single.add_argument("--name", default="smc_pyabc")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    tune_malloc()
+    return datasets(args) if args.part == "datasets" else pyabc(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
