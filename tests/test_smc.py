@@ -319,3 +319,14 @@ def test_smc_under_torchrun_equals_one_process(tmp_path):
     for name in a.models:
         for key in ("score", "index", "theta"):
             assert torch.equal(a.buffers[name][key], b.buffers[name][key])
+
+
+def test_the_loop_recalibrates_with_smc_when_asked():
+    from torchcf.diagnose import recalibration_config
+
+    cfg = config(method="rejection")
+    raw = cfg.model_dump(mode="json")
+    raw["diagnose"]["recalibrate_method"] = "smc"
+    after = recalibration_config(validate_config(raw), ["idm"], ["delay"])
+    assert after.abc.method == "smc" and "idm+delay" in [m.name for m in after.models]
+    assert recalibration_config(cfg, ["idm"], ["delay"]).abc.method == "rejection"

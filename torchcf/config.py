@@ -291,7 +291,9 @@ class SMCConfig(BaseModel):
         gt=1,
         description="Particles per training pair carried from round to round.",
     )
-    rounds: int = Field(12, gt=0, description="Refinement rounds after the prior round.")
+    rounds: int = Field(
+        12, gt=0, description="Refinement rounds after the prior round."
+    )
     prior_fraction: float = Field(
         0.25,
         gt=0,
@@ -532,6 +534,14 @@ class DiagnoseConfig(BaseModel):
         None,
         gt=0,
         description="Particles per model when re-calibrating; None = abc.n_particles.",
+    )
+    recalibrate_method: Literal["rejection", "smc"] | None = Field(
+        None,
+        description=(
+            "Search of the re-calibration: 'smc' gives the augmented models, with "
+            "their extra parameters, a refined search at the same budget; None = "
+            "abc.method."
+        ),
     )
 
     @field_validator("effects")

@@ -97,6 +97,8 @@ def recalibration_config(
                 present.add(variant)
     if cfg.diagnose.recalibrate_particles is not None:
         raw["abc"]["n_particles"] = cfg.diagnose.recalibrate_particles
+    if cfg.diagnose.recalibrate_method is not None:
+        raw["abc"]["method"] = cfg.diagnose.recalibrate_method
     raw["diagnose"]["run_after_training"] = False
     raw["output"] = None
     return validate_config(raw)
