@@ -371,7 +371,7 @@ def run_smc(
         if kernel is not None:
             _weigh_round(kernel, bounds, buffer, state, budget)
         _next_population(state, settings, rollout.pairs.n_pairs, buffer)
-    progress.next = n_particles  # the unspent rest (fewer than rounds x N)
+    progress.next = budget.total  # proposals made (the rest is not spent)
 
 
 def _prior_draws(

@@ -98,6 +98,10 @@ def _print_result(summary: dict[str, Any], run: RunDir, evaluated: bool) -> None
     for name, share in summary["shares"].items():
         seconds = summary["per_model"][name]["seconds"]
         print(f"  {name:<{width}}  {share:6.1%}   ({seconds:.1f} s)")
+    if "smc" in summary:
+        evidence = summary["smc"]["evidence_shares"]
+        shown = ", ".join(f"{m} {v:.1%}" for m, v in evidence.items() if v >= 0.0005)
+        print(f"evidence shares (prior mass within the hybrid's thresholds): {shown}")
     if evaluated and run.is_evaluated():
         metrics = run.read_metrics()
         hybrid = {k: _fmt(v) for k, v in metrics["hybrid"].items()}
