@@ -330,3 +330,18 @@ def test_the_loop_recalibrates_with_smc_when_asked():
     after = recalibration_config(validate_config(raw), ["idm"], ["delay"])
     assert after.abc.method == "smc" and "idm+delay" in [m.name for m in after.models]
     assert recalibration_config(cfg, ["idm"], ["delay"]).abc.method == "rejection"
+
+
+def test_a_pair_without_population_draws_from_the_prior():
+    """Where every particle of a pair was invalid, its proposals are prior draws
+    (importance weight 1), not steps from nowhere."""
+    population, bounds = _population(n_pairs=2, pop=4, k=3)
+    population["score"][1] = math.inf  # pair 1: no member
+    kernel = smc._kernel(population, bounds)
+    assert kernel.empty.tolist() == [False, True]
+    u = torch.rand(4000, 4, generator=torch.Generator().manual_seed(8)).double()
+    pair = torch.ones(4000, dtype=torch.int64)
+    theta, log_r = smc._propose(kernel, bounds, u, pair)
+    expected = bounds[:, 0] + (bounds[:, 1] - bounds[:, 0]) * u[:, 1:]
+    assert torch.equal(theta, expected) and bool((log_r == 0).all())
+    assert bool((log_prior_ratio(kernel, bounds, theta[:5], pair[:5]) == 0).all())
