@@ -344,10 +344,14 @@ def run_smc(
             start, stop = group.shard(first, size, chunk)
             invalid = 0
             if start < stop:
-                draw = _prior_draws if kernel is None else _proposals
-                theta, log_r, pair = draw(
-                    stream, kernel, bounds, seed, name, state.round, start, stop, budget
-                )
+                if kernel is None:  # round 0: the prior stream, r = 1
+                    theta, pair = stream.draw(start, stop)
+                    log_r = torch.zeros(theta.shape[0], dtype=torch.float64)
+                else:
+                    key = f"{name}/smc{state.round}"
+                    theta, log_r, pair = _proposals(
+                        kernel, bounds, seed, key, start, stop, budget.per_pair
+                    )
                 invalid = _offer(
                     _Chunk(theta, log_r, pair, budget.first_index(state.round) + start),
                     model,
@@ -368,44 +372,34 @@ def run_smc(
             progress.seconds += time.perf_counter() - began
             if after_round is not None:
                 after_round(progress, due)
+        began = time.perf_counter()
         if kernel is not None:
             _weigh_round(kernel, bounds, buffer, state, budget)
         _next_population(state, settings, rollout.pairs.n_pairs, buffer)
+        progress.seconds += time.perf_counter() - began
     progress.next = budget.total  # proposals made (the rest is not spent)
 
 
-def _prior_draws(
-    stream: ParticleStream,
-    kernel: _Kernel | None,
-    bounds: Tensor,
-    seed: int,
-    name: str,
-    t: int,
-    start: int,
-    stop: int,
-    budget: Budget,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Round 0: the prior stream's particles ``start .. stop - 1`` (``log r = 0``)."""
-    theta, pair = stream.draw(start, stop)
-    return theta, torch.zeros(theta.shape[0], dtype=torch.float64), pair
-
-
 def _proposals(
-    stream: ParticleStream,
-    kernel: _Kernel | None,
+    kernel: _Kernel,
     bounds: Tensor,
     seed: int,
-    name: str,
-    t: int,
+    stream_key: str,
     start: int,
     stop: int,
-    budget: Budget,
+    per_pair: int,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Round ``t``'s proposals ``start .. stop - 1``, pair-major (``q`` per pair)."""
-    assert kernel is not None
+    """A refinement round's proposals ``start .. stop - 1``, pair-major (``per_pair``
+    per pair), from the round's own counter-based uniforms (``stream_key`` =
+    ``"<model>/smc<t>"``).
+
+    Returns:
+        ``theta`` (Q, K), ``log r`` (Q,) (``-inf`` outside the prior box, 0 for a
+        pair without population), ``pair`` (Q,).
+    """
     k = bounds.shape[0]
-    u = uniforms(seed, f"{name}/smc{t}", start, stop, 1 + k)  # (Q, 1 + K)
-    pair = torch.arange(start, stop) // budget.per_pair
+    u = uniforms(seed, stream_key, start, stop, 1 + k)  # (Q, 1 + K)
+    pair = torch.arange(start, stop) // per_pair
     theta, log_r = _propose(kernel, bounds, u, pair)
     return theta, log_r, pair
 
