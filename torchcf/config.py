@@ -535,6 +535,14 @@ class DiagnoseConfig(BaseModel):
         gt=0,
         description="Particles per model when re-calibrating; None = abc.n_particles.",
     )
+    method: Literal["rejection", "smc"] = Field(
+        "rejection",
+        description=(
+            "The attribution arms' small ABC: 'rejection' (prior draws) or 'smc' "
+            "(the refinement of abc.smc at the same budget); local search follows "
+            "either."
+        ),
+    )
     recalibrate_method: Literal["rejection", "smc"] | None = Field(
         None,
         description=(

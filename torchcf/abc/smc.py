@@ -307,6 +307,8 @@ def run_smc(
     progress: ModelProgress,
     state: SMCState,
     *,
+    model: str | CFModel | None = None,
+    fixed: Tensor | None = None,
     group: Group = SINGLE,
     checkpoint_due: Callable[[], bool] | None = None,
     after_round: Callable[[ModelProgress, bool], None] | None = None,
@@ -315,21 +317,32 @@ def run_smc(
 
     Args:
         name: the model's registry name (keys its streams).
-        bounds: (K, 2) float64 prior box.
+        bounds: (K_drawn, 2) float64 prior box of the searched parameters.
         seed: the run's seed.
-        buffer: the model's per-pair top-N buffer, ``theta`` (N, capacity, K + 1).
+        buffer: the model's per-pair top-N buffer, ``theta`` (N, capacity,
+            K_drawn + 1).
         rollout: how particles are simulated (paired layout).
         n_particles: the model's budget.
         settings: the refinement's settings.
         progress: proposals offered so far (updated after every chunk round).
         state: where the refinement stands (updated; a checkpoint saves it).
+        model: the simulated model (default: ``name``). A variant whose last
+            parameters are ``fixed`` is searched in the others only.
+        fixed: ``(K - K_drawn,)`` values appended to every particle before it is
+            simulated (a shared effect's one value for all pairs); the buffers
+            hold the searched parameters only.
         group: the processes sharing the work.
         checkpoint_due, after_round: as in :func:`~torchcf.abc.run_rejection`.
     """
     if not rollout.paired:
         raise ValueError("SMC refines per pair: it needs the paired layout")
-    model = get_model(name)
+    model = get_model(model if model is not None else name)
     budget = smc_budget(n_particles, rollout.pairs.n_pairs, settings)
+    if budget.per_pair < 1:
+        raise ValueError(
+            f"{n_particles} particles leave no proposal per pair and round "
+            f"({rollout.pairs.n_pairs} pairs, {settings.rounds} rounds)"
+        )
     compiled = rollout.compiled(model, n_particles)
     # Chunks no larger than a refinement round: a round is one batched rollout
     # (or a few), not a chunk padded far past what it proposes.
@@ -354,6 +367,7 @@ def run_smc(
                     )
                 invalid = _offer(
                     _Chunk(theta, log_r, pair, budget.first_index(state.round) + start),
+                    fixed,
                     model,
                     rollout,
                     buffer,
@@ -416,6 +430,7 @@ class _Chunk(NamedTuple):
 
 def _offer(
     proposals: _Chunk,
+    fixed: Tensor | None,
     model: CFModel,
     rollout: Rollout,
     buffer: TopN,
@@ -440,6 +455,8 @@ def _offer(
     fixed_size = compiled or not model.batch_size_invariant
     pad = chunk - theta.shape[0] if fixed_size else 0
     simulated = torch.cat((theta, theta[:1].expand(pad, -1)))
+    if fixed is not None:  # the searched parameters, then the fixed ones
+        simulated = torch.cat((simulated, fixed.expand(simulated.shape[0], -1)), 1)
     pair_sim = torch.cat((pair, pair[:1].expand(pad)))
     score, valid = rollout.score(
         model, simulated, pair_sim, chunk=chunk, compiled=compiled

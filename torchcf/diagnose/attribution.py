@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 from ..abc.particles import Particles, best_per_pair
 from ..abc.rejection import Rollout
+from ..abc.smc import SMCSettings
 from ..config import DiagnoseConfig, TrainConfig
 from ..data import PairSet
 from ..models import get_model
@@ -139,6 +140,8 @@ class Arena:
         priors: the run's prior box (K, 2) per pool model.
         keep: particles kept per pair by a small ABC run.
         top_n: N, the particles per pair an arm is judged by.
+        smc: the refinement's settings when the small ABC runs are SMC
+            (``diagnose.method = "smc"``), else None (rejection).
         generator: the local search's random numbers, consumed in a fixed order
             (the pool arm, then the effects in the order given).
     """
@@ -151,6 +154,7 @@ class Arena:
     keep: int
     top_n: int
     generator: torch.Generator
+    smc: SMCSettings | None = None
 
     @classmethod
     def of(cls, cfg: TrainConfig, train_pairs: PairSet) -> Arena:
@@ -166,6 +170,9 @@ class Arena:
             keep=max(settings.population, cfg.abc.top_n),
             top_n=cfg.abc.top_n,
             generator=torch.Generator().manual_seed(attribution_seed(cfg)),
+            smc=SMCSettings(**cfg.abc.smc.model_dump())
+            if settings.method == "smc"
+            else None,
         )
 
     def small_abc(
@@ -177,7 +184,7 @@ class Arena:
     ) -> list[Particles]:
         """:func:`prior_particles` of ``name`` on the fit windows."""
         return prior_particles(
-            name, self.fit, budgets, self.keep, bounds, self.seed, fixed
+            name, self.fit, budgets, self.keep, bounds, self.seed, fixed, self.smc
         )
 
     def refine(

@@ -21,10 +21,11 @@ from torch import Tensor
 
 from ..abc.particles import Particles
 from ..abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
+from ..abc.smc import SMCSettings, new_state, parameter_buffer, run_smc, smc_budget
 from ..abc.topn import TopN
-from ..config import TrainConfig
+from ..config import ConfigError, TrainConfig
 from ..data import PairSet
-from ..models import UnknownModelError, get_model
+from ..models import CFModel, UnknownModelError, get_model
 from ..models.effects import parse_effect
 
 
@@ -95,8 +96,10 @@ def prior_particles(
     bounds: Tensor,
     seed: int,
     fixed: Tensor | None = None,
+    smc: SMCSettings | None = None,
 ) -> list[Particles]:
-    """Paired ABC rejection of one model (or variant) on the rollout's pairs.
+    """Paired ABC of one model (or variant) on the rollout's pairs: rejection, or
+    with ``smc`` the sequential refinement at each budget.
 
     Args:
         budgets: increasing particle counts; result ``i`` holds the ``keep`` best
@@ -107,8 +110,16 @@ def prior_particles(
         seed: the stream's seed (:func:`attribution_seed`).
         fixed: values (K - K_drawn,) of the last parameters, the same for every
             particle (a shared effect's value).
+        smc: the refinement's settings; result ``i`` is then the ``keep`` best per
+            pair of an SMC run of ``budgets[i]`` proposals (its own run: an SMC
+            run of a larger budget is not a continuation of a smaller one).
     """
     model = get_model(name)
+    if smc is not None:
+        return [
+            _refined_particles(model, rollout, budget, keep, bounds, seed, fixed, smc)
+            for budget in budgets
+        ]
     stream = prior_stream(model.name, bounds, seed, rollout)
     buffer = TopN(rollout.pairs.n_pairs, keep, model.n_params)
     progress = ModelProgress()
@@ -126,6 +137,48 @@ def prior_particles(
         )
         sets.append(Particles.from_buffer(model.name, buffer, keep))
     return sets
+
+
+def _refined_particles(
+    model: CFModel,
+    rollout: Rollout,
+    budget: int,
+    keep: int,
+    bounds: Tensor,
+    seed: int,
+    fixed: Tensor | None,
+    smc: SMCSettings,
+) -> Particles:
+    """The ``keep`` best per pair of one SMC run of ``budget`` proposals."""
+    n_pairs, k_drawn = rollout.pairs.n_pairs, bounds.shape[0]
+    buffer = TopN(n_pairs, keep, k_drawn + 1)
+    state = new_state(n_pairs, smc, k_drawn)
+    if smc_budget(budget, n_pairs, smc).per_pair < 1:
+        raise ConfigError(
+            f"diagnose.method = 'smc': diagnose.n_particles gives {budget} "
+            f"particles, no proposal per pair and round ({n_pairs} pairs, "
+            f"abc.smc.rounds = {smc.rounds}); raise it or lower the rounds"
+        )
+    run_smc(
+        model.name,
+        bounds,
+        seed,
+        buffer,
+        rollout,
+        budget,
+        smc,
+        ModelProgress(),
+        state,
+        model=model,
+        fixed=fixed,
+    )
+    particles = Particles.from_buffer(model.name, parameter_buffer(buffer), keep)
+    if fixed is None:
+        return particles
+    theta = torch.cat((particles.theta, fixed.expand(len(particles), -1)), dim=1)
+    return Particles(
+        model.name, theta, particles.pair, particles.score, particles.index
+    )
 
 
 def validation_scores(picks: Sequence[Particles], rollout: Rollout) -> np.ndarray:
