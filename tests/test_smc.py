@@ -32,29 +32,16 @@ from torchcf.posterior import Posterior
 from torchcf.train import train
 
 from .runs import torchrun_train, write_config, write_data
+from .test_train import config as train_config
 from .test_train import mixture_pairs
 
 SETTINGS = {"population": 20, "rounds": 3, "prior_fraction": 0.3, "quantile": 0.5}
 
 
 def config(**abc) -> TrainConfig:
-    settings = {
-        "n_particles": 6000,
-        "top_n": 5,
-        "sensitivity_n": [5],
-        "seed": 1,
-        "method": "smc",
-        "smc": SETTINGS,
-    }
-    settings.update(abc)
-    return TrainConfig.model_validate(
-        {
-            "data": {"name": "car-model-2"},
-            "models": ["idm", "hl"],
-            "abc": settings,
-            "compile": "off",
-        }
-    )
+    """The trainer tests' config (IDM and HL, seed 1), refined by SMC."""
+    settings = {"n_particles": 6000, "method": "smc", "smc": SETTINGS}
+    return train_config(**{**settings, **abc})
 
 
 @pytest.fixture(scope="module")

@@ -15,6 +15,7 @@ Anything else is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import argparse
 import sys
 from collections.abc import Callable
 
@@ -34,6 +35,19 @@ def one_line(error: BaseException) -> str:
 def print_error(message: str) -> None:
     """``error: <message>`` on stderr."""
     print(f"error: {message}", file=sys.stderr)
+
+
+def add_overrides(parser: argparse.ArgumentParser, metavar: str, example: str) -> None:
+    """The ``--set KEY=VALUE`` option every command shares (repeatable; the value
+    is JSON, or a plain string), collected in ``args.overrides``."""
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar=metavar,
+        help=f"override a config field (repeatable), e.g. --set {example}",
+    )
 
 
 def run_main(
@@ -70,6 +84,7 @@ def _print(error: BaseException) -> None:
 
 __all__ = [
     "EXIT_INTERRUPTED",
+    "add_overrides",
     "EXIT_USER_ERROR",
     "one_line",
     "print_error",

@@ -49,7 +49,7 @@ from pydantic import (
     model_validator,
 )
 
-from torchcf.cli import run_main
+from torchcf.cli import add_overrides, run_main
 from torchcf.data.reader import UNITS, unit_factor
 from torchcf.data.registry import DATASETS
 from torchcf.errors import TorchcfError
@@ -898,14 +898,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         ),
     )
     parser.add_argument("config", nargs="?", help="JSON run configuration")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a dotted key with a JSON value (repeatable)",
-    )
+    add_overrides(parser, "KEY=VALUE", "abc.seed=3")
     parser.add_argument(
         "--schema", action="store_true", help="print the JSON schema and exit"
     )

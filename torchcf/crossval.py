@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .cli import run_main
+from .cli import add_overrides, run_main
 from .config import ConfigError, TrainConfig, load_config
 from .evaluation.report import metrics_table
 from .files import atomic_write_text, ensure_directory
@@ -106,7 +106,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("config")
     parser.add_argument("--folds", type=int, default=None, help="default data.folds")
     parser.add_argument("--out", default=None)
-    parser.add_argument("--set", dest="overrides", action="append", default=[])
+    add_overrides(parser, "KEY=VALUE", "abc.n_particles=200000")
     parser.add_argument("--resume", action="store_true")
     args = parser.parse_args(argv)
 

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 
 import torch
 
-from ..cli import print_error, run_main
+from ..cli import add_overrides, print_error, run_main
 from ..pipeline import close_loop
 from ..rundir import RunDir
 from .report import fmt
@@ -28,14 +28,7 @@ def _parser() -> argparse.ArgumentParser:
         "attribution, re-calibration; writes RUN_DIR/loop.json and loop.md.",
     )
     parser.add_argument("run_dir", help="a trained and evaluated run directory")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="diagnose.KEY=VALUE",
-        help="override a diagnose setting (repeatable), e.g. diagnose.n_particles=1e5",
-    )
+    add_overrides(parser, "diagnose.KEY=VALUE", "diagnose.n_particles=100000")
     parser.add_argument("--threads", type=int, default=None, help="CPU threads")
     return parser
 

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from ..abc.distributed import SINGLE, Group, init_from_env
-from ..cli import one_line, run_main
+from ..cli import add_overrides, one_line, run_main
 from ..config import load_config
 from ..pipeline import run_study
 from ..rundir import RunDir
@@ -48,14 +48,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("config", help="JSON config (see configs/ and --schema)")
     parser.add_argument("--out", default=None, help="output directory")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=JSON",
-        help="override a config field, e.g. --set abc.n_particles=200000",
-    )
+    add_overrides(parser, "KEY=JSON", "abc.n_particles=200000")
     parser.add_argument(
         "--resume", action="store_true", help="continue the run in the output directory"
     )
