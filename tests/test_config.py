@@ -21,10 +21,10 @@ from torchcf.config import (
     apply_overrides,
     config_hash,
     load_config,
-    main,
     resolved_json,
     validate_config,
 )
+from torchcf.config.__main__ import main
 from torchcf.data import DataError, kfold_split, load_split
 from torchcf.models import MODELS, get_model
 

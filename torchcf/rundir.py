@@ -33,8 +33,9 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+from .config import ConfigError, TrainConfig, resolved_json, validate_config
 from .files import (
     RunFileError,
     atomic_torch_save,
@@ -46,12 +47,6 @@ from .files import (
     write_json,
 )
 from .posterior import Posterior
-
-# torchcf.config is imported where a config is written or read, not with this
-# module: the sampler (imported by ``import torchcf``) reads run directories, and
-# ``python -m torchcf.config`` must not find torchcf.config imported already.
-if TYPE_CHECKING:
-    from .config import TrainConfig
 
 #: Entries that every ``summary.json`` holds (the evaluation reads them).
 SUMMARY_KEYS = ("dataset", "pairwise")
@@ -189,8 +184,6 @@ class RunDir:
     def write_config(self, cfg: TrainConfig | dict[str, Any]) -> None:
         """``config.json``: the resolved configuration (a TrainConfig, or its
         :func:`~torchcf.config.resolved_json` object)."""
-        from .config import TrainConfig, resolved_json  # not at the top (see there)
-
         raw = resolved_json(cfg) if isinstance(cfg, TrainConfig) else cfg
         write_json(self.config_json, raw)
 
@@ -201,8 +194,6 @@ class RunDir:
             RunFileError: ``config.json`` missing, unreadable or corrupted.
             ConfigError: not a valid configuration (message naming the file).
         """
-        from .config import ConfigError, validate_config  # not at the top (see there)
-
         raw = self.read_config_json()
         try:
             return validate_config(raw)

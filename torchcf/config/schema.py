@@ -20,7 +20,7 @@ with a one-line message that names the key, e.g.
 resumed run can refuse a different configuration; :func:`resolved_json` is the
 validated configuration as written beside the results.
 
-Command line::
+Command line (:mod:`torchcf.config.__main__`)::
 
     python -m torchcf.config --schema                  # the JSON schema
     python -m torchcf.config CONFIG [--set k=v ...]    # resolved config and hash
@@ -28,7 +28,6 @@ Command line::
 
 from __future__ import annotations
 
-import argparse
 import copy
 import difflib
 import hashlib
@@ -49,7 +48,6 @@ from pydantic import (
     model_validator,
 )
 
-from torchcf.cli import add_overrides, run_main
 from torchcf.data.reader import UNITS, unit_factor
 from torchcf.data.registry import DATASETS
 from torchcf.errors import TorchcfError
@@ -60,13 +58,14 @@ __all__ = [
     "ABCConfig",
     "ConfigError",
     "DataConfig",
+    "DiagnoseConfig",
     "EvalConfig",
     "ModelSpec",
+    "SMCConfig",
     "TrainConfig",
     "apply_overrides",
     "config_hash",
     "load_config",
-    "main",
     "resolved_json",
     "validate_config",
 ]
@@ -881,42 +880,3 @@ def _section(annotation: Any) -> type[BaseModel] | None:
         if found is not None:
             return found
     return None
-
-
-# ---------------------------------------------------------------------- CLI
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m torchcf.config``: print the schema, or a resolved config.
-
-    Returns:
-        0 on success, 2 on a bad configuration (``error: <one line>`` on stderr).
-    """
-    parser = argparse.ArgumentParser(
-        prog="python -m torchcf.config",
-        description=(
-            "Validate a torchcf run configuration and print it resolved (every "
-            "default filled in) with its hash, or print the JSON schema."
-        ),
-    )
-    parser.add_argument("config", nargs="?", help="JSON run configuration")
-    add_overrides(parser, "KEY=VALUE", "abc.seed=3")
-    parser.add_argument(
-        "--schema", action="store_true", help="print the JSON schema and exit"
-    )
-    args = parser.parse_args(argv)
-    if args.schema:
-        print(json.dumps(TrainConfig.model_json_schema(), indent=2))
-        return 0
-    if args.config is None:
-        parser.error("give a CONFIG file or --schema")
-
-    def body() -> int:
-        cfg = load_config(args.config, args.overrides)
-        resolved = {"config": resolved_json(cfg), "hash": config_hash(cfg)}
-        print(json.dumps(resolved, indent=2))
-        return 0
-
-    return run_main(body)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
