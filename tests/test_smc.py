@@ -222,6 +222,57 @@ def test_the_prior_round_is_the_rejection_engines(mixture, monkeypatch):
     assert bool((seen[0]["theta"][..., -1] == 0).all())  # prior draws: r = 1
 
 
+def test_the_population_keeps_its_members_under_the_next_threshold(
+    mixture, monkeypatch
+):
+    """Elitism: every member of a round's population at or under the next
+    threshold is in the next population unless ``population`` better particles
+    displaced it; so the per-pair threshold never rises and a population never
+    falls below half its size (median thresholds)."""
+    settings = SMCSettings(**SETTINGS)
+    rollout = Rollout(mixture, dtype=torch.float64, compile="off")
+    bounds = get_model("idm").prior_bounds(torch.float64)
+    populations = []
+    real = smc._next_population
+
+    def record(state, *args):
+        real(state, *args)
+        populations.append({k: v.clone() for k, v in state.population.items()})
+
+    monkeypatch.setattr(smc, "_next_population", record)
+    state = new_state(mixture.n_pairs, settings, 6)
+    run_smc(
+        "idm",
+        bounds,
+        1,
+        TopN(mixture.n_pairs, 5, 7),
+        rollout,
+        6000,
+        settings,
+        ModelProgress(),
+        state,
+    )
+    assert len(populations) == settings.rounds + 1
+    for before, after in zip(populations, populations[1:], strict=False):
+        epsilon = smc._thresholds(before["score"], settings.quantile)
+        assert bool((smc._thresholds(after["score"], 0.5) <= epsilon).all())
+        for p in range(mixture.n_pairs):
+            count = int(torch.isfinite(before["score"][p]).sum())
+            kept = torch.isfinite(after["score"][p])
+            held = set(after["index"][p][kept].tolist())
+            assert len(held) >= min(settings.population, (count + 1) // 2)
+            worst_kept = float(after["score"][p][kept].max())
+            elite = before["score"][p] <= epsilon[p]
+            for index, score in zip(
+                before["index"][p][elite].tolist(),
+                before["score"][p][elite].tolist(),
+                strict=True,
+            ):
+                assert index in held or (
+                    len(held) == settings.population and score >= worst_kept
+                )
+
+
 def test_smc_fits_better_than_rejection_at_equal_budget(mixture, tmp_path):
     """Same budget, same pairs: the refined search's per-pair N-th best scores are
     lower for both models on the pairs they drove, and the hybrid still tells the

@@ -131,9 +131,7 @@ def test_result_does_not_depend_on_the_number_of_threads(mixture, tmp_path):
             cfg = config(n_particles=1500, chunk_size=600).model_copy(
                 update={"threads": threads}
             )
-            train(
-                cfg, tmp_path / f"t{threads}", pairs=(mixture, mixture)
-            )
+            train(cfg, tmp_path / f"t{threads}", pairs=(mixture, mixture))
             posteriors.append(Posterior.load(tmp_path / f"t{threads}" / "posterior.pt"))
     finally:
         torch.set_num_threads(before)

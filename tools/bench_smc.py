@@ -92,6 +92,7 @@ def one_run(cfg, pairs, method: str, budget: int, overrides: dict) -> dict:
         "quality": sum(finite) / len(finite) if finite else math.inf,
         "per_pair": per_pair,
         "shares": summary["shares"],
+        "per_model_seconds": summary["per_model_seconds"],
         "evidence_shares": summary.get("smc", {}).get("evidence_shares"),
         "model_thresholds": {
             m: summary["per_model"][m]["threshold"] for m in summary["shares"]
@@ -174,16 +175,19 @@ def datasets_markdown(payload: dict, args) -> str:
         lines += [
             f"## {name} ({result['n_train']} training pairs)",
             "",
-            "| method | budget | seconds | quality | shares | evidence shares (SMC) |",
-            "|---|---|---|---|---|---|",
+            "| method | budget | seconds | slowest models (s) | quality | shares "
+            "| evidence shares (SMC) |",
+            "|---|---|---|---|---|---|---|",
         ]
         for run in result["runs"]:
             shares = ", ".join(f"{m} {v:.0%}" for m, v in run["shares"].items() if v)
             evidence = run["evidence_shares"] or {}
             ev = ", ".join(f"{m} {v:.0%}" for m, v in evidence.items() if v >= 0.005)
+            slowest = sorted(run["per_model_seconds"].items(), key=lambda kv: -kv[1])
+            slow = ", ".join(f"{m} {v:.1f}" for m, v in slowest[:3])
             lines.append(
                 f"| {run['method']} | {run['budget']:,} | {run['seconds']:.1f} | "
-                f"{run['quality']:.4f} | {shares} | {ev} |"
+                f"{slow} | {run['quality']:.4f} | {shares} | {ev} |"
             )
         lines.append("")
         if ttq.get("reached", True):
@@ -233,18 +237,23 @@ def pyabc(args) -> int:
     position = list(pairs.pair_ids).index(int(trace["pair"]["pair_id"]))
     pair = pairs.subset(torch.arange(pairs.n_pairs) == position)
     dtype = getattr(torch, args.dtype)
-    settings = SMCSettings(population=args.population, rounds=args.rounds)
-    engine_best("smc", "idm", pair, 4 * args.population, settings, dtype)  # warm-up
+    series = [
+        (f"smc, {r} rounds", SMCSettings(population=args.population, rounds=r))
+        for r in args.rounds
+    ] + [("rejection", SMCSettings())]
+    warm_up = SMCSettings(population=args.population, rounds=2)
+    engine_best("smc", "idm", pair, 8 * args.population, warm_up, dtype)
     rows, reached = [], {}
-    for method in ("smc", "rejection"):
+    for label, settings in series:
+        method = label.split(",")[0]
         for budget in args.budgets:
             best, seconds = engine_best(method, "idm", pair, budget, settings, dtype)
             rows.append(
-                {"method": method, "budget": budget, "best": best, "seconds": seconds}
+                {"method": label, "budget": budget, "best": best, "seconds": seconds}
             )
-            print(f"{method:9s} {budget:>8d}: best {best:.5f} in {seconds:.3f} s")
-            if best <= target and method not in reached:
-                reached[method] = rows[-1]
+            print(f"{label:18s} {budget:>8d}: best {best:.5f} in {seconds:.3f} s")
+            if best <= target and label not in reached:
+                reached[label] = rows[-1]
     payload = {
         "meta": bench_meta(sys.argv, torch.get_num_threads()),
         "pyabc": {
@@ -291,9 +300,9 @@ def pyabc_markdown(payload: dict, args) -> str:
             f"{method}: reaches pyABC's best with {run['budget']:,} particles in "
             f"{run['seconds']:.3f} s, **{run['speed_up']:.0f}x sooner** than pyABC."
         )
-    for method in ("smc", "rejection"):
-        if method not in payload["reached"]:
-            lines.append(f"{method}: does not reach pyABC's best in the budgets tried.")
+    for label in dict.fromkeys(run["method"] for run in payload["runs"]):
+        if label not in payload["reached"]:
+            lines.append(f"{label}: does not reach pyABC's best in the budgets tried.")
     return "\n".join(lines) + "\n"
 
 
@@ -304,7 +313,7 @@ def main(argv: list[str] | None = None) -> int:
     data.add_argument("--configs", nargs="+", default=list(CONFIGS))
     data.add_argument("--rejection", nargs="+", type=int, default=[100_000, 1_000_000])
     data.add_argument(
-        "--smc", nargs="+", type=int, default=[50_000, 100_000, 200_000, 400_000]
+        "--smc", nargs="+", type=int, default=[25_000, 50_000, 100_000, 200_000]
     )
     data.add_argument("--threads", type=int, default=2)
     data.add_argument("--compile", default="off", choices=("off", "auto", "on"))
@@ -317,8 +326,14 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         default=[2_000, 5_000, 10_000, 20_000, 50_000, 100_000, 200_000, 1_000_000],
     )
-    single.add_argument("--population", type=int, default=100)
-    single.add_argument("--rounds", type=int, default=12)
+    single.add_argument("--population", type=int, default=SMCSettings().population)
+    single.add_argument(
+        "--rounds",
+        nargs="+",
+        type=int,
+        default=[SMCSettings().rounds],
+        help="SMC refinement rounds; several: one SMC series each",
+    )
     single.add_argument("--dtype", default="float64", choices=("float32", "float64"))
     single.add_argument("--threads", type=int, default=1)
     single.add_argument("--name", default="smc_pyabc")

@@ -20,14 +20,22 @@ of Del Moral, Doucet & Jasra 2012):
   counts in the budget). The others are simulated on their pair in one batched
   rollout per chunk, whatever their pair.
 - **threshold**: ``eps_t,p`` = the ``quantile`` of the previous population's
-  scores; the proposals with score ``<= eps_t,p`` are accepted and the
-  ``population`` best of them (score, then particle index) form the next
-  population — so the realised threshold is the lower of the two. A pair where no
-  proposal is accepted keeps its population.
+  scores. The round's accepted set starts with the previous population's members
+  at or under ``eps_t,p`` (elitism), and the proposals with score ``<= eps_t,p``
+  are offered to it; the ``population`` best (score, then particle index) form
+  the next population. So the threshold never rises, and a population never
+  falls below ``quantile`` of its size, however few proposals a round accepts.
+  Without the elite, a round that accepts few proposals (late rounds, a small
+  budget per pair) leaves a population of a handful of particles, whose
+  covariance then says little about where the fit is: on CAR MODEL II (IDM,
+  5e4 particles) the mean population fell to 12-30 and the per-pair 5th best
+  score reached 1.61 after 12 rounds; with the elite it reaches 1.34.
 - **weights** (uniform prior ``pi`` on the box of volume ``V``): a particle of
   round ``t`` carries ``log r = log pi(theta) - log q_t(theta)``, ``q_t(theta) =
   sum_i w_i N(theta; theta_i, Sigma_p)``, the proposal density it was drawn from
-  (prior draws: ``r = 1``). The next population's weights are ``w ~ r``.
+  (prior draws: ``r = 1``), and keeps it in later rounds. A population's weights
+  are ``w ~ r`` over its members, whatever round drew them: each is an
+  importance sample of the prior from its own proposal.
 
 Every simulated particle is also offered to the model's per-pair top-N buffer,
 as in rejection: the hybrid, its shares and every report read those buffers. The
@@ -92,7 +100,7 @@ class SMCSettings:
         quantile: the next threshold is this quantile of a population's scores.
     """
 
-    population: int = 100
+    population: int = 50
     rounds: int = 12
     prior_fraction: float = 0.25
     quantile: float = 0.5
@@ -151,8 +159,8 @@ class SMCState:
         accepted: this round's accepted proposals, per pair the ``population``
             best; ``theta`` (N, pop, K + 1), its last column ``log r``.
         population: the previous round's accepted particles (empty in round 0):
-            ``theta`` (N, pop, K + 1) and ``score`` (N, pop), ``+inf`` where a
-            pair has fewer.
+            ``theta`` (N, pop, K + 1), ``score`` (N, pop), ``+inf`` where a
+            pair has fewer, and their particle ``index`` (N, pop).
     """
 
     round: int = 0
@@ -176,7 +184,8 @@ class SMCState:
         self.next = int(state["next"])
         self.accepted.load_state_dict(state["accepted"])
         self.population = {
-            k: v.to(torch.float64) for k, v in dict(state["population"]).items()
+            k: v if k == "index" else v.to(torch.float64)
+            for k, v in dict(state["population"]).items()
         }
 
 
@@ -504,21 +513,28 @@ def _thresholds(score: Tensor, quantile: float) -> Tensor:
 def _next_population(
     state: SMCState, settings: SMCSettings, n_pairs: int, buffer: TopN
 ) -> None:
-    """End of a round: its accepted proposals become the population (a pair with
-    none keeps its own); the next round starts."""
-    accepted = {"theta": state.accepted.theta.clone(), "score": state.accepted.score}
-    if state.population:
-        kept = ~torch.isfinite(accepted["score"]).any(dim=1)  # (N,) none accepted
-        for key in ("theta", "score"):
-            accepted[key] = torch.where(
-                kept.view(-1, *[1] * (accepted[key].ndim - 1)),
-                state.population[key],
-                accepted[key],
-            )
-    state.population = {k: v.clone() for k, v in accepted.items()}
+    """End of a round: its accepted set becomes the population, and the next
+    round starts with the population's members at or under its threshold
+    already accepted (module docstring, 'elitism')."""
+    done = state.accepted
+    state.population = {
+        "theta": done.theta.clone(),
+        "score": done.score.clone(),
+        "index": done.index.clone(),
+    }
     state.round += 1
     state.next = 0
     state.accepted = TopN(n_pairs, settings.population, buffer.theta.shape[-1])
+    score = state.population["score"]  # (N, pop)
+    epsilon = _thresholds(score, settings.quantile)  # (N,)
+    elite = torch.isfinite(score) & (score <= epsilon[:, None])
+    rows, slots = elite.nonzero(as_tuple=True)
+    state.accepted.push(
+        rows,
+        score[rows, slots],
+        state.population["index"][rows, slots],
+        state.population["theta"][rows, slots],
+    )
 
 
 # ------------------------------------------------------------- the evidence

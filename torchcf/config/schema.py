@@ -286,7 +286,7 @@ class SMCConfig(BaseModel):
     model_config = _STRICT
 
     population: int = Field(
-        100,
+        50,
         gt=1,
         description="Particles per training pair carried from round to round.",
     )
