@@ -365,9 +365,9 @@ def test_the_loop_recalibrates_with_smc_when_asked():
     cfg = config(method="rejection")
     raw = cfg.model_dump(mode="json")
     raw["diagnose"]["recalibrate_method"] = "smc"
-    after = recalibration_config(validate_config(raw), ["idm"], ["delay"])
+    after = recalibration_config(validate_config(raw), ["idm+delay"])
     assert after.abc.method == "smc" and "idm+delay" in [m.name for m in after.models]
-    assert recalibration_config(cfg, ["idm"], ["delay"]).abc.method == "rejection"
+    assert recalibration_config(cfg, ["idm+delay"]).abc.method == "rejection"
 
 
 def test_a_pair_without_population_draws_from_the_prior():

@@ -92,7 +92,9 @@ def one_run(cfg, pairs, method: str, budget: int, overrides: dict) -> dict:
         "quality": sum(finite) / len(finite) if finite else math.inf,
         "per_pair": per_pair,
         "shares": summary["shares"],
-        "per_model_seconds": summary["per_model_seconds"],
+        "per_model_seconds": {
+            m: summary["per_model"][m]["seconds"] for m in summary["per_model"]
+        },
         "evidence_shares": summary.get("smc", {}).get("evidence_shares"),
         "model_thresholds": {
             m: summary["per_model"][m]["threshold"] for m in summary["shares"]

@@ -70,19 +70,34 @@ def table(name: str, rejection: dict, smc: dict, summaries: dict) -> list[str]:
     return lines + [""]
 
 
+def _smc_settings(runs: Path) -> str:
+    """The SMC settings the runs used (from the first run's config.json)."""
+    for name in REJECTION:
+        config = runs / name / "config.json"
+        if config.exists():
+            smc = json.loads(config.read_text())["abc"]["smc"]
+            return (
+                f"population {smc['population']}, {smc['rounds']} rounds, "
+                f"{smc['prior_fraction']:.0%} prior draws, quantile {smc['quantile']}"
+                ", the population's elite kept"
+            )
+    return "unknown"
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", type=Path, help="folder with one SMC run per data set")
     parser.add_argument("--out", type=Path, default=Path("reports/smc"))
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    settings = _smc_settings(args.runs)
     lines = [
         "# SMC hybrids beside the rejection ones (test split)",
         "",
         "Same configs as the paper's studies (`configs/<ds>.json`: 8 models x 1e6 "
         "particles, paired, N = 5, float32, seed 0, the authors' split), with "
-        "`--set abc.method=smc --set compile=off` (SMC at its defaults: population "
-        "100, 12 rounds, 25 % prior draws, median thresholds). Rejection: the runs "
+        "`--set abc.method=smc --set compile=off` (SMC at its defaults: "
+        f"{settings}). Rejection: the runs "
         "in `reports/carII`, `reports/carI`, `reports/ngsim/authors-split`. Each "
         "cell: rejection / SMC; lower is better.",
         "",

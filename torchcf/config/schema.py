@@ -507,7 +507,10 @@ class DiagnoseConfig(BaseModel):
         0.05,
         gt=0,
         lt=1,
-        description="Family-wise significance level (Bonferroni over the effects).",
+        description=(
+            "Family-wise significance level (Bonferroni over every test the "
+            "forward selection can make)."
+        ),
     )
     min_gain: float = Field(
         0.05,
@@ -516,7 +519,12 @@ class DiagnoseConfig(BaseModel):
         description="Smallest relative out-of-sample score drop that counts [1].",
     )
     max_effects: int = Field(
-        1, gt=0, description="Chosen effects at most (best gains first)."
+        3,
+        gt=0,
+        description=(
+            "Forward selection's steps at most: each chooses the significant "
+            "effect of largest out-of-sample gain, given those chosen before."
+        ),
     )
     permutations: int = Field(
         20_000, ge=1000, description="Sign-flip permutations of the gain test."

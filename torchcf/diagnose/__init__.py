@@ -19,7 +19,9 @@ Re-exports only.
 """
 
 from .attribution import (
+    Selection,
     attribute_effects,
+    planned_tests,
     resolve_effect,
     sign_flip_test,
     split_in_time,
@@ -46,6 +48,7 @@ from .series import (
 __all__ = [
     "DiagnoseError",
     "LoopPlan",
+    "Selection",
     "active_models",
     "attribute_effects",
     "augmented_variants",
@@ -55,6 +58,7 @@ __all__ = [
     "finish_loop",
     "loop_markdown",
     "plan_loop",
+    "planned_tests",
     "recalibration_config",
     "resolve_effect",
     "residual_series",

@@ -55,11 +55,21 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _print_result(result: dict, run_dir: str) -> None:
-    print(f"effects ranked ({result['dataset']}):")
-    for row in result["effects_ranked"]:
-        mark = "  <- chosen" if row["effect"] in result["chosen"] else ""
-        gain, p_value = row["gain"], row["p_value"]
-        print(f"  {row['effect']:<28} gain {gain:+7.1%}  p {p_value:.4f}{mark}")
+    print(
+        f"forward selection ({result['dataset']}; significant: p < "
+        f"{result['threshold']:.2g}, {result['tests']} tests counted):"
+    )
+    for step, rows in enumerate(result["steps"], start=1):
+        before = result["chosen"][: step - 1]
+        print(f" step {step}" + (f" (with {' + '.join(before)})" if before else ""))
+        for row in rows:
+            mark = (
+                "  <- chosen"
+                if row["effect"] in result["chosen"][step - 1 : step]
+                else ""
+            )
+            gain, p_value = row["gain"], row["p_value"]
+            print(f"  {row['effect']:<28} gain {gain:+7.1%}  p {p_value:.4f}{mark}")
     ws_before, ws_after = result["before"].get("ws"), result["after"].get("ws")
     print(f"test WS: before {fmt(ws_before)}, after {fmt(ws_after)}")
     print(f"wrote {RunDir(run_dir).loop_json} and loop.md")

@@ -1,18 +1,27 @@
-"""Attribution: which candidate effect lowers the out-of-sample error (loop step 2).
+"""Attribution: which candidate effects lower the out-of-sample error (loop step 2).
 
-For every candidate effect E of :mod:`torchcf.models.effects` two arms are fitted
+**Forward stepwise selection.** The current model starts as the active pool B.
+At every step, for every candidate effect E not yet chosen, two arms are fitted
 on the first ``fit_fraction`` of every training pair's steps
-(:func:`split_in_time`) at equal budgets — the *active* pool models B alone, and B
-with their augmented variants ``m+E`` — each by a small ABC run
-(:func:`~torchcf.diagnose.candidates.prior_particles`) followed by local search
-(:func:`~torchcf.diagnose.search.local_search`). Per pair the N best particles of
-each arm (the hybrid's per-pair selection, so the originals compete) are scored on
-the rest of the pair, out of sample. The gain of E is the relative drop of the
-summed per-pair validation score; its p-value is a one-sided sign-flip
-permutation test of the per-pair log score ratios (:func:`sign_flip_test`). An
-effect is significant when its p-value is below ``alpha / n_effects``
-(Bonferroni: with no effect present the answer is "none" with probability
->= 1 - alpha) and its gain at least ``min_gain``.
+(:func:`split_in_time`) at equal budgets — the *current* arm (its models alone)
+and the current arm with the variants ``m+E`` of each of its models — each by a
+small ABC run (:func:`~torchcf.diagnose.candidates.prior_particles`) followed by
+local search (:func:`~torchcf.diagnose.search.local_search`). Per pair the N best
+particles of each arm (the hybrid's selection, so the models without E compete)
+are scored on the rest of the pair, out of sample. The gain of E is the relative
+drop of the summed per-pair validation score; its p-value is a one-sided
+sign-flip permutation test of the per-pair log score ratios
+(:func:`sign_flip_test`). Among the significant effects the one with the
+largest gain is chosen; its variants join the current model (refitted at the
+same budget per model), and the remaining effects are tested again against it,
+until none is significant or ``max_effects`` are chosen.
+
+**The family-wise guard** counts every test the selection can make: with ``E``
+candidates and at most ``S = min(max_effects, E)`` steps, step s tests ``E - s``
+effects, ``T = E + (E - 1) + ... + (E - S + 1)`` tests in all, and an effect is
+significant when its p-value is below ``alpha / T`` (Bonferroni over all of
+them) and its gain at least ``min_gain``. So with no effect present the answer
+is "none" with probability >= 1 - alpha, however many steps run.
 
 Shapes: N pairs, K parameters (:mod:`torchcf.typing`).
 """
@@ -34,14 +43,13 @@ from ..abc.rejection import Rollout
 from ..abc.smc import SMCSettings
 from ..config import DiagnoseConfig, TrainConfig
 from ..data import PairSet
-from ..models import get_model
 from ..models.effects import Grade, parse_effect
 from .candidates import (
     attribution_rollout,
     attribution_seed,
     augmented_variants,
     effect_estimate,
-    model_bounds,
+    pinned_box,
     prior_particles,
     validation_scores,
 )
@@ -201,48 +209,64 @@ class Arena:
 
 
 @dataclass(frozen=True)
-class PoolArm:
-    """The pool alone, fitted.
+class Arm:
+    """A set of models fitted on the fit windows: the pool, or the pool with the
+    effects chosen so far (the selection's current model).
 
     Attributes:
-        bounds: prior box per pool model.
-        half: per pool model, its small ABC run's first ``n`` draws (the pool's
-            part of every effect arm).
+        models: pool models, then their variants with the chosen effects.
+        effects: the chosen effect tokens (none for the pool).
+        shared: per chosen shared (road) effect name, its one value (K_E,).
+        bounds: prior box per model (shared values pinned).
+        half: per model, its small ABC run's first ``n`` draws (the arm's part
+            of every candidate arm of the next test).
         members: the arm's final population after local search.
         scores: (N,) its per-pair validation score.
     """
 
+    models: list[str]
+    effects: tuple[str, ...]
+    shared: dict[str, Tensor]
     bounds: dict[str, Tensor]
     half: list[Particles]
     members: list[Particles]
     scores: np.ndarray
 
 
-def pool_arm(arena: Arena, pool: list[str], bar: tqdm) -> PoolArm:
-    """The pool alone: ``2 n`` prior draws per pool model, then local search."""
+def fit_arm(
+    arena: Arena,
+    models: list[str],
+    effects: tuple[str, ...],
+    shared: dict[str, Tensor],
+    bar: tqdm,
+) -> Arm:
+    """The models alone: ``2 n`` prior draws per model, then local search."""
     n = arena.settings.n_particles
-    bounds = {name: model_bounds(name, arena.priors) for name in pool}
-    half, full = [], []
-    for name in pool:
+    half, full, bounds = [], [], {}
+    for name in models:
         bar.set_postfix_str(f"ABC {name}", refresh=True)
-        first, both = arena.small_abc(name, (n, 2 * n), bounds[name])
+        box, fixed = pinned_box(name, arena.priors, shared)
+        bounds[name] = box
+        first, both = arena.small_abc(name, (n, 2 * n), _drawn(box, fixed), fixed)
         half.append(first)
         full.append(both)
-        bar.update()
-    bar.set_postfix_str("pool", refresh=True)
+    bar.set_postfix_str("+".join(effects) or "pool", refresh=True)
     members = arena.refine(full, bounds)
     _, scores = arena.judge(members)
     bar.update()
-    return PoolArm(bounds, half, members, scores)
+    return Arm(list(models), effects, dict(shared), bounds, half, members, scores)
 
 
-def shared_effect(
-    effect: str, arena: Arena, pool: PoolArm
-) -> tuple[Tensor, dict[str, Any]]:
-    """A shared effect's one value (K_E,) over the pool arm's population, and its
+def _drawn(box: Tensor, fixed: Tensor | None) -> Tensor:
+    """The rows of a box drawn by the small ABC runs (all but the pinned ones)."""
+    return box if fixed is None else box[: box.shape[0] - fixed.numel()]
+
+
+def shared_effect(effect: str, arena: Arena, arm: Arm) -> tuple[Tensor, dict[str, Any]]:
+    """A shared effect's one value (K_E,) over the arm's population, and its
     report: ``value`` and the re-calibration ``prior`` per parameter."""
     value, box = shared_value(
-        effect, pool.members, pool.bounds, arena.fit, arena.generator
+        effect, arm.members, arm.bounds, arena.fit, arena.generator
     )
     names = [p.name for p in parse_effect(effect).param_specs]
     return value, {
@@ -255,26 +279,53 @@ def effect_arm(
     effect: str,
     variants: list[str],
     arena: Arena,
-    pool: PoolArm,
-    shared: Tensor | None,
+    arm: Arm,
+    shared: dict[str, Tensor],
 ) -> list[Particles]:
-    """The pool with E: the pool's first ``n`` draws plus ``n`` of each variant
-    ``m+E`` (E fixed at ``shared``, a shared effect's value), then local search.
+    """The arm with E: the arm's first ``n`` draws per model plus ``n`` of each
+    variant (shared effects pinned at their values), then local search.
 
     Returns:
         the arm's final population.
     """
     n = arena.settings.n_particles
-    bounds = dict(pool.bounds)
-    start = list(pool.half)
+    bounds = dict(arm.bounds)
+    start = list(arm.half)
     for variant in variants:
-        box = model_bounds(variant, arena.priors)
-        if shared is not None:  # the road's value, the same for every particle
-            box[get_model(variant).base.n_params :] = shared[:, None].expand(-1, 2)
+        box, fixed = pinned_box(variant, arena.priors, shared)
         bounds[variant] = box
-        drawn = box if shared is None else box[: box.shape[0] - shared.numel()]
-        start += arena.small_abc(variant, (n,), drawn, shared)
+        start += arena.small_abc(variant, (n,), _drawn(box, fixed), fixed)
     return arena.refine(start, bounds)
+
+
+def try_effect(
+    effect: str, arena: Arena, arm: Arm, bar: tqdm
+) -> tuple[dict[str, Any], Tensor | None]:
+    """One test: the arm against the arm with ``effect`` (:func:`effect_row`).
+
+    Returns:
+        the effect's report row and, for a shared effect, its value.
+    """
+    bar.set_postfix_str("+".join([*arm.effects, effect]), refresh=True)
+    variants = augmented_variants(arm.models, effect)
+    value, report = None, None
+    if parse_effect(effect).shared and variants:
+        value, report = shared_effect(effect, arena, arm)
+    shared = dict(arm.shared)
+    if value is not None:
+        shared[parse_effect(effect).name] = value
+    members = effect_arm(effect, variants, arena, arm, shared)
+    if variants:
+        picks, after = arena.judge(members)
+    else:  # the arm is the current model alone
+        picks, after = best_per_pair(members, arena.top_n), arm.scores
+    bar.update()
+    row = effect_row(
+        effect, variants, arm.scores, after, picks, arena.settings.permutations
+    )
+    if report is not None:
+        row["shared"] = report
+    return row, value
 
 
 def effect_row(
@@ -320,18 +371,40 @@ def _finite_or_none(value: float) -> float | None:
     return value if math.isfinite(value) else None
 
 
-def rank_effects(
-    rows: list[dict[str, Any]], settings: DiagnoseConfig
-) -> list[dict[str, Any]]:
-    """Rows marked ``significant`` (p < alpha / n_effects, gain >= min_gain),
-    ranked by the consistency of the gain over pairs (its t statistic, which
-    unlike the permutation p-value does not saturate)."""
-    threshold = settings.alpha / len(rows) if rows else 0.0
-    for row in rows:
-        row["significant"] = bool(
-            row["p_value"] < threshold and row["gain"] >= settings.min_gain
-        )
-    return sorted(rows, key=lambda r: -r["statistic"])
+def planned_tests(n_effects: int, max_effects: int) -> int:
+    """Tests the selection can make (module docstring): ``E + (E - 1) + ...`` over
+    ``min(max_effects, E)`` steps."""
+    return sum(n_effects - step for step in range(min(max_effects, n_effects)))
+
+
+@dataclass(frozen=True)
+class Selection:
+    """The forward selection's result (:func:`attribute_effects`).
+
+    Attributes:
+        steps: per step, the rows of the effects tested, largest gain first,
+            each marked ``significant``.
+        chosen: the chosen effect tokens, in the order chosen.
+        models: the final model: the pool and the variants of the chosen
+            effects (what the re-calibration trains).
+        tests: ``T``, the tests the guard counts; threshold: ``alpha / T``.
+    """
+
+    steps: list[list[dict[str, Any]]]
+    chosen: list[str]
+    models: list[str]
+    tests: int
+    threshold: float
+
+    @property
+    def shared_priors(self) -> dict[str, dict[str, tuple[float, float]]]:
+        """Per chosen shared effect, its re-calibration prior."""
+        return {
+            row["effect"]: row["shared"]["prior"]
+            for rows in self.steps
+            for row in rows
+            if row["effect"] in self.chosen and "shared" in row
+        }
 
 
 def attribute_effects(
@@ -341,80 +414,81 @@ def attribute_effects(
     train_pairs: PairSet,
     *,
     progress: bool = True,
-) -> list[dict[str, Any]]:
-    """Rank the candidate effects by their out-of-sample gain (module docstring).
+) -> Selection:
+    """Choose effects by forward stepwise selection (module docstring).
 
-    Two *arms* per effect E, fitted on the fit windows at equal budgets:
-
-    - the pool alone: a small ABC run of ``2 n`` prior draws per pool model
-      (:func:`pool_arm`);
-    - the pool with E: the pool's first ``n`` draws plus ``n`` of each ``m+E``
-      (for a shared effect, ``m+E`` with E fixed at the value
-      :func:`~torchcf.diagnose.search.shared_value` finds, as the road is one for
-      all pairs; :func:`effect_arm`).
-
-    Each arm then refines its per-pair best by sequential local search (the same
-    budget for both), so that the arms are compared near their best fits rather
-    than at the luck of prior draws. Per pair the N best particles of each arm
-    (the hybrid's selection: the originals compete with the variants) are scored
-    on the validation windows, out of sample; the per-pair drops of the median
-    score are tested by sign flips over pairs (:func:`effect_row`).
+    Every arm refines its per-pair best by sequential local search (the same
+    budget for all), so that arms are compared near their best fits rather than
+    at the luck of prior draws. A shared effect's variants are fitted with E
+    fixed at the one value :func:`~torchcf.diagnose.search.shared_value` finds
+    over the current arm (the road is one for all pairs).
 
     Args:
         cfg: the run's config (its ``diagnose`` section sets the budget).
-        pool: the pool models that get each effect.
+        pool: the pool models that get the effects.
         effects: effect tokens (options resolved, see :func:`resolve_effect`).
         train_pairs: the run's training pairs.
 
     Returns:
-        rows sorted by the statistic: ``name, effect, statistic, gain, p_value,
-        significant, score_before, score_after, n_pairs, variants, estimate`` (the
-        median of the effect's parameters over the picks that carry it),
-        ``per_pair`` and, for a shared effect, ``shared`` (its value and
-        re-calibration prior).
+        the :class:`Selection`; each row holds ``name, effect, statistic, gain,
+        p_value, significant, score_before, score_after, n_pairs, variants,
+        estimate`` (the median of the effect's parameters over the picks that
+        carry it), ``per_pair`` and, for a shared effect, ``shared`` (its value
+        and re-calibration prior).
     """
     arena = Arena.of(cfg, train_pairs)
+    settings = arena.settings
+    tests = planned_tests(len(effects), settings.max_effects)
+    threshold = settings.alpha / tests
+    steps_at_most = min(settings.max_effects, len(effects))
     bar = tqdm(
-        total=len(pool) + 1 + len(effects),
+        total=tests + steps_at_most,
         desc="attribution",
-        unit="stage",
+        unit="arm",
         disable=not progress,
     )
-    base = pool_arm(arena, pool, bar)
-    rows = []
-    for effect in effects:
-        bar.set_postfix_str(effect, refresh=True)
-        variants = augmented_variants(pool, effect)
-        value, shared = None, None
-        if parse_effect(effect).shared and variants:
-            value, shared = shared_effect(effect, arena, base)
-        members = effect_arm(effect, variants, arena, base, value)
-        if variants:
-            picks, after = arena.judge(members)
-        else:  # the arm is the pool alone
-            picks, after = best_per_pair(members, arena.top_n), base.scores
-        bar.update()
-        row = effect_row(
-            effect, variants, base.scores, after, picks, arena.settings.permutations
-        )
-        if shared is not None:
-            row["shared"] = shared
-        rows.append(row)
+    arm = fit_arm(arena, list(pool), (), {}, bar)
+    steps: list[list[dict[str, Any]]] = []
+    chosen: list[str] = []
+    models = list(pool)
+    remaining = list(effects)
+    while remaining and len(chosen) < settings.max_effects:
+        tested = [try_effect(effect, arena, arm, bar) for effect in remaining]
+        for row, _ in tested:
+            row["significant"] = bool(
+                row["p_value"] < threshold and row["gain"] >= settings.min_gain
+            )
+        tested.sort(key=lambda item: -item[0]["gain"])
+        steps.append([row for row, _ in tested])
+        best = next(((r, v) for r, v in tested if r["significant"]), None)
+        if best is None:
+            break
+        row, value = best
+        chosen.append(row["effect"])
+        remaining.remove(row["effect"])
+        models = arm.models + row["variants"]
+        if remaining and len(chosen) < settings.max_effects:
+            shared = dict(arm.shared)
+            if value is not None:
+                shared[parse_effect(row["effect"]).name] = value
+            arm = fit_arm(arena, models, tuple(chosen), shared, bar)
     bar.close()
-    return rank_effects(rows, arena.settings)
+    return Selection(steps, chosen, models, tests, threshold)
 
 
 __all__ = [
     "MIN_VALIDATION_STEPS",
     "Arena",
-    "PoolArm",
+    "Arm",
+    "Selection",
     "attribute_effects",
     "effect_arm",
     "effect_row",
-    "pool_arm",
-    "rank_effects",
+    "fit_arm",
+    "planned_tests",
     "resolve_effect",
     "shared_effect",
     "sign_flip_test",
     "split_in_time",
+    "try_effect",
 ]

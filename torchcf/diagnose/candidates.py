@@ -181,6 +181,48 @@ def _refined_particles(
     )
 
 
+def compose_theta(
+    model: str, variant: str, theta: Tensor, effect_values: Tensor
+) -> Tensor:
+    """Parameters (..., K_variant) of ``variant`` = ``model`` plus one effect, from
+    the model's ``theta`` (..., K_model) and the effect's ``effect_values``
+    (..., K_E), placed by parameter name (the effect's columns need not be the
+    last: effects keep their canonical order in a name)."""
+    have = get_model(model).param_names
+    names = get_model(variant).param_names
+    added = [n for n in names if n not in have]
+    columns = [
+        theta[..., have.index(n)] if n in have else effect_values[..., added.index(n)]
+        for n in names
+    ]
+    return torch.stack(columns, dim=-1)
+
+
+def pinned_box(
+    variant: str, priors: dict[str, Tensor], shared: dict[str, Tensor]
+) -> tuple[Tensor, Tensor | None]:
+    """A variant's prior box (K, 2) with every shared (road) effect it carries
+    pinned at its one value, and those values (the trailing parameters: shared
+    effects come last in a name), or None.
+
+    Args:
+        priors: the run's prior box per pool model (:func:`model_bounds`).
+        shared: per shared effect token name (``"grade"``), its value (K_E,).
+    """
+    model = get_model(variant)
+    box = model_bounds(variant, priors)
+    values = [
+        shared[e.name]
+        for e in getattr(model, "effects", ())
+        if e.shared and e.name in shared
+    ]
+    if not values:
+        return box, None
+    fixed = torch.cat(values).to(torch.float64)
+    box[box.shape[0] - fixed.numel() :] = fixed[:, None].expand(-1, 2)
+    return box, fixed
+
+
 def validation_scores(picks: Sequence[Particles], rollout: Rollout) -> np.ndarray:
     """Median out-of-sample score of each pair's picks on the rollout's pairs (its
     validation windows).
@@ -205,7 +247,7 @@ def effect_estimate(picks: Sequence[Particles], effect: str) -> dict[str, float]
     names = [p.name for p in parse_effect(effect).param_specs]
     token = effect.split("(")[0]
     values = [
-        s.theta[:, -len(names) :]
+        s.theta[:, [get_model(s.model).param_names.index(n) for n in names]]
         for s in picks
         if len(s) and token in [t.split("(")[0] for t in s.model.split("+")[1:]]
     ]
@@ -219,9 +261,11 @@ __all__ = [
     "attribution_rollout",
     "attribution_seed",
     "augmented_variants",
+    "compose_theta",
     "effect_estimate",
     "fit_scores",
     "model_bounds",
+    "pinned_box",
     "prior_particles",
     "validation_scores",
     "variant_of",

@@ -4,9 +4,10 @@ The loop takes a finished, evaluated run and
 
 1. **diagnoses** the residuals of every training pair driven by its best hybrid
    particle (:mod:`torchcf.diagnose.series`);
-2. **attributes**: ranks the candidate effects by their out-of-sample gain and
-   chooses the significant ones (:mod:`torchcf.diagnose.attribution`);
-3. **re-calibrates** the run's pool plus ``m+E`` for the chosen effects (a full
+2. **attributes**: chooses effects by forward stepwise selection on their
+   out-of-sample gain (:mod:`torchcf.diagnose.attribution`);
+3. **re-calibrates** the run's pool plus the variants of the chosen effects
+   (``m+E1``, ``m+E2``, ``m+E1+E2``...: the selection's final model; a full
    training run in ``RUN_DIR/loop/after``, evaluated on the test split);
 4. **reports** ``RUN_DIR/loop.json`` (``effects_ranked``, ``chosen``, the
    ``posterior`` of the added parameters, the test metrics ``before`` and
@@ -44,8 +45,7 @@ from ..models import get_model
 from ..models.effects import parse_effect
 from ..posterior import Posterior
 from ..rundir import RunDir
-from .attribution import attribute_effects, resolve_effect
-from .candidates import augmented_variants
+from .attribution import Selection, attribute_effects, resolve_effect
 from .report import write_report
 from .series import DiagnoseError, diagnose_residuals
 
@@ -70,31 +70,33 @@ def active_models(cfg: TrainConfig, posterior: Posterior) -> list[str]:
 
 def recalibration_config(
     cfg: TrainConfig,
-    pool: list[str],
-    chosen: list[str],
+    variants: Sequence[str],
     effect_priors: dict[str, dict[str, tuple[float, float]]] | None = None,
 ) -> TrainConfig:
-    """The run's config plus ``m+E`` of every chosen effect E, for re-calibration.
+    """The run's config plus the ``variants`` (``m+E1+...``) of the selection's
+    final model, for re-calibration.
 
     Args:
+        variants: augmented model names; those already in the run are kept once.
         effect_priors: per effect token, prior boxes of its parameters replacing
             the defaults (a shared effect's value found by the attribution: the
             road is one, so its profile is not re-drawn per particle).
     """
     raw = cfg.model_dump(mode="json")
     present = {spec["name"] for spec in raw["models"]}
-    for effect in chosen:
-        for variant in augmented_variants(pool, effect):
-            name = get_model(variant).base.name
-            if variant not in present:
-                prior = next(
-                    (s["prior"] for s in raw["models"] if s["name"] == name), None
-                )
-                extra = (effect_priors or {}).get(effect)
-                if extra:
-                    prior = {**(prior or {}), **{k: list(v) for k, v in extra.items()}}
-                raw["models"].append({"name": variant, "prior": prior})
-                present.add(variant)
+    for variant in variants:
+        model = get_model(variant)
+        if model.name in present or not hasattr(model, "effects"):
+            continue
+        prior = next(
+            (s["prior"] for s in raw["models"] if s["name"] == model.base.name), None
+        )
+        for effect in model.effects:
+            extra = (effect_priors or {}).get(effect.token)
+            if extra:
+                prior = {**(prior or {}), **{k: list(v) for k, v in extra.items()}}
+        raw["models"].append({"name": model.name, "prior": prior})
+        present.add(model.name)
     if cfg.diagnose.recalibrate_particles is not None:
         raw["abc"]["n_particles"] = cfg.diagnose.recalibrate_particles
     if cfg.diagnose.recalibrate_method is not None:
@@ -178,8 +180,8 @@ class LoopPlan:
         before: its ``metrics.json``.
         train_pairs, test_pairs: its split.
         pool: the pool models that got the effects.
-        ranked: the effects ranked (:func:`attribute_effects`).
-        chosen: the chosen effect tokens.
+        selection: the forward selection's steps and choice
+            (:func:`attribute_effects`).
         residuals_before: the residual tests of the run; series_before: its
             residual series.
         recalibration: the re-calibration's config (None: nothing chosen, nothing
@@ -196,13 +198,17 @@ class LoopPlan:
     train_pairs: PairSet
     test_pairs: PairSet
     pool: list[str]
-    ranked: list[dict[str, Any]]
-    chosen: list[str]
+    selection: Selection
     residuals_before: list[dict]
     series_before: Series
     recalibration: TrainConfig | None
     resume_recalibration: bool
     began: float
+
+    @property
+    def chosen(self) -> list[str]:
+        """The chosen effect tokens, in the order chosen."""
+        return self.selection.chosen
 
     @property
     def recalibration_dir(self) -> Path:
@@ -246,13 +252,11 @@ def plan_loop(
     residuals_before, series_before = diagnose_residuals(posterior, train_pairs)
     pool = active_models(cfg, posterior)
     effects = [resolve_effect(t, train_pairs) for t in cfg.diagnose.effects]
-    ranked = attribute_effects(cfg, pool, effects, train_pairs, progress=progress)
-    chosen = [r["effect"] for r in ranked if r["significant"]]
-    chosen = chosen[: cfg.diagnose.max_effects]
+    selection = attribute_effects(cfg, pool, effects, train_pairs, progress=progress)
     recalibration = None
-    if chosen:
-        priors = {r["effect"]: r["shared"]["prior"] for r in ranked if "shared" in r}
-        recalibration = recalibration_config(cfg, pool, chosen, priors)
+    if selection.chosen:
+        variants = [m for m in selection.models if m not in pool]
+        recalibration = recalibration_config(cfg, variants, selection.shared_priors)
     return LoopPlan(
         run=run,
         cfg=cfg,
@@ -261,8 +265,7 @@ def plan_loop(
         train_pairs=train_pairs,
         test_pairs=test_pairs,
         pool=pool,
-        ranked=ranked,
-        chosen=chosen,
+        selection=selection,
         residuals_before=residuals_before,
         series_before=series_before,
         recalibration=recalibration,
@@ -298,8 +301,12 @@ def finish_loop(plan: LoopPlan) -> dict[str, Any]:
         "run": str(plan.run),
         "dataset": plan.before.get("dataset"),
         "pool": plan.pool,
-        "effects_ranked": plan.ranked,
+        "effects_ranked": plan.selection.steps[0],
+        "steps": plan.selection.steps,
         "chosen": plan.chosen,
+        "models_after": plan.selection.models,
+        "tests": plan.selection.tests,
+        "threshold": plan.selection.threshold,
         "alpha": plan.cfg.diagnose.alpha,
         "fit_fraction": plan.cfg.diagnose.fit_fraction,
         "min_gain": plan.cfg.diagnose.min_gain,

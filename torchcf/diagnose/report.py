@@ -75,38 +75,64 @@ def loop_markdown(result: dict[str, Any], figures: dict[str, str]) -> str:
 
 
 def _ranking(result: dict[str, Any], figure: str) -> list[str]:
-    """The title and the table of candidate effects."""
+    """The title, the guard and the table of every step of the selection."""
+    n_effects = len(result["effects_ranked"])
     lines = [
         f"# Closing the loop: {result.get('dataset')}",
         "",
-        f"Pool models that got the effects: {', '.join(result['pool'])}. "
-        f"Significance: p < alpha / n_effects = {result['alpha']} / "
-        f"{len(result['effects_ranked'])}, gain >= {result['min_gain']:.0%}.",
+        f"Pool models that got the effects: {', '.join(result['pool'])}.",
         "",
-        "## Candidate effects, ranked by the consistency of their out-of-sample gain",
+        "**Forward stepwise selection**: at each step every effect not yet chosen "
+        "is tested against the current model (the pool plus the variants of the "
+        "effects chosen before); the significant effect with the largest gain is "
+        "chosen, and the others are tested again with it. **Guard**: the "
+        "family-wise level counts every test the selection can make, "
+        f"{n_effects} effects over at most {_steps_at_most(result, n_effects)} "
+        f"steps = {result['tests']} tests, so an effect is significant at p < "
+        f"alpha / {result['tests']} = {result['threshold']:.2g} (Bonferroni, "
+        f"alpha {result['alpha']}) with a gain >= {result['min_gain']:.0%}.",
         "",
         "gain: relative drop of the summed validation score (last "
-        f"{1 - result['fit_fraction']:.0%} of every training pair) when the pool "
-        "models' variants with the effect join the pool, at equal particle budget "
-        "(small ABC, then local search); statistic: t of the per-pair log score "
-        "ratios; p-value: one-sided sign-flip test; estimate: median of the "
-        "effect's parameters over the picks that carry it (a road effect: its one "
-        "profile, fitted jointly over the pairs).",
+        f"{1 - result['fit_fraction']:.0%} of every training pair) when the current "
+        "model's variants with the effect join it, at equal particle budget (small "
+        "ABC, then local search); statistic: t of the per-pair log score ratios; "
+        "p-value: one-sided sign-flip test; estimate: median of the effect's "
+        "parameters over the picks that carry it (a road effect: its one profile, "
+        "fitted jointly over the pairs).",
         "",
-        "| effect | gain | statistic | p-value | score before | score after "
-        "| pairs | estimate | chosen |",
-        "|---|---|---|---|---|---|---|---|---|",
     ]
-    for row in result["effects_ranked"]:
-        estimate = row.get("shared", {}).get("value") or row.get("estimate") or {}
-        lines.append(
-            f"| {row['effect']} | {row['gain']:+.1%} | {fmt(row['statistic'], 2)} | "
-            f"{row['p_value']:.2g} | {fmt(row['score_before'])} | "
-            f"{fmt(row['score_after'])} | {row['n_pairs']} | "
-            + ", ".join(f"{k} {fmt(v)}" for k, v in estimate.items())
-            + f" | {'**yes**' if row['effect'] in result['chosen'] else ''} |"
-        )
-    return [*lines, "", f"![effects]({figure})", ""]
+    for step, rows in enumerate(result["steps"], start=1):
+        before = result["chosen"][: step - 1]
+        chosen_here = result["chosen"][step - 1 : step]
+        lines += [
+            f"## Step {step}: "
+            + (f"with {' + '.join(before)}" if before else "the pool alone"),
+            "",
+            "| effect | gain | statistic | p-value | score before | score after "
+            "| pairs | estimate | chosen |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for row in rows:
+            estimate = row.get("shared", {}).get("value") or row.get("estimate") or {}
+            lines.append(
+                f"| {row['effect']} | {row['gain']:+.1%} | "
+                f"{fmt(row['statistic'], 2)} | {row['p_value']:.2g} | "
+                f"{fmt(row['score_before'])} | {fmt(row['score_after'])} | "
+                f"{row['n_pairs']} | "
+                + ", ".join(f"{k} {fmt(v)}" for k, v in estimate.items())
+                + f" | {'**yes**' if row['effect'] in chosen_here else ''} |"
+            )
+        lines.append("")
+    return [*lines, f"![effects, step 1]({figure})", ""]
+
+
+def _steps_at_most(result: dict[str, Any], n_effects: int) -> int:
+    """The selection's steps at most, from the tests counted."""
+    steps, tests = 0, 0
+    while tests < result["tests"] and steps < n_effects:
+        tests += n_effects - steps
+        steps += 1
+    return steps
 
 
 def _chosen(result: dict[str, Any]) -> list[str]:

@@ -25,7 +25,7 @@ from ..abc.particles import Particles, best_per_pair
 from ..abc.rejection import Rollout
 from ..config import DiagnoseConfig
 from ..models.effects import parse_effect
-from .candidates import fit_scores, variant_of
+from .candidates import compose_theta, fit_scores, variant_of
 
 #: Standard deviations of the local search's perturbations, as fractions of each
 #: parameter's prior width (copy c uses entry c % 3).
@@ -144,7 +144,9 @@ def _value_scores(
             continue
         s = len(member)
         base = jitter(member.theta, bounds[member.model], m, generator)
-        theta = torch.cat((base, values[None].expand(s, m, -1)), dim=-1)
+        theta = compose_theta(
+            member.model, variant, base, values[None].expand(s, m, -1)
+        )
         pair = member.pair.repeat_interleave(m)
         score = fit_scores(rollout, variant, theta.reshape(s * m, -1), pair)
         index = member.pair[:, None].expand(s, m)

@@ -348,7 +348,9 @@ class Lag(Effect):
 #: effects first, then command effects in the order they apply, then realisation).
 EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
-    for cls in (Offset, Delay, Asymmetry, Saturation, Resistance, Grade, Lag)
+    # Shared (road) effects last: a shared value is then always the trailing
+    # parameters of a name, which the engines append to every particle.
+    for cls in (Offset, Delay, Asymmetry, Saturation, Resistance, Lag, Grade)
 }
 
 
