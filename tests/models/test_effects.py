@@ -39,17 +39,24 @@ EFFECT_PARAMS = {
     "asymmetry": 2,
     "saturation": 2,
     "resistance": 1,
+    "anticipation": 1,
+    "action": 2,
     "lag": 1,
 }
 CANONICAL = (
     "offset",
     "delay",
+    "anticipation",
     "asymmetry",
     "saturation",
     "resistance",
+    "action",
     "lag",
     "grade",
+    "bend",
 )
+#: Effects whose parameters are the values of a road profile, one per knot.
+PROFILES = ("grade", "bend")
 
 
 # ------------------------------------------------------------------- test data
@@ -125,11 +132,19 @@ def split_row(base: str, effects: dict, row: list[float]) -> tuple[list, dict]:
     for name in CANONICAL:
         if name not in effects:
             continue
-        count = effects[name]["knots"] if name == "grade" else EFFECT_PARAMS[name]
+        count = effects[name]["knots"] if name in PROFILES else EFFECT_PARAMS[name]
         out[name] = row[at : at + count]
         at += count
     assert at == len(row)
     return row[:n_base], out
+
+
+def road_profile(options: dict, values: list[float], x: float) -> float:
+    """A profile's value at road position x (constant beyond its ends)."""
+    if options["knots"] == 1:
+        return values[0]
+    where = np.linspace(options["start"], options["end"], options["knots"])
+    return float(np.interp(x, where, values))
 
 
 def reference_rollout(
@@ -154,6 +169,7 @@ def reference_rollout(
     n_steps = len(xl)
     x, v, a = float(xo[0]), float(vo[0]), float(ao[0])
     hist_s, hist_vl = [], []  # perceived (after offset) values at 0 .. t
+    held = None  # action points: (command, dv, spacing) at the last one
     xs, vs, accs = [], [], []
     sq = [0.0, 0.0, 0.0]
     valid = True
@@ -174,7 +190,11 @@ def reference_rollout(
 
             s_p = (1 - f) * past(hist_s, k) + f * past(hist_s, k + 1)
             vl_p = (1 - f) * past(hist_vl, k) + f * past(hist_vl, k + 1)
-        u = base_command(base, p, s_p, v, vl_p)
+        v_p = v
+        if "anticipation" in q:  # constant-speed extrapolation, t_ant ahead
+            t_ant = q["anticipation"][0]
+            s_p, v_p = s_p + t_ant * (vl_p - v), max(v + t_ant * a, 0.0)
+        u = base_command(base, p, s_p, v_p, vl_p)
         if "asymmetry" in q:
             g_close, g_open = q["asymmetry"]
             u = u * (g_close if float(vl[t]) < v else g_open)
@@ -183,15 +203,21 @@ def reference_rollout(
             u = min(max(u, low), high)
         if "resistance" in q:
             u = u - q["resistance"][0] * v * v
+        if "action" in q:  # hold the command until the situation has changed
+            ap_dv, ap_ds = q["action"]
+            dv = float(vl[t]) - v
+            if (
+                held is None
+                or abs(dv - held[1]) > ap_dv
+                or abs(s_true - held[2]) > ap_ds * held[2]
+            ):
+                held = (u, dv, s_true)
+            u = held[0]
         if "grade" in q:
-            opts = effects["grade"]
-            knots = opts["knots"]
-            if knots == 1:
-                grade = q["grade"][0]
-            else:
-                where = np.linspace(opts["start"], opts["end"], knots)
-                grade = float(np.interp(x, where, q["grade"]))
-            u = u - GRAVITY * grade
+            u = u - GRAVITY * road_profile(effects["grade"], q["grade"], x)
+        if "bend" in q:
+            limit = road_profile(effects["bend"], q["bend"], x)
+            u = min(u, (limit - v) / 1.0)
         recorded = a if "lag" in q else u
         xs.append(x)
         vs.append(v)
@@ -238,6 +264,50 @@ GRADE4 = {"start": 0.0, "end": 600.0, "knots": 4}
 
 # (name, base, {effect: options}, theta rows)
 CASES = [
+    ("idm+anticipation", "idm", {"anticipation": {}}, [IDM + [0.9], IDM_B + [1.8]]),
+    (
+        "llctg+delay+anticipation",
+        "llctg",
+        {"delay": {}, "anticipation": {}},
+        [LLCTG + [1.2, 1.0], LLCTG_B + [2.6, 0.3]],
+    ),
+    (
+        "llctg+action",
+        "llctg",
+        {"action": {}},
+        [LLCTG + [0.4, 0.05], LLCTG_B + [0.9, 0.15], LLCTG + [0.0, 0.0]],
+    ),
+    (
+        "idm+action+lag",
+        "idm",
+        {"action": {}, "lag": {}},
+        [IDM + [0.3, 0.1, 0.6], IDM_B + [1.0, 0.02, 0.2]],
+    ),
+    (
+        "idm+bend(start=0,end=600,knots=4)",
+        "idm",
+        {"bend": GRADE4},
+        [IDM + [30.0, 12.0, 8.0, 25.0], IDM_B + [6.0, 20.0, 35.0, 9.0]],
+    ),
+    (
+        "llcs+delay+anticipation+action+lag+grade(end=600,knots=4)"
+        "+bend(start=0,end=600,knots=4)",
+        "llcs",
+        {
+            "delay": {},
+            "anticipation": {},
+            "action": {},
+            "lag": {},
+            "grade": GRADE4,
+            "bend": GRADE4,
+        },
+        [
+            LLCS
+            + [0.7, 0.5, 0.2, 0.05, 0.4]
+            + [0.04, -0.03, 0.06, -0.05]
+            + [20.0, 9.0, 14.0, 30.0],
+        ],
+    ),
     ("llctg+offset", "llctg", {"offset": {}}, [LLCTG + [-3.0], LLCTG_B + [4.5]]),
     ("idm+offset", "idm", {"offset": {}}, [IDM + [2.5], IDM + [0.0]]),
     (
@@ -400,13 +470,17 @@ def test_delay_outside_its_history_is_refused(road):
 
 
 # --------------------------------------------- 2. neutral parameters = the base
+# In canonical order (the all-effects case concatenates them).
 NEUTRAL = {
     "offset": [0.0],
     "delay": [0.0],
+    "anticipation": [0.0],
     "asymmetry": [1.0, 1.0],
     "saturation": [-1e9, 1e9],
     "resistance": [0.0],
+    "action": [0.0, 0.0],
     "grade(start=0,end=600,knots=4)": [0.0, 0.0, 0.0, 0.0],
+    "bend(start=0,end=600,knots=4)": [1e9, 1e9, 1e9, 1e9],
 }
 NEUTRAL_BASES = ["idm", "llctg", "fvdm", "hl", "mpc"]
 
@@ -576,8 +650,8 @@ def test_canonical_order_is_one_object():
     [
         ("llctg+grade(start=0,end=600,knots=4)", "llctg+grade(end=600,knots=4)"),
         ("llctg+grade(knots=4,end=600)", "llctg+grade(end=600,knots=4)"),
-        ("idm+delay(max_delay=3)", "idm+delay(max_delay=3)"),
-        ("idm+delay(max_delay=2)", "idm+delay"),
+        ("idm+delay(max_delay=2)", "idm+delay(max_delay=2)"),
+        ("idm+delay(max_delay=3)", "idm+delay"),
         ("idm+grade", "idm+grade"),
         (
             "idm+grade(start=-50.5,end=700,knots=2)",
@@ -665,7 +739,7 @@ def test_config_accepts_an_augmented_model(tmp_path):
 @pytest.mark.parametrize(
     ("model", "needle"),
     [
-        ({"name": "idm+delay", "prior": {"t_delay": [0.2, 2.5]}}, "max_delay"),
+        ({"name": "idm+delay", "prior": {"t_delay": [0.2, 3.5]}}, "max_delay"),
         ({"name": "idm+lag", "prior": {"t_lag": [0.0, 0.5]}}, "t_lag"),
         ({"name": "idm+lag", "prior": {"t_lag": [-0.1, 0.5]}}, "t_lag"),
         ({"name": "hl+lag"}, "actuation lag"),
@@ -679,9 +753,9 @@ def test_config_rejects_what_the_effects_cannot_run(model, needle):
 
 
 def test_config_accepts_a_longer_delay_history():
-    model = {"name": "idm+delay(max_delay=3)", "prior": {"t_delay": [0.2, 2.5]}}
+    model = {"name": "idm+delay(max_delay=4)", "prior": {"t_delay": [0.2, 3.5]}}
     cfg = validate_config({**BASE_CONFIG, "models": [model]})
-    assert cfg.models[0].name == "idm+delay(max_delay=3)"
+    assert cfg.models[0].name == "idm+delay(max_delay=4)"
 
 
 # ------------------------------------------ 5. each effect changes the trajectory
@@ -693,6 +767,9 @@ ACTIVE = [
     ("llctg+resistance", [2e-3], [0.0]),
     ("llctg+grade(knots=1)", [0.05], [0.0]),
     ("llctg+grade(start=0,end=600,knots=4)", [0.0, 0.0, 0.06, 0.0], [0.0] * 4),
+    ("llctg+anticipation", [1.5], [0.0]),
+    ("llctg+action", [0.8, 0.15], [0.0, 0.0]),
+    ("llctg+bend(start=0,end=600,knots=4)", [8.0, 8.0, 8.0, 8.0], [1e9] * 4),
 ]
 
 

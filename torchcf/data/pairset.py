@@ -71,6 +71,11 @@ class PairSet:
         name: dataset name or folder.
         split: None (the full set), "train" or "test".
         notes: human-readable reports of quirks found or handled while loading.
+        road_frame: True when the positions of all pairs are positions on one
+            road (road effects such as a grade profile are then shared by the
+            pairs), False when each pair has its own frame, None when the data
+            do not say (``meta.json``'s ``"road_frame"``; the diagnosis then
+            decides, :func:`torchcf.diagnose.road.shares_road_frame`).
     """
 
     x_lead: Tensor
@@ -86,6 +91,7 @@ class PairSet:
     name: str = ""
     split: str | None = None
     notes: tuple[str, ...] = ()
+    road_frame: bool | None = None
 
     def __post_init__(self) -> None:
         n_pairs = self._check_tensors()
@@ -104,6 +110,10 @@ class PairSet:
             )
         self._set("name", str(self.name))
         self._set("notes", tuple(str(n) for n in self.notes))
+        if self.road_frame not in (None, True, False):
+            raise DataError(
+                f"road_frame must be true, false or null, got {self.road_frame!r}"
+            )
         arrays, mask = self._host()
         self._check_mask(mask)
         self._check_values(arrays, mask)

@@ -52,7 +52,9 @@ Quirks, found generically and reported in ``PairSet.notes`` and through the
 
 Any other folder in the six-CSV layout loads by path: units default to "m", and
 ``dt`` comes from the argument or from a ``meta.json`` beside the files
-(``{"dt": 0.1, "units": "m", "leader_length": 5.0}``).
+(``{"dt": 0.1, "units": "m", "leader_length": 5.0, "road_frame": true}``;
+``road_frame``: whether all pairs' positions are on one road, which road effects
+need, see :func:`torchcf.diagnose.road.shares_road_frame`).
 """
 
 from __future__ import annotations
@@ -117,6 +119,8 @@ class DatasetSpec:
         dt: sampling interval [s].
         leader_length: leader vehicle length [m] (after unit conversion).
         description: one line for humans.
+        road_frame: whether the positions of all pairs are on one road (None:
+            the source does not say).
     """
 
     folder: str
@@ -124,6 +128,7 @@ class DatasetSpec:
     dt: float
     leader_length: float = 5.0
     description: str = ""
+    road_frame: bool | None = None
 
 
 DATASETS: dict[str, DatasetSpec] = {
@@ -131,6 +136,8 @@ DATASETS: dict[str, DatasetSpec] = {
         folder="HDV/NGSIM I_80",
         units="ft",
         dt=0.1,
+        # Local_Y: the distance along the I-80 section, the same road for all
+        road_frame=True,
         description="NGSIM I-80, human drivers: 150 pairs x 35.0 s, US units",
     ),
     "car-model-1": DatasetSpec(
@@ -261,6 +268,7 @@ def _load_named(
                 name=name,
             ),
             split=split_,
+            road_frame=DATASETS[name].road_frame,
         )
 
     if split is None:
@@ -321,7 +329,7 @@ def _load_folder(
         ),
         name=str(folder),
     )
-    pairs = dataclasses.replace(pairs, split=split)
+    pairs = dataclasses.replace(pairs, split=split, road_frame=meta.get("road_frame"))
     return _drop_copies(pairs, _column_keys(pairs), drop_duplicates, notes)
 
 
@@ -333,7 +341,7 @@ def _read_meta(folder: Path) -> dict:
         meta = json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise DataError(f"'{path}' is not valid JSON: {err}") from None
-    allowed = {"dt", "units", "leader_length"}
+    allowed = {"dt", "units", "leader_length", "road_frame"}
     if not isinstance(meta, dict) or set(meta) - allowed:
         extra = sorted(set(meta) - allowed) if isinstance(meta, dict) else meta
         raise DataError(

@@ -12,6 +12,7 @@ run through the loop (:func:`torchcf.pipeline.close_loop`). Its concerns:
 - :mod:`.attribution`: the effects ranked by their out-of-sample gain;
 - :mod:`.loop`: the loop up to the re-calibration (:func:`plan_loop`) and after
   it (:func:`finish_loop`);
+- :mod:`.road`: road effects at the data's resolution (frame, knot spacing);
 - :mod:`.report`: ``loop.md``, its figures and ``loop.json``;
 - :mod:`.__main__`: the command line.
 
@@ -30,6 +31,7 @@ from .candidates import augmented_variants
 from .loop import (
     LoopPlan,
     active_models,
+    candidate_effects,
     effect_posterior,
     finish_loop,
     plan_loop,
@@ -51,6 +53,7 @@ __all__ = [
     "Selection",
     "active_models",
     "attribute_effects",
+    "candidate_effects",
     "augmented_variants",
     "best_particles",
     "diagnose_residuals",

@@ -43,7 +43,7 @@ from ..abc.rejection import Rollout
 from ..abc.smc import SMCSettings
 from ..config import DiagnoseConfig, TrainConfig
 from ..data import PairSet
-from ..models.effects import Grade, parse_effect
+from ..models.effects import RoadProfile, parse_effect
 from .candidates import (
     attribution_rollout,
     attribution_seed,
@@ -100,12 +100,13 @@ def split_in_time(pairs: PairSet, fraction: float) -> tuple[PairSet, PairSet]:
 
 
 def resolve_effect(token: str, pairs: PairSet) -> str:
-    """The effect's name token; a bare ``grade`` spans the pairs' road section."""
+    """The effect's name token; a bare road effect (``grade``, ``bend``) spans
+    the pairs' road section (its knots: see :mod:`torchcf.diagnose.road`)."""
     effect = parse_effect(token)
-    if isinstance(effect, Grade) and "(" not in token:
+    if isinstance(effect, RoadProfile) and "(" not in token:
         x = pairs.x_follow[pairs.mask]
         start, end = math.floor(float(x.min())), math.ceil(float(x.max()))
-        effect = Grade(start=start, end=max(end, start + 1), knots=effect.knots)
+        effect = type(effect)(start=start, end=max(end, start + 1), knots=effect.knots)
     return effect.token
 
 
@@ -150,6 +151,7 @@ class Arena:
         top_n: N, the particles per pair an arm is judged by.
         smc: the refinement's settings when the small ABC runs are SMC
             (``diagnose.method = "smc"``), else None (rejection).
+        seeds: per shared effect token, a first candidate of its value.
         generator: the local search's random numbers, consumed in a fixed order
             (the pool arm, then the effects in the order given).
     """
@@ -163,6 +165,7 @@ class Arena:
     top_n: int
     generator: torch.Generator
     smc: SMCSettings | None = None
+    seeds: dict[str, Tensor] = dataclasses.field(default_factory=dict)
 
     @classmethod
     def of(cls, cfg: TrainConfig, train_pairs: PairSet) -> Arena:
@@ -266,7 +269,12 @@ def shared_effect(effect: str, arena: Arena, arm: Arm) -> tuple[Tensor, dict[str
     """A shared effect's one value (K_E,) over the arm's population, and its
     report: ``value`` and the re-calibration ``prior`` per parameter."""
     value, box = shared_value(
-        effect, arm.members, arm.bounds, arena.fit, arena.generator
+        effect,
+        arm.members,
+        arm.bounds,
+        arena.fit,
+        arena.generator,
+        start=arena.seeds.get(effect),
     )
     names = [p.name for p in parse_effect(effect).param_specs]
     return value, {
@@ -413,6 +421,7 @@ def attribute_effects(
     effects: list[str],
     train_pairs: PairSet,
     *,
+    seeds: dict[str, Tensor] | None = None,
     progress: bool = True,
 ) -> Selection:
     """Choose effects by forward stepwise selection (module docstring).
@@ -428,6 +437,7 @@ def attribute_effects(
         pool: the pool models that get the effects.
         effects: effect tokens (options resolved, see :func:`resolve_effect`).
         train_pairs: the run's training pairs.
+        seeds: per shared effect token, a first candidate of its value.
 
     Returns:
         the :class:`Selection`; each row holds ``name, effect, statistic, gain,
@@ -437,6 +447,8 @@ def attribute_effects(
         and re-calibration prior).
     """
     arena = Arena.of(cfg, train_pairs)
+    if seeds:
+        arena = dataclasses.replace(arena, seeds=dict(seeds))
     settings = arena.settings
     tests = planned_tests(len(effects), settings.max_effects)
     threshold = settings.alpha / tests

@@ -42,12 +42,18 @@ from ..config import (
 )
 from ..data import PairSet, load_split
 from ..models import get_model
-from ..models.effects import parse_effect
+from ..models.effects import RoadProfile, parse_effect
 from ..posterior import Posterior
 from ..rundir import RunDir
 from .attribution import Selection, attribute_effects, resolve_effect
 from .report import write_report
-from .series import DiagnoseError, diagnose_residuals
+from .road import (
+    choose_spacing,
+    fit_window,
+    one_step_residual,
+    shares_road_frame,
+)
+from .series import DiagnoseError, best_particles, diagnose_residuals
 
 FORMAT = "torchcf.loop/1"
 
@@ -168,6 +174,50 @@ def _quantiles(values: Tensor) -> dict[str, Any]:
     }
 
 
+# ------------------------------------------------------------- the candidates
+def candidate_effects(
+    cfg: TrainConfig, train_pairs: PairSet, series: Series
+) -> tuple[list[str], dict[str, Any], dict[str, Tensor]]:
+    """The effects the attribution tries, resolved on the training pairs.
+
+    Args:
+        series: the one-step residual (:func:`~torchcf.diagnose.road.
+            one_step_residual`) of the run's best particle per pair.
+
+    Road effects (``shared``) only where the pairs share one road frame
+    (:func:`~torchcf.diagnose.road.shares_road_frame`); a bare ``grade`` or
+    ``bend`` spans the pairs' road section with its knot spacing chosen by
+    cross-validation on the fit windows' one-step residuals
+    (:func:`~torchcf.diagnose.road.choose_spacing`).
+
+    Returns:
+        the effect tokens; the road report (``frame``, ``reason``, ``skipped``,
+        ``profiles``: the spacing chosen and the error of each); per road
+        token, a first candidate of its value.
+    """
+    frame, reason = shares_road_frame(train_pairs)
+    fit_steps = int(round(cfg.diagnose.fit_fraction * train_pairs.n_steps))
+    fit_series = fit_window(series, fit_steps)
+    effects, skipped, profiles, seeds = [], [], [], {}
+    for token in cfg.diagnose.effects:
+        effect = parse_effect(token)
+        if effect.shared and not frame:
+            skipped.append(effect.token)
+            continue
+        if isinstance(effect, RoadProfile) and "(" not in token:
+            section = parse_effect(resolve_effect(token, train_pairs))
+            choice = choose_spacing(effect.name, section.start, section.end, fit_series)
+            effects.append(choice.token)
+            profiles.append(choice.report())
+            if choice.seed is not None:
+                seeds[choice.token] = choice.seed
+            continue
+        effects.append(resolve_effect(token, train_pairs))
+    road = {"frame": frame, "reason": reason, "skipped": skipped}
+    road["profiles"] = profiles
+    return effects, road, seeds
+
+
 # -------------------------------------------------------------------- the loop
 @dataclass(frozen=True)
 class LoopPlan:
@@ -180,6 +230,7 @@ class LoopPlan:
         before: its ``metrics.json``.
         train_pairs, test_pairs: its split.
         pool: the pool models that got the effects.
+        road: how road effects were offered (:func:`candidate_effects`).
         selection: the forward selection's steps and choice
             (:func:`attribute_effects`).
         residuals_before: the residual tests of the run; series_before: its
@@ -198,6 +249,7 @@ class LoopPlan:
     train_pairs: PairSet
     test_pairs: PairSet
     pool: list[str]
+    road: dict[str, Any]
     selection: Selection
     residuals_before: list[dict]
     series_before: Series
@@ -251,8 +303,11 @@ def plan_loop(
 
     residuals_before, series_before = diagnose_residuals(posterior, train_pairs)
     pool = active_models(cfg, posterior)
-    effects = [resolve_effect(t, train_pairs) for t in cfg.diagnose.effects]
-    selection = attribute_effects(cfg, pool, effects, train_pairs, progress=progress)
+    one_step = one_step_residual(best_particles(posterior, train_pairs), train_pairs)
+    effects, road, seeds = candidate_effects(cfg, train_pairs, one_step)
+    selection = attribute_effects(
+        cfg, pool, effects, train_pairs, seeds=seeds, progress=progress
+    )
     recalibration = None
     if selection.chosen:
         variants = [m for m in selection.models if m not in pool]
@@ -265,6 +320,7 @@ def plan_loop(
         train_pairs=train_pairs,
         test_pairs=test_pairs,
         pool=pool,
+        road=road,
         selection=selection,
         residuals_before=residuals_before,
         series_before=series_before,
@@ -301,6 +357,7 @@ def finish_loop(plan: LoopPlan) -> dict[str, Any]:
         "run": str(plan.run),
         "dataset": plan.before.get("dataset"),
         "pool": plan.pool,
+        "road": plan.road,
         "effects_ranked": plan.selection.steps[0],
         "steps": plan.selection.steps,
         "chosen": plan.chosen,
@@ -350,6 +407,7 @@ __all__ = [
     "FORMAT",
     "LoopPlan",
     "active_models",
+    "candidate_effects",
     "effect_posterior",
     "finish_loop",
     "plan_loop",

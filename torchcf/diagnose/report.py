@@ -101,6 +101,7 @@ def _ranking(result: dict[str, Any], figure: str) -> list[str]:
         "fitted jointly over the pairs).",
         "",
     ]
+    lines += _road(result.get("road"))
     for step, rows in enumerate(result["steps"], start=1):
         before = result["chosen"][: step - 1]
         chosen_here = result["chosen"][step - 1 : step]
@@ -124,6 +125,32 @@ def _ranking(result: dict[str, Any], figure: str) -> list[str]:
             )
         lines.append("")
     return [*lines, f"![effects, step 1]({figure})", ""]
+
+
+def _road(road: dict[str, Any] | None) -> list[str]:
+    """How road effects were offered: the frame decision and each profile's
+    knot spacing with its cross-validated error."""
+    if not road:
+        return []
+    offered = "offered" if road["frame"] else "not offered"
+    lines = [
+        f"**Road effects** {offered}: the pairs "
+        + ("share one road frame" if road["frame"] else "have a frame each")
+        + f" ({road['reason']})."
+    ]
+    if road["skipped"]:
+        lines[-1] += f" Skipped: {', '.join(road['skipped'])}."
+    for profile in road.get("profiles", []):
+        errors = ", ".join(
+            f"{spacing} m {error:.4g}" for spacing, error in profile["cv_error"].items()
+        )
+        lines.append(
+            f"`{profile['effect']}`: knots {profile['spacing']:g} m apart, chosen "
+            "by 5-fold cross-validation over pairs of the fit windows' "
+            f"acceleration residual on the profile (held-out squared error: "
+            f"{errors})."
+        )
+    return [*lines, ""]
 
 
 def _steps_at_most(result: dict[str, Any], n_effects: int) -> int:

@@ -168,6 +168,7 @@ def shared_value(
     bounds: dict[str, Tensor],
     rollout: Rollout,
     generator: torch.Generator,
+    start: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """The one value of a shared (road) effect's parameters for all pairs.
 
@@ -178,6 +179,11 @@ def shared_value(
     (the base parameters may have absorbed part of the effect). A value's
     objective is the sum over pairs of its best fit score relative to the pair's
     best member, so every pair weighs alike.
+
+    Args:
+        start: a first candidate (K_E,), tried in the first round with the
+            members' finest perturbation (a grade profile from the residual
+            regression, :func:`torchcf.diagnose.road.grade_seed`).
 
     Returns:
         the value (K_E,) and the box (K_E, 2) of the last round's resolution
@@ -191,6 +197,10 @@ def shared_value(
     for _ in range(SHARED_ROUNDS):
         box = prior if best is None else _around(best, half, prior)
         values = uniform(box, (SHARED_VALUES,), generator)  # (M, K_E)
+        if best is None and start is not None:
+            # the slot whose members are jittered least (LOCAL_SCALES' finest)
+            finest = min(range(len(LOCAL_SCALES)), key=LOCAL_SCALES.__getitem__)
+            values[finest] = start.to(values.dtype)
         per_pair = _value_scores(effect, values, members, bounds, rollout, generator)
         ratio = per_pair[usable] / reference[usable, None]
         ratio = torch.where(torch.isfinite(ratio), ratio, INVALID_RATIO)

@@ -43,6 +43,10 @@ from .base import (
 
 #: Standard gravity [m/s^2] (road grade -> acceleration).
 GRAVITY = 9.81
+#: Upper end of the perception delay's default prior [s].
+DELAY_PRIOR_HIGH = 3.0
+#: Time over which a driver brings its speed down to a bend's limit [s].
+BEND_RELAXATION = 1.0
 
 Stage = Literal["perception", "command", "realisation"]
 
@@ -91,6 +95,12 @@ class Effect:
     def perceive(self, q: Any, obs: Perception, memory: Any) -> tuple[Perception, Any]:
         """Perception stage: the edited perception and the next memory."""
         return obs, memory
+
+    def act_with_memory(
+        self, q: Any, obs: Perception, u: Tensor, memory: Any
+    ) -> tuple[Tensor, Any]:
+        """A command effect with memory (action points); default: :meth:`act`."""
+        return self.act(q, obs, u), memory
 
     def act(self, q: Any, obs: Perception, u: Tensor) -> Tensor:
         """Command stage: the edited command [m/s^2]; ``obs`` is the true state."""
@@ -154,15 +164,19 @@ class Delay(Effect):
 
     name = "delay"
     stage = "perception"
-    param_specs = (spec("t_delay", "s", 0.0, 1.5, "perception delay"),)
 
-    def __init__(self, max_delay: float = 2.0) -> None:
+    def __init__(self, max_delay: float = 3.0) -> None:
         if not max_delay > 0:
             raise ValueError(f"delay: max_delay must be > 0, got {max_delay}")
         self.max_delay = float(max_delay)
+        # Reaction times of drivers and ACC controllers: 0.5-2.5 s (commercial ACC
+        # response times of 1.7-2.5 s are reported); the prior covers 0-3 s, or
+        # the history the effect holds.
+        high = min(DELAY_PRIOR_HIGH, self.max_delay)
+        self.param_specs = (spec("t_delay", "s", 0.0, high, "perception delay"),)
 
     def options(self):
-        return {} if self.max_delay == 2.0 else {"max_delay": self.max_delay}
+        return {} if self.max_delay == 3.0 else {"max_delay": self.max_delay}
 
     def check_bounds(self, box):
         low, high = float(box[0, 0]), float(box[0, 1])
@@ -212,6 +226,35 @@ class Delay(Effect):
         return delayed, DelayMemory(spacing, v_lead)
 
 
+class Anticipation(Effect):
+    """Temporal anticipation (Treiber, Kesting & Helbing 2006, the Human Driver
+    Model): the driver extrapolates what it perceives ``t_ant`` ahead at constant
+    speeds and own acceleration:
+
+    ``s' = s + t_ant (v_lead - v)``, ``v' = max(v + t_ant a, 0)`` (``v_lead``
+    unchanged).
+
+    After a perception delay it extrapolates the delayed spacing, which is how a
+    driver compensates part of its reaction time. ``t_ant = 0`` is the model
+    itself.
+    """
+
+    name = "anticipation"
+    stage = "perception"
+    param_specs = (spec("t_ant", "s", 0.0, 2.0, "anticipation time"),)
+
+    def perceive(self, q, obs, memory):
+        (t_ant,) = q
+        return (
+            obs._replace(
+                spacing=obs.spacing + t_ant * (obs.v_lead - obs.v),
+                # a speed extrapolated below zero is a stop, not reversing
+                v=torch.clamp(obs.v + t_ant * obs.a, min=0.0),
+            ),
+            memory,
+        )
+
+
 class Asymmetry(Effect):
     """Separate gains when closing in and when falling back.
 
@@ -258,35 +301,94 @@ class Resistance(Effect):
         return u - c_drag * obs.v * obs.v
 
 
-class Grade(Effect):
-    """A road profile: ``u' = u - g G(x)`` with the grade ``G`` a function of position.
+class ActionMemory(namedtuple("ActionMemory", ["held", "dv", "spacing"])):
+    """The command held since the last action point (NaN before the first) and
+    the relative speed and spacing at that point, each the state's shape."""
 
-    ``G`` is piecewise linear in the follower's road position ``x`` between
-    ``knots`` equally spaced points from ``start`` to ``end`` [m] (constant beyond),
-    its values there the parameters ``grade_0 ...`` (rise over run; 0.03 is a 3 %
-    uphill). The profile is a function of the position only, so every pair
-    recorded on the road sees the same profile. ``g = 9.81 m/s^2``.
+
+class ActionPoints(Effect):
+    """Perception thresholds and action points (Todosiev 1963; Wiedemann 1974):
+    the driver changes its command only when the situation has changed enough
+    since its last action, and holds the command chosen then in between.
+
+    A new action point at step t when ``|dv(t) - dv_k| > ap_dv`` or
+    ``|s(t) - s_k| > ap_ds s_k`` (``dv = v_lead - v``; ``dv_k, s_k`` at the last
+    action point; the first step is one). Two thresholds, as in Wiedemann's
+    psycho-physical models reduced to their perception limits; zero thresholds
+    give the model itself (every step is an action point).
+    """
+
+    name = "action"
+    stage = "command"
+    param_specs = (
+        spec("ap_dv", "m/s", 0.0, 1.0, "relative-speed change that triggers action"),
+        spec("ap_ds", "1", 0.0, 0.2, "relative spacing change that triggers action"),
+    )
+
+    def initial_memory(self, q, first):
+        shape = torch.broadcast_shapes(first.spacing.shape, first.v_lead.shape)
+        spacing = first.spacing.expand(shape).contiguous()
+        return ActionMemory(
+            torch.full_like(spacing, math.nan),
+            (first.v_lead - first.v).expand(shape).contiguous(),
+            spacing,
+        )
+
+    def act_with_memory(self, q, obs, u, memory):
+        ap_dv, ap_ds = q
+        dv = obs.v_lead - obs.v
+        act = (
+            torch.isnan(memory.held)
+            | (torch.abs(dv - memory.dv) > ap_dv)
+            | (torch.abs(obs.spacing - memory.spacing) > ap_ds * memory.spacing)
+        )
+        command = torch.where(act, u, memory.held)
+        return command, ActionMemory(
+            command,
+            torch.where(act, dv, memory.dv),
+            torch.where(act, obs.spacing, memory.spacing),
+        )
+
+
+class RoadProfile(Effect):
+    """A function of road position, piecewise linear between ``knots`` equally
+    spaced points from ``start`` to ``end`` [m] (constant beyond), its values
+    there the parameters ``<prefix>_0 ...``. A function of the position only, so
+    every pair recorded on the road sees the same profile (``shared``).
 
     Args:
         start, end: the road section the profile covers [m] (data frame).
-        knots: number of profile points (>= 1; 1 is a constant grade).
+        knots: number of profile points (>= 1; 1 is a constant).
     """
 
-    name = "grade"
     stage = "command"
     uses_position = True
     shared = True
+    #: parameter name prefix, unit, prior, what a knot value is
+    prefix: ClassVar[str]
+    unit: ClassVar[str]
+    prior: ClassVar[tuple[float, float]]
+    meaning: ClassVar[str]
 
     def __init__(self, start: float = 0.0, end: float = 2000.0, knots: int = 3):
         if knots != int(knots) or knots < 1:
-            raise ValueError(f"grade: knots must be an integer >= 1, got {knots:g}")
+            raise ValueError(
+                f"{self.name}: knots must be an integer >= 1, got {knots:g}"
+            )
         knots = int(knots)
         if knots > 1 and not end > start:
-            raise ValueError(f"grade: needs end > start, got [{start:g}, {end:g}]")
+            raise ValueError(
+                f"{self.name}: needs end > start, got [{start:g}, {end:g}]"
+            )
         self.start, self.end, self.knots = float(start), float(end), knots
         self.param_specs = tuple(
-            spec(f"grade_{k}", "1", -0.08, 0.08, f"road grade at {position:g} m")
-            for k, position in enumerate(self.knot_positions)
+            spec(
+                f"{self.prefix}_{k}",
+                self.unit,
+                *self.prior,
+                f"{self.meaning} at {x:g} m",
+            )
+            for k, x in enumerate(self.knot_positions)
         )
 
     @property
@@ -301,22 +403,75 @@ class Grade(Effect):
         current = {"start": self.start, "end": self.end, "knots": self.knots}
         return {k: v for k, v in current.items() if v != defaults[k]}
 
+    def prepare(self, q, dt):
+        # The knot values stacked (knots, *param shape): the profile is then two
+        # gathers per step, whatever the number of knots.
+        return (torch.stack(tuple(q)),)
+
     def profile(self, q: tuple[Tensor, ...], position: Tensor) -> Tensor:
-        """The grade ``G(position)`` (hat-function interpolation of the knots)."""
+        """The profile at ``position`` (linear interpolation of the knots; ``q``
+        as :meth:`prepare` returns it)."""
+        (values,) = q
         if self.knots == 1:
-            return q[0] + 0.0 * position
+            return values[0] + 0.0 * position
         spacing = (self.end - self.start) / (self.knots - 1)
-        x = torch.clamp(position, self.start, self.end)
-        grade = 0.0
-        for value, knot in zip(q, self.knot_positions, strict=True):
-            hat = torch.clamp(1.0 - torch.abs(x - knot) / spacing, min=0.0)
-            grade = grade + value * hat
-        return grade
+        u = (torch.clamp(position, self.start, self.end) - self.start) / spacing
+        left = torch.clamp(torch.floor(u), 0, self.knots - 2)
+        fraction = u - left
+        shape = torch.broadcast_shapes(values.shape[1:], position.shape)
+        values = values.expand((self.knots, *shape))
+        index = left.long().expand(shape)[None]
+        low = values.gather(0, index)[0]
+        high = values.gather(0, index + 1)[0]
+        return low + fraction * (high - low)
+
+    def basis(self, position: Tensor) -> Tensor:
+        """(..., knots) the hat functions at ``position``: the profile is
+        ``basis @ values`` (a linear model of the knot values)."""
+        if self.knots == 1:
+            return torch.ones((*position.shape, 1), dtype=position.dtype)
+        spacing = (self.end - self.start) / (self.knots - 1)
+        x = torch.clamp(position, self.start, self.end)[..., None]
+        knots = torch.tensor(self.knot_positions, dtype=position.dtype)
+        return torch.clamp(1.0 - torch.abs(x - knots) / spacing, min=0.0)
+
+    def position_of(self, obs: Perception) -> Tensor:
+        if obs.position is None:
+            raise ValueError(f"{self.name}: the rollout gave no road position")
+        return obs.position
+
+
+class Grade(RoadProfile):
+    """A road grade: ``u' = u - g G(x)`` (``g = 9.81 m/s^2``), ``G`` the profile of
+    :class:`RoadProfile` (rise over run; 0.03 is a 3 % uphill). As an acceleration
+    offset along the road it also stands for any position-bound push or drag.
+    """
+
+    name = "grade"
+    prefix, unit, prior, meaning = "grade", "1", (-0.08, 0.08), "road grade"
 
     def act(self, q, obs, u):
-        if obs.position is None:
-            raise ValueError("grade: the rollout gave no road position")
-        return u - GRAVITY * self.profile(q, obs.position)
+        return u - GRAVITY * self.profile(q, self.position_of(obs))
+
+
+class Bend(RoadProfile):
+    """A speed limit along the road (bends, curvature, a work zone): the driver
+    does not exceed ``V(x)``, the profile of :class:`RoadProfile`, and brakes
+    towards it over ``BEND_RELAXATION`` s:
+
+    ``u' = min(u, (V(x) - v) / BEND_RELAXATION)``.
+
+    With ``V`` above every speed driven it is the model itself. (Curvature
+    ``k`` and a lateral acceleration limit ``a_lat`` give ``V = sqrt(a_lat / k)``;
+    the data rarely carry curvature, so ``V`` is learned directly.)
+    """
+
+    name = "bend"
+    prefix, unit, prior, meaning = "v_bend", "m/s", (3.0, 40.0), "speed limit"
+
+    def act(self, q, obs, u):
+        limit = self.profile(q, self.position_of(obs))
+        return torch.minimum(u, (limit - obs.v) / BEND_RELAXATION)
 
 
 class Lag(Effect):
@@ -350,7 +505,18 @@ EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
     # Shared (road) effects last: a shared value is then always the trailing
     # parameters of a name, which the engines append to every particle.
-    for cls in (Offset, Delay, Asymmetry, Saturation, Resistance, Lag, Grade)
+    for cls in (
+        Offset,
+        Delay,
+        Anticipation,
+        Asymmetry,
+        Saturation,
+        Resistance,
+        ActionPoints,
+        Lag,
+        Grade,
+        Bend,
+    )
 }
 
 
@@ -444,9 +610,9 @@ class AugmentedModel(CFModel):
                 perceived, mem = effect.perceive(q, perceived, mem)
             next_memory.append(mem)
         u, base_memory = self.base.command_with_memory(p.base, perceived, base_memory)
-        for effect, q in zip(self.effects, p.effects, strict=True):
+        for i, (effect, q) in enumerate(zip(self.effects, p.effects, strict=True)):
             if effect.stage == "command":
-                u = effect.act(q, obs, u)
+                u, next_memory[i] = effect.act_with_memory(q, obs, u, next_memory[i])
         return u, (base_memory, tuple(next_memory))
 
     def command(self, p, obs):

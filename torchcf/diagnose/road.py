@@ -1,0 +1,250 @@
+"""Road effects at the data's resolution (loop step 2, before the attribution).
+
+A road effect (:class:`~torchcf.models.effects.RoadProfile`: ``grade``, ``bend``)
+is one function of road position for every pair, so it is offered only where the
+pairs' positions are positions on one road (:func:`shares_road_frame`). A bare
+``grade`` or ``bend`` spans the training pairs' road section with knots
+:data:`ROAD_SPACINGS` apart, the spacing chosen by cross-validation over pairs
+(:func:`choose_spacing`): the *one-step* acceleration residual of the run's best
+particle per pair (:func:`one_step_residual`: from the observed state at every
+step, the observed speed change against the model's one-step prediction), on the
+attribution's fit windows only, is regressed on the profile's hat functions, fitted
+on all folds but one and scored on the held-out pairs. A road effect that acts as
+an acceleration offset ``-g G(x)`` leaves ``r(x) = -g G(x)`` in the one-step
+residual exactly, whereas in the closed-loop residual a feedback controller has
+already compensated most of it. The coarsest spacing within one standard error
+of the least held-out squared error wins (the one-standard-error rule of
+Hastie, Tibshirani & Friedman, *The Elements of Statistical Learning*, 7.10).
+The regression on all pairs also gives the grade search its first candidate
+(:func:`grade_seed`), which a random search in tens of knot values could not
+find.
+
+Shapes: N pairs, T steps (:mod:`torchcf.typing`); residual series are per pair,
+valid steps only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..data import PairSet
+from ..models import FollowerState, Perception, get_model
+from ..models.effects import GRAVITY, Grade, RoadProfile, parse_effect
+from ..sim import realise
+from .series import BestParticles
+
+#: Knot spacings [m] a bare road effect chooses from (coarse to fine).
+ROAD_SPACINGS = (400.0, 200.0, 100.0, 50.0)
+#: Folds of the spacing's cross-validation (pairs dealt round-robin).
+FOLDS = 5
+#: Pairs whose first follower positions all lie within this much [m] are taken
+#: to have a frame each (unless the data declare otherwise).
+SAME_START = 1.0
+#: Ridge added to the normal equations (relative to their trace), so knots no
+#: pair reaches stay at 0 instead of making the fit singular.
+RIDGE = 1e-6
+
+
+def shares_road_frame(pairs: PairSet) -> tuple[bool, str]:
+    """Whether the pairs' positions are on one road, and why.
+
+    Declared by the data (``meta.json``'s ``road_frame``, or the named data
+    set's registry entry) when they say; otherwise the pairs share a road when
+    their first follower positions differ (spread over :data:`SAME_START`): pairs
+    recorded on one road start where they were found. Pairs that all start at
+    the same position are taken to have a frame each (positions measured from
+    each pair's start); a test track with one start line says so in
+    ``meta.json``.
+    """
+    if pairs.road_frame is not None:
+        where = "declared by the data"
+        return bool(pairs.road_frame), where
+    start = pairs.x_follow[0].double()
+    spread = float(start.max() - start.min()) if pairs.n_pairs else 0.0
+    if spread > SAME_START:
+        return True, (
+            f"undeclared; the pairs start at different positions (spread "
+            f"{spread:.0f} m), positions on one road"
+        )
+    return False, (
+        "undeclared; every pair starts at the same position, a frame per pair "
+        '(write "road_frame": true in the data\'s meta.json if they share a road)'
+    )
+
+
+def one_step_residual(best: BestParticles, pairs: PairSet) -> dict[str, list]:
+    """The one-step acceleration residual of every pair's particle.
+
+    At every valid step t (but the last) the follower is put in its observed
+    state, the model commands from the observed perception and realises one step
+    (:func:`torchcf.sim.realise`); the residual is ``(v_obs(t + 1) - v_pred(t +
+    1)) / dt`` [m/s^2] (a point mass: ``a_obs(t) - u(t)``). Memory-carrying
+    models start from a steady past at every step (a delay effect is not a pool
+    model; the MPC's memory only warm-starts its solver).
+
+    Returns:
+        lists (one float64 array per pair with a particle, pairs in position
+        order, valid steps but the last) under ``x`` (observed road position
+        [m]) and ``acceleration``.
+    """
+    obs = {k: t.double().cpu() for k, t in pairs.series().items()}
+    out: dict[str, list[np.ndarray]] = {"x": [], "acceleration": []}
+    rows: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for name, (theta, position) in best.items():
+        model = get_model(name)
+        for row, j in enumerate(position.tolist()):
+            steps = int(pairs.mask[:, j].sum()) - 1
+            if steps < 1:
+                continue
+            state = FollowerState(
+                x=obs["x_follow"][:steps, j],
+                v=obs["v_follow"][:steps, j],
+                a=obs["a_follow"][:steps, j],
+            )
+            perception = Perception(
+                spacing=obs["x_lead"][:steps, j] - state.x,
+                v=state.v,
+                v_lead=obs["v_lead"][:steps, j],
+                a=state.a,
+                leader_length=pairs.leader_length,
+                position=state.x,
+            )
+            params = model.unpack(theta[row : row + 1].double().expand(steps, -1))
+            params = model.prepare(params, pairs.dt, (steps,))
+            memory = model.initial_memory(params, perception)
+            command, _ = model.command_with_memory(params, perception, memory)
+            moved = realise(model, params, state, command, pairs.dt)
+            residual = (obs["v_follow"][1 : steps + 1, j] - moved.v) / pairs.dt
+            rows[j] = (state.x.numpy(), residual.numpy())
+    for j in sorted(rows):
+        out["x"].append(rows[j][0])
+        out["acceleration"].append(rows[j][1])
+    return out
+
+
+def fit_window(series: dict[str, list[np.ndarray]], steps: int) -> dict[str, list]:
+    """The series cut to each pair's first ``steps`` steps (the fit windows)."""
+    return {key: [a[:steps] for a in arrays] for key, arrays in series.items()}
+
+
+def _least_squares(design: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Ridge-stabilised least squares ``argmin |design b - target|^2``."""
+    gram = design.T @ design
+    gram += RIDGE * max(np.trace(gram), 1.0) / gram.shape[0] * np.eye(gram.shape[0])
+    return np.linalg.solve(gram, design.T @ target)
+
+
+def _basis(profile: RoadProfile, x: np.ndarray) -> np.ndarray:
+    return profile.basis(torch.from_numpy(x)).numpy()
+
+
+def cross_validated_error(
+    profile: RoadProfile, x: list[np.ndarray], residual: list[np.ndarray]
+) -> tuple[float, float]:
+    """Held-out squared error of the profile's regression, ``FOLDS`` folds over
+    pairs (pair j in fold ``j % FOLDS``), summed over pairs, and its standard
+    error (``sqrt(F)`` times the spread of the F fold errors)."""
+    folds = min(FOLDS, len(x))
+    per_fold = []
+    for fold in range(folds):
+        train = [j for j in range(len(x)) if j % folds != fold]
+        held = [j for j in range(len(x)) if j % folds == fold]
+        design = np.concatenate([_basis(profile, x[j]) for j in train])
+        target = np.concatenate([residual[j] for j in train])
+        beta = _least_squares(design, target)
+        per_fold.append(
+            sum(
+                float(((_basis(profile, x[j]) @ beta - residual[j]) ** 2).sum())
+                for j in held
+            )
+        )
+    errors = np.array(per_fold)
+    spread = errors.std(ddof=1) if folds > 1 else 0.0
+    return float(errors.sum()), float(math.sqrt(folds) * spread)
+
+
+@dataclass(frozen=True)
+class RoadChoice:
+    """A bare road effect resolved at the data's resolution.
+
+    Attributes:
+        token: the effect with its section and knots, e.g.
+            ``"grade(start=12,end=1700,knots=35)"``.
+        spacing: the chosen knot spacing [m].
+        errors: held-out squared error per spacing tried.
+        standard_errors: its standard error per spacing.
+        seed: a first candidate of the knot values (grade: from the regression),
+            or None.
+    """
+
+    token: str
+    spacing: float
+    errors: dict[float, float]
+    standard_errors: dict[float, float]
+    seed: Tensor | None
+
+    def report(self) -> dict[str, Any]:
+        return {
+            "effect": self.token,
+            "spacing": self.spacing,
+            "cv_error": {f"{k:g}": v for k, v in self.errors.items()},
+        }
+
+
+def choose_spacing(
+    name: str, start: float, end: float, series: dict[str, list[np.ndarray]]
+) -> RoadChoice:
+    """The knot spacing of a bare road effect by cross-validation (module
+    docstring), on the residual ``series`` of the fit windows."""
+    x, residual = series["x"], series["acceleration"]
+    errors: dict[float, float] = {}
+    standard: dict[float, float] = {}
+    profiles: dict[float, RoadProfile] = {}
+    for spacing in ROAD_SPACINGS:
+        knots = max(2, round((end - start) / spacing) + 1)
+        effect = parse_effect(f"{name}(start={start:g},end={end:g},knots={knots})")
+        if knots in {p.knots for p in profiles.values()}:
+            continue  # a short road: coarser spacings give the same profile
+        profiles[spacing] = effect
+        errors[spacing], standard[spacing] = cross_validated_error(effect, x, residual)
+    # The one-standard-error rule: the coarsest spacing within one standard
+    # error of the least error (finer knots must earn their parameters).
+    least = min(errors, key=errors.get)
+    bound = errors[least] + standard[least]
+    best = max(s for s in errors if errors[s] <= bound)
+    effect = profiles[best]
+    seed = None
+    if isinstance(effect, Grade):
+        seed = grade_seed(effect, x, residual)
+    return RoadChoice(effect.token, best, errors, standard, seed)
+
+
+def grade_seed(
+    effect: Grade, x: list[np.ndarray], residual: list[np.ndarray]
+) -> Tensor:
+    """Knot values (K,) of the grade that explains the acceleration residual,
+    ``r_a ~ -g G(x)``, clipped to the prior."""
+    design = np.concatenate([_basis(effect, xi) for xi in x])
+    beta = _least_squares(design, np.concatenate(residual))
+    low, high = effect.param_specs[0].lower, effect.param_specs[0].upper
+    return torch.from_numpy(np.clip(-beta / GRAVITY, low, high))
+
+
+__all__ = [
+    "FOLDS",
+    "ROAD_SPACINGS",
+    "SAME_START",
+    "RoadChoice",
+    "choose_spacing",
+    "cross_validated_error",
+    "fit_window",
+    "grade_seed",
+    "one_step_residual",
+    "shares_road_frame",
+]
