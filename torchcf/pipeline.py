@@ -105,7 +105,9 @@ def close_loop(
 
     Diagnose and attribute (:func:`~torchcf.diagnose.loop.plan_loop`); if effects
     are chosen, re-calibrate the pool with them into ``RUN_DIR/loop/after`` and
-    evaluate it; then report (:func:`~torchcf.diagnose.loop.finish_loop`).
+    evaluate it (and, when the re-calibration searches otherwise than the run,
+    the pool alone searched the same way into ``RUN_DIR/loop/reference``); then
+    report (:func:`~torchcf.diagnose.loop.finish_loop`).
 
     Args:
         run_dir: a trained and evaluated run directory.
@@ -122,6 +124,13 @@ def close_loop(
             plan.recalibration,
             plan.run.recalibration_dir,
             resume=plan.resume_recalibration,
+            pairs=(plan.train_pairs, plan.test_pairs),
+        )
+    if plan.reference is not None:
+        train_and_evaluate(
+            plan.reference,
+            plan.run.reference_dir,
+            resume=plan.resume_reference,
             pairs=(plan.train_pairs, plan.test_pairs),
         )
     return finish_loop(plan)

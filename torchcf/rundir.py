@@ -131,6 +131,12 @@ class RunDir:
         """``loop/after``: the diagnosis loop's re-calibration (a run directory)."""
         return self.loop_dir / "after"
 
+    @property
+    def reference_dir(self) -> Path:
+        """``loop/reference``: the pool alone searched as the re-calibration (a
+        run directory), when that search differs from the run's."""
+        return self.loop_dir / "reference"
+
     def fold(self, index: int) -> RunDir:
         """The run directory of fold ``index`` of a cross-validation in this one."""
         return RunDir(self._path / f"fold{index}")

@@ -551,10 +551,11 @@ class DiagnoseConfig(BaseModel):
         ),
     )
     recalibrate_method: Literal["rejection", "smc"] | None = Field(
-        None,
+        "smc",
         description=(
             "Search of the re-calibration: 'smc' gives the augmented models, with "
-            "their extra parameters, a refined search at the same budget; None = "
+            "their extra parameters, a refined search at the same budget (the pool "
+            "alone is then searched the same way too, for a fair 'before'); None = "
             "abc.method."
         ),
     )

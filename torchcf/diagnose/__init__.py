@@ -36,6 +36,7 @@ from .loop import (
     finish_loop,
     plan_loop,
     recalibration_config,
+    reference_config,
     reuse_recalibration,
 )
 from .report import loop_markdown
@@ -63,6 +64,7 @@ __all__ = [
     "plan_loop",
     "planned_tests",
     "recalibration_config",
+    "reference_config",
     "resolve_effect",
     "residual_series",
     "residual_tests",

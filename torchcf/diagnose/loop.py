@@ -46,6 +46,7 @@ from ..models.effects import RoadProfile, parse_effect
 from ..posterior import Posterior
 from ..rundir import RunDir
 from .attribution import Selection, attribute_effects, resolve_effect
+from .identifiability import effect_identifiability
 from .report import write_report
 from .road import (
     choose_spacing,
@@ -107,6 +108,26 @@ def recalibration_config(
         raw["abc"]["n_particles"] = cfg.diagnose.recalibrate_particles
     if cfg.diagnose.recalibrate_method is not None:
         raw["abc"]["method"] = cfg.diagnose.recalibrate_method
+    raw["diagnose"]["run_after_training"] = False
+    raw["output"] = None
+    return validate_config(raw)
+
+
+def reference_config(
+    cfg: TrainConfig, recalibration: TrainConfig
+) -> TrainConfig | None:
+    """The run's pool alone, searched as ``recalibration`` is (its method and
+    budget), or None when that is the run's own search: the 'before' that the
+    re-calibration is fairly compared with (a refined search alone lowers the
+    error; the effect must do better than that)."""
+    if (
+        recalibration.abc.method == cfg.abc.method
+        and recalibration.abc.n_particles == cfg.abc.n_particles
+    ):
+        return None
+    raw = cfg.model_dump(mode="json")
+    raw["abc"]["method"] = recalibration.abc.method
+    raw["abc"]["n_particles"] = recalibration.abc.n_particles
     raw["diagnose"]["run_after_training"] = False
     raw["output"] = None
     return validate_config(raw)
@@ -239,6 +260,10 @@ class LoopPlan:
             to train) to run in :attr:`recalibration_dir`.
         resume_recalibration: that directory holds a part of this very
             re-calibration, to resume.
+        reference: the pool alone searched as the re-calibration
+            (:func:`reference_config`), to run in :attr:`reference_dir`; None
+            when nothing is chosen or the search is the run's.
+        resume_reference: that directory holds a part of it, to resume.
         began: ``time.perf_counter()`` at the start of the loop.
     """
 
@@ -255,6 +280,8 @@ class LoopPlan:
     series_before: Series
     recalibration: TrainConfig | None
     resume_recalibration: bool
+    reference: TrainConfig | None
+    resume_reference: bool
     began: float
 
     @property
@@ -266,6 +293,11 @@ class LoopPlan:
     def recalibration_dir(self) -> Path:
         """``RUN_DIR/loop/after``."""
         return self.run.recalibration_dir
+
+    @property
+    def reference_dir(self) -> Path:
+        """``RUN_DIR/loop/reference``."""
+        return self.run.reference_dir
 
 
 def plan_loop(
@@ -308,10 +340,11 @@ def plan_loop(
     selection = attribute_effects(
         cfg, pool, effects, train_pairs, seeds=seeds, progress=progress
     )
-    recalibration = None
+    recalibration, reference = None, None
     if selection.chosen:
         variants = [m for m in selection.models if m not in pool]
         recalibration = recalibration_config(cfg, variants, selection.shared_priors)
+        reference = reference_config(cfg, recalibration)
     return LoopPlan(
         run=run,
         cfg=cfg,
@@ -326,6 +359,8 @@ def plan_loop(
         series_before=series_before,
         recalibration=recalibration,
         resume_recalibration=reuse_recalibration(run.recalibration_dir, recalibration),
+        reference=reference,
+        resume_reference=reuse_recalibration(run.reference_dir, reference),
         began=began,
     )
 
@@ -387,18 +422,27 @@ def _after(plan: LoopPlan) -> tuple[dict[str, Any], Series | None]:
             "after": plan.before["hybrid"],
             "after_run": None,
             "shares_after": plan.posterior.shares,
+            "before_same_search": None,
+            "reference_run": None,
             "posterior": {},
+            "identifiability": {},
             "residuals_after": plan.residuals_before,
         }, None
     after = RunDir(plan.recalibration_dir)
     posterior = after.load_posterior()
     metrics = after.read_metrics()
     residuals, series = diagnose_residuals(posterior, plan.train_pairs)
+    reference = None
+    if plan.reference is not None:
+        reference = RunDir(plan.reference_dir).read_metrics()["hybrid"]
     return {
         "after": metrics["hybrid"],
         "after_run": str(after),
+        "before_same_search": reference,
+        "reference_run": str(plan.reference_dir) if reference else None,
         "shares_after": posterior.shares,
         "posterior": effect_posterior(posterior, plan.chosen),
+        "identifiability": effect_identifiability(posterior, plan.chosen),
         "residuals_after": residuals,
     }, series
 
@@ -412,5 +456,6 @@ __all__ = [
     "finish_loop",
     "plan_loop",
     "recalibration_config",
+    "reference_config",
     "reuse_recalibration",
 ]

@@ -185,7 +185,37 @@ def _chosen(result: dict[str, Any]) -> list[str]:
     shares = ", ".join(
         f"{k} {v:.1%}" for k, v in result["shares_after"].items() if v > 0
     )
-    return [*lines, f"Shares after: {shares}.", ""]
+    return [*lines, f"Shares after: {shares}.", "", *_identifiability(result)]
+
+
+def _identifiability(result: dict[str, Any]) -> list[str]:
+    """Each chosen effect parameter's strongest partner among the model's."""
+    report = result.get("identifiability") or {}
+    rows = [
+        f"| {effect} | {model} | {param} | {row['partner']} | {row['r']:+.2f} | "
+        f"{'**traded off**' if row['traded_off'] else 'identified'} | "
+        f"{row['n_pairs']} |"
+        for effect, models in report.items()
+        for model, params in models.items()
+        for param, row in params.items()
+    ]
+    if not rows:
+        return []
+    return [
+        "## Identifiability",
+        "",
+        "Within-pair correlation of each effect parameter with the model's own "
+        "parameters over the re-calibrated buffers (the best particles of every "
+        "augmented model on every training pair, centred per pair, pooled): its "
+        "strongest partner. |r| >= 0.7 says the data trade the two off (a spacing "
+        "offset against a standstill gap, a delay against a lag): the effect's "
+        "value is then known only together with its partner.",
+        "",
+        "| effect | model | parameter | partner | r | | pairs |",
+        "|---|---|---|---|---|---|---|",
+        *rows,
+        "",
+    ]
 
 
 def _none_chosen() -> list[str]:
@@ -197,25 +227,40 @@ def _none_chosen() -> list[str]:
 
 
 def _before_after(result: dict[str, Any], figure: str) -> list[str]:
-    """The hybrid's test-split metrics before and after, and their change."""
+    """The hybrid's test-split metrics before and after, and their change
+    (against the pool searched as the re-calibration, where it was)."""
+    rows = [("before (the run)", result["before"])]
+    reference = result.get("before_same_search")
+    if reference:
+        rows.append(("before, searched as after (the pool alone)", reference))
+    rows.append(("after", result["after"]))
     lines = [
         "## Test-split error of the hybrid, before and after",
         "",
         "| | " + " | ".join(label for _, label in METRIC_COLUMNS) + " |",
         "|---|" + "---|" * len(METRIC_COLUMNS),
     ]
-    for label in ("before", "after"):
-        metrics = result[label]
+    for label, metrics in rows:
         lines.append(
             f"| {label} | "
             + " | ".join(fmt(metrics.get(key)) for key, _ in METRIC_COLUMNS)
             + " |"
         )
-    for key, label in (("ws", "WS"), ("min", "Minimum distance")):
-        before, after = (
-            _metric(result["before"].get(key)),
-            _metric(result["after"].get(key)),
-        )
+    if reference:
+        lines += [
+            "",
+            "The re-calibration searched otherwise than the run (`diagnose."
+            "recalibrate_method` / `recalibrate_particles`), so the pool alone was "
+            "searched the same way: the changes below are against it, the "
+            "effect's own share of the improvement.",
+        ]
+    base = reference or result["before"]
+    for key, label in (
+        ("ws", "WS"),
+        ("beta_ws", "0.15-WS"),
+        ("min", "Minimum distance"),
+    ):
+        before, after = _metric(base.get(key)), _metric(result["after"].get(key))
         if before and after is not None and math.isfinite(before):
             lines += ["", f"{label} change: {(after - before) / before:+.1%}."]
         elif key == "ws":

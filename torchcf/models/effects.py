@@ -145,8 +145,10 @@ class Offset(Effect):
         return obs._replace(spacing=obs.spacing + d_offset), memory
 
 
-class DelayMemory(namedtuple("DelayMemory", ["spacing", "v_lead"])):
-    """Histories ``(D, *state)``, D steps deep: entry k is the value k steps ago."""
+class DelayMemory(namedtuple("DelayMemory", ["spacing", "v_lead", "head"])):
+    """Ring buffers ``(D, *state)`` of the perceived spacing and leader speed, and
+    ``head`` (int64, 0-dim), the slot of the newest entry: slot ``head - k (mod
+    D)`` holds the value ``k`` steps ago."""
 
 
 class Delay(Effect):
@@ -187,43 +189,55 @@ class Delay(Effect):
                 f"'delay(max_delay=...)')"
             )
 
+    def depth(self, dt: float) -> int:
+        """History entries: 0 .. ceil(max_delay / dt) steps ago, and one spare."""
+        return math.ceil(self.max_delay / dt) + 2
+
     def prepare(self, q, dt):
         (t_delay,) = q
         if bool(((t_delay < 0) | (t_delay > self.max_delay)).any()):
             raise ValueError(f"delay: t_delay outside [0, {self.max_delay:g}] s")
-        depth = math.ceil(self.max_delay / dt) + 2  # entries 0..ceil + one spare
         steps = t_delay / dt
         whole = torch.floor(steps)
-        fraction = steps - whole
-        k = torch.arange(depth, dtype=t_delay.dtype, device=t_delay.device)
-        k = k.reshape((depth,) + (1,) * t_delay.ndim)
-        # Interpolation weights over the history: (D, *param shape), two nonzeros.
-        weights = torch.where(k == whole, 1.0 - fraction, 0.0) + torch.where(
-            k == whole + 1.0, fraction, 0.0
-        )
-        return (weights.contiguous(),)
+        depth = torch.full((), self.depth(dt), dtype=torch.int64, device=steps.device)
+        # k = whole steps ago (int64), f = the fraction towards k + 1, the depth
+        return (whole.long(), steps - whole, depth)
 
     def initial_memory(self, q, first):
-        (weights,) = q
-        depth = weights.shape[0]
+        _, _, depth = q
         shape = torch.broadcast_shapes(first.spacing.shape, first.v_lead.shape)
         return DelayMemory(
             *(
-                value.expand(shape).unsqueeze(0).expand((depth, *shape)).contiguous()
+                value.expand(shape)
+                .unsqueeze(0)
+                .expand((int(depth), *shape))
+                .contiguous()
                 for value in (first.spacing, first.v_lead)
-            )
+            ),
+            torch.zeros((), dtype=torch.int64, device=first.spacing.device),
         )
 
     def perceive(self, q, obs, memory):
-        (weights,) = q
+        whole, fraction, depth = q
+        # A ring buffer: the newest entry at `head`, the one j steps ago at
+        # head - j (mod depth); each step writes one entry and reads two, whatever
+        # the depth (a shifted copy of the whole history would cost depth x more).
+        head = torch.remainder(memory.head + 1, depth)
         # The leader's speed arrives broadcast over particles in the full layout.
         shape = memory.spacing.shape[1:]
-        spacing = torch.cat((obs.spacing.expand(shape)[None], memory.spacing[:-1]))
-        v_lead = torch.cat((obs.v_lead.expand(shape)[None], memory.v_lead[:-1]))
-        delayed = obs._replace(
-            spacing=(weights * spacing).sum(0), v_lead=(weights * v_lead).sum(0)
-        )
-        return delayed, DelayMemory(spacing, v_lead)
+        # index_copy_ with a tensor index: no host sync, one graph when compiled
+        slot = head.reshape(1)
+        memory.spacing.index_copy_(0, slot, obs.spacing.expand(shape)[None])
+        memory.v_lead.index_copy_(0, slot, obs.v_lead.expand(shape)[None])
+        newer = torch.remainder(head - whole, depth).expand(shape)[None]
+        older = torch.remainder(head - whole - 1, depth).expand(shape)[None]
+
+        def past(history: Tensor) -> Tensor:
+            recent, earlier = history.gather(0, newer)[0], history.gather(0, older)[0]
+            return (1.0 - fraction) * recent + fraction * earlier
+
+        delayed = obs._replace(spacing=past(memory.spacing), v_lead=past(memory.v_lead))
+        return delayed, DelayMemory(memory.spacing, memory.v_lead, head)
 
 
 class Anticipation(Effect):
