@@ -811,3 +811,16 @@ def test_grade_reads_the_absolute_position(road):
     assert float(out.x[:, :, 1].max()) < 200.0  # pair 1 never reaches the grade
     assert float(out.x[:, :, 2].min()) > 500.0  # pair 2 is past it
     assert float(gap[1]) == 0.0 and float(gap[2]) == 0.0
+
+
+def test_a_road_profile_at_a_nan_position_is_nan_not_an_error():
+    """An exploding rollout reaches a NaN position: the profile must stay NaN
+    (the rollout is then invalid), not index out of bounds."""
+    for token in ("grade(start=0,end=600,knots=4)", "bend(start=0,end=600,knots=4)"):
+        effect = parse_effect(token)
+        values = effect.prepare(
+            tuple(torch.tensor([0.01 * (k + 1)]) for k in range(4)), DT
+        )
+        position = torch.tensor([float("nan"), 300.0, float("inf"), -float("inf")])
+        out = effect.profile(values, position)
+        assert torch.isnan(out[0]) and torch.isfinite(out[1:]).all()

@@ -430,7 +430,9 @@ class RoadProfile(Effect):
             return values[0] + 0.0 * position
         spacing = (self.end - self.start) / (self.knots - 1)
         u = (torch.clamp(position, self.start, self.end) - self.start) / spacing
-        left = torch.clamp(torch.floor(u), 0, self.knots - 2)
+        # A NaN position (an exploding rollout) reads knot 0; its NaN fraction
+        # keeps the value NaN, so the rollout is still caught as invalid.
+        left = torch.nan_to_num(torch.clamp(torch.floor(u), 0, self.knots - 2), nan=0.0)
         fraction = u - left
         shape = torch.broadcast_shapes(values.shape[1:], position.shape)
         values = values.expand((self.knots, *shape))
