@@ -146,7 +146,7 @@ def _road(road: dict[str, Any] | None) -> list[str]:
         )
         lines.append(
             f"`{profile['effect']}`: knots {profile['spacing']:g} m apart, chosen "
-            "by 5-fold cross-validation over pairs of the fit windows' "
+            "by 5-fold cross-validation over pairs of the fit windows' one-step "
             f"acceleration residual on the profile (held-out squared error: "
             f"{errors})."
         )
