@@ -9,13 +9,23 @@ re-calibrated hybrid's particles that carry the effect) and the test-split WS
 and minimum distance before (the pool searched as the re-calibration) and
 after. Writes ``reports/loop_cases.{json,md}``.
 
-    python tools/loop_cases.py
-    python tools/loop_cases.py --cases delay control
+Two more cases plant a measurement effect in the paper's CAR MODEL II pairs
+(train and test; needs ``TORCHCF_DATA``), where the driving is real and only the
+plant is known: every leader position shifted by +3 m (the follower then seems
+to keep 3 m more: ``offset`` -3 m), and the leader's log advanced by 0.5 s
+against the follower's (the follower then seems to react 0.5 s late: ``delay``
+0.5 s on top of whatever it had). Their pool is CAR MODEL II's active models
+(GFM, IDM, HL).
+
+    python tools/loop_cases.py                       # the synthetic cases
+    python tools/loop_cases.py --cases "planted offset (CAR II)" \
+        "planted leader shift (CAR II)" --name loop_cases_planted
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import tempfile
 import time
@@ -27,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
 from torchcf.config import validate_config  # noqa: E402
+from torchcf.data import PairSet, load_pairs  # noqa: E402
 from torchcf.pipeline import close_loop, train_and_evaluate  # noqa: E402
 from torchcf.synthetic import synthetic_pairs  # noqa: E402
 
@@ -53,15 +64,17 @@ CASES = {
         {"d_offset": -4.0, "t_delay": 0.8},
     ),
     "control (IDM)": ("idm", IDM, [], {}),
+    "planted offset (CAR II)": ("car-model-2", [3.0], ["offset"], {}),
+    "planted leader shift (CAR II)": ("car-model-2", [0.5], ["delay"], {}),
     "control (LLCTG)": ("llctg", LLCTG, [], {}),
 }
 
 
-def config(n_particles: int = 40_000):
+def config(n_particles: int = 40_000, models=("idm", "llctg")):
     return validate_config(
         {
             "data": {"path": "synthetic"},
-            "models": ["idm", "llctg"],
+            "models": list(models),
             "abc": {"n_particles": n_particles, "sensitivity_n": [5]},
             "compile": "off",
             "diagnose": {"n_particles": n_particles},
@@ -69,14 +82,42 @@ def config(n_particles: int = 40_000):
     )
 
 
-def run_case(name: str) -> dict:
-    model, theta, expected, truth = CASES[name]
+def planted(pairs: PairSet, case: str, amount: float) -> PairSet:
+    """Real pairs with a measurement effect planted: leader positions shifted by
+    ``amount`` [m], or the leader's log advanced by ``amount`` [s] (the last
+    steps, which have no leader record then, are cut)."""
+    if "offset" in case:
+        return dataclasses.replace(pairs, x_lead=pairs.x_lead + amount)
+    k = int(round(amount / pairs.dt))
+    fields = {
+        name: torch.cat((series[k:], series[-1:].expand(k, -1)))
+        for name, series in pairs.series().items()
+        if name.endswith("_lead")
+    }
+    valid = pairs.mask.sum(0) - k  # (N,) steps left per pair
+    mask = torch.arange(pairs.n_steps)[:, None] < valid[None, :]
+    return dataclasses.replace(pairs, **fields, mask=mask)
+
+
+def case_pairs(name: str) -> tuple[PairSet, PairSet, tuple[str, ...]]:
+    """The case's (train, test) pairs and its pool."""
+    model, theta, _, _ = CASES[name]
+    if model in ("car-model-2",):
+        train, test = (load_pairs(model, split=s) for s in ("train", "test"))
+        train, test = (planted(p, name, theta[0]) for p in (train, test))
+        return train, test, ("gfm", "idm", "hl")
     train = synthetic_pairs(model, theta, 24, 500, seed=1, noise=0.05)
     test = synthetic_pairs(model, theta, 12, 500, seed=2, noise=0.05)
+    return train, test, ("idm", "llctg")
+
+
+def run_case(name: str) -> dict:
+    model, theta, expected, truth = CASES[name]
+    train, test, pool = case_pairs(name)
     began = time.perf_counter()
     with tempfile.TemporaryDirectory() as folder:
         out = Path(folder) / "run"
-        train_and_evaluate(config(), out, pairs=(train, test))
+        train_and_evaluate(config(models=pool), out, pairs=(train, test))
         result = close_loop(out, pairs=(train, test), progress=False)
     chosen = [e.split("(")[0] for e in result["chosen"]]
     recovered = {
@@ -114,8 +155,10 @@ def markdown(payload: dict) -> str:
         "# The loop on data with undeclared effects",
         "",
         f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
-        f"git {meta['git']}. Pool IDM + LLCTG, 40 000 particles per model, 24 "
-        "training and 12 test pairs of 50 s per case; the loop at its defaults "
+        f"git {meta['git']}. Synthetic cases: pool IDM + LLCTG, 24 training and 12 "
+        "test pairs of 50 s; planted cases: CAR MODEL II's pairs (44 training, 17 "
+        "test), pool GFM + IDM + HL; 40 000 particles per model; the loop at its "
+        "defaults "
         "(10 candidate effects, forward selection over at most 3 steps, "
         "Bonferroni over 27 tests, SMC re-calibration beside the pool searched "
         "the same way). WS and minimum distance: test split, before (the pool "
@@ -150,7 +193,8 @@ def _fmt(value) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cases", nargs="+", default=list(CASES), choices=CASES)
+    synthetic = [name for name in CASES if not name.startswith("planted")]
+    parser.add_argument("--cases", nargs="+", default=synthetic, choices=CASES)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--name", default="loop_cases")
     args = parser.parse_args(argv)
