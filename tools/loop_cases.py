@@ -142,6 +142,7 @@ def run_case(name: str) -> dict:
             "p_value": first["p_value"],
         },
         "threshold": result["threshold"],
+        "n_effects": len(result["effects_ranked"]),
         "ws": [before.get("ws"), result["after"].get("ws")],
         "min": [before.get("min"), result["after"].get("min")],
         "identifiability": result["identifiability"],
@@ -159,8 +160,9 @@ def markdown(payload: dict) -> str:
         "test pairs of 50 s; planted cases: CAR MODEL II's pairs (44 training, 17 "
         "test), pool GFM + IDM + HL; 40 000 particles per model; the loop at its "
         "defaults "
-        "(10 candidate effects, forward selection over at most 3 steps, "
-        "Bonferroni over 27 tests, SMC re-calibration beside the pool searched "
+        f"({payload['cases'][0]['n_effects']} candidate effects, forward selection "
+        "over at most 3 steps, Bonferroni over every test it can make, SMC "
+        "re-calibration beside the pool searched "
         "the same way). WS and minimum distance: test split, before (the pool "
         "searched as the re-calibration) -> after.",
         "",

@@ -34,6 +34,7 @@ LEADER_LENGTH = 5.0
 WEIGHTS = (0.5, 0.3, 0.2)
 #: Parameters of each effect (by hand, in the documented order); grade: one per knot.
 EFFECT_PARAMS = {
+    "sync": 1,
     "offset": 1,
     "delay": 1,
     "asymmetry": 2,
@@ -44,6 +45,7 @@ EFFECT_PARAMS = {
     "lag": 1,
 }
 CANONICAL = (
+    "sync",
     "offset",
     "delay",
     "anticipation",
@@ -169,6 +171,7 @@ def reference_rollout(
     n_steps = len(xl)
     x, v, a = float(xo[0]), float(vo[0]), float(ao[0])
     hist_s, hist_vl = [], []  # perceived (after offset) values at 0 .. t
+    hist_xl, hist_vls = [], []  # the leader's recorded position and speed (sync)
     held = None  # action points: (command, dv, spacing) at the last one
     xs, vs, accs = [], [], []
     sq = [0.0, 0.0, 0.0]
@@ -176,6 +179,19 @@ def reference_rollout(
     for t in range(n_steps):
         s_true = float(xl[t]) - x
         s_p, vl_p = s_true, float(vl[t])
+        if "sync" in q:  # the leader's record t_sync ago, own position now
+            hist_xl.append(float(xl[t]))
+            hist_vls.append(float(vl[t]))
+            steps = q["sync"][0] / DT
+            k = math.floor(steps)
+            f = steps - k
+
+            def past_sync(h, j, t=t):
+                return h[max(t - j, 0)]
+
+            xl_p = (1 - f) * past_sync(hist_xl, k) + f * past_sync(hist_xl, k + 1)
+            s_p = xl_p - x
+            vl_p = (1 - f) * past_sync(hist_vls, k) + f * past_sync(hist_vls, k + 1)
         if "offset" in q:
             s_p = s_p + q["offset"][0]
         if "delay" in q:
@@ -264,6 +280,13 @@ GRADE4 = {"start": 0.0, "end": 600.0, "knots": 4}
 
 # (name, base, {effect: options}, theta rows)
 CASES = [
+    ("idm+sync", "idm", {"sync": {}}, [IDM + [0.5], IDM_B + [1.23], IDM + [0.0]]),
+    (
+        "llctg+sync+offset+delay",
+        "llctg",
+        {"sync": {}, "offset": {}, "delay": {}},
+        [LLCTG + [0.7, -1.5, 0.4], LLCTG_B + [0.25, 2.0, 1.1]],
+    ),
     ("idm+anticipation", "idm", {"anticipation": {}}, [IDM + [0.9], IDM_B + [1.8]]),
     (
         "llctg+delay+anticipation",
@@ -824,3 +847,24 @@ def test_a_road_profile_at_a_nan_position_is_nan_not_an_error():
         position = torch.tensor([float("nan"), 300.0, float("inf"), -float("inf")])
         out = effect.profile(values, position)
         assert torch.isnan(out[0]) and torch.isfinite(out[1:]).all()
+
+
+def test_sync_at_zero_is_the_model_up_to_rounding(road):
+    """t_sync = 0 perceives (s + x) - x: the model itself within rounding."""
+    theta = torch.tensor([IDM + [0.0]], dtype=torch.float64)
+    synced = simulate("idm+sync", theta, road, dtype=torch.float64, return_traj=True)
+    plain = simulate("idm", theta[:, :-1], road, dtype=torch.float64, return_traj=True)
+    torch.testing.assert_close(synced.x, plain.x, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(synced.score, plain.score, rtol=1e-9, atol=1e-9)
+
+
+def test_sync_differs_from_a_delay(road):
+    """A log offset delays the leader only; a perception delay delays the whole
+    spacing (the follower's own position too)."""
+    synced = simulate(
+        "idm+sync", torch.tensor([IDM + [0.8]]), road, dtype=torch.float64
+    )
+    delayed = simulate(
+        "idm+delay", torch.tensor([IDM + [0.8]]), road, dtype=torch.float64
+    )
+    assert bool((synced.score - delayed.score).abs().max() > 1e-3)

@@ -1,14 +1,16 @@
 """Effects: composable augmentations of any car-following model.
 
 An effect adds something no candidate model has — a perception delay, an actuation
-lag, a sensor offset, a road grade... — with its own named parameters and uniform
-priors, without touching the model's equations. It acts at one of three places of
-the step (:mod:`torchcf.models.base`):
+lag, a sensor offset, a road grade, a clock offset between the logs... — with its
+own named parameters and uniform priors, without touching the model's equations.
+It acts at one of three places of the step (:mod:`torchcf.models.base`):
 
 - **perception** (:meth:`Effect.perceive`): edits what the follower perceives before
-  the model's command (``offset``, ``delay``); may carry memory between steps;
-- **command** (:meth:`Effect.act`): edits the command after the model
-  (``asymmetry``, ``saturation``, ``resistance``, ``grade``);
+  the model's command (``sync``, ``offset``, ``delay``, ``anticipation``); may
+  carry memory between steps;
+- **command** (:meth:`Effect.act`, or :meth:`Effect.act_with_memory`): edits the
+  command after the model (``asymmetry``, ``saturation``, ``resistance``,
+  ``action``, ``grade``, ``bend``);
 - **realisation** (:meth:`Effect.advance`): replaces how the command becomes motion
   (``lag``).
 
@@ -146,9 +148,10 @@ class Offset(Effect):
 
 
 class DelayMemory(namedtuple("DelayMemory", ["spacing", "v_lead", "head"])):
-    """Ring buffers ``(D, *state)`` of the perceived spacing and leader speed, and
-    ``head`` (int64, 0-dim), the slot of the newest entry: slot ``head - k (mod
-    D)`` holds the value ``k`` steps ago."""
+    """Ring buffers ``(D, *state)`` of the two remembered series (a delay: the
+    perceived spacing and leader speed; a sync: the leader's road position in
+    ``spacing`` and its speed), and ``head`` (int64, 0-dim), the slot of the
+    newest entry: slot ``head - k (mod D)`` holds the value ``k`` steps ago."""
 
 
 class Delay(Effect):
@@ -203,16 +206,25 @@ class Delay(Effect):
         # k = whole steps ago (int64), f = the fraction towards k + 1, the depth
         return (whole.long(), steps - whole, depth)
 
+    def remembered(self, obs: Perception) -> tuple[Tensor, Tensor]:
+        """What the history holds of a perception: spacing and leader speed."""
+        return obs.spacing, obs.v_lead
+
+    def recalled(self, obs: Perception, first: Tensor, second: Tensor) -> Perception:
+        """The perception with the history's values of ``t_delay`` ago."""
+        return obs._replace(spacing=first, v_lead=second)
+
     def initial_memory(self, q, first):
         _, _, depth = q
-        shape = torch.broadcast_shapes(first.spacing.shape, first.v_lead.shape)
+        values = self.remembered(first)
+        shape = torch.broadcast_shapes(*(v.shape for v in values))
         return DelayMemory(
             *(
                 value.expand(shape)
                 .unsqueeze(0)
                 .expand((int(depth), *shape))
                 .contiguous()
-                for value in (first.spacing, first.v_lead)
+                for value in values
             ),
             torch.zeros((), dtype=torch.int64, device=first.spacing.device),
         )
@@ -227,8 +239,9 @@ class Delay(Effect):
         shape = memory.spacing.shape[1:]
         # index_copy_ with a tensor index: no host sync, one graph when compiled
         slot = head.reshape(1)
-        memory.spacing.index_copy_(0, slot, obs.spacing.expand(shape)[None])
-        memory.v_lead.index_copy_(0, slot, obs.v_lead.expand(shape)[None])
+        now_first, now_second = self.remembered(obs)
+        memory.spacing.index_copy_(0, slot, now_first.expand(shape)[None])
+        memory.v_lead.index_copy_(0, slot, now_second.expand(shape)[None])
         newer = torch.remainder(head - whole, depth).expand(shape)[None]
         older = torch.remainder(head - whole - 1, depth).expand(shape)[None]
 
@@ -236,8 +249,61 @@ class Delay(Effect):
             recent, earlier = history.gather(0, newer)[0], history.gather(0, older)[0]
             return (1.0 - fraction) * recent + fraction * earlier
 
-        delayed = obs._replace(spacing=past(memory.spacing), v_lead=past(memory.v_lead))
+        delayed = self.recalled(obs, past(memory.spacing), past(memory.v_lead))
         return delayed, DelayMemory(memory.spacing, memory.v_lead, head)
+
+
+class Sync(Delay):
+    """A clock offset between the leader's and the follower's logs: the data show
+    the leader ``t_sync`` early, so the follower, reacting to the leader's state
+    at the same time, perceives the leader's *recorded* position and speed
+    ``t_sync`` ago and its own current position:
+
+    ``s' = x_lead(t - t_sync) - x(t)``, ``v_lead' = v_lead(t - t_sync)``
+
+    (a ``delay`` also delays the follower's own position in the spacing; two
+    logs out of step do not). A measurement effect of the data, so it acts first
+    in a name. Interpolation and history as in :class:`Delay`; the history holds
+    the leader's road position, which needs the follower's (``uses_position``).
+
+    Args:
+        max_sync: longest offset the history holds [s].
+    """
+
+    name = "sync"
+    uses_position = True
+
+    def __init__(self, max_sync: float = 1.5) -> None:
+        super().__init__(max_delay=max_sync)
+        self.param_specs = (
+            spec("t_sync", "s", 0.0, self.max_delay, "leader log ahead of follower's"),
+        )
+
+    def options(self):
+        return {} if self.max_delay == 1.5 else {"max_sync": self.max_delay}
+
+    def check_bounds(self, box):
+        low, high = float(box[0, 0]), float(box[0, 1])
+        if low < 0 or high > self.max_delay:
+            raise ValueError(
+                f"sync: t_sync prior [{low:g}, {high:g}] s must lie in "
+                f"[0, max_sync = {self.max_delay:g}] (raise it with "
+                f"'sync(max_sync=...)')"
+            )
+
+    def prepare(self, q, dt):
+        (t_sync,) = q
+        if bool(((t_sync < 0) | (t_sync > self.max_delay)).any()):
+            raise ValueError(f"sync: t_sync outside [0, {self.max_delay:g}] s")
+        return super().prepare(q, dt)
+
+    def remembered(self, obs):
+        if obs.position is None:
+            raise ValueError("sync: the rollout gave no road position")
+        return obs.spacing + obs.position, obs.v_lead
+
+    def recalled(self, obs, first, second):
+        return obs._replace(spacing=first - obs.position, v_lead=second)
 
 
 class Anticipation(Effect):
@@ -522,6 +588,7 @@ EFFECTS: dict[str, type[Effect]] = {
     # Shared (road) effects last: a shared value is then always the trailing
     # parameters of a name, which the engines append to every particle.
     for cls in (
+        Sync,
         Offset,
         Delay,
         Anticipation,
