@@ -180,19 +180,19 @@ def test_proposals_per_pair_count_the_prior_round_and_the_rest():
 
 
 # ------------------------------------------------------------ the search
-def test_the_prior_round_is_the_rejection_engines(mixture, monkeypatch):
-    """Round 0's population, per pair, is the best `population` of the first n_0
-    particles of the model's prior stream: exactly rejection's buffer."""
-    settings = SMCSettings(**SETTINGS)
+def _recorded_rounds(mixture, monkeypatch, n_particles, settings):
+    """An IDM refinement on the mixture (seed 1), recording at every round's end
+    the accepted set (before it becomes the population) and the population
+    after."""
     rollout = Rollout(mixture, dtype=torch.float64, compile="off")
     bounds = get_model("idm").prior_bounds(torch.float64)
-    budget = smc_budget(4000, mixture.n_pairs, settings)
-    seen = []
+    accepted, populations = [], []
     real = smc._next_population
 
     def record(state, *args):
-        seen.append({k: v.clone() for k, v in state.accepted.state_dict().items()})
-        return real(state, *args)
+        accepted.append({k: v.clone() for k, v in state.accepted.state_dict().items()})
+        real(state, *args)
+        populations.append({k: v.clone() for k, v in state.population.items()})
 
     monkeypatch.setattr(smc, "_next_population", record)
     state = new_state(mixture.n_pairs, settings, 6)
@@ -202,11 +202,20 @@ def test_the_prior_round_is_the_rejection_engines(mixture, monkeypatch):
         1,
         TopN(mixture.n_pairs, 5, 7),
         rollout,
-        4000,
+        n_particles,
         settings,
         ModelProgress(),
         state,
     )
+    return rollout, bounds, accepted, populations
+
+
+def test_the_prior_round_is_the_rejection_engines(mixture, monkeypatch):
+    """Round 0's population, per pair, is the best `population` of the first n_0
+    particles of the model's prior stream: exactly rejection's buffer."""
+    settings = SMCSettings(**SETTINGS)
+    budget = smc_budget(4000, mixture.n_pairs, settings)
+    rollout, bounds, seen, _ = _recorded_rounds(mixture, monkeypatch, 4000, settings)
     reference = TopN(mixture.n_pairs, settings.population, 6)
     run_rejection(
         prior_stream("idm", bounds, 1, rollout),
@@ -230,28 +239,7 @@ def test_the_population_keeps_its_members_under_the_next_threshold(
     displaced it; so the per-pair threshold never rises and a population never
     falls below half its size (median thresholds)."""
     settings = SMCSettings(**SETTINGS)
-    rollout = Rollout(mixture, dtype=torch.float64, compile="off")
-    bounds = get_model("idm").prior_bounds(torch.float64)
-    populations = []
-    real = smc._next_population
-
-    def record(state, *args):
-        real(state, *args)
-        populations.append({k: v.clone() for k, v in state.population.items()})
-
-    monkeypatch.setattr(smc, "_next_population", record)
-    state = new_state(mixture.n_pairs, settings, 6)
-    run_smc(
-        "idm",
-        bounds,
-        1,
-        TopN(mixture.n_pairs, 5, 7),
-        rollout,
-        6000,
-        settings,
-        ModelProgress(),
-        state,
-    )
+    *_, populations = _recorded_rounds(mixture, monkeypatch, 6000, settings)
     assert len(populations) == settings.rounds + 1
     for before, after in zip(populations, populations[1:], strict=False):
         epsilon = smc._thresholds(before["score"], settings.quantile)

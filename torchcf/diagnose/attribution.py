@@ -395,12 +395,14 @@ class Selection:
         chosen: the chosen effect tokens, in the order chosen.
         models: the final model: the pool and the variants of the chosen
             effects (what the re-calibration trains).
+        steps_at_most: the selection's steps at most, ``min(max_effects, E)``.
         tests: ``T``, the tests the guard counts; threshold: ``alpha / T``.
     """
 
     steps: list[list[dict[str, Any]]]
     chosen: list[str]
     models: list[str]
+    steps_at_most: int
     tests: int
     threshold: float
 
@@ -485,7 +487,7 @@ def attribute_effects(
                 shared[parse_effect(row["effect"]).name] = value
             arm = fit_arm(arena, models, tuple(chosen), shared, bar)
     bar.close()
-    return Selection(steps, chosen, models, tests, threshold)
+    return Selection(steps, chosen, models, steps_at_most, tests, threshold)
 
 
 __all__ = [

@@ -397,6 +397,7 @@ def finish_loop(plan: LoopPlan) -> dict[str, Any]:
         "steps": plan.selection.steps,
         "chosen": plan.chosen,
         "models_after": plan.selection.models,
+        "steps_at_most": plan.selection.steps_at_most,
         "tests": plan.selection.tests,
         "threshold": plan.selection.threshold,
         "alpha": plan.cfg.diagnose.alpha,

@@ -87,7 +87,7 @@ def _ranking(result: dict[str, Any], figure: str) -> list[str]:
         "effects chosen before); the significant effect with the largest gain is "
         "chosen, and the others are tested again with it. **Guard**: the "
         "family-wise level counts every test the selection can make, "
-        f"{n_effects} effects over at most {_steps_at_most(result, n_effects)} "
+        f"{n_effects} effects over at most {result['steps_at_most']} "
         f"steps = {result['tests']} tests, so an effect is significant at p < "
         f"alpha / {result['tests']} = {result['threshold']:.2g} (Bonferroni, "
         f"alpha {result['alpha']}) with a gain >= {result['min_gain']:.0%}.",
@@ -151,15 +151,6 @@ def _road(road: dict[str, Any] | None) -> list[str]:
             f"{errors})."
         )
     return [*lines, ""]
-
-
-def _steps_at_most(result: dict[str, Any], n_effects: int) -> int:
-    """The selection's steps at most, from the tests counted."""
-    steps, tests = 0, 0
-    while tests < result["tests"] and steps < n_effects:
-        tests += n_effects - steps
-        steps += 1
-    return steps
 
 
 def _chosen(result: dict[str, Any]) -> list[str]:

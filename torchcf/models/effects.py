@@ -169,10 +169,13 @@ class Delay(Effect):
 
     name = "delay"
     stage = "perception"
+    #: the option naming the history's length in a name, and its default [s]
+    option: ClassVar[str] = "max_delay"
+    default_history: ClassVar[float] = 3.0
 
     def __init__(self, max_delay: float = 3.0) -> None:
         if not max_delay > 0:
-            raise ValueError(f"delay: max_delay must be > 0, got {max_delay}")
+            raise ValueError(f"{self.name}: {self.option} must be > 0, got {max_delay}")
         self.max_delay = float(max_delay)
         # Reaction times of drivers and ACC controllers: 0.5-2.5 s (commercial ACC
         # response times of 1.7-2.5 s are reported); the prior covers 0-3 s, or
@@ -181,15 +184,18 @@ class Delay(Effect):
         self.param_specs = (spec("t_delay", "s", 0.0, high, "perception delay"),)
 
     def options(self):
-        return {} if self.max_delay == 3.0 else {"max_delay": self.max_delay}
+        if self.max_delay == self.default_history:
+            return {}
+        return {self.option: self.max_delay}
 
     def check_bounds(self, box):
         low, high = float(box[0, 0]), float(box[0, 1])
         if low < 0 or high > self.max_delay:
+            param = self.param_specs[0].name
             raise ValueError(
-                f"delay: t_delay prior [{low:g}, {high:g}] s must lie in "
-                f"[0, max_delay = {self.max_delay:g}] (raise it with "
-                f"'delay(max_delay=...)')"
+                f"{self.name}: {param} prior [{low:g}, {high:g}] s must lie in "
+                f"[0, {self.option} = {self.max_delay:g}] (raise it with "
+                f"'{self.name}({self.option}=...)')"
             )
 
     def depth(self, dt: float) -> int:
@@ -199,7 +205,8 @@ class Delay(Effect):
     def prepare(self, q, dt):
         (t_delay,) = q
         if bool(((t_delay < 0) | (t_delay > self.max_delay)).any()):
-            raise ValueError(f"delay: t_delay outside [0, {self.max_delay:g}] s")
+            param = self.param_specs[0].name
+            raise ValueError(f"{self.name}: {param} outside [0, {self.max_delay:g}] s")
         steps = t_delay / dt
         whole = torch.floor(steps)
         depth = torch.full((), self.depth(dt), dtype=torch.int64, device=steps.device)
@@ -272,30 +279,14 @@ class Sync(Delay):
 
     name = "sync"
     uses_position = True
+    option = "max_sync"
+    default_history = 1.5
 
     def __init__(self, max_sync: float = 1.5) -> None:
         super().__init__(max_delay=max_sync)
         self.param_specs = (
             spec("t_sync", "s", 0.0, self.max_delay, "leader log ahead of follower's"),
         )
-
-    def options(self):
-        return {} if self.max_delay == 1.5 else {"max_sync": self.max_delay}
-
-    def check_bounds(self, box):
-        low, high = float(box[0, 0]), float(box[0, 1])
-        if low < 0 or high > self.max_delay:
-            raise ValueError(
-                f"sync: t_sync prior [{low:g}, {high:g}] s must lie in "
-                f"[0, max_sync = {self.max_delay:g}] (raise it with "
-                f"'sync(max_sync=...)')"
-            )
-
-    def prepare(self, q, dt):
-        (t_sync,) = q
-        if bool(((t_sync < 0) | (t_sync > self.max_delay)).any()):
-            raise ValueError(f"sync: t_sync outside [0, {self.max_delay:g}] s")
-        return super().prepare(q, dt)
 
     def remembered(self, obs):
         if obs.position is None:
