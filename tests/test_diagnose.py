@@ -1,13 +1,15 @@
-"""Closing the loop (torchcf.diagnose) on data with an undeclared effect.
+"""Closing the loop (torchcf.diagnose) on data with undeclared effects.
 
-Synthetic pairs are generated here from a pool model plus an effect the engine is
-not told about (torchcf.synthetic); the pool is calibrated without it, and the loop
-must find the effect, recover its parameter and lower the test WS by >= 15 %. A
-control set without an effect must give "none".
+Synthetic pairs are generated here from a model plus effects the engine is not
+told about (torchcf.synthetic); the pool (IDM, LLCTG) is calibrated without
+them, and the loop must choose them, recover their parameters and lower the
+test WS and minimum distance by >= 15 % against the pool searched the same way.
+Control sets without an effect must give "none".
 
 Covered: a 0.8 s perception delay on IDM, a 1 s actuation lag on LLCTG, a -5 m
-spacing-sensor offset on IDM, a road grade (+5 % / -4 % / +5 % over 1200 m) under
-LLCTG, and a control set without an effect.
+spacing-sensor offset on IDM, a road grade (+5 % / -4 % / +5 % over 1200 m)
+under LLCTG, a 1.2 s delay on a Gipps follower (outside the pool), a -4 m
+offset with a 0.8 s delay together, and two controls (IDM, LLCTG).
 """
 
 from __future__ import annotations
@@ -37,24 +39,54 @@ from torchcf.diagnose.candidates import (
     model_bounds,
     prior_particles,
 )
+from torchcf.models import AugmentedModel, parse_effect
 from torchcf.pipeline import close_loop, train_and_evaluate
 from torchcf.posterior import Posterior
-from torchcf.synthetic import synthetic_pairs
+from torchcf.synthetic import Gipps, synthetic_pairs
 from torchcf.train import train
 
 IDM_TRUTH = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
 LLCTG_TRUTH = [1.0, 0.6, 0.8, 5.0]
+GIPPS_TRUTH = [1.5, 2.5, 3.0, 30.0, 0.8, 7.0]
 
-#: case -> (generating model, true parameters, (added parameter, truth, tolerance))
+#: case -> (generating model, true parameters, the effects to choose,
+#: {added parameter: (truth, tolerance)})
 CASES = {
-    "delay": ("idm+delay", IDM_TRUTH + [0.8], ("t_delay", 0.8, 0.2)),
-    "lag": ("llctg+lag", LLCTG_TRUTH + [1.0], ("t_lag", 1.0, 0.25)),
-    "offset": ("idm+offset", IDM_TRUTH + [-5.0], ("d_offset", -5.0, 1.0)),
+    "delay": ("idm+delay", IDM_TRUTH + [0.8], ["delay"], {"t_delay": (0.8, 0.2)}),
+    "lag": ("llctg+lag", LLCTG_TRUTH + [1.0], ["lag"], {"t_lag": (1.0, 0.25)}),
+    "offset": (
+        "idm+offset",
+        IDM_TRUTH + [-5.0],
+        ["offset"],
+        {"d_offset": (-5.0, 1.0)},
+    ),
     # The profile's knots differ from those the loop fits (it spans the pairs'
     # road section), so only the gain is checked.
-    "grade": ("llctg+grade(start=0,end=1200)", LLCTG_TRUTH + [0.05, -0.04, 0.05], None),
-    "control": ("idm", IDM_TRUTH, None),
+    "grade": (
+        "llctg+grade(start=0,end=1200)",
+        LLCTG_TRUTH + [0.05, -0.04, 0.05],
+        ["grade"],
+        {},
+    ),
+    # No pool model is Gipps: the pool's IDM + delay stands in for Gipps' own
+    # relaxation over tau as well, so the delay comes out short (0.7 s in
+    # reports/loop_cases.md) and is not checked; the choice and the gain are.
+    "delay, Gipps": (
+        AugmentedModel(Gipps(), [parse_effect("delay")]),
+        GIPPS_TRUTH + [1.2],
+        ["delay"],
+        {},
+    ),
+    "offset + delay": (
+        "idm+offset+delay",
+        IDM_TRUTH + [-4.0, 0.8],
+        ["offset", "delay"],
+        {"d_offset": (-4.0, 1.0), "t_delay": (0.8, 0.2)},
+    ),
+    "control": ("idm", IDM_TRUTH, [], {}),
+    "control, LLCTG": ("llctg", LLCTG_TRUTH, [], {}),
 }
+FOUND = [case for case, (_, _, expected, _) in CASES.items() if expected]
 #: Per model (training) and per variant (attribution): ~1700 per pair in the paired
 #: layout, enough to resolve the effects above.
 N_PARTICLES = 40_000
@@ -85,9 +117,9 @@ def loops(tmp_path_factory):
 
     def run(case):
         if case not in results:
-            model, theta, _ = CASES[case]
+            model, theta, _, _ = CASES[case]
             pairs = _pairs(model, theta)
-            out = tmp_path_factory.mktemp(case) / "run"
+            out = tmp_path_factory.mktemp(case.replace(" ", "")) / "run"
             train_and_evaluate(_config(), out, pairs=pairs)
             results[case] = (out, close_loop(out, pairs=pairs, progress=False))
         return results[case]
@@ -95,20 +127,26 @@ def loops(tmp_path_factory):
     return run
 
 
-@pytest.mark.parametrize("case", ["delay", "lag", "offset", "grade"])
-def test_the_undeclared_effect_is_found_and_helps(loops, case):
+@pytest.mark.parametrize("case", FOUND)
+def test_the_undeclared_effects_are_found_and_help(loops, case):
     out, result = loops(case)
+    _, _, expected, truths = CASES[case]
     ranked = result["effects_ranked"]
-    assert ranked[0]["name"] == case, [(r["effect"], r["gain"]) for r in ranked]
-    assert [e.split("(")[0] for e in result["chosen"]] == [case]
+    assert ranked[0]["name"] in expected, [(r["effect"], r["gain"]) for r in ranked]
+    assert sorted(e.split("(")[0] for e in result["chosen"]) == sorted(expected)
     # against the pool searched as the re-calibration (SMC): the effect's share
     before = result["before_same_search"] or result["before"]
     assert before["ws"] > 0
     assert result["after"]["ws"] <= 0.85 * before["ws"]
-    if CASES[case][2] is not None:
-        name, truth, tolerance = CASES[case][2]
-        (summary,) = result["posterior"].values()
-        assert abs(summary["params"][name]["median"] - truth) <= tolerance
+    assert result["after"]["min"] <= 0.85 * before["min"]
+    medians = {
+        name: stats["median"]
+        for summary in result["posterior"].values()
+        for name, stats in summary["params"].items()
+        if stats.get("n")
+    }
+    for name, (truth, tolerance) in truths.items():
+        assert abs(medians[name] - truth) <= tolerance, (name, medians[name])
     on_disk = json.loads((out / "loop.json").read_text())
     assert on_disk["chosen"] == result["chosen"]
     for key in ("effects_ranked", "chosen", "posterior", "before", "after"):
@@ -119,8 +157,9 @@ def test_the_undeclared_effect_is_found_and_helps(loops, case):
         assert (out / "loop" / f"{figure}.png").stat().st_size > 0
 
 
-def test_control_set_yields_no_effect(loops):
-    out, result = loops("control")
+@pytest.mark.parametrize("case", ["control", "control, LLCTG"])
+def test_control_set_yields_no_effect(loops, case):
+    out, result = loops(case)
     assert result["chosen"] == []
     assert result["after"] == result["before"]
     assert "No effect chosen" in (out / "loop.md").read_text()

@@ -1,4 +1,5 @@
-"""Tests of torchcf.residuals: calibration under the null, power, scipy references."""
+"""Tests of torchcf.residuals: calibration under the null, power, scipy and
+statsmodels references."""
 
 from __future__ import annotations
 
@@ -219,6 +220,61 @@ def test_wald_uses_hac_covariance() -> None:
     beta = np.linalg.lstsq(x, e, rcond=None)[0]
     cov = rs.newey_west_cov(x, e - x @ beta, 5)
     assert r.statistic == pytest.approx(beta[1] ** 2 / cov[1, 1], rel=1e-10)
+
+
+def test_ljung_box_matches_statsmodels() -> None:
+    sm_diag = pytest.importorskip("statsmodels.stats.diagnostic")
+    x = _ar1(np.random.default_rng(14), 400, 0.3)
+    for h in (1, 5, 12):
+        ours = rs.ljung_box(x, lags=h)
+        theirs = sm_diag.acorr_ljungbox(x, lags=[h])
+        q, p = (float(theirs[k].iloc[0]) for k in ("lb_stat", "lb_pvalue"))
+        assert ours.statistic == pytest.approx(q, rel=1e-10)
+        assert ours.p_value == pytest.approx(p, abs=1e-12)
+
+
+def test_newey_west_and_wald_match_statsmodels() -> None:
+    sm = pytest.importorskip("statsmodels.api")
+    rng = np.random.default_rng(15)
+    n = 600
+    v = _speed(rng, n)
+    e = 0.02 * (v - 17.5) + _ar1(rng, n, 0.8, 0.3)
+    x = sm.add_constant(v)
+    for bw in (None, 3, 12):
+        lags = rs.newey_west_bandwidth(n) if bw is None else bw
+        fit = sm.OLS(e, x).fit(
+            cov_type="HAC", cov_kwds={"maxlags": lags, "use_correction": False}
+        )
+        u = e - x @ fit.params
+        ours_cov = rs.newey_west_cov(x, u, lags)
+        np.testing.assert_allclose(ours_cov, fit.cov_params(), rtol=1e-10)
+        ours = rs.regression_test(e, {"v": v}, "v", bandwidth=bw)
+        wald = fit.wald_test(np.array([[0.0, 1.0]]), use_f=False, scalar=True)
+        assert ours.statistic == pytest.approx(float(wald.statistic), rel=1e-10)
+        assert ours.p_value == pytest.approx(float(wald.pvalue), rel=1e-8, abs=1e-14)
+
+
+def test_pooled_hac_matches_statsmodels_panel_hac() -> None:
+    """Pairs pooled with one intercept and per-pair Newey-West meats summed is
+    statsmodels' ``hac-panel`` covariance with the pairs as groups."""
+    sm = pytest.importorskip("statsmodels.api")
+    rng = np.random.default_rng(16)
+    n, pairs, bw = 300, 3, 6
+    v = [_speed(rng, n) for _ in range(pairs)]
+    e = [0.01 * (x - 17.5) + _ar1(rng, n, 0.7, 0.2) for x in v]
+    ours = rs.regression_test(e, {"v": v}, "v", bandwidth=bw)
+    x = sm.add_constant(np.concatenate(v))
+    fit = sm.OLS(np.concatenate(e), x).fit(
+        cov_type="hac-panel",
+        cov_kwds={
+            "groups": np.repeat(np.arange(pairs), n),
+            "maxlags": bw,
+            "use_correction": False,
+        },
+    )
+    assert ours.effect["v"] == pytest.approx(float(fit.params[1]), rel=1e-10)
+    wald = fit.wald_test(np.array([[0.0, 1.0]]), use_f=False, scalar=True)
+    assert ours.statistic == pytest.approx(float(wald.statistic), rel=1e-10)
 
 
 # ---------------------------------------------------------------- (f) edge cases

@@ -17,9 +17,12 @@ from torchcf.data import DataError, load_pairs
 from torchcf.data.reader import FILES
 from torchcf.diagnose import candidate_effects
 from torchcf.diagnose.road import (
+    BEND_SEED_MARGIN,
     ROAD_SPACINGS,
+    bend_seed,
     choose_spacing,
     grade_seed,
+    profile_agreement,
     shares_road_frame,
 )
 from torchcf.models.effects import GRAVITY, parse_effect
@@ -122,3 +125,40 @@ def test_meta_json_declares_the_road_frame(tmp_path):
     (folder / "meta.json").write_text(json.dumps({"dt": 0.1, "road_frame": "yes"}))
     with pytest.raises(DataError, match="road_frame"):
         load_pairs(str(folder))
+
+
+def test_profile_agreement_compares_profiles_whatever_their_knots():
+    positions = torch.linspace(0.0, 1000.0, 101, dtype=torch.float64)
+    # One line on [0, 1000] m, written with 2 and with 5 knots: the same profile.
+    coarse = {"grade_0": 0.02, "grade_1": -0.02}
+    fine = {f"grade_{k}": 0.02 - 0.01 * k for k in range(5)}
+    two, five = "grade(start=0,end=1000,knots=2)", "grade(start=0,end=1000,knots=5)"
+    assert profile_agreement(two, coarse, five, fine, positions) == pytest.approx(1.0)
+    flipped = {k: -v for k, v in fine.items()}
+    assert profile_agreement(two, coarse, five, flipped, positions) == pytest.approx(
+        -1.0
+    )
+    # A bump the coarse line cannot follow: correlation well below 1.
+    bump = {f"grade_{k}": [0.0, 0.0, 0.05, 0.0, 0.0][k] for k in range(5)}
+    assert abs(profile_agreement(two, coarse, five, bump, positions)) < 0.1
+    with pytest.raises(ValueError, match="not a road effect"):
+        profile_agreement("delay", {"t_delay": 1.0}, two, coarse, positions)
+
+
+def test_bend_seed_finds_the_speed_limit_the_followers_press_against():
+    """Followers slowed to 12 m/s at 600 m by a bend the leaders ignore: the
+    seed's knot there is the limit plus the margin; where no pair drives, the
+    prior's top (no limit)."""
+    limit = [25.0, 12.0, 25.0]
+    pairs = synthetic_pairs(
+        "idm+bend(start=0,end=1200)", IDM_TRUTH + limit, 12, 500, seed=4
+    )
+    x = [pairs.x_follow[:, j].numpy() for j in range(pairs.n_pairs)]
+    v = [pairs.v_follow[:, j].numpy() for j in range(pairs.n_pairs)]
+    bend = parse_effect("bend(start=0,end=2400,knots=5)")  # knots 600 m apart
+    seed = bend_seed(bend, x, v)
+    # Within 50 m of the knot the limit reaches 13.1 m/s, and speeds trail a
+    # falling limit (the driver brakes towards it over 1 s).
+    assert seed[1].item() == pytest.approx(limit[1] + BEND_SEED_MARGIN, abs=1.5)
+    assert seed[4].item() == bend.param_specs[4].upper  # 2400 m: nobody gets there
+    assert seed[0].item() > seed[1].item() + 2.0

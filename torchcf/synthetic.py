@@ -5,19 +5,75 @@ sinusoidal fluctuations and braking/re-acceleration events) and drives followers
 with a given model — pool model or effect-augmented, e.g. ``"idm+delay"`` — through
 :func:`torchcf.simulate`. Calibrating a pool *without* the effect on such data is
 how the close-the-loop tests check that the effect is found.
+
+:class:`Gipps` is a follower *outside* the pool (not in the model registry):
+data it drives test the loop where no candidate model is the truth, as with a
+user's data.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from .data import PairSet
-from .models import get_model
+from .models import CFModel, get_model
+from .models.base import Perception, spec
 from .sim import simulate
+
+
+class GippsParams(NamedTuple):
+    a: Tensor
+    b: Tensor
+    b_lead: Tensor
+    v0: Tensor
+    tau: Tensor
+    size: Tensor
+
+
+class Gipps(CFModel):
+    """Gipps (1981) safe-speed follower, written as an acceleration command.
+
+    Over one reaction time ``tau`` the driver reaches the smaller of a free-road
+    speed and the largest speed from which it can still stop behind a leader that
+    brakes at ``b_lead``:
+
+    ``v_free = v + 2.5 a tau (1 - v / v0) sqrt(0.025 + v / v0)``,
+    ``v_safe = -b tau + sqrt(b^2 tau^2 + b (2 (s - size) - v tau
+    + v_lead^2 / b_lead))``,
+    ``u = (max(0, min(v_free, v_safe)) - v) / tau`` [m/s^2],
+
+    ``s`` the front-to-front spacing [m] and ``size`` the leader's effective
+    length with the standstill margin [m]; a negative root argument (a spacing
+    too short to stop) reads 0. Not in the registry: no pool model is Gipps, so
+    it stands for the unknown truth of measured data.
+    """
+
+    name = "gipps"
+    Params = GippsParams
+    param_specs = (
+        spec("a", "m/s^2", 0.5, 3.0, "maximum acceleration"),
+        spec("b", "m/s^2", 1.0, 5.0, "most severe braking the driver plans"),
+        spec("b_lead", "m/s^2", 1.0, 5.0, "the driver's estimate of the leader's"),
+        spec("v0", "m/s", 15.0, 40.0, "desired speed"),
+        spec("tau", "s", 0.3, 1.5, "reaction time (the update period)"),
+        spec("size", "m", 4.0, 10.0, "leader length plus standstill margin"),
+    )
+
+    def command(self, p: GippsParams, obs: Perception) -> Tensor:
+        v = obs.v
+        ratio = torch.clamp(v / p.v0, min=0.0)
+        v_free = v + 2.5 * p.a * p.tau * (1.0 - ratio) * torch.sqrt(0.025 + ratio)
+        root = (p.b * p.tau) ** 2 + p.b * (
+            2.0 * (obs.spacing - p.size) - v * p.tau + obs.v_lead**2 / p.b_lead
+        )
+        v_safe = -p.b * p.tau + torch.sqrt(torch.clamp(root, min=0.0))
+        target = torch.clamp(torch.minimum(v_free, v_safe), min=0.0)
+        return (target - v) / p.tau
 
 
 def leader_profiles(
@@ -74,7 +130,7 @@ def leader_profiles(
 
 
 def synthetic_pairs(
-    model: str,
+    model: str | CFModel,
     theta: Tensor | Sequence[float],
     n_pairs: int,
     n_steps: int = 500,
@@ -89,7 +145,9 @@ def synthetic_pairs(
     """Pairs whose followers are driven by ``model`` with parameters ``theta``.
 
     Args:
-        model: registry name, effects allowed (``"idm+delay"``).
+        model: registry name, effects allowed (``"idm+delay"``), or a model
+            object (e.g. :class:`Gipps`, or one wrapped by effects:
+            ``AugmentedModel(Gipps(), [parse_effect("delay")])``).
         theta: ``(K,)`` one particle for every pair, or ``(N, K)`` (N = ``n_pairs``),
             one per pair.
         initial_gap: range of the initial time gap [s]; the follower starts at
@@ -133,7 +191,9 @@ def synthetic_pairs(
         return_traj=True,
     )
     if not bool(out.valid.all()):
-        raise ValueError(f"{model}: some synthetic followers crash; change theta")
+        raise ValueError(
+            f"{cf_model.name}: some synthetic followers crash; change theta"
+        )
     x, v, a = out.x, out.v, out.a
     if noise > 0:
         x = x + noise * torch.randn(x.shape, generator=g, dtype=torch.float64)

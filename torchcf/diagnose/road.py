@@ -17,7 +17,8 @@ of the least held-out squared error wins (the one-standard-error rule of
 Hastie, Tibshirani & Friedman, *The Elements of Statistical Learning*, 7.10).
 The regression on all pairs also gives the grade search its first candidate
 (:func:`grade_seed`), which a random search in tens of knot values could not
-find.
+find; a bend's first candidate is the speed no follower exceeds near each knot
+(:func:`bend_seed`).
 
 Shapes: N pairs, T steps (:mod:`torchcf.typing`); residual series are per pair,
 valid steps only.
@@ -35,7 +36,7 @@ from torch import Tensor
 
 from ..data import PairSet
 from ..models import FollowerState, Perception, get_model
-from ..models.effects import GRAVITY, Grade, RoadProfile, parse_effect
+from ..models.effects import GRAVITY, Bend, Grade, RoadProfile, parse_effect
 from ..sim import realise
 from .series import BestParticles
 
@@ -46,6 +47,13 @@ FOLDS = 5
 #: Pairs whose first follower positions all lie within this much [m] are taken
 #: to have a frame each (unless the data declare otherwise).
 SAME_START = 1.0
+#: Margin [m/s] of a bend's first candidate over the highest speed driven at a
+#: knot (:func:`bend_seed`): a limit right at the envelope would cap the
+#: acceleration of every follower near it.
+BEND_SEED_MARGIN = 1.0
+#: Half-width [m] of the road stretch around a knot whose speeds give the
+#: bend's first candidate there (narrow: the limit changes between knots).
+BEND_SEED_WINDOW = 50.0
 #: Ridge added to the normal equations (relative to their trace), so knots no
 #: pair reaches stay at 0 instead of making the fit singular.
 RIDGE = 1e-6
@@ -94,8 +102,8 @@ def one_step_residual(best: BestParticles, pairs: PairSet) -> dict[str, list]:
         [m]) and ``acceleration``.
     """
     obs = {k: t.double().cpu() for k, t in pairs.series().items()}
-    out: dict[str, list[np.ndarray]] = {"x": [], "acceleration": []}
-    rows: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    out: dict[str, list[np.ndarray]] = {"x": [], "v": [], "acceleration": []}
+    rows: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     for name, (theta, position) in best.items():
         model = get_model(name)
         for row, j in enumerate(position.tolist()):
@@ -121,10 +129,10 @@ def one_step_residual(best: BestParticles, pairs: PairSet) -> dict[str, list]:
             command, _ = model.command_with_memory(params, perception, memory)
             moved = realise(model, params, state, command, pairs.dt)
             residual = (obs["v_follow"][1 : steps + 1, j] - moved.v) / pairs.dt
-            rows[j] = (state.x.numpy(), residual.numpy())
+            rows[j] = (state.x.numpy(), state.v.numpy(), residual.numpy())
     for j in sorted(rows):
-        out["x"].append(rows[j][0])
-        out["acceleration"].append(rows[j][1])
+        for key, values in zip(("x", "v", "acceleration"), rows[j], strict=True):
+            out[key].append(values)
     return out
 
 
@@ -179,7 +187,8 @@ class RoadChoice:
         spacing: the chosen knot spacing [m].
         errors: held-out squared error per spacing tried.
         standard_errors: its standard error per spacing.
-        seed: a first candidate of the knot values (grade: from the regression),
+        seed: a first candidate of the knot values (grade: from the regression;
+            bend: the speed envelope),
             or None.
     """
 
@@ -222,6 +231,8 @@ def choose_spacing(
     seed = None
     if isinstance(effect, Grade):
         seed = grade_seed(effect, x, residual)
+    elif isinstance(effect, Bend) and "v" in series:
+        seed = bend_seed(effect, x, series["v"])
     return RoadChoice(effect.token, best, errors, standard, seed)
 
 
@@ -236,15 +247,79 @@ def grade_seed(
     return torch.from_numpy(np.clip(-beta / GRAVITY, low, high))
 
 
+def profile_agreement(
+    reference: str,
+    reference_values: dict[str, float],
+    fitted: str,
+    fitted_values: dict[str, float],
+    positions: Tensor,
+) -> float:
+    """Pearson correlation of two road profiles over ``positions`` [m].
+
+    How well a learned profile (a chosen effect's name, e.g.
+    ``"grade(start=-49,end=1041,knots=4)"``, with its knot values by parameter
+    name) follows a known one (a survey, or the profile synthetic data were
+    made with), whatever their knots: both are evaluated at the same road
+    positions. Scale-free, so a profile of the right shape but damped amplitude
+    still scores high; compare amplitudes separately where they matter.
+
+    Args:
+        reference, fitted: road-effect tokens (:func:`parse_effect`).
+        reference_values, fitted_values: knot values by parameter name
+            (``grade_0 ...``), in the profile's unit.
+        positions: (G,) road positions [m], e.g. where the followers drove.
+
+    Returns:
+        The correlation in [-1, 1]; NaN when either profile is constant there.
+    """
+    curves = []
+    for token, values in ((reference, reference_values), (fitted, fitted_values)):
+        effect = parse_effect(token)
+        if not isinstance(effect, RoadProfile):
+            raise ValueError(f"{token!r} is not a road effect")
+        knots = torch.tensor(
+            [values[p.name] for p in effect.param_specs], dtype=torch.float64
+        )
+        # (knots, 1): one profile, broadcast over the (G,) positions
+        curves.append(effect.profile((knots[:, None],), positions.double()))
+    return float(torch.corrcoef(torch.stack(curves))[0, 1])
+
+
+def bend_seed(effect: Bend, x: list[np.ndarray], v: list[np.ndarray]) -> Tensor:
+    """Knot values (K,) of a speed limit no follower exceeds: at each knot, the
+    highest observed follower speed within :data:`BEND_SEED_WINDOW` of it (or
+    within half a knot spacing, where nobody drove that close) plus
+    :data:`BEND_SEED_MARGIN`, clipped to the prior; knots no pair reaches get
+    the prior's upper bound (no limit). A limit the driving presses against is
+    where it binds; the search starts there and moves knots up where it does
+    not."""
+    positions = np.concatenate(x)
+    speeds = np.concatenate(v)
+    half = (effect.end - effect.start) / max(effect.knots - 1, 1) / 2.0
+    low, high = effect.param_specs[0].lower, effect.param_specs[0].upper
+    seed = np.full(effect.knots, high)
+    for k, at in enumerate(effect.knot_positions):
+        for window in (min(half, BEND_SEED_WINDOW), half):
+            near = np.abs(positions - at) <= window
+            if near.any():
+                seed[k] = speeds[near].max() + BEND_SEED_MARGIN
+                break
+    return torch.from_numpy(np.clip(seed, low, high))
+
+
 __all__ = [
+    "BEND_SEED_MARGIN",
+    "BEND_SEED_WINDOW",
     "FOLDS",
     "ROAD_SPACINGS",
     "SAME_START",
     "RoadChoice",
+    "bend_seed",
     "choose_spacing",
     "cross_validated_error",
     "fit_window",
     "grade_seed",
     "one_step_residual",
+    "profile_agreement",
     "shares_road_frame",
 ]

@@ -183,7 +183,8 @@ def shared_value(
     Args:
         start: a first candidate (K_E,), tried in the first round with the
             members' finest perturbation (a grade profile from the residual
-            regression, :func:`torchcf.diagnose.road.grade_seed`).
+            regression, :func:`torchcf.diagnose.road.grade_seed`; a speed
+            limit from the speed envelope, :func:`~torchcf.diagnose.road.bend_seed`).
 
     Returns:
         the value (K_E,) and the box (K_E, 2) of the last round's resolution

@@ -1,0 +1,84 @@
+"""torchcf.synthetic: the Gipps follower outside the pool, and data it drives."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchcf.models import MODELS, AugmentedModel, Perception, get_model, parse_effect
+from torchcf.synthetic import Gipps, synthetic_pairs
+
+#: a, b, b_lead, v0, tau, size
+THETA = [1.5, 2.5, 3.0, 30.0, 0.8, 7.0]
+
+
+def _command(spacing: float, v: float, v_lead: float) -> float:
+    model = Gipps()
+    p = model.unpack(torch.tensor([THETA], dtype=torch.float64))
+    obs = Perception(
+        spacing=torch.tensor([spacing], dtype=torch.float64),
+        v=torch.tensor([v], dtype=torch.float64),
+        v_lead=torch.tensor([v_lead], dtype=torch.float64),
+        a=torch.zeros(1, dtype=torch.float64),
+        leader_length=5.0,
+    )
+    return float(model.command(p, obs)[0])
+
+
+def _by_hand(spacing: float, v: float, v_lead: float) -> float:
+    """Gipps (1981), eqs. (2) and (5), with b > 0 as braking, over one tau."""
+    a, b, b_lead, v0, tau, size = THETA
+    v_free = v + 2.5 * a * tau * (1 - v / v0) * math.sqrt(0.025 + v / v0)
+    root = b * b * tau * tau + b * (2 * (spacing - size) - v * tau + v_lead**2 / b_lead)
+    v_safe = -b * tau + math.sqrt(max(root, 0.0))
+    return (max(min(v_free, v_safe), 0.0) - v) / tau
+
+
+@pytest.mark.parametrize(
+    "spacing, v, v_lead",
+    [
+        (200.0, 15.0, 15.0),  # free road: the acceleration branch
+        (25.0, 15.0, 15.0),  # following: the safe-speed branch
+        (12.0, 15.0, 5.0),  # closing in fast: hard braking
+        (4.0, 10.0, 0.0),  # too close to stop: the root reads 0, target 0
+        (50.0, 0.0, 0.0),  # standing start
+    ],
+)
+def test_gipps_command_matches_the_hand_formula(spacing, v, v_lead):
+    assert _command(spacing, v, v_lead) == pytest.approx(
+        _by_hand(spacing, v, v_lead), rel=1e-12, abs=1e-12
+    )
+
+
+def test_gipps_is_outside_the_pool_but_takes_effects():
+    assert "gipps" not in MODELS
+    delayed = AugmentedModel(Gipps(), [parse_effect("delay")])
+    assert delayed.param_names == Gipps().param_names + ("t_delay",)
+    assert get_model(delayed) is delayed
+
+
+def test_a_delayed_gipps_follower_reacts_later():
+    """Data driven by a model object: valid followers, and a 1.2 s delay shows
+    as a later response to the leader's braking."""
+    plain = synthetic_pairs(Gipps(), THETA, 6, 500, seed=3)
+    delayed = synthetic_pairs(
+        AugmentedModel(Gipps(), [parse_effect("delay")]), THETA + [1.2], 6, 500, seed=3
+    )
+    assert torch.equal(plain.x_lead, delayed.x_lead)
+    for pairs in (plain, delayed):
+        assert bool((pairs.x_lead - pairs.x_follow > 0).all())
+
+    def lag_of_best_match(pairs) -> float:
+        lags = range(0, 40)
+        lead, follow = pairs.a_lead, pairs.a_follow
+        fit = [
+            float((follow[k:] * lead[: lead.shape[0] - k]).sum()) for k in lags
+        ]
+        return 0.1 * max(lags, key=lambda k: fit[k])
+
+    assert lag_of_best_match(delayed) - lag_of_best_match(plain) == pytest.approx(
+        1.2, abs=0.3
+    )
+    assert "gipps+delay" in delayed.notes[0]
