@@ -39,7 +39,8 @@ from torchcf.diagnose.candidates import (
     model_bounds,
     prior_particles,
 )
-from torchcf.models import AugmentedModel, parse_effect
+from torchcf.diagnose.road import profile_agreement
+from torchcf.models import AugmentedModel, get_model, parse_effect
 from torchcf.pipeline import close_loop, train_and_evaluate
 from torchcf.posterior import Posterior
 from torchcf.synthetic import Gipps, synthetic_pairs
@@ -61,7 +62,7 @@ CASES = {
         {"d_offset": (-5.0, 1.0)},
     ),
     # The profile's knots differ from those the loop fits (it spans the pairs'
-    # road section), so only the gain is checked.
+    # road section): the profiles are compared where the followers drove.
     "grade": (
         "llctg+grade(start=0,end=1200)",
         LLCTG_TRUTH + [0.05, -0.04, 0.05],
@@ -147,6 +148,14 @@ def test_the_undeclared_effects_are_found_and_help(loops, case):
     }
     for name, (truth, tolerance) in truths.items():
         assert abs(medians[name] - truth) <= tolerance, (name, medians[name])
+    if case == "grade":
+        model, theta, _, _ = CASES[case]
+        train_pairs, _ = _pairs(model, theta)
+        truth = dict(zip(get_model(model).param_names, theta, strict=True))
+        where = train_pairs.x_follow[train_pairs.mask][::10]
+        (chosen,) = result["chosen"]
+        token = model.split("+")[1]
+        assert profile_agreement(token, truth, chosen, medians, where) >= 0.8
     on_disk = json.loads((out / "loop.json").read_text())
     assert on_disk["chosen"] == result["chosen"]
     for key in ("effects_ranked", "chosen", "posterior", "before", "after"):

@@ -166,7 +166,7 @@ def run_case(name: str) -> dict:
     first = result["steps"][0][0]
     return {
         "case": name,
-        "model": get_model(model).name,
+        "model": model if isinstance(model, str) else model.name,
         "expected": expected,
         "chosen": chosen,
         "right": sorted(chosen) == sorted(expected),
@@ -195,6 +195,8 @@ def profile_correlation(
     """Correlation of the chosen road profile (knots at their posterior medians)
     with the generating one at the training followers' recorded positions; None
     when the case has no road effect or none was chosen."""
+    if model == "car-model-2":
+        return None  # real pairs: no road profile planted
     truth_model = get_model(model)
     true_effect = next(
         (e for e in getattr(truth_model, "effects", ()) if isinstance(e, RoadProfile)),
