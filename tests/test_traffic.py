@@ -45,7 +45,7 @@ def test_platoon_of_one_reproduces_simulate(dtype):
     pair = torch.arange(pairs.n_pairs).repeat(sampler.n_particles)
     sampler.assign(particle[:, None])  # (S, 1): one follower per scenario
     x_leader, v_leader, start = pair_leader(pairs, pair)
-    out = platoon(sampler, x_leader, v_leader, start=start)
+    out = platoon(sampler, x_leader, v_leader, start=start, safety=None)
     assert out.x.shape == (pairs.n_steps, particle.numel(), 1)
     assert out.x.dtype == dtype
 
@@ -114,6 +114,7 @@ def test_collisions_are_flagged_and_the_dynamics_kept():
         x_leader[:, None].expand(-1, 2),
         v_leader[:, None].expand(-1, 2),
         initial_spacing=30.0,
+        safety=None,
     )
     assert out.valid.tolist() == [True, False]
     step = int(out.collision_step[1, 0])
@@ -122,6 +123,35 @@ def test_collisions_are_flagged_and_the_dynamics_kept():
     # Nothing is clipped: the vehicle went on (no reversing, speed >= 0).
     assert float(out.spacing[-1, 1, 0]) < 0
     assert bool((out.v >= 0).all()) and bool((out.x.diff(dim=0) >= 0).all())
+
+
+def test_the_safety_layer_stops_the_sluggish_follower_and_counts_it():
+    """The same emergency stop with the layer on (the default): the weak
+    follower stops behind the leader, a leader length back at least, and only
+    it was overridden; the well-tuned one drives exactly as without a layer."""
+    n_steps = 400
+    t = torch.arange(n_steps, dtype=torch.float64) * 0.1
+    v_leader = torch.clamp(20.0 - 8.0 * torch.clamp(t - 5.0, min=0.0), min=0.0)
+    # Trapezoidal positions: a leader braking at 8 m/s^2 exactly (the
+    # rectangular sum above stops it v dt / 2 = 1 m shorter, as if harder).
+    x_leader = torch.cat(
+        (
+            torch.zeros(1, dtype=torch.float64),
+            torch.cumsum(0.05 * (v_leader[1:] + v_leader[:-1]), 0),
+        )
+    )
+    sampler = sampler_of({"llctg": [[1.2, 0.8, 1.5, 5.0], [1.0, 0.01, 0.01, 5.0]]})
+    sampler.assign(torch.tensor([[0], [1]]))
+    leaders = (x_leader[:, None].expand(-1, 2), v_leader[:, None].expand(-1, 2))
+    safe = platoon(sampler, *leaders, initial_spacing=30.0)
+    alone = platoon(sampler, *leaders, initial_spacing=30.0, safety=None)
+    assert safe.valid.all()
+    # to a few mm: the last braking step of the leader, cut at 0, is shorter
+    assert float(safe.spacing[:, 1, 0].min()) >= sampler.leader_length - 0.01
+    assert int(safe.interventions[1, 0]) > 0 and int(safe.interventions[0, 0]) == 0
+    torch.testing.assert_close(safe.x[:, 0], alone.x[:, 0], rtol=0, atol=0)
+    # braking no harder than the layer's 8 m/s^2
+    assert float(safe.a[:, 1, 0].min()) >= -8.0 - 1e-9
 
 
 # ----------------------------------------------------------------------- ring

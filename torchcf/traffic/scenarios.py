@@ -16,17 +16,24 @@ Every step is the calibration rollout's (SPEC section 2): each vehicle perceives
 its spacing to the vehicle ahead, its own speed and acceleration and the leader's
 speed at step t; the sampler returns every command in one call; the commands are
 realised by each model's own update (:func:`torchcf.sim.realise`); then all vehicles
-move at once. A one-vehicle platoon behind a measured leader is exactly
-:func:`torchcf.simulate`'s rollout of that pair.
+move at once. A one-vehicle platoon behind a measured leader, without the safety
+layer, is exactly :func:`torchcf.simulate`'s rollout of that pair.
 
-**Collisions.** The dynamics are never altered: a vehicle whose spacing drops to
-``<= 0`` (or is not a number: a state that blew up, whose spacing turns NaN at
-the latest one step later) is flagged in ``collision_step`` (the first step it
-happened, ``-1`` if never) and keeps being simulated by the same rules (speed
-``>= 0``, no reversing: it brakes as hard as its model commands at a non-positive
-spacing; vehicles may pass through each other). As in calibration, where such a
-rollout is invalid, a scenario with a collision is physically meaningless from
-that step on: ``output.valid`` is False for it.
+**Safety layer.** By default every vehicle's step is bounded by a safe speed
+(:class:`~torchcf.traffic.safety.SafetyLayer`: Gipps' bound, an emergency
+brake where the learned model would not stop in time); ``output.interventions``
+counts, per vehicle, the steps it overrode. ``safety=None`` runs the learned
+models alone.
+
+**Collisions.** Beyond the safety layer the dynamics are never altered: a
+vehicle whose spacing drops to ``<= 0`` (or is not a number: a state that blew
+up, whose spacing turns NaN at the latest one step later) is flagged in
+``collision_step`` (the first step it happened, ``-1`` if never) and keeps
+being simulated by the same rules (speed ``>= 0``, no reversing: it brakes as
+hard as its model commands at a non-positive spacing; vehicles may pass
+through each other). As in calibration, where such a rollout is invalid, a
+scenario with a collision is physically meaningless from that step on:
+``output.valid`` is False for it.
 
 **Precision.** The ring keeps each vehicle's spacing as a state and moves it by the
 step's displacements, ``s_i += dx_{i+1} - dx_i``, each ``dx`` computed by the
@@ -45,6 +52,7 @@ import torch
 from torch import Tensor
 
 from ..models import FollowerState
+from .safety import DEFAULT_SAFETY, SafetyLayer
 from .sampler import HybridSampler, increasing_root
 
 if TYPE_CHECKING:
@@ -85,6 +93,8 @@ class TrafficOutput(NamedTuple):
             NaN, ``-1`` if none.
         final: the state after the last step (:class:`RingState`, or the
             platoon's ``FollowerState`` of ``(S, n)`` road positions), to continue.
+        interventions: ``(S, n)`` int64, the steps at which the safety layer
+            overrode the vehicle's model (zeros without a layer).
     """
 
     time: Tensor | None
@@ -94,6 +104,7 @@ class TrafficOutput(NamedTuple):
     spacing: Tensor | None
     collision_step: Tensor
     final: Any
+    interventions: Tensor
 
     @property
     def collided(self) -> Tensor:
@@ -139,6 +150,7 @@ class _Recorder:
         # three cheap in-place operations per step, no host synchronisation.
         self.clear = torch.ones(shape, dtype=torch.bool, device=device)
         self.clear_steps = torch.zeros(shape, dtype=torch.long, device=device)
+        self.interventions = torch.zeros(shape, dtype=torch.long, device=device)
 
     def due(self, t: int) -> bool:
         return self.fields is not None and t % self.every == 0
@@ -159,11 +171,13 @@ class _Recorder:
         )
         if self.fields is None:
             empty = (None,) * 5
-            return TrafficOutput(*empty, collision_step, final)
+            return TrafficOutput(*empty, collision_step, final, self.interventions)
         steps = torch.arange(self.n_records, device=self.fields.device) * self.every
         time = steps.to(self.fields.dtype) * dt
         x, v, a, spacing = self.fields.unbind(0)
-        return TrafficOutput(time, x, v, a, spacing, collision_step, final)
+        return TrafficOutput(
+            time, x, v, a, spacing, collision_step, final, self.interventions
+        )
 
 
 def _maybe_compile(fn: Callable[..., Any], compile: bool) -> Callable[..., Any]:
@@ -210,19 +224,28 @@ def pair_leader(
 
 def _platoon_step(
     sampler: HybridSampler,
+    safety: SafetyLayer | None,
     x_lead: Tensor,
     v_lead: Tensor,
     state: FollowerState,
     origin: Tensor,
     last: bool,
-) -> tuple[Tensor, Tensor, FollowerState]:
-    """One step of the platoon: spacing, commands, realisation. ``(S, n)`` each."""
+) -> tuple[Tensor, Tensor, FollowerState, Tensor | None]:
+    """One step of the platoon: spacing, commands, realisation (bounded by the
+    safety layer, whose overrides are returned). ``(S, n)`` each."""
     x_ahead = torch.cat((x_lead[:, None], state.x[:, :-1]), dim=1)  # (S, n)
     v_ahead = torch.cat((v_lead[:, None], state.v[:, :-1]), dim=1)  # (S, n)
     spacing = x_ahead - state.x
     u = sampler(spacing, state.v, v_ahead, state.a, state.x + origin)
-    moved = state if last else sampler.advance(state.x, state.v, state.a, u)
-    return spacing, u, moved
+    if last:
+        return spacing, u, state, None
+    moved = sampler.advance(state.x, state.v, state.a, u)
+    if safety is None:
+        return spacing, u, moved, None
+    moved, overridden = safety.apply(
+        state, moved, spacing, v_ahead, sampler.dt, sampler.leader_length
+    )
+    return spacing, u, moved, overridden
 
 
 def platoon(
@@ -234,6 +257,7 @@ def platoon(
     initial_spacing: float | Tensor | None = None,
     record_every: int | None = 1,
     compile: bool = False,
+    safety: SafetyLayer | None = DEFAULT_SAFETY,
 ) -> TrafficOutput:
     """``n`` sampled followers behind a given leader, for ``S`` scenarios at once.
 
@@ -256,6 +280,9 @@ def platoon(
             default ``10 m + 1.5 s * v_leader(0)``.
         record_every: keep every this many steps' states (None: keep none).
         compile: fuse the step with ``torch.compile``.
+        safety: the collision-avoidance bound on every follower's step
+            (:mod:`torchcf.traffic.safety`; on by default); None: the learned
+            models alone (the calibration rollout exactly).
 
     Returns:
         :class:`TrafficOutput` with ``(T', S, n)`` road positions; ``final`` is
@@ -306,11 +333,13 @@ def platoon(
     recorder = _Recorder(
         record_every, n_steps, (n_scenarios, n_followers), dtype, device
     )
-    step = _maybe_compile(functools.partial(_platoon_step, sampler), compile)
+    step = _maybe_compile(functools.partial(_platoon_step, sampler, safety), compile)
     for t in range(n_steps):
         last = t == n_steps - 1
-        spacing, u, moved = step(x_lead[t], v_lead[t], state, shift, last)
+        spacing, u, moved, overridden = step(x_lead[t], v_lead[t], state, shift, last)
         recorder.check(spacing)
+        if overridden is not None:
+            recorder.interventions += overridden
         if recorder.due(t):
             recorded = torch.where(sampler.acceleration_is_state, state.a, u)
             recorder.record(t, state.x + shift, state.v, recorded, spacing)
@@ -323,17 +352,27 @@ def platoon(
 
 # --------------------------------------------------------------------- ring road
 def _ring_step(
-    sampler: HybridSampler, state: RingState, length: Tensor
-) -> tuple[RingState, Tensor]:
-    """One step on the ring: commands, realisation, spacing update. ``(S, n)``."""
+    sampler: HybridSampler,
+    safety: SafetyLayer | None,
+    state: RingState,
+    length: Tensor,
+) -> tuple[RingState, Tensor, Tensor | None]:
+    """One step on the ring: commands, realisation (bounded by the safety
+    layer, whose overrides are returned), spacing update. ``(S, n)``."""
     v_ahead = torch.roll(state.v, -1, dims=-1)  # vehicle i follows i + 1
     u = sampler(state.spacing, state.v, v_ahead, state.a, state.position)
     # From x = 0 the realised position is the displacement over the step.
-    moved = sampler.advance(torch.zeros_like(state.v), state.v, state.a, u)
+    here = FollowerState(torch.zeros_like(state.v), state.v, state.a)
+    moved = sampler.advance(here.x, here.v, here.a, u)
+    overridden = None
+    if safety is not None:
+        moved, overridden = safety.apply(
+            here, moved, state.spacing, v_ahead, sampler.dt, sampler.leader_length
+        )
     dx = moved.x  # (S, n), >= 0
     spacing = state.spacing + torch.roll(dx, -1, dims=-1) - dx
     position = torch.remainder(state.position + dx, length)
-    return RingState(spacing, moved.v, moved.a, position), u
+    return RingState(spacing, moved.v, moved.a, position), u, overridden
 
 
 def ring_initial_state(
@@ -468,6 +507,7 @@ def ring_road(
     perturbation: float = 1.0,
     record_every: int | None = 1,
     compile: bool = False,
+    safety: SafetyLayer | None = DEFAULT_SAFETY,
 ) -> TrafficOutput:
     """``n`` sampled vehicles on a single-lane ring, ``S`` rings at once.
 
@@ -487,6 +527,9 @@ def ring_road(
             back).
         record_every: keep every this many steps' states (None: keep none).
         compile: fuse the step with ``torch.compile``.
+        safety: the collision-avoidance bound on every vehicle's step
+            (:mod:`torchcf.traffic.safety`; on by default); None: the learned
+            models alone.
 
     Returns:
         :class:`TrafficOutput`; ``x`` is the ring coordinate in ``[0, L)``,
@@ -511,11 +554,13 @@ def ring_road(
     recorder = _Recorder(
         record_every, n_steps, (n_scenarios, n_vehicles), dtype, device
     )
-    step = _maybe_compile(functools.partial(_ring_step, sampler), compile)
+    step = _maybe_compile(functools.partial(_ring_step, sampler, safety), compile)
     for t in range(n_steps):
         previous = state
-        state, u = step(previous, ring)
+        state, u, overridden = step(previous, ring)
         recorder.check(previous.spacing)
+        if overridden is not None:
+            recorder.interventions += overridden
         if recorder.due(t):
             recorded = torch.where(sampler.acceleration_is_state, previous.a, u)
             recorder.record(
