@@ -327,7 +327,8 @@ def test_evaluate_costs_keys_and_consistency():
     out = evaluate_costs(score, e_p, e_v, e_a)
     assert set(out) == {
         "e_p", "e_v", "e_a", "min", "beta_ws", "ws", "sinkhorn", "sinkhorn_gap",
-        "valid_cells", "invalid_cells", "n_particles", "n_test",
+        "valid_cells", "invalid_cells", "n_particles", "n_test", "ws_valid",
+        "beta_ws_valid", "invalid_particles",
     }  # fmt: skip
     assert out["invalid_cells"] == 2 and out["valid_cells"] == 52
     assert (out["n_particles"], out["n_test"]) == (9, 6)
@@ -338,10 +339,33 @@ def test_evaluate_costs_keys_and_consistency():
     assert out["min"] == min_distance(masked)
     assert out["sinkhorn_gap"] == pytest.approx(out["sinkhorn"] - out["ws"], abs=0)
     assert out["min"] <= out["beta_ws"] <= out["ws"] <= out["sinkhorn"]
+    assert (out["ws_valid"], out["beta_ws_valid"]) == (out["ws"], out["beta_ws"])
+    assert out["invalid_particles"] == 0
     for key, value in out.items():
         expected = int if key in ("valid_cells", "invalid_cells") else None
+        expected = int if key == "invalid_particles" else expected
         expected = int if key.startswith("n_") else expected
         assert type(value) is (expected or float), key
+
+
+def test_ws_over_the_particles_valid_somewhere():
+    """A particle invalid on every test pair makes SPEC's WS infinite; the
+    report's second WS drops it (and only it) and counts it."""
+    rng = np.random.default_rng(2)
+    e_p, e_v, e_a = (rng.gamma(2.0, 1.0, (7, 5)) for _ in range(3))
+    score = 0.5 * e_p + 0.3 * e_v + 0.2 * e_a
+    score[4] = np.inf  # every rollout of particle 4 failed
+    score[1, 3] = np.inf  # particle 1 failed on one pair only: kept
+    out = evaluate_costs(score, e_p, e_v, e_a)
+    assert out["ws"] == math.inf and out["beta_ws"] == math.inf
+    kept = np.delete(score, 4, axis=0)
+    assert out["ws_valid"] == pytest.approx(lp_reference(kept, 1.0), abs=TOL)
+    assert out["beta_ws_valid"] == pytest.approx(lp_reference(kept, 0.15), abs=TOL)
+    assert out["invalid_particles"] == 1
+    assert out["min"] == min_distance(score)  # unchanged: it never needed row 4
+    # every particle invalid: nothing left to measure
+    none = evaluate_costs(np.full((2, 3), np.inf), *(np.ones((2, 3)),) * 3)
+    assert none["ws_valid"] == math.inf and none["invalid_particles"] == 2
 
 
 # ---------------------------------------------------------------------------

@@ -165,6 +165,21 @@ def test_metrics_table() -> None:
     assert "ours / paper" not in table
 
 
+def test_metrics_table_notes_ws_without_the_invalid_particles() -> None:
+    metrics = {
+        "hybrid": {"ws": math.inf, "beta_ws": math.inf, "ws_valid": 1.6234,
+                   "beta_ws_valid": 1.3621, "invalid_particles": 3,
+                   "n_particles": 480},
+        "gfm": {"ws": 2.0, "invalid_particles": 0},
+    }  # fmt: skip
+    table = metrics_table(metrics, ["gfm", "hybrid"])
+    assert table.rstrip().splitlines()[-1] == (
+        "Hybrid: 3 of 480 particles are invalid on every test pair, which makes "
+        "WS and 0.15-WS infinite; over the other particles WS 1.623, 0.15-WS 1.362."
+    )
+    assert "GFM:" not in table
+
+
 def test_metrics_table_with_paper() -> None:
     paper = {"ovm": {"e_p": 4.0}, "hybrid": {"e_p": 0.8, "ws": 5.0}}
     table = metrics_table(OURS, ["ovm", "hybrid"], paper=paper, digits=2)

@@ -73,9 +73,7 @@ def test_a_delayed_gipps_follower_reacts_later():
     def lag_of_best_match(pairs) -> float:
         lags = range(0, 40)
         lead, follow = pairs.a_lead, pairs.a_follow
-        fit = [
-            float((follow[k:] * lead[: lead.shape[0] - k]).sum()) for k in lags
-        ]
+        fit = [float((follow[k:] * lead[: lead.shape[0] - k]).sum()) for k in lags]
         return 0.1 * max(lags, key=lambda k: fit[k])
 
     assert lag_of_best_match(delayed) - lag_of_best_match(plain) == pytest.approx(

@@ -477,7 +477,13 @@ def evaluate_costs(
     Returns:
         ``{e_p, e_v, e_a, min, beta_ws, ws, sinkhorn, sinkhorn_gap}`` (float;
         ``inf`` when infeasible, NaN for an undefined mean or gap) and
-        ``{valid_cells, invalid_cells, n_particles, n_test}`` (int).
+        ``{valid_cells, invalid_cells, n_particles, n_test}`` (int); and,
+        because one particle invalid on every test pair makes SPEC's WS and
+        beta-WS infinite whatever the rest of the set does, the same two over
+        the particles valid on some test pair, ``ws_valid`` and
+        ``beta_ws_valid`` (equal to ``ws`` and ``beta_ws`` when no particle is
+        dropped; ``inf`` still where a test pair has no valid particle), with
+        ``invalid_particles`` (int) the number dropped.
     """
     beta = _check_beta(beta)
     sinkhorn_reg = _check_reg(sinkhorn_reg)
@@ -500,6 +506,19 @@ def evaluate_costs(
         n_particles=int(cost.shape[0]),
         n_test=int(cost.shape[1]),
     )
+    somewhere = valid.any(axis=1)  # (P,) valid on some test pair
+    dropped = int((~somewhere).sum())
+    if dropped == 0:
+        out.update(ws_valid=out["ws"], beta_ws_valid=out["beta_ws"])
+    elif dropped == cost.shape[0]:
+        out.update(ws_valid=math.inf, beta_ws_valid=math.inf)
+    else:
+        kept = cost[somewhere]
+        out.update(
+            ws_valid=wasserstein(kept).value,
+            beta_ws_valid=beta_wasserstein(kept, beta).value,
+        )
+    out["invalid_particles"] = dropped
     return out
 
 

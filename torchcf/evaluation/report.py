@@ -55,7 +55,9 @@ def metrics_table(
     The columns are :data:`METRIC_COLUMNS`. The ``"hybrid"`` row is bold. In each
     column the lowest finite value of ours is marked with a trailing ``*`` (all of
     them on a tie). A non-finite value prints as ``inf``, a missing entry or key as
-    ``–``. With ``paper``, each cell reads ``ours / paper``.
+    ``–``. With ``paper``, each cell reads ``ours / paper``. Entries with
+    particles invalid on every test pair get a line under the table with WS
+    and 0.15-WS over their other particles (``ws_valid``, ``beta_ws_valid``).
 
     Args:
         metrics: entry name -> metric key -> value (lower is better).
@@ -97,7 +99,29 @@ def metrics_table(
                 cell += f" / {strong}{reference}{strong}"
             cells.append(cell)
         lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    dropped = _without_invalid_particles(metrics, order, digits)
+    return "\n".join(lines + (["", *dropped] if dropped else [])) + "\n"
+
+
+def _without_invalid_particles(
+    metrics: Mapping[str, Mapping[str, float]], order: Sequence[str], digits: int
+) -> list[str]:
+    """A line per entry with particles invalid on every test pair: SPEC's WS
+    and 0.15-WS are then infinite, so the same over the other particles."""
+    lines = []
+    for name in order:
+        entry = metrics.get(name, {})
+        count = int(entry.get("invalid_particles") or 0)
+        if count == 0:
+            continue
+        lines.append(
+            f"{_display_name(name)}: {count} of {int(entry.get('n_particles', 0))} "
+            "particles are invalid on every test pair, which makes WS and 0.15-WS "
+            "infinite; over the other particles WS "
+            f"{_format(_lookup(metrics, name, 'ws_valid'), digits)}, 0.15-WS "
+            f"{_format(_lookup(metrics, name, 'beta_ws_valid'), digits)}."
+        )
+    return lines
 
 
 def relative_difference(
