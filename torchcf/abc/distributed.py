@@ -137,6 +137,12 @@ class Group:
             buffer.merge(score, index, theta)
         return int(counts[:, 0].sum()), bool(counts[0, 1])
 
+    def sum(self, value: int) -> int:
+        """``value`` summed over the ranks (itself in a single process)."""
+        if not self.distributed:
+            return value
+        return int(self._all_gather(torch.tensor([value], dtype=torch.int64)).sum())
+
     def on_main(self, fn: Callable[..., T], *args: Any) -> T:
         """Run ``fn(*args)`` on rank 0 and hand its result to every rank.
 

@@ -38,6 +38,7 @@ from ..data import PairSet
 from ..models import CFModel, get_model
 from ..sim import COMPILE_CHUNK_MULTIPLE, DEFAULT_WEIGHTS, resolve_compile, simulate
 from .distributed import SINGLE, Group
+from .screen import PlausibilityScreen
 from .streams import ParticleStream
 from .topn import TopN
 
@@ -143,12 +144,17 @@ class ModelProgress:
         invalid: invalid rollouts among them (cells, in the full layout).
         seconds: simulation and selection time spent on them.
         done: the stream is finished.
+        implausible: particles the plausibility filter rejected, scored
+            ``+inf`` like invalid rollouts; only particles that would otherwise
+            have entered the buffer are tested, so this counts those
+            (:mod:`torchcf.abc.screen`).
     """
 
     next: int = 0
     invalid: int = 0
     seconds: float = 0.0
     done: bool = False
+    implausible: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -156,6 +162,7 @@ class ModelProgress:
             "invalid": self.invalid,
             "seconds": self.seconds,
             "done": self.done,
+            "implausible": self.implausible,
         }
 
 
@@ -181,6 +188,7 @@ def run_rejection(
     plan_particles: int | None = None,
     checkpoint_due: Callable[[], bool] | None = None,
     after_round: Callable[[ModelProgress, bool], None] | None = None,
+    screen: PlausibilityScreen | None = None,
 ) -> None:
     """Stream particles ``progress.next .. n_particles - 1`` through ``buffer``.
 
@@ -205,6 +213,7 @@ def run_rejection(
             learns rank 0's answer).
         after_round: called after every round with the progress and whether a
             checkpoint is due.
+        screen: the plausibility filter (:mod:`torchcf.abc.screen`), or None.
     """
     simulated = get_model(model if model is not None else stream.model)
     planned = plan_particles if plan_particles is not None else n_particles
@@ -214,14 +223,26 @@ def run_rejection(
     for first in range(progress.next, n_particles, round_size):
         began = time.perf_counter()
         start, stop = group.shard(first, n_particles, chunk)
-        invalid = 0
+        invalid = implausible = 0
         if start < stop:
-            invalid = _push_chunk(
-                stream, buffer, rollout, simulated, start, stop, chunk, compiled, fixed
+            invalid, implausible = _push_chunk(
+                stream,
+                buffer,
+                rollout,
+                simulated,
+                start,
+                stop,
+                chunk,
+                compiled,
+                fixed,
+                screen,
             )
         due = checkpoint_due() if checkpoint_due is not None else False
         invalid, due = group.end_round(buffer, invalid, due)
+        if screen is not None:
+            implausible = group.sum(implausible)
         progress.invalid += invalid
+        progress.implausible += implausible
         progress.next = min(first + round_size, n_particles)
         progress.seconds += time.perf_counter() - began
         if after_round is not None:
@@ -238,8 +259,10 @@ def _push_chunk(
     chunk: int,
     compiled: bool,
     fixed: Tensor | None,
-) -> int:
-    """Draw, simulate and push particles ``start .. stop - 1``; their invalid count.
+    screen: PlausibilityScreen | None = None,
+) -> tuple[int, int]:
+    """Draw, simulate, screen and push particles ``start .. stop - 1``; their
+    invalid count and the number the screen rejected.
 
     A whole chunk is simulated (the particles past ``stop`` dropped) where the
     batch size matters: a compiled block sees one shape per model, and a model
@@ -255,11 +278,16 @@ def _push_chunk(
     score, valid = rollout.score(model, theta, pair, chunk=chunk, compiled=compiled)
     real = stop - start
     particle = torch.arange(start, stop)
+    score, theta = score[:real], theta[:real]
+    pair = pair[:real] if rollout.paired else None
+    rejected = 0
+    if screen is not None:
+        score, rejected = screen.screen(model, buffer, score, particle, theta, pair)
     if rollout.paired:
-        buffer.push(pair[:real], score[:real], particle, theta[:real])
+        buffer.push(pair, score, particle, theta)
     else:
-        buffer.push_full(score[:real], particle, theta[:real])
-    return int((~valid[:real]).sum())
+        buffer.push_full(score, particle, theta)
+    return int((~valid[:real]).sum()), rejected
 
 
 __all__ = [

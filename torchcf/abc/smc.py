@@ -79,6 +79,7 @@ from torch import Tensor
 from ..models import CFModel, get_model
 from .distributed import SINGLE, Group
 from .rejection import ModelProgress, Rollout
+from .screen import PlausibilityScreen
 from .streams import ParticleStream, uniforms
 from .topn import TopN
 
@@ -321,6 +322,7 @@ def run_smc(
     group: Group = SINGLE,
     checkpoint_due: Callable[[], bool] | None = None,
     after_round: Callable[[ModelProgress, bool], None] | None = None,
+    screen: PlausibilityScreen | None = None,
 ) -> None:
     """Run one model's refinement to its end (module docstring).
 
@@ -341,7 +343,8 @@ def run_smc(
             simulated (a shared effect's one value for all pairs); the buffers
             hold the searched parameters only.
         group: the processes sharing the work.
-        checkpoint_due, after_round: as in :func:`~torchcf.abc.run_rejection`.
+        checkpoint_due, after_round, screen: as in
+            :func:`~torchcf.abc.run_rejection`.
     """
     if not rollout.paired:
         raise ValueError("SMC refines per pair: it needs the paired layout")
@@ -364,7 +367,7 @@ def run_smc(
         for first in range(state.next, size, round_size):
             began = time.perf_counter()
             start, stop = group.shard(first, size, chunk)
-            invalid = 0
+            invalid = implausible = 0
             if start < stop:
                 if kernel is None:  # round 0: the prior stream, r = 1
                     theta, pair = stream.draw(start, stop)
@@ -374,7 +377,7 @@ def run_smc(
                     theta, log_r, pair = _proposals(
                         kernel, bounds, seed, key, start, stop, budget.per_pair
                     )
-                invalid = _offer(
+                invalid, implausible = _offer(
                     _Chunk(theta, log_r, pair, budget.first_index(state.round) + start),
                     fixed,
                     model,
@@ -386,11 +389,15 @@ def run_smc(
                     bounds,
                     chunk,
                     compiled,
+                    screen,
                 )
             due = checkpoint_due() if checkpoint_due is not None else False
             invalid, due = group.end_round([buffer, state.accepted], invalid, due)
+            if screen is not None:
+                implausible = group.sum(implausible)
             state.next = min(first + round_size, size)
             progress.invalid += invalid
+            progress.implausible += implausible
             progress.next = budget.first_index(state.round) + state.next
             progress.seconds += time.perf_counter() - began
             if after_round is not None:
@@ -449,14 +456,16 @@ def _offer(
     bounds: Tensor,
     chunk: int,
     compiled: bool,
-) -> int:
+    screen: PlausibilityScreen | None = None,
+) -> tuple[int, int]:
     """Simulate the in-box proposals and offer them to both buffers (the
-    accepted set only below the round's threshold); their invalid count."""
+    accepted set only below the round's threshold); their invalid count and
+    the number the plausibility screen rejected."""
     theta, log_r, pair, first_index = proposals
     index = first_index + torch.arange(theta.shape[0])
     inside = torch.isfinite(log_r).nonzero().squeeze(1)
     if not inside.numel():
-        return 0
+        return 0, 0
     theta, pair, index = theta[inside], pair[inside], index[inside]
     # One batch size for every simulate call where it matters (as the rejection
     # engine's whole chunks): a compiled block's one shape, and a model that
@@ -474,13 +483,23 @@ def _offer(
     # log r is filled in at the end of the round (_weigh_round), for the entries
     # that are still held then, in one canonical batch.
     rows = torch.cat((theta, torch.zeros(theta.shape[0], 1, dtype=theta.dtype)), 1)
+    whole = simulated[: theta.shape[0]]  # the simulated parameters, fixed ones too
+    rejected = 0
+    if screen is not None:
+        score, rejected = screen.screen(model, buffer, score, index, whole, pair)
     buffer.push(pair, score, index, rows)
     epsilon = torch.full((buffer.n_pairs,), math.inf, dtype=torch.float64)
     if kernel is not None:
         epsilon = _thresholds(state.population["score"], settings.quantile)
     accepted = torch.where(score <= epsilon[pair], score, math.inf)
+    if screen is not None:
+        # Candidates of the accepted set the buffer's screen did not reach.
+        accepted, more = screen.screen(
+            model, state.accepted, accepted, index, whole, pair
+        )
+        rejected += more
     state.accepted.push(pair, accepted, index, rows)
-    return int((~valid).sum())
+    return int((~valid).sum()), rejected
 
 
 def _weigh_round(

@@ -32,6 +32,7 @@ import copy
 import difflib
 import hashlib
 import json
+import math
 import typing
 from collections.abc import Sequence
 from pathlib import Path
@@ -59,6 +60,7 @@ __all__ = [
     "ConfigError",
     "DataConfig",
     "DiagnoseConfig",
+    "PlausibilityConfig",
     "EvalConfig",
     "ModelSpec",
     "SMCConfig",
@@ -437,6 +439,62 @@ class EvalConfig(BaseModel):
     )
 
 
+class PlausibilityConfig(BaseModel):
+    """Plausibility of particles in closed loop (:mod:`torchcf.traffic.battery`).
+
+    With ``filter`` on, calibration rejects particles that collide in the
+    battery (emergency braking to a stop, stop-and-go, a cut-in, a standstill
+    start) before they enter the buffers, as if their rollout were invalid
+    (:mod:`torchcf.abc.screen`).
+    """
+
+    model_config = _STRICT
+
+    filter: bool = Field(
+        False,
+        description=(
+            "Reject particles that collide in the battery during calibration "
+            "(counted per model as 'implausible')."
+        ),
+    )
+    reject_string_unstable: bool = Field(
+        False,
+        description=(
+            "With filter: also reject particles whose homogeneous platoon "
+            "amplifies a disturbance (string-stability ratio > 1)."
+        ),
+    )
+    speed: float | None = Field(
+        None,
+        gt=0,
+        description=(
+            "Cruise speed of the scenarios [m/s]; None: the training pairs' "
+            "95th-percentile leader speed."
+        ),
+    )
+    decelerations: list[float] = Field(
+        [4.0, 6.0, 8.0],
+        min_length=1,
+        description="Decelerations of the braking leader [m/s^2], each > 0.",
+    )
+    collision_spacing: float = Field(
+        0.0,
+        ge=0,
+        description=(
+            "Front-to-front spacing at or below which a follower has collided "
+            "[m]; 0 is the traffic module's criterion, the leader length bumper "
+            "contact."
+        ),
+    )
+
+    @field_validator("decelerations")
+    @classmethod
+    def _positive(cls, values: list[float]) -> list[float]:
+        if not all(math.isfinite(v) and v > 0 for v in values):
+            raise ValueError(f"every deceleration must be > 0 m/s^2, got {values}")
+        return values
+
+
 class DiagnoseConfig(BaseModel):
     """Close the loop after training (``python -m torchcf.diagnose RUN_DIR``).
 
@@ -600,6 +658,10 @@ class TrainConfig(BaseModel):
     eval: EvalConfig = Field(EvalConfig(), description="Evaluation on the test pairs.")
     diagnose: DiagnoseConfig = Field(
         DiagnoseConfig(), description="Closing the loop (residuals -> effects)."
+    )
+    plausibility: PlausibilityConfig = Field(
+        PlausibilityConfig(),
+        description="Plausibility of particles in closed loop (battery, filter).",
     )
     output: str | None = Field(
         None,

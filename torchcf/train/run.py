@@ -47,6 +47,7 @@ from .. import __version__
 from ..abc.distributed import SINGLE, Group
 from ..abc.hybrid import Selection, hybrid_posterior, pairwise_table, select
 from ..abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
+from ..abc.screen import PlausibilityScreen
 from ..abc.smc import (
     SMCSettings,
     SMCState,
@@ -69,6 +70,7 @@ from ..posterior import Posterior
 from ..rundir import RunDir
 from ..runtime import tune_malloc
 from ..tblog import RunLogger, markdown_summary
+from ..traffic.battery import Battery, battery_speed
 
 CHECKPOINT_FORMAT = "torchcf.checkpoint/1"
 
@@ -302,6 +304,24 @@ class _Checkpointer:
         self.last = time.perf_counter()
 
 
+def plausibility_screen(cfg: TrainConfig, pairs: PairSet) -> PlausibilityScreen | None:
+    """The calibration's plausibility filter (``plausibility.filter``), its
+    scenarios at the training pairs' dt, leader length and (unless set)
+    95th-percentile leader speed; None when the filter is off."""
+    settings = cfg.plausibility
+    if not settings.filter:
+        return None
+    speed = settings.speed or battery_speed(pairs.v_lead, pairs.mask)
+    battery = Battery(
+        speed=speed,
+        decelerations=tuple(settings.decelerations),
+        collision_spacing=settings.collision_spacing,
+        dt=pairs.dt,
+        leader_length=pairs.leader_length,
+    )
+    return PlausibilityScreen(battery, settings.reject_string_unstable)
+
+
 def _stream_model(
     cfg: TrainConfig,
     name: str,
@@ -331,10 +351,15 @@ def _stream_model(
         disable=not group.is_main,
     )
 
+    screen = plausibility_screen(cfg, rollout.pairs)
+
     def after_round(progress: ModelProgress, due: bool) -> None:
         bar.update(progress.next - bar.n)
         invalid_rate = progress.invalid / (progress.next * rollout.cells_per_particle)
-        bar.set_postfix_str(f"invalid {invalid_rate:.1%}", refresh=False)
+        postfix = f"invalid {invalid_rate:.1%}"
+        if screen is not None:
+            postfix += f", implausible {progress.implausible}"
+        bar.set_postfix_str(postfix, refresh=False)
         logger.progress(
             name,
             particles=progress.next,
@@ -361,6 +386,7 @@ def _stream_model(
                 group=group,
                 checkpoint_due=checkpointer.due,
                 after_round=after_round,
+                screen=screen,
             )
         else:
             run_rejection(
@@ -372,6 +398,7 @@ def _stream_model(
                 group=group,
                 checkpoint_due=checkpointer.due,
                 after_round=after_round,
+                screen=screen,
             )
     progress.done = True
     checkpointer.save()
@@ -407,6 +434,7 @@ def _summary(
             "particles": progress.next,
             "invalid": progress.invalid,
             "invalid_rate": progress.invalid / max(progress.next * cells, 1),
+            "implausible": progress.implausible,
             "seconds": round(progress.seconds, 3),
             "particles_per_s": progress.next / max(progress.seconds, 1e-9),
             "best_score": _finite_or_none(float(buffer.score[:, 0].min())),
