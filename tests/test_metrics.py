@@ -328,7 +328,7 @@ def test_evaluate_costs_keys_and_consistency():
     assert set(out) == {
         "e_p", "e_v", "e_a", "min", "beta_ws", "ws", "sinkhorn", "sinkhorn_gap",
         "valid_cells", "invalid_cells", "n_particles", "n_test", "ws_valid",
-        "beta_ws_valid", "invalid_particles",
+        "beta_ws_valid", "particles_never_valid",
     }  # fmt: skip
     assert out["invalid_cells"] == 2 and out["valid_cells"] == 52
     assert (out["n_particles"], out["n_test"]) == (9, 6)
@@ -340,10 +340,10 @@ def test_evaluate_costs_keys_and_consistency():
     assert out["sinkhorn_gap"] == pytest.approx(out["sinkhorn"] - out["ws"], abs=0)
     assert out["min"] <= out["beta_ws"] <= out["ws"] <= out["sinkhorn"]
     assert (out["ws_valid"], out["beta_ws_valid"]) == (out["ws"], out["beta_ws"])
-    assert out["invalid_particles"] == 0
+    assert out["particles_never_valid"] == 0
     for key, value in out.items():
         expected = int if key in ("valid_cells", "invalid_cells") else None
-        expected = int if key == "invalid_particles" else expected
+        expected = int if key == "particles_never_valid" else expected
         expected = int if key.startswith("n_") else expected
         assert type(value) is (expected or float), key
 
@@ -361,11 +361,11 @@ def test_ws_over_the_particles_valid_somewhere():
     kept = np.delete(score, 4, axis=0)
     assert out["ws_valid"] == pytest.approx(lp_reference(kept, 1.0), abs=TOL)
     assert out["beta_ws_valid"] == pytest.approx(lp_reference(kept, 0.15), abs=TOL)
-    assert out["invalid_particles"] == 1
+    assert out["particles_never_valid"] == 1
     assert out["min"] == min_distance(score)  # unchanged: it never needed row 4
     # every particle invalid: nothing left to measure
     none = evaluate_costs(np.full((2, 3), np.inf), *(np.ones((2, 3)),) * 3)
-    assert none["ws_valid"] == math.inf and none["invalid_particles"] == 2
+    assert none["ws_valid"] == math.inf and none["particles_never_valid"] == 2
 
 
 # ---------------------------------------------------------------------------

@@ -165,12 +165,12 @@ def test_metrics_table() -> None:
     assert "ours / paper" not in table
 
 
-def test_metrics_table_notes_ws_without_the_invalid_particles() -> None:
+def test_metrics_table_notes_ws_without_the_particles_never_valid() -> None:
     metrics = {
         "hybrid": {"ws": math.inf, "beta_ws": math.inf, "ws_valid": 1.6234,
-                   "beta_ws_valid": 1.3621, "invalid_particles": 3,
+                   "beta_ws_valid": 1.3621, "particles_never_valid": 3,
                    "n_particles": 480},
-        "gfm": {"ws": 2.0, "invalid_particles": 0},
+        "gfm": {"ws": 2.0, "particles_never_valid": 0},
     }  # fmt: skip
     table = metrics_table(metrics, ["gfm", "hybrid"])
     assert table.rstrip().splitlines()[-1] == (

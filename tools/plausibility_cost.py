@@ -79,7 +79,7 @@ def run_set(name: str, n_particles: int, filtered: bool, threads: int) -> dict:
                     "min",
                     "ws_valid",
                     "beta_ws_valid",
-                    "invalid_particles",
+                    "particles_never_valid",
                 )
             }
             for key in [*summary["models"], "hybrid"]
@@ -156,7 +156,8 @@ def markdown(payload: dict) -> str:
     for name, runs in payload["sets"].items():
         for label in ("off", "on"):
             metrics = runs[label]["metrics"]
-            key = "ws" if metrics["hybrid"]["invalid_particles"] == 0 else "ws_valid"
+            never = metrics["hybrid"]["particles_never_valid"]
+            key = "ws" if never == 0 else "ws_valid"
             wins, best = hybrid_beats_every_model(metrics, key)
             lines.append(
                 f"| {SETS[name]} | {label} | {_f(metrics['hybrid'][key])} | "

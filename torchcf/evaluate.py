@@ -122,11 +122,11 @@ def evaluate_posterior(
 
 
 def _metrics(cost: dict[str, np.ndarray], cfg: TrainConfig) -> dict[str, Any]:
-    """evaluate_costs, plus ``particles_never_valid``: particles whose rollout is
-    invalid on every test pair. One such particle makes WS and beta-WS (beta > 0)
-    infinite (its mandatory mass has nowhere to go), which is reported as such."""
-    never = int((~np.isfinite(cost["score"])).all(axis=1).sum())
-    return {"particles_never_valid": never, **_costs(cost, cfg)}
+    """evaluate_costs: one particle invalid on every test pair makes WS and
+    beta-WS (beta > 0) infinite (its mandatory mass has nowhere to go), which is
+    reported as such, next to both over the other particles (``ws_valid``,
+    ``beta_ws_valid``) and their count (``particles_never_valid``)."""
+    return _costs(cost, cfg)
 
 
 def _costs(cost: dict[str, np.ndarray], cfg: TrainConfig) -> dict[str, Any]:

@@ -483,7 +483,7 @@ def evaluate_costs(
         the particles valid on some test pair, ``ws_valid`` and
         ``beta_ws_valid`` (equal to ``ws`` and ``beta_ws`` when no particle is
         dropped; ``inf`` still where a test pair has no valid particle), with
-        ``invalid_particles`` (int) the number dropped.
+        ``particles_never_valid`` (int) the number dropped.
     """
     beta = _check_beta(beta)
     sinkhorn_reg = _check_reg(sinkhorn_reg)
@@ -518,7 +518,7 @@ def evaluate_costs(
             ws_valid=wasserstein(kept).value,
             beta_ws_valid=beta_wasserstein(kept, beta).value,
         )
-    out["invalid_particles"] = dropped
+    out["particles_never_valid"] = dropped
     return out
 
 

@@ -99,11 +99,11 @@ def metrics_table(
                 cell += f" / {strong}{reference}{strong}"
             cells.append(cell)
         lines.append("| " + " | ".join(cells) + " |")
-    dropped = _without_invalid_particles(metrics, order, digits)
+    dropped = _without_particles_never_valid(metrics, order, digits)
     return "\n".join(lines + (["", *dropped] if dropped else [])) + "\n"
 
 
-def _without_invalid_particles(
+def _without_particles_never_valid(
     metrics: Mapping[str, Mapping[str, float]], order: Sequence[str], digits: int
 ) -> list[str]:
     """A line per entry with particles invalid on every test pair: SPEC's WS
@@ -111,7 +111,7 @@ def _without_invalid_particles(
     lines = []
     for name in order:
         entry = metrics.get(name, {})
-        count = int(entry.get("invalid_particles") or 0)
+        count = int(entry.get("particles_never_valid") or 0)
         if count == 0:
             continue
         lines.append(
