@@ -15,6 +15,7 @@ from torchcf.models import get_model
 from torchcf.posterior import Posterior
 from torchcf.synthetic import synthetic_pairs
 from torchcf.traffic import Battery, check_plausibility
+from torchcf.traffic.battery import rejects
 from torchcf.train import train
 
 #: LLCTG's prior holds both sluggish particles (that collide with a leader
@@ -72,7 +73,7 @@ def _reference(paired: bool, n: int = 1500) -> TopN:
 
 @pytest.mark.parametrize("paired", [True, False])
 def test_the_screen_gives_the_buffers_of_testing_every_particle(paired):
-    screen = PlausibilityScreen(BATTERY)
+    screen = PlausibilityScreen(rejects(BATTERY))
     reference = _reference(paired)
     for chunk in (128, 700):
         buffer, progress, *_ = _buffers(paired, chunk, screen)
@@ -94,7 +95,7 @@ def test_without_the_screen_implausible_particles_enter():
 
 
 def test_string_unstable_particles_are_rejected_when_asked():
-    screen = PlausibilityScreen(BATTERY, reject_string_unstable=True)
+    screen = PlausibilityScreen(rejects(BATTERY, reject_string_unstable=True))
     buffer, *_ = _buffers(True, 700, screen)
     kept = buffer.theta.reshape(-1, buffer.theta.shape[-1])
     result = check_plausibility(MODEL, kept, BATTERY)

@@ -36,7 +36,7 @@ from torchcf.data import load_split  # noqa: E402
 from torchcf.pipeline import train_and_evaluate  # noqa: E402
 from torchcf.posterior import Posterior  # noqa: E402
 from torchcf.traffic import HybridSampler, check_plausibility  # noqa: E402
-from torchcf.train.run import plausibility_screen  # noqa: E402
+from torchcf.train.run import plausibility_battery  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SETS = {"carI": "CAR MODEL I", "carII": "CAR MODEL II", "ngsim": "NGSIM I-80"}
@@ -57,8 +57,7 @@ def run_set(name: str, n_particles: int, filtered: bool, threads: int) -> dict:
         metrics = json.loads((out / "metrics.json").read_text())
         posterior = Posterior.load(out / "posterior.pt")
     sampler = HybridSampler.from_posterior(posterior, dt=0.1)
-    screen_cfg = load_config(path, [*overrides, "plausibility.filter=true"])
-    battery = plausibility_screen(screen_cfg, load_split(cfg.data)[0]).battery
+    battery = plausibility_battery(cfg, load_split(cfg.data)[0])
     collided = {
         model: float(check_plausibility(model, theta, battery).collided.double().mean())
         for model in sampler.model_names

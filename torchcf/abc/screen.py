@@ -23,13 +23,13 @@ Shapes: P particles, N pairs, K parameters.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from ..models import CFModel
-from ..traffic.battery import Battery, check_plausibility
 from .topn import TopN, lexsort
 
 
@@ -38,21 +38,13 @@ class PlausibilityScreen:
     """The calibration's plausibility filter.
 
     Attributes:
-        battery: the scenarios' settings (speed from the training data).
-        reject_string_unstable: also reject particles whose platoon amplifies a
-            disturbance (ratio per vehicle > 1).
+        implausible: ``(model, theta (Q, K)) -> (Q,) bool``, the particles to
+            reject (:func:`torchcf.traffic.battery.rejects`: those that collide
+            in the battery, string-unstable ones if asked). The engine knows
+            nothing of the battery: the caller (training) hands it in.
     """
 
-    battery: Battery
-    reject_string_unstable: bool = False
-
-    def implausible(self, model: CFModel, theta: Tensor) -> Tensor:
-        """``(Q,)`` bool on the CPU: the particles ``theta (Q, K)`` to reject."""
-        result = check_plausibility(model, theta.double(), self.battery)
-        reject = result.collided
-        if self.reject_string_unstable:
-            reject = reject | result.string_unstable()
-        return reject
+    implausible: Callable[[CFModel, Tensor], Tensor]
 
     def screen(
         self,
@@ -96,7 +88,7 @@ class PlausibilityScreen:
             need = need[~checked[need]]
             if not need.numel():
                 break
-            bad = self.implausible(model, theta[need.to(theta.device)])
+            bad = self.implausible(model, theta[need.to(theta.device)].double())
             checked[need] = True
             rejected[need[bad.to(need.device)]] = True
         count = int(rejected.sum())

@@ -448,6 +448,20 @@ def _string_ratio(
     return torch.where(ok, ratio, torch.full_like(ratio, math.nan)).double().cpu()
 
 
+def rejects(battery: Battery, reject_string_unstable: bool = False):
+    """``(model, theta (Q, K)) -> (Q,) bool``: the particles that collide in
+    the battery (or, if asked, are string-unstable), for the calibration's
+    plausibility filter (:class:`torchcf.abc.screen.PlausibilityScreen`)."""
+
+    def implausible(model: CFModel, theta: Tensor) -> Tensor:
+        result = check_plausibility(model, theta, battery)
+        if reject_string_unstable:
+            return result.collided | result.string_unstable()
+        return result.collided
+
+    return implausible
+
+
 __all__ = [
     "Battery",
     "Plausibility",
@@ -455,6 +469,7 @@ __all__ = [
     "braking_leader",
     "check_plausibility",
     "equilibrium_gap",
+    "rejects",
     "stop_and_go_leader",
     "standstill_leader",
     "string_leader",

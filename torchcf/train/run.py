@@ -70,7 +70,7 @@ from ..posterior import Posterior
 from ..rundir import RunDir
 from ..runtime import tune_malloc
 from ..tblog import RunLogger, markdown_summary
-from ..traffic.battery import Battery, battery_speed
+from ..traffic.battery import Battery, battery_speed, rejects
 
 CHECKPOINT_FORMAT = "torchcf.checkpoint/1"
 
@@ -304,22 +304,27 @@ class _Checkpointer:
         self.last = time.perf_counter()
 
 
-def plausibility_screen(cfg: TrainConfig, pairs: PairSet) -> PlausibilityScreen | None:
-    """The calibration's plausibility filter (``plausibility.filter``), its
-    scenarios at the training pairs' dt, leader length and (unless set)
-    95th-percentile leader speed; None when the filter is off."""
+def plausibility_battery(cfg: TrainConfig, pairs: PairSet) -> Battery:
+    """The config's battery at the training pairs' dt, leader length and
+    (unless ``plausibility.speed`` is set) 95th-percentile leader speed."""
     settings = cfg.plausibility
-    if not settings.filter:
-        return None
     speed = settings.speed or battery_speed(pairs.v_lead, pairs.mask)
-    battery = Battery(
+    return Battery(
         speed=speed,
         decelerations=tuple(settings.decelerations),
         collision_spacing=settings.collision_spacing,
         dt=pairs.dt,
         leader_length=pairs.leader_length,
     )
-    return PlausibilityScreen(battery, settings.reject_string_unstable)
+
+
+def plausibility_screen(cfg: TrainConfig, pairs: PairSet) -> PlausibilityScreen | None:
+    """The calibration's plausibility filter (``plausibility.filter``) on the
+    battery of :func:`plausibility_battery`; None when the filter is off."""
+    if not cfg.plausibility.filter:
+        return None
+    battery = plausibility_battery(cfg, pairs)
+    return PlausibilityScreen(rejects(battery, cfg.plausibility.reject_string_unstable))
 
 
 def _stream_model(
