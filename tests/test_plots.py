@@ -18,7 +18,12 @@ from torchcf.evaluation.plots import (
     radar_figure,
     radar_values,
 )
-from torchcf.evaluation.report import METRIC_COLUMNS, metrics_table, relative_difference
+from torchcf.evaluation.report import (
+    METRIC_COLUMNS,
+    metrics_table,
+    plausibility_table,
+    relative_difference,
+)
 
 MODELS = ("ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc", "hybrid")
 
@@ -178,6 +183,20 @@ def test_metrics_table_notes_ws_without_the_particles_never_valid() -> None:
         "WS and 0.15-WS infinite; over the other particles WS 1.623, 0.15-WS 1.362."
     )
     assert "GFM:" not in table
+
+
+def test_plausibility_table() -> None:
+    row = {
+        "n_particles": 40, "collided": 0.25, "string_unstable": 0.5,
+        "no_equilibrium": 0.0, "min_ttc_median": None,
+        "settings": {"speed": 29.4, "decelerations": [4.0, 8.0]},
+    }  # fmt: skip
+    table = plausibility_table({"hl": row, "idm": {**row, "collided": 0.0}})
+    assert "at 29.4 m/s" in table and "4 / 8 m/s^2" in table
+    rows = _table_rows(table)
+    assert rows[-2] == ["HL", "40", "25.0%", "50.0%", "0.0%", "–"]
+    assert rows[-1][2] == "0.0%"
+    assert plausibility_table({}) == ""
 
 
 def test_metrics_table_with_paper() -> None:

@@ -116,6 +116,13 @@ def test_training_with_the_filter_reports_it(tmp_path):
     plain = train(validate_config(base), tmp_path / "off", pairs=(pairs, test))
     assert summary["per_model"][MODEL]["implausible"] > 0
     assert plain["per_model"][MODEL]["implausible"] == 0
+    # the battery on the learned hybrid, per model: none collides when filtered
+    assert summary["plausibility"][MODEL]["collided"] == 0.0
+    assert plain["plausibility"][MODEL]["n_particles"] > 0
+    quiet = {**base, "plausibility": {"report": False}}
+    assert "plausibility" not in train(
+        validate_config(quiet), tmp_path / "quiet", pairs=(pairs, test)
+    )
     assert summary["config_hash"] != plain["config_hash"]
     with pytest.raises(ValueError):
         validate_config({**base, "plausibility": {"decelerations": [-1]}})

@@ -42,7 +42,7 @@ from .evaluation.plots import (
     save_figure,
     shares_figure,
 )
-from .evaluation.report import metrics_table
+from .evaluation.report import metrics_table, plausibility_table
 from .files import atomic_write_text, ensure_directory, writing
 from .posterior import Posterior
 from .rundir import RunDir
@@ -235,7 +235,8 @@ def evaluate_run(
         f"{posterior.top_n} best particles per training pair; hybrid: "
         f"{sum(len(p) for p in posterior.hybrid.values())} particles.\n\n"
         + metrics_table(metrics, entries)
-        + "\n",
+        + "\n"
+        + plausibility_table(summary.get("plausibility", {})),
     )
     if figure_pair is None:
         best = costs["hybrid"]["score"].min(axis=0)  # (n_test,)

@@ -243,6 +243,17 @@ class RunLogger:
                     self._writer.add_scalar(f"eval/{key}/{entry}", float(value))
 
     @_reports_write_errors
+    def plausibility(self, per_model: Mapping[str, Mapping[str, Any]]) -> None:
+        """The hybrid's plausibility battery: per model, the shares of particles
+        that collided, are string-unstable and have no equilibrium, as scalars
+        ``plausibility/<share>/<model>``."""
+        if self._writer is None:
+            return
+        for model, row in per_model.items():
+            for key in ("collided", "string_unstable", "no_equilibrium", "not_started"):
+                self._writer.add_scalar(f"plausibility/{key}/{model}", float(row[key]))
+
+    @_reports_write_errors
     def text(self, tag: str, markdown: str) -> None:
         """Markdown text (TensorBoard stores it under ``<tag>/text_summary``)."""
         if self._writer is None:

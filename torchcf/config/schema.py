@@ -450,6 +450,14 @@ class PlausibilityConfig(BaseModel):
 
     model_config = _STRICT
 
+    report: bool = Field(
+        True,
+        description=(
+            "Run the battery on the learned hybrid's particles after training: "
+            "per model in summary.json ('plausibility'), TensorBoard and the "
+            "evaluation report."
+        ),
+    )
     filter: bool = Field(
         False,
         description=(

@@ -10,7 +10,12 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 
-__all__ = ["METRIC_COLUMNS", "metrics_table", "relative_difference"]
+__all__ = [
+    "METRIC_COLUMNS",
+    "metrics_table",
+    "plausibility_table",
+    "relative_difference",
+]
 
 METRIC_COLUMNS = (
     ("e_p", "Avg position error [m]"),
@@ -148,3 +153,44 @@ def relative_difference(
             if math.isfinite(ours_value) and math.isfinite(paper_value) and paper_value:
                 result[name][key] = (ours_value - paper_value) / paper_value
     return result
+
+
+def plausibility_table(per_model: Mapping[str, Mapping[str, object]]) -> str:
+    """Markdown table of the plausibility battery on the hybrid's particles.
+
+    Args:
+        per_model: model -> :meth:`torchcf.traffic.Plausibility.summary` (the
+            ``plausibility`` entry of summary.json).
+
+    Returns:
+        A heading line, the battery's settings, and one row per model, ending
+        with a newline; an empty string when there is nothing to show.
+    """
+    if not per_model:
+        return ""
+    settings = next(iter(per_model.values()))["settings"]
+    decels = " / ".join(f"{d:g}" for d in settings["decelerations"])
+    lines = [
+        "## Plausibility in closed loop",
+        "",
+        "The hybrid's particles through the battery "
+        "(`torchcf.traffic.check_plausibility`) at "
+        f"{settings['speed']:.1f} m/s: the share that collide (leader braking to "
+        f"a stop at {decels} m/s^2, stop-and-go, a cut-in, a standstill start), "
+        "that amplify a disturbance down a platoon of their own kind, that have "
+        "no equilibrium at some speed up to it, and the median least time to "
+        "collision.",
+        "",
+        "| Model | Particles | Collided | String-unstable | No equilibrium | "
+        "Median min TTC [s] |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, row in per_model.items():
+        ttc = row.get("min_ttc_median")
+        lines.append(
+            f"| {_display_name(name)} | {row['n_particles']} | "
+            f"{row['collided']:.1%} | {row['string_unstable']:.1%} | "
+            f"{row['no_equilibrium']:.1%} | "
+            f"{_MISSING if ttc is None else f'{ttc:.2f}'} |"
+        )
+    return "\n".join(lines) + "\n"

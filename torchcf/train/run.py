@@ -70,7 +70,7 @@ from ..posterior import Posterior
 from ..rundir import RunDir
 from ..runtime import tune_malloc
 from ..tblog import RunLogger, markdown_summary
-from ..traffic.battery import Battery, battery_speed, rejects
+from ..traffic.battery import Battery, battery_speed, check_plausibility, rejects
 
 CHECKPOINT_FORMAT = "torchcf.checkpoint/1"
 
@@ -318,6 +318,19 @@ def plausibility_battery(cfg: TrainConfig, pairs: PairSet) -> Battery:
     )
 
 
+def hybrid_plausibility(
+    cfg: TrainConfig, pairs: PairSet, posterior: Posterior
+) -> dict[str, Any]:
+    """The battery's shares per model over the hybrid's particles, on the
+    CPU in float64 (:meth:`torchcf.traffic.Plausibility.summary`)."""
+    battery = plausibility_battery(cfg, pairs)
+    return {
+        name: check_plausibility(name, posterior.hybrid[name].theta, battery).summary()
+        for name in posterior.models
+        if name in posterior.hybrid and len(posterior.hybrid[name])
+    }
+
+
 def plausibility_screen(cfg: TrainConfig, pairs: PairSet) -> PlausibilityScreen | None:
     """The calibration's plausibility filter (``plausibility.filter``) on the
     battery of :func:`plausibility_battery`; None when the filter is off."""
@@ -553,6 +566,9 @@ def train(
         posterior, summary = _results(
             cfg, train_pairs, test_pairs, state, time.perf_counter() - began, group
         )
+        if cfg.plausibility.report and group.is_main:
+            summary["plausibility"] = hybrid_plausibility(cfg, train_pairs, posterior)
+            logger.plausibility(summary["plausibility"])
         _log_results(cfg, logger, posterior, summary)
     if group.is_main:
         run.save_posterior(posterior)
