@@ -42,8 +42,11 @@ ROOT = Path(__file__).resolve().parents[1]
 SETS = {"carI": "CAR MODEL I", "carII": "CAR MODEL II", "ngsim": "NGSIM I-80"}
 
 
-def run_set(name: str, n_particles: int, filtered: bool, threads: int) -> dict:
-    """Train and evaluate one data set; the numbers the report needs."""
+def run_set(
+    name: str, n_particles: int, filtered: bool, threads: int, keep: Path | None
+) -> dict:
+    """Train and evaluate one data set; the numbers the report needs. With
+    ``keep`` the run stays in ``keep/<set>-<filter on|off>``."""
     overrides = [f"abc.n_particles={n_particles}", f"threads={threads}"]
     if filtered:
         overrides.append("plausibility.filter=true")
@@ -51,10 +54,12 @@ def run_set(name: str, n_particles: int, filtered: bool, threads: int) -> dict:
     cfg = load_config(path, overrides)
     with tempfile.TemporaryDirectory() as folder:
         out = Path(folder) / "run"
+        if keep is not None:
+            out = keep / f"{name}-{'on' if filtered else 'off'}"
         began = time.perf_counter()
         summary = train_and_evaluate(cfg, out)
         seconds = time.perf_counter() - began
-        metrics = json.loads((out / "metrics.json").read_text())
+        metrics = _numbers(json.loads((out / "metrics.json").read_text()))
         posterior = Posterior.load(out / "posterior.pt")
     sampler = HybridSampler.from_posterior(posterior, dt=0.1)
     battery = plausibility_battery(cfg, load_split(cfg.data)[0])
@@ -87,6 +92,15 @@ def run_set(name: str, n_particles: int, filtered: bool, threads: int) -> dict:
         "hybrid_collided": collided,
         "battery_speed": battery.speed,
     }
+
+
+def _numbers(value):
+    """metrics.json's values as numbers (it writes infinities as strings)."""
+    if isinstance(value, dict):
+        return {k: _numbers(v) for k, v in value.items()}
+    if isinstance(value, str) and value.lower() in ("inf", "infinity", "-inf", "nan"):
+        return float(value)
+    return value
 
 
 def hybrid_beats_every_model(metrics: dict, key: str) -> tuple[bool, str]:
@@ -166,7 +180,7 @@ def markdown(payload: dict) -> str:
 
 
 def _f(value) -> str:
-    return "-" if value is None else f"{value:.3f}"
+    return "-" if value is None else f"{float(value):.3f}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -175,6 +189,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--n-particles", type=int, default=200_000)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, default=ROOT / "reports/plausibility")
+    parser.add_argument(
+        "--keep", type=Path, default=None, help="keep the runs in this folder"
+    )
     args = parser.parse_args(argv)
     if args.n_particles < 1000:
         print("error: --n-particles must be >= 1000", file=sys.stderr)
@@ -183,7 +200,9 @@ def main(argv: list[str] | None = None) -> int:
     sets = {}
     for name in args.sets:
         sets[name] = {
-            label: run_set(name, args.n_particles, label == "on", args.threads)
+            label: run_set(
+                name, args.n_particles, label == "on", args.threads, args.keep
+            )
             for label in ("off", "on")
         }
         print(
