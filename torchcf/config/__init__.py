@@ -1,5 +1,6 @@
 """The run configuration: :mod:`torchcf.config.schema` (the pydantic schema, its
-loader, overrides and hash) and ``python -m torchcf.config``
+loader and hash), :mod:`torchcf.config.overrides` (``--set key=VALUE``),
+:mod:`torchcf.config.messages` (one-line errors) and ``python -m torchcf.config``
 (:mod:`torchcf.config.__main__`).
 
 Re-exports only.

@@ -18,7 +18,9 @@ with a one-line message that names the key, e.g.
 
 :func:`config_hash` fingerprints the settings that determine the result, so a
 resumed run can refuse a different configuration; :func:`resolved_json` is the
-validated configuration as written beside the results.
+validated configuration as written beside the results. The ``--set`` syntax lives
+in :mod:`torchcf.config.overrides`, the one-line messages in
+:mod:`torchcf.config.messages`.
 
 Command line (:mod:`torchcf.config.__main__`)::
 
@@ -28,12 +30,9 @@ Command line (:mod:`torchcf.config.__main__`)::
 
 from __future__ import annotations
 
-import copy
-import difflib
 import hashlib
 import json
 import math
-import typing
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -49,9 +48,10 @@ from pydantic import (
     model_validator,
 )
 
+from torchcf.config.messages import ConfigError, describe
+from torchcf.config.overrides import apply_overrides
 from torchcf.data.reader import UNITS, unit_factor
 from torchcf.data.registry import DATASETS
-from torchcf.errors import TorchcfError
 from torchcf.models import EFFECTS, MODELS, UnknownModelError, get_model
 from torchcf.models.effects import parse_effect
 
@@ -60,9 +60,9 @@ __all__ = [
     "ConfigError",
     "DataConfig",
     "DiagnoseConfig",
-    "PlausibilityConfig",
     "EvalConfig",
     "ModelSpec",
+    "PlausibilityConfig",
     "SMCConfig",
     "TrainConfig",
     "apply_overrides",
@@ -71,14 +71,6 @@ __all__ = [
     "resolved_json",
     "validate_config",
 ]
-
-
-class ConfigError(TorchcfError, ValueError):
-    """A run configuration is unreadable or invalid; the message is one line."""
-
-    def __init__(self, message: str) -> None:
-        # One line whatever the source: the CLIs print it after "error: ".
-        super().__init__(" ".join(str(message).split()))
 
 
 # Shared by every section: unknown keys are errors, values are immutable after
@@ -772,75 +764,7 @@ def validate_config(raw: dict[str, Any]) -> TrainConfig:
     try:
         return TrainConfig.model_validate(raw)
     except ValidationError as err:
-        raise ConfigError(_describe(err)) from None
-
-
-def apply_overrides(raw: dict[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
-    """Set ``dotted.key=VALUE`` items in a copy of a configuration object.
-
-    VALUE is parsed as JSON (``200000``, ``[1, 0, 0]``, ``true``, ``null``), and
-    taken as a plain string where it is not JSON, so ``device=cpu`` needs no
-    quotes. Missing intermediate objects are created; a numeric component
-    indexes an existing list (``models.0.name=idm``), and a model given by name
-    becomes an object when a key inside it is set.
-
-    Args:
-        raw: the configuration object, not modified.
-        overrides: the items, applied in order.
-
-    Returns:
-        A new configuration object.
-
-    Raises:
-        ConfigError: an item without ``=``, an empty key or component, or a path
-            through a value that is neither an object nor a list.
-    """
-    out = copy.deepcopy(raw)
-    for item in overrides:
-        key, sep, text = item.partition("=")
-        parts = key.strip().split(".")
-        if not sep or not all(parts):
-            raise ConfigError(f"override {item!r}: expected dotted.key=VALUE")
-        try:
-            value = json.loads(text)
-        except json.JSONDecodeError:
-            value = text
-        node: dict[str, Any] | list[Any] = out
-        for depth, part in enumerate(parts[:-1]):
-            node = _child(node, part, item, ".".join(parts[: depth + 1]))
-        if isinstance(node, dict):
-            node[parts[-1]] = value
-        else:
-            node[_index(node, parts[-1], item, key)] = value
-    return out
-
-
-def _child(
-    node: dict[str, Any] | list[Any], part: str, item: str, where: str
-) -> dict[str, Any] | list[Any]:
-    """``node[part]`` for an override, created as ``{}`` when missing."""
-    if isinstance(node, dict):
-        if node.get(part) is None:
-            node[part] = {}
-        child = node[part]
-    else:
-        index = _index(node, part, item, where)
-        if isinstance(node[index], str):
-            # The models shorthand: "idm" becomes {"name": "idm"}.
-            node[index] = {"name": node[index]}
-        child = node[index]
-    if not isinstance(child, dict | list):
-        raise ConfigError(f"override {item!r}: {where} is {child!r}, not an object")
-    return child
-
-
-def _index(node: list[Any], part: str, item: str, where: str) -> int:
-    if not part.isdigit() or int(part) >= len(node):
-        raise ConfigError(
-            f"override {item!r}: {where}: {part!r} is not an index of a list "
-            f"of {len(node)}"
-        )
-    return int(part)
+        raise ConfigError(describe(err, TrainConfig)) from None
 
 
 # Settings that change how a run is executed or reported but not what it learns:
@@ -881,81 +805,3 @@ def resolved_json(cfg: TrainConfig) -> dict[str, Any]:
     """The configuration as plain JSON data (models as objects), every default
     filled in; :func:`load_config` of it gives ``cfg`` back."""
     return cfg.model_dump(mode="json")
-
-
-# ------------------------------------------------------------- error messages
-def _describe(err: ValidationError) -> str:
-    """One line for a ValidationError: the first three problems, joined by "; "."""
-    errors = err.errors(include_url=False)
-    text = "; ".join(_describe_one(e) for e in errors[:3])
-    if len(errors) > 3:
-        text += f"; and {len(errors) - 3} more"
-    return text
-
-
-def _describe_one(error: Any) -> str:
-    loc = _dotted(error["loc"])
-    kind, ctx, value = error["type"], error.get("ctx", {}), error.get("input")
-    got = f", got {_short(value)}"
-    if kind == "missing":
-        return f"{loc}: required"
-    if kind == "extra_forbidden":
-        return f"{loc}: unknown key{_known_keys(error['loc'])}"
-    if kind in _BOUNDS:
-        op, name = _BOUNDS[kind]
-        return f"{loc}: must be {op} {ctx[name]}{got}"
-    if kind == "too_short" and ctx.get("min_length") == 1:
-        return f"{loc}: must not be empty"
-    if kind == "value_error":
-        # Our validators' messages already carry the value.
-        return f"{loc}: {error['msg'].removeprefix('Value error, ')}"
-    msg = error["msg"]
-    return f"{loc}: {msg[:1].lower()}{msg[1:]}{got}"
-
-
-_BOUNDS = {
-    "greater_than": (">", "gt"),
-    "greater_than_equal": (">=", "ge"),
-    "less_than": ("<", "lt"),
-    "less_than_equal": ("<=", "le"),
-}
-
-
-def _dotted(loc: Sequence[int | str]) -> str:
-    """``('models', 2, 'prior')`` -> ``models[2].prior``; () -> ``config``."""
-    text = ""
-    for part in loc:
-        text += f"[{part}]" if isinstance(part, int) else f".{part}"
-    return text.lstrip(".") or "config"
-
-
-def _short(value: Any, limit: int = 60) -> str:
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-def _known_keys(loc: Sequence[int | str]) -> str:
-    """`` (known: ...)`` for an unknown key, with a guess at the intended one."""
-    section: Any = TrainConfig
-    for part in loc[:-1]:
-        if isinstance(part, int):
-            continue
-        field = section.model_fields.get(part)
-        section = _section(field.annotation) if field is not None else None
-        if section is None:
-            return ""
-    known = list(section.model_fields)
-    guess = difflib.get_close_matches(str(loc[-1]), known, n=1)
-    hint = f"; did you mean {guess[0]!r}?" if guess else ""
-    return f" (known: {', '.join(known)}){hint}"
-
-
-def _section(annotation: Any) -> type[BaseModel] | None:
-    """The config class inside an annotation (``list[ModelSpec]`` -> ModelSpec)."""
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return annotation
-    for arg in typing.get_args(annotation):
-        found = _section(arg)
-        if found is not None:
-            return found
-    return None

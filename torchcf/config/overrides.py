@@ -1,0 +1,80 @@
+"""Command-line overrides of a configuration: ``--set dotted.key=VALUE``."""
+
+from __future__ import annotations
+
+import copy
+import json
+from collections.abc import Sequence
+from typing import Any
+
+from torchcf.config.messages import ConfigError
+
+__all__ = ["apply_overrides"]
+
+
+def apply_overrides(raw: dict[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
+    """Set ``dotted.key=VALUE`` items in a copy of a configuration object.
+
+    VALUE is parsed as JSON (``200000``, ``[1, 0, 0]``, ``true``, ``null``), and
+    taken as a plain string where it is not JSON, so ``device=cpu`` needs no
+    quotes. Missing intermediate objects are created; a numeric component
+    indexes an existing list (``models.0.name=idm``), and a model given by name
+    becomes an object when a key inside it is set.
+
+    Args:
+        raw: the configuration object, not modified.
+        overrides: the items, applied in order.
+
+    Returns:
+        A new configuration object.
+
+    Raises:
+        ConfigError: an item without ``=``, an empty key or component, or a path
+            through a value that is neither an object nor a list.
+    """
+    out = copy.deepcopy(raw)
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        parts = key.strip().split(".")
+        if not sep or not all(parts):
+            raise ConfigError(f"override {item!r}: expected dotted.key=VALUE")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            value = text
+        node: dict[str, Any] | list[Any] = out
+        for depth, part in enumerate(parts[:-1]):
+            node = _child(node, part, item, ".".join(parts[: depth + 1]))
+        if isinstance(node, dict):
+            node[parts[-1]] = value
+        else:
+            node[_index(node, parts[-1], item, key)] = value
+    return out
+
+
+def _child(
+    node: dict[str, Any] | list[Any], part: str, item: str, where: str
+) -> dict[str, Any] | list[Any]:
+    """``node[part]`` for an override, created as ``{}`` when missing."""
+    if isinstance(node, dict):
+        if node.get(part) is None:
+            node[part] = {}
+        child = node[part]
+    else:
+        index = _index(node, part, item, where)
+        if isinstance(node[index], str):
+            # The models shorthand: "idm" becomes {"name": "idm"}.
+            node[index] = {"name": node[index]}
+        child = node[index]
+    if not isinstance(child, dict | list):
+        raise ConfigError(f"override {item!r}: {where} is {child!r}, not an object")
+    return child
+
+
+def _index(node: list[Any], part: str, item: str, where: str) -> int:
+    if not part.isdigit() or int(part) >= len(node):
+        raise ConfigError(
+            f"override {item!r}: {where}: {part!r} is not an index of a list "
+            f"of {len(node)}"
+        )
+    return int(part)
