@@ -35,7 +35,8 @@ from torchcf.config import load_config  # noqa: E402
 from torchcf.data import load_split  # noqa: E402
 from torchcf.pipeline import train_and_evaluate  # noqa: E402
 from torchcf.posterior import Posterior  # noqa: E402
-from torchcf.traffic import HybridSampler, check_plausibility  # noqa: E402
+from torchcf.traffic import HybridSampler  # noqa: E402
+from torchcf.traffic.battery import plausibility_by_model  # noqa: E402
 from torchcf.train.run import plausibility_battery  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -63,10 +64,10 @@ def run_set(
         posterior = Posterior.load(out / "posterior.pt")
     sampler = HybridSampler.from_posterior(posterior, dt=0.1)
     battery = plausibility_battery(cfg, load_split(cfg.data)[0])
+    particles = {name: sampler.particles(name) for name in sampler.model_names}
     collided = {
-        model: float(check_plausibility(model, theta, battery).collided.double().mean())
-        for model in sampler.model_names
-        if (theta := sampler.particles(model)).shape[0]
+        name: row["collided"]
+        for name, row in plausibility_by_model(particles, battery).items()
     }
     return {
         "seconds": seconds,

@@ -51,8 +51,12 @@ from torchcf.traffic import (  # noqa: E402
     DEFAULT_SAFETY,
     Battery,
     battery_speed,
-    check_plausibility,
     interventions_per_model,
+)
+from torchcf.traffic.battery import (  # noqa: E402
+    braking_leader,
+    leader_positions,
+    plausibility_by_model,
 )
 from torchcf.traffic.scenarios import platoon, ring_road  # noqa: E402
 
@@ -100,14 +104,6 @@ def run_ring(sampler: HybridSampler, args, safety) -> dict:
     }
 
 
-def braking_leader(speed: float, decel: float, dt: float, settle: float = 30.0):
-    """(T,) leader speed [m/s]: ``settle`` s at ``speed``, braking at ``decel``
-    to a stop, 20 s standing."""
-    seconds = settle + speed / decel + 20.0
-    t = torch.arange(round(seconds / dt) + 1, dtype=torch.float64) * dt
-    return torch.clamp(speed - decel * torch.clamp(t - settle, min=0.0), min=0.0)
-
-
 def braking_platoons(sampler: HybridSampler, args, safety) -> dict:
     """``--scenarios`` platoons of ``--platoon`` drawn vehicles behind a leader
     that brakes to a stop; each follower starts 10 m + 1.5 s behind the one
@@ -115,9 +111,10 @@ def braking_platoons(sampler: HybridSampler, args, safety) -> dict:
     sampler.sample(
         (args.scenarios, args.platoon), torch.Generator().manual_seed(args.seed + 1)
     )
-    v_leader = braking_leader(args.brake_speed, args.brake_decel, sampler.dt)
-    steps = 0.5 * (v_leader[1:] + v_leader[:-1]) * sampler.dt
-    x_leader = torch.cat((torch.zeros(1, dtype=torch.float64), torch.cumsum(steps, 0)))
+    v_leader = braking_leader(
+        args.brake_speed, args.brake_decel, sampler.dt, cruise=30.0, stand=20.0
+    )
+    x_leader = leader_positions(v_leader, sampler.dt)
     expand = (-1, args.scenarios)
     out = platoon(
         sampler,
@@ -143,11 +140,8 @@ def braking_platoons(sampler: HybridSampler, args, safety) -> dict:
 def plausibility(sampler: HybridSampler, speed: float) -> dict:
     """Per model: the battery's shares over the hybrid's particles."""
     battery = Battery(speed=speed, dt=sampler.dt, leader_length=sampler.leader_length)
-    return {
-        name: check_plausibility(name, sampler.particles(name), battery).summary()
-        for name in sampler.model_names
-        if sampler.particles(name).shape[0]
-    }
+    particles = {name: sampler.particles(name) for name in sampler.model_names}
+    return plausibility_by_model(particles, battery)
 
 
 def draw_time_space(results: dict, path: Path, args) -> None:

@@ -119,20 +119,15 @@ def close_loop(
         the loop result (also in ``RUN_DIR/loop.json``).
     """
     plan = plan_loop(run_dir, overrides, pairs=pairs, progress=progress)
-    if plan.recalibration is not None:
-        train_and_evaluate(
-            plan.recalibration,
-            plan.run.recalibration_dir,
-            resume=plan.resume_recalibration,
-            pairs=(plan.train_pairs, plan.test_pairs),
-        )
-    if plan.reference is not None:
-        train_and_evaluate(
-            plan.reference,
-            plan.run.reference_dir,
-            resume=plan.resume_reference,
-            pairs=(plan.train_pairs, plan.test_pairs),
-        )
+    runs = (
+        (plan.recalibration, plan.run.recalibration_dir, plan.resume_recalibration),
+        (plan.reference, plan.run.reference_dir, plan.resume_reference),
+    )
+    for cfg, out, resume in runs:
+        if cfg is not None:
+            train_and_evaluate(
+                cfg, out, resume=resume, pairs=(plan.train_pairs, plan.test_pairs)
+            )
     return finish_loop(plan)
 
 

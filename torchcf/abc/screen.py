@@ -54,6 +54,7 @@ class PlausibilityScreen:
         index: Tensor,
         theta: Tensor,
         pair: Tensor | None,
+        cleared: Tensor | None = None,
     ) -> tuple[Tensor, int]:
         """The chunk's scores with its implausible candidates set to ``+inf``.
 
@@ -63,6 +64,10 @@ class PlausibilityScreen:
             index: (P,) particle indices (ties in a pair go to the lower one).
             theta: (P, K) the simulated parameters.
             pair: (P,) each particle's pair, or None for the full layout.
+            cleared: (P,) bool, the particles an earlier screen of the same
+                chunk found plausible (not tested again); updated in place with
+                those this one finds plausible. (SMC screens a chunk for its
+                two buffers.)
 
         Returns:
             the screened scores (a copy where any was rejected) and the number
@@ -73,6 +78,8 @@ class PlausibilityScreen:
         capacity = buffer.capacity
         n_rows = theta.shape[0]
         checked = torch.zeros(n_rows, dtype=torch.bool, device=entry_score.device)
+        if cleared is not None:
+            checked |= cleared.to(checked.device)
         rejected = torch.zeros_like(checked)
         entry_index = index.to(entry_score.device)[entry_row]
         while True:
@@ -91,6 +98,8 @@ class PlausibilityScreen:
             bad = self.implausible(model, theta[need.to(theta.device)].double())
             checked[need] = True
             rejected[need[bad.to(need.device)]] = True
+        if cleared is not None:
+            cleared |= (checked & ~rejected).to(cleared.device)
         count = int(rejected.sum())
         if count == 0:
             return score, 0

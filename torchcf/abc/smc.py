@@ -485,8 +485,11 @@ def _offer(
     rows = torch.cat((theta, torch.zeros(theta.shape[0], 1, dtype=theta.dtype)), 1)
     whole = simulated[: theta.shape[0]]  # the simulated parameters, fixed ones too
     rejected = 0
+    cleared = torch.zeros(theta.shape[0], dtype=torch.bool)  # tested, plausible
     if screen is not None:
-        score, rejected = screen.screen(model, buffer, score, index, whole, pair)
+        score, rejected = screen.screen(
+            model, buffer, score, index, whole, pair, cleared
+        )
     buffer.push(pair, score, index, rows)
     epsilon = torch.full((buffer.n_pairs,), math.inf, dtype=torch.float64)
     if kernel is not None:
@@ -495,7 +498,7 @@ def _offer(
     if screen is not None:
         # Candidates of the accepted set the buffer's screen did not reach.
         accepted, more = screen.screen(
-            model, state.accepted, accepted, index, whole, pair
+            model, state.accepted, accepted, index, whole, pair, cleared
         )
         rejected += more
     state.accepted.push(pair, accepted, index, rows)

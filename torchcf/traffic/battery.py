@@ -49,6 +49,7 @@ Shapes: P particles, T steps of the data's ``dt``.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -214,53 +215,42 @@ def _steps(seconds: float, dt: float) -> int:
     return int(round(seconds / dt))
 
 
-def _positions(v: Tensor, dt: float) -> Tensor:
+def _times(seconds: float, dt: float) -> Tensor:
+    """(T,) float64 times [s] of the steps from 0 to ``seconds``."""
+    return torch.arange(_steps(seconds, dt) + 1, dtype=torch.float64) * dt
+
+
+def leader_positions(v: Tensor, dt: float) -> Tensor:
     """Leader positions (T,) [m] from speeds (T,), trapezoidal, from 0."""
     step = 0.5 * (v[1:] + v[:-1]) * dt
     return torch.cat((v.new_zeros(1), torch.cumsum(step, 0)))
 
 
-def braking_leader(speed: float, decel: float, dt: float) -> Tensor:
-    """(T,) float64 speed [m/s]: cruise, brake at ``decel`` to 0, stand."""
-    t = (
-        torch.arange(
-            _steps(CRUISE + speed / decel + STAND, dt) + 1, dtype=torch.float64
-        )
-        * dt
-    )
-    return torch.clamp(speed - decel * torch.clamp(t - CRUISE, min=0.0), min=0.0)
+def braking_leader(
+    speed: float, decel: float, dt: float, cruise: float = CRUISE, stand: float = STAND
+) -> Tensor:
+    """(T,) float64 speed [m/s]: ``cruise`` s at ``speed``, braking at
+    ``decel`` to 0, ``stand`` s standing."""
+    t = _times(cruise + speed / decel + stand, dt)
+    return torch.clamp(speed - decel * torch.clamp(t - cruise, min=0.0), min=0.0)
 
 
 def stop_and_go_leader(speed: float, dt: float) -> Tensor:
     """(T,) speed [m/s]: from ``speed`` to 0 and back, ``STOP_GO_CYCLES`` times."""
-    t = (
-        torch.arange(
-            _steps(STOP_GO_CYCLES * STOP_GO_PERIOD, dt) + 1, dtype=torch.float64
-        )
-        * dt
-    )
+    t = _times(STOP_GO_CYCLES * STOP_GO_PERIOD, dt)
     return speed / 2 * (1 + torch.cos(2 * math.pi * t / STOP_GO_PERIOD))
 
 
 def string_leader(speed: float, dt: float) -> Tensor:
     """(T,) speed [m/s]: ``speed`` with a smooth dip of ``STRING_DIP``."""
-    t = (
-        torch.arange(
-            _steps(CRUISE + STRING_DIP_SECONDS + 3 * SETTLE, dt) + 1,
-            dtype=torch.float64,
-        )
-        * dt
-    )
+    t = _times(CRUISE + STRING_DIP_SECONDS + 3 * SETTLE, dt)
     phase = torch.clamp((t - CRUISE) / STRING_DIP_SECONDS, 0.0, 1.0)
     return speed - STRING_DIP * torch.sin(math.pi * phase) ** 2
 
 
 def standstill_leader(speed: float, dt: float) -> Tensor:
     """(T,) speed [m/s]: stands 2 s, then 2 m/s^2 up to ``speed``."""
-    t = (
-        torch.arange(_steps(2.0 + speed / 2.0 + SETTLE, dt) + 1, dtype=torch.float64)
-        * dt
-    )
+    t = _times(2.0 + speed / 2.0 + SETTLE, dt)
     return torch.clamp(2.0 * (t - 2.0), 0.0, speed)
 
 
@@ -361,7 +351,7 @@ def _run(
     speed and leader speed, ``(T, P)`` each."""
     n_rows = gap.shape[0]
     v_lead = v_leader.to(gap)[:, None].expand(-1, n_rows)
-    x_lead = _positions(v_leader.to(gap), sampler.dt)[:, None].expand(-1, n_rows)
+    x_lead = leader_positions(v_leader.to(gap), sampler.dt)[:, None].expand(-1, n_rows)
     start = FollowerState(-gap, torch.full_like(gap, v0), torch.zeros_like(gap))
     sampler.reset_memory()
     out = platoon(
@@ -435,7 +425,9 @@ def _string_ratio(
     sampler = _sampler(model, theta, battery, n)
     v_leader = string_leader(battery.speed, battery.dt).to(gap)
     rows = gap.shape[0]
-    x_lead = _positions(v_leader, battery.dt)[:, None].expand(-1, rows).contiguous()
+    x_lead = (
+        leader_positions(v_leader, battery.dt)[:, None].expand(-1, rows).contiguous()
+    )
     v_lead = v_leader[:, None].expand(-1, rows).contiguous()
     start = FollowerState(
         -gap, torch.full_like(gap, battery.speed), torch.zeros_like(gap)
@@ -446,6 +438,18 @@ def _string_ratio(
     ratio = (last / first.clamp(min=1e-9)) ** (1.0 / (n - 1))
     ok = has_gap & out.valid & torch.isfinite(ratio)
     return torch.where(ok, ratio, torch.full_like(ratio, math.nan)).double().cpu()
+
+
+def plausibility_by_model(
+    particles: Mapping[str, Tensor], battery: Battery
+) -> dict[str, dict[str, Any]]:
+    """:meth:`Plausibility.summary` per model of a learned set (model ->
+    ``(P_m, K_m)`` particles; models without particles left out)."""
+    return {
+        name: check_plausibility(name, theta, battery).summary()
+        for name, theta in particles.items()
+        if theta.shape[0]
+    }
 
 
 def rejects(battery: Battery, reject_string_unstable: bool = False):
@@ -469,6 +473,8 @@ __all__ = [
     "braking_leader",
     "check_plausibility",
     "equilibrium_gap",
+    "leader_positions",
+    "plausibility_by_model",
     "rejects",
     "stop_and_go_leader",
     "standstill_leader",

@@ -70,7 +70,7 @@ from ..posterior import Posterior
 from ..rundir import RunDir
 from ..runtime import tune_malloc
 from ..tblog import RunLogger, markdown_summary
-from ..traffic.battery import Battery, battery_speed, check_plausibility, rejects
+from ..traffic.battery import Battery, battery_speed, plausibility_by_model, rejects
 
 CHECKPOINT_FORMAT = "torchcf.checkpoint/1"
 
@@ -323,12 +323,12 @@ def hybrid_plausibility(
 ) -> dict[str, Any]:
     """The battery's shares per model over the hybrid's particles, on the
     CPU in float64 (:meth:`torchcf.traffic.Plausibility.summary`)."""
-    battery = plausibility_battery(cfg, pairs)
-    return {
-        name: check_plausibility(name, posterior.hybrid[name].theta, battery).summary()
+    particles = {
+        name: posterior.hybrid[name].theta
         for name in posterior.models
-        if name in posterior.hybrid and len(posterior.hybrid[name])
+        if name in posterior.hybrid
     }
+    return plausibility_by_model(particles, plausibility_battery(cfg, pairs))
 
 
 def plausibility_screen(cfg: TrainConfig, pairs: PairSet) -> PlausibilityScreen | None:
