@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import errno
 import json
+import math
 import os
 import re
 import subprocess
@@ -22,6 +23,7 @@ from torchcf.files import (
     RunFileError,
     atomic_torch_save,
     atomic_write_text,
+    from_json_safe,
     json_safe,
     read_json_object,
     read_torch,
@@ -528,3 +530,11 @@ def test_training_on_a_full_disk(small_fs, tmp_path, free_kb):
     else:
         assert not out.exists()
         assert "train" not in result.stderr.split("error:")[0]  # no data notes
+
+
+def test_from_json_safe_inverts_json_safe():
+    value = {"ws": math.inf, "min": -math.inf, "rows": [1.0, math.nan], "name": "hl"}
+    back = from_json_safe(json.loads(json.dumps(json_safe(value))))
+    assert back["ws"] == math.inf and back["min"] == -math.inf
+    assert back["rows"][0] == 1.0 and math.isnan(back["rows"][1])
+    assert back["name"] == "hl"

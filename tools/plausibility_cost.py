@@ -20,7 +20,6 @@ Writes ``reports/plausibility/plausibility.{md,json}``.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
@@ -33,8 +32,10 @@ from bench_sim import bench_meta, write_report  # noqa: E402
 
 from torchcf.config import load_config  # noqa: E402
 from torchcf.data import load_split  # noqa: E402
+from torchcf.files import from_json_safe  # noqa: E402
 from torchcf.pipeline import train_and_evaluate  # noqa: E402
 from torchcf.posterior import Posterior  # noqa: E402
+from torchcf.rundir import RunDir  # noqa: E402
 from torchcf.traffic import HybridSampler  # noqa: E402
 from torchcf.traffic.battery import plausibility_by_model  # noqa: E402
 from torchcf.train.run import plausibility_battery  # noqa: E402
@@ -60,7 +61,7 @@ def run_set(
         began = time.perf_counter()
         summary = train_and_evaluate(cfg, out)
         seconds = time.perf_counter() - began
-        metrics = _numbers(json.loads((out / "metrics.json").read_text()))
+        metrics = from_json_safe(RunDir(out).read_metrics())
         posterior = Posterior.load(out / "posterior.pt")
     sampler = HybridSampler.from_posterior(posterior, dt=0.1)
     battery = plausibility_battery(cfg, load_split(cfg.data)[0])
@@ -93,15 +94,6 @@ def run_set(
         "hybrid_collided": collided,
         "battery_speed": battery.speed,
     }
-
-
-def _numbers(value):
-    """metrics.json's values as numbers (it writes infinities as strings)."""
-    if isinstance(value, dict):
-        return {k: _numbers(v) for k, v in value.items()}
-    if isinstance(value, str) and value.lower() in ("inf", "infinity", "-inf", "nan"):
-        return float(value)
-    return value
 
 
 def hybrid_beats_every_model(metrics: dict, key: str) -> tuple[bool, str]:

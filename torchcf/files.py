@@ -257,6 +257,18 @@ def json_safe(value: Any) -> Any:
     return value
 
 
+def from_json_safe(value: Any) -> Any:
+    """The inverse of :func:`json_safe` for what JSON read back: the strings
+    "inf", "-inf", "nan" as floats again, recursively."""
+    if isinstance(value, dict):
+        return {k: from_json_safe(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [from_json_safe(v) for v in value]
+    if value in ("inf", "-inf", "nan"):
+        return float(value)
+    return value
+
+
 def _reason(error: BaseException) -> str:
     """The operating system's reason behind ``error`` ("No space left on device"),
     also where a library wrapped the ``OSError`` in an error of its own; else
