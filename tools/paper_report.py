@@ -147,6 +147,8 @@ def main(argv: list[str] | None = None) -> int:
         summary = json.loads((source / "summary.json").read_text())
         keep = {k: summary[k] for k in ("dataset", "n_train", "n_test", "shares")}
         keep.update({k: summary[k] for k in ("pairwise", "sensitivity")})
+        if "plausibility" in summary:  # the battery on the hybrid's particles
+            keep["plausibility"] = summary["plausibility"]
         keep["per_model_seconds"] = {
             m: v["seconds"] for m, v in summary["per_model"].items()
         }
