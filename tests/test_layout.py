@@ -32,6 +32,7 @@ STAGES = [
 #: Command-line modules: the top of the house, imported by nothing in it.
 CLI_MODULES = {
     "torchcf.config.__main__",
+    "torchcf.data.__main__",
     "torchcf.train.__main__",
     "torchcf.diagnose.__main__",
 }

@@ -115,6 +115,11 @@ class RunDir:
         return self._path / "tb"
 
     @property
+    def data_dir(self) -> Path:
+        """Where a run on a raw source keeps its extraction record."""
+        return self._path / "data"
+
+    @property
     def loop_json(self) -> Path:
         return self._path / "loop.json"
 

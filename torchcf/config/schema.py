@@ -50,6 +50,7 @@ from pydantic import (
 
 from torchcf.config.messages import ConfigError, describe
 from torchcf.config.overrides import apply_overrides
+from torchcf.config.raw import RawSource
 from torchcf.data.reader import UNITS, unit_factor
 from torchcf.data.registry import DATASETS
 from torchcf.models import EFFECTS, MODELS, UnknownModelError, get_model
@@ -100,6 +101,14 @@ class DataConfig(BaseModel):
         description=(
             "Folder in the six-CSV layout (with Trajectory/ and Testing/ for "
             "split='dataset'). Exactly one of name and path."
+        ),
+    )
+    raw: RawSource | None = Field(
+        None,
+        description=(
+            "A raw trajectory file or folder, extracted into pairs when the run "
+            "starts (torchcf.data.extract; the same settings as python -m "
+            "torchcf.data extract). Exactly one of name, path and raw."
         ),
     )
     root: str | None = Field(
@@ -176,10 +185,28 @@ class DataConfig(BaseModel):
 
     @model_validator(mode="after")
     def _consistent(self) -> DataConfig:
-        if (self.name is None) == (self.path is None):
+        given = [k for k in ("name", "path", "raw") if getattr(self, k) is not None]
+        if len(given) != 1:
             raise ValueError(
-                "give exactly one of name (a registered data set) and path (a folder)"
+                "give exactly one of name (a registered data set), path (a folder) "
+                f"and raw (a raw trajectory source), got {', '.join(given) or 'none'}"
             )
+        if self.raw is not None:
+            fixed = [
+                k
+                for k in ("units", "dt", "leader_length", "min_spacing")
+                if getattr(self, k) is not None
+            ]
+            if fixed:
+                raise ValueError(
+                    f"{', '.join(fixed)}: not used with raw (the extraction sets "
+                    "them; see data.raw)"
+                )
+            if self.split != "dataset":
+                raise ValueError(
+                    "split='kfold' cannot be used with raw: raw sources are split by "
+                    "source group (data.raw.split_by), so no vehicle is on both sides"
+                )
         if self.root is not None and self.name is None:
             raise ValueError("root is only used with name, not with path")
         if self.fold >= self.folds:

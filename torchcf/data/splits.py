@@ -1,10 +1,13 @@
 """Training / test splits of a pair set: the data set's own split or seeded k-fold.
 
-The run configuration (:class:`torchcf.config.DataConfig`) chooses one of two ways:
+The run configuration (:class:`torchcf.config.DataConfig`) chooses one of three ways:
 
 * ``split="dataset"``: the data set's own split, ``Trajectory/`` for training and
   ``Testing/`` for testing (see :mod:`torchcf.data.registry` for the quirks handled
   on the way, e.g. the train-to-test leak of CAR MODEL II).
+* ``raw``: a raw trajectory source, extracted when the run starts
+  (:func:`torchcf.data.importer.extract_source`) and split by source group
+  (:func:`torchcf.data.extract.group_split`).
 * ``split="kfold"``: the full set is cut into ``folds`` nearly equal parts by a
   seeded permutation of the pairs; part ``fold`` is the test set, the rest the
   training set (SPEC section 6, cross-validation).
@@ -18,6 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from torchcf.data.importer import extract_source
 from torchcf.data.pairset import DataError, PairSet
 from torchcf.data.registry import load_pairs
 
@@ -88,6 +92,17 @@ def load_split(data: DataConfig, *, download: bool = True) -> tuple[PairSet, Pai
     Raises:
         DataError: the data cannot be loaded, or the k-fold split is impossible.
     """
+    raw = getattr(data, "raw", None)
+    if raw is not None:
+        extraction = extract_source(
+            raw.source,
+            raw.format,
+            reader_options=raw.reader_options(),
+            options=raw.extract_options(),
+        )
+        if extraction.test is None:
+            raise DataError("data.raw.test_fraction is 0: a run needs test pairs")
+        return extraction.train, extraction.test
     source = data.name if data.name is not None else data.path
     if source is None:
         raise DataError("data: give a dataset name or a folder path")

@@ -63,6 +63,7 @@ from ..abc.topn import TopN
 from ..cli import one_line
 from ..config import ConfigError, TrainConfig, config_hash, resolved_json
 from ..data import PairSet, load_split
+from ..data.importer import record_extraction
 from ..errors import TorchcfError
 from ..files import RunFileError
 from ..models import get_model
@@ -427,6 +428,9 @@ def _stream_model(
 
 
 def _dataset_label(cfg: TrainConfig) -> str:
+    """The data set's name, folder, or raw source ("SOURCE (FORMAT)")."""
+    if cfg.data.raw is not None:
+        return f"{cfg.data.raw.source} ({cfg.data.raw.format})"
     return cfg.data.name if cfg.data.name is not None else str(cfg.data.path)
 
 
@@ -554,6 +558,8 @@ def train(
     check_budget(cfg, train_pairs)
     group.on_main(run.prepare)
     group.on_main(run.write_config, resolved_json(cfg))
+    if cfg.data.raw is not None:  # where the pairs came from, what was dropped
+        group.on_main(record_extraction, cfg.data.raw, run.data_dir)
     _buffers(cfg, train_pairs, state, run)
     rollout = rollout_of(cfg, train_pairs, device)
     checkpointer = _Checkpointer(run, state, cfg.abc.checkpoint_every, group)

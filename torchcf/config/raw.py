@@ -1,0 +1,163 @@
+"""The ``data.raw`` section: train on a raw trajectory file, extracted on the fly.
+
+    "data": {"raw": {"source": "openacc/", "format": "openacc", "window": 40}}
+
+The same settings as ``python -m torchcf.data extract`` (the command line builds a
+:class:`RawSource` too), so a study run from a config and a folder extracted by
+hand hold the same pairs. Reading and extraction live in :mod:`torchcf.data`:
+:func:`torchcf.data.importer.extract_source`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from torchcf.data.extract import ExtractOptions
+from torchcf.data.formats import FORMATS
+from torchcf.data.formats.generic import (
+    ACCELERATION_UNITS,
+    LENGTH_UNITS,
+    SPEED_UNITS,
+    TIME_UNITS,
+)
+from torchcf.data.quality import QualityThresholds
+
+__all__ = ["RawSource"]
+
+_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+_OptionalPositive = float | None
+
+
+class RawSource(BaseModel):
+    """A raw trajectory source and how to cut pairs from it
+    (:mod:`torchcf.data.extract`, :mod:`torchcf.data.quality`)."""
+
+    model_config = _STRICT
+
+    source: str = Field(min_length=1, description="Raw file or folder.")
+    format: Literal["ngsim", "openacc", "csv"] = Field(
+        description=f"Reader: one of {', '.join(FORMATS)}."
+    )
+    columns: dict[str, str] | None = Field(
+        None,
+        description=(
+            "csv only: source column of each table column, e.g. "
+            '{"vehicle": "ID", "time": "t", "position": "x"}; None = the '
+            "table's own names."
+        ),
+    )
+    length_unit: str = Field(
+        "m", description=f"csv only: one of {', '.join(LENGTH_UNITS)}."
+    )
+    speed_unit: str | None = Field(
+        None, description=f"csv only: one of {', '.join(SPEED_UNITS)}; None = length/s."
+    )
+    acceleration_unit: str | None = Field(
+        None,
+        description=(
+            f"csv only: one of {', '.join(ACCELERATION_UNITS)}; None = length/s^2."
+        ),
+    )
+    time_unit: str = Field(
+        "s", description=f"csv only: one of {', '.join(TIME_UNITS)}."
+    )
+    vehicle_length: float = Field(
+        5.0, gt=0, description="openacc only: vehicle length [m] (the files give none)."
+    )
+    window: float = Field(40.0, gt=0, description="Pair length [s].")
+    stride: float | None = Field(
+        None, gt=0, description="Start-to-start distance of windows [s]; None = window."
+    )
+    leader_length: float | None = Field(
+        None, gt=0, description="Leader length of the pair set [m]; None = median."
+    )
+    default_length: float = Field(
+        5.0, gt=0, description="Length of vehicles the source gives none for [m]."
+    )
+    jump: _OptionalPositive = Field(
+        1.0,
+        gt=0,
+        description="Jump filter: largest position-step disagreement [m]; null = off.",
+    )
+    max_acceleration: _OptionalPositive = Field(
+        8.0, gt=0, description="Acceleration filter: largest |a| [m/s^2]; null = off."
+    )
+    gap_drift: _OptionalPositive = Field(
+        2.0, gt=0, description="Gap-consistency filter: largest drift [m]; null = off."
+    )
+    gap_drift_rate: float = Field(
+        0.2, ge=0, description="Gap-consistency filter: drift allowed per second [m/s]."
+    )
+    standstill_speed: _OptionalPositive = Field(
+        0.5, gt=0, description="Leader-standstill filter: speed [m/s]; null = off."
+    )
+    split_by: Literal["follower", "couple", "run"] = Field(
+        "follower", description="Source group kept on one side of the split."
+    )
+    test_fraction: float = Field(0.3, ge=0, lt=1, description="Share of test pairs.")
+    seed: int = Field(0, description="Seed of the split's order of groups.")
+
+    @model_validator(mode="after")
+    def _csv_options_only_for_csv(self) -> RawSource:
+        if self.format != "csv":
+            defaults = type(self).model_fields
+            used = [
+                k
+                for k in (
+                    "columns",
+                    "length_unit",
+                    "speed_unit",
+                    "acceleration_unit",
+                    "time_unit",
+                )
+                if getattr(self, k) != defaults[k].default
+            ]
+            if used:
+                raise ValueError(f"{', '.join(used)}: only used with format='csv'")
+        for name, units in (
+            ("length_unit", LENGTH_UNITS),
+            ("speed_unit", SPEED_UNITS),
+            ("acceleration_unit", ACCELERATION_UNITS),
+            ("time_unit", TIME_UNITS),
+        ):
+            value = getattr(self, name)
+            if value is not None and value not in units:
+                raise ValueError(
+                    f"{name} must be one of {', '.join(units)}, got {value!r}"
+                )
+        return self
+
+    def reader_options(self) -> dict[str, Any]:
+        """Keyword arguments of the format's reader."""
+        if self.format == "csv":
+            return {
+                "columns": self.columns,
+                "length_unit": self.length_unit,
+                "speed_unit": self.speed_unit,
+                "acceleration_unit": self.acceleration_unit,
+                "time_unit": self.time_unit,
+            }
+        if self.format == "openacc":
+            return {"vehicle_length": self.vehicle_length}
+        return {}
+
+    def extract_options(self) -> ExtractOptions:
+        """The extraction settings (:class:`torchcf.data.extract.ExtractOptions`)."""
+        return ExtractOptions(
+            window=self.window,
+            stride=self.stride,
+            leader_length=self.leader_length,
+            default_length=self.default_length,
+            quality=QualityThresholds(
+                jump=self.jump,
+                max_acceleration=self.max_acceleration,
+                gap_drift=self.gap_drift,
+                gap_drift_rate=self.gap_drift_rate,
+                standstill_speed=self.standstill_speed,
+            ),
+            split_by=self.split_by,
+            test_fraction=self.test_fraction,
+            seed=self.seed,
+        )

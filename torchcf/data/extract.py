@@ -1,0 +1,659 @@
+"""From a long trajectory table to leader-follower pairs: couples, windows, filters.
+
+:func:`extract_pairs` turns a :class:`~torchcf.data.trajectory.TrajectoryTable` into
+a :class:`~torchcf.data.pairset.PairSet` of equal-length windows, with a record of
+where every pair came from and of what was dropped and why:
+
+1. **Derivatives.** Speeds and accelerations the source lacks are derived from
+   positions and speeds (:func:`torchcf.data.derive.fill_derivatives`).
+2. **Time grid.** ``dt`` is the median time step of all vehicles; every time stamp
+   must lie on the grid ``t0 + k dt`` of its run (within 5 % of dt), and one
+   vehicle may not have two rows at one step.
+3. **Units.** Speeds over :data:`MAX_SPEED` or positions that move at a multiple of
+   the recorded speeds (feet taken for metres, km/h for m/s) stop the extraction
+   with an error that names the likely unit.
+4. **Couples.** A follower row belongs to its couple's *span* while its leader
+   stays the same, the follower stays in its lane and control mode, and the
+   leader has a row at the same step in the same lane. A leader change, lane
+   change or mode change ends a span, and so does a gap in the follower's record
+   longer than one window. Steps missing inside a span (shorter gaps) stay in it
+   and make the windows that cover them fail the ``missing`` filter.
+5. **Windows.** Each span is cut into windows of ``window`` seconds, one every
+   ``stride`` seconds from its start; the tail after the last whole window is not
+   used. A span shorter than one window is dropped as ``short``.
+6. **Filters.** Each window passes the quality filters of
+   :mod:`torchcf.data.quality` or is dropped for the first it fails.
+7. **Pairs.** The PairSet has one leader length ``L`` (the median leader length of
+   the kept windows, or ``leader_length=``). Where a pair's own leader length
+   ``L_i`` differs, its leader position is written as the leader's rear bumper
+   plus ``L`` (``x_l - L_i + L``), so every spacing ``x_l - x_f - L`` is the
+   measured one; the index keeps ``L_i``.
+8. **Split.** Training and test pairs are split by source group (the follower
+   vehicle by default, or the couple, or the run), so no group lands on both
+   sides (:func:`group_split`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+import torch
+
+from torchcf.data.derive import fill_derivatives
+from torchcf.data.pairset import DataError, PairSet
+from torchcf.data.quality import FILTERS, QualityThresholds, Windows, first_failure
+from torchcf.data.trajectory import TrajectoryTable
+
+__all__ = [
+    "MAX_SPEED",
+    "ExtractOptions",
+    "Extraction",
+    "extract_pairs",
+    "group_split",
+]
+
+#: Fastest plausible road-vehicle speed [m/s] (252 km/h): anything faster is a
+#: unit error (km/h or ft/s read as m/s).
+MAX_SPEED = 70.0
+
+SplitBy = Literal["follower", "couple", "run"]
+
+
+@dataclass(frozen=True)
+class ExtractOptions:
+    """How to cut pairs from a trajectory table.
+
+    Attributes:
+        window: length of a pair [s]. The default suits the paper's 35-58 s
+            pairs: long enough to hold several speed changes.
+        stride: start-to-start distance of windows of one span [s]; None = the
+            window (windows do not overlap).
+        leader_length: the PairSet's leader length [m]; None = the median
+            leader length of the kept windows.
+        default_length: length of vehicles whose source gives none [m].
+        quality: thresholds of the quality filters.
+        speed_window, acceleration_window: Savitzky-Golay windows [s] for
+            speeds and accelerations the source lacks.
+        split_by: the source group no two sides may share: "follower" (the
+            following vehicle of a run), "couple" (leader and follower) or "run".
+        test_fraction: share of the pairs to put in the test split, in [0, 1).
+        seed: seed of the split's random order of groups.
+        name: name of the pair set (defaults to the table's source).
+    """
+
+    window: float = 40.0
+    stride: float | None = None
+    leader_length: float | None = None
+    default_length: float = 5.0
+    quality: QualityThresholds = field(default_factory=QualityThresholds)
+    speed_window: float = 1.0
+    acceleration_window: float = 1.0
+    split_by: SplitBy = "follower"
+    test_fraction: float = 0.3
+    seed: int = 0
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        for label, value in (
+            ("window", self.window),
+            ("default_length", self.default_length),
+            ("speed_window", self.speed_window),
+            ("acceleration_window", self.acceleration_window),
+        ):
+            if not (np.isfinite(value) and value > 0):
+                raise DataError(f"{label} must be > 0, got {value}")
+        if self.stride is not None and not (
+            np.isfinite(self.stride) and self.stride > 0
+        ):
+            raise DataError(f"stride must be > 0 [s], got {self.stride}")
+        if self.leader_length is not None and not self.leader_length > 0:
+            raise DataError(f"leader_length must be > 0 [m], got {self.leader_length}")
+        if self.split_by not in ("follower", "couple", "run"):
+            raise DataError(
+                f"split_by must be 'follower', 'couple' or 'run', got {self.split_by!r}"
+            )
+        if not 0.0 <= self.test_fraction < 1.0:
+            raise DataError(
+                f"test_fraction must be in [0, 1), got {self.test_fraction}"
+            )
+
+
+@dataclass(frozen=True, eq=False)
+class Extraction:
+    """The pairs cut from a table, and the record of how.
+
+    Attributes:
+        pairs: (W, N) full set; ``pair_ids`` 0 .. N-1 = the row of ``index``.
+        train, test: the split (subsets of ``pairs``, same ids); ``test`` is None
+            when ``test_fraction`` is 0.
+        index: one row per pair: where it came from (see :data:`INDEX_COLUMNS`).
+        dropped: one row per dropped window or short span, with the reason.
+        dt: sampling interval [s].
+        road_frame: whether all pairs share one road frame.
+        summary: counts for humans and for ``extract.json``.
+        notes: what was found and handled, one line each (the table's notes
+            first).
+    """
+
+    pairs: PairSet
+    train: PairSet
+    test: PairSet | None
+    index: pd.DataFrame
+    dropped: pd.DataFrame
+    dt: float
+    road_frame: bool | None
+    summary: dict
+    notes: tuple[str, ...]
+
+
+INDEX_COLUMNS = (
+    "pair",
+    "split",
+    "run",
+    "follower",
+    "leader",
+    "lane",
+    "mode",
+    "t_start",
+    "t_end",
+    "steps",
+    "leader_length",
+    "follower_length",
+    "min_gap",
+    "mean_speed",
+    "source",
+)
+DROPPED_COLUMNS = (
+    "run",
+    "follower",
+    "leader",
+    "lane",
+    "t_start",
+    "t_end",
+    "reason",
+    "value",
+    "unit",
+)
+
+
+def extract_pairs(
+    table: TrajectoryTable, options: ExtractOptions | None = None
+) -> Extraction:
+    """Cut leader-follower pairs out of ``table`` (module docstring, steps 1-8).
+
+    Raises:
+        DataError: time stamps off a common grid, implausible units, no couple
+            lasting one window, no window passing the filters (the message counts
+            what each filter removed), or a split that cannot keep groups apart.
+    """
+    options = options or ExtractOptions()
+    table = fill_derivatives(
+        table.sorted(),
+        speed_window=options.speed_window,
+        acceleration_window=options.acceleration_window,
+    )
+    source = table.source or "the table"
+    frame, dt = _on_grid(table.frame, options, source)
+    width = int(round(options.window / dt))
+    if width < 2:
+        raise DataError(f"window {options.window} s is under two steps of {dt} s")
+    stride = width if options.stride is None else max(1, round(options.stride / dt))
+
+    couples = _couple_rows(frame)
+    spans, unmatched = _spans(couples, width)
+    windows, meta, dropped = _candidate_windows(couples, spans, width, stride, dt)
+    if not meta:
+        longest = max((s.stop - s.start for s in spans), default=0) * dt
+        raise DataError(
+            f"no leader-follower couple in '{source}' lasts one window "
+            f"({options.window:g} s): the longest lasts {longest:.1f} s; "
+            "use a shorter --window"
+        )
+    kept, counts = _filter(windows, meta, dropped, options.quality, source)
+
+    leader_length = options.leader_length or float(
+        np.median(windows.leader_length[0, kept])
+    )
+    pairs = dataclasses.replace(
+        _pair_set(windows, kept, leader_length, dt, options.name or table.source),
+        road_frame=table.road_frame,
+    )
+    index = _index(meta, windows, kept, table.source)
+    index, train_ids, test_ids = group_split(index, options)
+    summary = {
+        "dt": dt,
+        "window_steps": width,
+        "stride_steps": stride,
+        "rows": int(len(frame)),
+        "runs": int(frame["run"].nunique()),
+        "vehicles": int(frame.groupby(["run", "vehicle"]).ngroups),
+        "spans": len(spans),
+        "candidate_windows": len(meta),
+        "pairs": int(pairs.n_pairs),
+        "train_pairs": len(train_ids),
+        "test_pairs": len(test_ids),
+        "leader_length": leader_length,
+        **counts,
+        "rows_outside_couples": unmatched,
+    }
+    return Extraction(
+        pairs=pairs,
+        train=dataclasses.replace(pairs.subset(train_ids), split="train"),
+        test=(
+            dataclasses.replace(pairs.subset(test_ids), split="test")
+            if test_ids
+            else None
+        ),
+        index=index,
+        dropped=pd.DataFrame(dropped, columns=list(DROPPED_COLUMNS)),
+        dt=dt,
+        road_frame=table.road_frame,
+        summary=summary,
+        notes=(*table.notes, *_notes(index, unmatched, len(meta), options.window)),
+    )
+
+
+def _on_grid(
+    frame: pd.DataFrame, options: ExtractOptions, source: str
+) -> tuple[pd.DataFrame, float]:
+    """Steps 2-3: the rows with their integer ``step`` and lengths filled, and dt."""
+    frame = frame.copy()
+    dt = infer_dt(frame, source)
+    frame["step"] = grid_steps(frame, dt, source)
+    check_units(frame, dt, source)
+    frame["length"] = frame["length"].fillna(options.default_length)
+    return frame, dt
+
+
+def _filter(
+    windows: Windows,
+    meta: list[dict],
+    dropped: list[dict],
+    quality: QualityThresholds,
+    source: str,
+) -> tuple[np.ndarray, dict]:
+    """Step 6: the kept windows' columns; failing windows appended to ``dropped``.
+
+    Raises:
+        DataError: no window passes (the message counts each filter's drops).
+    """
+    reason, value = first_failure(windows, quality)
+    for k in np.flatnonzero(reason != ""):
+        dropped.append(
+            {
+                **meta[k],
+                "reason": reason[k],
+                "value": value[k],
+                "unit": FILTERS[reason[k]][1],
+            }
+        )
+    counts = _counts(reason, dropped)
+    kept = np.flatnonzero(reason == "")
+    if kept.size == 0:
+        raise DataError(
+            f"no window of '{source}' passed the quality filters: "
+            f"{len(meta)} candidate windows, dropped by "
+            + ", ".join(f"{r} {n}" for r, n in counts["windows_dropped"].items())
+        )
+    return kept, counts
+
+
+def _notes(
+    index: pd.DataFrame, unmatched: dict[str, int], candidates: int, window: float
+) -> list[str]:
+    notes = []
+    if unmatched:
+        notes.append(
+            "follower rows outside any couple: "
+            + ", ".join(f"{n} with {why}" for why, n in unmatched.items())
+        )
+    notes.append(
+        f"{len(index)} pairs of {window:g} s from {index['run'].nunique()} run(s), "
+        f"{index['follower'].nunique()} follower id(s); "
+        f"{candidates - len(index)} of {candidates} candidate windows dropped"
+    )
+    return notes
+
+
+# ------------------------------------------------------------------ time grid
+def infer_dt(frame: pd.DataFrame, source: str) -> float:
+    """The median positive time step over all vehicles [s]."""
+    steps = frame.groupby(["run", "vehicle"], sort=False)["time"].diff().to_numpy()
+    steps = steps[np.isfinite(steps) & (steps > 0)]
+    if steps.size == 0:
+        raise DataError(f"no vehicle in '{source}' has two time stamps")
+    dt = float(np.median(steps))
+    # Round away float noise of the kind 0.09999999999: a clean decimal step.
+    return float(f"{dt:.6g}")
+
+
+def grid_steps(frame: pd.DataFrame, dt: float, source: str) -> np.ndarray:
+    """(rows,) integer step of every row on its run's grid ``t0 + k dt``."""
+    t0 = frame.groupby("run", sort=False)["time"].transform("min").to_numpy()
+    exact = (frame["time"].to_numpy() - t0) / dt
+    steps = np.rint(exact).astype(np.int64)
+    off = np.abs(exact - steps) > 0.05
+    if off.any():
+        row = int(np.flatnonzero(off)[0])
+        raise DataError(
+            f"time stamps of '{source}' are not on a grid of dt = {dt:g} s: "
+            f"run {frame['run'].iat[row]!r}, vehicle {frame['vehicle'].iat[row]!r}, "
+            f"t = {frame['time'].iat[row]:.6g} s ({int(off.sum())} rows); resample "
+            "the data to one sampling interval first"
+        )
+    keys = pd.DataFrame(
+        {"run": frame["run"], "vehicle": frame["vehicle"], "step": steps}
+    )
+    twice = keys.duplicated()
+    if twice.any():
+        row = int(np.flatnonzero(twice.to_numpy())[0])
+        raise DataError(
+            f"vehicle {frame['vehicle'].iat[row]!r} of run {frame['run'].iat[row]!r} "
+            f"has two rows at t = {frame['time'].iat[row]:.6g} s in '{source}' "
+            f"({int(twice.sum())} such rows): vehicle ids must be unique per run"
+        )
+    return steps
+
+
+def check_units(frame: pd.DataFrame, dt: float, source: str) -> None:
+    """Stop on speeds no road vehicle reaches, or positions out of step with them.
+
+    Raises:
+        DataError: the 99th percentile speed is over :data:`MAX_SPEED`, or the
+            median position rate |dx/dt| differs from the median |speed| by a
+            factor outside [0.5, 2] (the message names the unit factor it looks
+            like: 3.28 ft per m, 3.6 km/h per m/s, 2.24 mph per m/s).
+    """
+    speed = frame["speed"].to_numpy()
+    speed = speed[np.isfinite(speed)]
+    if speed.size and np.quantile(np.abs(speed), 0.99) > MAX_SPEED:
+        top = float(np.quantile(np.abs(speed), 0.99))
+        raise DataError(
+            f"speeds up to {top:.1f} m/s (99th percentile) in '{source}': no road "
+            f"vehicle is that fast (> {MAX_SPEED:g} m/s); the units cannot be right "
+            "(speeds in km/h or ft/s read as m/s?)"
+        )
+    by_vehicle = frame.groupby(["run", "vehicle"], sort=False)
+    rate = (by_vehicle["position"].diff() / (by_vehicle["step"].diff() * dt)).to_numpy()
+    moving = np.isfinite(rate) & (frame["speed"].to_numpy() > 1.0)
+    if moving.sum() < 10:
+        return
+    ratio = float(np.median(np.abs(rate[moving]))) / float(
+        np.median(frame["speed"].to_numpy()[moving])
+    )
+    if not 0.5 <= ratio <= 2.0:
+        raise DataError(
+            f"positions in '{source}' move {ratio:.2f} times as fast as the recorded "
+            f"speeds: the units of position and speed disagree ({_likely(ratio)})"
+        )
+
+
+def _likely(ratio: float) -> str:
+    factors = {
+        1 / 0.3048: "positions in ft, speeds in m/s?",
+        0.3048: "positions in m, speeds in ft/s?",
+        3.6: "speeds in m/s, positions in a unit 3.6 times smaller, or km/h?",
+        1 / 3.6: "speeds in km/h read as m/s?",
+        1 / 2.23694: "speeds in mph read as m/s?",
+    }
+    best = min(factors, key=lambda f: abs(np.log(ratio / f)))
+    return factors[best] if abs(np.log(ratio / best)) < 0.1 else "check both"
+
+
+# --------------------------------------------------------------------- couples
+_LEADER = ("position", "speed", "acceleration", "lane", "length")
+
+
+def _couple_rows(frame: pd.DataFrame) -> pd.DataFrame:
+    """Follower rows that name a leader, joined with the leader's row at that step.
+
+    Columns: run, vehicle, leader, lane, mode, step, time, follower's position,
+    speed, acceleration, length, gap; the leader's with suffix ``_l`` (NaN when
+    the leader has no row at that step) and ``present_l``.
+    """
+    followers = frame[frame["leader"] != ""]
+    leaders = frame[["run", "vehicle", "step", *_LEADER]].rename(
+        columns={c: f"{c}_l" for c in ("vehicle", *_LEADER)}
+    )
+    leaders["present_l"] = True
+    joined = followers.merge(
+        leaders,
+        how="left",
+        left_on=["run", "leader", "step"],
+        right_on=["run", "vehicle_l", "step"],
+    )
+    joined["present_l"] = joined["present_l"].fillna(False).astype(bool)
+    return joined.sort_values(["run", "vehicle", "step"], kind="stable").reset_index(
+        drop=True
+    )
+
+
+@dataclass(frozen=True)
+class _Span:
+    rows: slice  # rows of the couple frame
+    start: int  # first step
+    stop: int  # last step + 1
+
+
+def _spans(couples: pd.DataFrame, width: int) -> tuple[list[_Span], dict[str, int]]:
+    """Maximal runs of rows of one couple, in one lane and mode (step 4)."""
+    lane_ok = (
+        (couples["lane"] == "")
+        | (couples["lane_l"].fillna("") == "")
+        | (couples["lane"] == couples["lane_l"].fillna(""))
+    )
+    usable = (couples["present_l"] & lane_ok).to_numpy()
+    unmatched = {
+        "the leader not recorded at that time": int((~couples["present_l"]).sum()),
+        "the leader in another lane": int((couples["present_l"] & ~lane_ok).sum()),
+    }
+    keys = couples[["run", "vehicle", "leader", "lane", "mode"]]
+    same = (keys == keys.shift()).all(axis=1).to_numpy()
+    step = couples["step"].to_numpy()
+    close = np.r_[False, np.diff(step) <= width]
+    previous_usable = np.r_[False, usable[:-1]]
+    start = ~(same & close & previous_usable) & usable
+    spans: list[_Span] = []
+    run_id = np.cumsum(start)
+    run_id[~usable] = 0
+    for rid in np.unique(run_id[run_id > 0]):
+        rows = np.flatnonzero(run_id == rid)
+        # usable rows of one span are consecutive by construction
+        spans.append(
+            _Span(slice(rows[0], rows[-1] + 1), step[rows[0]], step[rows[-1]] + 1)
+        )
+    return spans, {k: v for k, v in unmatched.items() if v}
+
+
+def _candidate_windows(
+    couples: pd.DataFrame, spans: list[_Span], width: int, stride: int, dt: float
+) -> tuple[Windows, list[dict], list[dict]]:
+    """Dense (W, K) arrays of every candidate window, their metadata, short spans."""
+    names = {
+        "x_lead": "position_l",
+        "v_lead": "speed_l",
+        "a_lead": "acceleration_l",
+        "x_follow": "position",
+        "v_follow": "speed",
+        "a_follow": "acceleration",
+        "gap": "gap",
+        "leader_length": "length_l",
+    }
+    columns = {k: couples[c].to_numpy(dtype=float) for k, c in names.items()}
+    steps = couples["step"].to_numpy()
+    time = couples["time"].to_numpy()
+    blocks: dict[str, list[np.ndarray]] = {k: [] for k in (*names, "present")}
+    meta: list[dict] = []
+    short: list[dict] = []
+    for span in spans:
+        row = couples.iloc[span.rows.start]
+        t0 = float(time[span.rows.start]) - (steps[span.rows.start] - span.start) * dt
+        describe = {
+            "run": row["run"],
+            "follower": row["vehicle"],
+            "leader": row["leader"],
+            "lane": row["lane"],
+            "mode": row["mode"],
+            "follower_length": float(row["length"]),
+        }
+        length = span.stop - span.start
+        if length < width:
+            short.append(
+                {
+                    **_where(describe),
+                    "t_start": t0,
+                    "t_end": t0 + (length - 1) * dt,
+                    "reason": "short",
+                    "value": length * dt,
+                    "unit": "s (span length)",
+                }
+            )
+            continue
+        local = steps[span.rows] - span.start
+        dense = {k: np.full(length, np.nan) for k in names}
+        for k in names:
+            dense[k][local] = columns[k][span.rows]
+        present = np.zeros(length, dtype=bool)
+        present[local] = True
+        for first in range(0, length - width + 1, stride):
+            part = slice(first, first + width)
+            for k in names:
+                blocks[k].append(dense[k][part])
+            blocks["present"].append(present[part])
+            meta.append(
+                {
+                    **describe,
+                    "t_start": t0 + first * dt,
+                    "t_end": t0 + (first + width - 1) * dt,
+                }
+            )
+    stacked = {
+        k: (np.stack(v, axis=1) if v else np.zeros((width, 0)))
+        for k, v in blocks.items()
+    }
+    windows = Windows(
+        present=stacked["present"].astype(bool),
+        dt=dt,
+        **{k: stacked[k] for k in names},
+    )
+    return windows, meta, short
+
+
+def _where(describe: dict) -> dict:
+    return {k: describe[k] for k in ("run", "follower", "leader", "lane")}
+
+
+def _counts(reason: np.ndarray, dropped: list[dict]) -> dict:
+    windows = {
+        name: int((reason == name).sum()) for name in FILTERS if (reason == name).any()
+    }
+    short = [d for d in dropped if d["reason"] == "short"]
+    return {
+        "windows_dropped": windows,
+        "spans_short": len(short),
+        "seconds_in_short_spans": float(sum(d["value"] for d in short)),
+    }
+
+
+# ----------------------------------------------------------------------- pairs
+def _index(meta: list[dict], w: Windows, kept: np.ndarray, source: str) -> pd.DataFrame:
+    """One row per kept window (:data:`INDEX_COLUMNS`); ``split`` filled later."""
+    rows = []
+    for pair, k in enumerate(kept):
+        gap = w.x_lead[:, k] - w.leader_length[:, k] - w.x_follow[:, k]
+        rows.append(
+            {
+                "pair": pair,
+                "split": "",
+                **{
+                    c: meta[k][c] for c in ("run", "follower", "leader", "lane", "mode")
+                },
+                "t_start": meta[k]["t_start"],
+                "t_end": meta[k]["t_end"],
+                "steps": w.x_lead.shape[0],
+                "leader_length": float(w.leader_length[0, k]),
+                "follower_length": meta[k]["follower_length"],
+                "min_gap": float(gap.min()),
+                "mean_speed": float(w.v_follow[:, k].mean()),
+                "source": source,
+            }
+        )
+    return pd.DataFrame(rows, columns=list(INDEX_COLUMNS))
+
+
+def _pair_set(
+    w: Windows, kept: np.ndarray, leader_length: float, dt: float, name: str
+) -> PairSet:
+    """(W, N) PairSet; leader positions re-based to the common leader length."""
+    shift = leader_length - w.leader_length[:, kept]  # (W, N)
+    series = [
+        w.x_lead[:, kept] + shift,
+        w.v_lead[:, kept],
+        w.a_lead[:, kept],
+        w.x_follow[:, kept],
+        w.v_follow[:, kept],
+        w.a_follow[:, kept],
+    ]
+    return PairSet.from_arrays(
+        *(torch.from_numpy(np.ascontiguousarray(s)) for s in series),
+        dt=dt,
+        leader_length=leader_length,
+        name=name,
+    )
+
+
+# ----------------------------------------------------------------------- split
+def group_split(
+    index: pd.DataFrame, options: ExtractOptions
+) -> tuple[pd.DataFrame, list[int], list[int]]:
+    """Assign whole source groups to the test split until it holds its share.
+
+    Groups (``options.split_by``: the follower ``(run, follower)``, the couple
+    ``(run, follower, leader)`` or the ``run``) are visited in a random order
+    seeded with ``options.seed``; a group joins the test split while the test
+    split holds fewer than ``round(test_fraction * N)`` pairs (at least one)
+    and at least one group is left for training.
+
+    Returns:
+        ``(index with its 'split' column filled, train pair ids, test pair ids)``.
+
+    Raises:
+        DataError: a test share is asked for but there is only one group.
+    """
+    keys = {
+        "follower": ["run", "follower"],
+        "couple": ["run", "follower", "leader"],
+        "run": ["run"],
+    }[options.split_by]
+    group = index.groupby(keys, sort=True).ngroup().to_numpy()
+    n_groups = int(group.max()) + 1
+    index = index.copy()
+    if options.test_fraction == 0:
+        index["split"] = "train"
+        return index, index["pair"].tolist(), []
+    if n_groups < 2:
+        raise DataError(
+            f"the pairs come from one {options.split_by} only: a split by "
+            f"{options.split_by} needs two (use --split-by couple or run, or "
+            "--test-fraction 0)"
+        )
+    target = max(1, int(round(options.test_fraction * len(index))))
+    order = np.random.default_rng(options.seed).permutation(n_groups)
+    test_groups: list[int] = []
+    in_test = 0
+    for g in order[:-1]:  # the last group always trains
+        if in_test >= target:
+            break
+        test_groups.append(int(g))
+        in_test += int((group == g).sum())
+    is_test = np.isin(group, test_groups)
+    index["split"] = np.where(is_test, "test", "train")
+    return (
+        index,
+        index.loc[~is_test, "pair"].tolist(),
+        index.loc[is_test, "pair"].tolist(),
+    )
