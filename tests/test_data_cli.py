@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 
 from torchcf.config import ConfigError, validate_config
-from torchcf.data import load_split
+from torchcf.data import load_pairs, load_split
 from torchcf.data.__main__ import main as data_main
 from torchcf.train import __main__ as train_cli
 
@@ -119,6 +119,14 @@ def test_speeds_in_kmh_read_as_ms_are_refused(tmp_path, capsys) -> None:
     args[args.index("--speed-unit") + 1] = "m/s"  # the column holds km/h
     assert data_main(args) == 2
     one_error_line(capsys.readouterr().err, "units")
+
+
+def test_road_frame_is_declared_in_meta_json(tmp_path) -> None:
+    log = write_log(tmp_path / "log.csv")
+    out = tmp_path / "pairs"
+    assert data_main(extract_args(log, out, "--road-frame", "yes")) == 0
+    assert json.loads((out / "meta.json").read_text())["road_frame"] is True
+    assert load_pairs(out, "train").road_frame is True
 
 
 def test_existing_output_needs_overwrite(tmp_path, capsys) -> None:

@@ -63,6 +63,13 @@ class RawSource(BaseModel):
     time_unit: str = Field(
         "s", description=f"csv only: one of {', '.join(TIME_UNITS)}."
     )
+    road_frame: bool | None = Field(
+        None,
+        description=(
+            "csv only: whether all positions lie on one road (the loop's road "
+            "effects need it); None = unknown, the loop decides."
+        ),
+    )
     vehicle_length: float = Field(
         5.0, gt=0, description="openacc only: vehicle length [m] (the files give none)."
     )
@@ -111,6 +118,7 @@ class RawSource(BaseModel):
                     "speed_unit",
                     "acceleration_unit",
                     "time_unit",
+                    "road_frame",
                 )
                 if getattr(self, k) != defaults[k].default
             ]
@@ -138,6 +146,7 @@ class RawSource(BaseModel):
                 "speed_unit": self.speed_unit,
                 "acceleration_unit": self.acceleration_unit,
                 "time_unit": self.time_unit,
+                "road_frame": self.road_frame,
             }
         if self.format == "openacc":
             return {"vehicle_length": self.vehicle_length}

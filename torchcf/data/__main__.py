@@ -68,6 +68,12 @@ def _parser() -> argparse.ArgumentParser:
     csv.add_argument("--length-unit", default="m")
     csv.add_argument("--speed-unit", default=None)
     csv.add_argument("--acceleration-unit", default=None)
+    csv.add_argument(
+        "--road-frame",
+        choices=("yes", "no"),
+        default=None,
+        help="whether all positions lie on one road (default: unknown)",
+    )
     csv.add_argument("--time-unit", default="s")
     p.add_argument(
         "--vehicle-length", type=float, default=5.0, help="openacc: vehicle length [m]"
@@ -120,6 +126,7 @@ def _raw_source(args: argparse.Namespace) -> RawSource:
             speed_unit=args.speed_unit,
             acceleration_unit=args.acceleration_unit,
             time_unit=args.time_unit,
+            road_frame=None if args.road_frame is None else args.road_frame == "yes",
         )
     try:
         return RawSource(**fields)
