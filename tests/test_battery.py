@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from tests.test_traffic import sampler_of
-from torchcf.models import FollowerState
+from torchcf.models import FollowerState, get_model
 from torchcf.traffic import (
     Battery,
     SafetyLayer,
@@ -20,7 +20,9 @@ from torchcf.traffic import (
 )
 from torchcf.traffic.battery import (
     braking_leader,
+    collides,
     equilibrium_gap,
+    rejects,
     standstill_leader,
     stop_and_go_leader,
 )
@@ -96,6 +98,25 @@ def test_outcomes_do_not_depend_on_the_chunk():
     # and each particle alone gives its row of the batch
     alone = check_plausibility("llctg", theta[5:6], battery)
     assert float(alone.min_spacing[0]) == pytest.approx(float(whole.min_spacing[5]))
+
+
+@pytest.mark.parametrize("name", ["hl", "fvdm", "llcs", "mpc"])
+def test_the_filters_fast_test_agrees_with_the_whole_battery(name):
+    """``collides`` (hardest braking first, survivors only, no platoon) says
+    what ``check_plausibility(...).collided`` says, and the strict filter adds
+    exactly the string-unstable particles."""
+    model = get_model(name)
+    bounds = model.prior_bounds(torch.float64)
+    g = torch.Generator().manual_seed(11)
+    unit = torch.rand(60, model.n_params, generator=g, dtype=torch.float64)
+    theta = bounds[:, 0] + (bounds[:, 1] - bounds[:, 0]) * unit
+    battery = Battery(speed=25.0)
+    whole = check_plausibility(model, theta, battery)
+    fast = collides(model, theta, battery, chunk=25)
+    assert torch.equal(fast, whole.collided)
+    strict = rejects(battery, reject_string_unstable=True)(model, theta)
+    assert torch.equal(strict, whole.collided | whole.string_unstable())
+    assert torch.equal(rejects(battery)(model, theta), whole.collided)
 
 
 def test_battery_speed_and_bad_settings():
