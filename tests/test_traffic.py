@@ -8,6 +8,7 @@ import torch
 from tests.conftest import synthetic_pairs
 from tests.test_sampler import make_posterior
 from torchcf import HybridSampler, PairSet, simulate
+from torchcf.models import FollowerState
 from torchcf.synthetic import leader_profiles
 from torchcf.traffic.scenarios import (
     RingState,
@@ -149,9 +150,33 @@ def test_the_safety_layer_stops_the_sluggish_follower_and_counts_it():
     # to a few mm: the last braking step of the leader, cut at 0, is shorter
     assert float(safe.spacing[:, 1, 0].min()) >= sampler.leader_length - 0.01
     assert int(safe.interventions[1, 0]) > 0 and int(safe.interventions[0, 0]) == 0
+    assert int(safe.interventions_moving[1, 0]) > 0  # it braked while driving
+    assert torch.all(safe.interventions_moving <= safe.interventions)
     torch.testing.assert_close(safe.x[:, 0], alone.x[:, 0], rtol=0, atol=0)
     # braking no harder than the layer's 8 m/s^2
     assert float(safe.a[:, 1, 0].min()) >= -8.0 - 1e-9
+
+
+def test_holding_a_creeping_idm_at_a_stop_is_not_counted_as_moving():
+    """SPEC's IDM keeps s0 front to front: behind a standing leader 5 m long
+    it creeps into the leader's bumper, and the layer holds it there at a
+    stop. Those overrides are counted, but not as interventions while moving."""
+    n_steps = 600
+    v_leader = torch.zeros(n_steps, dtype=torch.float64)
+    x_leader = torch.zeros(n_steps, dtype=torch.float64)
+    sampler = sampler_of({"idm": [[1.0, 2.0, 30.0, 1.5, 2.0, 4.0]]})
+    sampler.assign(torch.tensor([[0]]))
+    start = FollowerState(
+        x=torch.tensor([-8.0], dtype=torch.float64),
+        v=torch.zeros(1, dtype=torch.float64),
+        a=torch.zeros(1, dtype=torch.float64),
+    )
+    safe = platoon(sampler, x_leader[:, None], v_leader[:, None], start=start)
+    held = int(safe.interventions[0, 0]) - int(safe.interventions_moving[0, 0])
+    assert held > 400  # most of the minute, standing at the bumper
+    assert int(safe.interventions_moving[0, 0]) < 50
+    # to a cm: the last creeping step ends inside the discrete safe speed
+    assert float(safe.spacing[:, 0, 0].min()) >= sampler.leader_length - 0.01
 
 
 # ----------------------------------------------------------------------- ring

@@ -98,7 +98,7 @@ def run_ring(sampler: HybridSampler, args, safety) -> dict:
         "spread": spread,
         "per_model": per_model,
         "interventions": interventions_per_model(
-            model, out.interventions, sampler.model_names
+            model, out.interventions, sampler.model_names, out.interventions_moving
         ),
         "vehicle_model": model,
     }
@@ -132,7 +132,7 @@ def braking_platoons(sampler: HybridSampler, args, safety) -> dict:
             if bool((model == m).any())
         },
         "interventions": interventions_per_model(
-            model, out.interventions, sampler.model_names
+            model, out.interventions, sampler.model_names, out.interventions_moving
         ),
     }
 
@@ -280,7 +280,7 @@ def write_readme(report: dict, args, command: str, path: Path) -> None:
         "",
         "| hybrid | v* [m/s] (median over rings) | rings with a collision: "
         "models alone / with the layer | median first collision, alone [s] | "
-        "layer's interventions per vehicle |",
+        "layer's interventions per vehicle: all / while moving |",
         "|---|---|---|---|---|",
     ]
     for key, r in rings.items():
@@ -288,22 +288,27 @@ def write_readme(report: dict, args, command: str, path: Path) -> None:
         first = torch.tensor(a["first_collision_s"])
         v_star = float(torch.tensor(r["v_init"]).median())
         vehicles = sum(row["vehicles"] for row in r["interventions"].values())
-        total = sum(
-            row["per_vehicle"] * row["vehicles"] for row in r["interventions"].values()
+        total, moving = (
+            sum(row[k] * row["vehicles"] for row in r["interventions"].values())
+            for k in ("per_vehicle", "per_vehicle_moving")
         )
         lines.append(
             f"| {LABELS.get(key, key)} | {v_star:.1f} | "
             f"{a['rings_collided']} / {r['rings_collided']} of {args.scenarios} | "
-            f"{float(first.median()):.0f} | {total / max(vehicles, 1):.1f} |"
+            f"{float(first.median()):.0f} | {total / max(vehicles, 1):.1f} / "
+            f"{moving / max(vehicles, 1):.1f} |"
         )
     lines += [
         "",
         "Per model: vehicles, vehicles that collided with the models alone, and "
         "with the layer the share of the model's vehicles it overrode at least "
-        "once and its interventions (steps of 0.1 s) per vehicle.",
+        "once and its interventions (steps of 0.1 s) per vehicle; 'while moving' "
+        "counts only the steps a vehicle drove faster than 0.1 m/s (the others "
+        "hold a stopped vehicle that creeps forward at its leader's bumper, as "
+        "SPEC's IDM, whose s0 is front to front, does).",
         "",
-        "| hybrid | model | vehicles | collided alone | overridden vehicles | "
-        "interventions per vehicle |",
+        "| hybrid | model | vehicles | collided alone | overridden vehicles: all "
+        "/ while moving | interventions per vehicle: all / while moving |",
         "|---|---|---|---|---|---|",
     ]
     for key, r in rings.items():
@@ -311,7 +316,9 @@ def write_readme(report: dict, args, command: str, path: Path) -> None:
             lines.append(
                 f"| {LABELS.get(key, key)} | {name} | {row['vehicles']} | "
                 f"{alone[key]['per_model'][name]['collided']} | "
-                f"{row['vehicles_overridden']:.1%} | {row['per_vehicle']:.1f} |"
+                f"{row['vehicles_overridden']:.1%} / "
+                f"{row['vehicles_overridden_moving']:.1%} | "
+                f"{row['per_vehicle']:.1f} / {row['per_vehicle_moving']:.1f} |"
             )
     lines += [
         "",
@@ -323,14 +330,16 @@ def write_readme(report: dict, args, command: str, path: Path) -> None:
         "10 m + 1.5 s x speed apart at the leader's speed.",
         "",
         "| hybrid | platoons with a collision: alone / with the layer | "
-        "vehicles collided alone, per model | interventions per vehicle, per model |",
+        "vehicles collided alone, per model | interventions per vehicle, per "
+        "model: all / while moving |",
         "|---|---|---|---|",
     ]
     for key, b in report["braking"].items():
         a = report["braking_alone"][key]
         collided = ", ".join(f"{k} {v}" for k, v in a["vehicles_collided"].items())
         overrides = ", ".join(
-            f"{k} {v['per_vehicle']:.1f}" for k, v in b["interventions"].items()
+            f"{k} {v['per_vehicle']:.1f} / {v['per_vehicle_moving']:.1f}"
+            for k, v in b["interventions"].items()
         )
         lines.append(
             f"| {LABELS.get(key, key)} | {a['platoons_collided']} / "

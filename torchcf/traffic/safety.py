@@ -147,20 +147,27 @@ DEFAULT_SAFETY = SafetyLayer()
 
 
 def interventions_per_model(
-    vehicle_model: Tensor, interventions: Tensor, model_names: tuple[str, ...]
+    vehicle_model: Tensor,
+    interventions: Tensor,
+    model_names: tuple[str, ...],
+    moving: Tensor | None = None,
 ) -> dict[str, dict[str, float]]:
     """Per model: vehicles, interventions per vehicle and the share of its
-    vehicles the layer overrode at least once.
+    vehicles the layer overrode at least once; with ``moving``, also the
+    interventions per vehicle taken while it moved and the share of vehicles
+    overridden while moving.
 
     Args:
         vehicle_model: the sampler's ``vehicle_model`` (each vehicle's model
             index), the vehicles' shape.
         interventions: steps overridden per vehicle, the same shape.
         model_names: the sampler's ``model_names``.
+        moving: ``TrafficOutput.interventions_moving``, the same shape.
     """
     out: dict[str, dict[str, float]] = {}
     flat_model = vehicle_model.reshape(-1).cpu()
     flat_count = interventions.reshape(-1).cpu()
+    flat_moving = None if moving is None else moving.reshape(-1).cpu()
     for m, name in enumerate(model_names):
         mine = flat_model == m
         n = int(mine.sum())
@@ -172,6 +179,12 @@ def interventions_per_model(
             "per_vehicle": float(counts.mean()),
             "vehicles_overridden": float((counts > 0).double().mean()),
         }
+        if flat_moving is not None:
+            in_motion = flat_moving[mine].double()
+            out[name]["per_vehicle_moving"] = float(in_motion.mean())
+            out[name]["vehicles_overridden_moving"] = float(
+                (in_motion > 0).double().mean()
+            )
     return out
 
 

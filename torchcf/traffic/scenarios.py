@@ -55,6 +55,10 @@ from ..models import FollowerState
 from .safety import DEFAULT_SAFETY, SafetyLayer
 from .sampler import HybridSampler, increasing_root
 
+#: Speed [m/s] above which a vehicle counts as moving for the safety layer's
+#: intervention count (``TrafficOutput.interventions_moving``).
+MOVING_SPEED = 0.1
+
 if TYPE_CHECKING:
     from ..data import PairSet
 
@@ -95,6 +99,10 @@ class TrafficOutput(NamedTuple):
             platoon's ``FollowerState`` of ``(S, n)`` road positions), to continue.
         interventions: ``(S, n)`` int64, the steps at which the safety layer
             overrode the vehicle's model (zeros without a layer).
+        interventions_moving: ``(S, n)`` int64, those of them taken while the
+            vehicle moved (speed over :data:`MOVING_SPEED` before the step);
+            the rest held a standing vehicle back (a model that creeps forward
+            at a stop, as SPEC's IDM with its front-to-front ``s0`` does).
     """
 
     time: Tensor | None
@@ -105,6 +113,7 @@ class TrafficOutput(NamedTuple):
     collision_step: Tensor
     final: Any
     interventions: Tensor
+    interventions_moving: Tensor
 
     @property
     def collided(self) -> Tensor:
@@ -151,6 +160,14 @@ class _Recorder:
         self.clear = torch.ones(shape, dtype=torch.bool, device=device)
         self.clear_steps = torch.zeros(shape, dtype=torch.long, device=device)
         self.interventions = torch.zeros(shape, dtype=torch.long, device=device)
+        self.interventions_moving = torch.zeros_like(self.interventions)
+
+    def count(self, overridden: Tensor | None, v: Tensor) -> None:
+        """Add the layer's overrides of a step; ``v``: speeds before it."""
+        if overridden is None:
+            return
+        self.interventions += overridden
+        self.interventions_moving += overridden & (v > MOVING_SPEED)
 
     def due(self, t: int) -> bool:
         return self.fields is not None and t % self.every == 0
@@ -171,12 +188,26 @@ class _Recorder:
         )
         if self.fields is None:
             empty = (None,) * 5
-            return TrafficOutput(*empty, collision_step, final, self.interventions)
+            return TrafficOutput(
+                *empty,
+                collision_step,
+                final,
+                self.interventions,
+                self.interventions_moving,
+            )
         steps = torch.arange(self.n_records, device=self.fields.device) * self.every
         time = steps.to(self.fields.dtype) * dt
         x, v, a, spacing = self.fields.unbind(0)
         return TrafficOutput(
-            time, x, v, a, spacing, collision_step, final, self.interventions
+            time,
+            x,
+            v,
+            a,
+            spacing,
+            collision_step,
+            final,
+            self.interventions,
+            self.interventions_moving,
         )
 
 
@@ -338,8 +369,7 @@ def platoon(
         last = t == n_steps - 1
         spacing, u, moved, overridden = step(x_lead[t], v_lead[t], state, shift, last)
         recorder.check(spacing)
-        if overridden is not None:
-            recorder.interventions += overridden
+        recorder.count(overridden, state.v)
         if recorder.due(t):
             recorded = torch.where(sampler.acceleration_is_state, state.a, u)
             recorder.record(t, state.x + shift, state.v, recorded, spacing)
@@ -559,8 +589,7 @@ def ring_road(
         previous = state
         state, u, overridden = step(previous, ring)
         recorder.check(previous.spacing)
-        if overridden is not None:
-            recorder.interventions += overridden
+        recorder.count(overridden, previous.v)
         if recorder.due(t):
             recorded = torch.where(sampler.acceleration_is_state, previous.a, u)
             recorder.record(
@@ -572,6 +601,7 @@ def ring_road(
 
 
 __all__ = [
+    "MOVING_SPEED",
     "RingState",
     "TrafficOutput",
     "pair_leader",
