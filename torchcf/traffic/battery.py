@@ -483,6 +483,19 @@ def _chunk(model: CFModel, theta: Tensor, battery: Battery) -> dict[str, Any]:
     }
 
 
+def _string_unstable(
+    model: CFModel, theta: Tensor, battery: Battery, chunk: int = 1 << 14
+) -> Tensor:
+    """``(P,)`` bool: the string-stability ratio is over 1 (in chunks of
+    ``chunk`` particles: the platoon records every vehicle's speed)."""
+    parts = []
+    for i in range(0, theta.shape[0], chunk):
+        part = theta[i : i + chunk].to(torch.float64)
+        gap, has_gap = equilibrium_gap(_sampler(model, part, battery, 1), battery.speed)
+        parts.append(_string_ratio(model, part, battery, gap, has_gap) > 1.0)
+    return torch.cat(parts)
+
+
 def _string_ratio(
     model: CFModel, theta: Tensor, battery: Battery, gap: Tensor, has_gap: Tensor
 ) -> Tensor:
@@ -527,12 +540,7 @@ def rejects(battery: Battery, reject_string_unstable: bool = False):
         collided = collides(model, theta, battery)
         if reject_string_unstable and not collided.all():
             rest = (~collided).nonzero().squeeze(1)
-            kept = theta[rest].to(torch.float64)
-            gap, has_gap = equilibrium_gap(
-                _sampler(model, kept, battery, 1), battery.speed
-            )
-            ratio = _string_ratio(model, kept, battery, gap, has_gap)
-            collided[rest] = ratio > 1.0
+            collided[rest] = _string_unstable(model, theta[rest], battery)
         return collided
 
     return implausible
