@@ -457,15 +457,17 @@ def _spans(couples: pd.DataFrame, width: int) -> tuple[list[_Span], dict[str, in
     close = np.r_[False, np.diff(step) <= width]
     previous_usable = np.r_[False, usable[:-1]]
     start = ~(same & close & previous_usable) & usable
-    spans: list[_Span] = []
-    run_id = np.cumsum(start)
-    run_id[~usable] = 0
-    for rid in np.unique(run_id[run_id > 0]):
-        rows = np.flatnonzero(run_id == rid)
-        # usable rows of one span are consecutive by construction
-        spans.append(
-            _Span(slice(rows[0], rows[-1] + 1), step[rows[0]], step[rows[-1]] + 1)
-        )
+    # A span runs from its start row to the row before the next start or the
+    # next unusable row: one pass over the boundaries, linear in the rows.
+    firsts = np.flatnonzero(start)
+    boundaries = np.flatnonzero(start | ~usable)
+    ends = np.append(boundaries, len(usable))[
+        np.searchsorted(boundaries, firsts, side="right")
+    ]
+    spans = [
+        _Span(slice(first, end), step[first], step[end - 1] + 1)
+        for first, end in zip(firsts.tolist(), ends.tolist(), strict=True)
+    ]
     return spans, {k: v for k, v in unmatched.items() if v}
 
 

@@ -9,6 +9,7 @@ the pairs of one extraction and the files are read once.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -17,7 +18,7 @@ from typing import Any
 from torchcf.data.extract import Extraction, ExtractOptions, extract_pairs
 from torchcf.data.formats import read_trajectories
 from torchcf.data.pairset import DataError
-from torchcf.data.writer import options_record, write_record
+from torchcf.data.writer import write_record
 
 __all__ = ["extract_source", "record_extraction"]
 
@@ -41,7 +42,12 @@ def extract_source(
         raise DataError(f"raw source '{source}' does not exist")
     options = options or ExtractOptions()
     key = json.dumps(
-        [str(path.resolve()), format, reader_options or {}, options_record(options)],
+        [
+            str(path.resolve()),
+            format,
+            reader_options or {},
+            dataclasses.asdict(options),
+        ],
         sort_keys=True,
         default=str,
     )

@@ -18,7 +18,6 @@ whole. An existing ``out`` is replaced only when it holds an earlier extraction
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import shutil
 import tempfile
@@ -30,7 +29,7 @@ from torchcf.data.pairset import DataError, PairSet
 from torchcf.data.reader import FILES
 from torchcf.files import ensure_directory, write_json
 
-__all__ = ["options_record", "write_extraction", "write_record", "write_six_csv"]
+__all__ = ["write_extraction", "write_record", "write_six_csv"]
 
 
 def write_six_csv(pairs: PairSet, folder: str | os.PathLike[str]) -> None:
@@ -114,11 +113,6 @@ def write_extraction(
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return out
-
-
-def options_record(options: Any) -> dict[str, Any]:
-    """A dataclass of options as plain JSON values (nested dataclasses too)."""
-    return dataclasses.asdict(options)
 
 
 def write_record(

@@ -278,15 +278,7 @@ def check_plausibility(
     Returns:
         :class:`Plausibility`, ``(P,)`` per outcome, on the CPU.
     """
-    model = get_model(model)
-    theta = torch.as_tensor(theta)
-    if theta.ndim != 2 or theta.shape[1] != model.n_params:
-        raise ValueError(
-            f"{model.name}: theta must be (P, {model.n_params}), "
-            f"got {tuple(theta.shape)}"
-        )
-    if chunk < 1:
-        raise ValueError(f"chunk must be >= 1, got {chunk}")
+    model, theta = _particles(model, theta, chunk)
     device = theta.device if device is None else torch.device(device)
     parts = [
         _chunk(model, theta[i : i + chunk].to(device, dtype), battery)
@@ -316,6 +308,22 @@ def check_plausibility(
         started=torch.cat([p["started"] for p in parts]),
         settings=battery,
     )
+
+
+def _particles(
+    model: str | CFModel, theta: Tensor, chunk: int
+) -> tuple[CFModel, Tensor]:
+    """The model and ``(P, K)`` particles of a battery call, checked."""
+    model = get_model(model)
+    theta = torch.as_tensor(theta)
+    if theta.ndim != 2 or theta.shape[1] != model.n_params:
+        raise ValueError(
+            f"{model.name}: theta must be (P, {model.n_params}), "
+            f"got {tuple(theta.shape)}"
+        )
+    if chunk < 1:
+        raise ValueError(f"chunk must be >= 1, got {chunk}")
+    return model, theta
 
 
 def _sampler(model: CFModel, theta: Tensor, battery: Battery, n: int) -> HybridSampler:
@@ -423,8 +431,7 @@ def collides(
     not collided yet: a model whose particles mostly fail the first scenario
     (MPC, whose deceleration limit is 3-5 m/s^2) costs about one scenario.
     """
-    model = get_model(model)
-    theta = torch.as_tensor(theta)
+    model, theta = _particles(model, theta, chunk)
     parts = [
         _collides_chunk(model, theta[i : i + chunk].to(dtype), battery)
         for i in range(0, theta.shape[0], chunk)

@@ -20,18 +20,22 @@ csv        any long CSV, with a column mapping and      :mod:`.generic`
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from typing import Any
 
+from torchcf.data.formats.generic import read_csv_table
+from torchcf.data.formats.ngsim import read_ngsim
+from torchcf.data.formats.openacc import read_openacc
 from torchcf.data.pairset import DataError
 from torchcf.data.trajectory import TrajectoryTable
 
 __all__ = ["FORMATS", "read_trajectories"]
 
-#: Format name -> "module:function" of its reader.
-FORMATS: dict[str, str] = {
-    "ngsim": "torchcf.data.formats.ngsim:read_ngsim",
-    "openacc": "torchcf.data.formats.openacc:read_openacc",
-    "csv": "torchcf.data.formats.generic:read_csv_table",
+#: Format name -> its reader.
+FORMATS: dict[str, Callable[..., TrajectoryTable]] = {
+    "ngsim": read_ngsim,
+    "openacc": read_openacc,
+    "csv": read_csv_table,
 }
 
 
@@ -53,8 +57,4 @@ def read_trajectories(
         raise DataError(
             f"unknown trajectory format {format!r} (known: {', '.join(FORMATS)})"
         )
-    module_name, function = FORMATS[format].split(":")
-    import importlib
-
-    reader = getattr(importlib.import_module(module_name), function)
-    return reader(source, **options)
+    return FORMATS[format](source, **options)
