@@ -25,21 +25,21 @@ from torchcf.abc.particles import Particles, best_per_pair
 from torchcf.config import ConfigError, resolved_json, validate_config
 from torchcf.diagnose import (
     DiagnoseError,
+    Population,
     best_particles,
     residual_series,
     resolve_effect,
-    reuse_recalibration,
-    sign_flip_test,
+    reusable,
     split_in_time,
 )
 from torchcf.diagnose.__main__ import main
 from torchcf.diagnose.candidates import (
     attribution_rollout,
     attribution_seed,
-    model_bounds,
     prior_particles,
 )
 from torchcf.diagnose.road import profile_agreement
+from torchcf.diagnose.search import Noise, model_bounds
 from torchcf.models import AugmentedModel, get_model, parse_effect
 from torchcf.pipeline import close_loop, train_and_evaluate
 from torchcf.posterior import Posterior
@@ -135,11 +135,12 @@ def test_the_undeclared_effects_are_found_and_help(loops, case):
     ranked = result["effects_ranked"]
     assert ranked[0]["name"] in expected, [(r["effect"], r["gain"]) for r in ranked]
     assert sorted(e.split("(")[0] for e in result["chosen"]) == sorted(expected)
-    # against the pool searched as the re-calibration (SMC): the effect's share
-    before = result["before_same_search"] or result["before"]
-    assert before["ws"] > 0
-    assert result["after"]["ws"] <= 0.85 * before["ws"]
-    assert result["after"]["min"] <= 0.85 * before["min"]
+    # against the run's particles searched as after, without the effects: the
+    # effects' share of the improvement; and against the run itself
+    for before in (result["before_same_search"], result["before"]):
+        assert before["ws"] > 0
+        assert result["after"]["ws"] <= 0.85 * before["ws"]
+        assert result["after"]["min"] <= 0.85 * before["min"]
     medians = {
         name: stats["median"]
         for summary in result["posterior"].values()
@@ -158,10 +159,21 @@ def test_the_undeclared_effects_are_found_and_help(loops, case):
         assert profile_agreement(token, truth, chosen, medians, where) >= 0.8
     on_disk = json.loads((out / "loop.json").read_text())
     assert on_disk["chosen"] == result["chosen"]
-    for key in ("effects_ranked", "chosen", "posterior", "before", "after"):
+    for key in (
+        "signatures",
+        "effects_ranked",
+        "absorption",
+        "chosen",
+        "posterior",
+        "before",
+        "before_same_search",
+        "after",
+    ):
         assert key in on_disk
     text = (out / "loop.md").read_text()
-    assert "WS change" in text
+    assert "WS change" in text and "From the residual to the effects" in text
+    assert (out / "loop" / "after" / "metrics.json").exists()
+    assert (out / "loop" / "reference" / "metrics.json").exists()
     for figure in ("effects", "before_after", "residuals"):
         assert (out / "loop" / f"{figure}.png").stat().st_size > 0
 
@@ -217,39 +229,32 @@ def test_best_particles_picks_the_lowest_score_per_pair(tmp_path):
             assert math.isclose(float(here.min()), lowest)
 
 
-def test_an_earlier_recalibration_is_resumed_only_when_it_is_this_one(tmp_path):
-    """A loop run again resumes its own re-calibration but removes one left by an
-    earlier loop that chose another effect, prior or budget, or nothing."""
+def test_an_earlier_recalibration_is_read_back_only_when_it_is_this_one(tmp_path):
+    """A loop run again reads back its own evaluated re-calibration but removes
+    one left by an earlier loop that chose another effect or value, or nothing,
+    or one cut short before its evaluation."""
     this, other = _config(), _config(n_particles=N_PARTICLES // 2)
+    after = tmp_path / "loop" / "after"
 
-    def earlier(cfg, checkpoint=True):
-        after = tmp_path / "loop" / "after"
+    def earlier(cfg, evaluated=True):
         after.mkdir(parents=True, exist_ok=True)
         (after / "config.json").write_text(json.dumps(resolved_json(cfg)))
-        if checkpoint:
-            (after / "checkpoint.pt").write_bytes(b"partial")
+        if evaluated:
+            (after / "metrics.json").write_text('{"hybrid": {}}')
         return after
 
-    assert reuse_recalibration(tmp_path / "loop" / "after", this) is False
-    assert reuse_recalibration(after := earlier(this), this) is True
+    assert reusable(after, this) is False
+    assert reusable(earlier(this), this) is True
     assert after.exists()
-    assert reuse_recalibration(earlier(other), this) is False
+    assert reusable(earlier(other), this) is False
     assert not after.exists()
-    assert reuse_recalibration(earlier(this, checkpoint=False), this) is False
+    assert reusable(earlier(this, evaluated=False), this) is False
     assert not after.exists()
     (earlier(this) / "config.json").write_text("{not json")
-    assert reuse_recalibration(after, this) is False
+    assert reusable(after, this) is False
     assert not after.exists()
-    assert reuse_recalibration(earlier(this), None) is False
+    assert reusable(earlier(this), None) is False
     assert not after.exists()
-
-
-def test_sign_flip_test_calibration():
-    rng = np.random.default_rng(0)
-    p_null = [sign_flip_test(rng.normal(size=20), 2000, seed=i)[1] for i in range(200)]
-    assert 0.02 < np.mean(np.array(p_null) < 0.05) < 0.09
-    assert sign_flip_test(rng.normal(1.0, 1.0, size=20), 2000)[1] < 0.01
-    assert sign_flip_test(-np.abs(rng.normal(size=20)), 2000)[1] > 0.9
 
 
 def test_split_in_time_keeps_pairs_aligned():
@@ -312,7 +317,8 @@ def test_jitter_stays_in_the_prior_and_keeps_fixed_parameters():
 
     theta = torch.tensor([[0.5, 2.0, 1.0], [0.0, 3.0, 1.0]], dtype=torch.float64)
     bounds = torch.tensor([[0.0, 1.0], [0.0, 10.0], [1.0, 1.0]], dtype=torch.float64)
-    moved = jitter(theta, bounds, 3000, torch.Generator().manual_seed(0))
+    steps = torch.randn(2, 3000, 3, generator=torch.Generator().manual_seed(0))
+    moved = jitter(theta, steps.double(), bounds)
     assert moved.shape == (2, 3000, 3)
     assert bool((moved >= bounds[:, 0]).all() and (moved <= bounds[:, 1]).all())
     assert bool((moved[..., 2] == 1.0).all())  # zero width: fixed
@@ -329,30 +335,27 @@ def test_local_search_spends_its_budget_and_never_loses_a_fit(monkeypatch):
     rollout = attribution_rollout(cfg, pairs)
     bounds = {m: model_bounds(m, {}) for m in ("idm", "llctg")}
     seed = attribution_seed(cfg)
-    start = [
+    sets = [
         prior_particles(m, rollout, (200,), 3, bounds[m], seed)[0]
         for m in ("idm", "llctg")
     ]
+    start = Population.from_particles(sets, 4, 3)
     simulated = []
-    scores = search.fit_scores
+    scores = search.score_on
 
     def counted(rollout, model, theta, pair):
         simulated.append(theta.shape[0])
         return scores(rollout, model, theta, pair)
 
-    monkeypatch.setattr(search, "fit_scores", counted)
-    generator = torch.Generator().manual_seed(1)
-    members = search.local_search(start, bounds, rollout, cfg.diagnose, generator)
+    monkeypatch.setattr(search, "score_on", counted)
+    current = {m: get_model(m).param_names for m in start.models}
+    members = search.local_search(
+        start, rollout, bounds, Noise((1,), current), {m: m for m in start.models},
+        rounds=2, copies=5,
+    )  # fmt: skip
     assert sum(simulated) == 2 * 4 * 3 * 5  # rounds x pairs x population x copies
-
-    def best(sets):
-        out = torch.full((4,), math.inf, dtype=torch.float64)
-        for s in sets:
-            out = out.scatter_reduce(0, s.pair, s.score, "amin")
-        return out
-
-    assert bool((best(members) <= best(start)).all())
-    assert sum(m.score.numel() for m in members) == 4 * 3
+    assert bool((members.score[:, 0] <= start.score[:, 0]).all())
+    assert members.score.shape == (4, 3)
 
 
 def test_diagnose_seed_replaces_the_runs_seed_in_the_attribution():
@@ -379,18 +382,20 @@ def test_diagnose_seed_replaces_the_runs_seed_in_the_attribution():
 def test_shared_value_finds_a_constant_grade():
     """Data from LLCTG on a 4 % grade; members = the true LLCTG parameters: the
     joint search over pairs returns a grade near 4 %."""
-    from torchcf.diagnose.search import shared_value
+    from torchcf.diagnose.search import effect_prior, shared_value
 
     effect = "grade(start=0,end=1000,knots=1)"
     pairs = synthetic_pairs(f"llctg+{effect}", LLCTG_TRUTH + [0.04], 6, 300, seed=4)
     cfg = _config(local_copies=4)
-    score = torch.ones(6, dtype=torch.float64)
-    members = [_candidates("llctg", [LLCTG_TRUTH] * 6, range(6), score)]
+    members = Population.from_particles(
+        [_candidates("llctg", [LLCTG_TRUTH] * 6, range(6), [1.0] * 6)], 6, 2
+    )
     bounds = {"llctg": model_bounds("llctg", {})}
     rollout = attribution_rollout(cfg, pairs)
-    value, box = shared_value(
-        effect, members, bounds, rollout, torch.Generator().manual_seed(0)
+    value, box, tried = shared_value(
+        effect, members, rollout, bounds, effect_prior(effect), (0,)
     )
     assert abs(float(value[0]) - 0.04) < 0.01
     assert float(box[0, 0]) <= float(value[0]) <= float(box[0, 1])
     assert float(box[0, 1] - box[0, 0]) < 0.16 / 4  # narrower than the prior
+    assert len(tried) == 3 and tried[0][1].shape == (6, tried[0][0].shape[0])

@@ -176,7 +176,26 @@ def test_missing_follower_speed_is_nan(tmp_path) -> None:
     assert "run f: no Speed column for vehicle(s) 3: speed NaN" in table.notes
 
 
-@pytest.mark.parametrize("column", ["IVS2", "IVS1", "Speed1", "Time"])
+def test_missing_ivs_starts_a_chain_of_its_own(tmp_path) -> None:
+    columns = default_columns()
+    del columns["IVS2"]
+    table = read_openacc(write_platoon(tmp_path / "f.csv", columns))
+    third = _vehicle(table, 3)
+    assert (third["leader"] == "").all() and third["gap"].isna().all()
+    np.testing.assert_allclose(third["position"], _odometer(TIME, SPEED[3]))
+    assert _vehicle(table, 2)["leader"].eq("1").all()
+    assert any("no IVS2: vehicle 3 has no recorded gap" in n for n in table.notes)
+
+
+def test_vehicle_named_by_no_column_is_absent(tmp_path) -> None:
+    columns = default_columns()
+    del columns["IVS2"], columns["Speed3"]
+    table = read_openacc(write_platoon(tmp_path / "f.csv", columns))
+    assert table.n_vehicles == 2
+    assert any("vehicle 3 is not in the file" in n for n in table.notes)
+
+
+@pytest.mark.parametrize("column", ["Speed1", "Time"])
 def test_missing_required_column_names_it_and_the_file(tmp_path, column) -> None:
     columns = default_columns()
     del columns[column]

@@ -98,12 +98,12 @@ def test_road_effects_are_not_offered_without_one_road():
         }
     )
     series = _series(lambda x: 0 * x, n_pairs=6)
-    effects, road, seeds = candidate_effects(
-        cfg, dataclasses.replace(pairs, road_frame=False), series
-    )
-    assert effects == ["delay", "offset"]
-    assert road["frame"] is False and road["skipped"] == ["grade", "bend"]
-    effects, road, seeds = candidate_effects(cfg, pairs, series)
+    apart = candidate_effects(cfg, dataclasses.replace(pairs, road_frame=False), series)
+    assert apart.effects == ["delay", "offset"] and apart.profile is None
+    assert apart.road["frame"] is False and apart.road["skipped"] == ["grade", "bend"]
+    shared = candidate_effects(cfg, pairs, series)
+    effects, road, seeds = shared.effects, shared.road, shared.seeds
+    assert shared.profile is not None and shared.profile.token == effects[1]
     assert [parse_effect(e).name for e in effects] == [
         "delay",
         "grade",

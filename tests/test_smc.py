@@ -347,26 +347,6 @@ def test_smc_under_torchrun_equals_one_process(tmp_path):
             assert torch.equal(a.buffers[name][key], b.buffers[name][key])
 
 
-def test_the_loop_recalibrates_with_smc_by_default_beside_a_reference():
-    """The re-calibration searches with SMC (default), and the pool alone is
-    searched the same way for a fair 'before'; with recalibrate_method null the
-    run's own method is kept and no reference is needed."""
-    from torchcf.diagnose import recalibration_config, reference_config
-
-    cfg = config(method="rejection")
-    after = recalibration_config(cfg, ["idm+delay"])
-    assert after.abc.method == "smc" and "idm+delay" in [m.name for m in after.models]
-    reference = reference_config(cfg, after)
-    assert reference.abc.method == "smc"
-    assert [m.name for m in reference.models] == [m.name for m in cfg.models]
-    raw = cfg.model_dump(mode="json")
-    raw["diagnose"]["recalibrate_method"] = None
-    plain = validate_config(raw)
-    kept = recalibration_config(plain, ["idm+delay"])
-    assert kept.abc.method == "rejection"
-    assert reference_config(plain, kept) is None
-
-
 def test_a_pair_without_population_draws_from_the_prior():
     """Where every particle of a pair was invalid, its proposals are prior draws
     (importance weight 1), not steps from nowhere."""

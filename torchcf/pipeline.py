@@ -21,7 +21,7 @@ from typing import Any
 from .abc.distributed import SINGLE, Group
 from .config import TrainConfig
 from .data import PairSet, load_split
-from .diagnose.loop import finish_loop, plan_loop
+from .diagnose.loop import finish_loop, plan_loop, run_recalibration
 from .evaluate import evaluate_run
 from .train import open_run, train
 
@@ -104,9 +104,9 @@ def close_loop(
     """Close the loop on a finished, evaluated run (:mod:`torchcf.diagnose`).
 
     Diagnose and attribute (:func:`~torchcf.diagnose.loop.plan_loop`); if effects
-    are chosen, re-calibrate the pool with them into ``RUN_DIR/loop/after`` and
-    evaluate it (and, when the re-calibration searches otherwise than the run,
-    the pool alone searched the same way into ``RUN_DIR/loop/reference``); then
+    are chosen, re-calibrate the run's particles with them into
+    ``RUN_DIR/loop/after`` and without them into ``RUN_DIR/loop/reference``
+    (:func:`~torchcf.diagnose.loop.run_recalibration`) and evaluate both; then
     report (:func:`~torchcf.diagnose.loop.finish_loop`).
 
     Args:
@@ -119,15 +119,10 @@ def close_loop(
         the loop result (also in ``RUN_DIR/loop.json``).
     """
     plan = plan_loop(run_dir, overrides, pairs=pairs, progress=progress)
-    runs = (
-        (plan.recalibration, plan.run.recalibration_dir, plan.resume_recalibration),
-        (plan.reference, plan.run.reference_dir, plan.resume_reference),
-    )
-    for cfg, out, resume in runs:
-        if cfg is not None:
-            train_and_evaluate(
-                cfg, out, resume=resume, pairs=(plan.train_pairs, plan.test_pairs)
-            )
+    if plan.recalibration is not None and not plan.resume_recalibration:
+        run_recalibration(plan, progress=progress)
+        for out in (plan.reference_dir, plan.recalibration_dir):
+            evaluate_run(out, pairs=(plan.train_pairs, plan.test_pairs))
     return finish_loop(plan)
 
 

@@ -52,6 +52,21 @@ from .posterior import Posterior
 SUMMARY_KEYS = ("dataset", "pairwise")
 
 
+#: Settings earlier releases wrote to ``config.json`` that no longer exist; a run
+#: directory holding them is read without them (they changed nothing a finished
+#: run holds).
+RETIRED_KEYS = {"diagnose": ("recalibrate_particles", "recalibrate_method")}
+
+
+def _without_retired(raw: dict[str, Any]) -> dict[str, Any]:
+    """A run's ``config.json`` object without :data:`RETIRED_KEYS`."""
+    out = dict(raw)
+    for section, keys in RETIRED_KEYS.items():
+        if isinstance(out.get(section), dict):
+            out[section] = {k: v for k, v in out[section].items() if k not in keys}
+    return out
+
+
 class RunDir:
     """One run directory (module docstring): its paths, and its files read and
     written.
@@ -205,7 +220,7 @@ class RunDir:
             RunFileError: ``config.json`` missing, unreadable or corrupted.
             ConfigError: not a valid configuration (message naming the file).
         """
-        raw = self.read_config_json()
+        raw = _without_retired(self.read_config_json())
         try:
             return validate_config(raw)
         except ConfigError as error:

@@ -558,26 +558,48 @@ class DiagnoseConfig(BaseModel):
         50_000,
         gt=0,
         description=(
-            "n: prior draws per pool model and per variant in the attribution's "
-            "small ABC runs (the pool alone gets 2 n per model, for equal budgets); "
-            "their per-pair best start the local search."
+            "Prior draws per pool model in the small ABC run that starts the "
+            "attribution on the fit windows (its S best per pair start the local "
+            "search)."
         ),
     )
     population: int = Field(
         20,
         gt=0,
         description=(
-            "Particles per pair each attribution arm keeps and refines by local "
-            "search (at least abc.top_n are kept)."
+            "S: particles per pair every arm keeps and refines by local search "
+            "(at least abc.top_n)."
         ),
     )
     local_copies: int = Field(
         32,
         gt=0,
-        description=("Perturbed copies of every kept particle per local-search round."),
+        description="Perturbed copies of every kept particle per local-search round.",
     )
     rounds: int = Field(
-        6, ge=0, description="Local-search rounds of each attribution arm."
+        6,
+        ge=0,
+        description=(
+            "Local-search rounds of the pool's fit, of every arm of a comparison "
+            "and of the re-calibration."
+        ),
+    )
+    max_rounds: int = Field(
+        40,
+        gt=0,
+        description=(
+            "Local-search rounds at most to converge the current model before "
+            "each step's comparisons (it stops once two rounds in a row lower "
+            "the fit by less than 0.2 %)."
+        ),
+    )
+    explore: int = Field(
+        16,
+        gt=0,
+        description=(
+            "Values of a new effect tried with every particle of the start when "
+            "its arm begins (a Latin hypercube over the effect's prior)."
+        ),
     )
     fit_fraction: float = Field(
         0.6,
@@ -593,8 +615,9 @@ class DiagnoseConfig(BaseModel):
         gt=0,
         lt=1,
         description=(
-            "Family-wise significance level (Bonferroni over every test the "
-            "forward selection can make)."
+            "Family-wise significance level of the whole selection: step s is "
+            "tested at alpha / 2^s (the last step the rest), each by the fallback "
+            "procedure in the order the fit windows give."
         ),
     )
     min_gain: float = Field(
@@ -622,26 +645,12 @@ class DiagnoseConfig(BaseModel):
             "abc.seed. Another seed checks that the answer is not luck."
         ),
     )
-    recalibrate_particles: int | None = Field(
-        None,
-        gt=0,
-        description="Particles per model when re-calibrating; None = abc.n_particles.",
-    )
     method: Literal["rejection", "smc"] = Field(
         "rejection",
         description=(
-            "The attribution arms' small ABC: 'rejection' (prior draws) or 'smc' "
-            "(the refinement of abc.smc at the same budget); local search follows "
-            "either."
-        ),
-    )
-    recalibrate_method: Literal["rejection", "smc"] | None = Field(
-        "smc",
-        description=(
-            "Search of the re-calibration: 'smc' gives the augmented models, with "
-            "their extra parameters, a refined search at the same budget (the pool "
-            "alone is then searched the same way too, for a fair 'before'); None = "
-            "abc.method."
+            "The small ABC run that starts the attribution: 'rejection' (prior "
+            "draws) or 'smc' (the refinement of abc.smc at the same budget); "
+            "local search follows either."
         ),
     )
 

@@ -6,12 +6,18 @@ run through the loop (:func:`torchcf.pipeline.close_loop`). Its concerns:
 
 - :mod:`.series`: the best hybrid particle per pair, its residual series and
   their structure tests (:mod:`.residuals`, the statistics);
-- :mod:`.candidates`: particles of the attribution drawn by the ABC engine
-  (:mod:`torchcf.abc.rejection`), scored and summarised as tensors;
-- :mod:`.search`: the local search and a shared (road) effect's one value;
-- :mod:`.attribution`: the effects ranked by their out-of-sample gain;
-- :mod:`.loop`: the loop up to the re-calibration (:func:`plan_loop`) and after
-  it (:func:`finish_loop`);
+- :mod:`.signatures`: what the residual of the fit windows points to;
+- :mod:`.candidates`: the attribution's start, drawn by the ABC engine
+  (:mod:`torchcf.abc.rejection`);
+- :mod:`.population`: an arm's particles, per pair S slots;
+- :mod:`.search`: local search with common random numbers, nested starts, a
+  shared effect's one value;
+- :mod:`.testing`: the sign-flip test and the fallback procedure;
+- :mod:`.absorption`: which of a model's own parameters takes an effect up;
+- :mod:`.attribution`: forward selection of nested arms;
+- :mod:`.recalibrate`: the chosen effects on the whole training windows;
+- :mod:`.loop`: the loop's steps (:func:`plan_loop`, :func:`run_recalibration`,
+  :func:`finish_loop`);
 - :mod:`.road`: road effects at the data's resolution (frame, knot spacing);
 - :mod:`.report`: ``loop.md``, its figures and ``loop.json``;
 - :mod:`.__main__`: the command line.
@@ -22,23 +28,22 @@ Re-exports only.
 from .attribution import (
     Selection,
     attribute_effects,
-    planned_tests,
     resolve_effect,
-    sign_flip_test,
     split_in_time,
 )
 from .candidates import augmented_variants
 from .loop import (
+    Candidates,
     LoopPlan,
     active_models,
     candidate_effects,
     effect_posterior,
     finish_loop,
     plan_loop,
-    recalibration_config,
-    reference_config,
-    reuse_recalibration,
+    reusable,
+    run_recalibration,
 )
+from .population import Population, merge
 from .report import loop_markdown
 from .series import (
     DiagnoseError,
@@ -47,28 +52,32 @@ from .series import (
     residual_series,
     residual_tests,
 )
+from .testing import fallback_levels, sign_flip_test, step_levels
 
 __all__ = [
+    "Candidates",
     "DiagnoseError",
     "LoopPlan",
+    "Population",
     "Selection",
     "active_models",
     "attribute_effects",
-    "candidate_effects",
     "augmented_variants",
     "best_particles",
+    "candidate_effects",
     "diagnose_residuals",
     "effect_posterior",
+    "fallback_levels",
     "finish_loop",
     "loop_markdown",
+    "merge",
     "plan_loop",
-    "planned_tests",
-    "recalibration_config",
-    "reference_config",
-    "resolve_effect",
     "residual_series",
     "residual_tests",
-    "reuse_recalibration",
+    "resolve_effect",
+    "reusable",
+    "run_recalibration",
     "sign_flip_test",
     "split_in_time",
+    "step_levels",
 ]

@@ -55,23 +55,36 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _print_result(result: dict, run_dir: str) -> None:
-    print(
-        f"forward selection ({result['dataset']}; significant: p < "
-        f"{result['threshold']:.2g}, {result['tests']} tests counted):"
-    )
+    found = [m for m in (result["signatures"] or [[]])[0] if m["found"]]
+    if found:
+        print("residual signatures (fit windows):")
+        for mark in found:
+            to = ", ".join(mark["points_to"]) or f"no effect: {mark['family']}"
+            print(
+                f"  {mark['signature']:<20} {fmt(mark['mean'])} {mark['unit']:<6} "
+                f"p {mark['p_value']:.2g}  -> {to}"
+            )
+    print(f"forward selection ({result['dataset']}; alpha {result['alpha']}):")
     for step, rows in enumerate(result["steps"], start=1):
         before = result["chosen"][: step - 1]
-        print(f" step {step}" + (f" (with {' + '.join(before)})" if before else ""))
+        level = result["levels"][step - 1]
+        print(
+            f" step {step}"
+            + (f" (with {' + '.join(before)})" if before else "")
+            + f", level {level:.3g}"
+        )
         for row in rows:
-            mark = (
-                "  <- chosen"
-                if row["effect"] in result["chosen"][step - 1 : step]
-                else ""
+            mark = "  <- chosen" if row.get("chosen") else ""
+            print(
+                f"  {row['order']:>2}. {row['effect']:<28} gain {row['gain']:+7.1%}"
+                f"  p {row['p_value']:.4f} (level {row['level']:.2g}){mark}"
             )
-            gain, p_value = row["gain"], row["p_value"]
-            print(f"  {row['effect']:<28} gain {gain:+7.1%}  p {p_value:.4f}{mark}")
-    ws_before, ws_after = result["before"].get("ws"), result["after"].get("ws")
-    print(f"test WS: before {fmt(ws_before)}, after {fmt(ws_after)}")
+    reference = result.get("before_same_search")
+    for key, label in (("ws", "WS"), ("min", "minimum distance")):
+        line = f"test {label}: the run {fmt(result['before'].get(key))}"
+        if reference:
+            line += f", searched as after {fmt(reference.get(key))}"
+        print(f"{line}, after {fmt(result['after'].get(key))}")
     print(f"wrote {RunDir(run_dir).loop_json} and loop.md")
 
 

@@ -4,19 +4,20 @@ The loop takes a finished, evaluated run and
 
 1. **diagnoses** the residuals of every training pair driven by its best hybrid
    particle (:mod:`torchcf.diagnose.series`);
-2. **attributes**: chooses effects by forward stepwise selection on their
-   out-of-sample gain (:mod:`torchcf.diagnose.attribution`);
-3. **re-calibrates** the run's pool plus the variants of the chosen effects
-   (``m+E1``, ``m+E2``, ``m+E1+E2``...: the selection's final model; a full
-   training run in ``RUN_DIR/loop/after``, evaluated on the test split);
-4. **reports** ``RUN_DIR/loop.json`` (``effects_ranked``, ``chosen``, the
-   ``posterior`` of the added parameters, the test metrics ``before`` and
-   ``after``, the residual diagnostics before and after) and ``RUN_DIR/loop.md``
-   with figures in ``RUN_DIR/loop/`` (:mod:`torchcf.diagnose.report`).
+2. **attributes**: traces the residual's signatures to the effects they point
+   to and chooses effects by forward selection of nested arms on their
+   out-of-sample gain (:mod:`torchcf.diagnose.signatures`,
+   :mod:`torchcf.diagnose.attribution`);
+3. **re-calibrates** the run's particles with the chosen effects on the whole
+   training windows, beside the run's particles searched the same way without
+   them (:mod:`torchcf.diagnose.recalibrate`; ``RUN_DIR/loop/after`` and
+   ``RUN_DIR/loop/reference``, each evaluated on the test split);
+4. **reports** ``RUN_DIR/loop.json`` and ``RUN_DIR/loop.md`` with figures in
+   ``RUN_DIR/loop/`` (:mod:`torchcf.diagnose.report`).
 
-The loop never trains: :func:`plan_loop` does steps 1-2 and says which
-re-calibration to run (:attr:`LoopPlan.recalibration`); the caller runs it
-(:func:`torchcf.pipeline.close_loop`) and :func:`finish_loop` does step 4.
+:func:`plan_loop` does steps 1-2, :func:`run_recalibration` step 3 (the caller,
+:func:`torchcf.pipeline.close_loop`, evaluates its runs) and :func:`finish_loop`
+step 4.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 from ..config import (
     ConfigError,
@@ -41,22 +43,18 @@ from ..config import (
     validate_config,
 )
 from ..data import PairSet, load_split
-from ..models import get_model
 from ..models.effects import RoadProfile, parse_effect
 from ..posterior import Posterior
 from ..rundir import RunDir
 from .attribution import Selection, attribute_effects, resolve_effect
 from .identifiability import effect_identifiability
+from .recalibrate import recalibrate, recalibration_config, write_run
 from .report import write_report
-from .road import (
-    choose_spacing,
-    fit_window,
-    one_step_residual,
-    shares_road_frame,
-)
+from .road import choose_spacing, fit_window, one_step_residual, shares_road_frame
 from .series import DiagnoseError, best_particles, diagnose_residuals
+from .signatures import FAMILIES
 
-FORMAT = "torchcf.loop/1"
+FORMAT = "torchcf.loop/2"
 
 Series = dict[str, list[np.ndarray]]
 
@@ -75,87 +73,29 @@ def active_models(cfg: TrainConfig, posterior: Posterior) -> list[str]:
     return active or [max(names, key=lambda n: posterior.shares.get(n, 0.0))]
 
 
-def recalibration_config(
-    cfg: TrainConfig,
-    variants: Sequence[str],
-    effect_priors: dict[str, dict[str, tuple[float, float]]] | None = None,
-) -> TrainConfig:
-    """The run's config plus the ``variants`` (``m+E1+...``) of the selection's
-    final model, for re-calibration.
+def reusable(directory: Path, cfg: TrainConfig | None) -> bool:
+    """Whether ``directory`` holds this very re-calibration, evaluated: a loop run
+    again reads it back. Anything else there (an earlier loop's, which chose
+    another effect or value, or one cut short) is removed, so that
+    ``RUN_DIR/loop/after`` never shows a run that ``loop.json`` does not
+    describe.
 
     Args:
-        variants: augmented model names; those already in the run are kept once.
-        effect_priors: per effect token, prior boxes of its parameters replacing
-            the defaults (a shared effect's value found by the attribution: the
-            road is one, so its profile is not re-drawn per particle).
+        directory: ``RUN_DIR/loop/after`` or ``RUN_DIR/loop/reference``, written
+            only by the loop.
+        cfg: this loop's config of it; None when nothing is chosen.
     """
-    raw = cfg.model_dump(mode="json")
-    present = {spec["name"] for spec in raw["models"]}
-    for variant in variants:
-        model = get_model(variant)
-        if model.name in present or not hasattr(model, "effects"):
-            continue
-        prior = next(
-            (s["prior"] for s in raw["models"] if s["name"] == model.base.name), None
-        )
-        for effect in model.effects:
-            extra = (effect_priors or {}).get(effect.token)
-            if extra:
-                prior = {**(prior or {}), **{k: list(v) for k, v in extra.items()}}
-        raw["models"].append({"name": model.name, "prior": prior})
-        present.add(model.name)
-    if cfg.diagnose.recalibrate_particles is not None:
-        raw["abc"]["n_particles"] = cfg.diagnose.recalibrate_particles
-    if cfg.diagnose.recalibrate_method is not None:
-        raw["abc"]["method"] = cfg.diagnose.recalibrate_method
-    raw["diagnose"]["run_after_training"] = False
-    raw["output"] = None
-    return validate_config(raw)
-
-
-def reference_config(
-    cfg: TrainConfig, recalibration: TrainConfig
-) -> TrainConfig | None:
-    """The run's pool alone, searched as ``recalibration`` is (its method and
-    budget), or None when that is the run's own search: the 'before' that the
-    re-calibration is fairly compared with (a refined search alone lowers the
-    error; the effect must do better than that)."""
-    if (
-        recalibration.abc.method == cfg.abc.method
-        and recalibration.abc.n_particles == cfg.abc.n_particles
-    ):
-        return None
-    raw = cfg.model_dump(mode="json")
-    raw["abc"]["method"] = recalibration.abc.method
-    raw["abc"]["n_particles"] = recalibration.abc.n_particles
-    raw["diagnose"]["run_after_training"] = False
-    raw["output"] = None
-    return validate_config(raw)
-
-
-def reuse_recalibration(after_dir: Path, after_cfg: TrainConfig | None) -> bool:
-    """Whether ``after_dir`` holds (part of) this very re-calibration, to resume.
-
-    A loop run again may choose another effect, another shared-effect prior or
-    nothing at all; a re-calibration left from an earlier loop is then removed, so
-    that ``RUN_DIR/loop/after`` never shows a run that ``loop.json`` does not
-    describe, and training does not refuse the directory.
-
-    Args:
-        after_dir: ``RUN_DIR/loop/after``, written only by the loop.
-        after_cfg: this loop's re-calibration config; None when nothing is chosen.
-    """
-    after = RunDir(after_dir)
-    if not after.path.exists():
+    run = RunDir(directory)
+    if not run.path.exists():
         return False
-    if after_cfg is not None and after.has_checkpoint():
+    if cfg is not None and run.is_evaluated():
         try:
-            if config_hash(after.read_config()) == config_hash(after_cfg):
+            if config_hash(run.read_config()) == config_hash(cfg):
                 return True
         except (OSError, ValueError):  # RunFileError and ConfigError included
-            pass  # unreadable: it cannot be resumed, so it is stale as well
-    shutil.rmtree(after.path)
-    print(f"note: removed the earlier re-calibration in {after_dir}", file=sys.stderr)
+            pass  # unreadable: stale as well
+    shutil.rmtree(run.path)
+    print(f"note: removed the earlier re-calibration in {directory}", file=sys.stderr)
     return False
 
 
@@ -196,33 +136,48 @@ def _quantiles(values: Tensor) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------- the candidates
+@dataclass(frozen=True)
+class Candidates:
+    """The effects the attribution tries, resolved on the training pairs.
+
+    Attributes:
+        effects: the effect tokens.
+        road: how road effects were offered (``frame``, ``reason``, ``skipped``,
+            ``profiles``: the knot spacing chosen and the error of each).
+        seeds: per road token, a first candidate of its value.
+        profile: the road profile whose residual signature is tested (None: the
+            pairs have a frame each, or no road effect is a candidate).
+    """
+
+    effects: list[str]
+    road: dict[str, Any]
+    seeds: dict[str, Tensor]
+    profile: RoadProfile | None
+
+
 def candidate_effects(
     cfg: TrainConfig, train_pairs: PairSet, series: Series
-) -> tuple[list[str], dict[str, Any], dict[str, Tensor]]:
+) -> Candidates:
     """The effects the attribution tries, resolved on the training pairs.
 
     Args:
         series: the one-step residual (:func:`~torchcf.diagnose.road.
             one_step_residual`) of the run's best particle per pair.
 
-    Road effects (``shared``) only where the pairs share one road frame
+    Road effects (``scope = "road"``) only where the pairs share one road frame
     (:func:`~torchcf.diagnose.road.shares_road_frame`); a bare ``grade`` or
     ``bend`` spans the pairs' road section with its knot spacing chosen by
     cross-validation on the fit windows' one-step residuals
     (:func:`~torchcf.diagnose.road.choose_spacing`).
-
-    Returns:
-        the effect tokens; the road report (``frame``, ``reason``, ``skipped``,
-        ``profiles``: the spacing chosen and the error of each); per road
-        token, a first candidate of its value.
     """
     frame, reason = shares_road_frame(train_pairs)
     fit_steps = int(round(cfg.diagnose.fit_fraction * train_pairs.n_steps))
     fit_series = fit_window(series, fit_steps)
     effects, skipped, profiles, seeds = [], [], [], {}
+    profile = None
     for token in cfg.diagnose.effects:
         effect = parse_effect(token)
-        if effect.shared and not frame:
+        if effect.scope == "road" and not frame:
             skipped.append(effect.token)
             continue
         if isinstance(effect, RoadProfile) and "(" not in token:
@@ -232,11 +187,15 @@ def candidate_effects(
             profiles.append(choice.report())
             if choice.seed is not None:
                 seeds[choice.token] = choice.seed
+            if profile is None:
+                profile = parse_effect(choice.token)
             continue
-        effects.append(resolve_effect(token, train_pairs))
-    road = {"frame": frame, "reason": reason, "skipped": skipped}
-    road["profiles"] = profiles
-    return effects, road, seeds
+        resolved = resolve_effect(token, train_pairs)
+        effects.append(resolved)
+        if profile is None and isinstance(effect, RoadProfile):
+            profile = parse_effect(resolved)
+    road = {"frame": frame, "reason": reason, "skipped": skipped, "profiles": profiles}
+    return Candidates(effects, road, seeds, profile)
 
 
 # -------------------------------------------------------------------- the loop
@@ -248,28 +207,25 @@ class LoopPlan:
         run: the diagnosed run.
         cfg: its config with the ``diagnose.*`` overrides.
         posterior: its posterior.
+        summary: its training summary.
         before: its ``metrics.json``.
         train_pairs, test_pairs: its split.
         pool: the pool models that got the effects.
-        road: how road effects were offered (:func:`candidate_effects`).
-        selection: the forward selection's steps and choice
-            (:func:`attribute_effects`).
+        road: how road effects were offered (:class:`Candidates`).
+        selection: the forward selection (:func:`attribute_effects`).
         residuals_before: the residual tests of the run; series_before: its
             residual series.
-        recalibration: the re-calibration's config (None: nothing chosen, nothing
-            to train) to run in :attr:`recalibration_dir`.
-        resume_recalibration: that directory holds a part of this very
-            re-calibration, to resume.
-        reference: the pool alone searched as the re-calibration
-            (:func:`reference_config`), to run in :attr:`reference_dir`; None
-            when nothing is chosen or the search is the run's.
-        resume_reference: that directory holds a part of it, to resume.
+        recalibration: the config of the re-calibration (the run's models and
+            the chosen variants; None: nothing chosen).
+        resume_recalibration: ``RUN_DIR/loop/after`` and ``.../reference`` hold
+            this re-calibration, evaluated (a loop run again reads them back).
         began: ``time.perf_counter()`` at the start of the loop.
     """
 
     run: RunDir
     cfg: TrainConfig
     posterior: Posterior
+    summary: dict[str, Any]
     before: dict[str, Any]
     train_pairs: PairSet
     test_pairs: PairSet
@@ -280,8 +236,6 @@ class LoopPlan:
     series_before: Series
     recalibration: TrainConfig | None
     resume_recalibration: bool
-    reference: TrainConfig | None
-    resume_reference: bool
     began: float
 
     @property
@@ -308,8 +262,7 @@ def plan_loop(
     progress: bool = True,
 ) -> LoopPlan:
     """Steps 1-2 of the loop on a finished, evaluated run (module docstring), and
-    the re-calibration it asks for (a stale one in ``RUN_DIR/loop/after`` is
-    removed).
+    the re-calibration it asks for (a stale one in ``RUN_DIR/loop`` is removed).
 
     Args:
         run_dir: a trainer output directory holding ``metrics.json``.
@@ -326,7 +279,7 @@ def plan_loop(
     """
     began = time.perf_counter()
     run = RunDir(run_dir)
-    cfg, posterior, _ = run.load_run()
+    cfg, posterior, summary = run.load_run()
     cfg = _with_overrides(cfg, overrides)
     before = run.read_metrics()
     train_pairs, test_pairs = load_split(cfg.data) if pairs is None else pairs
@@ -336,31 +289,39 @@ def plan_loop(
     residuals_before, series_before = diagnose_residuals(posterior, train_pairs)
     pool = active_models(cfg, posterior)
     one_step = one_step_residual(best_particles(posterior, train_pairs), train_pairs)
-    effects, road, seeds = candidate_effects(cfg, train_pairs, one_step)
+    candidates = candidate_effects(cfg, train_pairs, one_step)
     selection = attribute_effects(
-        cfg, pool, effects, train_pairs, seeds=seeds, progress=progress
+        cfg,
+        pool,
+        candidates.effects,
+        train_pairs,
+        road_seeds=candidates.seeds,
+        road_profile=candidates.profile,
+        ledger=run.loop_dir / "attribution.pt",
+        progress=progress,
     )
-    recalibration, reference = None, None
+    recalibration = None
     if selection.chosen:
-        variants = [m for m in selection.models if m not in pool]
+        run_models = [spec.name for spec in cfg.models]
+        variants = [m for m in selection.models if m not in run_models]
         recalibration = recalibration_config(cfg, variants, selection.shared_priors)
-        reference = reference_config(cfg, recalibration)
+    resume = reusable(run.recalibration_dir, recalibration)
+    resume = reusable(run.reference_dir, recalibration) and resume
     return LoopPlan(
         run=run,
         cfg=cfg,
         posterior=posterior,
+        summary=summary,
         before=before,
         train_pairs=train_pairs,
         test_pairs=test_pairs,
         pool=pool,
-        road=road,
+        road=candidates.road,
         selection=selection,
         residuals_before=residuals_before,
         series_before=series_before,
         recalibration=recalibration,
-        resume_recalibration=reuse_recalibration(run.recalibration_dir, recalibration),
-        reference=reference,
-        resume_reference=reuse_recalibration(run.reference_dir, reference),
+        resume_recalibration=resume,
         began=began,
     )
 
@@ -375,11 +336,47 @@ def _with_overrides(cfg: TrainConfig, overrides: Sequence[str]) -> TrainConfig:
     return validate_config(apply_overrides(cfg.model_dump(mode="json"), overrides))
 
 
+def run_recalibration(plan: LoopPlan, progress: bool = True) -> None:
+    """Loop step 3 (:mod:`torchcf.diagnose.recalibrate`): the reference and
+    after, written as run directories (evaluation is the caller's:
+    :func:`torchcf.pipeline.close_loop`). Nothing to do when nothing is chosen
+    or both are there already."""
+    if plan.recalibration is None or plan.resume_recalibration:
+        return
+    settings = plan.cfg.diagnose
+    bar = tqdm(
+        total=settings.max_rounds * (1 + len(plan.chosen)),
+        desc="re-calibration",
+        unit="round",
+        disable=not progress,
+    )
+    reference, after = recalibrate(
+        plan.cfg,
+        plan.posterior,
+        plan.chosen,
+        plan.selection.shared,
+        plan.pool,
+        plan.train_pairs,
+        tick=bar.update,
+    )
+    bar.close()
+    reference_cfg = recalibration_config(plan.cfg, [], {})
+    for directory in (plan.reference_dir, plan.recalibration_dir):
+        if directory.exists():
+            shutil.rmtree(directory)
+    write_run(
+        plan.reference_dir, reference_cfg, plan.posterior, reference, plan.summary
+    )
+    write_run(
+        plan.recalibration_dir, plan.recalibration, plan.posterior, after, plan.summary
+    )
+
+
 def finish_loop(plan: LoopPlan) -> dict[str, Any]:
-    """Step 4 of the loop, after the re-calibration ran in
-    :attr:`LoopPlan.recalibration_dir` (or nothing was chosen): the residuals
-    after, the chosen effects' posterior, ``loop.md`` with its figures, the
-    TensorBoard text and, last, ``loop.json``.
+    """Step 4 of the loop, after the re-calibration was written and evaluated in
+    :attr:`LoopPlan.recalibration_dir` and :attr:`LoopPlan.reference_dir` (or
+    nothing was chosen): the residuals after, the chosen effects' posterior,
+    ``loop.md`` with its figures, the TensorBoard text and, last, ``loop.json``.
 
     Returns:
         the loop result (also in ``RUN_DIR/loop.json``).
@@ -387,22 +384,39 @@ def finish_loop(plan: LoopPlan) -> dict[str, Any]:
     Raises:
         RunFileError: the re-calibration left no posterior or metrics.
     """
+    selection = plan.selection
+    settings = plan.cfg.diagnose
     result: dict[str, Any] = {
         "format": FORMAT,
         "run": str(plan.run),
         "dataset": plan.before.get("dataset"),
         "pool": plan.pool,
         "road": plan.road,
-        "effects_ranked": plan.selection.steps[0],
-        "steps": plan.selection.steps,
+        "signatures": selection.signatures,
+        "effects_ranked": selection.steps[0] if selection.steps else [],
+        "steps": selection.steps,
+        "absorption": {
+            row["effect"]: row.get("absorbed_by")
+            for row in (selection.steps[0] if selection.steps else [])
+        },
+        "unexplained": unexplained(selection),
         "chosen": plan.chosen,
-        "models_after": plan.selection.models,
-        "steps_at_most": plan.selection.steps_at_most,
-        "tests": plan.selection.tests,
-        "threshold": plan.selection.threshold,
-        "alpha": plan.cfg.diagnose.alpha,
-        "fit_fraction": plan.cfg.diagnose.fit_fraction,
-        "min_gain": plan.cfg.diagnose.min_gain,
+        "shared": selection.shared,
+        "models_after": selection.models,
+        "steps_at_most": selection.steps_at_most,
+        "levels": selection.levels,
+        "alpha": settings.alpha,
+        "fit_fraction": settings.fit_fraction,
+        "min_gain": settings.min_gain,
+        "search": {
+            "population": max(settings.population, plan.cfg.abc.top_n),
+            "local_copies": settings.local_copies,
+            "rounds": settings.rounds,
+            "explore": settings.explore,
+            "n_particles": settings.n_particles,
+            "run_particles": plan.cfg.abc.n_particles,
+            "n_train": plan.train_pairs.n_pairs,
+        },
         "before": plan.before["hybrid"],
         "residuals_before": plan.residuals_before,
     }
@@ -413,6 +427,35 @@ def finish_loop(plan: LoopPlan) -> dict[str, Any]:
         plan.run, result, plan.series_before, series_after, plan.train_pairs.dt
     )
     return result
+
+
+def unexplained(selection: Selection) -> list[dict[str, Any]]:
+    """Structure the library does not explain: every signature still found in
+    the final model's residual (the last signatures of the selection) with the
+    family it suggests, and whether an effect it points to was tested and not
+    chosen."""
+    if not selection.signatures:
+        return []
+    tested = {row["name"] for rows in selection.steps for row in rows}
+    chosen = {e.split("(")[0] for e in selection.chosen}
+    out = []
+    for mark in selection.signatures[-1]:
+        if not mark["found"]:
+            continue
+        pointed = [e for e in mark["points_to"] if e not in chosen]
+        if mark["points_to"] and not pointed:
+            continue  # explained by an effect chosen but left some structure
+        out.append(
+            {
+                "signature": mark["signature"],
+                "mean": mark["mean"],
+                "unit": mark["unit"],
+                "p_value": mark["p_value"],
+                "tested_not_chosen": [e for e in pointed if e in tested],
+                "family": FAMILIES[mark["signature"]],
+            }
+        )
+    return out
 
 
 def _after(plan: LoopPlan) -> tuple[dict[str, Any], Series | None]:
@@ -433,14 +476,12 @@ def _after(plan: LoopPlan) -> tuple[dict[str, Any], Series | None]:
     posterior = after.load_posterior()
     metrics = after.read_metrics()
     residuals, series = diagnose_residuals(posterior, plan.train_pairs)
-    reference = None
-    if plan.reference is not None:
-        reference = RunDir(plan.reference_dir).read_metrics()["hybrid"]
+    reference = RunDir(plan.reference_dir).read_metrics()["hybrid"]
     return {
         "after": metrics["hybrid"],
         "after_run": str(after),
         "before_same_search": reference,
-        "reference_run": str(plan.reference_dir) if reference else None,
+        "reference_run": str(plan.reference_dir),
         "shares_after": posterior.shares,
         "posterior": effect_posterior(posterior, plan.chosen),
         "identifiability": effect_identifiability(posterior, plan.chosen),
@@ -450,13 +491,14 @@ def _after(plan: LoopPlan) -> tuple[dict[str, Any], Series | None]:
 
 __all__ = [
     "FORMAT",
+    "Candidates",
     "LoopPlan",
     "active_models",
     "candidate_effects",
     "effect_posterior",
     "finish_loop",
     "plan_loop",
-    "recalibration_config",
-    "reference_config",
-    "reuse_recalibration",
+    "reusable",
+    "run_recalibration",
+    "unexplained",
 ]

@@ -21,18 +21,6 @@ from ..files import ensure_directory
 from ..rundir import RunDir
 from ..tblog import RunLogger
 
-#: Which residual structure points to which effect (for the report only).
-EFFECT_HINTS = {
-    "delay": "cross-correlation with the leader's acceleration / speed difference "
-    "at a lag > 0, autocorrelation",
-    "lag": "autocorrelation, cross-correlation with the speed difference",
-    "offset": "dependence on the spacing level, a constant spacing residual",
-    "asymmetry": "dependence on the sign of the speed difference",
-    "resistance": "dependence on own speed squared",
-    "grade": "dependence on the position along the road",
-    "saturation": "residuals concentrated at large accelerations",
-}
-
 Series = dict[str, list[np.ndarray]]
 
 
@@ -57,7 +45,8 @@ def write_report(
 
 # ------------------------------------------------------------------- loop.md
 def loop_markdown(result: dict[str, Any], figures: dict[str, str]) -> str:
-    """``loop.md``: diagnostics, ranking, chosen effects, before/after table.
+    """``loop.md``: the trace from the residual to the effects, the tests, the
+    absorption, the chosen effects and the error before and after.
 
     Args:
         result: the loop's result (``loop.json``).
@@ -65,66 +54,78 @@ def loop_markdown(result: dict[str, Any], figures: dict[str, str]) -> str:
             ``residuals``) relative to the run directory.
     """
     lines = [
-        *_ranking(result, figures["effects"]),
-        *(_chosen(result) if result["chosen"] else _none_chosen()),
-        *_before_after(result, figures["before_after"]),
-        *_residuals(result, figures["residuals"]),
-        f"Loop time: {result['seconds']:.0f} s.",
-    ]
-    return "\n".join(lines) + "\n"
-
-
-def _ranking(result: dict[str, Any], figure: str) -> list[str]:
-    """The title, the guard and the table of every step of the selection."""
-    n_effects = len(result["effects_ranked"])
-    lines = [
         f"# Closing the loop: {result.get('dataset')}",
         "",
         f"Pool models that got the effects: {', '.join(result['pool'])}.",
         "",
-        "**Forward stepwise selection**: at each step every effect not yet chosen "
-        "is tested against the current model (the pool plus the variants of the "
-        "effects chosen before); the significant effect with the largest gain is "
-        "chosen, and the others are tested again with it. **Guard**: the "
-        "family-wise level counts every test the selection can make, "
-        f"{n_effects} effects over at most {result['steps_at_most']} "
-        f"steps = {result['tests']} tests, so an effect is significant at p < "
-        f"alpha / {result['tests']} = {result['threshold']:.2g} (Bonferroni, "
-        f"alpha {result['alpha']}) with a gain >= {result['min_gain']:.0%}.",
+        *_method(result),
+        *_road(result.get("road")),
+        *_signatures(result),
+        *_steps(result, figures["effects"]),
+        *_absorption(result),
+        *_unexplained(result),
+        *(_chosen(result) if result["chosen"] else _none_chosen()),
+        *_before_after(result, figures["before_after"]),
+        *_residuals(result, figures["residuals"]),
+        *_effort(result),
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def _method(result: dict[str, Any]) -> list[str]:
+    """How an effect is compared with its base, and why the p-value is valid."""
+    search = result.get("search", {})
+    levels = ", ".join(f"{level:.3g}" for level in result.get("levels", []))
+    return [
+        "**How an effect is tested.** Every training pair is split in time: the "
+        f"first {result['fit_fraction']:.0%} of its steps are the *fit window*, "
+        "the rest the *validation window*. The current model (at first the pool) "
+        f"is fitted on the fit windows ({search.get('population', '?')} particles "
+        "per pair). For every candidate effect two arms grow from that one fit: "
+        "the **base arm** searches "
+        f"{search.get('rounds', '?')} more rounds of local search by itself; the "
+        "**effect arm** lifts the same particles to the variants with the effect "
+        f"at its neutral value (the same model) and at {search.get('explore', '?')} "
+        "values spread over its prior, searches the same rounds with the *same "
+        "random numbers*, and keeps the base arm's particles too. So an effect "
+        "cannot lose in sample, where it adds nothing both arms pick the same "
+        "particles, and what differs is the effect, not the luck of two "
+        "independent searches. A recording or road effect has one value for "
+        "every pair, searched jointly over the pairs first.",
         "",
-        "gain: relative drop of the summed validation score (last "
-        f"{1 - result['fit_fraction']:.0%} of every training pair) when the current "
-        "model's variants with the effect join it, at equal particle budget (small "
-        "ABC, then local search); statistic: t of the per-pair log score ratios; "
-        "p-value: one-sided sign-flip test; estimate: median of the effect's "
-        "parameters over the picks that carry it (a road effect: its one profile, "
-        "fitted jointly over the pairs).",
+        "**The test.** An effect arm is judged against the **placebo arm**: the "
+        "base arm merged with a second search of the pool alone, from the same "
+        "start with the same budget and random numbers as the effect arm's "
+        "search. Both hold the base arm and one more search, so the difference is "
+        "the effect, not a second search (which alone lowers the error). Per "
+        "pair, the arm's best particles (the hybrid's picks) "
+        "are scored on the validation window, out of sample; *gain* is the "
+        "relative drop of the summed validation score, the p-value a one-sided "
+        "sign-flip test of the per-pair log score ratios. The pairs are "
+        "independent and the arms saw only the fit windows, so under 'the "
+        "effect does not improve the out-of-sample fit' every pair's ratio is as "
+        "likely to fall as to rise: the test is exact, whatever decided the "
+        "particles and the order of the tests on the fit windows. *In-sample "
+        "gain*: the same drop on the fit windows against the placebo (against "
+        "the base arm, which the effect arm holds, it is never negative).",
+        "",
+        "**The guard.** The effects of a step are tested in an order fixed by the "
+        "fit windows: those a residual signature points to first, then by "
+        "in-sample gain. The *fallback procedure* (Wiens 2003) gives the i-th "
+        "effect of the order the level 2^-i of the step's (normalised), plus the "
+        "level of the effect before it when that one was significant: a closed "
+        "test of weighted Bonferroni tests, so the family-wise error of a step "
+        "stays within its level under any dependence, half of it goes where the "
+        "residual points, and a first effect that fails does not stop the "
+        "others (as a fixed sequence would; Holm would ignore the order). Step s "
+        f"is tested at alpha / 2^s (the last the rest: {levels}; they sum to "
+        f"alpha = {result['alpha']}), so any chosen effect is a false one with "
+        f"probability at most alpha. An effect must also gain at least "
+        f"{result['min_gain']:.0%}. The significant effect of largest gain is "
+        "chosen, becomes part of the current model, and the others are tested "
+        "again.",
         "",
     ]
-    lines += _road(result.get("road"))
-    for step, rows in enumerate(result["steps"], start=1):
-        before = result["chosen"][: step - 1]
-        chosen_here = result["chosen"][step - 1 : step]
-        lines += [
-            f"## Step {step}: "
-            + (f"with {' + '.join(before)}" if before else "the pool alone"),
-            "",
-            "| effect | gain | statistic | p-value | score before | score after "
-            "| pairs | estimate | chosen |",
-            "|---|---|---|---|---|---|---|---|---|",
-        ]
-        for row in rows:
-            estimate = row.get("shared", {}).get("value") or row.get("estimate") or {}
-            lines.append(
-                f"| {row['effect']} | {row['gain']:+.1%} | "
-                f"{fmt(row['statistic'], 2)} | {row['p_value']:.2g} | "
-                f"{fmt(row['score_before'])} | {fmt(row['score_after'])} | "
-                f"{row['n_pairs']} | "
-                + ", ".join(f"{k} {fmt(v)}" for k, v in estimate.items())
-                + f" | {'**yes**' if row['effect'] in chosen_here else ''} |"
-            )
-        lines.append("")
-    return [*lines, f"![effects, step 1]({figure})", ""]
 
 
 def _road(road: dict[str, Any] | None) -> list[str]:
@@ -153,14 +154,196 @@ def _road(road: dict[str, Any] | None) -> list[str]:
     return [*lines, ""]
 
 
+def _signatures(result: dict[str, Any]) -> list[str]:
+    """The residual signatures of the pool (and after the chosen effects), and
+    the trace from each found one to the effects it points to and their tests."""
+    marks = result.get("signatures") or []
+    if not marks:
+        return []
+    final = marks[-1] if len(marks) > 1 and result["chosen"] else None
+    lines = [
+        "## From the residual to the effects",
+        "",
+        "Signatures of the pool's best particle per pair on the fit windows: each "
+        "pair gives one value, tested across pairs (two-sided sign flips; found "
+        "at p < 0.05)."
+        + (" Last column: the same after the chosen effects." if final else ""),
+        "",
+        "| signature | mean | median | pairs | p | found | points to |"
+        + (" after the effects |" if final else ""),
+        "|---|---|---|---|---|---|---|" + ("---|" if final else ""),
+    ]
+    after = {m["signature"]: m for m in final} if final else {}
+    for mark in marks[0]:
+        points = ", ".join(mark["points_to"]) or (mark["family"] or "")
+        if mark["family"]:
+            points = f"no effect: *{mark['family']}*"
+        row = (
+            f"| {mark['signature']} | {fmt(mark['mean'])} {mark['unit']} | "
+            f"{fmt(mark['median'])} | {mark['n_pairs']} | {fmt(mark['p_value'], 2)} "
+            f"| {'**yes**' if mark['found'] else 'no'} | {points} |"
+        )
+        if final:
+            other = after.get(mark["signature"], {})
+            row += (
+                f" {fmt(other.get('mean'))} {mark['unit']}, p "
+                f"{fmt(other.get('p_value'), 2)} |"
+            )
+        lines.append(row)
+    lines.append("")
+    rows = {r["name"]: r for r in result["steps"][0]} if result["steps"] else {}
+    trace = []
+    for mark in marks[0]:
+        for effect in mark["points_to"]:
+            row = rows.get(effect)
+            if row is None:
+                trace.append(
+                    f"- {mark['signature']} -> {effect}: not a candidate here."
+                )
+                continue
+            verdict = (
+                "**chosen**"
+                if row.get("chosen")
+                else "significant"
+                if row["significant"]
+                else "not significant"
+            )
+            trace.append(
+                f"- {mark['signature']} ({fmt(mark['mean'])} {mark['unit']}) -> "
+                f"`{row['effect']}`: tested {_ordinal(row['order'])}, gain "
+                f"{row['gain']:+.1%} (in sample {row['fit_gain']:+.1%}), p "
+                f"{row['p_value']:.2g} at level {row['level']:.2g}: {verdict}."
+            )
+    if trace:
+        lines += ["Trace (step 1):", "", *trace, ""]
+    return lines
+
+
+def _ordinal(n: int) -> str:
+    return f"{n}{'st' if n == 1 else 'nd' if n == 2 else 'rd' if n == 3 else 'th'}"
+
+
+def _steps(result: dict[str, Any], figure: str) -> list[str]:
+    """The table of every step of the selection, in the order tested."""
+    lines = []
+    for step, rows in enumerate(result["steps"], start=1):
+        before = result["chosen"][: step - 1]
+        level = result["levels"][step - 1]
+        lines += [
+            f"## Step {step}: "
+            + (f"with {' + '.join(before)}" if before else "the pool alone")
+            + f" (level {level:.3g})",
+            "",
+            "| order | effect | scope | pointed to by | in-sample gain | gain | "
+            "p-value | level | pairs changed | estimate | chosen |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for row in rows:
+            estimate = row.get("estimate") or {}
+            mark = (
+                "**yes**"
+                if row.get("chosen")
+                else "significant"
+                if row["significant"]
+                else ""
+            )
+            lines.append(
+                f"| {row['order']} | {row['effect']} | {row['scope']} | "
+                f"{', '.join(row['pointed_by'])} | {row['fit_gain']:+.1%} | "
+                f"{row['gain']:+.1%} | {row['p_value']:.2g} | {row['level']:.2g} | "
+                f"{row['pairs_changed']} of {row['n_pairs']} | "
+                + ", ".join(f"{k} {fmt(v)}" for k, v in list(estimate.items())[:4])
+                + f" | {mark} |"
+            )
+        lines.append("")
+    if not result["steps"]:
+        lines += ["No candidate effect to test.", ""]
+    return [*lines, f"![effects, step 1]({figure})", ""]
+
+
+def _absorption(result: dict[str, Any]) -> list[str]:
+    """Which of the pool's own parameters takes each effect up (step 1)."""
+    rows = []
+    for effect, found in (result.get("absorption") or {}).items():
+        if not found:
+            rows.append(f"| {effect} | — | | | | | |")
+            continue
+        verdict = (
+            f"**absorbed by {found['parameter']}**"
+            if found["absorbed"]
+            else "separable"
+        )
+        rows.append(
+            f"| {effect} | {found['model']}: {found['parameter']} | "
+            f"{found['correlation']:+.2f} | {fmt(found.get('slope'))} | "
+            f"{fmt(found.get('shift'))} | {found['n_pairs']} | {verdict} |"
+        )
+    if not rows:
+        return []
+    return [
+        "## Absorption",
+        "",
+        "Which of the pool's own parameters takes each effect up. A driver "
+        "effect: the within-pair correlation of the effect's parameter with the "
+        "model's over the effect arm's particles (centred per pair, pooled), the "
+        "ridge's slope (partner per unit of the effect) and the partner's shift "
+        "between the best particle without and with the effect (median over "
+        "pairs). A one-parameter recording effect: its profile (fixed at 7 "
+        "values over its prior and half a step on either side of the best, each "
+        "pair refitted), the same read off each pair's best particle along it "
+        "(shift: between the neutral value and the value found). |r| >= 0.7 "
+        "reads 'absorbed': the data tell the effect from that parameter only "
+        "together, and an effect not chosen is then not separable in these "
+        "data rather than absent.",
+        "",
+        "| effect | partner | r | slope | shift | pairs | |",
+        "|---|---|---|---|---|---|---|",
+        *rows,
+        "",
+    ]
+
+
+def _unexplained(result: dict[str, Any]) -> list[str]:
+    """Structure still in the residual that no chosen effect explains."""
+    items = result.get("unexplained") or []
+    if not items:
+        return []
+    lines = ["## Structure the library does not explain", ""]
+    for item in items:
+        tested = item["tested_not_chosen"]
+        lines.append(
+            f"- **{item['signature']}** ({fmt(item['mean'])} {item['unit']}, p "
+            f"{fmt(item['p_value'], 2)}): suggests *{item['family']}*"
+            + (
+                f"; {', '.join(tested)} tested and not chosen."
+                if tested
+                else "; no effect of the library leaves it."
+            )
+        )
+    return [*lines, ""]
+
+
+def _effort(result: dict[str, Any]) -> list[str]:
+    search = result.get("search") or {}
+    lines = []
+    if search:
+        lines.append(
+            f"Search effort per arm: {search['population']} particles x "
+            f"{search['local_copies']} copies x {search['rounds']} rounds per pair "
+            f"({search['n_train']} pairs); the attribution starts from "
+            f"{search['n_particles']} prior draws per pool model, the "
+            "re-calibration from the run's own buffers "
+            f"({search['run_particles']} draws per model)."
+        )
+        lines.append("")
+    return [*lines, f"Loop time: {result['seconds']:.0f} s."]
+
+
 def _chosen(result: dict[str, Any]) -> list[str]:
     """The chosen effects' learned parameters and the shares after."""
     lines = ["## Chosen effects and their learned parameters", ""]
     for effect, summary in result["posterior"].items():
-        lines.append(
-            f"**{effect}** (share of the new hybrid: {summary['share']:.1%}; "
-            f"residual signature: {EFFECT_HINTS.get(effect.split('(')[0], '')})"
-        )
+        lines.append(f"**{effect}** (share of the new hybrid: {summary['share']:.1%})")
         lines += [
             "",
             "| parameter | median | 5 % | 95 % | particles |",
@@ -223,7 +406,7 @@ def _before_after(result: dict[str, Any], figure: str) -> list[str]:
     rows = [("before (the run)", result["before"])]
     reference = result.get("before_same_search")
     if reference:
-        rows.append(("before, searched as after (the pool alone)", reference))
+        rows.append(("before, searched as after", reference))
     rows.append(("after", result["after"]))
     lines = [
         "## Test-split error of the hybrid, before and after",
@@ -240,20 +423,27 @@ def _before_after(result: dict[str, Any], figure: str) -> list[str]:
     if reference:
         lines += [
             "",
-            "The re-calibration searched otherwise than the run (`diagnose."
-            "recalibrate_method` / `recalibrate_particles`), so the pool alone was "
-            "searched the same way: the changes below are against it, the "
-            "effect's own share of the improvement.",
+            "*Before, searched as after*: the run's particles searched on the "
+            "training windows by the same local search as after, without the "
+            "effects. After holds all of them, so the change against it is the "
+            "effects' share; the change against the run adds the search's.",
         ]
-    base = reference or result["before"]
+    against = [("the run", result["before"])]
+    if reference:
+        against.append(("the run searched as after", reference))
     for key, label in (
         ("ws", "WS"),
         ("beta_ws", "0.15-WS"),
         ("min", "Minimum distance"),
     ):
-        before, after = _metric(base.get(key)), _metric(result["after"].get(key))
-        if before and after is not None and math.isfinite(before):
-            lines += ["", f"{label} change: {(after - before) / before:+.1%}."]
+        after = _metric(result["after"].get(key))
+        changes = []
+        for name, base in against:
+            before = _metric(base.get(key))
+            if before and after is not None and math.isfinite(before):
+                changes.append(f"{(after - before) / before:+.1%} against {name}")
+        if changes:
+            lines += ["", f"{label} change: {', '.join(changes)}."]
         elif key == "ws":
             lines += [
                 "",
@@ -318,4 +508,4 @@ def _effect_text(effect: Any) -> str:
     return fmt(effect)
 
 
-__all__ = ["EFFECT_HINTS", "fmt", "loop_markdown", "write_report"]
+__all__ = ["fmt", "loop_markdown", "write_report"]

@@ -99,11 +99,14 @@ def one_step_residual(best: BestParticles, pairs: PairSet) -> dict[str, list]:
     Returns:
         lists (one float64 array per pair with a particle, pairs in position
         order, valid steps but the last) under ``x`` (observed road position
-        [m]) and ``acceleration``.
+        [m]), ``v`` (observed speed [m/s]), ``dv`` (leader minus follower speed
+        [m/s]), ``predicted`` (the model's one-step acceleration ``(v_pred(t +
+        1) - v(t)) / dt`` [m/s^2]) and ``acceleration`` (the residual).
     """
     obs = {k: t.double().cpu() for k, t in pairs.series().items()}
-    out: dict[str, list[np.ndarray]] = {"x": [], "v": [], "acceleration": []}
-    rows: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    keys = ("x", "v", "dv", "predicted", "acceleration")
+    out: dict[str, list[np.ndarray]] = {key: [] for key in keys}
+    rows: dict[int, tuple[np.ndarray, ...]] = {}
     for name, (theta, position) in best.items():
         model = get_model(name)
         for row, j in enumerate(position.tolist()):
@@ -129,9 +132,15 @@ def one_step_residual(best: BestParticles, pairs: PairSet) -> dict[str, list]:
             command, _ = model.command_with_memory(params, perception, memory)
             moved = realise(model, params, state, command, pairs.dt)
             residual = (obs["v_follow"][1 : steps + 1, j] - moved.v) / pairs.dt
-            rows[j] = (state.x.numpy(), state.v.numpy(), residual.numpy())
+            rows[j] = (
+                state.x.numpy(),
+                state.v.numpy(),
+                (perception.v_lead - state.v).numpy(),
+                ((moved.v - state.v) / pairs.dt).numpy(),
+                residual.numpy(),
+            )
     for j in sorted(rows):
-        for key, values in zip(("x", "v", "acceleration"), rows[j], strict=True):
+        for key, values in zip(keys, rows[j], strict=True):
             out[key].append(values)
     return out
 

@@ -1,157 +1,530 @@
-"""The attribution's local stage: sequential local search, and a shared effect's
-one value.
+"""The search of an arm: local search with common random numbers, and nested starts.
 
-After its small ABC run an arm refines its per-pair best by sequential local
-search (:func:`local_search`: perturbed copies of the members, the kernel of
-sequential ABC), so that arms are compared near their best fits rather than at
-the luck of prior draws. A shared (road) effect has one value for all pairs,
-searched jointly over the pairs (:func:`shared_value`).
+**Local search** (:func:`local_search`): ``rounds`` times, every slot of a
+:class:`~torchcf.diagnose.population.Population` gets ``copies`` perturbed
+copies (a normal step of ``LOCAL_SCALES[c % 3]`` times each parameter's prior
+width for copy c, clipped to the prior box: the kernel of sequential ABC), scored
+on the rollout's pairs, and every pair keeps its ``S`` best of members and copies
+(elitist: a pair's best never gets worse).
 
-Particles stay :class:`~torchcf.abc.particles.Particles` throughout; a perturbed
-copy inherits its parent's pair and particle index.
+**Common random numbers.** A round draws its steps for *slots*, not for
+particles: one (N, S, C, K_c) normal tensor from a generator seeded by the
+search's key and the round (:class:`Noise`), where column k is the k-th parameter
+of the slot's *current* model (the model the comparison starts from). A variant
+``m+E`` in a slot reads its base parameters from the same columns as ``m`` would
+(by name) and its effect's parameters from a second tensor with a seed of the
+effect's own. Two arms searched from one start with one key (the base alone,
+and the base with an effect) therefore take the same steps wherever they hold
+the same particle: with the effect at its neutral value the augmented search
+*is* the base search, and what differs between the arms is the effect, not the
+luck of the search.
 
-Shapes: S members, C copies, M values, N pairs, K parameters
+**Nested starts** (:func:`lift`, :func:`explore`): a slot's particle of model
+``m`` becomes the variant ``m+E`` with E's parameters at given values (the
+neutral ones, :attr:`~torchcf.models.effects.Effect.neutral`: the same rollout),
+or at ``explore`` values per slot spread over E's prior (a Latin hypercube), its
+own parameters unchanged.
+
+**A shared effect's one value** (:func:`shared_value`): a recording effect
+(sensor offset, clock offset) or a road profile has one value for all pairs,
+searched jointly over the pairs.
+
+Shapes: N pairs, S slots, C copies, K parameters (K_c: noise columns of the
+current models, K_E: an effect's), M candidate values, Q particles
 (:mod:`torchcf.typing`).
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from ..abc.particles import Particles, best_per_pair
 from ..abc.rejection import Rollout
-from ..config import DiagnoseConfig
+from ..models import UnknownModelError, get_model
 from ..models.effects import parse_effect
-from .candidates import compose_theta, fit_scores, variant_of
+from .population import Population, merge, rescore, score_on
 
-#: Standard deviations of the local search's perturbations, as fractions of each
+#: Standard deviations of the local search's steps, as fractions of each
 #: parameter's prior width (copy c uses entry c % 3).
 LOCAL_SCALES = (0.1, 0.03, 0.01)
-#: Search rounds, and values per round, for the one value of a shared (road)
-#: effect.
+#: Search rounds, and values per round, for the one value of a shared effect.
 SHARED_ROUNDS = 3
-SHARED_VALUES = 64
+SHARED_VALUES = 48
 #: Relative fit score counted for a pair whose candidates are all invalid.
 INVALID_RATIO = 10.0
+#: A search has converged when a round lowers the pairs' summed best score by
+#: less than this share (:func:`converge`).
+CONVERGED = 0.002
 
 
-def jitter(
-    theta: Tensor, bounds: Tensor, copies: int, generator: torch.Generator
+def derive_seed(*labels: object) -> int:
+    """A 63-bit seed that is a pure function of ``labels`` (stable across runs and
+    machines): every random draw of the loop has its own, so an arm's result
+    does not depend on which arms ran before it (or were read from a
+    checkpoint)."""
+    digest = hashlib.sha256(repr(labels).encode()).digest()
+    return int.from_bytes(digest[:8], "little") >> 1
+
+
+def generator(*labels: object) -> torch.Generator:
+    """A CPU generator seeded by :func:`derive_seed` of ``labels``."""
+    return torch.Generator().manual_seed(derive_seed(*labels))
+
+
+# ------------------------------------------------------------------ variants
+def variant_of(model: str, effect: str) -> str | None:
+    """``model+effect``'s canonical name; None where the effect cannot wrap it
+    (``lag`` on HL, which has its own actuation lag)."""
+    try:
+        return get_model(f"{model}+{effect}").name
+    except UnknownModelError:
+        return None
+
+
+def model_bounds(
+    name: str, priors: dict[str, Tensor], shared: dict[str, Tensor] | None = None
 ) -> Tensor:
-    """``copies`` perturbations of every member ``theta`` (S, K): (S, C, K).
+    """Prior box (K, 2) float64 of a model or variant: the run's prior box of its
+    pool model (``priors``: pool model -> (K_m, 2)), each effect's own prior, and
+    every shared effect named in ``shared`` (effect name -> its one value
+    (K_E,)) pinned at its value (a zero-width row: the search never moves it)."""
+    model = get_model(name)
+    bounds = model.prior_bounds(torch.float64)
+    base = model.base.name if hasattr(model, "base") else model.name
+    if base in priors:
+        bounds[: priors[base].shape[0]] = priors[base]
+    for effect in getattr(model, "effects", ()):
+        if shared and effect.name in shared:
+            columns = [model.param_names.index(p.name) for p in effect.param_specs]
+            value = shared[effect.name].to(torch.float64)
+            bounds[columns] = value[:, None].expand(-1, 2)
+    return bounds
 
-    Copy c moves each parameter by a normal step whose standard deviation is
-    ``LOCAL_SCALES[c % 3]`` times the parameter's prior width, clipped to the prior
-    box ``bounds`` (K, 2): a coarse-to-fine mix around the member, as the kernel of
-    sequential ABC. A zero-width row (a fixed parameter) stays fixed.
+
+# ------------------------------------------------------------------ the noise
+@dataclass(frozen=True)
+class Noise:
+    """The random numbers of one search: a key, and the current models whose
+    parameters take the common columns.
+
+    Attributes:
+        key: labels seeding the search (the same key: the same steps).
+        current: per current model, its parameter names (columns 0..K_m-1).
+        effect: the effect whose parameters take their own columns, or None.
     """
-    s, d = theta.shape
-    width = bounds[:, 1] - bounds[:, 0]
+
+    key: tuple
+    current: dict[str, tuple[str, ...]]
+    effect: str | None = None
+
+    @property
+    def width(self) -> int:
+        """K_c: the common columns (the widest current model)."""
+        return max([len(names) for names in self.current.values()], default=0)
+
+    def steps(self, round_: int, shape: tuple[int, int, int]) -> Tensor:
+        """(N, S, C, K_c + K_E) standard normal steps of round ``round_``."""
+        common = torch.randn(
+            *shape, self.width, generator=generator(*self.key, round_),
+            dtype=torch.float64,
+        )  # fmt: skip
+        if self.effect is None:
+            return common
+        k_e = len(parse_effect(self.effect).param_specs)
+        own = torch.randn(
+            *shape, k_e, generator=generator(*self.key, round_, self.effect),
+            dtype=torch.float64,
+        )  # fmt: skip
+        return torch.cat((common, own), dim=-1)
+
+    def columns(self, model: str, parent: str) -> Tensor:
+        """(K,) int64: the step column of each parameter of ``model`` whose slot
+        descends from the current model ``parent`` (by name; the effect's own
+        parameters after the common columns)."""
+        names = self.current[parent]
+        own = (
+            [p.name for p in parse_effect(self.effect).param_specs]
+            if self.effect
+            else []
+        )
+        out = []
+        for name in get_model(model).param_names:
+            if name in names:
+                out.append(names.index(name))
+            elif name in own:
+                out.append(self.width + own.index(name))
+            else:
+                raise ValueError(f"{model}: parameter {name} has no step column")
+        return torch.tensor(out, dtype=torch.int64)
+
+
+def jitter(theta: Tensor, steps: Tensor, bounds: Tensor) -> Tensor:
+    """Perturbed copies (Q, C, K) of ``theta`` (Q, K): copy c moves each parameter
+    by ``steps`` (Q, C, K, standard normal) times ``LOCAL_SCALES[c % 3]`` times its
+    prior width, clipped to the box ``bounds`` (K, 2); a zero-width row (a pinned
+    value) stays fixed."""
+    copies = steps.shape[1]
+    width = bounds[:, 1] - bounds[:, 0]  # (K,)
     scale = torch.tensor(LOCAL_SCALES, dtype=torch.float64)[
         torch.arange(copies) % len(LOCAL_SCALES)
-    ]
-    noise = torch.randn(s, copies, d, generator=generator, dtype=torch.float64)
-    moved = theta[:, None, :] + noise * scale[None, :, None] * width
+    ]  # (C,)
+    moved = theta[:, None, :] + steps * scale[None, :, None] * width
     return torch.maximum(torch.minimum(moved, bounds[:, 1]), bounds[:, 0])
 
 
-def uniform(bounds: Tensor, shape: tuple[int, ...], generator: torch.Generator):
-    """Uniform draws (*shape, K) float64 in the box ``bounds`` (K, 2)."""
-    u = torch.rand(*shape, bounds.shape[0], generator=generator, dtype=torch.float64)
-    return bounds[:, 0] + u * (bounds[:, 1] - bounds[:, 0])
-
-
-def perturbed(
-    members: Particles,
-    bounds: Tensor,
-    copies: int,
+def search_round(
+    population: Population,
     rollout: Rollout,
-    generator: torch.Generator,
-) -> Particles:
-    """``copies`` scored perturbations of every member (:func:`jitter`), member
-    by member; each inherits its member's pair and particle index."""
-    moved = jitter(members.theta, bounds, copies, generator)  # (S, C, K)
-    theta = moved.reshape(-1, moved.shape[-1])
-    pair = members.pair.repeat_interleave(copies)
-    score = fit_scores(rollout, members.model, theta, pair)
-    return Particles(
-        members.model, theta, pair, score, members.index.repeat_interleave(copies)
+    bounds: dict[str, Tensor],
+    steps: Tensor,
+    columns: Callable[[str], Tensor],
+) -> Population:
+    """The scored copies of every filled slot (N, S C): slot (j, s), copy c reads
+    ``steps[j, s, c]`` (N, S, C, K_c + K_E) at its model's ``columns``."""
+    n, size = population.score.shape
+    copies = steps.shape[2]
+    width = population.theta.shape[2]
+    model = torch.full((n, size, copies), -1, dtype=torch.int64)
+    theta = torch.full((n, size, copies, width), math.nan, dtype=torch.float64)
+    score = torch.full((n, size, copies), math.inf, dtype=torch.float64)
+    index = population.index[..., None].expand(-1, -1, copies).clone()
+    for m, name in enumerate(population.models):
+        pair, slot = population.model_slots(name)
+        if pair.numel() == 0:
+            continue
+        k = get_model(name).n_params
+        own = steps[pair, slot][..., columns(name)]  # (Q, C, K)
+        moved = jitter(population.theta[pair, slot, :k], own, bounds[name])
+        model[pair, slot] = m
+        theta[pair, slot, :, :k] = moved
+        flat_pair = pair.repeat_interleave(copies)
+        score[pair, slot] = score_on(
+            rollout, name, moved.reshape(-1, k), flat_pair
+        ).reshape(-1, copies)
+    return Population(
+        population.models,
+        model.reshape(n, -1),
+        theta.reshape(n, size * copies, width),
+        score.reshape(n, -1),
+        index.reshape(n, -1),
     )
 
 
 def local_search(
-    start: list[Particles],
-    bounds: dict[str, Tensor],
+    population: Population,
     rollout: Rollout,
-    settings: DiagnoseConfig,
-    generator: torch.Generator,
-) -> list[Particles]:
-    """Sequential local search of one arm: ``rounds`` times, every pair's
-    ``population`` best members (over the arm's models) get ``local_copies``
-    perturbed copies each (:func:`perturbed`), scored on the rollout's pairs (the
-    fit windows).
+    bounds: dict[str, Tensor],
+    noise: Noise,
+    parents: dict[str, str],
+    *,
+    rounds: int,
+    copies: int,
+    progress: Callable[[], None] | None = None,
+) -> Population:
+    """``rounds`` rounds of elitist local search with common random numbers
+    (module docstring).
 
-    Every arm spends the same budget per pair and round, so arms differ by their
-    models only.
+    Args:
+        population: the start (its size is kept).
+        bounds: prior box (K, 2) of every model that may appear.
+        noise: the search's random numbers.
+        parents: per model of the population, the current model its slot
+            descends from (itself for a current model).
+        progress: called after every round.
 
     Returns:
-        the arm's final population (per pair its ``population`` best) as sets.
+        the population after the last round.
     """
-    members = best_per_pair(start, settings.population)
-    for _ in range(settings.rounds):
-        copies = [
-            perturbed(m, bounds[m.model], settings.local_copies, rollout, generator)
-            for m in members
-        ]
-        members = best_per_pair(members + copies, settings.population)
-    return members
+    shape = (population.n_pairs, population.size, copies)
+    cache: dict[str, Tensor] = {}
+
+    def columns(name: str) -> Tensor:
+        if name not in cache:
+            cache[name] = noise.columns(name, parents[name])
+        return cache[name]
+
+    for r in range(rounds):
+        copies_ = search_round(
+            population, rollout, bounds, noise.steps(r, shape), columns
+        )
+        population = merge([population, copies_], population.size)
+        if progress is not None:
+            progress()
+    return population
 
 
-def _effect_prior(effect: str) -> Tensor:
-    """The effect's default prior box (K_E, 2) float64."""
-    spec = parse_effect(effect)
-    return torch.tensor(
-        [[p.lower, p.upper] for p in spec.param_specs], dtype=torch.float64
+def converge(
+    population: Population,
+    rollout: Rollout,
+    bounds: dict[str, Tensor],
+    noise: Noise,
+    parents: dict[str, str],
+    *,
+    copies: int,
+    max_rounds: int,
+    progress: Callable[[], None] | None = None,
+) -> tuple[Population, int]:
+    """Local search until it converges: rounds of :func:`local_search` until two
+    rounds in a row lower the pairs' summed best score by less than
+    :data:`CONVERGED` (relative), or ``max_rounds`` rounds.
+
+    A comparison starts from a converged model: an arm that starts short of its
+    optimum gains from any change of its search (a redundant parameter moves
+    it faster), which would pass for the effect.
+
+    Returns:
+        the population and the rounds it took.
+    """
+    shape = (population.n_pairs, population.size, copies)
+    calm, rounds = 0, 0
+    cache: dict[str, Tensor] = {}
+
+    def columns(name: str) -> Tensor:
+        if name not in cache:
+            cache[name] = noise.columns(name, parents[name])
+        return cache[name]
+
+    while rounds < max_rounds and calm < 2:
+        before = _summed_best(population)
+        copies_ = search_round(
+            population, rollout, bounds, noise.steps(rounds, shape), columns
+        )
+        population = merge([population, copies_], population.size)
+        after = _summed_best(population)
+        rounds += 1
+        calm = calm + 1 if before - after < CONVERGED * before else 0
+        if progress is not None:
+            progress()
+    return population, rounds
+
+
+def _summed_best(population: Population) -> float:
+    best = population.score[:, 0]
+    return float(best[torch.isfinite(best)].sum())
+
+
+# --------------------------------------------------------------- nested starts
+def lift(
+    population: Population,
+    effect: str,
+    values: Tensor,
+    rollout: Rollout | None = None,
+) -> tuple[Population, dict[str, str]]:
+    """Every slot whose model the effect can wrap, as the variant ``m+effect`` with
+    the effect's parameters at ``values`` ((K_E,), or (N, S, K_E) per slot);
+    slots of a model it cannot wrap stay as they are.
+
+    Args:
+        rollout: re-score the lifted slots there (None: keep their scores, right
+            only at exactly neutral values).
+
+    Returns:
+        the lifted population (slot order unchanged) and, per variant, the model
+        it was lifted from.
+    """
+    names = [p.name for p in parse_effect(effect).param_specs]
+    n, size = population.score.shape
+    values = values.to(torch.float64).expand(n, size, len(names))
+    models = list(population.models)
+    lifted_from: dict[str, str] = {}
+    new_index = population.model.clone()
+    widths = [get_model(m).n_params for m in population.models]
+    for m, name in enumerate(population.models):
+        variant = variant_of(name, effect)
+        if variant is None or not bool((population.model == m).any()):
+            continue
+        if variant in population.models:
+            raise ValueError(f"{name}: {variant} is in the population already")
+        lifted_from[variant] = name
+        if variant not in models:
+            models.append(variant)
+        new_index[population.model == m] = models.index(variant)
+        widths.append(get_model(variant).n_params)
+    width = max(widths)
+    theta = torch.full((n, size, width), math.nan, dtype=torch.float64)
+    for m, name in enumerate(models):
+        held = new_index == m
+        if not bool(held.any()):
+            continue
+        target = get_model(name).param_names
+        if name in lifted_from:
+            source = get_model(lifted_from[name]).param_names
+            old = population.theta[held]
+            columns = [
+                old[:, source.index(p)]
+                if p in source
+                else values[held][:, names.index(p)]
+                for p in target
+            ]
+            theta[held, : len(target)] = torch.stack(columns, dim=1)
+        else:
+            theta[held, : len(target)] = population.theta[held, : len(target)]
+    lifted = Population(
+        tuple(models), new_index, theta, population.score.clone(), population.index
     )
+    if rollout is not None:
+        lifted = rescore(lifted, rollout)
+    return lifted, lifted_from
 
 
-def _best_member_scores(members: list[Particles], n_pairs: int) -> Tensor:
-    """(N,) float64 best score of the members on each pair (``inf``: none)."""
-    reference = torch.full((n_pairs,), math.inf, dtype=torch.float64)
-    for member in members:
-        reference = reference.scatter_reduce(0, member.pair, member.score, "amin")
-    return reference
+def explore(
+    population: Population,
+    effect: str,
+    bounds: Tensor,
+    copies: int,
+    key: tuple,
+    rollout: Rollout,
+) -> tuple[Population, dict[str, str]]:
+    """``copies`` variants of every slot, the effect's parameters spread over the
+    box ``bounds`` (K_E, 2) by a Latin hypercube per slot (each parameter's
+    ``copies`` strata, each taken once, in a random order), the slot's own
+    parameters unchanged; scored on the rollout's pairs.
+
+    Returns:
+        the scored copies (N, S C) and, per variant, the model lifted from.
+    """
+    n, size = population.score.shape
+    k_e = bounds.shape[0]
+    g = generator(*key, "explore", effect)
+    strata = torch.argsort(torch.rand(n, size, k_e, copies, generator=g), dim=-1)
+    u = strata + torch.rand(n, size, k_e, copies, generator=g, dtype=torch.float64)
+    u = u / copies
+    values = bounds[:, 0, None] + u * (bounds[:, 1] - bounds[:, 0])[:, None]
+    values = values.permute(0, 1, 3, 2).reshape(n, size * copies, k_e)
+    spread = Population(
+        population.models,
+        population.model.repeat_interleave(copies, dim=1),
+        population.theta.repeat_interleave(copies, dim=1),
+        population.score.repeat_interleave(copies, dim=1),
+        population.index.repeat_interleave(copies, dim=1),
+    )
+    lifted, lifted_from = lift(spread, effect, values, rollout)
+    return lifted, lifted_from
+
+
+# ------------------------------------------------------------ a shared value
+def shared_value(
+    effect: str,
+    population: Population,
+    rollout: Rollout,
+    bounds: dict[str, Tensor],
+    prior: Tensor,
+    key: tuple,
+    start: Sequence[Tensor] = (),
+) -> tuple[Tensor, Tensor, list[tuple[Tensor, Tensor]]]:
+    """The one value (K_E,) of a shared effect's parameters for all pairs.
+
+    ``SHARED_ROUNDS`` rounds of ``SHARED_VALUES`` candidate values: the first spread
+    over the effect's ``prior`` (K_E, 2) by a Latin hypercube, with the ``start``
+    candidates among them; each later round uniform in a box around the best so
+    far with half the width. Value c is tried with every particle of the
+    population, each moved by its own step of scale ``LOCAL_SCALES[c % 3]`` (the
+    model's own parameters may have absorbed part of the effect: a value is
+    judged with them free to move; a start candidate with the finest steps). A
+    value's objective is the sum over pairs of its best score relative to the
+    pair's best particle, so every pair weighs alike. (The neutral value is not
+    a candidate: the effect arm holds the base arm, which is the effect at its
+    neutral value.)
+
+    Args:
+        bounds: prior box of every model of the population.
+        start: first candidates (K_E,) (a grade from the residual regression, a
+            speed limit from the speed envelope: :mod:`torchcf.diagnose.road`).
+
+    Returns:
+        the value (K_E,), the box (K_E, 2) of the last round's resolution around
+        it, and every candidate tried with its per-pair best score:
+        ``[(values (M, K_E), per-pair best (N, M) score)]`` per round.
+    """
+    reference = population.score[:, 0]
+    usable = torch.isfinite(reference) & (reference > 0)
+    best, best_objective = None, math.inf
+    half = (prior[:, 1] - prior[:, 0]) / 2
+    finest = min(range(len(LOCAL_SCALES)), key=LOCAL_SCALES.__getitem__)
+    tried = []
+    for r in range(SHARED_ROUNDS):
+        g = generator(*key, "shared", effect, r)
+        if best is None:
+            strata = torch.argsort(
+                torch.rand(prior.shape[0], SHARED_VALUES, generator=g), dim=-1
+            )
+            u = strata + torch.rand(strata.shape, generator=g, dtype=torch.float64)
+            u = (u / SHARED_VALUES).T  # (M, K_E)
+            values = prior[:, 0] + u * (prior[:, 1] - prior[:, 0])
+            for i, candidate in enumerate(start):
+                # the slots whose steps are finest: finest, finest + 3, ...
+                values[finest + len(LOCAL_SCALES) * i] = candidate.to(values.dtype)
+        else:
+            box = _around(best, half, prior)
+            u = torch.rand(
+                SHARED_VALUES, prior.shape[0], generator=g, dtype=torch.float64
+            )
+            values = box[:, 0] + u * (box[:, 1] - box[:, 0])
+        per_pair = _value_scores(effect, values, population, rollout, bounds, key, r)
+        tried.append((values, per_pair))
+        ratio = per_pair[usable] / reference[usable, None]
+        ratio = torch.where(torch.isfinite(ratio), ratio, INVALID_RATIO)
+        objective = ratio.sum(0)  # (M,)
+        k = int(torch.argmin(objective))
+        if float(objective[k]) < best_objective:
+            best, best_objective = values[k], float(objective[k])
+        half = half / 2
+    return best, _around(best, half, prior), tried
 
 
 def _value_scores(
     effect: str,
     values: Tensor,
-    members: list[Particles],
-    bounds: dict[str, Tensor],
+    members: Population,
     rollout: Rollout,
-    generator: torch.Generator,
+    bounds: dict[str, Tensor],
+    key: tuple,
+    round_: int,
 ) -> Tensor:
-    """(N, M) best fit score on each pair of each value (K_E,) in ``values``
-    (M, K_E), tried with every member's m-th coarse perturbation."""
+    """(N, M) the best score on each pair of each value (K_E,) in ``values``
+    (M, K_E), tried with every member moved by its own step of scale
+    ``LOCAL_SCALES[c % 3]`` for value c (:func:`jitter`)."""
     m = values.shape[0]
-    per_pair = torch.full((rollout.pairs.n_pairs, m), math.inf, dtype=torch.float64)
-    for member in members:
-        variant = variant_of(member.model, effect)
-        if variant is None:
+    n = members.n_pairs
+    per_pair = torch.full((n, m), math.inf, dtype=torch.float64)
+    g = generator(*key, "shared-steps", effect, round_)
+    for name in members.models:
+        variant = variant_of(name, effect)
+        pair, slot = members.model_slots(name)
+        if variant is None or pair.numel() == 0:
             continue
-        s = len(member)
-        base = jitter(member.theta, bounds[member.model], m, generator)
-        theta = compose_theta(
-            member.model, variant, base, values[None].expand(s, m, -1)
+        k = get_model(name).n_params
+        theta = members.theta[pair, slot, :k]  # (Q, K)
+        steps = torch.randn(theta.shape[0], m, k, generator=g, dtype=torch.float64)
+        moved = jitter(theta, steps, bounds[name])  # (Q, M, K)
+        composed = _compose(
+            name, variant, moved, values[None].expand(len(pair), -1, -1)
         )
-        pair = member.pair.repeat_interleave(m)
-        score = fit_scores(rollout, variant, theta.reshape(s * m, -1), pair)
-        index = member.pair[:, None].expand(s, m)
-        per_pair = per_pair.scatter_reduce(0, index, score.reshape(s, m), "amin")
+        score = score_on(
+            rollout, variant, composed.reshape(-1, composed.shape[-1]),
+            pair.repeat_interleave(m),
+        ).reshape(-1, m)  # fmt: skip
+        per_pair = per_pair.scatter_reduce(
+            0, pair[:, None].expand(-1, m), score, "amin"
+        )
     return per_pair
+
+
+def _compose(model: str, variant: str, theta: Tensor, effect_values: Tensor) -> Tensor:
+    """Parameters (..., K_variant) of ``variant`` = ``model`` plus one effect, placed
+    by name, from ``theta`` (..., K_model) and ``effect_values`` (..., K_E)."""
+    have = get_model(model).param_names
+    added = [n for n in get_model(variant).param_names if n not in have]
+    columns = [
+        theta[..., have.index(n)] if n in have else effect_values[..., added.index(n)]
+        for n in get_model(variant).param_names
+    ]
+    return torch.stack(columns, dim=-1)
 
 
 def _around(value: Tensor, half: Tensor, prior: Tensor) -> Tensor:
@@ -162,65 +535,31 @@ def _around(value: Tensor, half: Tensor, prior: Tensor) -> Tensor:
     )
 
 
-def shared_value(
-    effect: str,
-    members: list[Particles],
-    bounds: dict[str, Tensor],
-    rollout: Rollout,
-    generator: torch.Generator,
-    start: Tensor | None = None,
-) -> tuple[Tensor, Tensor]:
-    """The one value of a shared (road) effect's parameters for all pairs.
-
-    Searched over the pool arm's final population (``members``):
-    ``SHARED_ROUNDS`` rounds of ``SHARED_VALUES`` values, the first uniform over the
-    effect's prior, each later one uniform in a box around the best so far with
-    half the width. Value c is tried with every member's c-th coarse perturbation
-    (the base parameters may have absorbed part of the effect). A value's
-    objective is the sum over pairs of its best fit score relative to the pair's
-    best member, so every pair weighs alike.
-
-    Args:
-        start: a first candidate (K_E,), tried in the first round with the
-            members' finest perturbation (a grade profile from the residual
-            regression, :func:`torchcf.diagnose.road.grade_seed`; a speed
-            limit from the speed envelope, :func:`~torchcf.diagnose.road.bend_seed`).
-
-    Returns:
-        the value (K_E,) and the box (K_E, 2) of the last round's resolution
-        around it (the effect's prior in the arm and the re-calibration).
-    """
-    prior = _effect_prior(effect)
-    reference = _best_member_scores(members, rollout.pairs.n_pairs)
-    usable = torch.isfinite(reference) & (reference > 0)
-    best, best_objective = None, math.inf
-    half = (prior[:, 1] - prior[:, 0]) / 2
-    for _ in range(SHARED_ROUNDS):
-        box = prior if best is None else _around(best, half, prior)
-        values = uniform(box, (SHARED_VALUES,), generator)  # (M, K_E)
-        if best is None and start is not None:
-            # the slot whose members are jittered least (LOCAL_SCALES' finest)
-            finest = min(range(len(LOCAL_SCALES)), key=LOCAL_SCALES.__getitem__)
-            values[finest] = start.to(values.dtype)
-        per_pair = _value_scores(effect, values, members, bounds, rollout, generator)
-        ratio = per_pair[usable] / reference[usable, None]
-        ratio = torch.where(torch.isfinite(ratio), ratio, INVALID_RATIO)
-        objective = ratio.sum(0)  # (M,)
-        k = int(torch.argmin(objective))
-        if float(objective[k]) < best_objective:
-            best, best_objective = values[k], float(objective[k])
-        half = half / 2
-    return best, _around(best, half, prior)
+def effect_prior(effect: str) -> Tensor:
+    """The effect's default prior box (K_E, 2) float64."""
+    spec = parse_effect(effect)
+    return torch.tensor(
+        [[p.lower, p.upper] for p in spec.param_specs], dtype=torch.float64
+    )
 
 
 __all__ = [
+    "CONVERGED",
     "INVALID_RATIO",
     "LOCAL_SCALES",
     "SHARED_ROUNDS",
     "SHARED_VALUES",
+    "Noise",
+    "converge",
+    "derive_seed",
+    "effect_prior",
+    "explore",
+    "generator",
     "jitter",
+    "lift",
     "local_search",
-    "perturbed",
+    "model_bounds",
+    "search_round",
     "shared_value",
-    "uniform",
+    "variant_of",
 ]

@@ -81,7 +81,7 @@ def residual_series(
         ``spacing, speed, acceleration`` (observed - simulated, [m], [m/s],
         [m/s^2]) and the covariates ``v`` (observed own speed), ``dv`` (leader -
         follower speed), ``s`` (observed spacing), ``x`` (road position),
-        ``a_lead`` (leader acceleration).
+        ``a`` (observed own acceleration), ``a_lead`` (leader acceleration).
     """
     sim_x = torch.full((pairs.n_steps, pairs.n_pairs), math.nan, dtype=torch.float64)
     sim_v, sim_a = sim_x.clone(), sim_x.clone()
@@ -102,6 +102,7 @@ def residual_series(
         "dv": obs["v_lead"] - obs["v_follow"],
         "s": obs["x_lead"] - obs["x_follow"],
         "x": obs["x_follow"],
+        "a": obs["a_follow"],
         "a_lead": obs["a_lead"],
     }
     mask = pairs.mask.cpu()

@@ -51,6 +51,7 @@ DELAY_PRIOR_HIGH = 3.0
 BEND_RELAXATION = 1.0
 
 Stage = Literal["perception", "command", "realisation"]
+Scope = Literal["driver", "recording", "road"]
 
 
 class Effect:
@@ -69,9 +70,27 @@ class Effect:
     uses_position: ClassVar[bool] = False
     #: True when the recorded acceleration becomes a state of the vehicle.
     acceleration_is_state: ClassVar[bool] = False
-    #: True when the parameters describe the road, not the driver, so every pair
-    #: recorded there shares one value (the diagnosis fits them jointly).
-    shared: ClassVar[bool] = False
+    #: What the parameters describe: ``"driver"`` (the follower's behaviour: a
+    #: value per pair), ``"recording"`` (the measurement: one sensor, one logger,
+    #: so one value for every pair of a data set) or ``"road"`` (a function of road
+    #: position, the same for every pair driven there). The diagnosis fits a
+    #: recording or road effect jointly over the pairs (:attr:`shared`).
+    scope: ClassVar[Scope] = "driver"
+
+    @property
+    def shared(self) -> bool:
+        """True when every pair shares one value (recording and road effects)."""
+        return self.scope != "driver"
+
+    @property
+    def neutral(self) -> tuple[float, ...]:
+        """Parameter values (K_E,) at which the effect is the model itself, or as
+        close as its prior allows (:attr:`exactly_neutral` says which): the
+        start of a nested search, where the augmented model is its base."""
+        return tuple(p.lower for p in self.param_specs)
+
+    #: True when :attr:`neutral` gives the base model's rollout exactly.
+    exactly_neutral: ClassVar[bool] = True
 
     def options(self) -> dict[str, float | int]:
         """Constructor options that differ from the defaults (they enter the name)."""
@@ -140,7 +159,12 @@ class Offset(Effect):
 
     name = "offset"
     stage = "perception"
+    scope = "recording"
     param_specs = (spec("d_offset", "m", -6.0, 6.0, "spacing-sensor offset"),)
+
+    @property
+    def neutral(self):
+        return (0.0,)
 
     def perceive(self, q, obs, memory):
         (d_offset,) = q
@@ -278,6 +302,7 @@ class Sync(Delay):
     """
 
     name = "sync"
+    scope = "recording"
     uses_position = True
     option = "max_sync"
     default_history = 1.5
@@ -340,6 +365,10 @@ class Asymmetry(Effect):
         spec("g_open", "1", 0.5, 2.0, "command gain while falling back"),
     )
 
+    @property
+    def neutral(self):
+        return (1.0, 1.0)
+
     def act(self, q, obs, u):
         g_close, g_open = q
         return u * torch.where(obs.v_lead < obs.v, g_close, g_open)
@@ -354,6 +383,14 @@ class Saturation(Effect):
         spec("a_low", "m/s^2", -8.0, -1.0, "strongest deceleration"),
         spec("a_high", "m/s^2", 0.5, 4.0, "strongest acceleration"),
     )
+
+    #: the widest limits of the prior: the model itself wherever it commands
+    #: within them
+    exactly_neutral = False
+
+    @property
+    def neutral(self):
+        return (self.param_specs[0].lower, self.param_specs[1].upper)
 
     def act(self, q, obs, u):
         a_low, a_high = q
@@ -396,6 +433,10 @@ class ActionPoints(Effect):
         spec("ap_ds", "1", 0.0, 0.2, "relative spacing change that triggers action"),
     )
 
+    #: zero thresholds act at every step where the situation changed at all (a
+    #: spacing and speed difference unchanged to the last bit hold the command)
+    exactly_neutral = False
+
     def initial_memory(self, q, first):
         shape = torch.broadcast_shapes(first.spacing.shape, first.v_lead.shape)
         spacing = first.spacing.expand(shape).contiguous()
@@ -434,7 +475,7 @@ class RoadProfile(Effect):
 
     stage = "command"
     uses_position = True
-    shared = True
+    scope = "road"
     #: parameter name prefix, unit, prior, what a knot value is
     prefix: ClassVar[str]
     unit: ClassVar[str]
@@ -523,6 +564,10 @@ class Grade(RoadProfile):
     name = "grade"
     prefix, unit, prior, meaning = "grade", "1", (-0.08, 0.08), "road grade"
 
+    @property
+    def neutral(self):
+        return (0.0,) * self.knots
+
     def act(self, q, obs, u):
         return u - GRAVITY * self.profile(q, self.position_of(obs))
 
@@ -541,6 +586,12 @@ class Bend(RoadProfile):
 
     name = "bend"
     prefix, unit, prior, meaning = "v_bend", "m/s", (3.0, 40.0), "speed limit"
+    #: the highest limit of the prior: the model itself below it
+    exactly_neutral = False
+
+    @property
+    def neutral(self):
+        return (self.prior[1],) * self.knots
 
     def act(self, q, obs, u):
         limit = self.profile(q, self.position_of(obs))
@@ -558,6 +609,8 @@ class Lag(Effect):
     stage = "realisation"
     acceleration_is_state = True
     param_specs = (spec("t_lag", "s", 0.05, 1.5, "actuation time constant"),)
+    #: the shortest lag of the prior, 0.05 s: nearly the point mass
+    exactly_neutral = False
 
     def check(self, base):
         if base.acceleration_is_state:
@@ -576,8 +629,8 @@ class Lag(Effect):
 #: effects first, then command effects in the order they apply, then realisation).
 EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
-    # Shared (road) effects last: a shared value is then always the trailing
-    # parameters of a name, which the engines append to every particle.
+    # Road effects last: a road profile is then always the trailing parameters
+    # of a name, which the engines append to every particle.
     for cls in (
         Sync,
         Offset,

@@ -72,6 +72,11 @@ car; since a follower is placed exactly ``length + IVS`` behind its leader's
 front, the length cancels in every spacing x_K - x_{K+1} - length and only
 shifts the followers' absolute positions.
 
+Missing columns: a file names the vehicles it has (ZalaZONE files skip some).
+Without IVSK, vehicle K+1 has no recorded gap to vehicle K: it gets no leader
+and its own odometer (a chain of its own, starting at 0); a vehicle with neither
+SpeedK nor IVS(K-1) is not in the file. Both are noted.
+
 Missing values: where Speed1 is NaN the leader's position is NaN; the odometer
 steps over the hole with one trapezoid between its finite neighbours (speed
 linear across it), so one hole does not shift or poison everything after it
@@ -141,7 +146,7 @@ def read_openacc(
     Raises:
         DataError: no such path, a folder without platoon files, a file whose
             metadata block is not OpenACC's ("not an OpenACC file: ..."), a
-            missing Time, Speed1 or IVSK column (K having a follower), a cell
+            missing Time or Speed1 column, a cell
             that is not a number, or times that do not increase.
     """
     path = Path(source)
@@ -248,7 +253,13 @@ def _read_file(path: Path, run: str, length: float) -> tuple[pd.DataFrame, list[
         else np.full(time.size, np.nan)
         for k in range(1, n + 1)
     ]
-    ivs = [_numbers(cells(f"IVS{k}"), f"IVS{k}", path, file_rows) for k in range(1, n)]
+    # A missing IVSK breaks the chain: vehicle K+1 has no recorded gap to K.
+    ivs = [
+        _numbers(cells(f"IVS{k}"), f"IVS{k}", path, file_rows)
+        if f"ivs{k}" in columns
+        else np.full(time.size, np.nan)
+        for k in range(1, n)
+    ]
     mode = [
         np.array(cells(f"Driver{k}"), dtype=object)
         if f"driver{k}" in columns
@@ -273,12 +284,19 @@ def _read_file(path: Path, run: str, length: float) -> tuple[pd.DataFrame, list[
             f"({time[bad - 1]} then {time[bad]})"
         )
 
+    linked = [True] + [f"ivs{k}" in columns for k in range(1, n)]  # K led by K-1
     position = [_odometer(time, speed[0])]
     for k in range(1, n):
-        position.append(position[k - 1] - length - ivs[k - 1])
+        position.append(
+            position[k - 1] - length - ivs[k - 1]
+            if linked[k]
+            else _odometer(time, speed[k])  # a chain of its own, from 0
+        )
 
     frames = []
     for k in range(n):
+        if not linked[k] and f"speed{k + 1}" not in columns:
+            continue  # named by no column: not in this file
         frames.append(
             pd.DataFrame(
                 {
@@ -288,10 +306,10 @@ def _read_file(path: Path, run: str, length: float) -> tuple[pd.DataFrame, list[
                     "position": position[k],
                     "speed": speed[k],
                     "acceleration": np.nan,
-                    "leader": str(k) if k else "",
+                    "leader": str(k) if linked[k] and k else "",
                     "lane": "",
                     "length": length,
-                    "gap": ivs[k - 1] if k else np.nan,
+                    "gap": ivs[k - 1] if linked[k] and k else np.nan,
                     "mode": mode[k],
                 }
             )
@@ -347,7 +365,7 @@ def _columns(header: list[str], n_vehicles: int, path: Path) -> dict[str, int]:
     """Lower-case column name -> index, checked against the vehicle count.
 
     Raises:
-        DataError: a duplicated name, a missing Time / Speed1 / IVSK (K < N), or
+        DataError: a duplicated name, a missing Time or Speed1, or
             a per-vehicle column of a vehicle beyond Number_of_vehicles.
     """
     columns: dict[str, int] = {}
@@ -368,7 +386,7 @@ def _columns(header: list[str], n_vehicles: int, path: Path) -> dict[str, int]:
                     f"'{path}' has the column '{name}' but Number_of_vehicles is "
                     f"{n_vehicles}"
                 )
-    required = ["Time", "Speed1", *(f"IVS{k}" for k in range(1, n_vehicles))]
+    required = ["Time", "Speed1"]
     for name in required:
         if name.lower() not in columns:
             raise DataError(f"'{path}' lacks the column '{name}'")
@@ -445,12 +463,29 @@ def _quality_notes(
             f"run {run}: Vehicle_order names {len(meta.names)} vehicle(s) but "
             f"Number_of_vehicles is {n}"
         )
-    no_speed = [str(k) for k in range(2, n + 1) if f"speed{k}" not in columns]
+    no_speed = [
+        str(k)
+        for k in range(2, n + 1)
+        if f"speed{k}" not in columns and f"ivs{k - 1}" in columns
+    ]
     if no_speed:
         notes.append(
             f"run {run}: no Speed column for vehicle(s) {', '.join(no_speed)}: "
             f"speed NaN"
         )
+    unlinked = [k for k in range(1, n) if f"ivs{k}" not in columns]
+    for k in unlinked:
+        if f"speed{k + 1}" in columns:
+            notes.append(
+                f"run {run}: no IVS{k}: vehicle {k + 1} has no recorded gap to "
+                f"vehicle {k}, so no leader; its position is its own odometer "
+                f"(another frame)"
+            )
+        else:
+            notes.append(
+                f"run {run}: no Speed{k + 1} or IVS{k}: vehicle {k + 1} is not "
+                f"in the file"
+            )
     no_driver = [str(k) for k in range(1, n + 1) if f"driver{k}" not in columns]
     if no_driver:
         notes.append(
@@ -471,15 +506,19 @@ def _quality_notes(
             for k in range(1, n + 1)
             if f"speed{k}" in columns
         ),
-        *((f"IVS{k}", ivs[k - 1]) for k in range(1, n)),
-        *((f"position of vehicle {k}", position[k - 1]) for k in range(1, n + 1)),
+        *((f"IVS{k}", ivs[k - 1]) for k in range(1, n) if f"ivs{k}" in columns),
+        *(
+            (f"position of vehicle {k}", position[k - 1])
+            for k in range(1, n + 1)
+            if f"speed{k}" in columns or f"ivs{k - 1}" in columns
+        ),
     ]
     for label, values in counted:
         holes = int(np.isnan(values).sum())
         if holes:
             notes.append(f"run {run}: {label} NaN at {holes} row(s)")
     for k, values in enumerate(ivs, start=1):
-        low = values <= 0
+        low = values <= 0  # a missing column is NaN: never low
         if low.any():
             notes.append(
                 f"run {run}: IVS{k} <= 0 at {int(low.sum())} row(s) (min "

@@ -1,0 +1,370 @@
+"""The attribution's parts (torchcf.diagnose): populations, nested arms with
+common random numbers, the fallback procedure, residual signatures, absorption,
+the ledger's resume and the re-calibration.
+
+The property the whole comparison rests on: an effect arm holds its base arm, so
+an effect can never lose in sample; with the effect pinned at its neutral value
+the two arms are the same search, step for step."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import torchcf.diagnose.attribution as attribution
+from torchcf.abc.particles import Particles
+from torchcf.config import validate_config
+from torchcf.diagnose import (
+    Population,
+    fallback_levels,
+    merge,
+    sign_flip_test,
+    step_levels,
+)
+from torchcf.diagnose.absorption import profile_values
+from torchcf.diagnose.attribution import (
+    Arena,
+    Arm,
+    _fit_statistic,
+    attribute_effects,
+    base_arm,
+    effect_arm,
+    fit_pool,
+)
+from torchcf.diagnose.candidates import attribution_rollout
+from torchcf.diagnose.population import pick_scores, rescore
+from torchcf.diagnose.recalibrate import recalibrate, recalibration_config
+from torchcf.diagnose.road import one_step_residual
+from torchcf.diagnose.search import Noise, lift, local_search, model_bounds
+from torchcf.diagnose.series import residual_series
+from torchcf.diagnose.signatures import response_lag, signatures
+from torchcf.diagnose.testing import fallback_weights
+from torchcf.models import get_model
+from torchcf.models.effects import EFFECTS, parse_effect
+from torchcf.posterior import Posterior
+from torchcf.synthetic import synthetic_pairs
+from torchcf.train import train
+
+IDM = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
+LLCS = [15.0, 0.5, 1.0]
+#: Road effects with their section (every effect of the library is tried).
+TOKENS = [
+    token if not EFFECTS[token].scope == "road" else f"{token}(start=0,end=1500)"
+    for token in EFFECTS
+]
+
+
+def _config(models=("idm",), dtype="float32", **diagnose):
+    settings = {
+        "n_particles": 2000,
+        "population": 5,
+        "local_copies": 4,
+        "rounds": 2,
+        "explore": 4,
+        "permutations": 1000,
+        **diagnose,
+    }
+    return validate_config(
+        {
+            "data": {"path": "synthetic"},
+            "models": list(models),
+            "abc": {"n_particles": 2000, "sensitivity_n": [5]},
+            "compile": "off",
+            "dtype": dtype,
+            "diagnose": settings,
+        }
+    )
+
+
+def _particles(name, theta, pair, score, index=None):
+    score = torch.as_tensor(score, dtype=torch.float64)
+    return Particles(
+        name,
+        torch.as_tensor(theta, dtype=torch.float64),
+        torch.as_tensor(pair, dtype=torch.int64),
+        score,
+        torch.zeros(score.numel(), dtype=torch.int64)
+        if index is None
+        else torch.as_tensor(index, dtype=torch.int64),
+    )
+
+
+# ---------------------------------------------------------------- populations
+def test_a_population_keeps_the_best_per_pair_by_the_tie_rule():
+    a = _particles("idm", [[1.0] * 6, [2.0] * 6, [3.0] * 6], [0, 0, 1], [0.5, 0.2, 9])
+    b = _particles("llcs", [[5.0] * 3, [6.0] * 3], [0, 1], [0.2, math.inf])
+    population = Population.from_particles([a, b], 3, 2)
+    assert population.models == ("idm", "llcs")
+    # pair 0: the tie at 0.2 goes to the earlier set (idm)
+    assert population.score[0].tolist() == [0.2, 0.2]
+    assert population.model[0].tolist() == [0, 1]
+    assert population.score[1].tolist() == [9.0, math.inf]  # inf never kept
+    assert population.model[2].tolist() == [-1, -1]
+    assert math.isnan(float(population.theta[0, 1, 3]))  # llcs has 3 parameters
+
+
+def test_merge_keeps_a_particle_once_and_prefers_the_earlier_population():
+    a = Population.from_particles(
+        [_particles("idm", [[1.0] * 6, [2.0] * 6], [0, 0], [0.3, 0.1], [4, 7])], 1, 3
+    )
+    assert torch.equal(merge([a, a], 3).score, a.score)
+    b = Population.from_particles(
+        [_particles("llcs", [[5.0] * 3], [0], [0.1], [7])], 1, 3
+    )
+    merged = merge([a, b], 3)
+    assert merged.models == ("idm", "llcs")
+    assert merged.model[0].tolist() == [0, 1, 0]  # same score and index: a first
+    assert merged.score[0].tolist() == [0.1, 0.1, 0.3]
+
+
+def test_pick_scores_are_medians_with_invalid_picks_counted_worst():
+    pairs = synthetic_pairs("idm", IDM, 2, 120, seed=1)
+    rollout = attribution_rollout(_config(dtype="float64"), pairs)
+    good = [IDM, [1.0, 2.5, 28.0, 1.5, 2.5, 4.0], [1.4, 1.5, 31.0, 1.1, 1.5, 4.0]]
+    theta = good + [IDM]
+    population = Population.from_particles(
+        [_particles("idm", theta, [0, 0, 0, 1], [0.1, 0.2, 0.3, 0.1])], 2, 3
+    )
+    scores = pick_scores(population, 3, rollout)
+    own = rescore(population, rollout).score
+    assert float(scores[0]) == pytest.approx(float(own[0].median()))
+    assert float(scores[1]) == pytest.approx(float(own[1, 0]))  # one pick only
+
+
+# -------------------------------------------------------------------- testing
+def test_fallback_passes_on_the_level_of_a_rejection():
+    levels, rejected = fallback_levels([0.01, 0.02, 0.5], [True, True, True], 0.05)
+    w = fallback_weights(3)
+    assert levels[0] == pytest.approx(w[0] * 0.05)
+    assert rejected == [True, True, False]
+    assert levels[1] == pytest.approx(w[1] * 0.05 + levels[0])
+    assert levels[2] == pytest.approx(w[2] * 0.05 + levels[1])
+    # a first test that fails passes nothing on, and the others still run
+    levels, rejected = fallback_levels([0.9, 0.01], [True, True], 0.05)
+    assert rejected == [False, True]
+    assert levels[1] == pytest.approx(fallback_weights(2)[1] * 0.05)
+    # a gain below min_gain is not a rejection
+    assert fallback_levels([0.0], [False], 0.05)[1] == [False]
+
+
+def test_fallback_keeps_the_family_wise_error_under_the_null():
+    rng = np.random.default_rng(0)
+    trials, m, alpha = 20_000, 9, 0.05
+    p = rng.uniform(size=(trials, m))
+    errors = sum(any(fallback_levels(row, [True] * m, alpha)[1]) for row in p)
+    assert errors / trials <= alpha + 3 * math.sqrt(alpha / trials)
+    assert sum(fallback_weights(m)) == pytest.approx(1.0)
+
+
+def test_step_levels_sum_to_alpha():
+    assert step_levels(0.05, 3) == pytest.approx([0.025, 0.0125, 0.0125])
+    assert sum(step_levels(0.05, 1)) == pytest.approx(0.05)
+    assert step_levels(0.05, 0) == []
+
+
+def test_sign_flip_test_calibration():
+    rng = np.random.default_rng(0)
+    p_null = [sign_flip_test(rng.normal(size=20), 2000, seed=i)[1] for i in range(200)]
+    assert 0.02 < np.mean(np.array(p_null) < 0.05) < 0.09
+    assert sign_flip_test(rng.normal(1.0, 1.0, size=20), 2000)[1] < 0.01
+    assert sign_flip_test(-np.abs(rng.normal(size=20)), 2000)[1] > 0.9
+    assert sign_flip_test(np.zeros(20), 2000) == (0.0, 1.0)  # the same particles
+
+
+# ---------------------------------------------------------------- nested arms
+@pytest.fixture(scope="module")
+def start():
+    """A small arena on delayed IDM data and the pool's fit (IDM, LLCS)."""
+    pairs = synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=3, noise=0.05)
+    cfg = _config(models=("idm", "llcs"))
+    arena = Arena.of(cfg, pairs)
+    return arena, fit_pool(arena, ["idm", "llcs"], lambda: None)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+@pytest.mark.parametrize("token", TOKENS)
+def test_an_effect_never_loses_in_sample(start, token, seed):
+    """Property: whatever the effect and the random numbers, the effect arm's
+    k-th best fit score of every pair is at most the base arm's."""
+    arena, arm = start
+    arena = dataclasses.replace(arena, seed=seed)
+    base = base_arm(arena, arm, 1, lambda: None)
+    result = effect_arm(arena, arm, base, token, 1, lambda: None)
+    assert bool((result.population.score <= base.score).all())
+    assert bool((_fit_statistic(result.population, 5) <= _fit_statistic(base, 5)).all())
+
+
+@pytest.mark.parametrize(
+    "token", [t for t in TOKENS if parse_effect(t).exactly_neutral]
+)
+def test_an_effect_at_its_neutral_value_is_the_same_rollout(start, token):
+    arena, arm = start
+    rollout = attribution_rollout(_config(dtype="float64"), arena.fit.pairs)
+    population = rescore(arm.population, rollout)
+    neutral = torch.tensor(parse_effect(token).neutral, dtype=torch.float64)
+    lifted, lifted_from = lift(population, token, neutral, rollout)
+    assert set(lifted_from.values()) <= {"idm", "llcs"}
+    np.testing.assert_allclose(lifted.score, population.score, rtol=1e-9, atol=1e-12)
+
+
+def test_a_pinned_neutral_effect_searches_as_its_base_step_for_step(start):
+    """Common random numbers: the same key gives the base arm's steps to the
+    lifted particles, so with the effect pinned at neutral both searches are
+    one."""
+    arena, arm = start
+    current = {m: get_model(m).param_names for m in arm.population.models}
+    key = (7, "step", 1)
+    parents = {m: m for m in arm.population.models}
+    bounds = {m: model_bounds(m, arena.priors) for m in arm.population.models}
+    alone = local_search(
+        arm.population, arena.fit, bounds, Noise(key, current), parents,
+        rounds=3, copies=4,
+    )  # fmt: skip
+    zero = torch.zeros(1, dtype=torch.float64)
+    lifted, lifted_from = lift(arm.population, "offset", zero)
+    pinned = {"offset": zero}
+    bounds = {m: model_bounds(m, arena.priors, pinned) for m in lifted.models}
+    nested = local_search(
+        lifted, arena.fit, bounds, Noise(key, current, "offset"),
+        parents | lifted_from, rounds=3, copies=4,
+    )  # fmt: skip
+    assert torch.equal(nested.score, alone.score)
+    for j in range(alone.n_pairs):
+        for s in range(alone.size):
+            model = alone.models[int(alone.model[j, s])]
+            k = get_model(model).n_params
+            assert torch.equal(nested.theta[j, s, :k], alone.theta[j, s, :k])
+
+
+# ----------------------------------------------------------------- signatures
+def test_the_response_lag_points_to_a_delay():
+    """IDM data with a 1 s delay, driven by the same IDM without it: the
+    follower answers its leader later than the model, by about the delay."""
+    pairs = synthetic_pairs("idm+delay", IDM + [1.0], 12, 400, seed=5)
+    best = {"idm": (torch.tensor([IDM] * 12, dtype=torch.float64), torch.arange(12))}
+    closed = residual_series(best, pairs)
+    lag = response_lag(closed, pairs.dt)
+    assert lag.size >= 8 and 0.5 <= float(np.median(lag)) <= 1.5
+    marks = {
+        s.name: s for s in signatures(closed, one_step_residual(best, pairs), pairs.dt)
+    }
+    assert marks["response lag"].found
+    assert "delay" in marks["response lag"].points_to
+    # the same data driven by the model that made them: nothing to point to
+    truth = {"idm+delay": (torch.tensor([IDM + [1.0]] * 12), torch.arange(12))}
+    clean = residual_series(truth, pairs)
+    assert np.abs(response_lag(clean, pairs.dt)).max() <= 0.1
+
+
+# ----------------------------------------------------------------- absorption
+def test_an_offset_is_absorbed_by_the_standstill_gap():
+    """LLCS perceives s + d_offset - s0: only the difference is identified. The
+    offset's profile says so: s0 follows the offset one for one."""
+    pairs = synthetic_pairs("llcs", LLCS, 6, 200, seed=2)
+    cfg = _config(models=("llcs",), rounds=4, local_copies=8, population=5)
+    arena = Arena.of(cfg, pairs)
+    truth = _particles("llcs", [LLCS] * 6, range(6), [0.01] * 6)
+    pool = Population.from_particles([truth], 6, 5)
+    arm = Arm((), merge([rescore(pool, arena.fit)], 5), {})
+    base = base_arm(arena, arm, 1, lambda: None)
+    placebo = attribution.placebo_arm(arena, arm, base, 1, lambda: None)
+    result = effect_arm(arena, arm, base, "offset", 1, lambda: None)
+    validation = pick_scores(placebo, 5, arena.validation).numpy()
+    row = attribution.effect_row(arena, "offset", result, base, placebo, validation)
+    found = row["absorbed_by"]
+    assert found["parameter"] == "s0" and found["absorbed"]
+    assert found["correlation"] > 0.9
+    assert found["slope"] == pytest.approx(1.0, abs=0.25)
+    assert len(found["profile"]["values"]) >= len(profile_values("offset"))
+
+
+# --------------------------------------------------------- ledger and resume
+def test_an_interrupted_attribution_resumes_to_the_same_result(tmp_path, monkeypatch):
+    pairs = synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=4, noise=0.05)
+    cfg = _config(max_effects=2)
+    effects = ["delay", "offset", "lag"]
+    whole = attribute_effects(
+        cfg, ["idm"], effects, pairs, ledger=tmp_path / "a.pt", progress=False
+    )
+    calls = {"n": 0}
+    real = attribution.effect_arm
+
+    def interrupted(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(attribution, "effect_arm", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        attribute_effects(
+            cfg, ["idm"], effects, pairs, ledger=tmp_path / "b.pt", progress=False
+        )
+    monkeypatch.setattr(attribution, "effect_arm", real)
+    resumed = attribute_effects(
+        cfg, ["idm"], effects, pairs, ledger=tmp_path / "b.pt", progress=False
+    )
+    assert resumed.chosen == whole.chosen
+    assert resumed.steps == whole.steps
+    # another setting is another attribution: nothing is read back
+    other = _config(max_effects=2, rounds=1)
+    assert attribution.ledger_key(other, ["idm"], effects) != attribution.ledger_key(
+        cfg, ["idm"], effects
+    )
+
+
+# ------------------------------------------------------------ re-calibration
+def test_the_recalibration_holds_the_reference_which_holds_the_run(tmp_path):
+    pairs = synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=6, noise=0.05)
+    cfg = _config()
+    train(cfg, tmp_path / "run", pairs=(pairs, pairs))
+    posterior = Posterior.load(tmp_path / "run" / "posterior.pt")
+    reference, after = recalibrate(cfg, posterior, ["delay"], {}, ["idm"], pairs)
+    run = posterior.buffers["idm"]["score"][:, : reference.size]
+    assert bool((reference.score <= run).all())
+    assert bool((after.score <= reference.score).all())
+    assert any("delay" in m for m in after.models)
+    names = [m.name for m in recalibration_config(cfg, after.models, {}).models]
+    assert names[0] == "idm" and "idm+delay" in names
+
+
+def test_road_effects_come_last_in_a_name_and_recording_effects_are_shared():
+    scopes = [cls.scope for cls in EFFECTS.values()]
+    assert scopes.index("road") > max(
+        i for i, scope in enumerate(scopes) if scope != "road"
+    )
+    assert {n for n, cls in EFFECTS.items() if cls.scope == "recording"} == {
+        "offset",
+        "sync",
+    }
+    grade = "grade(start=100,end=900,knots=4)"
+    model = get_model(f"idm+{grade}+delay+lag")
+    assert model.name == f"idm+delay+lag+{grade}"
+    assert list(model.param_names[-4:]) == ["grade_0", "grade_1", "grade_2", "grade_3"]
+
+
+def test_model_bounds_pin_shared_effects_by_name():
+    value = torch.tensor([-2.5], dtype=torch.float64)
+    box = model_bounds("idm+offset+delay", {}, {"offset": value})
+    names = get_model("idm+offset+delay").param_names
+    assert box[names.index("d_offset")].tolist() == [-2.5, -2.5]
+    assert box[names.index("t_delay")].tolist() == [0.0, 3.0]
+
+
+def test_the_recalibration_config_lists_the_variants_with_their_boxes():
+    cfg = _config()
+    grade = "grade(start=100,end=900,knots=4)"
+    after = recalibration_config(
+        cfg,
+        ["idm+delay", f"idm+delay+{grade}", "idm"],
+        {grade: {"grade_0": (0.0, 0.01)}},
+    )
+    names = [m.name for m in after.models]
+    assert names == ["idm", "idm+delay", f"idm+delay+{grade}"]
+    composite = next(m for m in after.models if m.name == f"idm+delay+{grade}")
+    assert composite.prior["grade_0"] == (0.0, 0.01)
+    assert after.diagnose.run_after_training is False

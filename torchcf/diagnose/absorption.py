@@ -1,0 +1,266 @@
+"""Absorption: does a pool model's own parameter take up the effect?
+
+A spacing-sensor offset is taken up by a standstill gap (``s0``, ``l``), a clock
+offset between two logs by a reaction the model already has: the data then
+cannot tell the effect from the parameter, and "not found" means "absorbed by
+``s0``: not separable in these data". For every candidate effect the attribution
+measures which parameter absorbs it, and by how much (:func:`absorbed_by`):
+
+- a **driver** effect is fitted per pair; over the effect arm's population
+  (every particle that carries the effect, on every pair) each parameter is
+  centred per pair and the effect parameter's within-pair correlation with each
+  of the model's own parameters taken
+  (:func:`~torchcf.diagnose.identifiability.within_pair_correlation`): the
+  strongest partner, its correlation and the slope of the ridge (partner per
+  unit of the effect);
+- a **recording** or **road** effect has one value for every pair, so it has no
+  within-pair spread; instead it is *profiled* (:func:`profile`): fixed at
+  :data:`PROFILE_VALUES` values across its prior, each pair's particles refitted
+  around their start, and the correlation and slope of each parameter of a
+  pair's best particle against the fixed value taken (centred per pair, pooled),
+  together with how much the fit changes along the profile (a flat profile: the
+  value is not identified).
+
+The **shift** is what the partner does in the pool's fit when the effect is
+added: the median over pairs of the partner in the best particle with the
+effect minus in the best particle without it (the same pool model on both
+sides), next to the effect's own estimate. ``absorbed`` is ``|r| >=``
+:data:`~torchcf.diagnose.identifiability.RIDGE_CORRELATION`.
+
+Shapes: N pairs, S slots, K parameters, G profile values (:mod:`torchcf.typing`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ..models import get_model
+from ..models.effects import parse_effect
+from .identifiability import RIDGE_CORRELATION, within_pair_correlation
+from .population import Population
+
+#: Values of a shared effect's profile (spread evenly over its prior).
+PROFILE_VALUES = 7
+
+
+def _effect_columns(model: str, effect: str) -> list[int]:
+    names = [p.name for p in parse_effect(effect).param_specs]
+    return [get_model(model).param_names.index(n) for n in names]
+
+
+def _base_names(model: str, effect: str) -> list[str]:
+    own = {p.name for p in parse_effect(effect).param_specs}
+    return [n for n in get_model(model).param_names if n not in own]
+
+
+def _shift(
+    final: Population, base: Population, lifted_from: dict[str, str], partner: str
+) -> float | None:
+    """Median over pairs of ``partner`` in the best slot with the effect minus in
+    the best slot of the base population, where both descend from one model."""
+    shifts = []
+    for j in range(final.n_pairs):
+        if not (bool(final.filled[j, 0]) and bool(base.filled[j, 0])):
+            continue
+        model = final.models[int(final.model[j, 0])]
+        start = base.models[int(base.model[j, 0])]
+        if lifted_from.get(model) != start:
+            continue
+        after = get_model(model).param_names
+        before = get_model(start).param_names
+        if partner not in after or partner not in before:
+            continue
+        shifts.append(
+            float(final.theta[j, 0, after.index(partner)])
+            - float(base.theta[j, 0, before.index(partner)])
+        )
+    if not shifts:
+        return None
+    return float(torch.tensor(shifts).median())
+
+
+def absorbed_by(
+    effect: str,
+    final: Population,
+    base: Population,
+    lifted_from: dict[str, str],
+) -> dict[str, Any] | None:
+    """The strongest partner of a driver effect's parameters (module docstring).
+
+    Args:
+        final: the effect arm's population (fit windows).
+        base: the arm it is compared with (the pool searched alone).
+        lifted_from: per variant carrying the effect, its pool model.
+
+    Returns:
+        ``{"parameter", "model", "effect_parameter", "correlation", "slope",
+        "shift", "absorbed", "n_pairs"}``, or None where no pair holds enough
+        particles with the effect.
+    """
+    best: dict[str, Any] | None = None
+    for variant, parent in lifted_from.items():
+        pair, slot = final.model_slots(variant)
+        if pair.numel() == 0:
+            continue
+        k = get_model(variant).n_params
+        held = (final.model == final.models.index(variant)) & final.filled
+        score = torch.where(held, final.score, math.inf)
+        # other models' slots weigh 0: zeros, not their NaN padding
+        theta = torch.where(held[..., None], final.theta[..., :k], 0.0)
+        correlation, n_pairs = within_pair_correlation(theta, score)
+        if n_pairs == 0:
+            continue
+        names = get_model(variant).param_names
+        for column in _effect_columns(variant, effect):
+            for partner in _base_names(variant, effect):
+                r = float(correlation[column, names.index(partner)])
+                if not math.isfinite(r):
+                    continue
+                if best is None or abs(r) > abs(best["correlation"]):
+                    best = {
+                        "parameter": partner,
+                        "model": parent,
+                        "effect_parameter": names[column],
+                        "correlation": r,
+                        "slope": _ridge_slope(
+                            theta[..., column], theta[..., names.index(partner)], score
+                        ),
+                        "n_pairs": n_pairs,
+                    }
+    if best is None:
+        return None
+    best["shift"] = _shift(final, base, lifted_from, best["parameter"])
+    best["absorbed"] = abs(best["correlation"]) >= RIDGE_CORRELATION
+    return best
+
+
+def _ridge_slope(effect: Tensor, partner: Tensor, score: Tensor) -> float | None:
+    """Pooled within-pair least-squares slope of ``partner`` on ``effect`` (N, S)
+    over the finite-score slots (partner units per effect unit)."""
+    weight = torch.isfinite(score).double()
+    count = weight.sum(1, keepdim=True).clamp(min=1)
+    centred_e = (effect - (effect * weight).sum(1, keepdim=True) / count) * weight
+    centred_p = (partner - (partner * weight).sum(1, keepdim=True) / count) * weight
+    variance = float((centred_e * centred_e).sum())
+    if variance <= 0:
+        return None
+    return float((centred_e * centred_p).sum()) / variance
+
+
+def profile_values(effect: str) -> Tensor:
+    """(G, K_E) the values a shared effect is profiled at: :data:`PROFILE_VALUES`
+    evenly over its prior (every parameter together)."""
+    box = torch.tensor(
+        [[p.lower, p.upper] for p in parse_effect(effect).param_specs],
+        dtype=torch.float64,
+    )
+    u = torch.linspace(0.0, 1.0, PROFILE_VALUES, dtype=torch.float64)[:, None]
+    return box[:, 0] + u * (box[:, 1] - box[:, 0])
+
+
+def profile_absorption(
+    effect: str,
+    values: Tensor,
+    fits: list[Population],
+    lifted_from: dict[str, str],
+    start: Population,
+    estimate: Tensor | None,
+) -> dict[str, Any] | None:
+    """The strongest partner of a shared effect along its profile.
+
+    Args:
+        values: (G, K_E) the fixed values (:func:`profile_values`).
+        fits: per value, the population refitted with the effect fixed there.
+        lifted_from: per variant, its pool model.
+        start: the population the profile started from (the pool's fit).
+        estimate: the effect's value found by the attribution (the shift is read
+            at the profile value nearest to it), or None.
+
+    Returns:
+        ``{"parameter", "model", "correlation", "slope", "shift", "absorbed",
+        "n_pairs", "profile"}`` (``profile``: per value, the summed relative fit
+        score), or None where no pair's best particle carries the effect at
+        every value.
+    """
+    g = values.shape[0]
+    reference = start.score[:, 0]
+    objective = []
+    for fit in fits:
+        ratio = fit.score[:, 0] / reference
+        usable = torch.isfinite(ratio) & torch.isfinite(reference) & (reference > 0)
+        objective.append(float(ratio[usable].mean()) if usable.any() else math.nan)
+    models = {
+        lifted_from.get(fit.models[int(m)])
+        for fit in fits
+        for m in fit.model[:, 0]
+        if m >= 0
+    }
+    best = None
+    for parent in sorted(m for m in models if m):
+        names = get_model(parent).param_names
+        # (N, G, K): each pair's best particle per value, where it descends
+        # from this pool model at every value
+        rows = torch.full((start.n_pairs, g, len(names)), math.nan, dtype=torch.float64)
+        for i, fit in enumerate(fits):
+            for j in range(fit.n_pairs):
+                if not bool(fit.filled[j, 0]):
+                    continue
+                model = fit.models[int(fit.model[j, 0])]
+                if lifted_from.get(model) != parent:
+                    continue
+                variant = get_model(model).param_names
+                rows[j, i] = torch.stack(
+                    [fit.theta[j, 0, variant.index(n)] for n in names]
+                )
+        complete = torch.isfinite(rows).all(dim=(1, 2))
+        if int(complete.sum()) < 2:
+            continue
+        rows = rows[complete]
+        x = values[:, 0][None, :].expand(rows.shape[0], -1)  # (N', G)
+        xc = x - x.mean(1, keepdim=True)
+        for k, name in enumerate(names):
+            y = rows[..., k]
+            yc = y - y.mean(1, keepdim=True)
+            denominator = float(torch.sqrt((xc * xc).sum() * (yc * yc).sum()))
+            if denominator <= 0:
+                continue
+            r = float((xc * yc).sum()) / denominator
+            if best is None or abs(r) > abs(best["correlation"]):
+                slope = float((xc * yc).sum() / (xc * xc).sum())
+                at = (
+                    0
+                    if estimate is None
+                    else int(torch.argmin((values[:, 0] - float(estimate[0])).abs()))
+                )
+                neutral = int(
+                    torch.argmin((values[:, 0] - parse_effect(effect).neutral[0]).abs())
+                )
+                best = {
+                    "parameter": name,
+                    "model": parent,
+                    "effect_parameter": parse_effect(effect).param_specs[0].name,
+                    "correlation": r,
+                    "slope": slope,
+                    "shift": float((y[:, at] - y[:, neutral]).median()),
+                    "n_pairs": int(complete.sum()),
+                }
+    if best is None:
+        return None
+    best["absorbed"] = abs(best["correlation"]) >= RIDGE_CORRELATION
+    best["profile"] = {
+        "values": values[:, 0].tolist(),
+        "relative_fit": objective,
+    }
+    return best
+
+
+__all__ = [
+    "PROFILE_VALUES",
+    "absorbed_by",
+    "profile_absorption",
+    "profile_values",
+]

@@ -1,0 +1,135 @@
+"""The attribution's tests: a per-pair sign-flip test, and a procedure that keeps
+the family-wise guard while spending its power where the fit windows point.
+
+**The test of one effect.** Each pair gives one number, the log ratio of its
+validation score without and with the effect (:mod:`torchcf.diagnose.
+attribution`); pairs are independent, so under "the effect does not improve the
+out-of-sample fit" each pair's log ratio is as likely negative as positive, and
+the one-sided sign-flip permutation test (:func:`sign_flip_test`) is exact
+whatever the distribution of the ratios. The arms are fitted on the fit windows
+only, so the validation windows they are judged on are out of sample, and the
+p-value is valid conditionally on everything the fit windows decided (the
+particles, the order of the tests below).
+
+**The procedure** (:func:`fallback_levels`). The effects of a step are tested in
+an order fixed by the fit windows (the residual signatures, then the in-sample
+gain: :func:`torchcf.diagnose.attribution.test_order`), with the *fallback
+procedure* (Wiens 2003; Wiens & Dmitrienko 2005): the i-th effect of the order
+gets the weight ``w_i = 2^-i / (1 - 2^-E)`` (i = 1..E) of the step's level
+``alpha_s``, and is tested at ``alpha_i = w_i alpha_s``, plus ``alpha_(i-1)``
+when the one before it was rejected. It is a closed test built from weighted
+Bonferroni tests, so it keeps the family-wise error rate of the step at
+``alpha_s`` under any dependence between the tests; unlike a fixed sequence it
+does not stop at the first effect that fails, and unlike Bonferroni it gives
+half the level to the effect the fit windows point to first. Why not Holm: Holm
+ignores the order, so it cannot spend the level where the residual points.
+
+**Steps** (:func:`step_levels`). Forward selection tests the remaining effects
+again once one is chosen; step s gets ``alpha_s = alpha 2^-s`` (the last step
+the rest), so the steps' levels sum to ``alpha``: the chance that any chosen
+effect does not help out of sample is at most ``alpha`` however many steps run
+(a union bound over the steps).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+
+def sign_flip_test(
+    drops: np.ndarray, permutations: int, seed: int = 0
+) -> tuple[float, float]:
+    """One-sided test of a positive mean per-pair drop by random sign flips.
+
+    Under "the effect does not help", each pair's drop is as likely negative as
+    positive; the p-value is ``(1 + #{flipped mean >= observed}) / (1 +
+    n_perm)``. Pairs whose drop is exactly 0 (the same particles with and
+    without the effect) add nothing to either side.
+
+    Returns:
+        ``(t statistic, p-value)``; the t statistic ``mean / (sd / sqrt(n))`` is
+        reported for scale only.
+    """
+    drops = np.asarray(drops, dtype=np.float64)
+    n = drops.size
+    if n == 0 or not np.any(drops):
+        return 0.0, 1.0
+    observed = drops.mean()
+    rng = np.random.default_rng(seed)
+    signs = rng.choice(np.array([-1.0, 1.0]), size=(permutations, n))
+    flipped = (signs * drops).mean(axis=1)
+    p_value = (1.0 + np.count_nonzero(flipped >= observed - 1e-15)) / (
+        1.0 + permutations
+    )
+    sd = drops.std(ddof=1) if n > 1 else 0.0
+    statistic = observed / (sd / math.sqrt(n)) if sd > 0 else 0.0
+    return float(statistic), float(min(p_value, 1.0))
+
+
+def two_sided_sign_flip(values: np.ndarray, permutations: int, seed: int = 0) -> float:
+    """Two-sided sign-flip p-value of a zero mean of per-pair ``values``."""
+    values = np.asarray(values, dtype=np.float64)
+    values = values[np.isfinite(values)]
+    if values.size == 0 or not np.any(values):
+        return 1.0
+    observed = abs(values.mean())
+    rng = np.random.default_rng(seed)
+    signs = rng.choice(np.array([-1.0, 1.0]), size=(permutations, values.size))
+    flipped = np.abs((signs * values).mean(axis=1))
+    return float(
+        (1.0 + np.count_nonzero(flipped >= observed - 1e-15)) / (1.0 + permutations)
+    )
+
+
+def step_levels(alpha: float, steps: int) -> list[float]:
+    """The level of each forward-selection step: ``alpha / 2, alpha / 4, ...``,
+    the last step the rest (they sum to ``alpha``)."""
+    if steps < 1:
+        return []
+    levels = [alpha * 2.0 ** -(s + 1) for s in range(steps - 1)]
+    return [*levels, alpha - sum(levels)]
+
+
+def fallback_weights(n_tests: int) -> list[float]:
+    """The fallback weights ``2^-i / (1 - 2^-E)``, i = 1..E (they sum to 1)."""
+    total = 1.0 - 2.0**-n_tests
+    return [2.0 ** -(i + 1) / total for i in range(n_tests)]
+
+
+def fallback_levels(
+    p_values: Sequence[float], passes: Sequence[bool], alpha: float
+) -> tuple[list[float], list[bool]]:
+    """The fallback procedure over tests in their order (module docstring).
+
+    Args:
+        p_values: the tests' p-values, in the order of testing.
+        passes: whether each test's other condition holds (a gain of at least
+            ``diagnose.min_gain``); a test that fails it is not rejected and
+            passes no level on.
+        alpha: the step's level.
+
+    Returns:
+        the level each test was judged at, and whether it was rejected
+        (significant).
+    """
+    levels, rejected = [], []
+    carried = 0.0
+    for w, p, ok in zip(fallback_weights(len(p_values)), p_values, passes, strict=True):
+        level = w * alpha + carried
+        significant = bool(ok and p <= level)
+        levels.append(level)
+        rejected.append(significant)
+        carried = level if significant else 0.0
+    return levels, rejected
+
+
+__all__ = [
+    "fallback_levels",
+    "fallback_weights",
+    "sign_flip_test",
+    "step_levels",
+    "two_sided_sign_flip",
+]
