@@ -26,15 +26,15 @@ from torchcf.diagnose import (
     step_levels,
 )
 from torchcf.diagnose.absorption import profile_values
-from torchcf.diagnose.attribution import (
+from torchcf.diagnose.arms import (
     Arena,
     Arm,
-    _fit_statistic,
-    attribute_effects,
     base_arm,
     effect_arm,
     fit_pool,
+    placebo_arm,
 )
+from torchcf.diagnose.attribution import _fit_statistic, attribute_effects
 from torchcf.diagnose.candidates import attribution_rollout
 from torchcf.diagnose.population import pick_scores, rescore
 from torchcf.diagnose.recalibrate import recalibrate, recalibration_config
@@ -64,7 +64,6 @@ def _config(models=("idm",), dtype="float32", **diagnose):
         "population": 5,
         "local_copies": 4,
         "rounds": 2,
-        "explore": 4,
         "permutations": 1000,
         **diagnose,
     }
@@ -271,7 +270,7 @@ def test_an_offset_is_absorbed_by_the_standstill_gap():
     pool = Population.from_particles([truth], 6, 5)
     arm = Arm((), merge([rescore(pool, arena.fit)], 5), {})
     base = base_arm(arena, arm, 1, lambda: None)
-    placebo = attribution.placebo_arm(arena, arm, base, 1, lambda: None)
+    placebo = placebo_arm(arena, arm, base, 1, lambda: None)
     result = effect_arm(arena, arm, base, "offset", 1, lambda: None)
     validation = pick_scores(placebo, 5, arena.validation).numpy()
     row = attribution.effect_row(arena, "offset", result, base, placebo, validation)
@@ -291,7 +290,7 @@ def test_an_interrupted_attribution_resumes_to_the_same_result(tmp_path, monkeyp
         cfg, ["idm"], effects, pairs, ledger=tmp_path / "a.pt", progress=False
     )
     calls = {"n": 0}
-    real = attribution.effect_arm
+    real = attribution.effect_arm  # as the selection calls it
 
     def interrupted(*args, **kwargs):
         calls["n"] += 1
@@ -368,3 +367,27 @@ def test_the_recalibration_config_lists_the_variants_with_their_boxes():
     composite = next(m for m in after.models if m.name == f"idm+delay+{grade}")
     assert composite.prior["grade_0"] == (0.0, 0.01)
     assert after.diagnose.run_after_training is False
+
+
+def _verdict(effect, gain, scope, significant=True):
+    return {"effect": effect, "gain": gain, "scope": scope, "significant": significant}
+
+
+def test_a_recording_effect_needs_a_clear_margin_over_a_behavioural_one():
+    delay = _verdict("delay", 0.24, "driver")
+    sync = _verdict("sync", 0.27, "recording")
+    assert attribution.choose([sync, delay], 0.05) is delay  # 3 % is no margin
+    assert (
+        attribution.choose([_verdict("sync", 0.40, "recording"), delay], 0.05)["effect"]
+        == "sync"
+    )
+    assert attribution.choose([sync], 0.05) is sync  # alone, it is chosen
+    assert attribution.choose([{**delay, "significant": False}], 0.05) is None
+
+
+def test_an_effect_at_its_neutral_value_is_no_effect():
+    assert not attribution.active("resistance", {"c_drag": 1.3e-5})
+    assert attribution.active("delay", {"t_delay": 0.5})
+    assert not attribution.active("asymmetry", {"g_close": 1.02, "g_open": 0.99})
+    assert attribution.active("asymmetry", {"g_close": 1.02, "g_open": 1.3})
+    assert not attribution.active("offset", {"d_offset": 0.0})

@@ -55,6 +55,9 @@ GIPPS_TRUTH = [1.5, 2.5, 3.0, 30.0, 0.8, 7.0]
 CASES = {
     "delay": ("idm+delay", IDM_TRUTH + [0.8], ["delay"], {"t_delay": (0.8, 0.2)}),
     "lag": ("llctg+lag", LLCTG_TRUTH + [1.0], ["lag"], {"t_lag": (1.0, 0.25)}),
+    # A recording effect, one value for every pair; IDM's time gap takes part
+    # of it up (the loop says so: absorbed_by), so the value is checked as the
+    # issue asks: within 1 m, or reported absorbed by a named parameter.
     "offset": (
         "idm+offset",
         IDM_TRUTH + [-5.0],
@@ -91,6 +94,12 @@ FOUND = [case for case, (_, _, expected, _) in CASES.items() if expected]
 #: Per model (training) and per variant (attribution): ~1700 per pair in the paired
 #: layout, enough to resolve the effects above.
 N_PARTICLES = 40_000
+#: The candidates of these tests: every case's effect and its nearest rivals (a
+#: clock offset for a delay, a lag for both, a sensor offset, a road grade, and
+#: an effect of two parameters); tools/loop_cases.py tries all eleven.
+EFFECTS = ["sync", "offset", "delay", "lag", "asymmetry", "grade"]
+#: A lighter search than the defaults (the defaults: reports/loop_cases.md).
+SEARCH = {"population": 12, "local_copies": 16, "rounds": 4, "max_rounds": 20}
 
 
 def _config(n_particles=N_PARTICLES, **diagnose):
@@ -100,9 +109,13 @@ def _config(n_particles=N_PARTICLES, **diagnose):
             "models": ["idm", "llctg"],
             "abc": {"n_particles": n_particles, "sensitivity_n": [5]},
             "compile": "off",
-            "diagnose": {"n_particles": n_particles, **diagnose},
+            "diagnose": {"n_particles": n_particles // 2, **diagnose},
         }
     )
+
+
+def _loop_config():
+    return _config(effects=EFFECTS, **SEARCH)
 
 
 def _pairs(model, theta):
@@ -121,7 +134,7 @@ def loops(tmp_path_factory):
             model, theta, _, _ = CASES[case]
             pairs = _pairs(model, theta)
             out = tmp_path_factory.mktemp(case.replace(" ", "")) / "run"
-            train_and_evaluate(_config(), out, pairs=pairs)
+            train_and_evaluate(_loop_config(), out, pairs=pairs)
             results[case] = (out, close_loop(out, pairs=pairs, progress=False))
         return results[case]
 
@@ -132,8 +145,10 @@ def loops(tmp_path_factory):
 def test_the_undeclared_effects_are_found_and_help(loops, case):
     out, result = loops(case)
     _, _, expected, truths = CASES[case]
-    ranked = result["effects_ranked"]
-    assert ranked[0]["name"] in expected, [(r["effect"], r["gain"]) for r in ranked]
+    first = result["steps"][0]
+    chosen = next(r for r in first if r.get("chosen"))
+    assert chosen["name"] in expected and chosen["significant"]
+    assert chosen["p_value"] <= chosen["level"] and chosen["active"]
     assert sorted(e.split("(")[0] for e in result["chosen"]) == sorted(expected)
     # against the run's particles searched as after, without the effects: the
     # effects' share of the improvement; and against the run itself
@@ -148,6 +163,13 @@ def test_the_undeclared_effects_are_found_and_help(loops, case):
         if stats.get("n")
     }
     for name, (truth, tolerance) in truths.items():
+        if name == "d_offset":  # recovered, or absorbed by a named parameter
+            found = result["absorption"]["offset"] or {}
+            assert abs(medians[name] - truth) <= tolerance or found["absorbed"], (
+                medians[name],
+                found,
+            )
+            continue
         assert abs(medians[name] - truth) <= tolerance, (name, medians[name])
     if case == "grade":
         model, theta, _, _ = CASES[case]

@@ -20,9 +20,10 @@ the driving is measured, only the plant is known.
   eight models at 2e5 particles each: as measured (nothing planted), with
   every leader position +3 m (a spacing-sensor offset: ``offset`` -3 m), with
   the leader's log 0.5 s ahead of the follower's (a clock offset: ``sync``
-  0.5 s), and with a road grade planted (every follower's measured trajectory
-  plus the closed-loop response of an ACC-like IDM to a +-3 % profile with knots
-  every 200 m, the pairs declared on one road);
+  0.5 s), and with a road grade planted on the first 1200 m of every run (the
+  pairs that stay there: every follower's measured trajectory plus the
+  closed-loop response of an ACC-like IDM to a +-3 % profile changing every
+  100 m, the pairs declared on one road);
 - CAR MODEL II's pairs (``$TORCHCF_DATA``; 44 training, 17 test; pool GFM, IDM,
   HL at 40 000 particles): nothing planted, +3 m on every leader position, the
   leader's log 0.5 s ahead.
@@ -167,8 +168,8 @@ def planted(pairs: PairSet, case: str, amount: float) -> PairSet:
 
 def plant_grade(pairs: PairSet, grade: float, seed: int) -> PairSet:
     """Measured pairs with a road grade planted: every follower's trajectory plus
-    the closed-loop response of an ACC-like IDM to a profile of +-``grade`` with
-    knots every 200 m (``road_profile``), the pairs declared on one road.
+    the closed-loop response of an ACC-like IDM to a profile of +-``grade``
+    (``road_profile``), the pairs declared on one road.
 
     ``x' = x + (x_IDM+grade - x_IDM)`` (and so for speed and acceleration): the
     measured driving, moved by what the grade does to a controller that follows
@@ -196,19 +197,28 @@ def plant_grade(pairs: PairSet, grade: float, seed: int) -> PairSet:
 ACC_IDM = [1.5, 2.0, 40.0, 1.4, 3.0, 4.0]
 
 
+#: The road section of the planted grade [m] (its first metres of every run),
+#: and the distance between its knots [m]: a test track's short hills.
+GRADE_SECTION = 1200.0
+GRADE_KNOTS = 100.0
+
+
 def road_profile(pairs: PairSet, grade: float, seed: int) -> tuple[str, Tensor]:
-    """The planted grade: knots every 200 m over the pairs' positions, values
-    +-``grade`` in a random order of signs (seeded)."""
-    x = pairs.x_follow[pairs.mask]
-    start, end = 0.0, math.ceil(float(x.max()) / 200.0) * 200.0
-    knots = int(end / 200.0) + 1
+    """The planted grade: knots every ``GRADE_KNOTS`` over the road section,
+    values +-``grade`` in a random order of signs (seeded)."""
+    start, end = 0.0, GRADE_SECTION
+    knots = int(end / GRADE_KNOTS) + 1
     generator = torch.Generator().manual_seed(seed)
     signs = torch.where(torch.rand(knots, generator=generator) < 0.5, -1.0, 1.0)
     return f"grade(start={start:g},end={end:g},knots={knots})", grade * signs.double()
 
 
-def zalazone(raw: Path, cache: Path) -> tuple[PairSet, PairSet]:
-    """50 training and 20 test pairs of the ZalaZONE campaign (seeded draw)."""
+def zalazone(
+    raw: Path, cache: Path, within: float | None = None
+) -> tuple[PairSet, PairSet]:
+    """50 training and 20 test pairs of the ZalaZONE campaign (seeded draw);
+    with ``within``, of the pairs whose followers stay within the first
+    ``within`` metres of their run's road (one section, driven by many)."""
     source = cache / "zalazone"
     if not (source / "extract.json").exists():
         subprocess.run(
@@ -221,7 +231,11 @@ def zalazone(raw: Path, cache: Path) -> tuple[PairSet, PairSet]:
     out = []
     for split, n in (("train", 50), ("test", 20)):
         pairs = load_pairs(source, split=split)
-        out.append(pairs.subset(torch.randperm(pairs.n_pairs, generator=generator)[:n]))
+        if within is not None:
+            x = torch.where(pairs.mask, pairs.x_follow, -math.inf)
+            pairs = pairs.subset((x.max(0).values < within).nonzero().squeeze(1))
+        draw = torch.randperm(pairs.n_pairs, generator=generator)[:n]
+        out.append(pairs.subset(draw))
     return out[0], out[1]
 
 
@@ -236,7 +250,8 @@ def case_pairs(
         return train, test, ("gfm", "idm", "hl")
     if model == "zalazone":
         raw = Path(os.environ.get("TORCHCF_RAW", "../shared/data/raw"))
-        train, test = zalazone(raw, cache or Path(tempfile.gettempdir()))
+        within = GRADE_SECTION if "grade" in name else None
+        train, test = zalazone(raw, cache or Path(tempfile.gettempdir()), within)
         if "grade" in name:
             train, test = (plant_grade(p, theta[0], seed=0) for p in (train, test))
         else:

@@ -593,14 +593,6 @@ class DiagnoseConfig(BaseModel):
             "the fit by less than 0.2 %)."
         ),
     )
-    explore: int = Field(
-        16,
-        gt=0,
-        description=(
-            "Values of a new effect tried with every particle of the start when "
-            "its arm begins (a Latin hypercube over the effect's prior)."
-        ),
-    )
     fit_fraction: float = Field(
         0.6,
         gt=0.1,

@@ -14,6 +14,7 @@ run through the loop (:func:`torchcf.pipeline.close_loop`). Its concerns:
   shared effect's one value;
 - :mod:`.testing`: the sign-flip test and the fallback procedure;
 - :mod:`.absorption`: which of a model's own parameters takes an effect up;
+- :mod:`.arms`: the base, placebo and effect arms of a step;
 - :mod:`.attribution`: forward selection of nested arms;
 - :mod:`.recalibrate`: the chosen effects on the whole training windows;
 - :mod:`.loop`: the loop's steps (:func:`plan_loop`, :func:`run_recalibration`,
@@ -25,12 +26,8 @@ run through the loop (:func:`torchcf.pipeline.close_loop`). Its concerns:
 Re-exports only.
 """
 
-from .attribution import (
-    Selection,
-    attribute_effects,
-    resolve_effect,
-    split_in_time,
-)
+from .arms import resolve_effect, split_in_time
+from .attribution import Selection, attribute_effects
 from .candidates import augmented_variants
 from .loop import (
     Candidates,

@@ -151,14 +151,14 @@ def _ridge_slope(effect: Tensor, partner: Tensor, score: Tensor) -> float | None
     return float((centred_e * centred_p).sum()) / variance
 
 
-def profile_values(effect: str) -> Tensor:
-    """(G, K_E) the values a shared effect is profiled at: :data:`PROFILE_VALUES`
-    evenly over its prior (every parameter together)."""
+def profile_values(effect: str, points: int = PROFILE_VALUES) -> Tensor:
+    """(G, K_E) the values an effect is profiled at: ``points`` evenly over its
+    prior (every parameter together)."""
     box = torch.tensor(
         [[p.lower, p.upper] for p in parse_effect(effect).param_specs],
         dtype=torch.float64,
     )
-    u = torch.linspace(0.0, 1.0, PROFILE_VALUES, dtype=torch.float64)[:, None]
+    u = torch.linspace(0.0, 1.0, points, dtype=torch.float64)[:, None]
     return box[:, 0] + u * (box[:, 1] - box[:, 0])
 
 

@@ -46,7 +46,8 @@ from ..data import PairSet, load_split
 from ..models.effects import RoadProfile, parse_effect
 from ..posterior import Posterior
 from ..rundir import RunDir
-from .attribution import Selection, attribute_effects, resolve_effect
+from .arms import resolve_effect
+from .attribution import Selection, attribute_effects
 from .identifiability import effect_identifiability
 from .recalibrate import recalibrate, recalibration_config, write_run
 from .report import write_report
@@ -412,7 +413,6 @@ def finish_loop(plan: LoopPlan) -> dict[str, Any]:
             "population": max(settings.population, plan.cfg.abc.top_n),
             "local_copies": settings.local_copies,
             "rounds": settings.rounds,
-            "explore": settings.explore,
             "n_particles": settings.n_particles,
             "run_particles": plan.cfg.abc.n_particles,
             "n_train": plan.train_pairs.n_pairs,

@@ -10,9 +10,10 @@ sides (:func:`recalibrate`):
   searched by themselves until the search converges (:func:`~torchcf.
   diagnose.search.converge`, at most ``max_rounds`` rounds);
 - **after**: the reference, plus the reference's particles lifted to the
-  variants of the chosen effects (a driver effect neutral and spread over its
-  prior, a shared one at the value the attribution found, pinned) and searched
-  the same way, one effect after the other in the order chosen.
+  variants of the chosen effects (a driver effect refitted at its design
+  points as in the attribution, :func:`~torchcf.diagnose.arms.design_fits`; a
+  shared one at the value the attribution found, pinned) and searched the same
+  way, one effect after the other in the order chosen.
 
 After holds every particle of the reference, and the reference every particle
 of the run, so on the training pairs neither can be worse than what it builds
@@ -44,9 +45,10 @@ from ..models import get_model
 from ..models.effects import parse_effect
 from ..posterior import Posterior
 from ..rundir import RunDir
+from .arms import Arena, Arm, design_fits, design_values
 from .candidates import attribution_rollout, attribution_seed
 from .population import Population, merge
-from .search import Noise, converge, effect_prior, explore, lift, model_bounds
+from .search import Noise, converge, lift, model_bounds
 
 
 def run_population(posterior: Posterior, size: int) -> Population:
@@ -126,28 +128,22 @@ def recalibrate(
         if spec.shared:
             lifted, lifted_from = lift(base, effect, values[spec.name], rollout)
             begin = merge([lifted], size)
-        else:
-            neutral = torch.tensor(spec.neutral, dtype=torch.float64)
-            lifted, lifted_from = lift(
-                base, effect, neutral, None if spec.exactly_neutral else rollout
+        else:  # the attribution's design points, on the whole windows
+            arena = Arena(settings, rollout, rollout, seed, priors, cfg.abc.top_n)
+            points = design_values(effect, key)
+            fits, lifted_from = design_fits(
+                arena, Arm((), base, values), effect, 0, tick or _quiet, points
             )
-            spread, _ = explore(
-                base, effect, effect_prior(effect), settings.explore, (*key, effect),
-                rollout,
-            )  # fmt: skip
-            kept = size - size // 2
-            begin = merge(
-                [
-                    merge([lifted], size).best(kept),
-                    merge([spread], size).best(size - kept),
-                ],
-                size,
-            )
+            begin = merge(fits, size)
         parents = {m: m for m in base.models} | lifted_from
         searched = search(begin, Noise((*key, effect), current, effect), parents)
         after = merge([after, searched], size)
         growing |= set(lifted_from)
     return reference, after
+
+
+def _quiet() -> None:
+    """No progress to show."""
 
 
 def _only(population: Population, models: set[str]) -> Population:

@@ -81,23 +81,23 @@ def _method(result: dict[str, Any]) -> list[str]:
         f"first {result['fit_fraction']:.0%} of its steps are the *fit window*, "
         "the rest the *validation window*. The current model (at first the pool) "
         f"is fitted on the fit windows ({search.get('population', '?')} particles "
-        "per pair). For every candidate effect two arms grow from that one fit: "
-        "the **base arm** searches "
-        f"{search.get('rounds', '?')} more rounds of local search by itself; the "
-        "**effect arm** lifts the same particles to the variants with the effect "
-        f"at its neutral value (the same model) and at {search.get('explore', '?')} "
-        "values spread over its prior, searches the same rounds with the *same "
-        "random numbers*, and keeps the base arm's particles too. So an effect "
-        "cannot lose in sample, where it adds nothing both arms pick the same "
-        "particles, and what differs is the effect, not the luck of two "
-        "independent searches. A recording or road effect has one value for "
-        "every pair, searched jointly over the pairs first.",
+        "per pair) until its local search converges. Every candidate effect is "
+        "then compared from that one fit: the **base arm** searches "
+        f"{search.get('rounds', '?')} more rounds by itself; the **effect arm** "
+        "lifts the same particles to the variants with the effect (at its neutral "
+        "value they are the model itself), refits them at design points over the "
+        "effect's prior (a chain from the neutral value, so that a parameter that "
+        "takes the effect up follows it; a one-parameter recording effect: its "
+        "profile, and its best value for every pair; a road profile: one value "
+        "searched jointly over the pairs), searches them and keeps the base arm's "
+        "particles too: an effect cannot lose in sample.",
         "",
         "**The test.** An effect arm is judged against the **placebo arm**: the "
-        "base arm merged with a second search of the pool alone, from the same "
-        "start with the same budget and random numbers as the effect arm's "
-        "search. Both hold the base arm and one more search, so the difference is "
-        "the effect, not a second search (which alone lowers the error). Per "
+        "base arm merged with the same search of the current model alone (a chain "
+        "of refits with the design points' budgets, then the same rounds), with "
+        "*common random numbers*. Both hold the base arm and one more search of "
+        "equal budget, so the difference is the effect, not a second search "
+        "(which alone lowers the error of a model short of its optimum). Per "
         "pair, the arm's best particles (the hybrid's picks) "
         "are scored on the validation window, out of sample; *gain* is the "
         "relative drop of the summed validation score, the p-value a one-sided "
@@ -121,9 +121,13 @@ def _method(result: dict[str, Any]) -> list[str]:
         f"is tested at alpha / 2^s (the last the rest: {levels}; they sum to "
         f"alpha = {result['alpha']}), so any chosen effect is a false one with "
         f"probability at most alpha. An effect must also gain at least "
-        f"{result['min_gain']:.0%}. The significant effect of largest gain is "
-        "chosen, becomes part of the current model, and the others are tested "
-        "again.",
+        f"{result['min_gain']:.0%} and its estimate must leave its neutral value "
+        "(by 5 % of its prior's width: an arm whose best particles keep the "
+        "effect neutral owes its gain to the search). The significant effect of "
+        "largest gain is chosen (a recording effect, a claim that the data are "
+        "faulty, only when it gains more than "
+        f"{result['min_gain']:.0%} beyond the best behavioural one), becomes "
+        "part of the current model, and the others are tested again.",
         "",
     ]
 
@@ -253,6 +257,7 @@ def _steps(result: dict[str, Any], figure: str) -> list[str]:
                 f"{row['gain']:+.1%} | {row['p_value']:.2g} | {row['level']:.2g} | "
                 f"{row['pairs_changed']} of {row['n_pairs']} | "
                 + ", ".join(f"{k} {fmt(v)}" for k, v in list(estimate.items())[:4])
+                + ("" if row.get("active", True) else " (neutral: no effect)")
                 + f" | {mark} |"
             )
         lines.append("")

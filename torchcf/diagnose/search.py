@@ -19,11 +19,10 @@ the same particle: with the effect at its neutral value the augmented search
 *is* the base search, and what differs between the arms is the effect, not the
 luck of the search.
 
-**Nested starts** (:func:`lift`, :func:`explore`): a slot's particle of model
-``m`` becomes the variant ``m+E`` with E's parameters at given values (the
-neutral ones, :attr:`~torchcf.models.effects.Effect.neutral`: the same rollout),
-or at ``explore`` values per slot spread over E's prior (a Latin hypercube), its
-own parameters unchanged.
+**Nested starts** (:func:`lift`): a slot's particle of model ``m`` becomes the
+variant ``m+E`` with E's parameters at given values (the neutral ones,
+:attr:`~torchcf.models.effects.Effect.neutral`: the same rollout), its own
+parameters unchanged.
 
 **A shared effect's one value** (:func:`shared_value`): a recording effect
 (sensor offset, clock offset) or a road profile has one value for all pairs,
@@ -372,41 +371,6 @@ def lift(
     return lifted, lifted_from
 
 
-def explore(
-    population: Population,
-    effect: str,
-    bounds: Tensor,
-    copies: int,
-    key: tuple,
-    rollout: Rollout,
-) -> tuple[Population, dict[str, str]]:
-    """``copies`` variants of every slot, the effect's parameters spread over the
-    box ``bounds`` (K_E, 2) by a Latin hypercube per slot (each parameter's
-    ``copies`` strata, each taken once, in a random order), the slot's own
-    parameters unchanged; scored on the rollout's pairs.
-
-    Returns:
-        the scored copies (N, S C) and, per variant, the model lifted from.
-    """
-    n, size = population.score.shape
-    k_e = bounds.shape[0]
-    g = generator(*key, "explore", effect)
-    strata = torch.argsort(torch.rand(n, size, k_e, copies, generator=g), dim=-1)
-    u = strata + torch.rand(n, size, k_e, copies, generator=g, dtype=torch.float64)
-    u = u / copies
-    values = bounds[:, 0, None] + u * (bounds[:, 1] - bounds[:, 0])[:, None]
-    values = values.permute(0, 1, 3, 2).reshape(n, size * copies, k_e)
-    spread = Population(
-        population.models,
-        population.model.repeat_interleave(copies, dim=1),
-        population.theta.repeat_interleave(copies, dim=1),
-        population.score.repeat_interleave(copies, dim=1),
-        population.index.repeat_interleave(copies, dim=1),
-    )
-    lifted, lifted_from = lift(spread, effect, values, rollout)
-    return lifted, lifted_from
-
-
 # ------------------------------------------------------------ a shared value
 def shared_value(
     effect: str,
@@ -553,7 +517,6 @@ __all__ = [
     "converge",
     "derive_seed",
     "effect_prior",
-    "explore",
     "generator",
     "jitter",
     "lift",

@@ -1,0 +1,590 @@
+"""The arms of the attribution: the current model, the placebo, and the current
+model with one effect, each fitted on the fit windows (:mod:`torchcf.diagnose.
+attribution` compares them).
+
+Every step of the selection grows three kinds of arm from one start (the current
+model, converged: :meth:`Arena.converge`):
+
+- the **base arm** (:func:`base_arm`): the start searched ``rounds`` more
+  rounds by itself;
+- an **effect arm** per candidate effect E (:func:`effect_arm`): the start
+  lifted to the variants ``m+E``, searched, and merged with the base arm, so it
+  can never lose against it in sample;
+- the **placebo arm** (:func:`placebo_arm`): the base arm merged with the same
+  search of the current model alone. The effect arms are judged against it:
+  both hold the base arm and one more search of equal budget and common random
+  numbers, so their difference is the effect, not a second search (which alone
+  lowers the error of a model short of its optimum).
+
+An effect arm's search begins from **design points**: E fixed at ``G`` values
+over its prior (:func:`design_values`: evenly for one parameter, followed from
+the neutral value outwards; a Latin hypercube with the neutral point for
+several), every pair's particles refitted at each (:func:`design_fits`: the
+model's own parameters free to take E up); a driver effect then searches from
+each pair's best over the design points (each pair its own value), a
+one-parameter shared effect from its best value (:func:`profile_search`), a road
+profile of several knots from its one value searched jointly
+(:func:`~torchcf.diagnose.search.shared_value`). The placebo refits the start
+``G`` times with the same budget and random numbers, without E.
+
+Shapes: N pairs, S slots, K parameters, G design points (:mod:`torchcf.typing`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ..abc.rejection import Rollout
+from ..abc.smc import SMCSettings
+from ..config import DiagnoseConfig, TrainConfig
+from ..data import PairSet
+from ..models import get_model
+from ..models.effects import RoadProfile, parse_effect
+from .absorption import profile_values
+from .candidates import attribution_rollout, attribution_seed, prior_particles
+from .population import Population, merge, rescore
+from .search import (
+    INVALID_RATIO,
+    Noise,
+    converge,
+    effect_prior,
+    generator,
+    lift,
+    local_search,
+    model_bounds,
+    shared_value,
+)
+from .series import DiagnoseError
+
+#: Shortest out-of-sample window that counts for a pair [steps].
+MIN_VALIDATION_STEPS = 20
+#: Design points of a driver effect (and of the placebo's refits).
+DESIGN_POINTS = 5
+#: Refinements of a shared value around the profile's best (each halves the
+#: step).
+REFINEMENTS = 2
+
+
+# ------------------------------------------------------------------- the data
+def split_in_time(pairs: PairSet, fraction: float) -> tuple[PairSet, PairSet]:
+    """The first ``fraction`` of the steps and the rest, for the same pairs.
+
+    Pairs with fewer than :data:`MIN_VALIDATION_STEPS` valid steps in the second
+    part are dropped from both, so both sets hold the same pairs.
+
+    Returns:
+        ``(fit, validation)``; the validation set starts from the observed state at
+        the split step.
+
+    Raises:
+        DiagnoseError: a window would be too short, or fewer than 2 pairs are
+            long enough.
+    """
+    split = int(round(fraction * pairs.n_steps))
+    if split < MIN_VALIDATION_STEPS or pairs.n_steps - split < MIN_VALIDATION_STEPS:
+        raise DiagnoseError(
+            f"diagnose.fit_fraction={fraction}: {pairs.n_steps} steps leave a fit "
+            f"or validation window under {MIN_VALIDATION_STEPS} steps"
+        )
+    keep = pairs.mask[split:].sum(0) >= MIN_VALIDATION_STEPS
+    if int(keep.sum()) < 2:
+        raise DiagnoseError(
+            "fewer than 2 training pairs are long enough for out-of-sample "
+            "validation; lower diagnose.fit_fraction"
+        )
+    pairs = pairs.subset(keep)
+
+    def window(rows: slice) -> PairSet:
+        return dataclasses.replace(
+            pairs,
+            **{field: t[rows] for field, t in pairs.series().items()},
+            mask=pairs.mask[rows],
+        )
+
+    return window(slice(0, split)), window(slice(split, None))
+
+
+def resolve_effect(token: str, pairs: PairSet) -> str:
+    """The effect's name token; a bare road effect (``grade``, ``bend``) spans
+    the pairs' road section (its knots: see :mod:`torchcf.diagnose.road`)."""
+    effect = parse_effect(token)
+    if isinstance(effect, RoadProfile) and "(" not in token:
+        x = pairs.x_follow[pairs.mask]
+        start, end = math.floor(float(x.min())), math.ceil(float(x.max()))
+        effect = type(effect)(start=start, end=max(end, start + 1), knots=effect.knots)
+    return effect.token
+
+
+# ------------------------------------------------------------------ the arena
+@dataclass(frozen=True)
+class Arena:
+    """What every arm of an attribution shares.
+
+    Attributes:
+        settings: the run's ``diagnose`` section (budgets, search, test).
+        fit: simulates on the fit windows; validation: on the validation windows.
+        seed: the seed every random draw of the attribution derives from
+            (:func:`attribution_seed`).
+        priors: the run's prior box (K, 2) per pool model.
+        top_n: N, the particles per pair an arm is judged by.
+        smc: the small ABC's refinement when ``diagnose.method = "smc"``, else
+            None (rejection).
+        road_seeds: per road effect token, a first candidate of its value.
+        road_profile: the road profile whose signature is tested (None: the
+            pairs have a frame each).
+    """
+
+    settings: DiagnoseConfig
+    fit: Rollout
+    validation: Rollout
+    seed: int
+    priors: dict[str, Tensor]
+    top_n: int
+    smc: SMCSettings | None = None
+    road_seeds: dict[str, Tensor] = dataclasses.field(default_factory=dict)
+    road_profile: RoadProfile | None = None
+
+    @classmethod
+    def of(cls, cfg: TrainConfig, train_pairs: PairSet, **extra: Any) -> Arena:
+        """The arena of the run's config on its training pairs, split in time."""
+        settings = cfg.diagnose
+        fit, validation = split_in_time(train_pairs, settings.fit_fraction)
+        return cls(
+            settings=settings,
+            fit=attribution_rollout(cfg, fit),
+            validation=attribution_rollout(cfg, validation),
+            seed=attribution_seed(cfg),
+            priors={spec.name: spec.bounds(torch.float64) for spec in cfg.models},
+            top_n=cfg.abc.top_n,
+            smc=SMCSettings(**cfg.abc.smc.model_dump())
+            if settings.method == "smc"
+            else None,
+            **extra,
+        )
+
+    @property
+    def size(self) -> int:
+        """S, the slots per pair of every arm (at least ``top_n``)."""
+        return max(self.settings.population, self.top_n)
+
+    def bounds(self, models: Any, shared: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Prior box of each model, shared effects pinned at their values."""
+        return {m: model_bounds(m, self.priors, shared) for m in models}
+
+    def converge(
+        self,
+        population: Population,
+        shared: dict[str, Tensor],
+        label: tuple,
+        tick: Callable[[], None],
+    ) -> Population:
+        """Local search on the fit windows until it converges (at most
+        ``max_rounds`` rounds): the start of a step's comparisons."""
+        converged, _ = converge(
+            population,
+            self.fit,
+            self.bounds(population.models, shared),
+            Noise((self.seed, "converge", *label), _current(population)),
+            {m: m for m in population.models},
+            copies=self.settings.local_copies,
+            max_rounds=self.settings.max_rounds,
+            progress=tick,
+        )
+        return converged
+
+    def search(
+        self,
+        start: Population,
+        noise: Noise,
+        parents: dict[str, str],
+        shared: dict[str, Tensor],
+        tick: Callable[[], None],
+    ) -> Population:
+        """``rounds`` rounds of local search on the fit windows."""
+        return local_search(
+            start,
+            self.fit,
+            self.bounds(start.models, shared),
+            noise,
+            parents,
+            rounds=self.settings.rounds,
+            copies=self.settings.local_copies,
+            progress=tick,
+        )
+
+
+def _current(population: Population) -> dict[str, tuple[str, ...]]:
+    """Every model of a population as a current model (its own step columns)."""
+    return {m: get_model(m).param_names for m in population.models}
+
+
+# ------------------------------------------------------------------- the arms
+@dataclass(frozen=True)
+class Arm:
+    """A model of the selection fitted on the fit windows: the pool, or the pool
+    with the effects chosen so far.
+
+    Attributes:
+        effects: the chosen effect tokens, in the order chosen.
+        population: its particles (S per pair).
+        shared: per chosen shared effect name, its one value (K_E,).
+    """
+
+    effects: tuple[str, ...]
+    population: Population
+    shared: dict[str, Tensor]
+
+
+def fit_pool(arena: Arena, pool: list[str], tick: Callable[[], None]) -> Arm:
+    """The pool alone: a small ABC run of ``n_particles`` per model on the fit
+    windows, its ``S`` best per pair, then local search until it converges."""
+    sets = []
+    for name in pool:
+        box = model_bounds(name, arena.priors)
+        (particles,) = prior_particles(
+            name,
+            arena.fit,
+            (arena.settings.n_particles,),
+            arena.size,
+            box,
+            arena.seed,
+            smc=arena.smc,
+        )
+        sets.append(particles)
+    tick()
+    start = Population.from_particles(sets, arena.fit.pairs.n_pairs, arena.size)
+    return Arm((), arena.converge(start, {}, ("pool",), tick), {})
+
+
+def base_arm(arena: Arena, arm: Arm, step: int, tick: Callable[[], None]) -> Population:
+    """The current model searched ``rounds`` more rounds by itself: the part of
+    every arm of step ``step`` that has no effect (an effect can never lose
+    against it)."""
+    population = arm.population
+    noise = Noise((arena.seed, "step", step, "base"), _current(population))
+    parents = {m: m for m in population.models}
+    return arena.search(population, noise, parents, arm.shared, tick)
+
+
+def extra_noise(arena: Arena, arm: Arm, step: int, effect: str | None) -> Noise:
+    """The random numbers of a step's search after the design points: the
+    placebo's, and every effect arm's (the same common columns, the effect's
+    own besides)."""
+    key = (arena.seed, "step", step, "extra")
+    return Noise(key, _current(arm.population), effect)
+
+
+def design_noise(
+    arena: Arena, arm: Arm, step: int, g: int, effect: str | None
+) -> Noise:
+    """The random numbers of design point ``g``'s refit (the placebo's g-th
+    refit draws the same common columns)."""
+    key = (arena.seed, "step", step, "design", g)
+    return Noise(key, _current(arm.population), effect)
+
+
+def design_values(effect: str, key: tuple, points: int = DESIGN_POINTS) -> Tensor:
+    """(G, K_E) the design points of an effect: a one-parameter effect's profile
+    values (:func:`~torchcf.diagnose.absorption.profile_values`, evenly over its
+    prior), or, for several parameters, the neutral point and ``points - 1``
+    points of a Latin hypercube over the prior."""
+    spec = parse_effect(effect)
+    if len(spec.param_specs) == 1:
+        return profile_values(effect, points)
+    box = effect_prior(effect)
+    k_e = box.shape[0]
+    g = generator(*key, "design", effect)
+    strata = torch.argsort(torch.rand(k_e, points - 1, generator=g), dim=-1)
+    u = (strata + torch.rand(strata.shape, generator=g, dtype=torch.float64)) / (
+        points - 1
+    )
+    spread = box[:, 0] + u.T * (box[:, 1] - box[:, 0])  # (G - 1, K_E)
+    return torch.cat((torch.tensor([spec.neutral], dtype=torch.float64), spread))
+
+
+def _refit(
+    arena: Arena,
+    arm: Arm,
+    begin: Population,
+    noise: Noise,
+    parents: dict[str, str],
+    shared: dict[str, Tensor],
+) -> Population:
+    """A design point's refit: ``rounds / 2`` rounds of ``local_copies / 2``
+    copies."""
+    return local_search(
+        begin,
+        arena.fit,
+        arena.bounds(begin.models, shared),
+        noise,
+        parents,
+        rounds=max(1, arena.settings.rounds // 2),
+        copies=max(1, arena.settings.local_copies // 2),
+    )
+
+
+def design_fits(
+    arena: Arena,
+    arm: Arm,
+    effect: str,
+    step: int,
+    tick: Callable[[], None],
+    values: Tensor,
+) -> tuple[list[Population], dict[str, str]]:
+    """The start refitted with E fixed at each design point ``values`` (G, K_E).
+
+    A chain (a continuation): the first fit starts from the start lifted to
+    E's neutral value, every later one from the fit before it, so that a
+    parameter that absorbs E follows it along the ridge instead of jumping from
+    its neutral fit. One parameter: from the neutral value outwards (both ways
+    where it lies inside the prior); several: the points in their order (the
+    neutral point first). The placebo's refits form the same chain.
+
+    Returns:
+        per point, its population, and per variant the model lifted from.
+    """
+    spec = parse_effect(effect)
+    start = arm.population
+    neutral = torch.tensor(spec.neutral, dtype=torch.float64)
+    lifted, lifted_from = lift(
+        start, effect, neutral, None if spec.exactly_neutral else arena.fit
+    )
+    parents = {m: m for m in start.models} | lifted_from
+    fits: list[Population | None] = [None] * values.shape[0]
+
+    def fit(g: int, origin: Population) -> None:
+        shared = dict(arm.shared) | {spec.name: values[g]}
+        begin = merge([repin(origin, effect, values[g], arena.fit)], arena.size)
+        noise = design_noise(arena, arm, step, g, effect)
+        fits[g] = _refit(arena, arm, begin, noise, parents, shared)
+        tick()
+
+    centre = int(torch.argmin((values - neutral).abs().sum(1)))
+    fit(centre, lifted)
+    for side in (range(centre - 1, -1, -1), range(centre + 1, values.shape[0])):
+        previous = centre
+        for g in side:
+            fit(g, fits[previous])
+            previous = g
+    return fits, lifted_from
+
+
+def placebo_arm(
+    arena: Arena, arm: Arm, base: Population, step: int, tick: Callable[[], None]
+) -> Population:
+    """The base arm merged with the search a driver effect's arm makes, of the
+    current model alone: a chain of ``DESIGN_POINTS`` refits of the start (each
+    from the one before, as a driver effect's design points from its neutral
+    value) with the design points' budgets and common random numbers, each
+    pair's best over them, then ``rounds`` rounds with the effect arms' random
+    numbers."""
+    start = arm.population
+    parents = {m: m for m in start.models}
+    fits = []
+    for g in range(DESIGN_POINTS):
+        noise = design_noise(arena, arm, step, g, None)
+        origin = fits[-1] if fits else start
+        fits.append(_refit(arena, arm, origin, noise, parents, arm.shared))
+        tick()
+    begin = merge(fits, arena.size)
+    noise = extra_noise(arena, arm, step, None)
+    searched = arena.search(begin, noise, parents, arm.shared, tick)
+    return merge([base, searched], arena.size)
+
+
+@dataclass(frozen=True)
+class EffectArm:
+    """An effect arm's result.
+
+    Attributes:
+        population: per pair its S best of the base arm and the search with E.
+        lifted_from: per variant carrying E, the model it was lifted from.
+        value: a shared effect's one value (K_E,), else None.
+        shared_prior: a shared effect's box (K_E, 2) around its value.
+        design: a one-parameter effect's design points (G, 1) and the fit at
+            each (its profile), else None.
+    """
+
+    population: Population
+    lifted_from: dict[str, str]
+    value: Tensor | None = None
+    shared_prior: Tensor | None = None
+    design: tuple[Tensor, list[Population]] | None = None
+
+
+def effect_arm(
+    arena: Arena,
+    arm: Arm,
+    base: Population,
+    effect: str,
+    step: int,
+    tick: Callable[[], None],
+) -> EffectArm:
+    """The current model with E (module docstring), merged with the base arm."""
+    start = arm.population
+    spec = parse_effect(effect)
+    key = (arena.seed, "step", step)
+    noise = extra_noise(arena, arm, step, effect)
+    shared = dict(arm.shared)
+    value = box = design = None
+    if spec.shared and len(spec.param_specs) == 1:
+        value, values, fits, lifted_from = profile_search(
+            arena, arm, effect, step, tick
+        )
+        design, box = (values, fits), _box_around(values, value)
+        shared[spec.name] = value
+        begin = fits[int(torch.argmin((values[:, 0] - value[0]).abs()))]
+    elif spec.shared:
+        value, box, _ = shared_value(
+            effect,
+            start,
+            arena.fit,
+            arena.bounds(start.models, shared),
+            effect_prior(effect),
+            (*key, effect),
+            start=[arena.road_seeds[effect]] if effect in arena.road_seeds else [],
+        )
+        shared[spec.name] = value
+        lifted, lifted_from = lift(start, effect, value, arena.fit)
+        begin = merge([lifted], arena.size)
+    else:
+        values = design_values(effect, key)
+        fits, lifted_from = design_fits(arena, arm, effect, step, tick, values)
+        if len(spec.param_specs) == 1:
+            design = (values, fits)
+        begin = merge(fits, arena.size)
+    parents = {m: m for m in start.models} | lifted_from
+    searched = arena.search(begin, noise, parents, shared, tick)
+    population = merge([base, searched], arena.size)
+    return EffectArm(population, lifted_from, value, box, design)
+
+
+def profile_search(
+    arena: Arena, arm: Arm, effect: str, step: int, tick: Callable[[], None]
+) -> tuple[Tensor, Tensor, list[Population], dict[str, str]]:
+    """A one-parameter shared effect's profile over its prior, and its value.
+
+    The effect is fixed at the :data:`~torchcf.diagnose.absorption.
+    PROFILE_VALUES` values of its profile and the pairs refitted
+    (:func:`design_fits`); the value whose fit is best (the mean over pairs of
+    each pair's best score relative to the start's) is then refined
+    :data:`REFINEMENTS` times: the best and the values half a step on either
+    side are each refitted from the best's fit with equal budgets (a comparison
+    at equal depth: a value refitted once more would look better for that
+    alone), and the best of the three kept.
+
+    Returns:
+        the value (1,), every value fitted (G, 1) ascending, their latest fits,
+        and per variant the model lifted from.
+    """
+    spec = parse_effect(effect)
+    start = arm.population
+    reference = start.score[:, 0]
+    usable = torch.isfinite(reference) & (reference > 0)
+    values = profile_values(effect)
+    fits, lifted_from = design_fits(arena, arm, effect, step, tick, values)
+    parents = {m: m for m in start.models} | lifted_from
+
+    def objective(population: Population) -> float:
+        ratio = population.score[usable, 0] / reference[usable]
+        ratio = torch.where(torch.isfinite(ratio), ratio, INVALID_RATIO)
+        return float(ratio.mean())
+
+    fitted = {
+        float(v): (fit, objective(fit))
+        for v, fit in zip(values[:, 0].tolist(), fits, strict=True)
+    }
+    best = min(fitted, key=lambda v: fitted[v][1])
+    step_size = float(values[1, 0] - values[0, 0])
+    low, high = spec.param_specs[0].lower, spec.param_specs[0].upper
+    for r in range(REFINEMENTS):
+        step_size /= 2
+        origin = fitted[best][0]
+        trial = {}
+        for value in (best - step_size, best, best + step_size):
+            if not low <= value <= high:
+                continue
+            at = torch.tensor([value], dtype=torch.float64)
+            begin = merge([repin(origin, effect, at, arena.fit)], arena.size)
+            noise = Noise(
+                (arena.seed, "step", step, "refine", effect, r, value),
+                _current(start),
+                effect,
+            )
+            shared = dict(arm.shared) | {spec.name: at}
+            refit = _refit(arena, arm, begin, noise, parents, shared)
+            trial[value] = (refit, objective(refit))
+            tick()
+        fitted |= trial
+        best = min(trial, key=lambda v: trial[v][1])
+    order = sorted(fitted)
+    return (
+        torch.tensor([best], dtype=torch.float64),
+        torch.tensor(order, dtype=torch.float64)[:, None],
+        [fitted[v][0] for v in order],
+        lifted_from,
+    )
+
+
+def repin(
+    population: Population, effect: str, value: Tensor, rollout: Rollout
+) -> Population:
+    """The population with the effect's parameters of every slot that carries
+    it set to ``value`` (K_E,), re-scored on the rollout's pairs (slot order
+    unchanged)."""
+    names = [p.name for p in parse_effect(effect).param_specs]
+    token = effect.split("(")[0]
+    theta = population.theta.clone()
+    for m, name in enumerate(population.models):
+        if token not in [t.split("(")[0] for t in name.split("+")[1:]]:
+            continue
+        held = population.model == m
+        columns = [get_model(name).param_names.index(n) for n in names]
+        rows = theta[held]
+        rows[:, columns] = value.to(torch.float64)
+        theta[held] = rows
+    return rescore(
+        Population(
+            population.models, population.model, theta, population.score,
+            population.index,
+        ),
+        rollout,
+    )  # fmt: skip
+
+
+def _box_around(values: Tensor, value: Tensor) -> Tensor:
+    """(1, 2) the box between the profile values next to ``value``."""
+    grid = values[:, 0]
+    i = int(torch.argmin((grid - value[0]).abs()))
+    low = grid[max(i - 1, 0)]
+    high = grid[min(i + 1, grid.numel() - 1)]
+    if not high > low:
+        high = low + 1e-6
+    return torch.stack((low, high))[None, :]
+
+
+__all__ = [
+    "DESIGN_POINTS",
+    "MIN_VALIDATION_STEPS",
+    "REFINEMENTS",
+    "Arena",
+    "Arm",
+    "EffectArm",
+    "base_arm",
+    "design_fits",
+    "design_values",
+    "effect_arm",
+    "fit_pool",
+    "placebo_arm",
+    "profile_search",
+    "repin",
+    "resolve_effect",
+    "split_in_time",
+]
