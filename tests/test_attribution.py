@@ -31,8 +31,10 @@ from torchcf.diagnose.arms import (
     Arm,
     base_arm,
     effect_arm,
+    first_steps_halved,
     fit_pool,
     placebo_arm,
+    predicted,
 )
 from torchcf.diagnose.attribution import _fit_statistic, attribute_effects
 from torchcf.diagnose.candidates import attribution_rollout
@@ -237,6 +239,42 @@ def test_a_pinned_neutral_effect_searches_as_its_base_step_for_step(start):
             model = alone.models[int(alone.model[j, s])]
             k = get_model(model).n_params
             assert torch.equal(nested.theta[j, s, :k], alone.theta[j, s, :k])
+
+
+def test_the_first_step_from_the_neutral_value_is_halved():
+    delay = first_steps_halved("delay", profile_values("delay", 5))
+    assert delay[:, 0].tolist() == [0.0, 0.375, 0.75, 1.5, 2.25, 3.0]
+    offset = first_steps_halved("offset", profile_values("offset"))
+    assert offset[:, 0].tolist() == [-6, -4, -2, -1, 0, 1, 2, 4, 6]
+
+
+def test_the_predictor_follows_the_secant_of_the_two_fits_before():
+    """Pair 0's best (LLCS) moved by +1 m in s0 from the fit at 0 to the fit at
+    -1 (the offset): at -3, twice that step on, its slots move by 2 m more
+    (times the reach, clipped to the box); pair 1, whose best changed model,
+    stays."""
+    before = Population.from_particles(
+        [_particles("llcs", [LLCS, LLCS], [0, 1], [0.1, 0.1])], 2, 2
+    )
+    moved = [LLCS[0] + 1.0, *LLCS[1:]]
+    origin = Population.from_particles(
+        [
+            _particles("llcs", [moved, moved], [0, 0], [0.1, 0.2]),
+            _particles("idm", [IDM], [1], [0.05]),
+        ],
+        2,
+        2,
+    )
+    values = torch.tensor([[-3.0], [-1.0], [0.0]], dtype=torch.float64)
+    llcs_box = torch.tensor([[1.0, 19.0], [0.0, 3.0], [0.0, 3.0]], dtype=torch.float64)
+    bounds = {"llcs": llcs_box, "idm": torch.tensor([[0.0, 1e3]] * 6)}
+    ahead = predicted(origin, before, values, 0, 2, bounds)
+    assert ahead.theta[0, :, 0].tolist() == [LLCS[0] + 3.0] * 2
+    assert torch.equal(ahead.theta[0, :, 1:3], origin.theta[0, :, 1:3])
+    same = torch.nan_to_num(ahead.theta[1]) == torch.nan_to_num(origin.theta[1])
+    assert bool(same.all())
+    far = predicted(origin, before, values, 0, 2, bounds, reach=2.0)
+    assert far.theta[0, :, 0].tolist() == [19.0, 19.0]  # clipped to the box
 
 
 # ----------------------------------------------------------------- signatures

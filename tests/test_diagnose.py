@@ -99,7 +99,7 @@ N_PARTICLES = 40_000
 #: an effect of two parameters); tools/loop_cases.py tries all eleven.
 EFFECTS = ["sync", "offset", "delay", "lag", "asymmetry", "grade"]
 #: A lighter search than the defaults (the defaults: reports/loop_cases.md).
-SEARCH = {"population": 12, "local_copies": 16, "rounds": 4, "max_rounds": 20}
+SEARCH = {"population": 12, "local_copies": 24, "rounds": 6, "max_rounds": 20}
 
 
 def _config(n_particles=N_PARTICLES, **diagnose):

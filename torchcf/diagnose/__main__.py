@@ -3,8 +3,8 @@ loop on a finished, evaluated run (:func:`torchcf.pipeline.close_loop`).
 
 Exit codes (:mod:`torchcf.cli`): 0 done; 2 a run that is not trained or evaluated,
 a corrupted file, a bad override or a run that cannot be diagnosed (one line on
-stderr, no traceback); 130 interrupted (run it again: an interrupted
-re-calibration is resumed).
+stderr, no traceback); 130 interrupted (run it again: the attribution continues
+after its last finished arm, ``RUN_DIR/loop/attribution.pt``).
 """
 
 from __future__ import annotations

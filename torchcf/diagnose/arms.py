@@ -20,12 +20,15 @@ An effect arm's search begins from **design points**: E fixed at ``G`` values
 over its prior (:func:`design_values`: evenly for one parameter, followed from
 the neutral value outwards; a Latin hypercube with the neutral point for
 several), every pair's particles refitted at each (:func:`design_fits`: the
-model's own parameters free to take E up); a driver effect then searches from
+model's own parameters free to take E up, a continuation whose first step is
+halved, :func:`first_steps_halved`, and whose later refits also start from the
+secant's prediction, :func:`predicted`); a driver effect then searches from
 each pair's best over the design points (each pair its own value), a
 one-parameter shared effect from its best value (:func:`profile_search`), a road
 profile of several knots from its one value searched jointly
 (:func:`~torchcf.diagnose.search.shared_value`). The placebo refits the start
-``G`` times with the same budget and random numbers, without E.
+``G`` times with the same budget and random numbers, without E (the
+predictor's re-scorings, a fraction of one round, are the effect arm's own).
 
 Shapes: N pairs, S slots, K parameters, G design points (:mod:`torchcf.typing`).
 """
@@ -63,6 +66,10 @@ from .search import (
 )
 from .series import DiagnoseError
 
+#: Multiples of the secant the continuation's predictor tries (each a re-scoring
+#: of the start, far cheaper than a search round): the refit before is short of
+#: the ridge, so its secant is too.
+PREDICTOR_REACH = (0.5, 1.0, 2.0)
 #: Shortest out-of-sample window that counts for a pair [steps].
 MIN_VALIDATION_STEPS = 20
 #: Design points of a driver effect (and of the placebo's refits).
@@ -297,7 +304,7 @@ def design_values(effect: str, key: tuple, points: int = DESIGN_POINTS) -> Tenso
     points of a Latin hypercube over the prior."""
     spec = parse_effect(effect)
     if len(spec.param_specs) == 1:
-        return profile_values(effect, points)
+        return first_steps_halved(effect, profile_values(effect, points))
     box = effect_prior(effect)
     k_e = box.shape[0]
     g = generator(*key, "design", effect)
@@ -307,6 +314,23 @@ def design_values(effect: str, key: tuple, points: int = DESIGN_POINTS) -> Tenso
     )
     spread = box[:, 0] + u.T * (box[:, 1] - box[:, 0])  # (G - 1, K_E)
     return torch.cat((torch.tensor([spec.neutral], dtype=torch.float64), spread))
+
+
+def first_steps_halved(effect: str, values: Tensor) -> Tensor:
+    """(G', 1) one-parameter design points ``values`` (G, 1, ascending) with a
+    point added halfway between the neutral value and each neighbour: the
+    continuation's first step from the neutral fit is the one without a
+    predictor (:func:`predicted`), so it is kept short, and from the second on
+    the secant carries the parameters that take the effect up."""
+    neutral = parse_effect(effect).neutral[0]
+    centre = int(torch.argmin((values[:, 0] - neutral).abs()))
+    halves = [
+        (values[centre, 0] + values[g, 0]) / 2
+        for g in (centre - 1, centre + 1)
+        if 0 <= g < values.shape[0]
+    ]
+    joined = torch.cat((values[:, 0], torch.stack(halves)))
+    return torch.sort(joined).values[:, None]
 
 
 def _refit(
@@ -359,9 +383,17 @@ def design_fits(
     parents = {m: m for m in start.models} | lifted_from
     fits: list[Population | None] = [None] * values.shape[0]
 
-    def fit(g: int, origin: Population) -> None:
+    def fit(g: int, origin: Population, before: int | None = None) -> None:
         shared = dict(arm.shared) | {spec.name: values[g]}
-        begin = merge([repin(origin, effect, values[g], arena.fit)], arena.size)
+        starts = [repin(origin, effect, values[g], arena.fit)]
+        if before is not None and values.shape[1] == 1:  # points on one line
+            bounds = arena.bounds(origin.models, shared)
+            for reach in PREDICTOR_REACH:
+                ahead = predicted(
+                    origin, fits[before], values, g, before, bounds, reach
+                )
+                starts.append(repin(ahead, effect, values[g], arena.fit))
+        begin = merge(starts, arena.size)
         noise = design_noise(arena, arm, step, g, effect)
         fits[g] = _refit(arena, arm, begin, noise, parents, shared)
         tick()
@@ -369,18 +401,64 @@ def design_fits(
     centre = int(torch.argmin((values - neutral).abs().sum(1)))
     fit(centre, lifted)
     for side in (range(centre - 1, -1, -1), range(centre + 1, values.shape[0])):
-        previous = centre
+        previous, before = centre, None
         for g in side:
-            fit(g, fits[previous])
-            previous = g
+            fit(g, fits[previous], before)
+            previous, before = g, previous
     return fits, lifted_from
+
+
+def predicted(
+    origin: Population,
+    before: Population,
+    values: Tensor,
+    g: int,
+    b: int,
+    bounds: dict[str, Tensor],
+    reach: float = 1.0,
+) -> Population:
+    """The continuation's predictor: ``origin`` (the fit at the design point
+    before g) moved along the secant of the two fits before g.
+
+    Where a pair's best particle has the same model in ``before`` (the fit at
+    point ``b``) and ``origin`` (at the point between b and g), every slot of
+    that model is moved by the best particle's change per unit of E times the
+    step to g, and clipped to its prior box: a parameter that takes E up keeps
+    following it, so a long ridge (a standstill gap that traded for a sensor
+    offset, a time gap for a delay) is followed in a few refits instead of
+    being re-found by jitter. Slots of pairs without a common best model stay
+    where they are; the scores are stale (the caller re-scores).
+    """
+    o = b + (1 if g > b else -1)  # origin's design point
+    ratio = float((values[g, 0] - values[o, 0]) / (values[o, 0] - values[b, 0]))
+    theta = origin.theta.clone()
+    best_model = origin.model[:, 0]
+    same = (best_model >= 0) & (before.model[:, 0] >= 0)
+    names_before = list(before.models)
+    for m, name in enumerate(origin.models):
+        if name not in names_before:
+            continue
+        pairs = (
+            same & (best_model == m) & (before.model[:, 0] == names_before.index(name))
+        )
+        if not bool(pairs.any()):
+            continue
+        k = get_model(name).n_params
+        change = origin.theta[pairs, 0, :k] - before.theta[pairs, 0, :k]  # (Q, K)
+        change = torch.nan_to_num(change) * ratio * reach
+        held = (origin.model[pairs] == m)[..., None]  # (Q, S, 1)
+        box = bounds[name]
+        moved = theta[pairs, :, :k] + held * change[:, None, :]
+        moved = torch.maximum(torch.minimum(moved, box[:, 1]), box[:, 0])
+        theta[pairs, :, :k] = torch.where(held, moved, theta[pairs, :, :k])
+    return Population(origin.models, origin.model, theta, origin.score, origin.index)
 
 
 def placebo_arm(
     arena: Arena, arm: Arm, base: Population, step: int, tick: Callable[[], None]
 ) -> Population:
     """The base arm merged with the search a driver effect's arm makes, of the
-    current model alone: a chain of ``DESIGN_POINTS`` refits of the start (each
+    current model alone: a chain of ``DESIGN_POINTS + 1`` refits of the start (each
     from the one before, as a driver effect's design points from its neutral
     value) with the design points' budgets and common random numbers, each
     pair's best over them, then ``rounds`` rounds with the effect arms' random
@@ -388,7 +466,7 @@ def placebo_arm(
     start = arm.population
     parents = {m: m for m in start.models}
     fits = []
-    for g in range(DESIGN_POINTS):
+    for g in range(DESIGN_POINTS + 1):  # as a one-parameter effect's chain
         noise = design_noise(arena, arm, step, g, None)
         origin = fits[-1] if fits else start
         fits.append(_refit(arena, arm, origin, noise, parents, arm.shared))
@@ -488,7 +566,7 @@ def profile_search(
     start = arm.population
     reference = start.score[:, 0]
     usable = torch.isfinite(reference) & (reference > 0)
-    values = profile_values(effect)
+    values = first_steps_halved(effect, profile_values(effect))
     fits, lifted_from = design_fits(arena, arm, effect, step, tick, values)
     parents = {m: m for m in start.models} | lifted_from
 
@@ -572,6 +650,9 @@ def _box_around(values: Tensor, value: Tensor) -> Tensor:
 
 __all__ = [
     "DESIGN_POINTS",
+    "PREDICTOR_REACH",
+    "first_steps_halved",
+    "predicted",
     "MIN_VALIDATION_STEPS",
     "REFINEMENTS",
     "Arena",

@@ -86,8 +86,10 @@ def _method(result: dict[str, Any]) -> list[str]:
         f"{search.get('rounds', '?')} more rounds by itself; the **effect arm** "
         "lifts the same particles to the variants with the effect (at its neutral "
         "value they are the model itself), refits them at design points over the "
-        "effect's prior (a chain from the neutral value, so that a parameter that "
-        "takes the effect up follows it; a one-parameter recording effect: its "
+        "effect's prior (a chain from the neutral value, its first step halved, "
+        "each later refit started also from the secant of the two before it, so "
+        "that a parameter that takes the effect up follows it along the ridge; "
+        "a one-parameter recording effect: its "
         "profile, and its best value for every pair; a road profile: one value "
         "searched jointly over the pairs), searches them and keeps the base arm's "
         "particles too: an effect cannot lose in sample.",
