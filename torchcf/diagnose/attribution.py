@@ -80,7 +80,7 @@ from .signatures import Signature, pointed_effects, signatures
 from .testing import fallback_levels, sign_flip_test, step_levels
 
 #: Ledger format (``RUN_DIR/loop/attribution.pt``).
-LEDGER_FORMAT = "torchcf.attribution/8"
+LEDGER_FORMAT = "torchcf.attribution/9"
 
 
 # ---------------------------------------------------------------- the report
