@@ -14,7 +14,11 @@ an acceleration offset ``-g G(x)`` leaves ``r(x) = -g G(x)`` in the one-step
 residual exactly, whereas in the closed-loop residual a feedback controller has
 already compensated most of it. The coarsest spacing within one standard error
 of the least held-out squared error wins (the one-standard-error rule of
-Hastie, Tibshirani & Friedman, *The Elements of Statistical Learning*, 7.10).
+Hastie, Tibshirani & Friedman, *The Elements of Statistical Learning*, 7.10),
+the standard error being that of the *paired* difference of the fold errors:
+the folds hold different pairs, whose residuals differ in size far more than two
+spacings differ on one fold, so the spread of a fold's total error would hide
+any profile finer than the coarsest.
 The regression on all pairs also gives the grade search its first candidate
 (:func:`grade_seed`), which a random search in tens of knot values could not
 find; a bend's first candidate is the speed no follower exceeds near each knot
@@ -163,10 +167,10 @@ def _basis(profile: RoadProfile, x: np.ndarray) -> np.ndarray:
 
 def cross_validated_error(
     profile: RoadProfile, x: list[np.ndarray], residual: list[np.ndarray]
-) -> tuple[float, float]:
-    """Held-out squared error of the profile's regression, ``FOLDS`` folds over
-    pairs (pair j in fold ``j % FOLDS``), summed over pairs, and its standard
-    error (``sqrt(F)`` times the spread of the F fold errors)."""
+) -> np.ndarray:
+    """(F,) held-out squared error of the profile's regression per fold, ``F =
+    FOLDS`` folds over pairs (pair j in fold ``j % FOLDS``), summed over the
+    fold's pairs."""
     folds = min(FOLDS, len(x))
     per_fold = []
     for fold in range(folds):
@@ -181,9 +185,16 @@ def cross_validated_error(
                 for j in held
             )
         )
-    errors = np.array(per_fold)
-    spread = errors.std(ddof=1) if folds > 1 else 0.0
-    return float(errors.sum()), float(math.sqrt(folds) * spread)
+    return np.array(per_fold)
+
+
+def paired_standard_error(errors: np.ndarray, least: np.ndarray) -> float:
+    """Standard error of the summed difference of two spacings' fold errors
+    (F,): ``sqrt(F)`` times the spread of the per-fold differences."""
+    difference = errors - least
+    if difference.size < 2:
+        return 0.0
+    return float(math.sqrt(difference.size) * difference.std(ddof=1))
 
 
 @dataclass(frozen=True)
@@ -195,7 +206,8 @@ class RoadChoice:
             ``"grade(start=12,end=1700,knots=35)"``.
         spacing: the chosen knot spacing [m].
         errors: held-out squared error per spacing tried.
-        standard_errors: its standard error per spacing.
+        standard_errors: per spacing, the standard error of its error's
+            difference to the least (paired over folds).
         seed: a first candidate of the knot values (grade: from the regression;
             bend: the speed envelope),
             or None.
@@ -224,18 +236,21 @@ def choose_spacing(
     errors: dict[float, float] = {}
     standard: dict[float, float] = {}
     profiles: dict[float, RoadProfile] = {}
+    folds: dict[float, np.ndarray] = {}
     for spacing in ROAD_SPACINGS:
         knots = max(2, round((end - start) / spacing) + 1)
         effect = parse_effect(f"{name}(start={start:g},end={end:g},knots={knots})")
         if knots in {p.knots for p in profiles.values()}:
             continue  # a short road: coarser spacings give the same profile
         profiles[spacing] = effect
-        errors[spacing], standard[spacing] = cross_validated_error(effect, x, residual)
+        folds[spacing] = cross_validated_error(effect, x, residual)
+        errors[spacing] = float(folds[spacing].sum())
     # The one-standard-error rule: the coarsest spacing within one standard
     # error of the least error (finer knots must earn their parameters).
     least = min(errors, key=errors.get)
-    bound = errors[least] + standard[least]
-    best = max(s for s in errors if errors[s] <= bound)
+    for spacing in errors:
+        standard[spacing] = paired_standard_error(folds[spacing], folds[least])
+    best = max(s for s in errors if errors[s] - errors[least] <= standard[s])
     effect = profiles[best]
     seed = None
     if isinstance(effect, Grade):
