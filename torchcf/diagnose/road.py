@@ -8,18 +8,17 @@ pairs' positions are positions on one road (:func:`shares_road_frame`). A bare
 (:func:`choose_spacing`): the *one-step* acceleration residual of the run's best
 particle per pair (:func:`one_step_residual`: from the observed state at every
 step, the observed speed change against the model's one-step prediction), on the
-attribution's fit windows only, is regressed on the profile's hat functions,
-fitted on all folds but one and scored on the held-out pairs, every pair
-weighted down to the typical residual scale where its own is larger
-(:func:`pair_weights`). A road effect that acts as an acceleration offset
-``-g G(x)`` leaves ``r(x) = -g G(x)`` in the one-step residual exactly, whereas in
-the closed-loop residual a feedback controller has already compensated most of
-it. The coarsest spacing within one standard error of the least held-out squared
-error wins (the one-standard-error rule of Hastie, Tibshirani & Friedman, *The
-Elements of Statistical Learning*, 7.10), the standard error being that of the
-*paired* difference of the fold errors: the folds hold different pairs, whose
-residuals differ in size far more than two spacings differ on one fold, so the
-spread of a fold's total error would hide any profile finer than the coarsest.
+attribution's fit windows only, is regressed on the profile's hat functions, fitted
+on all folds but one and scored on the held-out pairs. A road effect that acts as
+an acceleration offset ``-g G(x)`` leaves ``r(x) = -g G(x)`` in the one-step
+residual exactly, whereas in the closed-loop residual a feedback controller has
+already compensated most of it. The coarsest spacing within one standard error
+of the least held-out squared error wins (the one-standard-error rule of
+Hastie, Tibshirani & Friedman, *The Elements of Statistical Learning*, 7.10),
+the standard error being that of the *paired* difference of the fold errors:
+the folds hold different pairs, whose residuals differ in size far more than two
+spacings differ on one fold, so the spread of a fold's total error would hide
+any profile finer than the coarsest.
 The regression on all pairs also gives the grade search its first candidate
 (:func:`grade_seed`), which a random search in tens of knot values could not
 find; a bend's first candidate is the speed no follower exceeds near each knot
@@ -166,59 +165,23 @@ def _basis(profile: RoadProfile, x: np.ndarray) -> np.ndarray:
     return profile.basis(torch.from_numpy(x)).numpy()
 
 
-def pair_weights(residual: list[np.ndarray]) -> np.ndarray:
-    """(N,) per pair, the square root of its weight in a road profile's
-    regression: ``min(1, sigma_med / sigma_j)``, sigma_j the pair's robust
-    residual scale (1.4826 MAD), sigma_med the median over pairs.
-
-    A pool model can predict one step from an observed state its closed loop
-    never visits wildly (tens of m/s^2 on a pair, where the others leave
-    0.1-1): unweighted, such a pair would be the profile. Pairs at or below the
-    typical scale keep weight 1, so a model that fits a pair almost exactly (and
-    so has absorbed the road there) does not dominate either."""
-    scale = np.array(
-        [
-            1.4826 * float(np.median(np.abs(r - np.median(r)))) if r.size else 0.0
-            for r in residual
-        ]
-    )
-    typical = float(np.median(scale)) if scale.size else 0.0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        weight = np.where(scale > typical, typical / scale, 1.0)
-    return np.nan_to_num(weight, nan=1.0)
-
-
-def weighted_regression(
-    profile: RoadProfile,
-    x: list[np.ndarray],
-    residual: list[np.ndarray],
-    weight: np.ndarray,
-    pairs: list[int],
-) -> np.ndarray:
-    """The profile's coefficients (K,) fitted to ``pairs``' residuals, pair j's
-    rows scaled by ``weight[j]`` (:func:`pair_weights`)."""
-    design = np.concatenate([weight[j] * _basis(profile, x[j]) for j in pairs])
-    target = np.concatenate([weight[j] * residual[j] for j in pairs])
-    return _least_squares(design, target)
-
-
 def cross_validated_error(
     profile: RoadProfile, x: list[np.ndarray], residual: list[np.ndarray]
 ) -> np.ndarray:
     """(F,) held-out squared error of the profile's regression per fold, ``F =
     FOLDS`` folds over pairs (pair j in fold ``j % FOLDS``), summed over the
-    fold's pairs, each pair's weighted by :func:`pair_weights`."""
+    fold's pairs."""
     folds = min(FOLDS, len(x))
-    weight = pair_weights(residual)
     per_fold = []
     for fold in range(folds):
         train = [j for j in range(len(x)) if j % folds != fold]
         held = [j for j in range(len(x)) if j % folds == fold]
-        beta = weighted_regression(profile, x, residual, weight, train)
+        design = np.concatenate([_basis(profile, x[j]) for j in train])
+        target = np.concatenate([residual[j] for j in train])
+        beta = _least_squares(design, target)
         per_fold.append(
             sum(
-                weight[j] ** 2
-                * float(((_basis(profile, x[j]) @ beta - residual[j]) ** 2).sum())
+                float(((_basis(profile, x[j]) @ beta - residual[j]) ** 2).sum())
                 for j in held
             )
         )
@@ -302,8 +265,8 @@ def grade_seed(
 ) -> Tensor:
     """Knot values (K,) of the grade that explains the acceleration residual,
     ``r_a ~ -g G(x)``, clipped to the prior."""
-    pairs = list(range(len(x)))
-    beta = weighted_regression(effect, x, residual, pair_weights(residual), pairs)
+    design = np.concatenate([_basis(effect, xi) for xi in x])
+    beta = _least_squares(design, np.concatenate(residual))
     low, high = effect.param_specs[0].lower, effect.param_specs[0].upper
     return torch.from_numpy(np.clip(-beta / GRAVITY, low, high))
 
@@ -373,8 +336,6 @@ __all__ = [
     "BEND_SEED_WINDOW",
     "FOLDS",
     "ROAD_SPACINGS",
-    "pair_weights",
-    "weighted_regression",
     "SAME_START",
     "RoadChoice",
     "bend_seed",

@@ -220,22 +220,22 @@ def road_share(
 ) -> np.ndarray:
     """Per pair, the share of its one-step residual's variance (around the other
     pairs' mean) that the road ``profile`` (a :class:`~torchcf.models.effects.
-    RoadProfile`), fitted on the other folds of pairs (weighted:
-    :func:`~torchcf.diagnose.road.pair_weights`), explains."""
-    from .road import _basis, pair_weights, weighted_regression
+    RoadProfile`), fitted on the other folds of pairs, explains."""
+    from .road import _basis, _least_squares  # the profile's regression
 
     x, r = one_step["x"], one_step["acceleration"]
     n = len(x)
     folds = min(folds, n)
-    weight = pair_weights(r)
     out = np.full(n, np.nan)
     for fold in range(folds):
         train = [j for j in range(n) if j % folds != fold]
         held = [j for j in range(n) if j % folds == fold]
         if not train:
             continue
-        beta = weighted_regression(profile, x, r, weight, train)
-        level = float(np.concatenate([r[j] for j in train]).mean())
+        design = np.concatenate([_basis(profile, x[j]) for j in train])
+        target = np.concatenate([r[j] for j in train])
+        beta = _least_squares(design, target)
+        level = float(target.mean())
         for j in held:
             flat = float(((r[j] - level) ** 2).sum())
             fitted = float(((_basis(profile, x[j]) @ beta - r[j]) ** 2).sum())
