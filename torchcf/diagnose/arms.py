@@ -212,17 +212,19 @@ class Arena:
         noise: Noise,
         parents: dict[str, str],
         shared: dict[str, Tensor],
-        tick: Callable[[], None],
+        tick: Callable[[], None] | None = None,
+        depth: int = 1,
     ) -> Population:
-        """``rounds`` rounds of local search on the fit windows."""
+        """Local search on the fit windows: ``rounds / depth`` rounds of
+        ``local_copies / depth`` copies (at least one of each)."""
         return local_search(
             start,
             self.fit,
             self.bounds(start.models, shared),
             noise,
             parents,
-            rounds=self.settings.rounds,
-            copies=self.settings.local_copies,
+            rounds=max(1, self.settings.rounds // depth),
+            copies=max(1, self.settings.local_copies // depth),
             progress=tick,
         )
 
@@ -343,15 +345,7 @@ def _refit(
 ) -> Population:
     """A design point's refit: ``rounds / 2`` rounds of ``local_copies / 2``
     copies."""
-    return local_search(
-        begin,
-        arena.fit,
-        arena.bounds(begin.models, shared),
-        noise,
-        parents,
-        rounds=max(1, arena.settings.rounds // 2),
-        copies=max(1, arena.settings.local_copies // 2),
-    )
+    return arena.search(begin, noise, parents, shared, depth=2)
 
 
 def design_fits(
