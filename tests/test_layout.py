@@ -35,6 +35,7 @@ CLI_MODULES = {
     "torchcf.data.__main__",
     "torchcf.train.__main__",
     "torchcf.diagnose.__main__",
+    "torchcf.posterior.__main__",
 }
 
 

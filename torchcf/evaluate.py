@@ -236,7 +236,9 @@ def evaluate_run(
         f"{sum(len(p) for p in posterior.hybrid.values())} particles.\n\n"
         + metrics_table(metrics, entries)
         + "\n"
-        + plausibility_table(summary.get("plausibility", {})),
+        + plausibility_table(summary.get("plausibility", {}))
+        + "\nThe calibrated parameters per model: `parameters.md` (one row per "
+        "particle: `parameters.csv`).\n",
     )
     if figure_pair is None:
         best = costs["hybrid"]["score"].min(axis=0)  # (n_test,)

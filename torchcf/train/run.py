@@ -65,9 +65,10 @@ from ..config import ConfigError, TrainConfig, config_hash, resolved_json
 from ..data import PairSet, load_split
 from ..data.importer import record_extraction
 from ..errors import TorchcfError
-from ..files import RunFileError
+from ..files import RunFileError, ensure_directory
 from ..models import get_model
 from ..posterior import Posterior
+from ..posterior.tables import parameters_markdown, write_parameter_tables
 from ..rundir import RunDir
 from ..runtime import tune_malloc
 from ..tblog import RunLogger, markdown_summary
@@ -578,6 +579,8 @@ def train(
         _log_results(cfg, logger, posterior, summary)
     if group.is_main:
         run.save_posterior(posterior)
+        report = ensure_directory(run.report_dir, "report directory")
+        write_parameter_tables(posterior, report)
         run.write_summary(summary)  # last: its presence says the run finished
     return summary
 
@@ -679,6 +682,7 @@ def _log_results(
     sensitivity = {int(k): v for k, v in summary["sensitivity"].items()}
     logger.hybrid(posterior.shares, names, table, sensitivity)
     logger.text("summary", markdown_summary(summary))
+    logger.text("parameters", parameters_markdown(posterior))
     logger.hparams(
         {
             "dataset": summary["dataset"],
