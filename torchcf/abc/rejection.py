@@ -19,7 +19,12 @@ resumed.
 
 The engine knows nothing of checkpoints, progress bars or run directories: a
 caller passes :class:`ModelProgress` (where to continue, what was counted) and
-callbacks that run between rounds.
+callbacks that run between rounds. A round is thus also the unit of progress and
+of checkpoints (nothing is reported or saved inside one), which is why a model's
+cell budget (:attr:`CFModel.chunk_cells`) is a few seconds of simulation, not a
+whole stream: a million MPC particles are 16 rounds on the CPU. The chunk is set
+by the plan (the budget, or :attr:`Rollout.chunk_size`), never by the clock, so
+that the rounds, like the results, do not depend on timing.
 
 Shapes: P particles, N pairs, K parameters (:mod:`torchcf.typing`).
 """
@@ -44,7 +49,9 @@ from .topn import TopN
 
 #: Default simulated cells per chunk on CUDA (at least): a GPU runs one kernel per
 #: operation and step whatever the chunk, so larger chunks amortise the launches.
-#: The result does not depend on it (chunk-size invariance).
+#: Every model's CPU budget (:attr:`CFModel.chunk_cells`) is below it, so on CUDA
+#: every model gets this one. The result does not depend on it (chunk-size
+#: invariance).
 CUDA_CHUNK_CELLS = 2**21
 
 CompileChoice = Literal["auto", "on", "off"]

@@ -129,8 +129,12 @@ class CFModel:
     #: True when the model reads ``Perception.position`` (a road-grade profile);
     #: the rollout computes the absolute position only for such models.
     uses_position: ClassVar[bool] = False
-    #: Simulated cells per chunk when the caller does not choose (memory vs.
-    #: per-step overhead; MPC's per-step solver calls favour big chunks).
+    #: Simulated cells (rollouts of a whole pair: a particle in the paired layout,
+    #: a particle's N pairs in the full one) per chunk when the caller does not
+    #: choose: per-step overhead vs. memory and cache. A chunk is also the
+    #: rejection engine's round, the unit of progress and checkpoints: a budget
+    #: should be seconds of simulation, a small part of a long stream (on CUDA
+    #: chunks hold at least :data:`torchcf.abc.rejection.CUDA_CHUNK_CELLS`).
     chunk_cells: ClassVar[int] = 1 << 18
     #: Whether a particle's rollout rounds the same whatever the batch it is
     #: simulated in. False for the MPC, whose QP solver picks its kernels by batch
