@@ -13,11 +13,12 @@ from torchcf.config import TrainConfig
 from torchcf.crossval import aggregate, crossval, fold_config
 from torchcf.evaluate import (
     cost_matrices,
+    evaluate_posterior,
     evaluate_run,
     main,
     single_model_particles,
 )
-from torchcf.evaluation.metrics import evaluate_costs
+from torchcf.evaluation.metrics import evaluate_costs, sinkhorn
 from torchcf.posterior import Posterior
 from torchcf.train import train
 
@@ -77,8 +78,10 @@ def test_metrics_equal_a_direct_computation(trained):
     expect = evaluate_costs(
         stacked["score"], stacked["e_p"], stacked["e_v"], stacked["e_a"], beta=0.15
     )
-    for key in ("e_p", "min", "beta_ws", "ws"):
+    for key in ("e_p", "min", "beta_ws", "ws", "sinkhorn"):
         assert result["hybrid"][key] == pytest.approx(expect[key], rel=1e-12)
+    # the batched Sinkhorn of all sets = one solve per set
+    assert result["hybrid"]["sinkhorn_iterations"] == expect["sinkhorn_iterations"]
     on_disk = json.loads((out / "metrics.json").read_text())
     assert set(on_disk) >= {"hybrid", "idm", "llctg", "n_test", "test_pair_ids"}
     assert on_disk["n_test"] == 4
@@ -86,6 +89,43 @@ def test_metrics_equal_a_direct_computation(trained):
         assert (out / "report" / name).exists()
     table = (out / "report" / "table.md").read_text()
     assert "WS" in table and "IDM" in table
+
+
+def test_metrics_json_records_the_sinkhorn_solve(trained, capsys):
+    cfg, out, train_pairs, test_pairs = trained
+    evaluate_run(
+        out, pairs=(train_pairs, test_pairs), tensorboard=False, progress=False
+    )
+    assert capsys.readouterr().err == ""  # progress off: no bars
+    on_disk = json.loads((out / "metrics.json").read_text())
+    assert on_disk["sinkhorn_max_iter"] == cfg.eval.sinkhorn_max_iter
+    for entry in ("idm", "llctg", "hybrid"):
+        metrics = on_disk[entry]
+        assert metrics["sinkhorn_converged"] is True
+        assert 0 < metrics["sinkhorn_iterations"] <= cfg.eval.sinkhorn_max_iter
+        assert 0 <= metrics["sinkhorn_marginal_error"] < 1e-9
+        assert metrics["sinkhorn_gap"] == pytest.approx(
+            metrics["sinkhorn"] - metrics["ws"], abs=1e-12
+        )
+
+
+def test_sinkhorn_iteration_cap_comes_from_the_config(trained, capsys):
+    cfg, out, _, test_pairs = trained
+    capped = cfg.model_copy(
+        update={"eval": cfg.eval.model_copy(update={"sinkhorn_max_iter": 3})}
+    )
+    posterior = Posterior.load(out / "posterior.pt")
+    metrics, costs = evaluate_posterior(posterior, test_pairs, capped, progress=True)
+    err = capsys.readouterr().err
+    assert "evaluate: simulate" in err and "evaluate: metrics" in err
+    for entry, m in metrics.items():
+        assert m["sinkhorn_iterations"] == 3 and not m["sinkhorn_converged"], entry
+        cost = costs[entry]
+        valid = np.isfinite(np.stack([cost[k] for k in ("e_p", "e_v", "e_a")]))
+        score = np.where(valid.all(axis=0), cost["score"], np.inf)
+        alone = sinkhorn(score, cfg.eval.sinkhorn_reg, max_iter=3)
+        assert m["sinkhorn"] == pytest.approx(alone.value, rel=1e-12)
+        assert m["sinkhorn_marginal_error"] == pytest.approx(alone.marginal_error)
 
 
 def test_evaluate_cli_refuses_an_unfinished_run(tmp_path, capsys):

@@ -5,17 +5,26 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import ot
 import pytest
 import scipy.sparse as sp
 import torch
 from scipy.optimize import linprog
 
+from torchcf.evaluation.entropic import (
+    OMEGA_MAX,
+    SINGLE_THREAD_CELLS,
+    limit_threads,
+    sinkhorn_log,
+)
 from torchcf.evaluation.metrics import (
     average_errors,
     beta_wasserstein,
+    evaluate_cost_sets,
     evaluate_costs,
     min_distance,
     sinkhorn,
+    sinkhorn_many,
     wasserstein,
 )
 
@@ -211,6 +220,152 @@ def test_sinkhorn_unconverged_is_reported():
 
 
 # ---------------------------------------------------------------------------
+# our Sinkhorn against POT's (the independent reference)
+
+
+def pot_sinkhorn(cost: np.ndarray, reg: float, max_iter: int = 100_000):
+    """POT's log-domain Sinkhorn on the same problem: (value, plan, iterations,
+    last marginal error); forbidden cells (``inf``) get zero kernel there too."""
+    n, m = cost.shape
+    a = torch.full((n,), 1.0 / n, dtype=torch.float64)
+    b = torch.full((m,), 1.0 / m, dtype=torch.float64)
+    plan, log = ot.sinkhorn(
+        a, b, torch.from_numpy(cost), reg, method="sinkhorn_log",
+        numItermax=max_iter, stopThr=1e-9, log=True, warn=False,
+    )  # fmt: skip
+    plan = plan.numpy()
+    value = float(np.sum(plan * np.where(np.isfinite(cost), cost, 0.0)))
+    return value, plan, int(log["niter"]) + 1, float(log["err"][-1])
+
+
+def squared_distances(n: int, m: int, seed: int) -> np.ndarray:
+    """``(x_i - y_j)^2`` of sorted points in [0, 1]: near-ties everywhere, the
+    classic case where plain Sinkhorn needs thousands of iterations."""
+    rng = np.random.default_rng(seed)
+    x, y = np.sort(rng.random(n)), np.sort(rng.random(m))
+    return (x[:, None] - y[None, :]) ** 2
+
+
+def sinkhorn_cases() -> dict[str, tuple[np.ndarray, float]]:
+    """name -> (cost, reg): random and structured, with forbidden cells."""
+    return {
+        "random 12x30": (random_cost((12, 30), seed=2), 0.5),
+        "random 220x17": (random_cost((220, 17), seed=3), 0.05),
+        "squared distances 60x40": (squared_distances(60, 40, seed=0), 1e-3),
+        "integer ties 9x12": (degenerate_costs()["int_ties"], 0.05),
+        "forbidden 15x20": (feasible_invalid_cost((15, 20), seed=15)[0], 0.2),
+        "forbidden 40x8": (feasible_invalid_cost((40, 8), 40, fraction=0.5)[0], 0.1),
+    }  # fmt: skip
+
+
+SINKHORN_CASES = [
+    "random 12x30", "random 220x17", "squared distances 60x40",
+    "integer ties 9x12", "forbidden 15x20", "forbidden 40x8",
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("name", SINKHORN_CASES)
+def test_sinkhorn_matches_pot(name):
+    cost, reg = sinkhorn_cases()[name]
+    value, plan, _, pot_error = pot_sinkhorn(cost, reg)
+    assert pot_error < 1e-9  # the reference converged
+    result = sinkhorn(cost, reg)
+    assert result.converged and result.marginal_error < 1e-9
+    assert result.value == pytest.approx(value, rel=1e-7)
+    np.testing.assert_allclose(result.plan, plan, rtol=0, atol=1e-8)
+    # rows exact (the last update), pair marginals within the reported error
+    n, m = cost.shape
+    np.testing.assert_allclose(result.plan.sum(axis=1), 1 / n, rtol=0, atol=1e-14)
+    column_error = np.linalg.norm(result.plan.sum(axis=0) - 1 / m)
+    assert column_error == pytest.approx(result.marginal_error, rel=1e-6, abs=1e-15)
+    assert np.all(result.plan[~np.isfinite(cost)] == 0.0)
+    assert result.ws == wasserstein(cost).value and result.gap >= -1e-9
+
+
+@pytest.mark.parametrize("name", SINKHORN_CASES)
+def test_plain_iterations_are_pots(name):
+    """Without over-relaxation our iterates are POT's: same iteration count."""
+    cost, reg = sinkhorn_cases()[name]
+    value, _, n_iter, _ = pot_sinkhorn(cost, reg)
+    (plain,) = sinkhorn_log([cost], reg, max_iter=100_000, overrelax=False)
+    assert plain.n_iter == n_iter and plain.omega == 1.0
+    assert plain.value == pytest.approx(value, rel=1e-12)
+
+
+def test_overrelaxation_cuts_iterations():
+    cost, reg = sinkhorn_cases()["squared distances 60x40"]
+    (plain,) = sinkhorn_log([cost], reg, max_iter=100_000, overrelax=False)
+    (fast,) = sinkhorn_log([cost], reg, max_iter=100_000)
+    assert plain.converged and fast.converged
+    assert fast.n_iter < plain.n_iter / 3 and 1.0 < fast.omega <= OMEGA_MAX
+    assert fast.value == pytest.approx(plain.value, rel=1e-7)
+
+
+def test_sinkhorn_batched_equals_one_at_a_time():
+    cases = [cost for cost, _ in sinkhorn_cases().values()]
+    infeasible = random_cost((5, 6), seed=9)
+    infeasible[2] = np.inf  # WS infeasible: never solved, reported as such
+    matrices = [*cases, infeasible, torch.from_numpy(cases[0]).float()]
+    calls = []
+    batched = sinkhorn_many(
+        matrices, 0.1, max_iter=5000, callback=lambda i, n: calls.append((i, n))
+    )
+    assert len(batched) == len(matrices)
+    for matrix, together in zip(matrices, batched, strict=True):
+        alone = sinkhorn(matrix, 0.1, max_iter=5000)
+        assert together.n_iter == alone.n_iter
+        assert together.converged == alone.converged
+        assert together.ws == alone.ws
+        if alone.plan is None:
+            assert together.plan is None and together.value == math.inf
+            assert together.n_iter == 0 and math.isnan(together.marginal_error)
+            continue
+        assert together.value == pytest.approx(alone.value, rel=1e-13)
+        np.testing.assert_allclose(together.plan, alone.plan, rtol=0, atol=1e-15)
+        assert together.marginal_error == pytest.approx(alone.marginal_error, rel=1e-6)
+    # progress: iterations increase, every matrix (the infeasible one too) ends done
+    assert [i for i, _ in calls] == sorted(i for i, _ in calls)
+    assert calls[0][1] >= 1 and calls[-1] == (max(r.n_iter for r in batched), 8)
+
+
+def test_sinkhorn_iteration_cap_is_respected_and_reported():
+    hard = squared_distances(50, 30, seed=1)
+    easy = 1e-5 * random_cost((10, 4), seed=5)  # reg ~ its cost range: fast
+    max_iter = 37  # not a multiple of the test interval: the last one is tested too
+    _, _, _, pot_error = pot_sinkhorn(hard, 1e-4, max_iter=max_iter)
+    assert pot_error > 1e-9  # POT does not converge within the cap either
+    capped = sinkhorn(hard, 1e-4, max_iter=max_iter)
+    assert not capped.converged and capped.n_iter == max_iter
+    column_error = np.linalg.norm(capped.plan.sum(axis=0) - 1 / hard.shape[1])
+    assert capped.marginal_error == pytest.approx(column_error, rel=1e-9)
+    assert capped.marginal_error > 1e-9 and np.isfinite(capped.value)
+    # in one batch the capped problem does not hold the other back
+    together, quick = sinkhorn_many([hard, easy], 1e-4, max_iter=max_iter)
+    assert not together.converged and together.n_iter == max_iter
+    assert together.value == pytest.approx(capped.value, rel=1e-13)
+    assert quick.converged and quick.n_iter < max_iter
+
+
+def test_entropic_solver_rejects_rows_without_a_cell():
+    cost = np.ones((3, 4))
+    cost[1] = np.inf
+    with pytest.raises(ValueError, match="no finite cell"):
+        sinkhorn_log([cost], 0.1)
+    with pytest.raises(ValueError, match="reg"):
+        sinkhorn_log([np.ones((2, 2))], 0.0)
+    assert sinkhorn_log([], 0.1) == []
+
+
+def test_limit_threads_restores_the_setting():
+    before = torch.get_num_threads()
+    with limit_threads(10):
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before
+    with limit_threads(SINGLE_THREAD_CELLS):
+        assert torch.get_num_threads() == before
+
+
+# ---------------------------------------------------------------------------
 # invalid cells
 
 
@@ -327,6 +482,7 @@ def test_evaluate_costs_keys_and_consistency():
     out = evaluate_costs(score, e_p, e_v, e_a)
     assert set(out) == {
         "e_p", "e_v", "e_a", "min", "beta_ws", "ws", "sinkhorn", "sinkhorn_gap",
+        "sinkhorn_iterations", "sinkhorn_converged", "sinkhorn_marginal_error",
         "valid_cells", "invalid_cells", "n_particles", "n_test", "ws_valid",
         "beta_ws_valid", "particles_never_valid",
     }  # fmt: skip
@@ -341,11 +497,37 @@ def test_evaluate_costs_keys_and_consistency():
     assert out["min"] <= out["beta_ws"] <= out["ws"] <= out["sinkhorn"]
     assert (out["ws_valid"], out["beta_ws_valid"]) == (out["ws"], out["beta_ws"])
     assert out["particles_never_valid"] == 0
+    assert out["sinkhorn_converged"] and out["sinkhorn_iterations"] > 0
+    assert out["sinkhorn_marginal_error"] < 1e-9
     for key, value in out.items():
         expected = int if key in ("valid_cells", "invalid_cells") else None
         expected = int if key == "particles_never_valid" else expected
         expected = int if key.startswith("n_") else expected
+        expected = int if key == "sinkhorn_iterations" else expected
+        expected = bool if key == "sinkhorn_converged" else expected
         assert type(value) is (expected or float), key
+
+
+def test_evaluate_cost_sets_equals_evaluate_costs_per_set():
+    rng = np.random.default_rng(3)
+    sets = []
+    for n_particles in (9, 14, 5):
+        e_p, e_v, e_a = (rng.gamma(2.0, 1.0, (n_particles, 6)) for _ in range(3))
+        sets.append((0.5 * e_p + 0.3 * e_v + 0.2 * e_a, e_p, e_v, e_a))
+    sets[2][0][1] = np.inf  # a particle invalid everywhere: WS infeasible
+    steps = []
+    together = evaluate_cost_sets(
+        sets, sinkhorn_max_iter=500, callback=lambda *step: steps.append(step)
+    )
+    for one, out in zip(sets, together, strict=True):
+        alone = evaluate_costs(*one, sinkhorn_max_iter=500)
+        assert list(out) == list(alone)
+        for key, value in alone.items():
+            assert out[key] == pytest.approx(value, rel=1e-13, nan_ok=True), key
+    assert together[2]["sinkhorn_iterations"] == 0
+    assert not together[2]["sinkhorn_converged"]
+    assert steps[:3] == [("exact", 1, 3), ("exact", 2, 3), ("exact", 3, 3)]
+    assert steps[-1][0] == "sinkhorn" and steps[-1][2] == 3
 
 
 def test_ws_over_the_particles_valid_somewhere():

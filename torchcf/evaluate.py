@@ -2,8 +2,13 @@
 
 SPEC section 6. Every particle of a learned set is simulated on every test pair
 (full layout), giving the cost matrix ``C`` (particles x test pairs) of scores and
-the matching ``e_p, e_v, e_a``; :func:`torchcf.metrics.evaluate_costs` turns them
-into the average errors, the minimum distance, the beta-WS, the WS and Sinkhorn.
+the matching ``e_p, e_v, e_a``; :func:`torchcf.evaluation.metrics.evaluate_cost_sets`
+turns them into the average errors, the minimum distance, the beta-WS, the WS and
+Sinkhorn (every set's Sinkhorn in one batched solve, capped at
+``eval.sinkhorn_max_iter`` iterations; ``metrics.json`` records per set its
+``sinkhorn_iterations``, ``sinkhorn_converged`` and ``sinkhorn_marginal_error``).
+Simulating the sets, their metrics and the report's figures each show a progress
+bar on stderr (``progress=False``: none).
 
 Learned sets evaluated: ``"hybrid"`` (``Theta_hybrid`` of ``posterior.pt``) and every
 single model, represented by its own N best particles per training pair (the model
@@ -22,6 +27,7 @@ calls :func:`evaluate_run` after training.
 from __future__ import annotations
 
 import argparse
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -29,12 +35,14 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
-from .cli import run_main
+from .cli import DefaultsHelpFormatter, run_main
 from .config import TrainConfig
 from .data import PairSet, load_split
 from .errors import TorchcfError
-from .evaluation.metrics import evaluate_costs
+from .evaluation.entropic import limit_threads
+from .evaluation.metrics import evaluate_cost_sets
 from .evaluation.plots import (
     error_evolution_figure,
     pairwise_figure,
@@ -76,10 +84,18 @@ def cost_matrices(
     device: torch.device | str = "cpu",
     weights: Sequence[float] = (0.5, 0.3, 0.2),
 ) -> dict[str, np.ndarray]:
-    """Score, e_p, e_v, e_a of every particle on every test pair: (P, n_test) each."""
-    out = simulate(
-        model, theta.to(dtype), test, dtype=dtype, device=device, weights=weights
-    )
+    """Score, e_p, e_v, e_a of every particle on every test pair: (P, n_test) each.
+
+    Runs on one torch thread when ``P * n_test`` is small (:func:`limit_threads`):
+    every step of the rollout is a handful of ops on ``P * n_test`` numbers, too
+    few for threads to pay, and on a loaded machine each parallel op waits for a
+    descheduled thread (the smoke run's 12 sets: 1.2 s on one thread, 14-30 s on
+    two under load 4).
+    """
+    with limit_threads(theta.shape[0] * test.n_pairs):
+        out = simulate(
+            model, theta.to(dtype), test, dtype=dtype, device=device, weights=weights
+        )
     return {
         key: getattr(out, key).double().cpu().numpy()
         for key in ("score", "e_p", "e_v", "e_a")
@@ -90,54 +106,113 @@ def _stack(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
     return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
 
 
+def _bar(total: int, desc: str, unit: str, progress: bool) -> tqdm:
+    """A progress bar on stderr in the trainer's style (a live bar in a terminal,
+    a line every 30 s in a log file); ``progress=False``: silent."""
+    return tqdm(
+        total=total,
+        desc=desc,
+        unit=unit,
+        dynamic_ncols=True,
+        file=sys.stderr,
+        mininterval=0.1 if sys.stderr.isatty() else 30.0,
+        disable=not progress,
+    )
+
+
 def evaluate_posterior(
     posterior: Posterior,
     test: PairSet,
     cfg: TrainConfig,
+    *,
+    progress: bool = True,
 ) -> tuple[dict[str, dict[str, Any]], dict[str, dict[str, np.ndarray]]]:
     """Metrics of the hybrid and of every single model on ``test``.
+
+    Two stages, each with a progress bar: simulating every set's particles on
+    every test pair (the bar counts particles), then the metrics of all sets,
+    their Sinkhorn solved together (:func:`simulated_metrics`).
+
+    Args:
+        posterior: the learned set.
+        test: the test pairs.
+        cfg: the run's config (dtype, device, score weights, ``eval``).
+        progress: show the progress bars (stderr).
 
     Returns:
         metrics: ``{"hybrid" | model: evaluate_costs(...)}``;
         costs: the cost matrices of each entry (hybrid rows in model order).
+
+    Raises:
+        EvaluationError: the hybrid particle set is empty.
     """
     dtype = getattr(torch, cfg.dtype)
     kwargs = {"dtype": dtype, "device": cfg.device, "weights": cfg.abc.weights}
-    metrics: dict[str, dict[str, Any]] = {}
+    singles = {
+        name: single_model_particles(posterior, name) for name in posterior.models
+    }
+    hybrid = {name: posterior.hybrid[name].theta for name in posterior.models}
+    if not any(len(theta) for theta in hybrid.values()):
+        raise EvaluationError("the hybrid particle set is empty")
+    total = sum(len(t) for t in singles.values()) + sum(len(t) for t in hybrid.values())
     costs: dict[str, dict[str, np.ndarray]] = {}
     hybrid_parts = []
-    for name in posterior.models:
-        single = single_model_particles(posterior, name)
-        if single.shape[0]:
-            costs[name] = cost_matrices(name, single, test, **kwargs)
-            metrics[name] = _metrics(costs[name], cfg)
-        particles = posterior.hybrid[name]
-        if len(particles):
-            hybrid_parts.append(cost_matrices(name, particles.theta, test, **kwargs))
-    if not hybrid_parts:
-        raise EvaluationError("the hybrid particle set is empty")
+    with _bar(total, "evaluate: simulate", "particle", progress) as bar:
+        for name in posterior.models:
+            bar.set_postfix_str(name, refresh=False)
+            if len(singles[name]):
+                costs[name] = cost_matrices(name, singles[name], test, **kwargs)
+                bar.update(len(singles[name]))
+            if len(hybrid[name]):
+                hybrid_parts.append(cost_matrices(name, hybrid[name], test, **kwargs))
+                bar.update(len(hybrid[name]))
     costs["hybrid"] = _stack(hybrid_parts)
-    metrics["hybrid"] = _metrics(costs["hybrid"], cfg)
-    return metrics, costs
+    return simulated_metrics(costs, cfg, progress=progress), costs
 
 
-def _metrics(cost: dict[str, np.ndarray], cfg: TrainConfig) -> dict[str, Any]:
-    """evaluate_costs: one particle invalid on every test pair makes WS and
-    beta-WS (beta > 0) infinite (its mandatory mass has nowhere to go), which is
-    reported as such, next to both over the other particles (``ws_valid``,
-    ``beta_ws_valid``) and their count (``particles_never_valid``)."""
-    return _costs(cost, cfg)
+def simulated_metrics(
+    costs: dict[str, dict[str, np.ndarray]],
+    cfg: TrainConfig,
+    *,
+    progress: bool = True,
+) -> dict[str, dict[str, Any]]:
+    """:func:`~torchcf.evaluation.metrics.evaluate_costs` of every set, with
+    ``cfg.eval``'s beta, Sinkhorn regularisation and iteration cap; all sets'
+    Sinkhorn problems are solved in one batched call (they share ``reg``).
 
+    One particle invalid on every test pair makes WS and beta-WS (beta > 0)
+    infinite (its mandatory mass has nowhere to go), which is reported as such,
+    next to both over the other particles (``ws_valid``, ``beta_ws_valid``) and
+    their count (``particles_never_valid``).
 
-def _costs(cost: dict[str, np.ndarray], cfg: TrainConfig) -> dict[str, Any]:
-    return evaluate_costs(
-        cost["score"],
-        cost["e_p"],
-        cost["e_v"],
-        cost["e_a"],
-        beta=cfg.eval.beta,
-        sinkhorn_reg=cfg.eval.sinkhorn_reg,
-    )
+    Args:
+        costs: per set, its (P_s, n_test) ``score, e_p, e_v, e_a``.
+        cfg: the run's config.
+        progress: a bar over the sets' exact metrics, then their Sinkhorn.
+
+    Returns:
+        ``{set: evaluate_costs(...)}`` in the order of ``costs``.
+    """
+    names = list(costs)
+    with _bar(2 * len(names), "evaluate: metrics", "step", progress) as bar:
+
+        def advance(stage: str, count: int, done: int) -> None:
+            # "exact": sets done; "sinkhorn": iterations so far, problems done
+            if stage == "exact":
+                bar.update(done - bar.n)
+            else:
+                bar.set_postfix_str(f"sinkhorn iteration {count}", refresh=False)
+                bar.update(len(names) + done - bar.n)
+
+        results = evaluate_cost_sets(
+            [tuple(costs[n][k] for k in ("score", "e_p", "e_v", "e_a")) for n in names],
+            beta=cfg.eval.beta,
+            sinkhorn_reg=cfg.eval.sinkhorn_reg,
+            sinkhorn_max_iter=cfg.eval.sinkhorn_max_iter,
+            callback=advance,
+        )
+        bar.update(2 * len(names) - bar.n)
+    return dict(zip(names, results, strict=True))
 
 
 def position_errors(
@@ -157,15 +232,16 @@ def position_errors(
         theta = posterior.hybrid[name].theta
         if not theta.shape[0]:
             continue
-        out = simulate(
-            name,
-            theta.to(dtype),
-            one,
-            dtype=dtype,
-            device=cfg.device,
-            return_traj=True,
-            weights=cfg.abc.weights,
-        )
+        with limit_threads(theta.shape[0]):  # one pair: see cost_matrices
+            out = simulate(
+                name,
+                theta.to(dtype),
+                one,
+                dtype=dtype,
+                device=cfg.device,
+                return_traj=True,
+                weights=cfg.abc.weights,
+            )
         x = out.x[:, :, 0].double().cpu()  # (T, P)
         err = (x - one.x_follow[:, :1]).T.numpy()  # (P, T)
         err[:, ~one.mask[:, 0].numpy()] = np.nan
@@ -183,6 +259,7 @@ def evaluate_run(
     pairs: tuple[PairSet, PairSet] | None = None,
     figure_pair: int | None = None,
     tensorboard: bool = True,
+    progress: bool = True,
 ) -> dict[str, Any]:
     """Evaluate the finished run in ``run_dir``; write metrics.json and the report.
 
@@ -193,6 +270,7 @@ def evaluate_run(
         figure_pair: the test pair (position) of the Fig. 4 figure; default the one
             whose best hybrid particle is closest to the median over pairs.
         tensorboard: also log to ``run_dir/tb``.
+        progress: show progress bars on stderr (simulation, metrics, report).
 
     Returns:
         The metrics (also in ``run_dir/metrics.json``, written last: a run
@@ -216,7 +294,7 @@ def evaluate_run(
     # A stale metrics.json of an earlier evaluation must not outlive a failure of
     # this one and pass for its result.
     run.discard_metrics()
-    metrics, costs = evaluate_posterior(posterior, test, cfg)
+    metrics, costs = evaluate_posterior(posterior, test, cfg, progress=progress)
     entries = [*[m for m in posterior.models if m in metrics], "hybrid"]
     result = {
         "dataset": summary["dataset"],
@@ -224,6 +302,7 @@ def evaluate_run(
         "test_pair_ids": [int(i) for i in test.pair_ids],
         "beta": cfg.eval.beta,
         "sinkhorn_reg": cfg.eval.sinkhorn_reg,
+        "sinkhorn_max_iter": cfg.eval.sinkhorn_max_iter,
         **{entry: metrics[entry] for entry in entries},
     }
 
@@ -261,19 +340,29 @@ def evaluate_run(
         ),
         "radar": radar_figure({entry: metrics[entry] for entry in entries}),
     }
-    for name, figure in figures.items():
-        path = report / f"{name}.png"
-        with writing(path):
-            save_figure(figure, path)
-    if tensorboard:
-        with writing(run.tb_dir), RunLogger(run.tb_dir) as logger:
-            logger.evaluation(figures, {e: metrics[e] for e in entries})
+    # Rendering the figures (PNG, then TensorBoard) is the slowest step left.
+    with _bar(
+        len(figures) + tensorboard, "evaluate: report", "figure", progress
+    ) as bar:
+        for name, figure in figures.items():
+            path = report / f"{name}.png"
+            with writing(path):
+                save_figure(figure, path)
+            bar.update()
+        if tensorboard:
+            with (
+                writing(run.tb_dir),
+                RunLogger(run.tb_dir, stream="evaluation") as logger,
+            ):
+                logger.evaluation(figures, {e: metrics[e] for e in entries})
+            bar.update()
     run.write_metrics(result)
     return result
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
+        formatter_class=DefaultsHelpFormatter,
         prog="python -m torchcf.evaluate",
         description="Evaluate a trained run on its test pairs (SPEC section 6).",
     )
@@ -283,9 +372,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     def body() -> int:
-        result = evaluate_run(
-            args.run_dir, report_dir=args.report, figure_pair=args.pair
-        )
+        run = RunDir(args.run_dir)
+        if not run.path.is_dir():  # say so, rather than create it for the lock
+            raise EvaluationError(f"{run.path} is not a run directory")
+        with run.locked():  # no training or loop writes into it meanwhile
+            result = evaluate_run(run, report_dir=args.report, figure_pair=args.pair)
         print(f"{'':8} {'e_p':>8} {'min':>8} {'0.15-WS':>8} {'WS':>8}")
         for entry, m in result.items():
             if isinstance(m, dict) and "ws" in m:

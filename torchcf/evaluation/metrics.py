@@ -3,7 +3,7 @@
 Every metric reads the cost matrix ``C: (P, N)``: the score of particle ``i`` on test
 pair ``j`` (P particles, N test pairs). ``C`` may be a numpy array or a torch tensor of
 any float dtype; everything is computed in float64 numpy (Sinkhorn runs in float64
-torch, see :func:`sinkhorn`).
+torch, see :mod:`torchcf.evaluation.entropic`).
 
 - :func:`average_errors`: means of ``e_p, e_v, e_a`` over the valid cells;
 - :func:`wasserstein`: exact ``min <gamma, C>`` with particle marginals ``1/P`` and
@@ -11,8 +11,10 @@ torch, see :func:`sinkhorn`).
 - :func:`beta_wasserstein`: particle marginals ``>= beta / P`` instead, solved
   exactly as a balanced ``(P + 1, N)`` problem (proof in its docstring);
 - :func:`min_distance`: ``beta = 0``, the mean over pairs of the best particle's cost;
-- :func:`sinkhorn`: the entropic approximation of WS, with its gap to the exact value;
-- :func:`evaluate_costs`: all of the above as one dict of plain numbers.
+- :func:`sinkhorn`: the entropic approximation of WS, with its gap to the exact value
+  (:func:`sinkhorn_many`: several cost matrices in one batched solve);
+- :func:`evaluate_costs`: all of the above as one dict of plain numbers
+  (:func:`evaluate_cost_sets`: several learned sets, their Sinkhorn batched).
 
 **Invalid cells.** An invalid rollout scores ``+inf`` (NaN is read the same way). No
 cell is ever dropped: a transport plan may not use an invalid cell, and when no plan
@@ -30,12 +32,15 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import numpy as np
 import ot
 import torch
 from torch import Tensor
+
+from .entropic import sinkhorn_log
 
 #: Mass on a forbidden cell above this proves infeasibility (below it is rounding).
 FORBIDDEN_MASS_TOL = 1e-12
@@ -77,9 +82,9 @@ class SinkhornResult(NamedTuple):
         gap: ``value - ws`` (``>= 0`` up to the marginal tolerance); NaN when
             infeasible.
         converged: whether the pair-marginal error fell below ``stop_thr``.
-        n_iter: Sinkhorn iterations run.
-        marginal_error: last L2 error of the pair marginals (POT checks it every 10
-            iterations).
+        n_iter: Sinkhorn iterations run (0 when infeasible).
+        marginal_error: L2 error of the pair marginals of ``plan`` (tested every
+            10 iterations and at the last one); NaN when infeasible.
         reg: the entropic regularisation used, in the units of ``C``.
         plan: (P, N) entropic plan, or ``None`` when infeasible.
         invalid_cells: number of invalid cells of ``C``.
@@ -397,18 +402,17 @@ def sinkhorn(
     """Entropic (Sinkhorn) approximation of WS, with its gap to the exact value.
 
     ``gamma_reg = argmin <gamma, C> - reg H(gamma)`` over the same uniform marginals
-    as :func:`wasserstein`, by POT's log-domain Sinkhorn
-    (``ot.sinkhorn(..., method="sinkhorn_log")``), which stays finite for small
-    ``reg``. Reported: the transport cost ``<gamma_reg, C>``, which decreases to WS
-    as ``reg -> 0``.
+    as :func:`wasserstein` (``1/P`` per particle, ``1/N`` per test pair), by the
+    log-domain Sinkhorn of :func:`torchcf.evaluation.entropic.sinkhorn_log`
+    (over-relaxed; it stays finite for small ``reg``). Reported: the transport
+    cost ``<gamma_reg, C>``, which decreases to WS as ``reg -> 0``; on a converged
+    problem it is POT's ``ot.sinkhorn(..., method="sinkhorn_log")`` value up to the
+    marginal tolerance (the tests hold it to that).
 
     ``reg`` is in the units of ``C`` (score units) and is used as given, never
     rescaled by the cost range: the gap depends on ``reg / (range of C)``.
     Invalid cells get zero kernel (``exp(-inf) = 0``), i.e. they are forbidden as in
     WS; when WS is infeasible Sinkhorn is not run (value ``inf``, gap NaN).
-
-    POT runs on float64 torch tensors here: its torch backend's ``logsumexp`` is
-    about 10x faster than the numpy one on a (5000, 1000) matrix.
 
     Args:
         C: (P, N) cost matrix; ``inf``/NaN = invalid cell.
@@ -420,39 +424,73 @@ def sinkhorn(
         :class:`SinkhornResult`; ``converged=False`` when ``max_iter`` ran out
         (the value is still the last iterate's transport cost).
     """
+    return sinkhorn_many([C], reg, max_iter=max_iter, stop_thr=stop_thr)[0]
+
+
+def sinkhorn_many(
+    costs: Sequence[CostMatrix],
+    reg: float,
+    *,
+    max_iter: int = 100_000,
+    stop_thr: float = 1e-9,
+    callback: Callable[[int, int], None] | None = None,
+) -> list[SinkhornResult]:
+    """:func:`sinkhorn` of several cost matrices (any shapes), solved in one
+    batched call; each result equals that of :func:`sinkhorn` on its own matrix
+    (up to rounding), iterations included.
+
+    Args:
+        costs: (P_b, N_b) cost matrices; ``inf``/NaN = invalid cell.
+        reg, max_iter, stop_thr: as :func:`sinkhorn`.
+        callback: ``(iterations, matrices done)`` at every stopping test (for a
+            progress bar); an infeasible matrix (never solved) counts as done.
+
+    Returns:
+        one :class:`SinkhornResult` per matrix, in order.
+    """
     reg = _check_reg(reg)
-    cost = _as_matrix(C, "C")
-    n_particles, n_test = cost.shape
-    exact = wasserstein(cost)
-    if not exact.feasible:
-        return SinkhornResult(
-            math.inf, math.inf, math.nan, False, 0, math.nan, reg, None,
-            exact.invalid_cells,
-        )  # fmt: skip
-    valid = np.isfinite(cost)
-    a = torch.full((n_particles,), 1.0 / n_particles, dtype=torch.float64)
-    b = torch.full((n_test,), 1.0 / n_test, dtype=torch.float64)
-    with warnings.catch_warnings():
-        # non-convergence is reported through `converged`, not a warning
-        warnings.simplefilter("ignore", UserWarning)
-        plan, log = ot.sinkhorn(
-            a, b, torch.from_numpy(cost), reg, method="sinkhorn_log",
-            numItermax=max_iter, stopThr=stop_thr, log=True, warn=False,
-        )  # fmt: skip
-    plan = plan.numpy()
-    error = float(log["err"][-1]) if len(log["err"]) else math.nan
-    value = _plan_value(plan, cost, valid)
-    return SinkhornResult(
-        value=value,
-        ws=exact.value,
-        gap=value - exact.value,
-        converged=bool(error < stop_thr) and bool(np.isfinite(plan).all()),
-        n_iter=int(log["niter"]) + 1,
-        marginal_error=error,
-        reg=reg,
-        plan=plan,
-        invalid_cells=exact.invalid_cells,
-    )
+    matrices = [_as_matrix(c, "C") for c in costs]
+    exact = [wasserstein(cost) for cost in matrices]
+    feasible = [k for k, ws in enumerate(exact) if ws.feasible]
+    skipped = len(matrices) - len(feasible)
+    plans = sinkhorn_log(
+        [matrices[k] for k in feasible], reg,
+        max_iter=max_iter, stop_thr=stop_thr,
+        callback=None if callback is None else lambda i, n: callback(i, skipped + n),
+    )  # fmt: skip
+    solved = dict(zip(feasible, plans, strict=True))
+    results = []
+    for k, ws in enumerate(exact):
+        if k not in solved:
+            results.append(
+                SinkhornResult(
+                    math.inf,
+                    math.inf,
+                    math.nan,
+                    False,
+                    0,
+                    math.nan,
+                    reg,
+                    None,
+                    ws.invalid_cells,
+                )  # fmt: skip
+            )
+            continue
+        entropic = solved[k]
+        results.append(
+            SinkhornResult(
+                value=entropic.value,
+                ws=ws.value,
+                gap=entropic.value - ws.value,
+                converged=entropic.converged,
+                n_iter=entropic.n_iter,
+                marginal_error=entropic.marginal_error,
+                reg=reg,
+                plan=entropic.plan,
+                invalid_cells=ws.invalid_cells,
+            )
+        )
+    return results
 
 
 def evaluate_costs(
@@ -462,6 +500,7 @@ def evaluate_costs(
     e_a: CostMatrix,
     beta: float = 0.15,
     sinkhorn_reg: float = 0.05,
+    sinkhorn_max_iter: int = 10_000,
 ) -> dict:
     """Every SPEC section 6 metric of one learned set on one test split.
 
@@ -473,20 +512,98 @@ def evaluate_costs(
         score: (P, N) scores ``g``; e_p, e_v, e_a: (P, N) RMSEs [m, m/s, m/s^2].
         beta: beta of beta-WS, in [0, 1].
         sinkhorn_reg: Sinkhorn regularisation in score units (> 0).
+        sinkhorn_max_iter: Sinkhorn iteration cap (config ``eval.sinkhorn_max_iter``).
 
     Returns:
         ``{e_p, e_v, e_a, min, beta_ws, ws, sinkhorn, sinkhorn_gap}`` (float;
-        ``inf`` when infeasible, NaN for an undefined mean or gap) and
-        ``{valid_cells, invalid_cells, n_particles, n_test}`` (int); and,
-        because one particle invalid on every test pair makes SPEC's WS and
-        beta-WS infinite whatever the rest of the set does, the same two over
-        the particles valid on some test pair, ``ws_valid`` and
-        ``beta_ws_valid`` (equal to ``ws`` and ``beta_ws`` when no particle is
-        dropped; ``inf`` still where a test pair has no valid particle), with
-        ``particles_never_valid`` (int) the number dropped.
+        ``inf`` when infeasible, NaN for an undefined mean or gap);
+        ``{valid_cells, invalid_cells, n_particles, n_test}`` (int); the Sinkhorn
+        solve's ``sinkhorn_iterations`` (int, 0 when WS is infeasible),
+        ``sinkhorn_converged`` (bool) and ``sinkhorn_marginal_error`` (float, the
+        L2 error of its pair marginals); and, because one particle invalid on
+        every test pair makes SPEC's WS and beta-WS infinite whatever the rest of
+        the set does, the same two over the particles valid on some test pair,
+        ``ws_valid`` and ``beta_ws_valid`` (equal to ``ws`` and ``beta_ws`` when
+        no particle is dropped; ``inf`` still where a test pair has no valid
+        particle), with ``particles_never_valid`` (int) the number dropped.
+    """
+    return evaluate_cost_sets(
+        [(score, e_p, e_v, e_a)],
+        beta=beta,
+        sinkhorn_reg=sinkhorn_reg,
+        sinkhorn_max_iter=sinkhorn_max_iter,
+    )[0]
+
+
+def evaluate_cost_sets(
+    sets: Sequence[tuple[CostMatrix, CostMatrix, CostMatrix, CostMatrix]],
+    beta: float = 0.15,
+    sinkhorn_reg: float = 0.05,
+    sinkhorn_max_iter: int = 10_000,
+    *,
+    callback: Callable[[str, int, int], None] | None = None,
+) -> list[dict]:
+    """:func:`evaluate_costs` of several learned sets (``(score, e_p, e_v, e_a)``
+    each, any shapes), their Sinkhorn solved in one batched call.
+
+    Args:
+        sets: per learned set, (P_s, N) score and RMSE matrices.
+        beta, sinkhorn_reg, sinkhorn_max_iter: as :func:`evaluate_costs`.
+        callback: progress, called as ``("exact", sets done, len(sets))`` after
+            each set's exact metrics and ``("sinkhorn", iterations, problems
+            done)`` at every Sinkhorn stopping test.
+
+    Returns:
+        one :func:`evaluate_costs` dict per set, in order.
     """
     beta = _check_beta(beta)
     sinkhorn_reg = _check_reg(sinkhorn_reg)
+    costs, outs = [], []
+    for done, (score, e_p, e_v, e_a) in enumerate(sets, start=1):
+        cost, out = _exact_metrics(score, e_p, e_v, e_a, beta)
+        costs.append(cost)
+        outs.append(out)
+        if callback is not None:
+            callback("exact", done, len(sets))
+    entropic = sinkhorn_many(
+        costs,
+        sinkhorn_reg,
+        max_iter=sinkhorn_max_iter,
+        callback=None if callback is None else lambda i, n: callback("sinkhorn", i, n),
+    )
+    for out, result in zip(outs, entropic, strict=True):
+        out.update(
+            ws=result.ws,
+            sinkhorn=result.value,
+            sinkhorn_gap=result.gap,
+            sinkhorn_iterations=result.n_iter,
+            sinkhorn_converged=result.converged,
+            sinkhorn_marginal_error=result.marginal_error,
+        )
+        if out["particles_never_valid"] == 0:
+            out["ws_valid"] = out["ws"]
+    return [{key: out[key] for key in _METRIC_KEYS} for out in outs]
+
+
+#: The keys of :func:`evaluate_costs`, in the order metrics.json lists them.
+_METRIC_KEYS = (
+    "e_p", "e_v", "e_a", "valid_cells", "invalid_cells", "min", "beta_ws", "ws",
+    "sinkhorn", "sinkhorn_gap", "sinkhorn_iterations", "sinkhorn_converged",
+    "sinkhorn_marginal_error", "n_particles", "n_test", "ws_valid",
+    "beta_ws_valid", "particles_never_valid",
+)  # fmt: skip
+
+
+def _exact_metrics(
+    score: CostMatrix,
+    e_p: CostMatrix,
+    e_v: CostMatrix,
+    e_a: CostMatrix,
+    beta: float,
+) -> tuple[np.ndarray, dict]:
+    """The cost matrix with every invalid cell at ``inf``, and the metrics of
+    :func:`evaluate_costs` except WS and Sinkhorn (which :func:`sinkhorn_many`
+    returns together; ``ws_valid`` is set here only when particles were dropped)."""
     cost = _as_matrix(score, "score")
     errors = _stack_errors(e_p, e_v, e_a)  # (3, P, N)
     if errors.shape[1:] != cost.shape:
@@ -496,20 +613,16 @@ def evaluate_costs(
     valid = np.isfinite(cost) & np.isfinite(errors).all(axis=0)  # (P, N)
     cost[~valid] = np.inf
     out = _masked_means(errors, valid)
-    entropic = sinkhorn(cost, sinkhorn_reg)
     out.update(
         min=min_distance(cost),
         beta_ws=beta_wasserstein(cost, beta).value,
-        ws=entropic.ws,
-        sinkhorn=entropic.value,
-        sinkhorn_gap=entropic.gap,
         n_particles=int(cost.shape[0]),
         n_test=int(cost.shape[1]),
     )
     somewhere = valid.any(axis=1)  # (P,) valid on some test pair
     dropped = int((~somewhere).sum())
     if dropped == 0:
-        out.update(ws_valid=out["ws"], beta_ws_valid=out["beta_ws"])
+        out["beta_ws_valid"] = out["beta_ws"]  # ws_valid follows with ws
     elif dropped == cost.shape[0]:
         out.update(ws_valid=math.inf, beta_ws_valid=math.inf)
     else:
@@ -519,7 +632,7 @@ def evaluate_costs(
             beta_ws_valid=beta_wasserstein(kept, beta).value,
         )
     out["particles_never_valid"] = dropped
-    return out
+    return cost, out
 
 
 __all__ = [
@@ -529,8 +642,10 @@ __all__ = [
     "TransportResult",
     "average_errors",
     "beta_wasserstein",
+    "evaluate_cost_sets",
     "evaluate_costs",
     "min_distance",
     "sinkhorn",
+    "sinkhorn_many",
     "wasserstein",
 ]
