@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[1] / "torchcf"
 #: and the stages before it, never a later one. (Checked per top-level name under
 #: ``torchcf``; a name missing here is a new module that must be placed.)
 STAGES = [
-    {"errors", "typing", "runtime", "files", "cli"},  # plumbing
+    {"errors", "typing", "runtime", "files", "signals", "cli"},  # plumbing
     {"data", "qp"},  # pairs in; the MPC's solver
     {"models"},
     {"sim", "synthetic"},  # the rollout; pairs made by it

@@ -8,7 +8,8 @@
   directory, a corrupted or unwritable file) or an ``OSError`` (a file system or
   device failing underneath) — printed as ``error: <one line>`` on stderr, never a
   traceback;
-- 130: interrupted (Ctrl-C), with a hint on how to continue.
+- 130: interrupted (Ctrl-C), 143: terminated (SIGTERM, treated as Ctrl-C:
+  :mod:`torchcf.signals`), each with a hint on how to continue.
 
 Anything else is a bug and keeps its traceback.
 """
@@ -16,15 +17,28 @@ Anything else is a bug and keeps its traceback.
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from collections.abc import Callable
 
 from .errors import TorchcfError
+from .signals import Stopped, terminate_as_interrupt
 
 #: Exit code of an error of the user's making or of the machine.
 EXIT_USER_ERROR = 2
 #: Exit code of an interrupted command (128 + SIGINT).
 EXIT_INTERRUPTED = 130
+
+
+class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """``--help`` that shows each option's default, where it has one worth
+    saying (not for a required option, a flag, or a default of None, which the
+    help text explains)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        if action.required or action.default in (None, False, argparse.SUPPRESS):
+            return action.help or ""
+        return super()._get_help_string(action) or ""
 
 
 def one_line(error: BaseException) -> str:
@@ -63,16 +77,25 @@ def run_main(
         report: prints a user or machine error (default ``error: <one line>``);
             a distributed command names the rank or stays silent on ranks whose
             error rank 0 reports.
-        interrupted: the line printed on Ctrl-C (say how to continue).
+        interrupted: the line printed on Ctrl-C (say how to continue); on
+            SIGTERM its word "interrupted" reads "terminated".
 
     Returns:
         the exit code.
     """
     try:
-        return body()
+        with terminate_as_interrupt():
+            return body()
     except (TorchcfError, OSError) as error:
         (report or _print)(error)
         return EXIT_USER_ERROR
+    except Stopped as stopped:
+        word = "interrupted" if stopped.signum == signal.SIGINT else "terminated"
+        if stopped.checkpointed:
+            word += " (checkpoint written)"
+        if interrupted:  # the line says how to continue
+            print(interrupted.replace("interrupted", word, 1), file=sys.stderr)
+        return 128 + stopped.signum
     except KeyboardInterrupt:
         print(interrupted, file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -83,6 +106,7 @@ def _print(error: BaseException) -> None:
 
 
 __all__ = [
+    "DefaultsHelpFormatter",
     "EXIT_INTERRUPTED",
     "add_overrides",
     "EXIT_USER_ERROR",

@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .cli import add_overrides, run_main
+from .cli import DefaultsHelpFormatter, add_overrides, run_main
 from .config import ConfigError, TrainConfig, load_config
 from .evaluation.report import metrics_table
 from .files import atomic_write_text, ensure_directory
@@ -99,6 +99,7 @@ def crossval(
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
+        formatter_class=DefaultsHelpFormatter,
         prog="python -m torchcf.crossval",
         description="k-fold cross-validation: one training run per fold, metrics "
         "averaged over folds.",

@@ -16,13 +16,15 @@ import time
 import torch
 
 from . import MODELS, load_pairs, simulate
-from .cli import run_main
+from .cli import DefaultsHelpFormatter, run_main
 from .runtime import tune_malloc
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m torchcf.demo", description=__doc__.splitlines()[0]
+        formatter_class=DefaultsHelpFormatter,
+        prog="python -m torchcf.demo",
+        description=__doc__.splitlines()[0],
     )
     parser.add_argument("--particles", type=int, default=200_000)
     parser.add_argument("--dataset", default="car-model-2")

@@ -10,9 +10,20 @@ from that builtin too: :class:`torchcf.config.ConfigError` is also a
 ``ValueError``), so a new error class needs no list to be kept up to date.
 """
 
+import difflib
+from collections.abc import Iterable
+
 
 class TorchcfError(Exception):
     """An error reported as one line on stderr with exit code 2."""
 
 
-__all__ = ["TorchcfError"]
+def did_you_mean(word: str, choices: Iterable[str]) -> str:
+    """``" (did you mean 'idm'?)"`` for a mistyped name close to one of
+    ``choices`` (difflib's ratio >= 0.6), else ``""``: the tail of a one-line
+    message."""
+    close = difflib.get_close_matches(str(word).lower(), list(choices), n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+__all__ = ["TorchcfError", "did_you_mean"]

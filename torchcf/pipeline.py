@@ -15,15 +15,18 @@ checked) and handed to every stage.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from typing import Any
 
 from .abc.distributed import SINGLE, Group
 from .config import TrainConfig
 from .data import PairSet, load_split
+from .data.registry import notes_deferred
 from .diagnose.loop import finish_loop, plan_loop, run_recalibration
 from .evaluate import evaluate_run
-from .train import open_run, train
+from .rundir import RunDir
+from .train import check_budget, open_run, run_device, train
 
 
 def _checked_pairs(
@@ -33,7 +36,18 @@ def _checked_pairs(
     directory is known to be usable (fail fast: :func:`torchcf.train.open_run`;
     training checks it again, cheaply, as it must when called alone)."""
     group.on_main(open_run, cfg, out, resume)
-    return group.on_main(load_split, cfg.data)
+    run_device(cfg, group)  # a missing GPU is said before the data are read
+    with notes_deferred():  # a budget short for these pairs: the error alone
+        pairs = group.on_main(load_split, cfg.data)
+        check_budget(cfg, pairs[0])
+    return pairs
+
+
+def _held(out: Path, group: Group) -> AbstractContextManager[Any]:
+    """The run directory held by rank 0 for the whole stage
+    (:meth:`~torchcf.rundir.RunDir.locked`): a second study started into it
+    meanwhile is refused instead of mixing its files with this one's."""
+    return RunDir(out).locked() if group.is_main else nullcontext()
 
 
 def train_and_evaluate(
@@ -50,7 +64,9 @@ def train_and_evaluate(
     Args:
         cfg: the run's configuration.
         out: output directory.
-        resume: continue the run in ``out``.
+        resume: continue the run in ``out``; a run that finished is not trained
+            again, and not evaluated again if it was (delete its
+            ``metrics.json`` to evaluate it again).
         pairs: ``(train, test)`` instead of loading ``cfg.data``.
         evaluate: run the test-split evaluation after training.
         group: the processes sharing the training (:mod:`torchcf.abc.distributed`).
@@ -59,11 +75,13 @@ def train_and_evaluate(
         the training summary (``summary.json``), on every rank.
     """
     out = Path(out)
-    if pairs is None:
-        pairs = _checked_pairs(cfg, out, resume, group)
-    summary = train(cfg, out, resume=resume, pairs=pairs, group=group)
-    if evaluate and group.is_main:
-        evaluate_run(out, pairs=pairs)
+    with _held(out, group):
+        if pairs is None:
+            pairs = _checked_pairs(cfg, out, resume, group)
+        summary = train(cfg, out, resume=resume, pairs=pairs, group=group)
+        done = resume and RunDir(out).is_evaluated()
+        if evaluate and group.is_main and not done:
+            evaluate_run(out, pairs=pairs)
     return summary
 
 
@@ -84,13 +102,16 @@ def run_study(
         the training summary, on every rank.
     """
     out = Path(out)
-    if pairs is None:
-        pairs = _checked_pairs(cfg, out, resume, group)
-    summary = train_and_evaluate(
-        cfg, out, resume=resume, pairs=pairs, evaluate=evaluate, group=group
-    )
-    if evaluate and cfg.diagnose.run_after_training and group.is_main:
-        close_loop(out, pairs=pairs)
+    with _held(out, group):
+        if pairs is None:
+            pairs = _checked_pairs(cfg, out, resume, group)
+        summary = train_and_evaluate(
+            cfg, out, resume=resume, pairs=pairs, evaluate=evaluate, group=group
+        )
+        looped = resume and RunDir(out).is_looped()  # a finished loop is not rerun
+        if evaluate and cfg.diagnose.run_after_training and group.is_main:
+            if not looped:
+                close_loop(out, pairs=pairs)
     return summary
 
 
@@ -118,12 +139,15 @@ def close_loop(
     Returns:
         the loop result (also in ``RUN_DIR/loop.json``).
     """
-    plan = plan_loop(run_dir, overrides, pairs=pairs, progress=progress)
-    if plan.recalibration is not None and not plan.resume_recalibration:
-        run_recalibration(plan, progress=progress)
-        for out in (plan.reference_dir, plan.recalibration_dir):
-            evaluate_run(out, pairs=(plan.train_pairs, plan.test_pairs))
-    return finish_loop(plan)
+    with RunDir(run_dir).locked():
+        plan = plan_loop(run_dir, overrides, pairs=pairs, progress=progress)
+        if plan.recalibration is not None and not plan.resume_recalibration:
+            run_recalibration(plan, progress=progress)
+            for out in (plan.reference_dir, plan.recalibration_dir):
+                evaluate_run(
+                    out, pairs=(plan.train_pairs, plan.test_pairs), progress=progress
+                )
+        return finish_loop(plan)
 
 
 __all__ = ["close_loop", "run_study", "train_and_evaluate"]

@@ -15,7 +15,8 @@ A run directory, as the commands leave it::
     ├── loop/             diagnose  the loop's figures (*.png)
     │   └── after/        diagnose  the re-calibration, itself a run directory
     ├── loop.md           diagnose  the loop's report
-    └── loop.json         diagnose  written LAST by the loop: the loop finished
+    ├── loop.json         diagnose  written LAST by the loop: the loop finished
+    └── .lock             train, evaluate, diagnose: held while one works here
 
 A cross-validation (``python -m torchcf.crossval``) writes one run directory per
 fold, ``OUT/fold<i>/``, then the folds' mean in ``OUT/report/table.md`` and, last,
@@ -27,15 +28,32 @@ temporary file renamed into place; a full disk keeps the previous checkpoint
 intact), and a file that cannot be read or written is a
 :class:`~torchcf.files.RunFileError` with one line naming it (a configuration
 that is readable but invalid: a :class:`~torchcf.config.ConfigError`).
+
+One command at a time works in a run directory (:meth:`RunDir.locked`): a
+second training, evaluation or loop started on it while the first runs is
+refused with one line, instead of both writing and one result being lost.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from .config import ConfigError, TrainConfig, resolved_json, validate_config
+try:  # POSIX; elsewhere a run directory is not locked
+    import fcntl
+except ImportError:  # pragma: no cover - Windows
+    fcntl = None  # type: ignore[assignment]
+
+from .config import (
+    ConfigError,
+    TrainConfig,
+    config_hash,
+    resolved_json,
+    validate_config,
+)
 from .files import (
     RunFileError,
     atomic_torch_save,
@@ -47,6 +65,25 @@ from .files import (
     write_json,
 )
 from .posterior import Posterior
+
+#: The lock file of a run directory (:meth:`RunDir.locked`).
+LOCK_NAME = ".lock"
+#: Run directories this process holds locked, with the depth of nesting: a
+#: study locks its run and calls training and evaluation, which lock it too.
+_HELD: dict[Path, int] = {}
+
+
+def _write_owner(handle: Any) -> None:
+    """The holder's process id in the lock file, for the message of a second
+    process (informational: a disk too full for it does not stop the run)."""
+    try:
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"{os.getpid()}\n")
+        handle.flush()
+    except OSError:
+        pass
+
 
 #: Entries that every ``summary.json`` holds (the evaluation reads them).
 SUMMARY_KEYS = ("dataset", "pairwise")
@@ -186,6 +223,63 @@ class RunDir:
             RunFileError: as :meth:`prepare`.
         """
         ensure_directory(self._path, "output directory", keep=False)
+
+    @contextmanager
+    def locked(self) -> Iterator[RunDir]:
+        """Hold the run directory for this process while the block runs.
+
+        An exclusive ``flock`` on ``RUN_DIR/.lock`` (released by the operating
+        system if the process dies, so a killed run leaves no stale lock); the
+        file holds the owner's process id. Re-entrant within a process. A
+        directory created here for the lock is removed again if the block
+        leaves nothing else in it (a command that fails before writing leaves
+        no empty run directory behind).
+
+        Raises:
+            RunFileError: another process holds it (naming its process id), or
+                the directory cannot be created or written.
+        """
+        key = self._path.resolve()
+        if key in _HELD or fcntl is None:
+            _HELD[key] = _HELD.get(key, 0) + 1
+            try:
+                yield self
+            finally:
+                _HELD[key] -= 1
+                if not _HELD[key]:
+                    del _HELD[key]
+            return
+        created = not self._path.exists()
+        # The probe write fails on a full disk or a missing permission before
+        # anything is created (and leaves nothing behind then).
+        ensure_directory(self._path, "output directory", keep=False)
+        self._path.mkdir(parents=True, exist_ok=True)
+        lock = self._path / LOCK_NAME
+        try:
+            try:
+                handle = open(lock, "a+")  # noqa: SIM115 - held across the block
+            except OSError as error:
+                raise RunFileError(f"cannot lock {lock}: {error.strerror}") from None
+            with handle:  # closing it releases the lock
+                try:
+                    fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    handle.seek(0)
+                    owner = handle.read().strip() or "unknown"
+                    raise RunFileError(
+                        f"{self._path} is in use by another torchcf process (pid "
+                        f"{owner}); wait for it to end, or use another directory"
+                    ) from None
+                _write_owner(handle)
+                _HELD[key] = 1
+                try:
+                    yield self
+                finally:
+                    del _HELD[key]
+        finally:
+            if created and [p.name for p in self._path.iterdir()] in ([], [LOCK_NAME]):
+                lock.unlink(missing_ok=True)
+                self._path.rmdir()
 
     def holds_run(self) -> bool:
         """Whether a run started here (a checkpoint) or finished (a summary)."""
@@ -344,14 +438,30 @@ class RunDir:
     def load_run(self) -> tuple[TrainConfig, Posterior, dict[str, Any]]:
         """The configuration, posterior and summary of a finished run.
 
+        ``config.json`` must be the configuration the run was trained with:
+        its hash (:func:`~torchcf.config.config_hash`, which leaves out what
+        does not change the result, ``eval`` and ``output`` among them) must be
+        the one ``summary.json`` recorded, so that an edited config cannot
+        evaluate or diagnose the particles on other data under its label.
+
         Raises:
             RunFileError: one of the three missing (the run is not finished),
-                unreadable or corrupted (one line naming it).
+                unreadable or corrupted (one line naming it), or ``config.json``
+                changed since training.
             ConfigError: ``config.json`` is not a valid configuration.
         """
         for path in (self.config_json, self.posterior_pt, self.summary_json):
             self._require(path, self._unfinished(path.name))
-        return self.read_config(), self.load_posterior(), self.read_summary()
+        cfg, summary = self.read_config(), self.read_summary()
+        trained = summary.get("config_hash")
+        if trained is not None and config_hash(cfg) != trained:
+            raise RunFileError(
+                f"{self.config_json} is not the config {self._path} was trained "
+                f"with (hash {config_hash(cfg)}, trained {trained}): it was edited "
+                "after training (or written by another torchcf version); restore "
+                "it, or train a new run"
+            )
+        return cfg, self.load_posterior(), summary
 
     # ---------------------------------------------------------------- helpers
     def _unfinished(self, name: str) -> str:
@@ -363,4 +473,4 @@ class RunDir:
             raise RunFileError(message)
 
 
-__all__ = ["SUMMARY_KEYS", "RunDir"]
+__all__ = ["LOCK_NAME", "SUMMARY_KEYS", "RunDir"]

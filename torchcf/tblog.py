@@ -93,6 +93,12 @@ class RunLogger:
         enabled: when False every method does nothing and no file is written.
         purge_step: passed to ``SummaryWriter``: events of an earlier, killed run with
             a step at or past it are discarded (use the checkpoint's step on resume).
+        stream: a stage written whole each time it runs (``"evaluation"``): its
+            event file ends in ``.<stream>``, and once it is closed the stream's
+            earlier files are removed, so evaluating a run again replaces its
+            evaluation in TensorBoard instead of adding a second copy of every
+            scalar. None: the training's stream (a resumed run appends to it,
+            ``purge_step`` dropping what a killed run wrote past its checkpoint).
     """
 
     def __init__(
@@ -101,16 +107,26 @@ class RunLogger:
         *,
         enabled: bool = True,
         purge_step: int | None = None,
+        stream: str | None = None,
     ) -> None:
         self.logdir = Path(logdir)
         self._writer: SummaryWriter | None = None
+        self._replaces: list[Path] = []
         if enabled:
             # Imported here so that a disabled logger does not pay for TensorBoard.
             from torch.utils.tensorboard import SummaryWriter
 
             _quiet_writer_threads()
+            suffix = ""
+            if stream is not None:
+                suffix = f".{stream}"
+                self._replaces = sorted(
+                    self.logdir.glob(f"events.out.tfevents.*{suffix}")
+                )
             with writing(self.logdir):
-                self._writer = SummaryWriter(str(self.logdir), purge_step=purge_step)
+                self._writer = SummaryWriter(
+                    str(self.logdir), purge_step=purge_step, filename_suffix=suffix
+                )
 
     @property
     def enabled(self) -> bool:
@@ -299,10 +315,14 @@ class RunLogger:
 
     @_reports_write_errors
     def close(self) -> None:
-        """Flush and close; later calls do nothing. Idempotent."""
+        """Flush and close; later calls do nothing. Idempotent. A stream's
+        earlier files go once this one is complete (module docstring)."""
         writer, self._writer = self._writer, None
         if writer is not None:
             writer.close()
+        replaced, self._replaces = self._replaces, []
+        for path in replaced:
+            path.unlink(missing_ok=True)
 
     def __enter__(self) -> RunLogger:
         return self

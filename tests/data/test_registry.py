@@ -77,7 +77,9 @@ def test_real_ngsim_is_converted_to_metres(real_data: Path) -> None:
     assert 0.3048 * 32 < float(pairs.x_lead.min()) < 0.3048 * 1543
 
 
-def test_real_ngsim_short_spacing(real_data: Path, caplog) -> None:
+def test_real_ngsim_short_spacing(real_data: Path, caplog, monkeypatch) -> None:
+    # A note is logged once per process: forget those an earlier test logged.
+    monkeypatch.setattr("torchcf.data.registry._ANNOUNCED", set())
     short = (6, 13, 31, 61, 70, 95, 110, 117, 120)
     with caplog.at_level(logging.WARNING, logger="torchcf.data"):
         pairs = load_pairs("ngsim-i80", download=False)
@@ -362,7 +364,10 @@ def test_folder_split_and_duplicates(write_six, make_arrays) -> None:
         load_pairs(folder, "train", dt=0.1)
 
 
-def test_min_spacing_and_short_spacing_note(write_six, make_arrays, caplog) -> None:
+def test_min_spacing_and_short_spacing_note(
+    write_six, make_arrays, caplog, monkeypatch
+) -> None:
+    monkeypatch.setattr("torchcf.data.registry._ANNOUNCED", set())  # logged once
     arrays = make_arrays()  # spacings 20, 23 and 26 m
     folder = write_six(arrays=arrays)
     pairs = load_pairs(folder, dt=0.1, min_spacing=21.0)

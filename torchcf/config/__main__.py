@@ -14,7 +14,7 @@ import argparse
 import json
 from collections.abc import Sequence
 
-from ..cli import add_overrides, run_main
+from ..cli import DefaultsHelpFormatter, add_overrides, run_main
 from .schema import TrainConfig, config_hash, load_config, resolved_json
 
 
@@ -25,6 +25,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         0 on success, 2 on a bad configuration (``error: <one line>`` on stderr).
     """
     parser = argparse.ArgumentParser(
+        formatter_class=DefaultsHelpFormatter,
         prog="python -m torchcf.config",
         description=(
             "Validate a torchcf run configuration and print it resolved (every "

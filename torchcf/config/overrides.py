@@ -9,7 +9,11 @@ from typing import Any
 
 from torchcf.config.messages import ConfigError
 
-__all__ = ["apply_overrides"]
+__all__ = ["DATA_SOURCES", "apply_overrides"]
+
+#: The keys of ``data`` that name where the pairs come from; a config gives
+#: exactly one, so an override that sets one replaces the others.
+DATA_SOURCES = ("name", "path", "raw")
 
 
 def apply_overrides(raw: dict[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
@@ -19,7 +23,10 @@ def apply_overrides(raw: dict[str, Any], overrides: Sequence[str]) -> dict[str, 
     taken as a plain string where it is not JSON, so ``device=cpu`` needs no
     quotes. Missing intermediate objects are created; a numeric component
     indexes an existing list (``models.0.name=idm``), and a model given by name
-    becomes an object when a key inside it is set.
+    becomes an object when a key inside it is set. Setting one source of the
+    data (``data.name``, ``data.path`` or ``data.raw``, :data:`DATA_SOURCES`) to
+    a value drops the others: ``--set data.path=DIR`` on a config that names a
+    data set reads DIR instead.
 
     Args:
         raw: the configuration object, not modified.
@@ -47,9 +54,18 @@ def apply_overrides(raw: dict[str, Any], overrides: Sequence[str]) -> dict[str, 
             node = _child(node, part, item, ".".join(parts[: depth + 1]))
         if isinstance(node, dict):
             node[parts[-1]] = value
+            if _is_data_source(parts) and value is not None:
+                for other in DATA_SOURCES:
+                    if other != parts[-1]:
+                        node.pop(other, None)
         else:
             node[_index(node, parts[-1], item, key)] = value
     return out
+
+
+def _is_data_source(parts: list[str]) -> bool:
+    """Whether the override's key is ``data.name``, ``data.path`` or ``data.raw``."""
+    return len(parts) == 2 and parts[0] == "data" and parts[1] in DATA_SOURCES
 
 
 def _child(

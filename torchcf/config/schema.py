@@ -189,7 +189,8 @@ class DataConfig(BaseModel):
         if len(given) != 1:
             raise ValueError(
                 "give exactly one of name (a registered data set), path (a folder) "
-                f"and raw (a raw trajectory source), got {', '.join(given) or 'none'}"
+                f"and raw (a raw trajectory source), got {', '.join(given) or 'none'} "
+                "(--set data.path=DIR alone replaces a config's data set)"
             )
         if self.raw is not None:
             fixed = [
@@ -331,6 +332,11 @@ class SMCConfig(BaseModel):
     )
 
 
+#: Most particles per model: 1e12 take about 12 days at 1e6 particles/s, far
+#: beyond any calibration (the paper's uses 1e6); a larger number is a typo.
+MAX_PARTICLES = 10**12
+
+
 class ABCConfig(BaseModel):
     """ABC rejection sampling: particles, buffers and selection (SPEC section 5)."""
 
@@ -341,7 +347,8 @@ class ABCConfig(BaseModel):
         gt=0,
         description=(
             "Particles simulated per model: prior draws (rejection), or proposals "
-            "in all rounds (smc; those outside the prior box count unsimulated)."
+            "in all rounds (smc; those outside the prior box count unsimulated). "
+            f"At most {MAX_PARTICLES:.0e} (about 12 days at 1e6 particles/s)."
         ),
     )
     method: Literal["rejection", "smc"] = Field(
@@ -434,6 +441,17 @@ class ABCConfig(BaseModel):
     def buffer_size(self) -> int:
         """Capacity of each streaming buffer: the largest N any selection needs."""
         return max(self.top_n, *self.sensitivity_n)
+
+    @field_validator("n_particles", mode="before")
+    @classmethod
+    def _at_most_max(cls, value: Any) -> Any:
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            if value > MAX_PARTICLES:
+                raise ValueError(
+                    f"at most {MAX_PARTICLES:.0e} particles per model (1e12 take "
+                    f"about 12 days at 1e6 particles/s), got {value:.3g}"
+                )
+        return value
 
 
 class EvalConfig(BaseModel):

@@ -22,7 +22,7 @@ from collections.abc import Sequence
 
 from pydantic import ValidationError
 
-from torchcf.cli import run_main
+from torchcf.cli import DefaultsHelpFormatter, run_main
 from torchcf.config.messages import ConfigError, describe
 from torchcf.config.raw import RawSource
 from torchcf.data.formats import FORMATS
@@ -45,11 +45,13 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m torchcf.data",
         description="Raw trajectory data to torchcf's pair layout.",
+        formatter_class=DefaultsHelpFormatter,
     )
     commands = parser.add_subparsers(dest="command", required=True)
     p = commands.add_parser(
         "extract",
         help="cut leader-follower pairs from raw trajectories",
+        formatter_class=DefaultsHelpFormatter,
         description=(
             "Read raw trajectories, cut leader-follower pairs of one length, drop "
             "windows that fail the quality filters, split by source group and "
@@ -58,36 +60,58 @@ def _parser() -> argparse.ArgumentParser:
         ),
     )
     p.add_argument("source", help="raw file or folder")
-    p.add_argument("--format", required=True, choices=sorted(FORMATS))
+    p.add_argument(
+        "--format", required=True, choices=sorted(FORMATS), help="the raw format"
+    )
     p.add_argument("--out", required=True, help="folder to write (must not exist)")
     p.add_argument(
         "--overwrite", action="store_true", help="replace an earlier extraction"
     )
     csv = p.add_argument_group("csv format")
     csv.add_argument("--columns", help="mapping, e.g. vehicle=ID,time=t,position=x")
-    csv.add_argument("--length-unit", default="m")
-    csv.add_argument("--speed-unit", default=None)
-    csv.add_argument("--acceleration-unit", default=None)
+    csv.add_argument("--length-unit", default="m", help="unit of positions (m, ft)")
+    csv.add_argument(
+        "--speed-unit", default=None, help="unit of speeds (None: length unit / s)"
+    )
+    csv.add_argument(
+        "--acceleration-unit",
+        default=None,
+        help="unit of accelerations (None: length unit / s^2)",
+    )
     csv.add_argument(
         "--road-frame",
         choices=("yes", "no"),
         default=None,
-        help="whether all positions lie on one road (default: unknown)",
+        help="whether all positions lie on one road (None: unknown)",
     )
-    csv.add_argument("--time-unit", default="s")
+    csv.add_argument("--time-unit", default="s", help="unit of time stamps (s, ms)")
     p.add_argument(
         "--vehicle-length", type=float, default=5.0, help="openacc: vehicle length [m]"
     )
     cut = p.add_argument_group("windows and split")
     cut.add_argument("--window", type=float, default=40.0, help="pair length [s]")
-    cut.add_argument("--stride", type=float, default=None, help="[s]; default = window")
-    cut.add_argument("--leader-length", type=float, default=None, help="[m]")
-    cut.add_argument("--default-length", type=float, default=5.0, help="[m]")
     cut.add_argument(
-        "--split-by", default="follower", choices=("follower", "couple", "run")
+        "--stride", type=float, default=None, help="[s] between windows (None: window)"
     )
-    cut.add_argument("--test-fraction", type=float, default=0.3)
-    cut.add_argument("--seed", type=int, default=0)
+    cut.add_argument(
+        "--leader-length",
+        type=float,
+        default=None,
+        help="[m] leader length of the pair set (None: the median)",
+    )
+    cut.add_argument(
+        "--default-length", type=float, default=5.0, help="[m] where none is known"
+    )
+    cut.add_argument(
+        "--split-by",
+        default="follower",
+        choices=("follower", "couple", "run"),
+        help="the group kept whole in one split",
+    )
+    cut.add_argument(
+        "--test-fraction", type=float, default=0.3, help="share of groups for test"
+    )
+    cut.add_argument("--seed", type=int, default=0, help="seed of the split")
     quality = p.add_argument_group("quality filters ('none' switches one off)")
     quality.add_argument("--jump", type=_optional_float, default=1.0, help="[m]")
     quality.add_argument(

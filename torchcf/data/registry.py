@@ -33,8 +33,10 @@ A split cannot be loaded alone: its columns are copies of full-set columns, and
 ``pair_ids`` name the full-set column, so loading a split reads (and if needed
 downloads) the full set and both splits.
 
-Quirks, found generically and reported in ``PairSet.notes`` and through the
-``torchcf.data`` logger every time a set is loaded:
+Quirks, found generically and reported in ``PairSet.notes`` every time a set is
+loaded, and through the ``torchcf.data`` logger once per process (a note the
+training and test splits share, or a second load of the same set, is not
+repeated):
 
 * Duplicated pairs (CAR MODEL II: full-set columns 6 & 16 and 7 & 17, 0-based,
   are identical; ``Trajectory/`` holds both copies of 7/17, and one copy of 6/16
@@ -70,7 +72,8 @@ import tempfile
 import urllib.parse
 import urllib.request
 from collections import defaultdict
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cache
 from importlib import resources
@@ -89,6 +92,7 @@ __all__ = [
     "DatasetSpec",
     "cache_dir",
     "load_pairs",
+    "notes_deferred",
     "resolve_data_root",
 ]
 
@@ -241,8 +245,50 @@ def load_pairs(
     pairs = _check_spacing(pairs, min_spacing, notes)
     where = f"{pairs.name}" + (f" ({pairs.split})" if pairs.split else "")
     for level, text in notes:
-        logger.log(level, "%s: %s", where, text)
+        _announce(level, where, text)
     return dataclasses.replace(pairs, notes=tuple(text for _, text in notes))
+
+
+#: (data set, note) pairs this process has logged: a command loads a data set's
+#: training and test splits, often more than once (train, evaluate, the loop),
+#: and its quirks are the same each time (``PairSet.notes`` keeps them all).
+_ANNOUNCED: set[tuple[str, str]] = set()
+
+
+#: Notes held back by :func:`notes_deferred` (None: none is active).
+_DEFERRED: list[tuple[int, str, str]] | None = None
+
+
+def _announce(level: int, where: str, text: str) -> None:
+    """Log a data note once per process and data set (module docstring)."""
+    key = (where.split(" (")[0], text)
+    if key in _ANNOUNCED:
+        return
+    _ANNOUNCED.add(key)
+    if _DEFERRED is not None:
+        _DEFERRED.append((level, where, text))
+        return
+    logger.log(level, "%s: %s", where, text)
+
+
+@contextmanager
+def notes_deferred() -> Iterator[None]:
+    """Hold the data notes of the loads in the block back until it ends, and
+    drop them if it raises: a command that loads its data and then checks the
+    config against it (the particle budget per pair) shows the one error, not
+    the data's quirks first."""
+    global _DEFERRED
+    outer, _DEFERRED = _DEFERRED, []
+    held = _DEFERRED
+    try:
+        yield
+    finally:
+        _DEFERRED = outer
+    for level, where, text in held:  # the block ended without an error
+        if outer is not None:
+            outer.append((level, where, text))
+        else:
+            logger.log(level, "%s: %s", where, text)
 
 
 def _load_named(

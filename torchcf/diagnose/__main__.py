@@ -15,7 +15,7 @@ from collections.abc import Sequence
 
 import torch
 
-from ..cli import add_overrides, print_error, run_main
+from ..cli import DefaultsHelpFormatter, add_overrides, print_error, run_main
 from ..pipeline import close_loop
 from ..rundir import RunDir
 from .report import fmt
@@ -23,6 +23,7 @@ from .report import fmt
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
+        formatter_class=DefaultsHelpFormatter,
         prog="python -m torchcf.diagnose",
         description="Close the loop on a finished run: residual diagnosis, effect "
         "attribution, re-calibration; writes RUN_DIR/loop.json and loop.md.",

@@ -6,6 +6,7 @@ shared by everything.
 
 from __future__ import annotations
 
+from ..errors import did_you_mean
 from .base import (
     CFModel,
     FollowerState,
@@ -53,7 +54,8 @@ def get_model(name_or_model: str | CFModel) -> CFModel:
     if base_name not in MODELS:
         where = f" in {name_or_model!r}" if tokens else ""
         raise UnknownModelError(
-            f"unknown model {base_name!r}{where}; valid names: {', '.join(MODELS)}"
+            f"unknown model {base_name!r}{where}{did_you_mean(base_name, MODELS)}; "
+            f"valid names: {', '.join(MODELS)}"
         )
     if not tokens:
         raise UnknownModelError(f"unknown model {name_or_model!r}")

@@ -34,6 +34,7 @@ from typing import Any, ClassVar, Literal
 import torch
 from torch import Tensor
 
+from ..errors import did_you_mean
 from .base import (
     CFModel,
     FollowerState,
@@ -765,8 +766,10 @@ def parse_effect(token: str) -> Effect:
     """One effect from its name token: ``"delay"`` or ``"grade(end=600,knots=4)"``."""
     match = _TOKEN.match(token.strip().lower())
     if match is None or match.group(1) not in EFFECTS:
+        name = match.group(1) if match else token.strip().lower()
         raise ValueError(
-            f"unknown effect {token!r}; valid effects: {', '.join(EFFECTS)}"
+            f"unknown effect {token!r}{did_you_mean(name, EFFECTS)}; valid "
+            f"effects: {', '.join(EFFECTS)}"
         )
     cls = EFFECTS[match.group(1)]
     options: dict[str, float] = {}

@@ -20,7 +20,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from ..cli import run_main
+from ..cli import DefaultsHelpFormatter, run_main
 from ..files import atomic_write_text, ensure_directory
 from ..rundir import RunDir
 from .tables import parameters_csv, parameters_markdown, write_parameter_tables
@@ -34,7 +34,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog="python -m torchcf.posterior",
         description="The calibrated parameters of a trained run: a Markdown table "
         "per model (median and 5-95%% range), or one CSV row per accepted particle.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=DefaultsHelpFormatter,
     )
     parser.add_argument("run_dir", type=Path, help="a trained run directory")
     parser.add_argument(

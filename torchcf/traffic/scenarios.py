@@ -229,20 +229,23 @@ def _maybe_compile(fn: Callable[..., Any], compile: bool) -> Callable[..., Any]:
 
 # ----------------------------------------------------------------------- platoon
 def pair_leader(
-    pairs: PairSet, index: Sequence[int] | Tensor
+    pairs: PairSet, index: int | Sequence[int] | Tensor
 ) -> tuple[Tensor, Tensor, FollowerState]:
     """Measured leaders and their followers' starting states, for :func:`platoon`.
 
     Args:
         pairs: the pairs ``(T, N)`` (ragged pairs are padded with their last value:
             the leader then stands still; simulate their valid steps only).
-        index: ``(S,)`` the pair of each scenario.
+        index: ``(S,)`` the pair of each scenario; an int is one scenario
+            (``S = 1``).
 
     Returns:
         leader position ``(T, S)`` [m] and speed ``(T, S)`` [m/s], and follower 0's
         observed initial state (each ``(S,)``), all in the pairs' dtype.
     """
     index = torch.as_tensor(index, dtype=torch.long)
+    if index.ndim == 0:  # one pair: one scenario
+        index = index[None]
     if index.ndim != 1 or index.numel() == 0:
         raise ValueError(f"index must be a non-empty 1-D list of pairs, got {index}")
     if int(index.min()) < 0 or int(index.max()) >= pairs.n_pairs:

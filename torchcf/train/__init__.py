@@ -8,6 +8,22 @@
 Re-exports only.
 """
 
-from .run import RunError, RunState, check_budget, open_run, rollout_of, train
+from .run import (
+    RunError,
+    RunState,
+    check_budget,
+    open_run,
+    rollout_of,
+    run_device,
+    train,
+)
 
-__all__ = ["RunError", "RunState", "check_budget", "open_run", "rollout_of", "train"]
+__all__ = [
+    "RunError",
+    "RunState",
+    "check_budget",
+    "open_run",
+    "rollout_of",
+    "run_device",
+    "train",
+]

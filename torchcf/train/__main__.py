@@ -17,6 +17,7 @@ on stderr, no traceback); 130 interrupted (resume with ``--resume``).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from collections.abc import Sequence
@@ -24,8 +25,8 @@ from pathlib import Path
 from typing import Any
 
 from ..abc.distributed import SINGLE, Group, init_from_env
-from ..cli import add_overrides, one_line, run_main
-from ..config import load_config
+from ..cli import DefaultsHelpFormatter, add_overrides, one_line, run_main
+from ..config import TrainConfig, load_config
 from ..pipeline import run_study
 from ..rundir import RunDir
 
@@ -40,13 +41,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     parser = argparse.ArgumentParser(
         prog="python -m torchcf.train",
+        formatter_class=DefaultsHelpFormatter,
         description="ABC rejection and hybrid model selection on car-following data.",
         epilog=(
             "Distributed: torchrun --standalone --nproc-per-node K -m torchcf.train "
             "CONFIG (README, 'Distributed runs')."
         ),
     )
-    parser.add_argument("config", help="JSON config (see configs/ and --schema)")
+    parser.add_argument(
+        "config", nargs="?", help="JSON config (see configs/ and --schema)"
+    )
+    parser.add_argument(
+        "--schema",
+        action="store_true",
+        help="print the JSON schema of a config (every field) and exit",
+    )
     parser.add_argument("--out", default=None, help="output directory")
     add_overrides(parser, "KEY=JSON", "abc.n_particles=200000")
     parser.add_argument(
@@ -58,6 +67,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="skip the test-split evaluation (python -m torchcf.evaluate DIR later)",
     )
     args = parser.parse_args(argv)
+    if args.schema:
+        print(json.dumps(TrainConfig.model_json_schema(), indent=2))
+        return 0
+    if args.config is None:
+        parser.error("give a CONFIG file (or --schema)")
     group = SINGLE
 
     def body() -> int:
@@ -65,11 +79,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         cfg = load_config(args.config, args.overrides)
         out = Path(args.out) if args.out is not None else Path(cfg.output)
         group = init_from_env(cfg.device)
+        done = args.resume and group.is_main and RunDir(out).is_evaluated()
         summary = run_study(
             cfg, out, resume=args.resume, evaluate=not args.no_eval, group=group
         )
         if group.is_main:
-            _print_result(summary, RunDir(out), evaluated=not args.no_eval)
+            if done:
+                print(
+                    f"{out} is finished (trained and evaluated): nothing to do "
+                    "(delete its metrics.json to evaluate it again)"
+                )
+            _print_result(
+                summary, RunDir(out), evaluated=not args.no_eval, wrote=not done
+            )
         return 0
 
     try:
@@ -84,8 +106,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         group.close()
 
 
-def _print_result(summary: dict[str, Any], run: RunDir, evaluated: bool) -> None:
-    """The shares, and the hybrid's test metrics when the run was evaluated."""
+def _print_result(
+    summary: dict[str, Any], run: RunDir, evaluated: bool, wrote: bool = True
+) -> None:
+    """The shares, and the hybrid's test metrics when the run was evaluated;
+    ``wrote``: this command wrote the run (not so for a finished run resumed)."""
     width = max(len(name) for name in summary["shares"])
     print(f"hybrid shares ({summary['dataset']}, N = {summary['top_n']}):")
     for name, share in summary["shares"].items():
@@ -102,7 +127,8 @@ def _print_result(summary: dict[str, Any], run: RunDir, evaluated: bool) -> None
             f"test split ({metrics['n_test']} pairs), hybrid: WS {hybrid['ws']}, "
             f"0.15-WS {hybrid['beta_ws']}, minimum distance {hybrid['min']}"
         )
-    print(f"wrote {run.path}")
+    if wrote:
+        print(f"wrote {run.path}")
 
 
 def _report(error: BaseException, group: Group) -> None:

@@ -35,6 +35,7 @@ import math
 import platform
 import sys
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -71,6 +72,7 @@ from ..posterior import Posterior
 from ..posterior.tables import parameters_markdown, write_parameter_tables
 from ..rundir import RunDir
 from ..runtime import tune_malloc
+from ..signals import StopRequest
 from ..tblog import RunLogger, markdown_summary
 from ..traffic.battery import Battery, battery_speed, plausibility_by_model, rejects
 
@@ -291,19 +293,34 @@ def rollout_of(cfg: TrainConfig, pairs: PairSet, device: torch.device) -> Rollou
 
 
 class _Checkpointer:
-    """Saves the run state on rank 0, every ``every`` seconds when asked."""
+    """Saves the run state on rank 0, every ``every`` seconds when asked, and at
+    once when a stop was requested (Ctrl-C or SIGTERM: :mod:`torchcf.signals`),
+    after which it stops the run."""
 
-    def __init__(self, run: RunDir, state: RunState, every: float, group: Group):
+    def __init__(
+        self,
+        run: RunDir,
+        state: RunState,
+        every: float,
+        group: Group,
+        stop: StopRequest | None = None,
+    ):
         self.run, self.state, self.every, self.group = run, state, every, group
+        self.stop = stop
         self.last = time.perf_counter()
 
     def due(self) -> bool:
+        if self.stop is not None and self.stop.requested:
+            return True
         return time.perf_counter() - self.last >= self.every
 
     def save(self) -> None:
-        """Every rank holds the merged buffers: rank 0 saves them."""
+        """Every rank holds the merged buffers: rank 0 saves them; then a
+        requested stop raises :class:`~torchcf.signals.Stopped`."""
         self.group.on_main(self.run.save_checkpoint, self.state.as_checkpoint())
         self.last = time.perf_counter()
+        if self.stop is not None:
+            self.stop.stop(checkpointed=True)
 
 
 def plausibility_battery(cfg: TrainConfig, pairs: PairSet) -> Battery:
@@ -550,9 +567,28 @@ def train(
     tune_malloc()
     device = run_device(cfg, group)
     run = RunDir(out)
+    with run.locked() if group.is_main else nullcontext():
+        return _train_held(cfg, run, resume, pairs, group, device, began)
+
+
+def _train_held(
+    cfg: TrainConfig,
+    run: RunDir,
+    resume: bool,
+    pairs: tuple[PairSet, PairSet] | None,
+    group: Group,
+    device: torch.device,
+    began: float,
+) -> dict[str, Any]:
+    """:func:`train` with the run directory held by rank 0 (no second process
+    trains into it meanwhile)."""
+    out = run.path
     # Rank 0 reads the checkpoint and the data and sends them to the others:
     # only rank 0 needs the output directory and the data files.
     state = group.on_main(open_run, cfg, out, resume)  # before the data: fail fast
+    finished = group.on_main(_finished_summary, run, resume)
+    if finished is not None:  # resumed after it ended: nothing left to do
+        return finished
     if pairs is None:
         pairs = group.on_main(load_split, cfg.data)
     train_pairs, test_pairs = pairs
@@ -563,11 +599,16 @@ def train(
         group.on_main(record_extraction, cfg.data.raw, run.data_dir)
     _buffers(cfg, train_pairs, state, run)
     rollout = rollout_of(cfg, train_pairs, device)
-    checkpointer = _Checkpointer(run, state, cfg.abc.checkpoint_every, group)
+    stop = StopRequest()
+    checkpointer = _Checkpointer(run, state, cfg.abc.checkpoint_every, group, stop)
 
     with RunLogger(run.tb_dir, enabled=group.is_main) as logger:
-        for spec in cfg.models:
-            _stream_model(cfg, spec.name, rollout, state, checkpointer, logger, group)
+        with stop:  # a signal stops the stream at its next checkpoint
+            for spec in cfg.models:
+                _stream_model(
+                    cfg, spec.name, rollout, state, checkpointer, logger, group
+                )
+        checkpointer.stop = None  # the stream is saved; the rest is quick
         # Every rank holds the same buffers now; the selection is cheap and
         # deterministic, so each computes it and only rank 0 writes.
         posterior, summary = _results(
@@ -583,6 +624,13 @@ def train(
         write_parameter_tables(posterior, report)
         run.write_summary(summary)  # last: its presence says the run finished
     return summary
+
+
+def _finished_summary(run: RunDir, resume: bool) -> dict[str, Any] | None:
+    """The summary of a run resumed after it finished (its checkpoint matched the
+    config: :func:`open_run`), else None. Training it again would redo the
+    selection and the battery, and log every result to TensorBoard twice."""
+    return run.read_summary() if resume and run.is_trained() else None
 
 
 def _results(
