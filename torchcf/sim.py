@@ -41,8 +41,12 @@ from torch import Tensor
 
 from .models import CFModel, FollowerState, Perception, get_model
 
-#: Steps per block function call (the unit that ``torch.compile`` fuses).
-BLOCK_STEPS = 16
+#: Steps per block function call (the unit that ``torch.compile`` fuses). The
+#: compile time grows with the steps unrolled, the throughput with fewer trips
+#: to memory: on 2 CPU cores (``reports/bench/compile.md``, IDM, HL, LLCTG) 16
+#: steps compile in 19-28 s, 8 in 14-17 s at the same throughput (-7 % to +58 %
+#: per model), 4 in 12-13 s at 10-20 % less; compiled results do not depend on it.
+BLOCK_STEPS = 8
 #: Below this many simulated particle-steps, ``compile="auto"`` stays eager: the
 #: one-off compilation (seconds) would cost more than it saves.
 COMPILE_MIN_STEPS = 2e8
