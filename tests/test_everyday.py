@@ -108,10 +108,10 @@ def fresh_notes(monkeypatch):
 
 def test_a_data_note_is_logged_once_per_process(fresh_notes, caplog):
     with caplog.at_level(logging.INFO, logger="torchcf.data"):
-        registry._announce(logging.WARNING, "set (train)", "a quirk")
-        registry._announce(logging.WARNING, "set (test)", "a quirk")
-        registry._announce(logging.WARNING, "set (test)", "another")
-        registry._announce(logging.WARNING, "other (train)", "a quirk")
+        registry._announce(logging.WARNING, "set", "train", "a quirk")
+        registry._announce(logging.WARNING, "set", "test", "a quirk")
+        registry._announce(logging.WARNING, "set", "test", "another")
+        registry._announce(logging.WARNING, "other", "train", "a quirk")
     assert [r.getMessage() for r in caplog.records] == [
         "set (train): a quirk",
         "set (test): another",
@@ -122,11 +122,11 @@ def test_a_data_note_is_logged_once_per_process(fresh_notes, caplog):
 def test_deferred_notes_follow_the_block_or_go_with_its_error(fresh_notes, caplog):
     with caplog.at_level(logging.INFO, logger="torchcf.data"):
         with pytest.raises(ConfigError), notes_deferred():
-            registry._announce(logging.WARNING, "set", "first")
+            registry._announce(logging.WARNING, "set", None, "first")
             raise ConfigError("abc.top_n: too many")
         assert caplog.records == []
         with notes_deferred():
-            registry._announce(logging.WARNING, "set", "second")
+            registry._announce(logging.WARNING, "set", None, "second")
             assert caplog.records == []
         assert [r.getMessage() for r in caplog.records] == ["set: second"]
 

@@ -336,14 +336,21 @@ def _iterations(counts: list[int]) -> str:
     return str(counts[0]) if len(counts) == 1 else f"{sum(counts)} (max {max(counts)})"
 
 
-def sinkhorn_markdown(rows, meta, command, args) -> str:
-    lines = [
-        "## Sinkhorn: POT vs ours (the entropic solve alone)",
+def _heading(title: str, command: str, meta: dict) -> list[str]:
+    """A report section's first lines: its title, the command, the run's meta."""
+    return [
+        title,
         "",
         f"`{command}`",
         "",
-        *(f"- {key}: {value}" for key, value in meta.items()),
+        *(f"- {k}: {v}" for k, v in meta.items()),
         "",
+    ]
+
+
+def sinkhorn_markdown(rows, meta, command, args) -> str:
+    lines = [
+        *_heading("## Sinkhorn: POT vs ours (the entropic solve alone)", command, meta),
         f"| case | reg | POT [s] ({args.threads} threads) | POT [s] (1 thread) "
         "| ours [s] | ours one at a time [s] | iterations POT | iterations ours "
         "| max rel. diff. | all converged |",
@@ -398,12 +405,7 @@ def load_average() -> str:
 
 def markdown(rows, meta, command, args) -> str:
     lines = [
-        "# Evaluation metrics vs scipy linprog (HiGHS)",
-        "",
-        f"`{command}`",
-        "",
-        *(f"- {key}: {value}" for key, value in meta.items()),
-        "",
+        *_heading("# Evaluation metrics vs scipy linprog (HiGHS)", command, meta),
         "| size (P x N) | metric | ours [s] | linprog [s] | speed-up "
         "| abs. difference |",
         "|---|---|---|---|---|---|",

@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
@@ -284,6 +285,23 @@ def evaluate_run(
         EvaluationError: the hybrid particle set is empty.
     """
     run = RunDir(run_dir)
+    # No training or loop writes into the run meanwhile; a missing directory
+    # fails in load_run with its one line, with nothing to lock.
+    with run.locked() if run.path.is_dir() else nullcontext():
+        return _evaluate_held(
+            run, report_dir, pairs, figure_pair, tensorboard, progress
+        )
+
+
+def _evaluate_held(
+    run: RunDir,
+    report_dir: str | Path | None,
+    pairs: tuple[PairSet, PairSet] | None,
+    figure_pair: int | None,
+    tensorboard: bool,
+    progress: bool,
+) -> dict[str, Any]:
+    """:func:`evaluate_run` with the run directory held."""
     cfg, posterior, summary = run.load_run()
     report = Path(report_dir) if report_dir is not None else run.report_dir
     # The outputs' folders must take files before the data are loaded: fail fast
@@ -372,11 +390,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     def body() -> int:
-        run = RunDir(args.run_dir)
-        if not run.path.is_dir():  # say so, rather than create it for the lock
-            raise EvaluationError(f"{run.path} is not a run directory")
-        with run.locked():  # no training or loop writes into it meanwhile
-            result = evaluate_run(run, report_dir=args.report, figure_pair=args.pair)
+        result = evaluate_run(
+            args.run_dir, report_dir=args.report, figure_pair=args.pair
+        )
         print(f"{'':8} {'e_p':>8} {'min':>8} {'0.15-WS':>8} {'WS':>8}")
         for entry, m in result.items():
             if isinstance(m, dict) and "ws" in m:

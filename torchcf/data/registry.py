@@ -243,9 +243,8 @@ def load_pairs(
         )
 
     pairs = _check_spacing(pairs, min_spacing, notes)
-    where = f"{pairs.name}" + (f" ({pairs.split})" if pairs.split else "")
     for level, text in notes:
-        _announce(level, where, text)
+        _announce(level, pairs.name, pairs.split, text)
     return dataclasses.replace(pairs, notes=tuple(text for _, text in notes))
 
 
@@ -259,12 +258,12 @@ _ANNOUNCED: set[tuple[str, str]] = set()
 _DEFERRED: list[tuple[int, str, str]] | None = None
 
 
-def _announce(level: int, where: str, text: str) -> None:
+def _announce(level: int, name: str, split: str | None, text: str) -> None:
     """Log a data note once per process and data set (module docstring)."""
-    key = (where.split(" (")[0], text)
-    if key in _ANNOUNCED:
+    if (name, text) in _ANNOUNCED:
         return
-    _ANNOUNCED.add(key)
+    _ANNOUNCED.add((name, text))
+    where = name + (f" ({split})" if split else "")
     if _DEFERRED is not None:
         _DEFERRED.append((level, where, text))
         return

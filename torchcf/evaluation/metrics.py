@@ -461,19 +461,19 @@ def sinkhorn_many(
     solved = dict(zip(feasible, plans, strict=True))
     results = []
     for k, ws in enumerate(exact):
-        if k not in solved:
+        if k not in solved:  # WS infeasible: Sinkhorn is not run
             results.append(
                 SinkhornResult(
-                    math.inf,
-                    math.inf,
-                    math.nan,
-                    False,
-                    0,
-                    math.nan,
-                    reg,
-                    None,
-                    ws.invalid_cells,
-                )  # fmt: skip
+                    value=math.inf,
+                    ws=math.inf,
+                    gap=math.nan,
+                    converged=False,
+                    n_iter=0,
+                    marginal_error=math.nan,
+                    reg=reg,
+                    plan=None,
+                    invalid_cells=ws.invalid_cells,
+                )
             )
             continue
         entropic = solved[k]

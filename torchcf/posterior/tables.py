@@ -90,21 +90,18 @@ def parameters_csv(posterior: Posterior) -> str:
     for model in posterior.models:
         particles = posterior.hybrid[model]
         names = [f"{model}.{p}" for p in particles.param_names]
-        order = sorted(
-            range(len(particles)),
-            key=lambda i: (
-                int(particles.pair_ids[i]),
-                float(particles.score[i]),
-                int(particles.particle_index[i]),
-            ),
+        # (pair, score, stream index, parameters) per particle, as Python numbers
+        rows = zip(
+            particles.pair_ids.tolist(),
+            particles.score.tolist(),
+            particles.particle_index.tolist(),
+            particles.theta.tolist(),
+            strict=True,
         )
-        for i in order:
+        for pair, score, index, theta in sorted(rows, key=lambda r: r[:3]):
             row = [""] * len(header)
-            row[0] = model
-            row[1] = str(int(particles.pair_ids[i]))
-            row[2] = str(int(particles.particle_index[i]))
-            row[3] = _number(float(particles.score[i]))
-            for name, value in zip(names, particles.theta[i].tolist(), strict=True):
+            row[:4] = [model, str(pair), str(index), _number(score)]
+            for name, value in zip(names, theta, strict=True):
                 row[column[name]] = _number(value)
             writer.writerow(row)
     return buffer.getvalue()

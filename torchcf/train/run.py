@@ -608,7 +608,6 @@ def _train_held(
                 _stream_model(
                     cfg, spec.name, rollout, state, checkpointer, logger, group
                 )
-        checkpointer.stop = None  # the stream is saved; the rest is quick
         # Every rank holds the same buffers now; the selection is cheap and
         # deterministic, so each computes it and only rank 0 writes.
         posterior, summary = _results(
