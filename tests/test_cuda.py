@@ -60,14 +60,23 @@ def test_simulate_on_cuda_equals_cpu(name, layout):
 
 
 @pytest.mark.compile
-def test_compiled_rollout_on_cuda():
+@pytest.mark.parametrize("name", [m for m in MODELS if MODELS[m].compilable])
+def test_compiled_rollout_on_cuda(name):
+    """Fused on the GPU = eager on the GPU, validity included: a compiler that
+    contracts ``a*b - a*b`` into an FMA once made every OVM and IDM rollout
+    invalid while their trajectories were right."""
     pairs = synthetic_pairs(n_pairs=5, n_steps=100, seed=3)
-    theta = prior_draws(MODELS["idm"], 4096, seed=2, dtype=torch.float32)
+    theta = prior_draws(MODELS[name], 4096, seed=2, dtype=torch.float32)
     index = torch.arange(4096) % pairs.n_pairs
-    eager = simulate("idm", theta, pairs, index, device="cuda", compile=False)
-    fused = simulate("idm", theta, pairs, index, device="cuda", compile=True)
+    eager = simulate(name, theta, pairs, index, device="cuda", compile=False)
+    fused = simulate(name, theta, pairs, index, device="cuda", compile=True)
+    assert float(eager.valid.float().mean()) > 0.2, "the test needs valid rollouts"
+    assert float((eager.valid != fused.valid).float().mean()) <= 0.01
+    # float32: the fused kernel rounds differently (FMAs), and a few rollouts of
+    # a sensitive model drift apart over the steps (FVDM: 2 of 3706 by 0.2 %).
     both = eager.valid & fused.valid
-    torch.testing.assert_close(fused.score[both], eager.score[both], rtol=1e-4, atol=0)
+    close = torch.isclose(fused.score[both], eager.score[both], rtol=1e-3, atol=1e-5)
+    assert float(close.float().mean()) >= 0.99
 
 
 def test_training_on_cuda_keeps_the_cpu_particles(tmp_path):

@@ -326,3 +326,24 @@ def test_compile_cache_holds_every_model_and_shape():
 
     _compiled_block(MODELS["llcs"], True, 0.1, 5.0, False)
     assert torch._dynamo.config.recompile_limit >= 64
+
+
+@pytest.mark.parametrize(
+    "fused", [False, pytest.param(True, marks=pytest.mark.compile)]
+)
+def test_not_finite_flags_exactly_nan_and_inf(fused):
+    """The rollout's finiteness test, eager and inside a compiled block: True
+    exactly where x, v or a is NaN or +-inf, False for finite products (a fused
+    ``u - u`` of a product can be an FMA's rounding error, not 0)."""
+    from torchcf.sim import _not_finite
+
+    a, b = torch.rand(1000, dtype=torch.float32) * 7, torch.rand(1000) * 3
+    x = torch.tensor([1.0, math.nan, 2.0, 3.0, 4.0, 5.0]).repeat(200)[:1000]
+    v = torch.tensor([0.0, 0.0, math.inf, 0.0, -math.inf, 1.0]).repeat(200)[:1000]
+
+    def check(x, v, a, b):
+        return _not_finite(x, v, a * b)
+
+    fn = torch.compile(check, fullgraph=True) if fused else check
+    expected = ~(torch.isfinite(x) & torch.isfinite(v))
+    assert torch.equal(fn(x, v, a, b), expected)

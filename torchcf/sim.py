@@ -54,6 +54,11 @@ COMPILE_MIN_STEPS = 2e8
 #: vectorised path of the fused kernel, never a scalar tail, so results do not
 #: depend on the chunk size.
 COMPILE_CHUNK_MULTIPLE = 64
+#: Simulated cells per chunk on CUDA (at least): a GPU runs one kernel per
+#: operation and step whatever the chunk, so larger chunks amortise the launches.
+#: Every model's CPU budget (:attr:`CFModel.chunk_cells`) is below it, so on CUDA
+#: every model gets this one. Results do not depend on it (chunk-size invariance).
+CUDA_CHUNK_CELLS = 2**21
 #: Score weights of position, speed and acceleration RMSE (SPEC section 4).
 DEFAULT_WEIGHTS = (0.5, 0.3, 0.2)
 
@@ -150,12 +155,7 @@ def _block(
         command, memory = model.command_with_memory(params, perception, memory)
         acc_recorded = state.a if model.acceleration_is_state else command
 
-        # x - x is 0 for a finite x and NaN for NaN or +-inf, so the sum is
-        # nonzero exactly when one of the three is not finite (the same test as
-        # three isfinite calls, at a third of their cost on small batches).
-        not_finite = (state.x - state.x) + (state.v - state.v) + (
-            acc_recorded - acc_recorded
-        ) != 0
+        not_finite = _not_finite(state.x, state.v, acc_recorded)
         # spacing <= 0 is False for NaN, so both tests are needed.
         broken = not_finite | (spacing <= 0)
         acc = _Accumulators(
@@ -170,6 +170,21 @@ def _block(
 
         state = realise(model, params, state, command, dt)
     return state, acc, memory, torch.stack(recorded) if record else None
+
+
+def _not_finite(x: Tensor, v: Tensor, a: Tensor) -> Tensor:
+    """Where any of ``x, v, a`` (same shape) is NaN or +-inf.
+
+    Eager: ``x - x`` is 0 for a finite x and NaN otherwise, so the sum is nonzero
+    exactly where one is not finite, at a third of three ``isfinite`` calls on
+    small batches. Fused, the compiler may contract ``a*b - a*b`` (the command of a
+    model ending in a product: OVM, IDM) into ``fma(a, b, -(a*b))``, the product's
+    rounding error, which is nonzero for finite values: on CUDA every such rollout
+    came out invalid. A fused block therefore asks ``isfinite``.
+    """
+    if torch.compiler.is_compiling():
+        return ~(torch.isfinite(x) & torch.isfinite(v) & torch.isfinite(a))
+    return (x - x) + (v - v) + (a - a) != 0
 
 
 def realise(
@@ -324,6 +339,14 @@ def _compiled_block(
 _COMPILE_FAILED: set[str] = set()
 
 
+def cell_budget(model: CFModel, device: torch.device) -> int:
+    """Simulated cells (particles x pairs) per chunk by default: the model's CPU
+    budget, at least :data:`CUDA_CHUNK_CELLS` on CUDA."""
+    if device.type == "cuda":
+        return max(model.chunk_cells, CUDA_CHUNK_CELLS)
+    return model.chunk_cells
+
+
 def resolve_compile(
     model: CFModel, compile: CompileMode, device: torch.device, cells: int
 ) -> bool:
@@ -417,8 +440,9 @@ def simulate(
         device: default: theta's device.
         return_traj: also return the simulated ``x, v, a``, time-first.
         weights: score weights of (position, speed, acceleration).
-        chunk_size: particles per chunk; default ``model.chunk_cells`` simulated
-            cells (``2**18``; MPC ``2**20``). The result does not depend on it.
+        chunk_size: particles per chunk; default :func:`cell_budget` simulated
+            cells (``2**18``, MPC ``2**16``; at least :data:`CUDA_CHUNK_CELLS` on
+            CUDA). The result does not depend on it.
         compile: fuse the time step with ``torch.compile``: True, False or "auto"
             (only for long CPU runs with a C++ compiler, or CUDA). Falls back to
             eager with a warning if compilation fails.
@@ -453,7 +477,7 @@ def simulate(
             raise ValueError(f"pair_index out of range [0, {pairs.n_pairs})")
     cells_per_particle = 1 if paired else pairs.n_pairs
     if chunk_size is None:
-        chunk_size = max(1, model.chunk_cells // cells_per_particle)
+        chunk_size = max(1, cell_budget(model, device) // cells_per_particle)
     if chunk_size <= 0:
         raise ValueError(f"chunk_size must be positive, got {chunk_size}")
     chunk_size = min(chunk_size, max(n_particles, 1))

@@ -41,18 +41,18 @@ from torch import Tensor
 
 from ..data import PairSet
 from ..models import CFModel, get_model
-from ..sim import COMPILE_CHUNK_MULTIPLE, DEFAULT_WEIGHTS, resolve_compile, simulate
+from ..sim import (
+    COMPILE_CHUNK_MULTIPLE,
+    CUDA_CHUNK_CELLS,
+    DEFAULT_WEIGHTS,
+    cell_budget,
+    resolve_compile,
+    simulate,
+)
 from .distributed import SINGLE, Group
 from .screen import PlausibilityScreen
 from .streams import ParticleStream
 from .topn import TopN
-
-#: Default simulated cells per chunk on CUDA (at least): a GPU runs one kernel per
-#: operation and step whatever the chunk, so larger chunks amortise the launches.
-#: Every model's CPU budget (:attr:`CFModel.chunk_cells`) is below it, so on CUDA
-#: every model gets this one. The result does not depend on it (chunk-size
-#: invariance).
-CUDA_CHUNK_CELLS = 2**21
 
 CompileChoice = Literal["auto", "on", "off"]
 
@@ -71,7 +71,7 @@ class Rollout:
         compile: ``"on"``, ``"off"`` or ``"auto"`` (fuse the time loop with
             ``torch.compile`` when a model's whole stream is long enough to pay).
         chunk_size: particles per simulate call; None: the model's cell budget
-            (:attr:`CFModel.chunk_cells`, at least :data:`CUDA_CHUNK_CELLS` on CUDA).
+            (:func:`torchcf.sim.cell_budget`).
     """
 
     pairs: PairSet
@@ -98,9 +98,7 @@ class Rollout:
 
     def chunk(self, model: CFModel, n_particles: int, compiled: bool) -> int:
         """Particles per simulate call for a stream of ``n_particles``."""
-        budget = model.chunk_cells
-        if self.device.type == "cuda":
-            budget = max(budget, CUDA_CHUNK_CELLS)
+        budget = cell_budget(model, self.device)
         chunk = self.chunk_size or max(1, budget // self.cells_per_particle)
         chunk = min(chunk, n_particles)
         if compiled:  # compiled blocks want whole vector lanes (see torchcf.sim)

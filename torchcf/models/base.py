@@ -134,7 +134,7 @@ class CFModel:
     #: choose: per-step overhead vs. memory and cache. A chunk is also the
     #: rejection engine's round, the unit of progress and checkpoints: a budget
     #: should be seconds of simulation, a small part of a long stream (on CUDA
-    #: chunks hold at least :data:`torchcf.abc.rejection.CUDA_CHUNK_CELLS`).
+    #: chunks hold at least :data:`torchcf.sim.CUDA_CHUNK_CELLS`).
     chunk_cells: ClassVar[int] = 1 << 18
     #: Whether a particle's rollout rounds the same whatever the batch it is
     #: simulated in. False for the MPC, whose QP solver picks its kernels by batch
