@@ -15,6 +15,7 @@ from torchcf.evaluate import (
     cost_matrices,
     evaluate_posterior,
     evaluate_run,
+    hybrid_rows_in_single,
     main,
     single_model_particles,
 )
@@ -62,6 +63,77 @@ def test_single_model_set_is_its_first_n_finite_buffer_entries(trained):
     finite = torch.isfinite(buffer["score"][:, :3])
     assert theta.shape == (int(finite.sum()), 6)
     assert torch.equal(theta, buffer["theta"][:, :3][finite])
+
+
+def test_hybrid_rows_are_found_among_the_single_model_particles(trained):
+    """Per-pair selection: every hybrid particle is one of its model's N best on
+    its pair, and the row found holds that particle."""
+    _, out, _, _ = trained
+    posterior = Posterior.load(out / "posterior.pt")
+    for name in posterior.models:
+        rows = hybrid_rows_in_single(posterior, name)
+        assert (rows >= 0).all(), name
+        single = single_model_particles(posterior, name)
+        assert torch.equal(single[torch.from_numpy(rows)], posterior.hybrid[name].theta)
+
+
+def test_hybrid_costs_equal_their_own_rollout(trained):
+    """The hybrid's rows taken from the single models equal simulating the hybrid
+    particles themselves (float64: the same numbers)."""
+    cfg, out, _, test_pairs = trained
+    cfg = cfg.model_copy(update={"dtype": "float64"})
+    posterior = Posterior.load(out / "posterior.pt")
+    _, costs = evaluate_posterior(posterior, test_pairs, cfg, progress=False)
+    direct = [
+        cost_matrices(
+            name, posterior.hybrid[name].theta, test_pairs, dtype=torch.float64
+        )
+        for name in posterior.models
+        if len(posterior.hybrid[name])
+    ]
+    for key in ("score", "e_p", "e_v", "e_a"):
+        expected = np.concatenate([d[key] for d in direct])
+        np.testing.assert_allclose(costs["hybrid"][key], expected, rtol=1e-12)
+
+
+def test_a_global_selection_particle_outside_the_first_n_is_simulated(trained):
+    """A hybrid particle not among its model's first N slots (global selection
+    can keep one) gets its own rollout, in its place among the hybrid rows."""
+    cfg, out, _, test_pairs = trained
+    cfg = cfg.model_copy(update={"dtype": "float64"})
+    posterior = Posterior.load(out / "posterior.pt")
+    name = next(n for n in posterior.models if len(posterior.hybrid[n]) >= 2)
+    hybrid = posterior.hybrid[name]
+    moved = hybrid.particle_index.clone()
+    moved[1] = -7  # no such stream index: not found among the singles
+    posterior.hybrid[name] = type(hybrid)(
+        hybrid.param_names, hybrid.theta, hybrid.score, hybrid.pair_ids, moved
+    )
+    assert hybrid_rows_in_single(posterior, name)[1] == -1
+    _, costs = evaluate_posterior(posterior, test_pairs, cfg, progress=False)
+    first = sum(
+        len(posterior.hybrid[m])
+        for m in posterior.models[: posterior.models.index(name)]
+    )
+    own = cost_matrices(name, hybrid.theta[1:2], test_pairs, dtype=torch.float64)
+    np.testing.assert_allclose(costs["hybrid"]["score"][first + 1], own["score"][0])
+
+
+def test_evaluation_reuses_the_training_figures(trained, tmp_path):
+    """Training wrote shares.png and pairwise.png; evaluating into the run's
+    report leaves them, evaluating into another folder draws them there."""
+    _, out, _, test_pairs = trained
+    shares = out / "report" / "shares.png"
+    assert shares.is_file() and (out / "report" / "pairwise.png").is_file()
+    before = shares.stat().st_mtime_ns
+    evaluate_run(out, pairs=(test_pairs, test_pairs), progress=False)
+    assert shares.stat().st_mtime_ns == before
+    elsewhere = tmp_path / "elsewhere"
+    evaluate_run(
+        out, report_dir=elsewhere, pairs=(test_pairs, test_pairs), progress=False
+    )
+    names = {p.name for p in elsewhere.glob("*.png")}
+    assert names == {"shares.png", "pairwise.png", "error_evolution.png", "radar.png"}
 
 
 def test_metrics_equal_a_direct_computation(trained):

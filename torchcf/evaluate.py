@@ -46,9 +46,10 @@ from .evaluation.entropic import limit_threads
 from .evaluation.metrics import evaluate_cost_sets
 from .evaluation.plots import (
     error_evolution_figure,
+    figure_to_array,
     pairwise_figure,
     radar_figure,
-    save_figure,
+    save_image,
     shares_figure,
 )
 from .evaluation.report import metrics_table, plausibility_table
@@ -76,6 +77,42 @@ def single_model_particles(posterior: Posterior, name: str) -> Tensor:
     return theta[torch.isfinite(score)]
 
 
+def hybrid_rows_in_single(posterior: Posterior, name: str) -> np.ndarray:
+    """Where each of the model's hybrid particles sits among its single-model
+    particles (:func:`single_model_particles`), or -1.
+
+    A particle kept by the hybrid for a training pair is among its own model's N
+    best on that pair (per-pair selection), so its cost rows on the test pairs are
+    already simulated there; a global selection can keep one that is not (-1).
+    Particles are matched by (training pair, stream index), which names one
+    particle of one model.
+
+    Returns:
+        (h,) int64, row in the single model's (n, ...) arrays, or -1.
+    """
+    buffer = posterior.buffers[name]
+    n = posterior.top_n
+    pair_ids = posterior.train_pair_ids.tolist()
+    score = buffer["score"][:, :n]
+    index = buffer["index"][:, :n]
+    finite = torch.isfinite(score)
+    keys = [
+        (pair_ids[row], int(index[row, slot]))
+        for row, slot in finite.nonzero().tolist()
+    ]  # row-major, the order of single_model_particles
+    row_of = {key: i for i, key in enumerate(keys)}
+    hybrid = posterior.hybrid[name]
+    return np.array(
+        [
+            row_of.get((int(pair), int(j)), -1)
+            for pair, j in zip(
+                hybrid.pair_ids.tolist(), hybrid.particle_index.tolist(), strict=True
+            )
+        ],
+        dtype=np.int64,
+    )
+
+
 def cost_matrices(
     model: str,
     theta: Tensor,
@@ -101,6 +138,29 @@ def cost_matrices(
         key: getattr(out, key).double().cpu().numpy()
         for key in ("score", "e_p", "e_v", "e_a")
     }
+
+
+def _hybrid_costs(
+    name: str,
+    theta: Tensor,
+    rows: np.ndarray,
+    costs: dict[str, dict[str, np.ndarray]],
+    test: PairSet,
+    kwargs: dict[str, Any],
+) -> dict[str, np.ndarray]:
+    """The (h, n_test) cost matrices of a model's hybrid particles ``theta``:
+    the single model's rows where :func:`hybrid_rows_in_single` found them (the
+    same particle on the same pairs, no second rollout), a rollout for the rest."""
+    found = rows >= 0
+    if found.all():
+        return {key: value[rows] for key, value in costs[name].items()}
+    fresh = cost_matrices(name, theta[torch.from_numpy(~found)], test, **kwargs)
+    out = {key: np.empty((len(rows), test.n_pairs)) for key in fresh}
+    for key, value in out.items():
+        value[~found] = fresh[key]
+        if found.any():
+            value[found] = costs[name][key][rows[found]]
+    return out
 
 
 def _stack(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
@@ -155,7 +215,9 @@ def evaluate_posterior(
     hybrid = {name: posterior.hybrid[name].theta for name in posterior.models}
     if not any(len(theta) for theta in hybrid.values()):
         raise EvaluationError("the hybrid particle set is empty")
-    total = sum(len(t) for t in singles.values()) + sum(len(t) for t in hybrid.values())
+    rows = {name: hybrid_rows_in_single(posterior, name) for name in posterior.models}
+    missing = {name: np.flatnonzero(rows[name] < 0) for name in posterior.models}
+    total = sum(len(t) for t in singles.values()) + sum(map(len, missing.values()))
     costs: dict[str, dict[str, np.ndarray]] = {}
     hybrid_parts = []
     with _bar(total, "evaluate: simulate", "particle", progress) as bar:
@@ -165,8 +227,10 @@ def evaluate_posterior(
                 costs[name] = cost_matrices(name, singles[name], test, **kwargs)
                 bar.update(len(singles[name]))
             if len(hybrid[name]):
-                hybrid_parts.append(cost_matrices(name, hybrid[name], test, **kwargs))
-                bar.update(len(hybrid[name]))
+                hybrid_parts.append(
+                    _hybrid_costs(name, hybrid[name], rows[name], costs, test, kwargs)
+                )
+                bar.update(len(missing[name]))
     costs["hybrid"] = _stack(hybrid_parts)
     return simulated_metrics(costs, cfg, progress=progress), costs
 
@@ -346,10 +410,6 @@ def _evaluate_held(
     time, errors, scores = position_errors(posterior, test, figure_pair, cfg)
     pair_id = int(test.pair_ids[figure_pair])
     figures = {
-        "shares": shares_figure(posterior.shares),
-        "pairwise": pairwise_figure(
-            summary["pairwise"]["models"], summary["pairwise"]["table"]
-        ),
         "error_evolution": error_evolution_figure(
             time,
             errors,
@@ -358,21 +418,35 @@ def _evaluate_held(
         ),
         "radar": radar_figure({entry: metrics[entry] for entry in entries}),
     }
-    # Rendering the figures (PNG, then TensorBoard) is the slowest step left.
+    # Training wrote the shares and pairwise PNGs into its report folder; another
+    # folder (or a run trained before it did) gets them drawn here.
+    trained = ("shares", "pairwise")
+    in_run = report.resolve() == run.report_dir.resolve()
+    if not (in_run and all((report / f"{n}.png").is_file() for n in trained)):
+        pairwise = summary["pairwise"]
+        figures["shares"] = shares_figure(posterior.shares)
+        figures["pairwise"] = pairwise_figure(pairwise["models"], pairwise["table"])
+    # Each figure is drawn once (the draw is most of its cost), for its PNG and
+    # TensorBoard (where training already put the shares and pairwise figures).
     with _bar(
         len(figures) + tensorboard, "evaluate: report", "figure", progress
     ) as bar:
+        images = {}
         for name, figure in figures.items():
+            images[name] = figure_to_array(figure)
             path = report / f"{name}.png"
             with writing(path):
-                save_figure(figure, path)
+                save_image(images[name], path)
             bar.update()
         if tensorboard:
             with (
                 writing(run.tb_dir),
                 RunLogger(run.tb_dir, stream="evaluation") as logger,
             ):
-                logger.evaluation(figures, {e: metrics[e] for e in entries})
+                logger.evaluation(
+                    {k: images[k] for k in ("error_evolution", "radar")},
+                    {e: metrics[e] for e in entries},
+                )
             bar.update()
     run.write_metrics(result)
     return result

@@ -202,6 +202,7 @@ class RunLogger:
         pairwise_models: Sequence[str],
         pairwise_table: Sequence[Sequence[float]] | Tensor | np.ndarray,
         sensitivity: Mapping[int, Mapping[str, float]] | None = None,
+        images: Mapping[str, np.ndarray] | None = None,
     ) -> None:
         """The hybrid model: share figures and share scalars.
 
@@ -211,19 +212,17 @@ class RunLogger:
             pairwise_table: (M, M) share of row model i in the hybrid of {i, j}.
             sensitivity: optional top-N size ``n`` (accepted particles per pair)
                 -> shares; logged under the tag ``hybrid/sensitivity/N=<n>``.
+            images: the two figures already rendered
+                (:func:`torchcf.evaluation.plots.hybrid_images`); None: drawn here.
         """
         if self._writer is None:
             return
-        from .evaluation.plots import figure_to_array, pairwise_figure, shares_figure
+        if images is None:
+            from .evaluation.plots import hybrid_images
 
-        self._writer.add_image(
-            "hybrid/shares", figure_to_array(shares_figure(shares)), dataformats="HWC"
-        )
-        self._writer.add_image(
-            "hybrid/pairwise",
-            figure_to_array(pairwise_figure(pairwise_models, pairwise_table)),
-            dataformats="HWC",
-        )
+            images = hybrid_images(shares, pairwise_models, pairwise_table)
+        self._writer.add_image("hybrid/shares", images["shares"], dataformats="HWC")
+        self._writer.add_image("hybrid/pairwise", images["pairwise"], dataformats="HWC")
         for model, share in shares.items():
             self._writer.add_scalar(f"hybrid/share/{model}", float(share))
         for n, by_model in (sensitivity or {}).items():
@@ -235,24 +234,21 @@ class RunLogger:
     @_reports_write_errors
     def evaluation(
         self,
-        figures: Mapping[str, Any],
+        images: Mapping[str, np.ndarray],
         metrics: Mapping[str, Mapping[str, float]],
     ) -> None:
         """Test-split evaluation: figures as images ``eval/<name>`` and the finite
         metrics as scalars ``eval/<metric>/<entry>`` (entry: a model or "hybrid").
 
         Args:
-            figures: name -> matplotlib Figure.
+            images: name -> ``(H, W, 3)`` uint8 rendered figure
+                (:func:`torchcf.evaluation.plots.figure_to_array`).
             metrics: entry -> {metric name: value}.
         """
         if self._writer is None:
             return
-        from .evaluation.plots import figure_to_array
-
-        for name, figure in figures.items():
-            self._writer.add_image(
-                f"eval/{name}", figure_to_array(figure), dataformats="HWC"
-            )
+        for name, image in images.items():
+            self._writer.add_image(f"eval/{name}", image, dataformats="HWC")
         for entry, values in metrics.items():
             for key, value in values.items():
                 if isinstance(value, int | float) and math.isfinite(value):

@@ -21,6 +21,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
+from matplotlib import image as mpl_image
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from torch import Tensor
@@ -34,11 +35,13 @@ __all__ = [
     "residuals_figure",
     "error_evolution_figure",
     "figure_to_array",
+    "hybrid_images",
     "pairwise_figure",
     "radar_area_share",
     "radar_figure",
     "radar_values",
     "save_figure",
+    "save_image",
     "shares_figure",
 ]
 
@@ -473,6 +476,20 @@ def loop_figures(
     }
 
 
+def hybrid_images(
+    shares: Mapping[str, float],
+    pairwise_models: Sequence[str],
+    pairwise_table: Sequence[Sequence[float]] | Tensor | np.ndarray,
+) -> dict[str, np.ndarray]:
+    """The training's figures, rendered once: ``"shares"`` (:func:`shares_figure`)
+    and ``"pairwise"`` (:func:`pairwise_figure`), each ``(H, W, 3)`` uint8, for
+    the report's PNGs and TensorBoard alike."""
+    return {
+        "shares": figure_to_array(shares_figure(shares)),
+        "pairwise": figure_to_array(pairwise_figure(pairwise_models, pairwise_table)),
+    }
+
+
 def figure_to_array(fig: Figure) -> np.ndarray:
     """Render a figure with the Agg canvas.
 
@@ -489,10 +506,18 @@ def figure_to_array(fig: Figure) -> np.ndarray:
 
 
 def save_figure(fig: Figure, path: str | os.PathLike[str]) -> None:
-    """Write the figure as a PNG atomically.
+    """Write the figure as a PNG atomically (see :func:`save_image`)."""
+    save_image(figure_to_array(fig), path)
 
-    The image goes to a temporary file in the destination folder, which then replaces
-    ``path`` in one rename, so a reader never sees a half-written file.
+
+def save_image(image: np.ndarray, path: str | os.PathLike[str]) -> None:
+    """Write an ``(H, W, 3)`` uint8 image (:func:`figure_to_array`) as a PNG
+    atomically.
+
+    A figure rendered once serves both the PNG and TensorBoard: the Agg draw is
+    most of a figure's cost, and ``savefig`` would draw it again. The image goes
+    to a temporary file in the destination folder, which then replaces ``path``
+    in one rename, so a reader never sees a half-written file.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -501,7 +526,7 @@ def save_figure(fig: Figure, path: str | os.PathLike[str]) -> None:
     )
     try:
         with os.fdopen(fd, "wb") as fh:
-            fig.savefig(fh, format="png", dpi=_DPI)
+            mpl_image.imsave(fh, image, format="png", dpi=_DPI)
         # mkstemp creates the file as 0600; give the PNG ordinary permissions.
         os.chmod(tmp_name, 0o644)
         os.replace(tmp_name, path)

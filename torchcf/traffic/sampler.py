@@ -35,6 +35,7 @@ tensor has that shape. Internally the vehicles are flattened to ``(V,)``.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from collections.abc import Sequence
@@ -64,9 +65,13 @@ def _command(
     return model.command_with_memory(prepared, obs, memory)
 
 
-# Models with data-dependent control flow (MPC's QP solver) run eagerly inside a
-# compiled forward: dynamo leaves this call out of the graph instead of failing.
-_command_eager = torch.compiler.disable(_command)
+@functools.cache
+def _command_eager() -> Any:
+    """:func:`_command` for models with data-dependent control flow (MPC's QP
+    solver): they run eagerly inside a compiled forward, dynamo leaving this call
+    out of the graph instead of failing. Made on first use: ``disable`` imports
+    dynamo, a second of every torchcf process's start-up otherwise."""
+    return torch.compiler.disable(_command)
 
 
 class _Group(NamedTuple):
@@ -499,7 +504,7 @@ class HybridSampler(nn.Module):
                 if memory is None
                 else memory[k]
             )
-            step = _command if group.model.compilable else _command_eager
+            step = _command if group.model.compilable else _command_eager()
             u, state = step(group.model, group.prepared, obs, state)
             next_memory.append(state)
             if group.covers_all:

@@ -66,7 +66,8 @@ from ..config import ConfigError, TrainConfig, config_hash, resolved_json
 from ..data import PairSet, load_split
 from ..data.importer import record_extraction
 from ..errors import TorchcfError
-from ..files import RunFileError, ensure_directory
+from ..evaluation.plots import hybrid_images, save_image
+from ..files import RunFileError, ensure_directory, writing
 from ..models import get_model
 from ..posterior import Posterior
 from ..posterior.tables import parameters_markdown, write_parameter_tables
@@ -616,11 +617,21 @@ def _train_held(
         if cfg.plausibility.report and group.is_main:
             summary["plausibility"] = hybrid_plausibility(cfg, train_pairs, posterior)
             logger.plausibility(summary["plausibility"])
-        _log_results(cfg, logger, posterior, summary)
+        images = None
+        if group.is_main:
+            pairwise = summary["pairwise"]
+            images = hybrid_images(
+                posterior.shares, pairwise["models"], pairwise["table"]
+            )
+        _log_results(cfg, logger, posterior, summary, images)
     if group.is_main:
         run.save_posterior(posterior)
         report = ensure_directory(run.report_dir, "report directory")
         write_parameter_tables(posterior, report)
+        for name, image in images.items():
+            path = report / f"{name}.png"
+            with writing(path):
+                save_image(image, path)
         run.write_summary(summary)  # last: its presence says the run finished
     return summary
 
@@ -718,16 +729,21 @@ def _smc_summary(
 
 
 def _log_results(
-    cfg: TrainConfig, logger: RunLogger, posterior: Posterior, summary: dict[str, Any]
+    cfg: TrainConfig,
+    logger: RunLogger,
+    posterior: Posterior,
+    summary: dict[str, Any],
+    images: dict[str, np.ndarray] | None,
 ) -> None:
-    """The accepted parameters, the shares and the summary in TensorBoard."""
+    """The accepted parameters, the shares and the summary in TensorBoard;
+    ``images``: the hybrid's figures, rendered once for here and the report."""
     names = list(posterior.models)
     for name in names:
         particles = posterior.hybrid[name]
         logger.posterior(name, particles.param_names, particles.theta)
     table = torch.tensor(summary["pairwise"]["table"], dtype=torch.float64)
     sensitivity = {int(k): v for k, v in summary["sensitivity"].items()}
-    logger.hybrid(posterior.shares, names, table, sensitivity)
+    logger.hybrid(posterior.shares, names, table, sensitivity, images)
     logger.text("summary", markdown_summary(summary))
     logger.text("parameters", parameters_markdown(posterior))
     logger.hparams(
