@@ -2,21 +2,30 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
+from torchcf.data.__main__ import main as data_main
 from torchcf.data.formats import read_trajectories
 from torchcf.data.formats.generic import (
     ACCELERATION_UNITS,
+    FRAME_UNIT,
     LENGTH_UNITS,
     SPEED_UNITS,
     TIME_UNITS,
     parse_column_map,
     read_csv_table,
+    time_factor,
+    unit_factors,
 )
 from torchcf.data.pairset import DataError
+
+from .test_bad_input import one_error_line
+from .test_data_cli import extract_args, write_log
 
 MAP = "vehicle=ID,time=t,position=x,speed=v"
 
@@ -124,6 +133,75 @@ def test_time_units(tmp_path: Path, unit: str, seconds: float) -> None:
     frame = pd.DataFrame({"vehicle": ["a"], "time": [12]})
     table = read_csv_table(write(tmp_path / "t.csv", frame), time_unit=unit)
     assert table.frame["time"].iloc[0] == pytest.approx(seconds)
+
+
+# ------------------------------------------------------- frame-based time
+def test_frame_numbers_at_25_hz(tmp_path: Path) -> None:
+    frame = pd.DataFrame({"vehicle": ["a"] * 4, "frame": [0, 1, 25, 50]})
+    path = write(tmp_path / "video.csv", frame)
+    table = read_csv_table(
+        path, columns="time=frame", time_unit="frame", frame_rate=25.0
+    )
+    assert table.frame["time"].tolist() == pytest.approx([0.0, 0.04, 1.0, 2.0])
+    assert time_factor(FRAME_UNIT, 30.0) == pytest.approx(1.0 / 30.0)
+    assert unit_factors(time_unit="frame", frame_rate=10.0)["time"] == 0.1
+    # ds is the frame unit at 10 Hz
+    ds = read_csv_table(path, columns="time=frame", time_unit="ds")
+    assert ds.frame["time"].tolist() == pytest.approx([0.0, 0.1, 2.5, 5.0])
+
+
+@pytest.mark.parametrize(
+    ("unit", "rate", "match"),
+    [
+        ("frame", None, "time unit 'frame' needs a frame rate"),
+        ("frame", 0.0, "frame rate must be finite and > 0"),
+        ("frame", float("nan"), "frame rate must be finite and > 0"),
+        ("s", 25.0, "frame rate is only used with time unit 'frame', not 's'"),
+        ("fr", None, "unknown time unit 'fr'; known: s, ms, ds, frame"),
+    ],
+)
+def test_frame_rate_goes_with_the_frame_unit(tmp_path, unit, rate, match) -> None:
+    path = write(tmp_path / "cars.csv", two_cars())
+    with pytest.raises(DataError, match=match):
+        read_csv_table(path, columns=MAP, time_unit=unit, frame_rate=rate)
+
+
+def frame_log(path: Path) -> Path:
+    """The command-line test's log with time as frame numbers at 10 Hz."""
+    write_log(path)
+    log = pd.read_csv(path)
+    log["t"] = np.rint(log["t"] * 10.0).astype(int)
+    log.to_csv(path, index=False)
+    return path
+
+
+def test_cli_frame_time(tmp_path, capsys) -> None:
+    log = frame_log(tmp_path / "log.csv")
+    out = tmp_path / "pairs"
+    more = ["--time-unit", "frame", "--frame-rate", "10"]
+    assert data_main([*extract_args(log, out), *more]) == 0
+    assert "12 pairs (9 train, 3 test) of 200 steps at dt = 0.1 s" in (
+        capsys.readouterr().out
+    )
+    record = json.loads((out / "extract.json").read_text())
+    assert record["raw"]["time_unit"] == "frame"
+    assert record["raw"]["frame_rate"] == 10.0
+
+
+@pytest.mark.parametrize(
+    ("more", "needles"),
+    [
+        (["--time-unit", "frame"], ["time_unit", "needs a frame rate"]),
+        (["--frame-rate", "10"], ["frame rate is only used with time unit"]),
+        (["--time-unit", "frame", "--frame-rate", "-5"], ["frame_rate", "> 0"]),
+    ],
+)
+def test_cli_frame_errors_are_one_line(tmp_path, capsys, more, needles) -> None:
+    log = frame_log(tmp_path / "log.csv")
+    out = tmp_path / "pairs"
+    assert data_main([*extract_args(log, out), *more]) == 2
+    one_error_line(capsys.readouterr().err, *needles)
+    assert not out.exists()
 
 
 def test_unit_tables_are_consistent() -> None:

@@ -230,7 +230,7 @@ def test_folder_reads_every_file_runs_apart(tmp_path: Path) -> None:
     [
         ("", "is empty"),
         ("1 2 3 4 5\n", "has 5 fields on line 1, expected 18"),
-        ("Vehicle_ID,Frame_ID,Global_Time\n1,2,3\n", "lacks the column.*Total_Frames"),
+        ("Vehicle_ID,Frame_ID,Global_Time\n1,2,3\n", "lacks the column.*Local_Y"),
     ],
 )
 def test_malformed_files_raise(tmp_path: Path, content: str, match: str) -> None:
@@ -239,6 +239,166 @@ def test_malformed_files_raise(tmp_path: Path, content: str, match: str) -> None
     with pytest.raises(DataError, match=match) as info:
         read_ngsim(path)
     assert "bad.txt" in str(info.value)
+
+
+# ------------------------------------------------------------------ variants
+def export(tmp_path: Path, name: str, frame: pd.DataFrame, **options) -> Path:
+    """``frame`` written as a CSV export (header row) under ``tmp_path/name``."""
+    path = tmp_path / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    frame.to_csv(path, index=False, **options)
+    return path
+
+
+#: Optional column -> what its absence leaves in the table of :func:`platoon`.
+ABSENT = {
+    "Global_Time": ("run", {"f"}),
+    "Total_Frames": ("vehicle", {"1", "2"}),
+    "v_Vel": ("speed", None),
+    "v_Acc": ("acceleration", None),
+    "v_Length": ("gap", None),  # and the length
+    "Space_Headway": ("gap", None),
+    "Lane_ID": ("lane", {""}),
+    "Preceding": ("leader", {""}),
+}
+
+
+@pytest.mark.parametrize("column", list(ABSENT))
+def test_optional_column_may_be_absent(tmp_path: Path, column: str) -> None:
+    path = export(tmp_path, "f.csv", pd.DataFrame(platoon()).drop(columns=[column]))
+    table = read_ngsim(path)
+    assert table.n_vehicles == 2 and len(table.frame) == 10
+    field, values = ABSENT[column]
+    if values is None:
+        assert table.frame[field].isna().all()
+    else:
+        assert set(table.frame[field]) == values
+    assert sum(f"f.csv: no column {column}: " in n for n in table.notes) == 1
+    # what is there is read as before
+    follower = by_vehicle(table, "1")
+    assert follower["position"].iloc[0] == pytest.approx(53.0 * FT, rel=1e-15)
+
+
+def test_three_columns_are_enough(tmp_path: Path) -> None:
+    frame = pd.DataFrame(platoon())[["Local_Y", "Frame_ID", "Vehicle_ID"]]
+    table = read_ngsim(export(tmp_path, "min.csv", frame))
+    assert table.runs == ["min"] and table.n_vehicles == 2
+    assert table.frame[["speed", "acceleration", "length", "gap"]].isna().all().all()
+    assert set(table.frame["leader"]) == {""}
+    note = next(n for n in table.notes if "no column" in n)
+    assert note.count("; no ") == 7 and "\n" not in note
+
+
+def test_header_variants_read_alike(tmp_path: Path) -> None:
+    """Column order, extra columns, separators, quotes, spellings, trailing
+    separators: all give the table of the plain export."""
+    plain = pd.DataFrame(platoon()).assign(Location="i-80")
+    variants = {
+        "reordered": (plain[plain.columns[::-1]], {}),
+        "extra": (plain.assign(Comment="x", Speed_kmh=3.0), {}),
+        "semicolon": (plain, {"sep": ";"}),
+        "tabs": (plain, {"sep": "\t"}),
+        "quoted": (plain, {"quoting": 1}),
+        "spelled": (
+            plain.rename(
+                columns={
+                    "Space_Headway": "Space_Hdwy",
+                    "Preceding": "Prec_Veh",
+                    "v_Length": "v_Len",
+                    "Vehicle_ID": "Vehicle ID",
+                    "Frame_ID": "FRAME-ID",
+                }
+            ),
+            {},
+        ),
+        "unused twice": (
+            plain.rename(columns={"Following": "v_Width"}),
+            {},
+        ),
+    }
+    reference = read_ngsim(export(tmp_path / "plain", "f.csv", plain)).frame
+    for name, (frame, options) in variants.items():
+        table = read_ngsim(export(tmp_path / name, "f.csv", frame, **options))
+        pd.testing.assert_frame_equal(table.frame, reference, obj=name)
+    text = (tmp_path / "plain" / "f.csv").read_text().splitlines()
+    for name, lines in (
+        ("every line", [line + "," for line in text]),
+        # pandas takes the first column for an index when only the data lines
+        # end in a comma: every value would move one column
+        ("data lines", [text[0]] + [line + "," for line in text[1:]]),
+        ("crlf", [line + "\r" for line in text]),
+    ):
+        path = tmp_path / name / "f.csv"
+        path.parent.mkdir()
+        path.write_text("\n".join(lines) + "\n")
+        pd.testing.assert_frame_equal(read_ngsim(path).frame, reference, obj=name)
+
+
+def test_text_layout_with_tabs_and_a_header_free_csv(tmp_path: Path) -> None:
+    reference = read_ngsim(write_txt(tmp_path / "f.txt", platoon())).frame
+    lines = (tmp_path / "f.txt").read_text().splitlines()
+    for name, sep in (("tabs", "\t"), ("commas", ",")):
+        path = tmp_path / name / "f.txt"
+        path.parent.mkdir()
+        path.write_text("\n".join(sep.join(line.split()) for line in lines))
+        pd.testing.assert_frame_equal(read_ngsim(path).frame, reference, obj=name)
+
+
+@pytest.mark.parametrize(
+    ("edit", "match"),
+    [
+        (lambda ls: ls[:3] + [ls[3] + " 7"] + ls[4:], "Expected 18 fields in line 4"),
+        (
+            lambda ls: ls[:3] + [" ".join(ls[3].split()[:-1])] + ls[4:],
+            "line 4 has fewer than 18 fields",
+        ),
+    ],
+    ids=["a field too many", "a field too few"],
+)
+def test_ragged_text_lines_raise_not_shift(tmp_path: Path, edit, match) -> None:
+    path = write_txt(tmp_path / "r.txt", platoon())
+    path.write_text("\n".join(edit(path.read_text().splitlines())))
+    with pytest.raises(DataError, match=match) as info:
+        read_ngsim(path)
+    assert "r.txt" in str(info.value) and "\n" not in str(info.value)
+
+
+def test_unreadable_headers_raise_one_line(tmp_path: Path) -> None:
+    frame = pd.DataFrame(platoon())
+    cases = {
+        "twice.csv": (
+            frame.rename(columns={"Following": "Prec_Veh"}),
+            "has the column\\(s\\) Preceding twice",
+        ),
+        "no_y.csv": (
+            frame.drop(columns=["Local_Y"]),
+            "lacks the column\\(s\\) Local_Y",
+        ),
+    }
+    for name, (variant, match) in cases.items():
+        with pytest.raises(DataError, match=match) as info:
+            read_ngsim(export(tmp_path, name, variant))
+        assert name in str(info.value) and "\n" not in str(info.value)
+    binary = tmp_path / "b.csv"
+    binary.write_bytes(b"\x00\x01garbage\n")
+    with pytest.raises(DataError, match="b.csv' is not text"):
+        read_ngsim(binary)
+
+
+def test_folder_skips_files_that_are_not_trajectories(tmp_path: Path) -> None:
+    write_txt(tmp_path / "trajectories-0400.txt", platoon(3))
+    (tmp_path / "README.txt").write_text("NGSIM I-80\nfields: ...\n")
+    table = read_ngsim(tmp_path)
+    assert table.runs == [f"trajectories-0400:{EPOCH}"]
+    assert any(
+        n.startswith("skipped 1 file(s) that are not NGSIM") and "README.txt" in n
+        for n in table.notes
+    )
+    (tmp_path / "trajectories-0400.txt").unlink()
+    with pytest.raises(DataError, match="holds no NGSIM file"):
+        read_ngsim(tmp_path)
+    with pytest.raises(DataError, match="README.txt. lacks the column"):
+        read_ngsim(tmp_path / "README.txt")  # named directly: read, and refused
 
 
 def test_text_cell_names_column_and_line(tmp_path: Path) -> None:

@@ -25,12 +25,12 @@ IVS = {
 }
 
 
-def _metadata(names: list[str], pad: int = 0) -> list[str]:
+def _metadata(names: list[str], pad: int = 0, acc: str = "1") -> list[str]:
     rows = [
         ["Date", "30", "9", "2020"],
         ["Vehicle_order", *names],
         ["Number_of_vehicles", str(len(names))],
-        ["ACC", "1"],
+        ["ACC", acc],
         ["Distance_setting", "shortest"],
     ]
     return [",".join(row + [""] * max(0, pad - len(row))) for row in rows]
@@ -44,13 +44,14 @@ def write_platoon(
     pad: int = 0,
     trailing: bool = False,
     meta_rows: int = 5,
+    acc: str = "1",
 ) -> Path:
     """A platoon CSV as JRC writes it: CRLF, 5 metadata rows, header, data.
 
     ``columns`` maps a header name to its cells (array or constant); ``pad``
     pads every metadata row with trailing commas to that many cells,
     ``trailing`` ends the header and data lines with a comma, ``meta_rows``
-    keeps only the first metadata rows.
+    keeps only the first metadata rows, ``acc`` is the ACC field.
     """
     if columns is None:
         columns = default_columns()
@@ -60,7 +61,7 @@ def write_platoon(
         for name, values in columns.items()
     }
     end = "," if trailing else ""
-    lines = [*_metadata(list(names), pad)[:meta_rows], ",".join(header) + end]
+    lines = [*_metadata(list(names), pad, acc)[:meta_rows], ",".join(header) + end]
     for i in range(TIME.size):
         lines.append(",".join(_cell(cells[name][i]) for name in header) + end)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -124,7 +125,8 @@ def test_positions_follow_the_chain_and_gaps_are_the_ivs(tmp_path) -> None:
         assert rows["acceleration"].isna().all()
         assert set(rows["lane"]) == {""} and set(rows["length"]) == {5.0}
     assert list(_vehicle(table, 1)["mode"].unique()) == ["Human"]
-    assert list(_vehicle(table, 3)["mode"].unique()) == ["ACC"]
+    # an ACC mode carries the run's distance setting
+    assert list(_vehicle(table, 3)["mode"].unique()) == ["ACC:shortest"]
     assert table.notes[0].startswith(
         "run part14_1: vehicles 1=BMW, 2=Hyundai, 3=Ford; 8 rows every 0.1 s"
     )
@@ -150,21 +152,35 @@ def test_trailing_commas_and_column_order_do_not_matter(tmp_path) -> None:
     short = read_openacc(write_platoon(tmp_path / "e" / "f.csv", meta_rows=4))
     reordered = dict(reversed(list(default_columns().items())))
     shuffled = read_openacc(write_platoon(tmp_path / "c" / "f.csv", reordered))
-    for other in (padded, ended, short):
+    for other in (padded, ended):
         pd.testing.assert_frame_equal(plain.frame, other.frame)
+    # without Distance_setting the ACC mode has no setting; all else alike
+    pd.testing.assert_frame_equal(
+        plain.frame.drop(columns="mode"), short.frame.drop(columns="mode")
+    )
+    assert set(_vehicle(short, 3)["mode"]) == {"ACC"}
     assert short.notes[0].endswith("ACC 1, distance setting blank")
     pd.testing.assert_frame_equal(plain.sorted().frame, shuffled.sorted().frame)
     assert "\r\n" in (tmp_path / "a" / "f.csv").read_bytes().decode()
 
 
-def test_missing_driver_column_gives_unknown_mode(tmp_path) -> None:
+def test_missing_driver_column_takes_the_acc_field(tmp_path) -> None:
     columns = default_columns()
     del columns["Driver1"], columns["Driver3"]
     table = read_openacc(write_platoon(tmp_path / "f.csv", columns))
-    assert set(_vehicle(table, 1)["mode"]) == {""}
-    assert set(_vehicle(table, 2)["mode"]) == {"ACC"}
-    assert set(_vehicle(table, 3)["mode"]) == {""}
-    assert "run f: no Driver column for vehicle(s) 1, 3: mode ''" in table.notes
+    assert set(_vehicle(table, 1)["mode"]) == {""}  # the first car: unknown
+    assert set(_vehicle(table, 2)["mode"]) == {"ACC:shortest"}  # Driver2
+    assert set(_vehicle(table, 3)["mode"]) == {"ACC:shortest"}  # ACC 1
+    assert (
+        "run f: no Driver column for vehicle(s) 1, 3: mode from the ACC field "
+        "('', 'ACC:shortest')" in table.notes
+    )
+    # ACC 0: all by hand; ACC 2 (mixed): unknown; Driver columns still win
+    manual = read_openacc(write_platoon(tmp_path / "m.csv", columns, acc="0"))
+    assert set(manual.frame["mode"]) == {"Human", "ACC:shortest"}
+    assert set(_vehicle(manual, 3)["mode"]) == {"Human"}
+    mixed = read_openacc(write_platoon(tmp_path / "x.csv", columns, acc="2"))
+    assert set(_vehicle(mixed, 3)["mode"]) == {""}
 
 
 def test_missing_follower_speed_is_nan(tmp_path) -> None:
@@ -187,20 +203,47 @@ def test_missing_ivs_starts_a_chain_of_its_own(tmp_path) -> None:
     assert any("no IVS2: vehicle 3 has no recorded gap" in n for n in table.notes)
 
 
-def test_vehicle_named_by_no_column_is_absent(tmp_path) -> None:
+def test_vehicle_without_speed_or_link_is_left_out(tmp_path) -> None:
     columns = default_columns()
-    del columns["IVS2"], columns["Speed3"]
+    del columns["IVS2"], columns["Speed3"]  # Lat3, E3, Driver3 remain
     table = read_openacc(write_platoon(tmp_path / "f.csv", columns))
     assert table.n_vehicles == 2
-    assert any("vehicle 3 is not in the file" in n for n in table.notes)
+    assert (
+        "run f: vehicle(s) 3 left out: no Speed column in their chain, so no "
+        "position" in table.notes
+    )
 
 
-@pytest.mark.parametrize("column", ["Speed1", "Time"])
-def test_missing_required_column_names_it_and_the_file(tmp_path, column) -> None:
+def test_vehicle_named_by_no_column_is_absent(tmp_path) -> None:
+    columns = {k: v for k, v in default_columns().items() if not k.endswith("3")}
+    table = read_openacc(write_platoon(tmp_path / "f.csv", columns))
+    assert table.n_vehicles == 2 and set(table.frame["vehicle"]) == {"1", "2"}
+    # IVS2 measures to a car the file does not record: it links nothing
+    assert "run f: IVS2 not used: no vehicle after 2 in the file" in table.notes
+    assert any("columns name vehicle(s) 1, 2; none for 3" in n for n in table.notes)
+
+
+def test_leader_without_speed_is_placed_ahead_of_the_anchor(tmp_path) -> None:
     columns = default_columns()
-    del columns[column]
+    del columns["Speed1"]  # vehicle 1 keeps Lat1, E1, Driver1
+    table = read_openacc(write_platoon(tmp_path / "f.csv", columns))
+    x = {k: _vehicle(table, k)["position"].to_numpy() for k in (1, 2, 3)}
+    np.testing.assert_allclose(x[2], _odometer(TIME, SPEED[2]), atol=1e-12)
+    np.testing.assert_allclose(x[1] - x[2] - 5.0, IVS[1], atol=1e-12)
+    np.testing.assert_allclose(x[2] - x[3] - 5.0, IVS[2], atol=1e-12)
+    assert _vehicle(table, 1)["speed"].isna().all()
+    assert _vehicle(table, 2)["leader"].eq("1").all()
+
+
+def test_missing_time_or_every_speed_names_the_file(tmp_path) -> None:
+    columns = default_columns()
+    del columns["Time"]
     path = write_platoon(tmp_path / "broken.csv", columns)
-    with pytest.raises(DataError, match=f"broken.csv' lacks the column '{column}'"):
+    with pytest.raises(DataError, match="broken.csv' lacks the column 'Time'"):
+        read_openacc(path)
+    columns = {k: v for k, v in default_columns().items() if "Speed" not in k}
+    path = write_platoon(tmp_path / "slow.csv", columns)
+    with pytest.raises(DataError, match="slow.csv' has no Speed column"):
         read_openacc(path)
 
 
@@ -261,8 +304,8 @@ def test_not_an_openacc_file(tmp_path) -> None:
 
 def test_header_and_cell_errors(tmp_path) -> None:
     columns = default_columns()
-    columns["Speed4"] = 1.0
-    with pytest.raises(DataError, match="'Speed4' but Number_of_vehicles is 3"):
+    columns["speed2"] = 1.0  # names are matched ignoring case
+    with pytest.raises(DataError, match="a.csv' has the column 'speed2' twice"):
         read_openacc(write_platoon(tmp_path / "a.csv", columns))
     columns = default_columns()
     speed = SPEED[2].astype(object)
@@ -327,4 +370,4 @@ def test_real_spacing_is_the_ivs(real_table) -> None:
             np.testing.assert_allclose(spacing, follow["gap"], rtol=0, atol=1e-9)
             couples += 1
     assert couples == 8
-    assert set(frame["mode"]) == {"", "ACC", "Human"}
+    assert set(frame["mode"]) == {"", "ACC:min", "ACC:shortest", "Human"}

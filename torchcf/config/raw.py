@@ -16,12 +16,16 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from torchcf.data.extract import ExtractOptions
 from torchcf.data.formats import FORMATS
+from torchcf.data.formats import reader_options as format_options
 from torchcf.data.formats.generic import (
     ACCELERATION_UNITS,
+    FRAME_UNIT,
     LENGTH_UNITS,
     SPEED_UNITS,
     TIME_UNITS,
+    time_factor,
 )
+from torchcf.data.pairset import DataError
 from torchcf.data.quality import QualityThresholds
 
 __all__ = ["RawSource"]
@@ -37,36 +41,77 @@ class RawSource(BaseModel):
     model_config = _STRICT
 
     source: str = Field(min_length=1, description="Raw file or folder.")
-    format: Literal["ngsim", "openacc", "csv"] = Field(
+    format: Literal["ngsim", "openacc", "csv", "pairs", "punzo", "highd"] = Field(
         description=f"Reader: one of {', '.join(FORMATS)}."
     )
     columns: dict[str, str] | None = Field(
         None,
         description=(
-            "csv only: source column of each table column, e.g. "
-            '{"vehicle": "ID", "time": "t", "position": "x"}; None = the '
-            "table's own names."
+            "csv and pairs only: source column of each table column, e.g. "
+            '{"vehicle": "ID", "time": "t", "position": "x"} (csv) or '
+            '{"pair": "ID", "x_lead": "xl"} (pairs); None = the reader\'s '
+            "default names."
         ),
     )
     length_unit: str = Field(
-        "m", description=f"csv only: one of {', '.join(LENGTH_UNITS)}."
+        "m", description=f"csv, pairs, punzo: one of {', '.join(LENGTH_UNITS)}."
     )
     speed_unit: str | None = Field(
-        None, description=f"csv only: one of {', '.join(SPEED_UNITS)}; None = length/s."
+        None,
+        description=(
+            f"csv, pairs, punzo: one of {', '.join(SPEED_UNITS)}; None = length/s."
+        ),
     )
     acceleration_unit: str | None = Field(
         None,
         description=(
-            f"csv only: one of {', '.join(ACCELERATION_UNITS)}; None = length/s^2."
+            f"csv, pairs: one of {', '.join(ACCELERATION_UNITS)}; None = length/s^2."
         ),
     )
     time_unit: str = Field(
-        "s", description=f"csv only: one of {', '.join(TIME_UNITS)}."
+        "s",
+        description=(
+            f"csv, pairs, punzo: one of {', '.join((*TIME_UNITS, FRAME_UNIT))} "
+            "(frame: frame numbers, with frame_rate)."
+        ),
+    )
+    frame_rate: float | None = Field(
+        None,
+        gt=0,
+        description="time_unit 'frame' only: frames per second [Hz]; t = frame / rate.",
+    )
+    length_tolerance: float = Field(
+        0.5,
+        gt=0,
+        description=(
+            "pairs and punzo only: largest spread of a pair's leader length [m] "
+            "(positions, gap and length must agree)."
+        ),
+    )
+    recordings: str | None = Field(
+        None,
+        description=(
+            'highd only: recording numbers to read, e.g. "1,2,5-7"; None = all.'
+        ),
+    )
+    directions: str | None = Field(
+        None,
+        description=(
+            'highd only: driving directions to keep, "upper" (1), "lower" (2) or '
+            '"upper,lower"; None = both.'
+        ),
+    )
+    follower_classes: str | None = Field(
+        None,
+        description=(
+            'highd only: vehicle classes that may follow, e.g. "Car" or '
+            '"Car,Truck"; other vehicles stay as leaders. None = all.'
+        ),
     )
     road_frame: bool | None = Field(
         None,
         description=(
-            "csv only: whether all positions lie on one road (the loop's road "
+            "csv, pairs: whether all positions lie on one road (the loop's road "
             "effects need it); None = unknown, the loop decides."
         ),
     )
@@ -107,50 +152,45 @@ class RawSource(BaseModel):
     seed: int = Field(0, description="Seed of the split's order of groups.")
 
     @model_validator(mode="after")
-    def _csv_options_only_for_csv(self) -> RawSource:
-        if self.format != "csv":
-            defaults = type(self).model_fields
-            used = [
-                k
-                for k in (
-                    "columns",
-                    "length_unit",
-                    "speed_unit",
-                    "acceleration_unit",
-                    "time_unit",
-                    "road_frame",
+    def _reader_options_of_the_format(self) -> RawSource:
+        # Each reader says which options it takes (its keyword-only
+        # parameters); one set for another format is a mistake, not a no-op.
+        takes = format_options(self.format)
+        defaults = type(self).model_fields
+        used = [
+            k
+            for k in _reader_fields()
+            if k not in takes and getattr(self, k) != defaults[k].default
+        ]
+        if used:
+            raise ValueError(
+                "; ".join(
+                    f"{k}: only used with format="
+                    + " or ".join(repr(f) for f in FORMATS if k in format_options(f))
+                    for k in used
                 )
-                if getattr(self, k) != defaults[k].default
-            ]
-            if used:
-                raise ValueError(f"{', '.join(used)}: only used with format='csv'")
+            )
         for name, units in (
             ("length_unit", LENGTH_UNITS),
             ("speed_unit", SPEED_UNITS),
             ("acceleration_unit", ACCELERATION_UNITS),
-            ("time_unit", TIME_UNITS),
         ):
             value = getattr(self, name)
             if value is not None and value not in units:
                 raise ValueError(
                     f"{name} must be one of {', '.join(units)}, got {value!r}"
                 )
+        try:
+            time_factor(self.time_unit, self.frame_rate)
+        except DataError as error:
+            raise ValueError(f"time_unit: {error}") from None
         return self
 
     def reader_options(self) -> dict[str, Any]:
-        """Keyword arguments of the format's reader."""
-        if self.format == "csv":
-            return {
-                "columns": self.columns,
-                "length_unit": self.length_unit,
-                "speed_unit": self.speed_unit,
-                "acceleration_unit": self.acceleration_unit,
-                "time_unit": self.time_unit,
-                "road_frame": self.road_frame,
-            }
-        if self.format == "openacc":
-            return {"vehicle_length": self.vehicle_length}
-        return {}
+        """Keyword arguments of the format's reader: those of its options
+        this section has."""
+        fields = type(self).model_fields
+        return {k: getattr(self, k) for k in format_options(self.format) if k in fields}
 
     def extract_options(self) -> ExtractOptions:
         """The extraction settings (:class:`torchcf.data.extract.ExtractOptions`)."""
@@ -170,3 +210,9 @@ class RawSource(BaseModel):
             test_fraction=self.test_fraction,
             seed=self.seed,
         )
+
+
+def _reader_fields() -> list[str]:
+    """The fields of :class:`RawSource` that some format's reader takes."""
+    taken = {k for f in FORMATS for k in format_options(f)}
+    return [k for k in RawSource.model_fields if k in taken]

@@ -6,6 +6,11 @@
     python -m torchcf.data extract log.csv --format csv \\
         --columns vehicle=id,time=t,position=x,speed=v,leader=lead \\
         --speed-unit km/h --out pairs/mine
+    python -m torchcf.data extract ultra-av/ --format pairs --out pairs/ultra
+    python -m torchcf.data extract couples.csv --format pairs \\
+        --columns pair=id,time=frame,x_lead=xl,x_follow=xf,gap=s \\
+        --time-unit frame --frame-rate 25 --out pairs/video
+    python -m torchcf.data extract punzo/ --format punzo --out pairs/punzo
 
 The folder it writes (:mod:`torchcf.data.writer`) is a ``data.path`` for
 ``python -m torchcf.train``; a config's ``data.raw`` section runs the same
@@ -25,10 +30,34 @@ from pydantic import ValidationError
 from torchcf.cli import DefaultsHelpFormatter, run_main
 from torchcf.config.messages import ConfigError, describe
 from torchcf.config.raw import RawSource
-from torchcf.data.formats import FORMATS
-from torchcf.data.formats.generic import parse_column_map
+from torchcf.data.formats import FORMATS, reader_options
+from torchcf.data.formats.generic import (
+    FRAME_UNIT,
+    LENGTH_UNITS,
+    SPEED_UNITS,
+    TIME_UNITS,
+    parse_column_map,
+)
+from torchcf.data.formats.pairs import LENGTH_TOLERANCE, PAIR_COLUMNS
 from torchcf.data.importer import extract_source
+from torchcf.data.trajectory import COLUMNS
 from torchcf.data.writer import write_extraction
+
+#: RawSource fields set by the reader options of the command line, and their
+#: defaults there (those of the readers).
+_READER_ARGS: dict[str, object] = {
+    "columns": None,
+    "length_unit": "m",
+    "speed_unit": None,
+    "acceleration_unit": None,
+    "time_unit": "s",
+    "frame_rate": None,
+    "road_frame": None,
+    "length_tolerance": LENGTH_TOLERANCE,
+    "recordings": None,
+    "directions": None,
+    "follower_classes": None,
+}
 
 
 def _optional_float(text: str) -> float | None:
@@ -67,24 +96,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--overwrite", action="store_true", help="replace an earlier extraction"
     )
-    csv = p.add_argument_group("csv format")
-    csv.add_argument("--columns", help="mapping, e.g. vehicle=ID,time=t,position=x")
-    csv.add_argument("--length-unit", default="m", help="unit of positions (m, ft)")
-    csv.add_argument(
-        "--speed-unit", default=None, help="unit of speeds (None: length unit / s)"
-    )
-    csv.add_argument(
-        "--acceleration-unit",
-        default=None,
-        help="unit of accelerations (None: length unit / s^2)",
-    )
-    csv.add_argument(
-        "--road-frame",
-        choices=("yes", "no"),
-        default=None,
-        help="whether all positions lie on one road (None: unknown)",
-    )
-    csv.add_argument("--time-unit", default="s", help="unit of time stamps (s, ms)")
+    _add_reader_options(p)
+    _add_highd_options(p)
     p.add_argument(
         "--vehicle-length", type=float, default=5.0, help="openacc: vehicle length [m]"
     )
@@ -125,6 +138,102 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _add_reader_options(p: argparse.ArgumentParser) -> None:
+    """The options of the csv, pairs and punzo readers (units, columns)."""
+    group = p.add_argument_group("csv, pairs and punzo formats")
+    group.add_argument(
+        "--columns",
+        help=(
+            "column map canonical=SOURCE,...; csv: "
+            f"{', '.join(COLUMNS)} (default: those names), e.g. "
+            "vehicle=ID,time=t,position=x; pairs: "
+            f"{', '.join(PAIR_COLUMNS)} (default: ULTra-AV's Trajectory_ID, "
+            "Time_Index, Pos_LV, Speed_LV, Acc_LV, Pos_FAV, Speed_FAV, Acc_FAV, "
+            "Spatial_Gap or Space_Gap; an item replaces one default)"
+        ),
+    )
+    group.add_argument(
+        "--length-unit",
+        default=_READER_ARGS["length_unit"],
+        help=f"unit of positions, gaps, lengths ({', '.join(LENGTH_UNITS)})",
+    )
+    group.add_argument(
+        "--speed-unit",
+        default=_READER_ARGS["speed_unit"],
+        help=f"unit of speeds ({', '.join(SPEED_UNITS)}; None: length unit / s)",
+    )
+    group.add_argument(
+        "--acceleration-unit",
+        default=_READER_ARGS["acceleration_unit"],
+        help="unit of accelerations (m/s^2, ft/s^2; None: length unit / s^2)",
+    )
+    group.add_argument(
+        "--time-unit",
+        default=_READER_ARGS["time_unit"],
+        help=(
+            f"unit of time stamps ({', '.join((*TIME_UNITS, FRAME_UNIT))}); "
+            "frame: frame numbers, time = frame / --frame-rate"
+        ),
+    )
+    group.add_argument(
+        "--frame-rate",
+        type=float,
+        default=_READER_ARGS["frame_rate"],
+        help="frames per second [Hz] of --time-unit frame (required with it)",
+    )
+    group.add_argument(
+        "--road-frame",
+        choices=("yes", "no"),
+        default=_READER_ARGS["road_frame"],
+        help="csv, pairs: whether all positions lie on one road (None: unknown)",
+    )
+    group.add_argument(
+        "--length-tolerance",
+        type=float,
+        default=_READER_ARGS["length_tolerance"],
+        help=(
+            "pairs, punzo: largest spread [m] of a pair's leader length, "
+            "x_lead - x_follow - gap or the length column"
+        ),
+    )
+
+
+def _add_highd_options(p: argparse.ArgumentParser) -> None:
+    """The options of the highD reader (which recordings, directions, classes)."""
+    group = p.add_argument_group("highd format")
+    group.add_argument(
+        "--recordings", help='recording numbers, e.g. "1,2,5-7" (None: all)'
+    )
+    group.add_argument(
+        "--directions",
+        help='driving directions: "upper" (1), "lower" (2) or "upper,lower" '
+        "(None: both)",
+    )
+    group.add_argument(
+        "--follower-classes",
+        help='vehicle classes that may follow, e.g. "Car" (None: all; others '
+        "stay as leaders)",
+    )
+
+
+def _reader_fields(args: argparse.Namespace) -> dict:
+    """The reader options as RawSource fields: all that ``args.format`` takes,
+    and any other one set on the command line (RawSource refuses those)."""
+    takes = reader_options(args.format)
+    fields = {}
+    for name, default in _READER_ARGS.items():
+        value = getattr(args, name)
+        if name not in takes and value == default:
+            continue
+        if name == "columns" and value is not None:
+            known = PAIR_COLUMNS if args.format == "pairs" else COLUMNS
+            value = parse_column_map(value, known)
+        elif name == "road_frame" and value is not None:
+            value = value == "yes"
+        fields[name] = value
+    return fields
+
+
 def _raw_source(args: argparse.Namespace) -> RawSource:
     fields = {
         "source": args.source,
@@ -143,15 +252,7 @@ def _raw_source(args: argparse.Namespace) -> RawSource:
         "test_fraction": args.test_fraction,
         "seed": args.seed,
     }
-    if args.format == "csv":
-        fields.update(
-            columns=parse_column_map(args.columns) if args.columns else None,
-            length_unit=args.length_unit,
-            speed_unit=args.speed_unit,
-            acceleration_unit=args.acceleration_unit,
-            time_unit=args.time_unit,
-            road_frame=None if args.road_frame is None else args.road_frame == "yes",
-        )
+    fields.update(_reader_fields(args))
     try:
         return RawSource(**fields)
     except ValidationError as error:

@@ -17,19 +17,27 @@ length        position, length, gap                  m, ft, km
 speed         speed                                  m/s, ft/s, km/h, mph
 acceleration  acceleration                           m/s^2, ft/s^2
 time          time                                   s, ms, ds (0.1 s: frame
-                                                     numbers at 10 Hz)
+                                                     numbers at 10 Hz), frame
+                                                     (with a frame rate)
 ============  =====================================  ==========================
 
 The speed unit defaults to the length unit per second (km: km/h), the
-acceleration unit to the length unit per second squared (km: m/s^2).
+acceleration unit to the length unit per second squared (km: m/s^2). Time in
+``frame`` units is a frame number: ``time = frame / frame_rate`` [s], so a
+25 Hz video's frame 50 is t = 2 s; the rate is required with that unit and
+refused with the others (a rate given with seconds is a slip, not a wish).
 
 A folder source reads every ``*.csv`` in it (not recursively). ``run`` is the
 file stem when not mapped; when mapped, it is the column's value, prefixed by
 the file stem (``stem:value``) in a folder, so files stay apart.
+
+The column maps, unit factors, file lists and header checks here serve the
+other CSV readers too (:mod:`.pairs`, :mod:`.punzo`, :mod:`.ngsim`).
 """
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Iterable
 from pathlib import Path
@@ -41,11 +49,22 @@ from torchcf.data.trajectory import COLUMNS, TEXT, TrajectoryTable
 
 __all__ = [
     "ACCELERATION_UNITS",
+    "FRAME_UNIT",
     "LENGTH_UNITS",
     "SPEED_UNITS",
     "TIME_UNITS",
+    "check_canonical",
+    "column_map",
+    "columns_text",
+    "first_line",
     "parse_column_map",
     "read_csv_table",
+    "read_header",
+    "read_selected",
+    "resolve_columns",
+    "source_files",
+    "time_factor",
+    "unit_factors",
 ]
 
 #: Length unit -> metres; applies to position, length and gap.
@@ -61,29 +80,42 @@ SPEED_UNITS: dict[str, float] = {
 ACCELERATION_UNITS: dict[str, float] = {"m/s^2": 1.0, "ft/s^2": 0.3048}
 #: Time unit -> s; "ds" (deciseconds) reads 10 Hz frame numbers as time.
 TIME_UNITS: dict[str, float] = {"s": 1.0, "ms": 1e-3, "ds": 0.1}
+#: The time unit of frame numbers: its factor is 1 / frame rate, given apart.
+FRAME_UNIT = "frame"
 
 #: Default speed and acceleration units for each length unit.
 _DEFAULT_SPEED: dict[str, str] = {"m": "m/s", "ft": "ft/s", "km": "km/h"}
 _DEFAULT_ACCELERATION: dict[str, str] = {"m": "m/s^2", "ft": "ft/s^2", "km": "m/s^2"}
+#: The quantity, hence the unit, of each numeric canonical column.
+_QUANTITY: dict[str, str] = {
+    "time": "time",
+    "position": "length",
+    "speed": "speed",
+    "acceleration": "acceleration",
+    "length": "length",
+    "gap": "length",
+}
 
 #: How many source columns a "not in FILE; it has: ..." message lists.
 _SHOWN_COLUMNS = 12
 
 
-def parse_column_map(text: str) -> dict[str, str]:
+def parse_column_map(text: str, known: Iterable[str] = COLUMNS) -> dict[str, str]:
     """Parse ``"vehicle=ID,time=t,speed=v"`` into ``{canonical: source column}``.
 
     Items are separated by commas; spaces around names are dropped.
 
     Args:
         text: the mapping, one ``canonical=source`` item per column.
+        known: the canonical names a reader knows (default: the long table's
+            :data:`COLUMNS`; the ``pairs`` reader has its own).
 
     Returns:
         The mapping, in the order given.
 
     Raises:
         DataError: an item without ``=`` or with an empty side, a canonical name
-            given twice, or a canonical name not in :data:`COLUMNS`.
+            given twice, or a canonical name not in ``known``.
     """
     mapping: dict[str, str] = {}
     for item in str(text).split(","):
@@ -98,7 +130,7 @@ def parse_column_map(text: str) -> dict[str, str]:
         if canonical in mapping:
             raise DataError(f"column map names {canonical!r} twice")
         mapping[canonical] = column
-    _check_canonical(mapping)
+    check_canonical(mapping, known)
     return mapping
 
 
@@ -110,6 +142,7 @@ def read_csv_table(
     speed_unit: str | None = None,
     acceleration_unit: str | None = None,
     time_unit: str = "s",
+    frame_rate: float | None = None,
     sep: str = ",",
     road_frame: bool | None = None,
 ) -> TrajectoryTable:
@@ -124,7 +157,9 @@ def read_csv_table(
         speed_unit: a key of :data:`SPEED_UNITS`; None: from ``length_unit``.
         acceleration_unit: a key of :data:`ACCELERATION_UNITS`; None: from
             ``length_unit``.
-        time_unit: a key of :data:`TIME_UNITS`.
+        time_unit: a key of :data:`TIME_UNITS`, or :data:`FRAME_UNIT`.
+        frame_rate: frames per second [Hz] of ``time_unit="frame"``; None
+            with every other unit.
         sep: field separator, passed to :func:`pandas.read_csv`.
         road_frame: whether the positions of one run lie on one road (None:
             unknown); stored on the table.
@@ -134,16 +169,20 @@ def read_csv_table(
 
     Raises:
         DataError: a missing source or an empty folder, an unknown unit or
-            canonical name, a mapped column not in a file (named with the
-            columns it has), no column for ``vehicle`` or ``time``, a file that
-            does not parse, or a text cell in a numeric column.
+            canonical name, a frame unit without a rate (or a rate without
+            it), a mapped column not in a file (named with the columns it
+            has), no column for ``vehicle`` or ``time``, a file that does not
+            parse, or a text cell in a numeric column.
     """
-    mapping = _mapping(columns)
-    factors = _factors(length_unit, speed_unit, acceleration_unit, time_unit)
+    given = column_map(columns, COLUMNS)
+    units = unit_factors(
+        length_unit, speed_unit, acceleration_unit, time_unit, frame_rate
+    )
+    factors = {column: units[q] for column, q in _QUANTITY.items()}
     paths = source_files(source, (".csv",), "csv")
     in_folder = Path(source).is_dir()
     frames = [
-        _read_one(path, mapping, factors, sep, prefix_run=in_folder) for path in paths
+        _read_one(path, given, factors, sep, prefix_run=in_folder) for path in paths
     ]
     frame = pd.concat(frames, ignore_index=True)
     table = TrajectoryTable.from_frame(
@@ -196,40 +235,78 @@ def columns_text(columns: Iterable[object]) -> str:
     return f"{shown}, ... ({more} more)" if more > 0 else shown
 
 
-def _mapping(columns: dict[str, str] | str | None) -> dict[str, str]:
-    """The full ``{canonical: source}`` map: given items over same-name defaults."""
+def column_map(
+    columns: dict[str, str] | str | None, known: Iterable[str]
+) -> dict[str, str]:
+    """The items a user mapped, ``{canonical: source}``, checked against ``known``.
+
+    Args:
+        columns: a dict, its text form (:func:`parse_column_map`) or None.
+        known: the reader's canonical names.
+
+    Raises:
+        DataError: an unknown canonical name, or text that does not parse.
+    """
     if columns is None:
-        given: dict[str, str] = {}
-    elif isinstance(columns, str):
-        given = parse_column_map(columns)
-    else:
-        given = {str(k).strip(): str(v).strip() for k, v in columns.items()}
-        _check_canonical(given)
+        return {}
+    if isinstance(columns, str):
+        return parse_column_map(columns, known)
+    given = {str(k).strip(): str(v).strip() for k, v in columns.items()}
+    check_canonical(given, known)
     return given
 
 
-def _check_canonical(mapping: dict[str, str]) -> None:
-    unknown = [c for c in mapping if c not in COLUMNS]
+def check_canonical(mapping: dict[str, str], known: Iterable[str] = COLUMNS) -> None:
+    """Raise a DataError naming the keys of ``mapping`` not in ``known``."""
+    names = tuple(known)
+    unknown = [c for c in mapping if c not in names]
     if unknown:
         raise DataError(
             f"unknown canonical column(s) {', '.join(map(repr, unknown))} in the "
-            f"column map; known: {', '.join(COLUMNS)}"
+            f"column map; known: {', '.join(names)}"
         )
 
 
-def _unit(value: str, units: dict[str, float], quantity: str) -> float:
-    if value not in units:
-        raise DataError(f"unknown {quantity} unit {value!r}; known: {', '.join(units)}")
-    return units[value]
+def time_factor(time_unit: str, frame_rate: float | None = None) -> float:
+    """Seconds per unit of ``time_unit``; for frames, ``1 / frame_rate``.
+
+    Raises:
+        DataError: an unknown unit, ``"frame"`` without a positive finite rate,
+            or a rate given with another unit.
+    """
+    if time_unit == FRAME_UNIT:
+        if frame_rate is None:
+            raise DataError(
+                "time unit 'frame' needs a frame rate (--frame-rate HZ, or "
+                "frame_rate in a config): time = frame / rate"
+            )
+        rate = float(frame_rate)
+        if not (math.isfinite(rate) and rate > 0):
+            raise DataError(f"frame rate must be finite and > 0 [Hz], got {rate:g}")
+        return 1.0 / rate
+    if frame_rate is not None:
+        raise DataError(
+            f"a frame rate is only used with time unit 'frame', not {time_unit!r}"
+        )
+    known = (*TIME_UNITS, FRAME_UNIT)
+    if time_unit not in TIME_UNITS:
+        raise DataError(f"unknown time unit {time_unit!r}; known: {', '.join(known)}")
+    return TIME_UNITS[time_unit]
 
 
-def _factors(
-    length_unit: str,
-    speed_unit: str | None,
-    acceleration_unit: str | None,
-    time_unit: str,
+def unit_factors(
+    length_unit: str = "m",
+    speed_unit: str | None = None,
+    acceleration_unit: str | None = None,
+    time_unit: str = "s",
+    frame_rate: float | None = None,
 ) -> dict[str, float]:
-    """Factor to SI of every numeric canonical column."""
+    """The factor to SI of each quantity: ``length``, ``speed``,
+    ``acceleration`` and ``time`` (the module docstring's table).
+
+    Raises:
+        DataError: an unknown unit, or a frame unit without its rate.
+    """
     length = _unit(length_unit, LENGTH_UNITS, "length")
     speed = _unit(speed_unit or _DEFAULT_SPEED[length_unit], SPEED_UNITS, "speed")
     acceleration = _unit(
@@ -238,46 +315,79 @@ def _factors(
         "acceleration",
     )
     return {
-        "time": _unit(time_unit, TIME_UNITS, "time"),
-        "position": length,
+        "length": length,
         "speed": speed,
         "acceleration": acceleration,
-        "length": length,
-        "gap": length,
+        "time": time_factor(time_unit, frame_rate),
     }
 
 
-def _read_one(
+def resolve_columns(
     path: Path,
-    mapping: dict[str, str],
-    factors: dict[str, float],
-    sep: str,
-    *,
-    prefix_run: bool,
-) -> pd.DataFrame:
-    """One file as canonical columns in SI (validated by ``from_frame``)."""
-    header = _header(path, sep)
+    header: list[str],
+    given: dict[str, str],
+    defaults: dict[str, tuple[str, ...]],
+    required: Iterable[str],
+) -> dict[str, str]:
+    """Which source column of ``path`` holds each canonical column.
+
+    A mapped column must be in the file; an unmapped canonical column takes
+    the first of its default names that the file has, or is left out.
+
+    Args:
+        path: the file, for messages.
+        header: its column names.
+        given: the user's ``{canonical: source}`` items.
+        defaults: ``{canonical: candidate source names}``, in the canonical
+            order; also the list of canonical columns.
+        required: canonical columns the file must provide.
+
+    Returns:
+        ``{canonical: source}`` for every column found, in the canonical order.
+
+    Raises:
+        DataError: a mapped column not in the file, or a required column
+            without a source (both name the file's columns).
+    """
     chosen: dict[str, str] = {}
-    for canonical in COLUMNS:
-        if canonical in mapping:
-            column = mapping[canonical]
+    for canonical, names in defaults.items():
+        if canonical in given:
+            column = given[canonical]
             if column not in header:
                 raise DataError(
                     f"column '{column}' (mapped to {canonical}) not in '{path}'; "
                     f"it has: {columns_text(header)}"
                 )
             chosen[canonical] = column
-        elif canonical in header:
-            chosen[canonical] = canonical
-    for required in ("vehicle", "time"):
-        if required not in chosen:
+            continue
+        found = next((name for name in names if name in header), None)
+        if found is not None:
+            chosen[canonical] = found
+    for canonical in required:
+        if canonical not in chosen:
             raise DataError(
-                f"no column for '{required}' in '{path}': map one with "
-                f"{required}=COLUMN; it has: {columns_text(header)}"
+                f"no column for '{canonical}' in '{path}': map one with "
+                f"{canonical}=COLUMN; it has: {columns_text(header)}"
             )
-    # Ids stay text as written ("007" is not 7); numbers are parsed by from_frame,
-    # which names the row of a text cell.
-    text_sources = {chosen[c] for c in chosen if c in TEXT}
+    return chosen
+
+
+def read_selected(
+    path: Path, chosen: dict[str, str], text: Iterable[str], sep: str
+) -> pd.DataFrame:
+    """The chosen columns of a CSV under their canonical names, as written.
+
+    Args:
+        path: the CSV file.
+        chosen: ``{canonical: source}`` (from :func:`resolve_columns`).
+        text: canonical columns read as text (ids: "007" is not 7); the
+            others are parsed later, where a text cell can be named by row.
+        sep: field separator.
+
+    Raises:
+        DataError: the file does not parse.
+    """
+    text_sources = {chosen[c] for c in text if c in chosen}
     try:
         raw = pd.read_csv(
             path,
@@ -287,8 +397,51 @@ def _read_one(
             encoding="utf-8-sig",
         )
     except (ValueError, UnicodeDecodeError) as err:  # includes parser errors
-        raise DataError(f"cannot read '{path}' as CSV: {_first_line(err)}") from None
-    frame = pd.DataFrame({c: raw[s] for c, s in chosen.items()})
+        raise DataError(f"cannot read '{path}' as CSV: {first_line(err)}") from None
+    return pd.DataFrame({c: raw[s] for c, s in chosen.items()})
+
+
+def read_header(path: Path, sep: str) -> list[str]:
+    """The column names of a CSV file.
+
+    Raises:
+        DataError: the file is empty or does not parse.
+    """
+    try:
+        return [
+            str(c)
+            for c in pd.read_csv(path, sep=sep, nrows=0, encoding="utf-8-sig").columns
+        ]
+    except pd.errors.EmptyDataError:
+        raise DataError(f"'{path}' is empty") from None
+    except (ValueError, UnicodeDecodeError) as err:
+        raise DataError(f"cannot read '{path}' as CSV: {first_line(err)}") from None
+
+
+def first_line(err: Exception) -> str:
+    """An exception's message cut to its first line, for one-line errors."""
+    return str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+
+
+def _unit(value: str, units: dict[str, float], quantity: str) -> float:
+    if value not in units:
+        raise DataError(f"unknown {quantity} unit {value!r}; known: {', '.join(units)}")
+    return units[value]
+
+
+def _read_one(
+    path: Path,
+    given: dict[str, str],
+    factors: dict[str, float],
+    sep: str,
+    *,
+    prefix_run: bool,
+) -> pd.DataFrame:
+    """One file as canonical columns in SI (validated by ``from_frame``)."""
+    header = read_header(path, sep)
+    same_name = {c: (c,) for c in COLUMNS}
+    chosen = resolve_columns(path, header, given, same_name, ("vehicle", "time"))
+    frame = read_selected(path, chosen, TEXT, sep)
     table = TrajectoryTable.from_frame(frame, source=str(path), format="csv")
     out = table.frame.copy()
     for column, factor in factors.items():
@@ -299,19 +452,3 @@ def _read_one(
     elif prefix_run:
         out["run"] = path.stem + ":" + out["run"]
     return out
-
-
-def _header(path: Path, sep: str) -> list[str]:
-    try:
-        return [
-            str(c)
-            for c in pd.read_csv(path, sep=sep, nrows=0, encoding="utf-8-sig").columns
-        ]
-    except pd.errors.EmptyDataError:
-        raise DataError(f"'{path}' is empty") from None
-    except (ValueError, UnicodeDecodeError) as err:
-        raise DataError(f"cannot read '{path}' as CSV: {_first_line(err)}") from None
-
-
-def _first_line(err: Exception) -> str:
-    return str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__

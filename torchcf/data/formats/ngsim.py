@@ -6,9 +6,29 @@ Two layouts are read, told apart by the first line of the file:
   separated by white space, 18 columns for the freeways (:data:`FREEWAY_COLUMNS`)
   or 24 for the arterials, which add the zone, intersection, section, direction
   and movement codes after ``Lane_ID`` (:data:`ARTERIAL_COLUMNS`);
-* the data.transportation.gov CSV export: a header row (25 columns, names
-  matched case-insensitively: the export writes ``v_length``, the text files
-  ``v_Length``).
+* the data.transportation.gov CSV export, or any file with a header row: the
+  export has 25 columns, but only the names matter, in any order and with any
+  extra columns. Names are matched ignoring case, with spaces or hyphens read
+  as "_" (the export writes ``v_length``, the text files ``v_Length``) and the
+  spellings ``Space_Hdwy``, ``Time_Hdwy``, ``Prec_Veh``, ``Follow_Veh``,
+  ``v_Len`` and ``v_Wid`` taken as the names below. The separator is "," or
+  ";" when the header has one, else a tab, else runs of white space; cells
+  may be quoted.
+
+Only ``Vehicle_ID``, ``Frame_ID`` and ``Local_Y`` are required in a file with a
+header. Every other column used may be absent; each absence is noted once per
+file with what it costs: no ``Global_Time`` makes the file one recording
+period (run = the file stem), no ``Total_Frames`` leaves ids reused within a
+period unsplit, no ``v_Vel`` / ``v_Acc`` leaves speeds / accelerations NaN (the
+extraction derives them), no ``v_Length`` or ``Space_Headway`` leaves lengths
+or gaps NaN, no ``Lane_ID`` gives lane "", and no ``Preceding`` gives no leader
+(so no pair). A file that truly cannot be read stops with one line naming it
+and the problem: a required column missing, a used column twice, a line with
+a field too many (or, in the text layouts, too few: white space has no empty
+cell, so fields would shift), a text cell in a numeric column or an empty id
+or clock cell (with its line), or no data row. A trailing separator on the
+data lines (not the header) is tolerated; pandas would otherwise take the
+first column for an index and shift every value by one column.
 
 Units and meanings (NGSIM -> :class:`~torchcf.data.trajectory.TrajectoryTable`):
 
@@ -47,7 +67,9 @@ original-layout (18-column) text file in feet.
 
 from __future__ import annotations
 
+import csv
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -106,14 +128,39 @@ ARTERIAL_COLUMNS: tuple[str, ...] = (
     *FREEWAY_COLUMNS[14:],
 )
 
-#: Columns read, lower case: ids and clock first, then the measured series.
+#: Columns without which a file cannot be read (lower case).
+_REQUIRED = ("vehicle_id", "frame_id", "local_y")
+#: Columns read when present, each with what its absence means (for the notes).
+_OPTIONAL: dict[str, str] = {
+    "global_time": "one recording period per file (run = the file stem)",
+    "total_frames": "an id reused within a period is not split",
+    "v_length": "length NaN and gap NaN (the gap needs the leader's length)",
+    "v_vel": "speed NaN (derived from positions by the extraction)",
+    "v_acc": "acceleration NaN (derived by the extraction)",
+    "lane_id": "lane ''",
+    "preceding": "no leader known, so no pair can be cut from this file",
+    "space_headway": "gap NaN",
+}
+_USED = (*_REQUIRED, *_OPTIONAL)
+#: Ids and the clock: whole numbers, no empty cell.
 _IDS = ("vehicle_id", "frame_id", "total_frames", "global_time")
-_SERIES = ("local_y", "v_length", "v_vel", "v_acc", "lane_id", "preceding")
-_USED = (*_IDS, *_SERIES, "space_headway")
 #: Used columns in feet (or ft/s, ft/s^2), where 9999.99 may stand for "none".
 _FEET_COLUMNS = ("local_y", "v_length", "v_vel", "v_acc", "space_headway")
 #: Columns a note lists when they hold a sentinel though they are not used.
 _UNUSED_WITH_SENTINEL = ("time_headway",)
+#: Other spellings of header names (normalised) -> the name used here.
+_ALIASES: dict[str, str] = {
+    "space_hdwy": "space_headway",
+    "time_hdwy": "time_headway",
+    "prec_veh": "preceding",
+    "follow_veh": "following",
+    "v_len": "v_length",
+    "v_wid": "v_width",
+}
+#: Separators of files with a header, tried in this order on the first line.
+_SEPARATORS = (",", ";", "\t")
+#: Rows parsed at a time: bounds the memory of the full 1.5 GB export.
+_CHUNK_ROWS = 1_000_000
 #: The offset of :func:`write_ngsim`'s clock [ms], an I-80-like epoch.
 _WRITE_EPOCH_MS = 1_110_000_000_000
 #: Display names of the lower-cased columns, for notes and messages.
@@ -127,8 +174,10 @@ def read_ngsim(source: str | os.PathLike[str]) -> TrajectoryTable:
 
     Args:
         source: an NGSIM text file or CSV export, or a folder whose ``*.txt``
-            and ``*.csv`` files are all read (not recursively); runs of
-            different files stay apart by the file stem.
+            and ``*.csv`` files are all read (not recursively; a file whose
+            first line is neither numbers nor a header naming Vehicle_ID, such
+            as a read-me, is skipped and noted); runs of different files stay
+            apart by the file stem.
 
     Returns:
         The table, sorted by run, vehicle and time; ``format="ngsim"``,
@@ -138,14 +187,31 @@ def read_ngsim(source: str | os.PathLike[str]) -> TrajectoryTable:
 
     Raises:
         DataError: a missing source or an empty folder, an empty or unparsable
-            file, a header without a needed column, a text file with neither 18
-            nor 24 columns, a non-numeric cell or an empty id, frame or clock
-            cell (with its file, column and line).
+            file, a header without Vehicle_ID, Frame_ID or Local_Y or with a
+            used column twice, a text file with neither 18 nor 24 columns, a
+            line with too many fields (too few in a text layout), a non-numeric
+            cell or an empty id, frame or clock cell (with its file, column and
+            line). Every message is one line that names the file.
     """
     paths = source_files(source, (".txt", ".csv"), "ngsim")
+    notes: list[str] = []
+    if Path(source).is_dir():
+        # A folder may hold a read-me or data dictionary beside the data.
+        skipped = [p for p in paths if not _looks_like_ngsim(p)]
+        if len(skipped) == len(paths):
+            raise DataError(
+                f"folder '{source}' holds no NGSIM file (a header naming "
+                f"Vehicle_ID, or a first line of numbers): {_listed(skipped)}"
+            )
+        if skipped:
+            notes.append(
+                f"skipped {len(skipped)} file(s) that are not NGSIM trajectories "
+                f"(no Vehicle_ID header, no numbers on line 1): "
+                f"{_listed([p.name for p in skipped])}"
+            )
+        paths = [p for p in paths if p not in skipped]
     stems = [p.stem for p in paths]
     frames: list[pd.DataFrame] = []
-    notes: list[str] = []
     for path in paths:
         # Two files of one stem (x.txt, x.csv) would share runs: use the name.
         label = path.stem if stems.count(path.stem) == 1 else path.name
@@ -228,19 +294,27 @@ def _read_file(path: Path, label: str) -> tuple[pd.DataFrame, list[str]]:
     name = path.name
     notes: list[str] = []
 
-    ids = {c: _integers(raw[c], c, path, first_line) for c in _IDS}
-    offset = ids["global_time"] - 100 * ids["frame_id"]  # (rows,) [ms]
-    prefix = label + ":"
-    if "location" in raw.columns and raw["location"].nunique() > 1:
-        prefix = prefix + raw["location"].astype(str).str.strip() + ":"
-    run = (prefix + pd.Series(offset).astype(str)).to_numpy(dtype=object)
+    absent = [c for c in _OPTIONAL if c not in raw.columns]
+    if absent:
+        notes.append(
+            f"{name}: no column "
+            + "; no ".join(f"{_NAMES[c]}: {_OPTIONAL[c]}" for c in absent)
+        )
+    ids = {c: _integers(raw[c], c, path, first_line) for c in _IDS if c in raw.columns}
+    run = _run_labels(raw, ids, label)
     runs, counts = np.unique(run, return_counts=True)
+    by = "Global_Time - 100*Frame_ID" if "global_time" in ids else "no Global_Time"
     notes.append(
-        f"{name}: {len(runs)} recording period(s) (Global_Time - 100*Frame_ID): "
+        f"{name}: {len(runs)} recording period(s) ({by}): "
         + ", ".join(f"{r} ({c} rows)" for r, c in zip(runs, counts, strict=True))
     )
 
-    values = {c: raw[c].to_numpy(dtype=np.float64, copy=True) for c in _FEET_COLUMNS}
+    values = {
+        c: raw[c].to_numpy(dtype=np.float64, copy=True)
+        if c in raw.columns
+        else np.full(len(raw), np.nan)
+        for c in _FEET_COLUMNS
+    }
     found = {c: int(_is_sentinel(v).sum()) for c, v in values.items()}
     for v in values.values():
         v[_is_sentinel(v)] = np.nan
@@ -259,7 +333,7 @@ def _read_file(path: Path, label: str) -> tuple[pd.DataFrame, list[str]]:
                 )
 
     vehicle, split_note = _vehicle_labels(
-        run, ids["vehicle_id"], ids["total_frames"], name
+        run, ids["vehicle_id"], ids.get("total_frames"), name
     )
     notes.extend(split_note)
     notes.extend(_reused_note(run, ids["vehicle_id"], name))
@@ -273,10 +347,12 @@ def _read_file(path: Path, label: str) -> tuple[pd.DataFrame, list[str]]:
             "position": values["local_y"] * FEET,
             "speed": values["v_vel"] * FEET,
             "acceleration": values["v_acc"] * FEET,
-            "lane": [_id_text(v) for v in raw["lane_id"].to_numpy(dtype=np.float64)],
+            "lane": _lanes(raw),
             "length": values["v_length"] * FEET,
             "headway": values["space_headway"] * FEET,
-            "preceding": _ids_or_zero(raw["preceding"]),
+            "preceding": _ids_or_zero(raw["preceding"])
+            if "preceding" in raw.columns
+            else np.zeros(len(raw), dtype=np.int64),
         }
     )
     duplicated = frame.duplicated(["run", "vehicle", "frame_id"])
@@ -295,23 +371,23 @@ def _read_file(path: Path, label: str) -> tuple[pd.DataFrame, list[str]]:
 
 
 def _read_raw(path: Path) -> tuple[pd.DataFrame, int]:
-    """The used columns of one file, lower-cased, and the line of its first row."""
+    """The used columns of one file, lower-cased, and the line of its first row.
+
+    Columns absent from a file with a header are absent from the frame too;
+    the text layouts have them all.
+
+    Raises:
+        DataError: no required column, a used column twice, a text file with
+            neither 18 nor 24 fields, a line with a field too many (or, in a
+            text layout, too few), or a cell that is not a number.
+    """
     first = _first_line(path)
-    sep = "," if "," in first else r"\s+"
-    fields = [f.strip() for f in (first.split(",") if sep == "," else first.split())]
-    has_header = not _is_number(fields[0])
+    has_header = not _is_number(re.split(r"[,;\s]", first, maxsplit=1)[0])
+    sep = _separator(first, has_header)
+    fields = _header_fields(first, sep)
     if has_header:
-        lower = {f.lower(): f for f in fields}
-        missing = [_NAMES[c] for c in _USED if c not in lower]
-        if missing:
-            raise DataError(
-                f"NGSIM file '{path}' lacks the column(s) {', '.join(missing)}; "
-                f"it has: {columns_text(fields)}"
-            )
-        wanted = [lower[c] for c in _USED] + (
-            [lower[c] for c in ("location", *_UNUSED_WITH_SENTINEL) if c in lower]
-        )
-        names = None
+        names = _header_names(fields, path)
+        wanted = [c for c in names if c in (*_USED, "location", *_UNUSED_WITH_SENTINEL)]
     else:
         layouts = {len(FREEWAY_COLUMNS): FREEWAY_COLUMNS, 24: ARTERIAL_COLUMNS}
         if len(fields) not in layouts:
@@ -319,39 +395,150 @@ def _read_raw(path: Path) -> tuple[pd.DataFrame, int]:
                 f"NGSIM file '{path}' has {len(fields)} fields on line 1, expected "
                 f"{len(FREEWAY_COLUMNS)} (freeway) or 24 (arterial) without header"
             )
-        names = list(layouts[len(fields)])
-        wanted = [n for n in names if n.lower() in (*_USED, *_UNUSED_WITH_SENTINEL)]
-    try:
-        raw = pd.read_csv(
-            path,
-            sep=sep,
-            header=0 if has_header else None,
-            names=names,
-            usecols=wanted,
-            encoding="utf-8-sig",
-            skipinitialspace=True,
-        )
-    except (ValueError, UnicodeDecodeError) as err:  # includes parser errors
-        text = str(err).strip().splitlines()[0] if str(err).strip() else ""
-        raise DataError(f"cannot read NGSIM file '{path}': {text}") from None
-    raw.columns = [str(c).lower() for c in raw.columns]
+        names = [c.lower() for c in layouts[len(fields)]]
+        wanted = [c for c in names if c in (*_USED, *_UNUSED_WITH_SENTINEL)]
+    first_line = 2 if has_header else 1  # messages count the header line
+    raw = _parse(path, sep, has_header, names, wanted, first_line)
     if len(raw) == 0:
         raise DataError(f"NGSIM file '{path}' has no data row")
-    first_line = 2 if has_header else 1  # messages count the header line
     for column in _USED:
-        raw[column] = _numbers(raw[column], column, path, first_line)
+        if column in raw.columns:
+            raw[column] = _numbers(raw[column], column, path, first_line)
     return raw, first_line
 
 
+def _looks_like_ngsim(path: Path) -> bool:
+    """Whether line 1 is numbers or a header that names Vehicle_ID (folders)."""
+    try:
+        first = _first_line(path)
+    except DataError:
+        return False
+    token = re.split(r"[,;\s]", first, maxsplit=1)[0]
+    if _is_number(token):
+        return True
+    fields = _header_fields(first, _separator(first, has_header=True))
+    return "vehicle_id" in (_column_key(f) for f in fields)
+
+
+def _separator(first: str, has_header: bool) -> str:
+    """The field separator: "," or ";" when the first line has one, a tab in a
+    file with a header (a spreadsheet export may leave cells empty), else runs
+    of white space (the text layouts pad their columns with spaces or tabs)."""
+    for sep in _SEPARATORS:
+        if sep in first and (sep != "\t" or has_header):
+            return sep
+    return r"\s+"
+
+
 def _first_line(path: Path) -> str:
+    """The first non-blank line, stripped.
+
+    Raises:
+        DataError: the file cannot be read, is not UTF-8 text, or is empty.
+    """
     try:
         with path.open(encoding="utf-8-sig") as fh:
             for line in fh:
+                if "\x00" in line:
+                    raise DataError(f"NGSIM file '{path}' is not text (NUL bytes)")
                 if line.strip():
                     return line.strip()
     except UnicodeDecodeError as err:
         raise DataError(f"NGSIM file '{path}' is not UTF-8 text ({err})") from None
+    except OSError as err:
+        raise DataError(f"cannot read NGSIM file '{path}': {err.strerror}") from None
     raise DataError(f"NGSIM file '{path}' is empty")
+
+
+def _header_fields(line: str, sep: str) -> list[str]:
+    """The cells of the first line, unquoted and stripped."""
+    if sep == r"\s+":
+        cells = line.split()
+    else:
+        cells = next(csv.reader([line], delimiter=sep))
+    return [c.strip().strip('"').strip("'").strip() for c in cells]
+
+
+def _column_key(field: str) -> str:
+    """A header cell as a name of this reader: lower case, spaces and hyphens
+    as "_", aliases (:data:`_ALIASES`) mapped."""
+    key = re.sub(r"[\s\-]+", "_", field.strip().lower())
+    return _ALIASES.get(key, key)
+
+
+def _header_names(fields: list[str], path: Path) -> list[str]:
+    """Header cells as the reader's lower-case names (spaces and aliases mapped).
+
+    Raises:
+        DataError: a required column is missing, or a used one appears twice.
+    """
+    names = [_column_key(field) for field in fields]
+    missing = [_NAMES[c] for c in _REQUIRED if c not in names]
+    if missing:
+        raise DataError(
+            f"NGSIM file '{path}' lacks the column(s) {', '.join(missing)}; "
+            f"it has: {columns_text(fields)}"
+        )
+    twice = sorted({c for c in names if c in _USED and names.count(c) > 1})
+    if twice:
+        raise DataError(
+            f"NGSIM file '{path}' has the column(s) "
+            f"{', '.join(_NAMES[c] for c in twice)} twice (aliases counted)"
+        )
+    # Unused names may repeat, and a header ending in a separator has an empty
+    # one: pandas wants them unique.
+    return [
+        n if n and (n in _USED or names.count(n) == 1) else f"_unread_{j}"
+        for j, n in enumerate(names)
+    ]
+
+
+def _parse(
+    path: Path,
+    sep: str,
+    has_header: bool,
+    names: list[str],
+    wanted: list[str],
+    first_line: int,
+) -> pd.DataFrame:
+    """The ``wanted`` columns of every data row, read in chunks.
+
+    Every column is parsed, not only the wanted ones: with ``usecols`` pandas
+    silently drops a line's extra fields, and a field inserted mid-line would
+    shift the values after it. ``index_col=False`` keeps a trailing separator
+    on the data lines (but not the header) from turning the first column into
+    the index, which would shift every column by one.
+    """
+    try:
+        chunks = pd.read_csv(
+            path,
+            sep=sep,
+            header=0 if has_header else None,
+            names=names,
+            index_col=False,
+            encoding="utf-8-sig",
+            skipinitialspace=True,
+            chunksize=_CHUNK_ROWS,
+        )
+        # White space has no empty cell: a NaN in the last field is a short line.
+        last = names[-1] if sep == r"\s+" else None
+        keep = list(dict.fromkeys([*wanted, last] if last else wanted))
+        parts = [chunk[keep] for chunk in chunks]
+    except (ValueError, UnicodeDecodeError) as err:  # includes parser errors
+        text = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        raise DataError(f"cannot read NGSIM file '{path}': {text}") from None
+    if not parts:
+        return pd.DataFrame(columns=wanted)
+    raw = pd.concat(parts, ignore_index=True)
+    if last is not None:
+        short = raw[last].isna().to_numpy()
+        if short.any():
+            row = int(np.flatnonzero(short)[0])
+            raise DataError(
+                f"NGSIM file '{path}': line {row + first_line} has fewer than "
+                f"{len(names)} fields"
+            )
+    return raw[wanted]
 
 
 def _is_number(text: str) -> bool:
@@ -406,10 +593,41 @@ def _id_text(value: float) -> str:
     return str(int(round(value))) if np.isfinite(value) else ""
 
 
+def _run_labels(
+    raw: pd.DataFrame, ids: dict[str, np.ndarray], label: str
+) -> np.ndarray:
+    """(rows,) run of each row: ``label[:location]:offset`` (module docstring).
+
+    Without Global_Time the whole file (or location) is one run, ``label``.
+    """
+    run = pd.Series(label, index=raw.index, dtype=object)
+    if "location" in raw.columns and raw["location"].nunique() > 1:
+        run = run + ":" + raw["location"].astype(str).str.strip()
+    if "global_time" in ids:
+        offset = ids["global_time"] - 100 * ids["frame_id"]  # (rows,) [ms]
+        run = run + ":" + pd.Series(offset, index=raw.index).astype(str)
+    return run.to_numpy(dtype=object)
+
+
+def _lanes(raw: pd.DataFrame) -> list[str]:
+    """(rows,) lane ids as text, "" where the cell or the column is missing."""
+    if "lane_id" not in raw.columns:
+        return [""] * len(raw)
+    return [_id_text(v) for v in raw["lane_id"].to_numpy(dtype=np.float64)]
+
+
 def _vehicle_labels(
-    run: np.ndarray, vehicle_id: np.ndarray, total_frames: np.ndarray, name: str
+    run: np.ndarray,
+    vehicle_id: np.ndarray,
+    total_frames: np.ndarray | None,
+    name: str,
 ) -> tuple[np.ndarray, list[str]]:
-    """Vehicle labels: the id, or ``id#total`` where one run reuses the id."""
+    """Vehicle labels: the id, or ``id#total`` where one run reuses the id.
+
+    Without Total_Frames (``None``) ids are not split.
+    """
+    if total_frames is None:
+        return vehicle_id.astype(str).astype(object), []
     keys = pd.DataFrame({"run": run, "id": vehicle_id, "total": total_frames})
     n_totals = keys.groupby(["run", "id"])["total"].transform("nunique").to_numpy()
     labels = vehicle_id.astype(str).astype(object)

@@ -1,11 +1,15 @@
 """Read OpenACC (JRC) platoon files into a trajectory table.
 
 OpenACC (Makridis et al., Transportation Research Part C 125, 2021, 103047) records
-platoons of 2-5 cars on public roads and test tracks: vehicle 1 is driven by hand,
-vehicle K+1 follows vehicle K, most followers with their ACC on. One CSV file is
-one continuous recording, sampled at 10 Hz (GNSS at 3-5 Hz or Ublox 9, cubic-spline
+platoons of 2-11 cars on public roads and test tracks: the first car of the
+platoon is driven by hand (or is a target car), each later car follows the one
+ahead, most followers with their ACC on. One CSV file is one continuous
+recording, sampled at 10 Hz (GNSS at 3-5 Hz or Ublox 9, cubic-spline
 interpolated by JRC, not filtered). :func:`read_openacc` turns a file or a
-folder of them into a :class:`~torchcf.data.trajectory.TrajectoryTable`.
+folder of them (a whole campaign) into a
+:class:`~torchcf.data.trajectory.TrajectoryTable`;
+:func:`read_openacc_metadata` lists each run's vehicles with their names (car
+makes), ACC flag and distance setting, one row per vehicle.
 
 File layout (CRLF, comma-separated)::
 
@@ -13,76 +17,112 @@ File layout (CRLF, comma-separated)::
     Vehicle_order,veh1,veh2,...             trailing commas or not
     Number_of_vehicles,N
     ACC,0|1|2|<blank>
-    Distance_setting,min|shortest|...
+    Distance_setting,S|M|L|min|shortest|...
     Time,Speed1,Lat1,...,IVS1,...,Driver1,...   <- header
     ...                                         <- data, one row per time step
 
 The metadata block is the leading rows whose first cell is one of those keys (a
-file may lack ACC or Distance_setting); the next row is the header. Columns are
-found by name and vehicle index K, never by position, because they differ between
-files. Those used, in SI units:
+file may lack ACC or Distance_setting; keys are matched ignoring case, spaces
+for underscores); the next row is the header. Columns are found by name and
+vehicle number K, never by position, because they differ between files. Those
+used, in SI units:
 
 =========  ====  ==========================================================
 column     unit  meaning
 =========  ====  ==========================================================
 Time       s     common clock of all vehicles (not starting at 0)
 SpeedK     m/s   speed of vehicle K (GNSS Doppler)
-IVSK       m     bumper-to-bumper spacing from vehicle K's rear to vehicle
-                 K+1's front (GNSS, bumper-corrected by JRC): the gap of
-                 follower K+1
+IVSK       m     bumper-to-bumper spacing from vehicle K's rear to the front
+                 of the vehicle behind it (GNSS, bumper-corrected by JRC):
+                 the gap of that follower
 DriverK    -     "Human" or "ACC"; missing for some vehicles
 =========  ====  ==========================================================
 
-Lat/Lon (rad), Alt, E/N/U (m, local ENU) and VE/VN/VU are not used, see below.
+Lat/Lon, Alt, E/N/U (m, local ENU) and VE/VN/VU are not used, see below; other
+columns (Eff_distanceK, Rel_SpeedK, anything unknown) are listed in the notes
+and not read.
 
-Table rows: vehicle id "K", leader of vehicle K+1 "K" (vehicle 1 has none), speed
-= SpeedK, gap of K+1 = IVSK, mode = DriverK ("" where the column is missing),
-lane "" (the platoon tests stay in one lane, so the leader is always the vehicle
-ahead in the file's order), acceleration NaN (OpenACC has none; derive it with
-:func:`torchcf.data.derive.fill_derivatives`). A folder is read recursively: every
-``*.csv`` whose first cell is "Date" is one run, named by its path relative to the
-folder without the suffix; other CSV files (the vehicle specifications) are
-skipped and listed in the notes.
+**Which vehicles.** The vehicle number K is the car's place in Vehicle_order,
+and a file holds the vehicles its columns name, not 1..N: a vehicle is in the
+file when it has a column of its own (SpeedK, EK, NK, UK, LatK, LonK, AltK,
+VEK, VNK, VUK or DriverK). ZalaZONE's handling-course files number their cars
+from 2 (the target car carries no column); ZalaZONE ``dynamic_part26`` has
+vehicles 1, 2, 5, 6, 7 of 9. Number_of_vehicles and Vehicle_order are only
+checked against the columns (a difference is noted); vehicle K's name is the
+K-th entry of Vehicle_order.
 
-Positions (one road frame per run, along the route):
+**Which couples.** Take the vehicles of a file in the order of their numbers.
+Vehicle m follows the vehicle k just before it in that order when the file has
+IVSk; its gap is IVSk and its leader k. For consecutive numbers (m = k + 1)
+this is JRC's definition. When the numbers skip (vehicles k+1..m-1 have no
+column), IVSk is taken as the spacing to m, the nearest car behind k that the
+file records: JRC computes IVS from the GNSS of both cars, so the car behind
+k that IVSk measures to must be one with a recording. In the ZalaZONE files
+every IVSk so linked equals the E/N chord distance of the two antennas less a
+constant per couple (2.8-5.3 m, the antenna-to-bumper offsets) to 1e-12 m,
+while IVS1 set against vehicle 3's antenna wanders by 3-74 m: the link is
+the one JRC measured. An IVSk whose vehicle k is not in the file, or that has
+no vehicle after k, links nothing and is noted. Without IVSk, vehicle m has no
+recorded gap, so no leader: it heads a chain of its own.
 
-    x_1(t_0) = 0
-    x_1(t_i) = x_1(t_{i-1}) + (v_1(t_{i-1}) + v_1(t_i)) / 2 * (t_i - t_{i-1})
-    x_{K+1}(t) = x_K(t) - length - IVS_K(t)
+**Positions** (one road frame per run, along the route). The couples cut the
+vehicles into chains (runs of linked vehicles). A chain is anchored at its
+first vehicle with a Speed column, whose position is its odometer:
 
-Only the platoon leader's position comes from odometry; every follower is placed
-behind its leader by the recorded spacing, so x_K - x_{K+1} - length equals IVS_K
-exactly and the gaps a car-following model sees are JRC's own. Why not the ENU
-positions: they are 2-D antenna positions, not along the lane (a curve would need
-a route to project on), and the antenna-to-bumper offsets are published nowhere
-but inside IVS. In the four sample files the ENU distance between two antennas
-minus IVS is a constant per file (3.7-6.7 m): IVS is the GNSS chord distance with
-JRC's bumper correction, so it carries every GNSS jump too (Vicolungo part3:
-IVS4 falls from 118 m to 48 m within 0.5 s at t0 + 5 s while the Doppler speeds
-say the gap grows), and such stretches are for a quality filter to drop.
+    x_a(t_0) = 0
+    x_a(t_i) = x_a(t_{i-1}) + (v_a(t_{i-1}) + v_a(t_i)) / 2 * (t_i - t_{i-1})
 
-Consequences worth knowing: the leader's odometry drifts (a speed bias of 1 %
-is 3 m per 10 s at 30 m/s), but that drift moves the whole platoon alike and
+and every other vehicle of the chain is placed by the recorded spacings,
+behind (x_m = x_k - length - IVS_k) or, for vehicles ahead of the anchor
+without a speed, ahead (x_k = x_m + length + IVS_k). A chain without any Speed
+column has no position: its vehicles are left out and noted. So x_k - x_m -
+length equals IVS_k exactly and the gaps a car-following model sees are JRC's
+own. Why not the ENU positions: they are 2-D antenna positions, not along the
+lane (a curve would need a route to project on), and the antenna-to-bumper
+offsets are published nowhere but inside IVS. In the four Italian sample files
+the ENU distance between two antennas minus IVS is a constant per file
+(3.7-6.7 m): IVS is the GNSS chord distance with JRC's bumper correction, so it
+carries every GNSS jump too (Vicolungo part3: IVS4 falls from 118 m to 48 m
+within 0.5 s at t0 + 5 s while the Doppler speeds say the gap grows), and such
+stretches are for a quality filter to drop.
+
+Consequences worth knowing: the anchor's odometry drifts (a speed bias of 1 %
+is 3 m per 10 s at 30 m/s), but that drift moves the whole chain alike and
 changes no spacing. A follower's position is not the integral of its own
 Doppler speed: IVS(t) - IVS(t0) and the integral of v_leader - v_follower part
 by up to 1.5-18 m over 40 s in the samples (relative speed biases of about
 0.1 m/s), so a position derived from it differs from the recorded speed by that
 much. OpenACC gives no vehicle length, so ``vehicle_length`` is used for every
 car; since a follower is placed exactly ``length + IVS`` behind its leader's
-front, the length cancels in every spacing x_K - x_{K+1} - length and only
-shifts the followers' absolute positions.
+front, the length cancels in every spacing x_k - x_m - length and only shifts
+the followers' absolute positions.
 
-Missing columns: a file names the vehicles it has (ZalaZONE files skip some).
-Without IVSK, vehicle K+1 has no recorded gap to vehicle K: it gets no leader
-and its own odometer (a chain of its own, starting at 0); a vehicle with neither
-SpeedK nor IVS(K-1) is not in the file. Both are noted.
+**Table rows.** Vehicle id "K" (the column number), leader "k" or "", speed =
+SpeedK (NaN without the column), gap = the linking IVS, lane "" (the platoon
+tests stay in one lane, so the leader is always the vehicle ahead in the
+file's order), acceleration NaN (OpenACC has none; derive it with
+:func:`torchcf.data.derive.fill_derivatives`). The mode is the control mode
+with the run's distance setting: DriverK where the file has it, else the ACC
+field (0: every car "Human"; 1: every car after vehicle 1 "ACC"; 2 or blank:
+""); an "ACC" mode carries the Distance_setting as ``"ACC:<setting>"`` (e.g.
+"ACC:S"), because a gap setting is part of how the ACC controls, and it is the
+one per-row field that the pair index keeps. The car makes stay in the notes
+and in :func:`read_openacc_metadata` (vehicle ids stay the column numbers, so
+the group split of earlier extractions is unchanged).
 
-Missing values: where Speed1 is NaN the leader's position is NaN; the odometer
-steps over the hole with one trapezoid between its finite neighbours (speed
-linear across it), so one hole does not shift or poison everything after it
-(and x_1 = 0 at the first sample with a speed).
-A follower's position is NaN where its leader's position or the IVS is NaN.
-Rows without a time are dropped. Each case is counted in the notes.
+**Folders.** A folder is read recursively: every ``*.csv`` whose first cell is
+"Date" is one run, named by its path relative to the folder without the suffix
+(``short_setting/dynamic_part1``), so runs of different subfolders stay apart;
+other CSV files (the vehicle specifications) are skipped and listed in the
+notes. A file that is a platoon file but cannot be read stops the whole read
+with its name: a campaign is not silently shortened.
+
+Missing values: where the anchor's speed is NaN its position is NaN; the
+odometer steps over the hole with one trapezoid between its finite neighbours
+(speed linear across it), so one hole does not shift or poison everything
+after it (and x_a = 0 at the first sample with a speed). A vehicle's position
+is NaN where the vehicle it is placed from has a NaN position or the IVS is
+NaN. Rows without a time are dropped. Each case is counted in the notes.
 """
 
 from __future__ import annotations
@@ -100,9 +140,9 @@ import pandas as pd
 from torchcf.data.pairset import DataError, positive_float
 from torchcf.data.trajectory import TrajectoryTable
 
-__all__ = ["METADATA_KEYS", "read_openacc"]
+__all__ = ["METADATA_COLUMNS", "METADATA_KEYS", "read_openacc", "read_openacc_metadata"]
 
-#: First cells of the metadata rows above the header, lower case.
+#: First cells of the metadata rows above the header, normalised (see _key).
 METADATA_KEYS: tuple[str, ...] = (
     "date",
     "vehicle_order",
@@ -110,66 +150,88 @@ METADATA_KEYS: tuple[str, ...] = (
     "acc",
     "distance_setting",
 )
-#: Per-vehicle columns whose index K must not exceed the number of vehicles.
-_PER_VEHICLE = ("speed", "ivs", "driver")
+#: Columns of :func:`read_openacc_metadata`.
+METADATA_COLUMNS: tuple[str, ...] = (
+    "run",
+    "vehicle",
+    "name",
+    "date",
+    "acc",
+    "distance_setting",
+    "leader",
+    "has_speed",
+    "names_match_count",
+    "file",
+)
+#: Column prefixes that make a vehicle part of the file (its own columns).
+_OWN = ("speed", "e", "n", "u", "lat", "lon", "alt", "ve", "vn", "vu", "driver")
+#: Per-couple columns JRC documents but this reader does not use.
+_COUPLE_UNUSED = ("eff_distance", "rel_speed")
 #: Cell texts that mean "no value" (lower case, stripped).
 _MISSING = ("", "nan", "na", "n/a", "null")
-_SUFFIXED = re.compile(r"([A-Za-z_]+?)(\d+)")
+_SUFFIXED = re.compile(r"([a-z_]+?)_?(\d+)")
 
 
 class _Metadata(NamedTuple):
     names: list[str]  # Vehicle_order, one per vehicle as far as given
-    n_vehicles: int
+    n_vehicles: int  # Number_of_vehicles as written
+    date: str  # "D-M-YYYY", "" when absent
     acc: str  # the ACC field, "" blank
     distance: str  # the Distance_setting field, "" blank
     n_rows: int  # rows of the block; the header is the next row
 
 
+class _Header(NamedTuple):
+    """Where the used columns are: vehicle number -> column index."""
+
+    time: int
+    speed: dict[int, int]
+    ivs: dict[int, int]
+    driver: dict[int, int]
+    vehicles: list[int]  # numbers with a column of their own, ascending
+    unread: list[str]  # names of columns that are neither used nor known-unused
+
+
+class _Plan(NamedTuple):
+    """How one file's vehicles are linked and placed (from its header only)."""
+
+    leader: dict[int, int]  # follower -> leader, linked by IVS<leader>
+    chains: list[list[int]]  # linked vehicles, front to back
+    anchor: dict[int, int]  # chain head -> the chain's first vehicle with speed
+    unused_ivs: list[int]  # IVSk that link no couple
+
+
+# ------------------------------------------------------------------ public API
 def read_openacc(
     source: str | os.PathLike[str], *, vehicle_length: float = 5.0
 ) -> TrajectoryTable:
     """Read an OpenACC platoon file, or every platoon file below a folder.
 
     Args:
-        source: a platoon CSV file, or a folder searched recursively for them.
+        source: a platoon CSV file, or a folder searched recursively for them
+            (a whole campaign, e.g. ZalaZONE's ``<setting>/dynamic_part*.csv``).
         vehicle_length: length [m] given to every vehicle, > 0 (OpenACC has
             none; it changes no spacing, see the module docstring).
 
     Returns:
-        A table with ``format="openacc"``, one run per file, and ``road_frame``
-        True for one file (its positions are distances along one route) and
-        False for several (each file is another road, its positions start at 0);
-        vehicles "1".."N", vehicle K+1 led by vehicle K, positions from the
-        leader's odometry and the recorded spacings. The notes give the vehicle
-        names per run and every missing value or skipped file.
+        A table with ``format="openacc"``, one run per file (named by its path
+        below the folder), and ``road_frame`` True for one file (its positions
+        are distances along one route) and False for several (each file is
+        another recording, its positions start at 0); vehicles as the columns
+        name them, each follower led by the vehicle before it when the IVS
+        links them (module docstring). The notes give per run the vehicles by
+        name, the couples, the ACC flag and distance setting, and every
+        missing value, unused column or skipped file.
 
     Raises:
         DataError: no such path, a folder without platoon files, a file whose
-            metadata block is not OpenACC's ("not an OpenACC file: ..."), a
-            missing Time or Speed1 column, a cell
-            that is not a number, or times that do not increase.
+            metadata block is not OpenACC's ("not an OpenACC file: ..."), no
+            Time or no Speed column, a duplicated column, a cell that is not a
+            number, or times that do not increase; always naming the file.
     """
     path = Path(source)
     length = positive_float(vehicle_length, "vehicle_length", "m")
-    skipped: list[str] = []
-    if path.is_dir():
-        runs = []
-        for file in sorted(path.rglob("*.csv")):
-            name = file.relative_to(path)
-            if _first_cell(file) == "Date":
-                runs.append((name.with_suffix("").as_posix(), file))
-            else:
-                skipped.append(name.as_posix())
-        if not runs:
-            raise DataError(
-                f"no OpenACC platoon file (a .csv whose first cell is 'Date') "
-                f"under '{path}'"
-            )
-    elif path.is_file():
-        runs = [(path.stem, path)]
-    else:
-        raise DataError(f"no such file or folder: '{path}'")
-
+    runs, skipped = _platoon_files(path)
     frames: list[pd.DataFrame] = []
     notes: list[str] = []
     for run, file in runs:
@@ -177,20 +239,18 @@ def read_openacc(
         frames.append(frame)
         notes.extend(run_notes)
     notes.append(
-        f"positions: vehicle 1 by integrating Speed1 over Time (trapezoids, 0 at "
-        f"each run's first sample); vehicle K+1 at x_K - {length:g} m - IVSK, so "
-        f"every gap is the recorded IVS; length {length:g} m for every vehicle "
-        f"(OpenACC gives none)"
+        f"positions: each chain of linked vehicles anchored at its first vehicle "
+        f"with a Speed column, by integrating that speed over Time (trapezoids, 0 "
+        f"at the run's first sample); the others at {length:g} m + IVS behind or "
+        f"ahead, so every gap is the recorded IVS; length {length:g} m for every "
+        f"vehicle (OpenACC gives none)"
     )
     notes.append(
         "acceleration: none in OpenACC (NaN; derive it with "
         "torchcf.data.derive.fill_derivatives); lane: '' (one-lane platoon tests)"
     )
     if skipped:
-        notes.append(
-            f"skipped {len(skipped)} csv file(s) that are not platoon files "
-            f"(first cell not 'Date'): {', '.join(skipped)}"
-        )
+        notes.append(_skipped_note(skipped))
     return TrajectoryTable.from_frame(
         pd.concat(frames, ignore_index=True),
         source=str(path),
@@ -198,6 +258,79 @@ def read_openacc(
         road_frame=len(runs) == 1,
         notes=notes,
     )
+
+
+def read_openacc_metadata(source: str | os.PathLike[str]) -> pd.DataFrame:
+    """Each run's vehicles with their metadata, from the files' first rows only.
+
+    Meant to be joined with an extraction's ``index.csv`` on ``(run, follower)``
+    = ``(run, vehicle)`` (same run names and vehicle ids as
+    :func:`read_openacc`), e.g. for shares per distance setting or car make.
+
+    Args:
+        source: a platoon CSV file, or a folder searched recursively for them.
+
+    Returns:
+        One row per vehicle in a file (:data:`METADATA_COLUMNS`): ``name`` the
+        vehicle's Vehicle_order entry ("" beyond the list), ``date``
+        ("D-M-YYYY"), ``acc`` and ``distance_setting`` as written, ``leader``
+        the vehicle it follows ("" none), ``has_speed`` whether it has a Speed
+        column, ``names_match_count`` whether Vehicle_order names exactly
+        Number_of_vehicles cars (when not, the names may not be these cars:
+        ZalaZONE ``short_setting/dynamic_part1`` lists 11 names for 6 cars),
+        and ``file`` the path read.
+
+    Raises:
+        DataError: as :func:`read_openacc`, for the metadata block and header.
+    """
+    runs, _ = _platoon_files(Path(source))
+    rows = []
+    for run, file in runs:
+        meta, header = _read_head(file)
+        plan = _plan(header)
+        for k in header.vehicles:
+            rows.append(
+                {
+                    "run": run,
+                    "vehicle": str(k),
+                    "name": _name(meta, k),
+                    "date": meta.date,
+                    "acc": meta.acc,
+                    "distance_setting": meta.distance,
+                    "leader": str(plan.leader[k]) if k in plan.leader else "",
+                    "has_speed": k in header.speed,
+                    "names_match_count": len(meta.names) == meta.n_vehicles,
+                    "file": str(file),
+                }
+            )
+    return pd.DataFrame(rows, columns=list(METADATA_COLUMNS))
+
+
+# ------------------------------------------------------------------ discovery
+def _platoon_files(path: Path) -> tuple[list[tuple[str, Path]], list[str]]:
+    """``[(run name, file)]`` to read and the CSV files skipped (folder only).
+
+    Raises:
+        DataError: no such path, or a folder without platoon files.
+    """
+    if path.is_file():
+        return [(path.stem, path)], []
+    if not path.is_dir():
+        raise DataError(f"no such file or folder: '{path}'")
+    runs, skipped = [], []
+    # Sorted on the relative path, so runs come in the same order on any OS.
+    for file in sorted(path.rglob("*.csv"), key=lambda f: f.relative_to(path)):
+        name = file.relative_to(path)
+        if file.is_file() and _first_cell(file) == "Date":
+            runs.append((name.with_suffix("").as_posix(), file))
+        else:
+            skipped.append(name.as_posix())
+    if not runs:
+        raise DataError(
+            f"no OpenACC platoon file (a .csv whose first cell is 'Date') "
+            f"under '{path}'"
+        )
+    return runs, skipped
 
 
 def _first_cell(path: Path) -> str:
@@ -210,62 +343,36 @@ def _first_cell(path: Path) -> str:
     return line.split(",", 1)[0].strip()
 
 
+def _skipped_note(skipped: list[str]) -> str:
+    return (
+        f"skipped {len(skipped)} csv file(s) that are not platoon files "
+        f"(first cell not 'Date'): {', '.join(skipped)}"
+    )
+
+
+# ---------------------------------------------------------------- one file
 def _read_file(path: Path, run: str, length: float) -> tuple[pd.DataFrame, list[str]]:
     """One platoon file as table rows (vehicle after vehicle) and its notes."""
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as err:
-        raise DataError(f"'{path}' is not UTF-8 text ({err})") from None
-    rows = [
-        [cell.strip() for cell in row]
-        for row in csv.reader(io.StringIO(text, newline=""))
-    ]
+    rows = _csv_rows(path)
     meta = _metadata(rows, path)
-    header_row = meta.n_rows  # 0-based index of the header line
-    if header_row >= len(rows):
+    if meta.n_rows >= len(rows):
         raise DataError(f"'{path}' has no header row after its metadata block")
-    columns = _columns(rows[header_row], meta.n_vehicles, path)
-    # Blank lines are formatting; file_rows keeps the 1-based line numbers.
-    data = [
-        (i + 1, row)
-        for i, row in enumerate(rows[header_row + 1 :], start=header_row + 1)
-        if any(row)
-    ]
-    if not data:
-        raise DataError(f"'{path}' has no data row")
-    width = len(rows[header_row])
-    for line, row in data:
-        if any(row[width:]):
-            raise DataError(
-                f"'{path}' row {line} has {len(row)} cells but the header has {width}"
-            )
-    file_rows = np.array([line for line, _ in data])
+    header_cells = rows[meta.n_rows]
+    header = _header(header_cells, path)
+    plan = _plan(header)
+    data, file_rows = _data_rows(rows, meta.n_rows, len(header_cells), path)
 
-    def cells(column: str) -> list[str]:
-        j = columns[column.lower()]
-        return [row[j] if j < len(row) else "" for _, row in data]
+    def column(j: int) -> list[str]:
+        return [row[j] if j < len(row) else "" for row in data]
 
-    n = meta.n_vehicles
-    time = _numbers(cells("Time"), "Time", path, file_rows)
-    speed = [
-        _numbers(cells(f"Speed{k}"), f"Speed{k}", path, file_rows)
-        if f"speed{k}" in columns
-        else np.full(time.size, np.nan)
-        for k in range(1, n + 1)
-    ]
-    # A missing IVSK breaks the chain: vehicle K+1 has no recorded gap to K.
-    ivs = [
-        _numbers(cells(f"IVS{k}"), f"IVS{k}", path, file_rows)
-        if f"ivs{k}" in columns
-        else np.full(time.size, np.nan)
-        for k in range(1, n)
-    ]
-    mode = [
-        np.array(cells(f"Driver{k}"), dtype=object)
-        if f"driver{k}" in columns
-        else np.full(time.size, "", dtype=object)
-        for k in range(1, n + 1)
-    ]
+    def numbers(j: int) -> np.ndarray:
+        return _numbers(column(j), header_cells[j], path, file_rows)
+
+    time = numbers(header.time)
+    speed = {k: numbers(j) for k, j in header.speed.items()}
+    ivs = {k: numbers(j) for k, j in header.ivs.items()}
+    driver = {k: np.array(column(j), dtype=object) for k, j in header.driver.items()}
+
     notes: list[str] = []
     keep = np.isfinite(time)
     if not keep.all():
@@ -273,53 +380,75 @@ def _read_file(path: Path, run: str, length: float) -> tuple[pd.DataFrame, list[
         if not keep.any():
             raise DataError(f"'{path}' has no data row with a Time")
         time, file_rows = time[keep], file_rows[keep]
-        speed = [values[keep] for values in speed]
-        ivs = [values[keep] for values in ivs]
-        mode = [values[keep] for values in mode]
-    steps = np.diff(time)
-    if (steps <= 0).any():
-        bad = int(np.flatnonzero(steps <= 0)[0]) + 1
-        raise DataError(
-            f"'{path}': Time does not increase at row {file_rows[bad]} "
-            f"({time[bad - 1]} then {time[bad]})"
-        )
+        speed = {k: v[keep] for k, v in speed.items()}
+        ivs = {k: v[keep] for k, v in ivs.items()}
+        driver = {k: v[keep] for k, v in driver.items()}
+    _check_increasing(time, file_rows, path)
 
-    linked = [True] + [f"ivs{k}" in columns for k in range(1, n)]  # K led by K-1
-    position = [_odometer(time, speed[0])]
-    for k in range(1, n):
-        position.append(
-            position[k - 1] - length - ivs[k - 1]
-            if linked[k]
-            else _odometer(time, speed[k])  # a chain of its own, from 0
+    position = _positions(plan, time, speed, ivs, length)
+    mode = {k: _mode(k, driver.get(k), meta, time.size) for k in position}
+    frames = [
+        pd.DataFrame(
+            {
+                "run": run,
+                "vehicle": str(k),
+                "time": time,
+                "position": position[k],
+                "speed": speed.get(k, np.full(time.size, np.nan)),
+                "acceleration": np.nan,
+                "leader": str(plan.leader[k]) if k in plan.leader else "",
+                "lane": "",
+                "length": length,
+                "gap": ivs[plan.leader[k]] if k in plan.leader else np.nan,
+                "mode": mode[k],
+            }
         )
-
-    frames = []
-    for k in range(n):
-        if not linked[k] and f"speed{k + 1}" not in columns:
-            continue  # named by no column: not in this file
-        frames.append(
-            pd.DataFrame(
-                {
-                    "run": run,
-                    "vehicle": str(k + 1),
-                    "time": time,
-                    "position": position[k],
-                    "speed": speed[k],
-                    "acceleration": np.nan,
-                    "leader": str(k) if linked[k] and k else "",
-                    "lane": "",
-                    "length": length,
-                    "gap": ivs[k - 1] if linked[k] and k else np.nan,
-                    "mode": mode[k],
-                }
-            )
-        )
+        for k in header.vehicles
+        if k in position
+    ]
     notes = [
-        _describe(run, meta, time),
+        _describe(run, meta, header, time),
         *notes,
-        *_quality_notes(run, meta, columns, time, speed, ivs, position, mode),
+        *_plan_notes(run, meta, header, plan),
+        *_quality_notes(run, header, time, speed, ivs, position, mode),
     ]
     return pd.concat(frames, ignore_index=True), notes
+
+
+def _csv_rows(path: Path) -> list[list[str]]:
+    """The file's rows as stripped cells (any line ending, BOM dropped)."""
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as err:
+        raise DataError(f"'{path}' is not UTF-8 text ({err})") from None
+    except OSError as err:
+        raise DataError(f"cannot read '{path}': {err.strerror or err}") from None
+    return [
+        [cell.strip() for cell in row]
+        for row in csv.reader(io.StringIO(text, newline=""))
+    ]
+
+
+def _read_head(path: Path) -> tuple[_Metadata, _Header]:
+    """The metadata block and header of a file, reading no data row."""
+    rows: list[list[str]] = []
+    try:
+        with path.open(encoding="utf-8-sig", newline="") as fh:
+            for row in csv.reader(fh):
+                rows.append([cell.strip() for cell in row])
+                if _key(rows[-1][0] if rows[-1] else "") not in METADATA_KEYS:
+                    break  # the header: the first row that is no metadata key
+    except UnicodeDecodeError as err:
+        raise DataError(f"'{path}' is not UTF-8 text ({err})") from None
+    meta = _metadata(rows, path)
+    if meta.n_rows >= len(rows):
+        raise DataError(f"'{path}' has no header row after its metadata block")
+    return meta, _header(rows[meta.n_rows], path)
+
+
+def _key(cell: str) -> str:
+    """A metadata key or column name, normalised: lower case, spaces as '_'."""
+    return re.sub(r"\s+", "_", cell.strip().lower())
 
 
 def _metadata(rows: list[list[str]], path: Path) -> _Metadata:
@@ -338,9 +467,10 @@ def _metadata(rows: list[list[str]], path: Path) -> _Metadata:
     fields: dict[str, list[str]] = {}
     n_rows = 0
     for row in rows:
-        key = row[0].lower() if row else ""
+        key = _key(row[0]) if row else ""
         if key not in METADATA_KEYS:
             break
+        # Trailing commas pad the rows: empty cells are no values.
         fields[key] = [cell for cell in row[1:] if cell]
         n_rows += 1
     count = fields.get("number_of_vehicles", [])
@@ -355,42 +485,105 @@ def _metadata(rows: list[list[str]], path: Path) -> _Metadata:
     return _Metadata(
         names=fields["vehicle_order"],
         n_vehicles=n_vehicles,
+        date="-".join(fields.get("date", [])),
         acc=" ".join(fields.get("acc", [])),
         distance=" ".join(fields.get("distance_setting", [])),
         n_rows=n_rows,
     )
 
 
-def _columns(header: list[str], n_vehicles: int, path: Path) -> dict[str, int]:
-    """Lower-case column name -> index, checked against the vehicle count.
+def _header(cells: list[str], path: Path) -> _Header:
+    """Find Time and each vehicle's columns by name and number.
 
     Raises:
-        DataError: a duplicated name, a missing Time or Speed1, or
-            a per-vehicle column of a vehicle beyond Number_of_vehicles.
+        DataError: no Time column, no Speed column, or a used column twice.
     """
-    columns: dict[str, int] = {}
-    for j, name in enumerate(header):
-        if not name:
+    time: int | None = None
+    used: dict[str, dict[int, int]] = {"speed": {}, "ivs": {}, "driver": {}}
+    own: set[int] = set()
+    unread: list[str] = []
+    for j, name in enumerate(cells):
+        key = _key(name)
+        if not key:
             continue  # trailing commas pad the header too
-        key = name.lower()
-        if key in columns:
-            raise DataError(f"'{path}' has the column '{name}' twice")
-        columns[key] = j
+        if key == "time":
+            if time is not None:
+                raise DataError(f"'{path}' has the column '{name}' twice")
+            time = j
+            continue
         match = _SUFFIXED.fullmatch(key)
-        if match and match.group(1) in _PER_VEHICLE:
-            k = int(match.group(2))
-            # IVSK belongs to the couple (K, K+1), so K < N.
-            last = n_vehicles - 1 if match.group(1) == "ivs" else n_vehicles
-            if not 1 <= k <= last:
-                raise DataError(
-                    f"'{path}' has the column '{name}' but Number_of_vehicles is "
-                    f"{n_vehicles}"
-                )
-    required = ["Time", "Speed1"]
-    for name in required:
-        if name.lower() not in columns:
-            raise DataError(f"'{path}' lacks the column '{name}'")
-    return columns
+        prefix, k = (match.group(1), int(match.group(2))) if match else ("", -1)
+        if prefix in used:
+            if k in used[prefix]:
+                raise DataError(f"'{path}' has the column '{name}' twice")
+            used[prefix][k] = j
+        elif prefix not in _OWN and prefix not in _COUPLE_UNUSED:
+            unread.append(name)
+        if prefix in _OWN:
+            own.add(k)
+    if time is None:
+        raise DataError(f"'{path}' lacks the column 'Time'")
+    if not used["speed"]:
+        raise DataError(
+            f"'{path}' has no Speed column (SpeedK): no vehicle can be placed"
+        )
+    return _Header(
+        time=time,
+        speed=used["speed"],
+        ivs=used["ivs"],
+        driver=used["driver"],
+        vehicles=sorted(own),
+        unread=unread,
+    )
+
+
+def _plan(header: _Header) -> _Plan:
+    """Couples and chains of a file (module docstring, "Which couples").
+
+    Consecutive vehicles of the file (k, m), in the order of their numbers,
+    are a couple when IVSk exists; the couples cut the vehicles into chains.
+    """
+    leader: dict[int, int] = {}
+    chains: list[list[int]] = []
+    previous: int | None = None
+    for k in header.vehicles:
+        if previous is not None and previous in header.ivs:
+            leader[k] = previous
+            chains[-1].append(k)
+        else:
+            chains.append([k])
+        previous = k
+    anchor = {}
+    for chain in chains:
+        with_speed = [k for k in chain if k in header.speed]
+        if with_speed:
+            anchor[chain[0]] = with_speed[0]
+    unused = sorted(set(header.ivs) - set(leader.values()))
+    return _Plan(leader=leader, chains=chains, anchor=anchor, unused_ivs=unused)
+
+
+def _data_rows(
+    rows: list[list[str]], header_row: int, width: int, path: Path
+) -> tuple[list[list[str]], np.ndarray]:
+    """Non-blank rows below the header and their 1-based line numbers.
+
+    Raises:
+        DataError: no data row, or a row with more filled cells than the header.
+    """
+    # Blank lines are formatting; line numbers count them all the same.
+    numbered = [
+        (i + 1, row)
+        for i, row in enumerate(rows[header_row + 1 :], start=header_row + 1)
+        if any(row)
+    ]
+    if not numbered:
+        raise DataError(f"'{path}' has no data row")
+    for line, row in numbered:
+        if any(row[width:]):
+            raise DataError(
+                f"'{path}' row {line} has {len(row)} cells but the header has {width}"
+            )
+    return [row for _, row in numbered], np.array([line for line, _ in numbered])
 
 
 def _numbers(
@@ -415,6 +608,46 @@ def _numbers(
     return values
 
 
+def _check_increasing(time: np.ndarray, file_rows: np.ndarray, path: Path) -> None:
+    """Raise a DataError at the first time step that is not positive."""
+    steps = np.diff(time)
+    if (steps <= 0).any():
+        bad = int(np.flatnonzero(steps <= 0)[0]) + 1
+        raise DataError(
+            f"'{path}': Time does not increase at row {file_rows[bad]} "
+            f"({time[bad - 1]} then {time[bad]})"
+        )
+
+
+# ----------------------------------------------------------------- positions
+def _positions(
+    plan: _Plan,
+    time: np.ndarray,
+    speed: dict[int, np.ndarray],
+    ivs: dict[int, np.ndarray],
+    length: float,
+) -> dict[int, np.ndarray]:
+    """(T,) front-bumper position [m] of every vehicle of an anchored chain.
+
+    Vehicles of a chain without a Speed column are absent from the result.
+    """
+    position: dict[int, np.ndarray] = {}
+    for chain in plan.chains:
+        if chain[0] not in plan.anchor:
+            continue
+        a = chain.index(plan.anchor[chain[0]])
+        position[chain[a]] = _odometer(time, speed[chain[a]])
+        # Behind the anchor: each follower length + IVS behind its leader.
+        for leader, follower in zip(chain[a:], chain[a + 1 :], strict=False):
+            position[follower] = position[leader] - length - ivs[leader]
+        # Ahead of it (no speed there): each leader length + IVS ahead.
+        for leader, follower in zip(
+            reversed(chain[:a]), reversed(chain[1 : a + 1]), strict=True
+        ):
+            position[leader] = position[follower] + length + ivs[leader]
+    return position
+
+
 def _odometer(time: np.ndarray, speed: np.ndarray) -> np.ndarray:
     """Cumulative trapezoid integral of ``speed`` [m/s] over ``time`` [s], from 0.
 
@@ -431,12 +664,36 @@ def _odometer(time: np.ndarray, speed: np.ndarray) -> np.ndarray:
     return out
 
 
-def _describe(run: str, meta: _Metadata, time: np.ndarray) -> str:
+def _mode(k: int, driver: np.ndarray | None, meta: _Metadata, n: int) -> np.ndarray:
+    """(T,) control mode of vehicle ``k``: DriverK, else from the ACC field.
+
+    An "ACC" mode carries the run's distance setting ("ACC:S").
+    """
+    if driver is not None:
+        mode = driver.copy()
+    elif meta.acc == "0":
+        mode = np.full(n, "Human", dtype=object)
+    elif meta.acc == "1" and k > 1:
+        # ACC 1: "the whole experiment conducted with ACC" (JRC's notes) holds
+        # for the followers; the first car of Vehicle_order leads, and how
+        # (by hand, a target car) the file does not say: it stays "".
+        mode = np.full(n, "ACC", dtype=object)
+    else:
+        mode = np.full(n, "", dtype=object)
+    if meta.distance:
+        acc = np.array([str(m).upper() == "ACC" for m in mode], dtype=bool)
+        mode[acc] = f"ACC:{meta.distance}"
+    return mode
+
+
+# --------------------------------------------------------------------- notes
+def _name(meta: _Metadata, k: int) -> str:
+    return meta.names[k - 1] if 1 <= k <= len(meta.names) else ""
+
+
+def _describe(run: str, meta: _Metadata, header: _Header, time: np.ndarray) -> str:
     """The run's vehicles by name, its span and its metadata, in one line."""
-    names = [
-        f"{k}={meta.names[k - 1] if k <= len(meta.names) else '?'}"
-        for k in range(1, meta.n_vehicles + 1)
-    ]
+    names = [f"{k}={_name(meta, k) or '?'}" for k in header.vehicles]
     step = float(np.median(np.diff(time))) if time.size > 1 else float("nan")
     return (
         f"run {run}: vehicles {', '.join(names)}; {time.size} rows every "
@@ -445,52 +702,81 @@ def _describe(run: str, meta: _Metadata, time: np.ndarray) -> str:
     )
 
 
+def _plan_notes(run: str, meta: _Metadata, header: _Header, plan: _Plan) -> list[str]:
+    """The couples, and every way the header departs from 1..N, linked."""
+    notes = []
+    couples = [f"{plan.leader[k]}>{k}" for k in header.vehicles if k in plan.leader]
+    notes.append(f"run {run}: couples (leader>follower) {', '.join(couples) or 'none'}")
+    if header.vehicles != list(range(1, meta.n_vehicles + 1)):
+        absent = sorted(set(range(1, meta.n_vehicles + 1)) - set(header.vehicles))
+        beyond = [k for k in header.vehicles if not 1 <= k <= meta.n_vehicles]
+        notes.append(
+            f"run {run}: Number_of_vehicles is {meta.n_vehicles} but the columns "
+            f"name vehicle(s) {_listed(header.vehicles)}"
+            + (f"; none for {_listed(absent)}" if absent else "")
+            + (f"; beyond the count: {_listed(beyond)}" if beyond else "")
+        )
+    if len(meta.names) != meta.n_vehicles:
+        notes.append(
+            f"run {run}: Vehicle_order names {len(meta.names)} vehicle(s) but "
+            f"Number_of_vehicles is {meta.n_vehicles}: vehicle K is named by the "
+            f"K-th entry, which may not be that car"
+        )
+    for k, m in zip(header.vehicles, header.vehicles[1:], strict=False):
+        if m not in plan.leader:
+            notes.append(
+                f"run {run}: no IVS{k}: vehicle {m} has no recorded gap to vehicle "
+                f"{k}, so no leader; its chain is placed by its own odometer "
+                f"(another frame)"
+            )
+        elif m != k + 1:
+            skipped = _listed(list(range(k + 1, m)))
+            notes.append(
+                f"run {run}: IVS{k} taken as the spacing from vehicle {k} to "
+                f"vehicle {m}, the next vehicle in the file ({skipped} absent)"
+            )
+    for k in plan.unused_ivs:
+        why = (
+            f"vehicle {k} is not in the file"
+            if k not in header.vehicles
+            else f"no vehicle after {k} in the file"
+        )
+        notes.append(f"run {run}: IVS{k} not used: {why}")
+    unplaced = [
+        k for chain in plan.chains if chain[0] not in plan.anchor for k in chain
+    ]
+    if unplaced:
+        notes.append(
+            f"run {run}: vehicle(s) {_listed(unplaced)} left out: no Speed column "
+            f"in their chain, so no position"
+        )
+    if header.unread:
+        notes.append(f"run {run}: columns not read: {', '.join(header.unread)}")
+    return notes
+
+
 def _quality_notes(
     run: str,
-    meta: _Metadata,
-    columns: dict[str, int],
+    header: _Header,
     time: np.ndarray,
-    speed: list[np.ndarray],
-    ivs: list[np.ndarray],
-    position: list[np.ndarray],
-    mode: list[np.ndarray],
+    speed: dict[int, np.ndarray],
+    ivs: dict[int, np.ndarray],
+    position: dict[int, np.ndarray],
+    mode: dict[int, np.ndarray],
 ) -> list[str]:
     """Notes on what is missing or odd in one run (nothing when all is clean)."""
     notes = []
-    n = meta.n_vehicles
-    if len(meta.names) != n:
-        notes.append(
-            f"run {run}: Vehicle_order names {len(meta.names)} vehicle(s) but "
-            f"Number_of_vehicles is {n}"
-        )
-    no_speed = [
-        str(k)
-        for k in range(2, n + 1)
-        if f"speed{k}" not in columns and f"ivs{k - 1}" in columns
-    ]
+    no_speed = [k for k in position if k not in header.speed]
     if no_speed:
         notes.append(
-            f"run {run}: no Speed column for vehicle(s) {', '.join(no_speed)}: "
-            f"speed NaN"
+            f"run {run}: no Speed column for vehicle(s) {_listed(no_speed)}: speed NaN"
         )
-    unlinked = [k for k in range(1, n) if f"ivs{k}" not in columns]
-    for k in unlinked:
-        if f"speed{k + 1}" in columns:
-            notes.append(
-                f"run {run}: no IVS{k}: vehicle {k + 1} has no recorded gap to "
-                f"vehicle {k}, so no leader; its position is its own odometer "
-                f"(another frame)"
-            )
-        else:
-            notes.append(
-                f"run {run}: no Speed{k + 1} or IVS{k}: vehicle {k + 1} is not "
-                f"in the file"
-            )
-    no_driver = [str(k) for k in range(1, n + 1) if f"driver{k}" not in columns]
+    no_driver = [k for k in position if k not in header.driver]
     if no_driver:
+        modes = sorted({str(m) for k in no_driver for m in set(mode[k])})
         notes.append(
-            f"run {run}: no Driver column for vehicle(s) {', '.join(no_driver)}: "
-            f"mode ''"
+            f"run {run}: no Driver column for vehicle(s) {_listed(no_driver)}: "
+            f"mode from the ACC field ({', '.join(repr(m) for m in modes)})"
         )
     if time.size > 1:
         steps = np.diff(time)
@@ -500,31 +786,23 @@ def _quality_notes(
                 f"run {run}: {int(gaps.sum())} time gap(s), longest "
                 f"{steps.max():.2f} s, bridged by the odometer's trapezoid"
             )
-    counted = [
-        *(
-            (f"Speed{k}", speed[k - 1])
-            for k in range(1, n + 1)
-            if f"speed{k}" in columns
-        ),
-        *((f"IVS{k}", ivs[k - 1]) for k in range(1, n) if f"ivs{k}" in columns),
-        *(
-            (f"position of vehicle {k}", position[k - 1])
-            for k in range(1, n + 1)
-            if f"speed{k}" in columns or f"ivs{k - 1}" in columns
-        ),
+    counted: list[tuple[str, np.ndarray]] = [
+        *((f"Speed{k}", v) for k, v in speed.items()),
+        *((f"IVS{k}", v) for k, v in ivs.items()),
+        *((f"position of vehicle {k}", v) for k, v in position.items()),
     ]
     for label, values in counted:
         holes = int(np.isnan(values).sum())
         if holes:
             notes.append(f"run {run}: {label} NaN at {holes} row(s)")
-    for k, values in enumerate(ivs, start=1):
-        low = values <= 0  # a missing column is NaN: never low
+    for k, values in ivs.items():
+        low = values <= 0  # NaN is never low
         if low.any():
             notes.append(
                 f"run {run}: IVS{k} <= 0 at {int(low.sum())} row(s) (min "
                 f"{np.nanmin(values):.2f} m)"
             )
-    for k, values in enumerate(mode, start=1):
+    for k, values in mode.items():
         present = values[values != ""]
         switches = int((present[1:] != present[:-1]).sum())
         if switches:
@@ -533,3 +811,7 @@ def _quality_notes(
                 f"({', '.join(sorted(set(present)))})"
             )
     return notes
+
+
+def _listed(numbers: list[int]) -> str:
+    return ", ".join(str(k) for k in numbers)
