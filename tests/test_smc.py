@@ -83,65 +83,95 @@ def test_config_guards(mixture, tmp_path):
     assert not (tmp_path / "short").exists()
 
 
-def test_kernel_is_twice_the_weighted_covariance():
+def _logit(theta, bounds):
+    """(..., K) parameters in the logit of the box, in NumPy."""
+    low, high = bounds[:, 0].numpy(), bounds[:, 1].numpy()
+    unit = (np.asarray(theta) - low) / (high - low)
+    return np.log(unit) - np.log1p(-unit)
+
+
+@pytest.mark.parametrize("space", ["logit", "box"])
+def test_kernel_is_twice_the_weighted_covariance(space):
+    """In the kernel's space: the logit of the box (the default) or the box."""
     population, bounds = _population()
-    kernel = smc._kernel(population, bounds)
+    kernel = smc._kernel(population, bounds, space=space)
     width = (bounds[:, 1] - bounds[:, 0]).numpy()
+    # the logit's slope at the centre is 4 / width
+    floor = np.full_like(width, 4.0) if space == "logit" else width
     for p in range(3):
         member = np.isfinite(population["score"][p].numpy())
         theta = population["theta"][p, member, :-1].numpy()
+        if space == "logit":
+            theta = _logit(theta, bounds)
         w = np.exp(population["theta"][p, member, -1].numpy())
         expected = 2 * np.cov(theta.T, aweights=w, bias=True)
-        expected += np.diag((smc.KERNEL_FLOOR * width) ** 2)
+        expected += np.diag((smc.KERNEL_FLOOR * floor) ** 2)
         sigma = (kernel.chol[p] @ kernel.chol[p].T).numpy()
         np.testing.assert_allclose(sigma, expected, rtol=1e-12, atol=1e-14)
         np.testing.assert_allclose(kernel.log_w[p, member].exp().sum(), 1.0)
 
 
-def test_log_prior_ratio_matches_a_scipy_mixture():
+@pytest.mark.parametrize("space", ["logit", "box"])
+def test_log_prior_ratio_matches_a_scipy_mixture(space, monkeypatch):
+    """log r = log prior - log proposal density, both in the kernel's space (the
+    logit's prior density: prod s(z) (1 - s(z))); in blocks as in one piece."""
     population, bounds = _population()
-    kernel = smc._kernel(population, bounds)
+    kernel = smc._kernel(population, bounds, space=space)
     g = torch.Generator().manual_seed(5)
     pair = torch.tensor([0, 1, 2, 2, 1, 0])
-    theta = kernel.theta[pair, 0] + 0.2 * torch.randn(6, 3, generator=g).double()
+    start = population["theta"][pair, 0, :-1]
+    theta = start + 0.2 * torch.randn(6, 3, generator=g).double()
+    monkeypatch.setattr(smc, "WEIGHT_ROWS", 4)  # two blocks, the second short
     got = log_prior_ratio(kernel, bounds, theta, pair)
     volume = float(torch.prod(bounds[:, 1] - bounds[:, 0]))
     for q in range(6):
         p = int(pair[q])
         sigma = (kernel.chol[p] @ kernel.chol[p].T).numpy()
+        at = theta[q].numpy()
+        if space == "logit":
+            at = _logit(at, bounds)
+            log_prior = float(np.sum(-np.logaddexp(0, at) - np.logaddexp(0, -at)))
+        else:
+            log_prior = -math.log(volume)
         density = sum(
             float(torch.exp(kernel.log_w[p, i]))
-            * multivariate_normal(kernel.theta[p, i].numpy(), sigma).pdf(
-                theta[q].numpy()
-            )
+            * multivariate_normal(kernel.theta[p, i].numpy(), sigma).pdf(at)
             for i in range(kernel.theta.shape[1])
             if math.isfinite(float(kernel.log_w[p, i]))
         )
-        assert float(got[q]) == pytest.approx(-math.log(volume * density), rel=1e-10)
+        assert float(got[q]) == pytest.approx(log_prior - math.log(density), rel=1e-10)
 
 
 def test_proposals_move_around_their_parents_and_stay_in_the_box():
+    """The logit kernel: every proposal inside the box, Gaussian steps around
+    the parent in the logit space; the box kernel loses about half of a corner
+    parent's steps outside."""
     population, bounds = _population(n_pairs=2, pop=1, k=2)
     population["score"][:] = 1.0
-    population["theta"][0, 0, :2] = torch.tensor([0.0, 0.0])  # on the box's corner
-    kernel = smc._kernel(population, bounds)
+    low = bounds[0, 0] + 1e-6 * (bounds[0, 1] - bounds[0, 0])  # near the bound
+    population["theta"][0, 0, :2] = torch.tensor([float(low), 0.0])
     n = 20_000
     u = torch.rand(n, 3, generator=torch.Generator().manual_seed(2)).double()
     pair = torch.arange(n) % 2
-    theta, log_r = smc._propose(kernel, bounds, u, pair)
     corner, inner = pair == 0, pair == 1
-    inside = torch.isfinite(log_r)
-    # from the corner (0 is the box's low edge of the first parameter, the middle
-    # of the second) about half the steps leave the box
-    assert 0.4 < float(inside[corner].double().mean()) < 0.6
-    assert bool(
-        ((theta[inside] >= bounds[:, 0]) & (theta[inside] <= bounds[:, 1])).all()
-    )
-    steps = (theta[inner] - kernel.theta[1, 0]).numpy()
-    sigma = (kernel.chol[1] @ kernel.chol[1].T).numpy()
-    assert (np.abs(steps.mean(0)) < 4 * np.sqrt(np.diag(sigma) / n)).all()
-    scale = np.sqrt(np.outer(np.diag(sigma), np.diag(sigma)))  # correlations' scale
-    np.testing.assert_allclose(np.cov(steps.T) / scale, sigma / scale, atol=0.05)
+    for space in ("logit", "box"):
+        kernel = smc._kernel(population, bounds, space=space)
+        theta, log_r = smc._propose(kernel, bounds, u, pair)
+        inside = torch.isfinite(log_r)
+        in_box = (theta >= bounds[:, 0]) & (theta <= bounds[:, 1])
+        assert bool(in_box[inside].all())
+        if space == "logit":
+            assert bool(inside.all())
+            steps = _logit(theta[inner].numpy(), bounds) - kernel.theta[1, 0].numpy()
+        else:
+            # from the bound of the first parameter (the middle of the second)
+            # about half the steps leave the box
+            assert 0.4 < float(inside[corner].double().mean()) < 0.6
+            steps = (theta[inner] - kernel.theta[1, 0]).numpy()
+        sigma = (kernel.chol[1] @ kernel.chol[1].T).numpy()
+        assert (np.abs(steps.mean(0)) < 4 * np.sqrt(np.diag(sigma) / n)).all()
+        scale = np.sqrt(np.outer(np.diag(sigma), np.diag(sigma)))
+        np.testing.assert_allclose(np.cov(steps.T) / scale, sigma / scale, atol=0.05)
 
 
 def test_thresholds_are_quantiles_the_population_holds():

@@ -15,6 +15,15 @@ budget whose quality is at least rejection's at its largest budget (the paper's
     python tools/bench_smc.py datasets --configs configs/carII.json \\
         --rejection 100000 1000000 --smc 50000 100000 200000
 
+``models``: per model, on every data set, the engine alone
+(:func:`torchcf.abc.run_smc`, :func:`torchcf.abc.run_rejection`, no run
+directory): rejection at ``--rejection`` (1e6) against SMC at ``--budget`` (5e4,
+20x fewer simulations) for each kernel design of :data:`DESIGNS` (the one kept
+first), quality each model's own (the mean over pairs of its N-th best score).
+The kept design also at ``--seeds``.
+
+    python tools/bench_smc.py models --threads 2
+
 ``pyabc``: one pair and one model, against the trace that
 ``tools/pyabc_baseline.py`` wrote (pyABC's ABCSMC in its own environment, on the
 same pair): the engine (:func:`torchcf.abc.run_smc`, :func:`torchcf.abc.
@@ -43,6 +52,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
+import torchcf.abc.smc as smc_module  # noqa: E402
 from torchcf.abc.rejection import (  # noqa: E402
     ModelProgress,
     Rollout,
@@ -210,6 +220,225 @@ def datasets_markdown(payload: dict, args) -> str:
     return "\n".join(lines)
 
 
+# ------------------------------------------------------------- per model
+#: The designs compared by ``models``: name -> settings (the kept one first).
+DESIGNS = {
+    "logit (kept)": SMCSettings(),
+    "box (before)": SMCSettings(space="box"),
+    "box, scale 1": SMCSettings(space="box", kernel_scale=1.0),
+    "box, 20 rounds": SMCSettings(space="box", rounds=20),
+    "box, prior 10 %": SMCSettings(space="box", prior_fraction=0.1),
+    "logit, scale 1": SMCSettings(kernel_scale=1.0),
+    "logit, prior 15 %": SMCSettings(prior_fraction=0.15),
+    "logit, quantile 0.3": SMCSettings(quantile=0.3),
+    "logit, population 30": SMCSettings(population=30),
+    "logit, 8 rounds": SMCSettings(rounds=8),
+    "logit, 16 rounds": SMCSettings(rounds=16),
+}
+
+
+def model_quality(buffer: TopN, n: int) -> float:
+    """Mean over the pairs of the buffer's ``n``-th best score (finite ones)."""
+    nth = buffer.score[:, n - 1]
+    return float(nth[torch.isfinite(nth)].mean())
+
+
+class _Outside:
+    """Counts the refinement's proposals and those outside the prior box (the
+    box kernel's unsimulated ones), wrapping :func:`torchcf.abc.smc._propose`."""
+
+    def __init__(self) -> None:
+        self.proposed = self.outside = 0
+
+    def __enter__(self) -> _Outside:
+        self.real = smc_module._propose
+
+        def counted(kernel, bounds, u, pair):
+            theta, log_r = self.real(kernel, bounds, u, pair)
+            self.proposed += log_r.numel()
+            self.outside += int((~torch.isfinite(log_r)).sum())
+            return theta, log_r
+
+        smc_module._propose = counted
+        return self
+
+    def __exit__(self, *exc) -> None:
+        smc_module._propose = self.real
+
+    @property
+    def fraction(self) -> float:
+        return self.outside / max(self.proposed, 1)
+
+
+def engine_quality(
+    method: str,
+    name: str,
+    pairs,
+    budget: int,
+    settings: SMCSettings,
+    seed: int,
+    n: int,
+    dtype,
+) -> tuple[float, float, float]:
+    """(quality, seconds, share of the refinement's proposals outside the box)
+    of one model's engine run on ``pairs``."""
+    model = get_model(name)
+    bounds = model.prior_bounds(torch.float64)
+    rollout = Rollout(pairs, dtype=dtype, compile="off")
+    began = time.perf_counter()
+    outside = 0.0
+    if method == "smc":
+        buffer = TopN(pairs.n_pairs, n, model.n_params + 1)
+        state = new_state(pairs.n_pairs, settings, model.n_params)
+        with _Outside() as count:
+            run_smc(
+                name,
+                bounds,
+                seed,
+                buffer,
+                rollout,
+                budget,
+                settings,
+                ModelProgress(),
+                state,
+            )
+        outside = count.fraction
+    else:
+        buffer = TopN(pairs.n_pairs, n, model.n_params)
+        stream = prior_stream(name, bounds, seed, rollout)
+        run_rejection(stream, buffer, rollout, budget, ModelProgress())
+    return model_quality(buffer, n), time.perf_counter() - began, outside
+
+
+def models(args) -> int:
+    results = {}
+    for config in args.configs:
+        cfg = load_config(config)
+        pairs = load_split(cfg.data)[0]
+        dtype = getattr(torch, cfg.dtype)
+        n = cfg.abc.top_n
+        rows = {}
+        for spec in cfg.models:
+            name = spec.name
+            ref, ref_s, _ = engine_quality(
+                "rejection", name, pairs, args.rejection, SMCSettings(), 0, n, dtype
+            )
+            row = {"rejection": ref, "rejection_seconds": ref_s, "designs": {}}
+            runs = [(d, 0) for d in DESIGNS] + [
+                (next(iter(DESIGNS)), s) for s in args.seeds if s != 0
+            ]
+            for design, seed in runs:
+                quality, seconds, outside = engine_quality(
+                    "smc", name, pairs, args.budget, DESIGNS[design], seed, n, dtype
+                )
+                key = design if seed == 0 else f"{design}, seed {seed}"
+                row["designs"][key] = {
+                    "quality": quality,
+                    "seconds": seconds,
+                    "outside": outside,
+                }
+                print(
+                    f"{cfg.data.name} {name:5s} {key:28s} {quality:.4f} "
+                    f"(rejection {ref:.4f})",
+                    file=sys.stderr,
+                )
+            rows[name] = row
+        results[cfg.data.name] = {"n_train": pairs.n_pairs, "models": rows}
+    payload = {
+        "meta": bench_meta(sys.argv, args.threads),
+        "budget": args.budget,
+        "rejection_budget": args.rejection,
+        "designs": {k: v.__dict__ for k, v in DESIGNS.items()},
+        "results": results,
+        "summary": design_summary(results),
+    }
+    write_report(REPORTS / args.name, payload, models_markdown(payload))
+    return 0
+
+
+def design_summary(results: dict) -> dict:
+    """Per design (and seed): the (data set, model) cells where SMC's quality is
+    worse than rejection's, the mean and the worst of log(SMC / rejection)."""
+    cells: dict[str, list[tuple[float, str]]] = {}
+    for data, result in results.items():
+        for name, row in result["models"].items():
+            for design, run in row["designs"].items():
+                ratio = math.log(run["quality"] / row["rejection"])
+                cells.setdefault(design, []).append((ratio, f"{data}/{name}"))
+    return {
+        design: {
+            "cells": len(values),
+            "worse": [cell for ratio, cell in values if ratio > 0],
+            "mean_log_ratio": sum(r for r, _ in values) / len(values),
+            "worst": max(values),
+        }
+        for design, values in cells.items()
+    }
+
+
+def _models(payload: dict) -> list[str]:
+    """The model names of the first data set (every data set has the eight)."""
+    return list(next(iter(payload["results"].values()))["models"])
+
+
+def models_markdown(payload: dict) -> str:
+    meta = payload["meta"]
+    designs = list(payload["designs"])
+    lines = [
+        "# SMC per model: 20x fewer simulations against rejection",
+        "",
+        f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
+        f"{meta['cpu']}, git {meta['git']}, compile off, the engine alone.",
+        "",
+        f"Quality: each model's own mean over the training pairs of its 5th best "
+        f"score; lower is better. Rejection: {payload['rejection_budget']:,} prior "
+        f"particles per model; SMC: {payload['budget']:,} proposals per model, "
+        "seed 0, one column per kernel design (`*`: worse than rejection).",
+        "",
+        "| design | cells worse than rejection | mean log(SMC / rejection) | worst |",
+        "|---|---|---|---|",
+    ]
+    for design, row in payload["summary"].items():
+        worst_ratio, worst_cell = row["worst"]
+        worse = ", ".join(row["worse"]) if row["worse"] else "none"
+        lines.append(
+            f"| {design} | {len(row['worse'])}/{row['cells']} ({worse}) | "
+            f"{row['mean_log_ratio']:+.4f} | {worst_ratio:+.4f} ({worst_cell}) |"
+        )
+    lines += [
+        "",
+        "Share of the refinement's proposals outside the prior box, counted in the "
+        "budget but not simulated, with the kernel in the box (the design before; "
+        "the logit kernel's are none):",
+        "",
+        "| data set | " + " | ".join(_models(payload)) + " |",
+        "|---|" + "---|" * len(_models(payload)),
+    ]
+    for data, result in payload["results"].items():
+        shares = [
+            f"{row['designs']['box (before)']['outside']:.0%}"
+            for row in result["models"].values()
+        ]
+        lines.append(f"| {data} | " + " | ".join(shares) + " |")
+    for data, result in payload["results"].items():
+        lines += [
+            "",
+            f"## {data} ({result['n_train']} training pairs)",
+            "",
+            "| model | rejection | " + " | ".join(designs) + " |",
+            "|---|---|" + "---|" * len(designs),
+        ]
+        for name, row in result["models"].items():
+            cells = []
+            for design in designs:
+                q = row["designs"][design]["quality"]
+                cells.append(f"{q:.4f}{'*' if q > row['rejection'] else ''}")
+            lines.append(
+                f"| {name} | {row['rejection']:.4f} | " + " | ".join(cells) + " |"
+            )
+    return "\n".join(lines) + "\n"
+
+
 # ---------------------------------------------------------------------- pyABC
 def engine_best(
     method: str, name: str, pair, budget: int, settings: SMCSettings, dtype
@@ -320,6 +549,13 @@ def main(argv: list[str] | None = None) -> int:
     data.add_argument("--threads", type=int, default=2)
     data.add_argument("--compile", default="off", choices=("off", "auto", "on"))
     data.add_argument("--name", default="smc_datasets")
+    per_model = parts.add_parser("models", help="SMC designs per model")
+    per_model.add_argument("--configs", nargs="+", default=list(CONFIGS))
+    per_model.add_argument("--rejection", type=int, default=1_000_000)
+    per_model.add_argument("--budget", type=int, default=50_000)
+    per_model.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    per_model.add_argument("--threads", type=int, default=2)
+    per_model.add_argument("--name", default="smc_models")
     single = parts.add_parser("pyabc", help="the engine against pyABC on one pair")
     single.add_argument("--trace", default=str(REPORTS / "pyabc_carII_idm.json"))
     single.add_argument(
@@ -342,7 +578,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     tune_malloc()
-    return datasets(args) if args.part == "datasets" else pyabc(args)
+    parts = {"datasets": datasets, "models": models, "pyabc": pyabc}
+    return parts[args.part](args)
 
 
 if __name__ == "__main__":

@@ -126,10 +126,21 @@ class Rollout:
         """
         if chunk is None:
             chunk = self.chunk(model, max(theta.shape[0], 1), compiled)
+        pairs = self.pairs
+        if pair is not None and theta.shape[0]:
+            # Only the pairs the particles go to: a simulate call prepares the
+            # observations of every pair it is given, so a chunk on a slice of
+            # 10 000 pairs (a refinement round's) would otherwise pay for all
+            # of them, and the calls of a run for pairs squared. A particle's
+            # rollout reads its own pair alone: the scores are the same.
+            used = torch.unique(pair)
+            if used.numel() < pairs.n_pairs:
+                pairs = pairs.subset(used)
+                pair = torch.searchsorted(used, pair)
         out = simulate(
             model,
             theta.to(self.dtype),
-            self.pairs,
+            pairs,
             pair,
             dtype=self.dtype,
             device=self.device,

@@ -107,45 +107,22 @@ class TopN:
         survivors = keep.nonzero().squeeze(1)
         if not survivors.numel():
             return 0
-        n_pairs, capacity = self.score.shape
-        all_pair = torch.cat(
-            (
-                torch.arange(n_pairs, device=device).repeat_interleave(capacity),
-                pair[survivors],
-            )
+        # Only the pairs a survivor goes to are merged: a chunk's cost is its own
+        # size plus capacity per pair it reaches, not the whole buffer's
+        # (a refinement round's chunks reach a slice of the pairs; over 10 000
+        # pairs a whole-buffer merge per chunk grew with pairs squared).
+        touched, local = torch.unique(pair[survivors], return_inverse=True)
+        score_t, index_t, theta_t = _merge(
+            self.score[touched],
+            self.index[touched],
+            self.theta[touched],
+            local,
+            score[survivors],
+            index.to(device)[survivors],
+            theta.to(device=device, dtype=torch.float64)[survivors],
         )
-        all_score = torch.cat((self.score.reshape(-1), score[survivors]))
-        all_index = torch.cat((self.index.reshape(-1), index.to(device)[survivors]))
-        all_theta = torch.cat(
-            (
-                self.theta.reshape(-1, self.theta.shape[-1]),
-                theta.to(device=device, dtype=torch.float64)[survivors],
-            )
-        )
-        # Empty slots (index -1, score inf) sort after every real entry of the pair.
-        empty = (all_index < 0).to(torch.int64)
-        order = lexsort(all_pair, all_score, empty, all_index)
-        # Copies of one entry are adjacent in this order; keep the first only.
-        sorted_index = all_index[order]
-        copy = torch.zeros_like(order, dtype=torch.bool)
-        copy[1:] = (
-            (all_pair[order[1:]] == all_pair[order[:-1]])
-            & (sorted_index[1:] == sorted_index[:-1])
-            & (all_score[order[1:]] == all_score[order[:-1]])
-            & (sorted_index[1:] >= 0)
-        )
-        order = order[~copy]
-        sorted_pair = all_pair[order]
-        # Rank within the pair: position minus the pair's first position.
-        counts = torch.bincount(sorted_pair, minlength=n_pairs)
-        starts = torch.cumsum(counts, 0) - counts
-        rank = torch.arange(order.numel(), device=device) - starts[sorted_pair]
-        take = rank < capacity
-        slot = sorted_pair[take] * capacity + rank[take]
-        chosen = order[take]
-        self.score.view(-1)[slot] = all_score[chosen]
-        self.index.view(-1)[slot] = all_index[chosen]
-        self.theta.view(-1, self.theta.shape[-1])[slot] = all_theta[chosen]
+        self.score[touched], self.index[touched] = score_t, index_t
+        self.theta[touched] = theta_t
         return int(survivors.numel())
 
     def push_full(self, score: Tensor, index: Tensor, theta: Tensor) -> int:
@@ -205,6 +182,65 @@ class TopN:
                     f"{tuple(getattr(self, name).shape)} expected"
                 )
             setattr(self, name, value.to(getattr(self, name).device).clone())
+
+
+def _merge(
+    score: Tensor,
+    index: Tensor,
+    theta: Tensor,
+    pair: Tensor,
+    new_score: Tensor,
+    new_index: Tensor,
+    new_theta: Tensor,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The best ``capacity`` entries per row of a buffer slice and candidates.
+
+    Args:
+        score, index, theta: (R, capacity), (R, capacity), (R, capacity, K) the
+            rows' entries.
+        pair: (Q,) int64 row of each candidate; new_score, new_index, new_theta:
+            (Q,), (Q,), (Q, K) the candidates.
+
+    Returns:
+        The rows' new ``score``, ``index``, ``theta``.
+    """
+    device = score.device
+    n_rows, capacity = score.shape
+    all_pair = torch.cat(
+        (torch.arange(n_rows, device=device).repeat_interleave(capacity), pair)
+    )
+    all_score = torch.cat((score.reshape(-1), new_score))
+    all_index = torch.cat((index.reshape(-1), new_index))
+    all_theta = torch.cat((theta.reshape(-1, theta.shape[-1]), new_theta))
+    # Empty slots (index -1) are the only entries scoring inf (push keeps finite
+    # scores only), so they sort after every real entry of their pair.
+    order = lexsort(all_pair, all_score, all_index)
+    # Copies of one entry are adjacent in this order; keep the first only.
+    sorted_index = all_index[order]
+    copy = torch.zeros_like(order, dtype=torch.bool)
+    copy[1:] = (
+        (all_pair[order[1:]] == all_pair[order[:-1]])
+        & (sorted_index[1:] == sorted_index[:-1])
+        & (all_score[order[1:]] == all_score[order[:-1]])
+        & (sorted_index[1:] >= 0)
+    )
+    order = order[~copy]
+    sorted_pair = all_pair[order]
+    # Rank within the pair: position minus the pair's first position.
+    counts = torch.bincount(sorted_pair, minlength=n_rows)
+    starts = torch.cumsum(counts, 0) - counts
+    rank = torch.arange(order.numel(), device=device) - starts[sorted_pair]
+    take = rank < capacity
+    slot = sorted_pair[take] * capacity + rank[take]
+    chosen = order[take]
+    # Every row keeps its entries or better ones, so every slot is written.
+    out_score = torch.full_like(score, torch.inf)
+    out_index = torch.full_like(index, -1)
+    out_theta = torch.zeros_like(theta)
+    out_score.view(-1)[slot] = all_score[chosen]
+    out_index.view(-1)[slot] = all_index[chosen]
+    out_theta.view(-1, theta.shape[-1])[slot] = all_theta[chosen]
+    return out_score, out_index, out_theta
 
 
 __all__ = ["TopN", "lexsort"]
