@@ -164,3 +164,25 @@ def test_bend_seed_finds_the_speed_limit_the_followers_press_against():
     assert seed[1].item() == pytest.approx(limit[1] + BEND_SEED_MARGIN, abs=1.5)
     assert seed[4].item() == bend.param_specs[4].upper  # 2400 m: nobody gets there
     assert seed[0].item() > seed[1].item() + 2.0
+
+
+@pytest.mark.parametrize("lag", [0.2, 0.5])
+def test_a_grade_under_an_actuation_lag_is_whole_in_the_one_step_residual(lag):
+    """HL realises its command through a lag: a grade on the command reaches the
+    next step's speed only as ~dt / (2 lag) of itself, but the command-space
+    residual (the acceleration missed, over da/du) carries it whole, so the
+    grade seed recovers the planted knots."""
+    from torchcf.diagnose.road import one_step_residual
+
+    effect = parse_effect("grade(start=0,end=1200,knots=7)")
+    truth = np.array([0.02, -0.03, 0.03, -0.01, 0.025, -0.02, 0.01])
+    hl = [1.0, lag, 0.8, 1.2, -0.5, 5.0]  # tau, TT, ks, kv, ka, l
+    theta = torch.tensor(hl + truth.tolist(), dtype=torch.float64)
+    pairs = synthetic_pairs(
+        f"hl+{effect.token}", theta, n_pairs=12, n_steps=400, seed=3, start=(0, 700)
+    )
+    best = {"hl": (torch.tensor([hl] * 12, dtype=torch.float64), torch.arange(12))}
+    series = one_step_residual(best, pairs)
+    seed = grade_seed(effect, series["x"], series["acceleration"]).numpy()
+    reached = [0.0 <= k <= 1000.0 for k in effect.knot_positions]
+    np.testing.assert_allclose(seed[reached], truth[reached], atol=2e-3)

@@ -95,10 +95,20 @@ def one_step_residual(best: BestParticles, pairs: PairSet) -> dict[str, list]:
 
     At every valid step t (but the last) the follower is put in its observed
     state, the model commands from the observed perception and realises one step
-    (:func:`torchcf.sim.realise`); the residual is ``(v_obs(t + 1) - v_pred(t +
-    1)) / dt`` [m/s^2] (a point mass: ``a_obs(t) - u(t)``). Memory-carrying
-    models start from a steady past at every step (a delay effect is not a pool
-    model; the MPC's memory only warm-starts its solver).
+    (:func:`torchcf.sim.realise`); the residual is what the *command* missed
+    [m/s^2], so that an effect acting on the command (a grade's ``-g G(x)``)
+    appears in it whole, whatever the realisation:
+
+    - a point mass: ``(v_obs(t + 1) - v_pred(t + 1)) / dt`` (= ``a_obs(t) -
+      u(t)``);
+    - a model whose acceleration is a state (HL's actuation lag, the ``lag``
+      effect): ``(a_obs(t + 1) - a_pred(t + 1)) / k``, ``k = da(t + 1)/du``
+      (``1 - exp(-dt / tau)`` for a first-order lag). Its one-step *speed*
+      residual would carry only about ``k / 2`` of a command offset (the lag has
+      barely started to pass it on), about a tenth at tau = 0.5 s and dt = 0.1 s.
+
+    Memory-carrying models start from a steady past at every step (a delay
+    effect is not a pool model; the MPC's memory only warm-starts its solver).
 
     Returns:
         lists (one float64 array per pair with a particle, pairs in position
@@ -136,6 +146,16 @@ def one_step_residual(best: BestParticles, pairs: PairSet) -> dict[str, list]:
             command, _ = model.command_with_memory(params, perception, memory)
             moved = realise(model, params, state, command, pairs.dt)
             residual = (obs["v_follow"][1 : steps + 1, j] - moved.v) / pairs.dt
+            if model.acceleration_is_state:
+                residual = _command_residual(
+                    model,
+                    params,
+                    state,
+                    command,
+                    obs["a_follow"][1 : steps + 1, j] - moved.a,
+                    residual,
+                    pairs.dt,
+                )
             rows[j] = (
                 state.x.numpy(),
                 state.v.numpy(),
@@ -147,6 +167,27 @@ def one_step_residual(best: BestParticles, pairs: PairSet) -> dict[str, list]:
         for key, values in zip(keys, rows[j], strict=True):
             out[key].append(values)
     return out
+
+
+def _command_residual(
+    model: Any,
+    params: Any,
+    state: FollowerState,
+    command: Tensor,
+    a_missed: Tensor,
+    speed_residual: Tensor,
+    dt: float,
+) -> Tensor:
+    """``a_missed / k`` with ``a_missed = a_obs(t + 1) - a_pred(t + 1)`` and ``k =
+    da(t + 1)/du`` of the model's realisation (:meth:`CFModel.advance`, linear in
+    the command for a lag), found by a unit step of the command. Where ``k`` is
+    ~0 (nothing passes the command on) the speed residual stands."""
+    plain = model.advance(params, state, command, dt).a
+    gain = model.advance(params, state, command + 1.0, dt).a - plain
+    usable = gain.abs() > 1e-6
+    return torch.where(
+        usable, a_missed / torch.where(usable, gain, 1.0), speed_residual
+    )
 
 
 def fit_window(series: dict[str, list[np.ndarray]], steps: int) -> dict[str, list]:
