@@ -18,12 +18,19 @@ their position), so the comparison is made on the pairs both runs hold and over
 all of them. Quality: the hybrid's per-pair N-th best score (the worst particle it
 keeps on a pair), mean over pairs, and each model's own (its buffer's N-th best).
 
-    python tools/bench_scale.py --pairs 150 1000 10000 --threads 2
-    python tools/bench_scale.py --pairs 150 1000 3000 --name scale   # shorter
-    python tools/bench_scale.py --pairs 150 1000 --method rejection --layout full
+    python tools/bench_scale.py --pairs 150 1000 3000 10000 --threads 1
+    python tools/bench_scale.py --pairs 150 1000 3000 --method rejection \
+        --layout full --name scale_full     # every particle on every pair
+    python tools/bench_scale.py --render   # scale.md again from scale.json
+
+In the full layout ``--per-pair`` is the particles per model (each simulated on
+every pair). On a shared machine take one thread: with two, another process on
+one of the two cores stalls every eager operation's thread barrier (a model ran
+25x slower).
 
 Writes ``reports/bench/<name>.{json,md}`` (default ``scale``), with the exact
-command, the machine and the git revision.
+command, the machine and the git revision, and a linear fit of time and peak
+memory against the pairs (over the runs of at least 1 000 pairs).
 """
 
 from __future__ import annotations

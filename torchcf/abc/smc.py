@@ -106,7 +106,8 @@ from .topn import TopN
 KERNEL_FLOOR = 1e-3
 #: Uniforms are kept this far from 0 and 1 before the normal quantile function.
 _UNIFORM_EDGE = 1e-12
-#: Proposals per block of the importance weights (:func:`log_prior_ratio`).
+#: Parameter vectors per block of the importance weights
+#: (:func:`grid_log_prior_ratio`): a block's distances are ``WEIGHT_ROWS x pop``.
 WEIGHT_ROWS = 1 << 14
 
 
@@ -383,33 +384,47 @@ def log_prior_ratio(
     to the round's proposal (0 where the pair drew from the prior). Both densities
     are taken in the kernel's space; their ratio is the same in any.
 
-    Computed in blocks of :data:`WEIGHT_ROWS` proposals: the mixture's terms are
-    ``(Q, pop, K)``, a gigabyte for a round's particles over 10 000 pairs. The
-    blocks are fixed, so the result does not depend on the caller's chunks."""
-    out = torch.empty(theta.shape[0], dtype=theta.dtype)
-    for start in range(0, theta.shape[0], WEIGHT_ROWS):
-        rows = slice(start, start + WEIGHT_ROWS)
-        out[rows] = _log_prior_ratio(kernel, bounds, theta[rows], pair[rows])
+    The proposals are laid out per pair (:func:`grid_log_prior_ratio`)."""
+    n_pairs = kernel.theta.shape[0]
+    order = torch.sort(pair, stable=True).indices
+    counts = torch.bincount(pair, minlength=n_pairs)
+    slot = torch.empty_like(pair)
+    slot[order] = (
+        torch.arange(pair.numel()) - (torch.cumsum(counts, 0) - counts)[pair[order]]
+    )
+    grid = theta.new_zeros(n_pairs, max(int(counts.max()), 1), theta.shape[1])
+    grid[pair, slot] = theta  # (N, C, K), C the most proposals of a pair
+    return grid_log_prior_ratio(kernel, bounds, grid)[pair, slot]
+
+
+def grid_log_prior_ratio(kernel: _Kernel, bounds: Tensor, theta: Tensor) -> Tensor:
+    """(N, C) ``log r`` of ``theta`` (N, C, K), ``C`` parameter vectors per pair
+    (a buffer's, at the end of a round), as :func:`log_prior_ratio`.
+
+    Per pair the Mahalanobis distances to its population are one small matrix
+    product, ``(C, K) x (K, pop)``, batched over pairs; pairs are taken in blocks
+    of at most :data:`WEIGHT_ROWS` rows (memory ``WEIGHT_ROWS x pop``), fixed,
+    so the result does not depend on how a round was chunked."""
+    n_pairs, width = theta.shape[:2]
+    out = theta.new_empty(n_pairs, width)
+    step = max(1, WEIGHT_ROWS // max(width, 1))
+    for first in range(0, n_pairs, step):
+        block = slice(first, first + step)
+        free = _free(theta[block], bounds, kernel.space)  # (B, C, K)
+        log_prior = _log_prior(free.reshape(-1, free.shape[-1]), bounds, kernel.space)
+        z = torch.einsum("bkl,bcl->bck", kernel.whiten[block], free)  # (B, C, K)
+        members = kernel.white[block]  # (B, pop, K)
+        # |z - z_i|^2 expanded: one batched product per pair instead of C x pop.
+        distance = (
+            (z**2).sum(2, keepdim=True)
+            + (members**2).sum(2)[:, None, :]
+            - 2.0 * torch.bmm(z, members.transpose(1, 2))
+        ).clamp(min=0.0)  # (B, C, pop)
+        log_phi = kernel.log_norm[block, None, None] - 0.5 * distance
+        log_q = torch.logsumexp(kernel.log_w[block, None, :] + log_phi, dim=2)
+        ratio = log_prior.reshape(log_q.shape) - log_q  # (B, C)
+        out[block] = torch.where(kernel.empty[block, None], 0.0, ratio)
     return out
-
-
-def _log_prior_ratio(
-    kernel: _Kernel, bounds: Tensor, theta: Tensor, pair: Tensor
-) -> Tensor:
-    free = _free(theta, bounds, kernel.space)
-    log_prior = _log_prior(free, bounds, kernel.space)
-    z = torch.einsum("qkl,ql->qk", kernel.whiten[pair], free)  # (Q, K)
-    members = kernel.white[pair]  # (Q, pop, K)
-    # |z - z_i|^2 expanded: one batched product instead of Q x pop solves.
-    distance = (
-        (z**2).sum(1, keepdim=True)
-        + (members**2).sum(2)
-        - 2.0 * torch.einsum("qk,qpk->qp", z, members)
-    ).clamp(min=0.0)  # (Q, pop)
-    log_phi = kernel.log_norm[pair, None] - 0.5 * distance  # (Q, pop)
-    log_q = torch.logsumexp(kernel.log_w[pair] + log_phi, dim=1)  # (Q,)
-    ratio = log_prior - log_q
-    return torch.where(kernel.empty[pair], 0.0, ratio)
 
 
 # -------------------------------------------------------------- the rounds
@@ -643,10 +658,9 @@ def _weigh_round(
     stop = first + budget.round_size(state.round)
     for held in (buffer, state.accepted):
         mine = (held.index >= first) & (held.index < stop)  # (N, capacity)
-        rows, slots = mine.nonzero(as_tuple=True)
-        if rows.numel():
-            theta = held.theta[rows, slots, :-1]
-            held.theta[rows, slots, -1] = log_prior_ratio(kernel, bounds, theta, rows)
+        if bool(mine.any()):
+            log_r = grid_log_prior_ratio(kernel, bounds, held.theta[..., :-1])
+            held.theta[..., -1] = torch.where(mine, log_r, held.theta[..., -1])
 
 
 def _thresholds(score: Tensor, quantile: float) -> Tensor:
