@@ -133,7 +133,10 @@ def test_evaluation_reuses_the_training_figures(trained, tmp_path):
         out, report_dir=elsewhere, pairs=(test_pairs, test_pairs), progress=False
     )
     names = {p.name for p in elsewhere.glob("*.png")}
-    assert names == {"shares.png", "pairwise.png", "error_evolution.png", "radar.png"}
+    assert names == {
+        "shares.png", "pairwise.png", "error_evolution.png", "radar.png",
+        "calibration.png",
+    }  # fmt: skip
 
 
 def test_metrics_equal_a_direct_computation(trained):
@@ -216,6 +219,16 @@ def test_aggregate_is_the_mean_over_folds_and_keeps_inf():
     assert result["hybrid"]["ws"] == 2.0 and result["hybrid"]["ws_folds_finite"] == 2
     assert math.isinf(result["hybrid"]["min"])
     assert result["hybrid"]["min_folds_finite"] == 1
+
+
+def test_aggregate_skips_the_blocks_that_are_no_learned_set():
+    fold = {
+        "hybrid": {"ws": 1.0},
+        "bootstrap": {"resamples": 10},
+        "hybrid_minus": {"idm": {"ws": {"value": -0.1}}},
+        "shares": {"idm": {"share": 1.0}},
+    }
+    assert set(aggregate([fold, fold])) == {"folds", "hybrid"}
 
 
 def test_fold_config():

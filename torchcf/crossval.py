@@ -41,7 +41,11 @@ def aggregate(fold_metrics: Sequence[dict[str, Any]]) -> dict[str, Any]:
     mean non-finite (reported, never dropped); ``folds_finite`` counts the folds
     that contributed finite values.
     """
-    entries = [k for k, v in fold_metrics[0].items() if isinstance(v, dict)]
+    # a learned set's entry holds its metrics; the other blocks of metrics.json
+    # (bootstrap, hybrid_minus, shares) are no entries
+    entries = [
+        k for k, v in fold_metrics[0].items() if isinstance(v, dict) and "ws" in v
+    ]
     result: dict[str, Any] = {"folds": len(fold_metrics)}
     for entry in entries:
         means: dict[str, Any] = {}

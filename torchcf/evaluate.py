@@ -14,8 +14,20 @@ Learned sets evaluated: ``"hybrid"`` (``Theta_hybrid`` of ``posterior.pt``) and 
 single model, represented by its own N best particles per training pair (the model
 learned alone, as in the paper's comparison).
 
+Uncertainty (:mod:`torchcf.evaluation.uncertainty`, its docstring lists the
+keys): the same rollouts also give each set's predictive coverage of the
+observed spacing and speed (:mod:`torchcf.evaluation.coverage`; the
+trajectories are reduced model by model, never all kept), and the cost matrices
+a percentile bootstrap over test pairs of the minimum distance, 0.15-WS and WS,
+with the paired differences hybrid minus each model
+(:mod:`torchcf.evaluation.bootstrap`; ``eval.bootstrap``,
+``eval.bootstrap_transport``, ``eval.level``, ``eval.seed``), next to the
+hybrid's shares with their interval over training pairs.
+
 Writes a report folder (default ``RUN_DIR/report``): ``table.md`` (the paper's
-Appendix Tables 4-6), ``shares.png`` (Fig. 3a-c), ``pairwise.png`` (Fig. 3d-f),
+Appendix Tables 4-6, then the intervals, the differences, the shares and the
+coverage), ``calibration.png`` (nominal against observed coverage),
+``shares.png`` (Fig. 3a-c), ``pairwise.png`` (Fig. 3d-f),
 ``error_evolution.png`` (Fig. 4: position error of the best 5 % of the hybrid's
 particles against all of them on one test pair) and ``radar.png`` (Figs. 5-6); the
 figures and metrics are also logged to the run's TensorBoard folder; and last
@@ -42,9 +54,17 @@ from .cli import DefaultsHelpFormatter, run_main
 from .config import TrainConfig
 from .data import PairSet, load_split
 from .errors import TorchcfError
+from .evaluation.coverage import (
+    PredictiveCDF,
+    add_draws,
+    observed,
+    predicted,
+    scored_steps,
+)
 from .evaluation.entropic import limit_threads
 from .evaluation.metrics import evaluate_cost_sets
 from .evaluation.plots import (
+    calibration_figure,
     error_evolution_figure,
     figure_to_array,
     pairwise_figure,
@@ -52,12 +72,24 @@ from .evaluation.plots import (
     save_image,
     shares_figure,
 )
-from .evaluation.report import metrics_table, plausibility_table
+from .evaluation.report import (
+    coverage_table,
+    differences_table,
+    intervals_table,
+    metrics_table,
+    plausibility_table,
+    shares_interval_table,
+)
+from .evaluation.uncertainty import tensorboard_scalars, uncertainty
 from .files import atomic_write_text, ensure_directory, writing
 from .posterior import Posterior
 from .rundir import RunDir
 from .sim import simulate
 from .tblog import RunLogger
+
+#: Bytes of trajectories one rollout may hold for the predictive coverage
+#: (:func:`cost_matrices` slices the particles to stay below).
+TRAJECTORY_BYTES = 2**28
 
 
 class EvaluationError(TorchcfError, RuntimeError):
@@ -121,8 +153,15 @@ def cost_matrices(
     dtype: torch.dtype = torch.float32,
     device: torch.device | str = "cpu",
     weights: Sequence[float] = (0.5, 0.3, 0.2),
+    predictive: Sequence[tuple[PredictiveCDF, np.ndarray | None]] = (),
 ) -> dict[str, np.ndarray]:
     """Score, e_p, e_v, e_a of every particle on every test pair: (P, n_test) each.
+
+    With ``predictive``, the same rollout's spacing and speed also feed each
+    ``(cdf, weights)``: ``weights`` (P,) per particle, None: 1 each. The
+    trajectories live for one rollout only; where all of them would pass
+    :data:`TRAJECTORY_BYTES`, the particles are simulated in slices that stay
+    below it (a rollout is particle by particle, so the costs are the same).
 
     Runs on one torch thread when ``P * n_test`` is small (:func:`limit_threads`):
     every step of the rollout is a handful of ops on ``P * n_test`` numbers, too
@@ -130,14 +169,40 @@ def cost_matrices(
     descheduled thread (the smoke run's 12 sets: 1.2 s on one thread, 14-30 s on
     two under load 4).
     """
-    with limit_threads(theta.shape[0] * test.n_pairs):
-        out = simulate(
-            model, theta.to(dtype), test, dtype=dtype, device=device, weights=weights
-        )
-    return {
-        key: getattr(out, key).double().cpu().numpy()
-        for key in ("score", "e_p", "e_v", "e_a")
-    }
+    n_particles = theta.shape[0]
+    # x, v, a of the rollout, then spacing and the coverage's copies: about 6
+    # (T, P, N) arrays of the run's dtype per particle
+    per_particle = 6 * test.n_steps * test.n_pairs * dtype.itemsize
+    step = max(1, TRAJECTORY_BYTES // per_particle) if predictive else n_particles
+    parts = []
+    with limit_threads(n_particles * test.n_pairs):
+        for start in range(0, max(n_particles, 1), max(step, 1)):
+            stop = min(start + step, n_particles)
+            out = simulate(
+                model,
+                theta[start:stop].to(dtype),
+                test,
+                dtype=dtype,
+                device=device,
+                return_traj=bool(predictive),
+                weights=weights,
+            )
+            if predictive:
+                draws = predicted(test.x_lead.to(out.x), out.x, out.v)  # (T, P, N)
+                feeds = [
+                    (cdf, None if w is None else np.asarray(w)[start:stop])
+                    for cdf, w in predictive
+                ]
+                add_draws(feeds, draws, out.valid)
+                del draws  # the slice's trajectories go before the next slice's
+                out = out._replace(x=None, v=None, a=None)
+            parts.append(
+                {
+                    key: getattr(out, key).double().cpu().numpy()
+                    for key in ("score", "e_p", "e_v", "e_a")
+                }
+            )
+    return parts[0] if len(parts) == 1 else _stack(parts)
 
 
 def _hybrid_costs(
@@ -147,14 +212,23 @@ def _hybrid_costs(
     costs: dict[str, dict[str, np.ndarray]],
     test: PairSet,
     kwargs: dict[str, Any],
+    predictive: PredictiveCDF | None = None,
 ) -> dict[str, np.ndarray]:
     """The (h, n_test) cost matrices of a model's hybrid particles ``theta``:
     the single model's rows where :func:`hybrid_rows_in_single` found them (the
-    same particle on the same pairs, no second rollout), a rollout for the rest."""
+    same particle on the same pairs, no second rollout), a rollout for the rest
+    (whose trajectories also feed the hybrid's ``predictive`` CDF; the found
+    rows fed it with the single model's rollout)."""
     found = rows >= 0
     if found.all():
         return {key: value[rows] for key, value in costs[name].items()}
-    fresh = cost_matrices(name, theta[torch.from_numpy(~found)], test, **kwargs)
+    fresh = cost_matrices(
+        name,
+        theta[torch.from_numpy(~found)],
+        test,
+        **kwargs,
+        predictive=() if predictive is None else [(predictive, None)],
+    )
     out = {key: np.empty((len(rows), test.n_pairs)) for key in fresh}
     for key, value in out.items():
         value[~found] = fresh[key]
@@ -187,6 +261,7 @@ def evaluate_posterior(
     cfg: TrainConfig,
     *,
     progress: bool = True,
+    predictive: dict[str, PredictiveCDF] | None = None,
 ) -> tuple[dict[str, dict[str, Any]], dict[str, dict[str, np.ndarray]]]:
     """Metrics of the hybrid and of every single model on ``test``.
 
@@ -199,6 +274,10 @@ def evaluate_posterior(
         test: the test pairs.
         cfg: the run's config (dtype, device, score weights, ``eval``).
         progress: show the progress bars (stderr).
+        predictive: filled with each set's :class:`PredictiveCDF` at the
+            observed spacing and speed (:mod:`torchcf.evaluation.coverage`),
+            from the same rollouts (the hybrid: every particle once, i.e. drawn
+            by its hybrid weight); None: no trajectories are kept.
 
     Returns:
         metrics: ``{"hybrid" | model: evaluate_costs(...)}``;
@@ -220,15 +299,41 @@ def evaluate_posterior(
     total = sum(len(t) for t in singles.values()) + sum(map(len, missing.values()))
     costs: dict[str, dict[str, np.ndarray]] = {}
     hybrid_parts = []
+    if predictive is not None:
+        targets = observed(test.x_lead, test.x_follow, test.v_follow)
+        steps = scored_steps(test.mask)
+        for name in [*posterior.models, "hybrid"]:
+            predictive[name] = PredictiveCDF(targets, steps)
     with _bar(total, "evaluate: simulate", "particle", progress) as bar:
         for name in posterior.models:
             bar.set_postfix_str(name, refresh=False)
             if len(singles[name]):
-                costs[name] = cost_matrices(name, singles[name], test, **kwargs)
+                feeds = []
+                if predictive is not None:
+                    found = rows[name][rows[name] >= 0]
+                    feeds = [(predictive[name], None)]
+                    if len(found):  # the hybrid's particles among these rows
+                        feeds.append(
+                            (
+                                predictive["hybrid"],
+                                np.bincount(found, minlength=len(singles[name])),
+                            )
+                        )
+                costs[name] = cost_matrices(
+                    name, singles[name], test, **kwargs, predictive=feeds
+                )
                 bar.update(len(singles[name]))
             if len(hybrid[name]):
                 hybrid_parts.append(
-                    _hybrid_costs(name, hybrid[name], rows[name], costs, test, kwargs)
+                    _hybrid_costs(
+                        name,
+                        hybrid[name],
+                        rows[name],
+                        costs,
+                        test,
+                        kwargs,
+                        None if predictive is None else predictive["hybrid"],
+                    )
                 )
                 bar.update(len(missing[name]))
     costs["hybrid"] = _stack(hybrid_parts)
@@ -376,8 +481,26 @@ def _evaluate_held(
     # A stale metrics.json of an earlier evaluation must not outlive a failure of
     # this one and pass for its result.
     run.discard_metrics()
-    metrics, costs = evaluate_posterior(posterior, test, cfg, progress=progress)
+    predictive: dict[str, PredictiveCDF] = {}
+    metrics, costs = evaluate_posterior(
+        posterior, test, cfg, progress=progress, predictive=predictive
+    )
     entries = [*[m for m in posterior.models if m in metrics], "hybrid"]
+    honest = uncertainty(
+        costs,
+        metrics,
+        predictive,
+        posterior,
+        beta=cfg.eval.beta,
+        n_bootstrap=cfg.eval.bootstrap,
+        n_transport=cfg.eval.bootstrap_transport,
+        level=cfg.eval.level,
+        seed=cfg.abc.seed if cfg.eval.seed is None else cfg.eval.seed,
+        coverage_levels=cfg.eval.coverage_levels,
+        coverage_curve=cfg.eval.coverage_curve,
+    )
+    for entry in entries:
+        metrics[entry].update(honest["per_set"][entry])
     result = {
         "dataset": summary["dataset"],
         "n_test": test.n_pairs,
@@ -385,7 +508,11 @@ def _evaluate_held(
         "beta": cfg.eval.beta,
         "sinkhorn_reg": cfg.eval.sinkhorn_reg,
         "sinkhorn_max_iter": cfg.eval.sinkhorn_max_iter,
+        "bootstrap": honest["bootstrap"],
+        "coverage_levels": list(cfg.eval.coverage_levels),
         **{entry: metrics[entry] for entry in entries},
+        "hybrid_minus": honest["hybrid_minus"],
+        "shares": honest["shares"],
     }
 
     ensure_directory(report, "report directory")
@@ -396,7 +523,15 @@ def _evaluate_held(
         f"{posterior.top_n} best particles per training pair; hybrid: "
         f"{sum(len(p) for p in posterior.hybrid.values())} particles.\n\n"
         + metrics_table(metrics, entries)
+        + "\n## Uncertainty\n\n"
+        + intervals_table(metrics, entries, honest["bootstrap"])
         + "\n"
+        + differences_table(honest["hybrid_minus"])
+        + "\n"
+        + shares_interval_table(honest["shares"], cfg.eval.level)
+        + "\n## Predictive coverage\n\n"
+        + coverage_table(metrics, entries, cfg.eval.coverage_levels)
+        + "\nCalibration curves: `calibration.png`.\n\n"
         + plausibility_table(summary.get("plausibility", {}))
         + "\nThe calibrated parameters per model: `parameters.md` (one row per "
         "particle: `parameters.csv`).\n",
@@ -417,6 +552,9 @@ def _evaluate_held(
             title=f"Hybrid, test pair {pair_id}: position error",
         ),
         "radar": radar_figure({entry: metrics[entry] for entry in entries}),
+        "calibration": calibration_figure(
+            {entry: metrics[entry]["coverage_curve"] for entry in entries}
+        ),
     }
     # Training wrote the shares and pairwise PNGs into its report folder; another
     # folder (or a run trained before it did) gets them drawn here.
@@ -444,9 +582,10 @@ def _evaluate_held(
                 RunLogger(run.tb_dir, stream="evaluation") as logger,
             ):
                 logger.evaluation(
-                    {k: images[k] for k in ("error_evolution", "radar")},
+                    {k: images[k] for k in ("error_evolution", "radar", "calibration")},
                     {e: metrics[e] for e in entries},
                 )
+                logger.evaluation({}, tensorboard_scalars(honest))
             bar.update()
     run.write_metrics(result)
     return result

@@ -6,5 +6,12 @@
   several cost matrices in one batched call, bounded iterations);
 - :mod:`torchcf.evaluation.report`: the paper's comparison tables (Markdown);
 - :mod:`torchcf.evaluation.plots`: the figures (shares, pairwise, radar, error
-  evolution, the loop's figures).
+  evolution, calibration curves, the loop's figures);
+- :mod:`torchcf.evaluation.coverage`: predictive coverage, the fraction of
+  observed spacing and speed inside the central bands of a learned set's
+  simulated draws (weighted quantiles, calibration curve);
+- :mod:`torchcf.evaluation.bootstrap`: bootstrap over test pairs, percentile
+  intervals of the metrics recomputed on each resample, paired differences;
+- :mod:`torchcf.evaluation.uncertainty`: both assembled into the keys of
+  ``metrics.json``, the report and TensorBoard.
 """

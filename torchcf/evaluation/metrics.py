@@ -274,7 +274,12 @@ def _masked_means(errors: np.ndarray, valid: np.ndarray) -> dict:
     }
 
 
-def wasserstein(C: CostMatrix, *, max_iter: int = EMD_MAX_ITER) -> TransportResult:
+def wasserstein(
+    C: CostMatrix,
+    *,
+    max_iter: int = EMD_MAX_ITER,
+    pair_mass: np.ndarray | None = None,
+) -> TransportResult:
     """Exact Wasserstein distance between the particle set and the test pairs.
 
     ``WS = min_gamma sum_ij gamma_ij C_ij`` s.t. ``sum_j gamma_ij = 1/P``,
@@ -284,6 +289,7 @@ def wasserstein(C: CostMatrix, *, max_iter: int = EMD_MAX_ITER) -> TransportResu
     Args:
         C: (P, N) cost matrix; ``inf``/NaN = invalid cell.
         max_iter: network-simplex pivots allowed; reaching it raises RuntimeError.
+        pair_mass: (N,) pair marginals instead of ``1/N`` (:func:`_pair_mass`).
 
     Returns:
         :class:`TransportResult`; ``value = inf, feasible = False`` when no plan
@@ -294,17 +300,22 @@ def wasserstein(C: CostMatrix, *, max_iter: int = EMD_MAX_ITER) -> TransportResu
     valid = np.isfinite(cost)
     invalid = int(valid.size - valid.sum())
     a = np.full(n_particles, 1.0 / n_particles)
-    b = np.full(n_test, 1.0 / n_test)
-    plan = _solve_restricted(a, b, cost, max_iter)
+    b, used = _pair_mass(pair_mass, n_test)
+    plan = _solve_restricted(a, b[used], cost[:, used], max_iter)
     if plan is None:
         return TransportResult(math.inf, None, invalid, False, None)
+    plan = _widen(plan, used)
     return TransportResult(
         _plan_value(plan, cost, valid), plan, invalid, True, plan.sum(axis=1)
     )
 
 
 def beta_wasserstein(
-    C: CostMatrix, beta: float = 0.15, *, max_iter: int = EMD_MAX_ITER
+    C: CostMatrix,
+    beta: float = 0.15,
+    *,
+    max_iter: int = EMD_MAX_ITER,
+    pair_mass: np.ndarray | None = None,
 ) -> TransportResult:
     """beta-Wasserstein distance: every particle carries at least ``beta / P``.
 
@@ -341,6 +352,7 @@ def beta_wasserstein(
         C: (P, N) cost matrix; ``inf``/NaN = invalid cell.
         beta: minimum share of the mass on each particle, times ``P``; in [0, 1].
         max_iter: network-simplex pivots allowed; reaching it raises RuntimeError.
+        pair_mass: (N,) pair marginals instead of ``1/N`` (:func:`_pair_mass`).
 
     Returns:
         :class:`TransportResult` whose ``plan`` is the lifted (P, N) plan and
@@ -349,25 +361,26 @@ def beta_wasserstein(
     """
     beta = _check_beta(beta)
     if beta == 1.0:
-        return wasserstein(C, max_iter=max_iter)
+        return wasserstein(C, max_iter=max_iter, pair_mass=pair_mass)
     cost = _as_matrix(C, "C")
     n_particles, n_test = cost.shape
     valid = np.isfinite(cost)
     invalid = int(valid.size - valid.sum())
+    b, used = _pair_mass(pair_mass, n_test)
     best = np.argmin(cost, axis=0)  # (N,) lowest index among ties; inf only if no valid
     best_cost = cost[best, np.arange(n_test)]  # (N,)
-    if not np.isfinite(best_cost).all():
+    if not np.isfinite(best_cost[used]).all():
         return TransportResult(math.inf, None, invalid, False, None)
 
     if beta == 0.0:
-        reduced = np.full((1, n_test), 1.0 / n_test)  # the free row alone
+        reduced = b[None, :]  # the free row alone (1, N)
     else:
         a = np.append(np.full(n_particles, beta / n_particles), 1.0 - beta)  # (P+1,)
-        b = np.full(n_test, 1.0 / n_test)
         free_cost = np.vstack([cost, best_cost[None, :]])  # (P + 1, N)
-        reduced = _solve_restricted(a, b, free_cost, max_iter)
+        reduced = _solve_restricted(a, b[used], free_cost[:, used], max_iter)
         if reduced is None:
             return TransportResult(math.inf, None, invalid, False, None)
+        reduced = _widen(reduced, used)
     # Lift: the free row's mass goes to each pair's best particle.
     plan = np.zeros((n_particles, n_test))
     plan[: reduced.shape[0] - 1] = reduced[:-1]
@@ -375,6 +388,38 @@ def beta_wasserstein(
     return TransportResult(
         _plan_value(plan, cost, valid), plan, invalid, True, plan.sum(axis=1)
     )
+
+
+def _pair_mass(
+    pair_mass: np.ndarray | None, n_test: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The pair marginals ``b`` (N,) and which pairs carry mass ``used`` (N,) bool.
+
+    ``None`` gives the uniform ``1/N`` of SPEC section 6. Other marginals serve
+    the bootstrap over pairs (:mod:`torchcf.evaluation.bootstrap`): a resample
+    that draws pair ``j`` ``k_j`` times is the cost matrix with column ``j``
+    repeated ``k_j`` times, each at mass ``1/N``; merging identical columns
+    (their masses add) changes no optimum, so it is ``pair_mass = k / N`` here,
+    and a pair never drawn carries no mass (its column, invalid cells included,
+    is left out of the solve).
+    """
+    if pair_mass is None:
+        return np.full(n_test, 1.0 / n_test), np.ones(n_test, dtype=bool)
+    b = np.asarray(pair_mass, dtype=np.float64)
+    if b.shape != (n_test,) or np.any(~(b >= 0)) or not math.isclose(b.sum(), 1.0):
+        raise ValueError(
+            f"pair_mass must be ({n_test},) non-negative and sum to 1, got {b}"
+        )
+    return b, b > 0
+
+
+def _widen(plan: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """A plan over the ``used`` pairs as one over all (zero on the others)."""
+    if used.all():
+        return plan
+    out = np.zeros((plan.shape[0], len(used)))
+    out[:, used] = plan
+    return out
 
 
 def min_distance(C: CostMatrix) -> float:

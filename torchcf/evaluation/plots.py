@@ -30,6 +30,7 @@ __all__ = [
     "RADAR_KEYS",
     "RADAR_LABELS",
     "before_after_figure",
+    "calibration_figure",
     "effects_figure",
     "loop_figures",
     "residuals_figure",
@@ -292,6 +293,48 @@ def _as_array(values: np.ndarray | Tensor | Sequence[float]) -> np.ndarray:
     if isinstance(values, Tensor):
         values = values.detach().cpu().numpy()
     return np.asarray(values, dtype=np.float64)
+
+
+def calibration_figure(
+    curves: Mapping[str, Mapping[str, Sequence[float]]],
+    variables: Sequence[str] = ("spacing", "speed"),
+) -> Figure:
+    """Calibration curves of the predictive bands: nominal level against the
+    observed fraction of points inside, one panel per variable, one line per
+    learned set (the hybrid bold black), the diagonal dashed.
+
+    Args:
+        curves: set -> ``{"levels": (L,), <variable>: (L,) observed fractions}``.
+        variables: the panels.
+    """
+    # Fixed margins, no constrained layout: the layout pass is most of the draw.
+    fig = Figure(figsize=(4.2 * len(variables) + 1.8, 4.2), dpi=_DPI)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, len(variables), squeeze=False)[0]
+    fig.subplots_adjust(left=0.07, right=0.86, bottom=0.13, top=0.92, wspace=0.3)
+    for ax, variable in zip(axes, variables, strict=True):
+        ax.plot([0, 1], [0, 1], ls="--", color="grey", lw=1, label="calibrated")
+        for k, (name, curve) in enumerate(curves.items()):
+            hybrid = _is_hybrid(name)
+            ax.plot(
+                curve["levels"],
+                curve[variable],
+                marker="o",
+                ms=3,
+                lw=2.5 if hybrid else 1.2,
+                color="black" if hybrid else _BEST_COLOURS[k % len(_BEST_COLOURS)],
+                label="Hybrid" if hybrid else name.upper(),
+                zorder=3 if hybrid else 2,
+            )
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1)
+        ax.set_aspect("equal")
+        ax.set_xlabel("nominal level of the central band")
+        ax.set_ylabel("observed points inside")
+        ax.set_title(f"Predictive coverage: {variable}")
+        ax.grid(alpha=0.3)
+    axes[-1].legend(loc="center left", bbox_to_anchor=(1.02, 0.5), fontsize=8)
+    return fig
 
 
 def error_evolution_figure(

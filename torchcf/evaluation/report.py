@@ -11,10 +11,15 @@ import math
 from collections.abc import Mapping, Sequence
 
 __all__ = [
+    "INTERVAL_COLUMNS",
     "METRIC_COLUMNS",
+    "coverage_table",
+    "differences_table",
+    "intervals_table",
     "metrics_table",
     "plausibility_table",
     "relative_difference",
+    "shares_interval_table",
 ]
 
 METRIC_COLUMNS = (
@@ -192,5 +197,143 @@ def plausibility_table(per_model: Mapping[str, Mapping[str, object]]) -> str:
             f"{row['collided']:.1%} | {row['string_unstable']:.1%} | "
             f"{row['no_equilibrium']:.1%} | "
             f"{_MISSING if ttc is None else f'{ttc:.2f}'} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+# ------------------------------------------------------------- uncertainty
+#: Metrics with a bootstrap interval, in table order.
+INTERVAL_COLUMNS = (
+    ("min", "Minimum distance"),
+    ("beta_ws", "0.15-WS distance"),
+    ("ws", "WS distance"),
+)
+
+
+def _interval_cell(value: float | None, low: float | None, high: float | None,
+                   digits: int) -> str:  # fmt: skip
+    cell = _format(value, digits)
+    if low is None or high is None or math.isnan(low) or math.isnan(high):
+        return cell
+    return f"{cell} [{_format(low, digits)}, {_format(high, digits)}]"
+
+
+def intervals_table(
+    metrics: Mapping[str, Mapping[str, float]],
+    order: Sequence[str],
+    bootstrap: Mapping[str, object],
+    *,
+    digits: int = 3,
+) -> str:
+    """Markdown table of the distances with their bootstrap interval over test
+    pairs (``<key>_low``, ``<key>_high`` of each entry), one row per entry."""
+    lines = [
+        f"Each cell: value [{float(bootstrap['level']):.0%} percentile bootstrap "
+        f"interval over test pairs; {bootstrap['resamples']} resamples, WS and "
+        f"0.15-WS {bootstrap['resamples_transport']}, seed {bootstrap['seed']}].",
+        "",
+        "| Model | " + " | ".join(label for _, label in INTERVAL_COLUMNS) + " |",
+        "|---" * (len(INTERVAL_COLUMNS) + 1) + "|",
+    ]
+    for name in order:
+        strong = "**" if name.lower() == _HYBRID else ""
+        cells = [f"{strong}{_display_name(name)}{strong}"]
+        for key, _ in INTERVAL_COLUMNS:
+            cells.append(
+                _interval_cell(
+                    _lookup(metrics, name, key),
+                    _lookup(metrics, name, f"{key}_low"),
+                    _lookup(metrics, name, f"{key}_high"),
+                    digits,
+                )
+            )
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def differences_table(
+    hybrid_minus: Mapping[str, Mapping[str, Mapping[str, object]]],
+    *,
+    digits: int = 3,
+) -> str:
+    """Markdown table of the hybrid minus each model (paired bootstrap): the
+    difference and its interval; ``†`` marks an interval that excludes 0 (the
+    difference is larger than its noise; negative: the hybrid is closer)."""
+    lines = [
+        "Hybrid minus each model on the same resampled test pairs (negative: the "
+        "hybrid is closer); `†`: the interval excludes 0.",
+        "",
+        "| Hybrid minus | " + " | ".join(label for _, label in INTERVAL_COLUMNS) + " |",
+        "|---" * (len(INTERVAL_COLUMNS) + 1) + "|",
+    ]
+    for model, row in hybrid_minus.items():
+        cells = [_display_name(model)]
+        for key, _ in INTERVAL_COLUMNS:
+            d = row.get(key)
+            if d is None:
+                cells.append(_MISSING)
+                continue
+            cell = _interval_cell(d["value"], d["low"], d["high"], digits)
+            cells.append(cell + (" †" if d["excludes_zero"] else ""))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def coverage_table(
+    metrics: Mapping[str, Mapping[str, float]],
+    order: Sequence[str],
+    levels: Sequence[float],
+    *,
+    digits: int = 2,
+) -> str:
+    """Markdown table of the predictive coverage of each entry: the fraction of
+    observed points of the test pairs inside the central bands of the follower's
+    spacing and speed, with its bootstrap interval over test pairs."""
+    columns = [
+        (f"coverage_{variable}_{round(100 * q):d}", f"{variable} {q:.0%}")
+        for variable in ("spacing", "speed")
+        for q in levels
+    ]
+    lines = [
+        "Fraction of the observed points (test pairs, steps >= 1) inside the "
+        "central band of each nominal level of the set's predictive distribution "
+        "(its particles simulated on the pair's leader; the hybrid's drawn by "
+        "their weight); calibrated: the nominal level. [interval over test pairs]",
+        "",
+        "| Model | " + " | ".join(label for _, label in columns) + " |",
+        "|---" * (len(columns) + 1) + "|",
+    ]
+    for name in order:
+        strong = "**" if name.lower() == _HYBRID else ""
+        cells = [f"{strong}{_display_name(name)}{strong}"]
+        for key, _ in columns:
+            cells.append(
+                _interval_cell(
+                    _lookup(metrics, name, key),
+                    _lookup(metrics, name, f"{key}_low"),
+                    _lookup(metrics, name, f"{key}_high"),
+                    digits,
+                )
+            )
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def shares_interval_table(
+    shares: Mapping[str, Mapping[str, float]], level: float, *, digits: int = 3
+) -> str:
+    """Markdown table of the hybrid's shares with their bootstrap interval over
+    training pairs."""
+    lines = [
+        f"Hybrid shares [{level:.0%} percentile bootstrap interval over "
+        "training pairs].",
+        "",
+        "| Model | Share |",
+        "|---|---|",
+    ]
+    for model, s in shares.items():
+        lines.append(
+            f"| {_display_name(model)} | "
+            f"{_interval_cell(s['share'], s['low'], s['high'], digits)} |"
         )
     return "\n".join(lines) + "\n"
