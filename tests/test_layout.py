@@ -26,6 +26,7 @@ STAGES = [
     {"evaluation", "metrics", "tblog"},
     {"evaluate", "diagnose"},
     {"traffic"},
+    {"sumo"},  # the learned hybrid in SUMO (export, co-simulation, verify)
     {"train"},
     {"pipeline", "crossval", "cli", "demo", "__init__"},  # the top
 ]
@@ -36,6 +37,7 @@ CLI_MODULES = {
     "torchcf.train.__main__",
     "torchcf.diagnose.__main__",
     "torchcf.posterior.__main__",
+    "torchcf.sumo.__main__",
 }
 
 
