@@ -40,7 +40,7 @@ from torchcf.diagnose.candidates import (
 )
 from torchcf.diagnose.road import profile_agreement
 from torchcf.diagnose.search import Noise, model_bounds
-from torchcf.models import AugmentedModel, get_model, parse_effect
+from torchcf.models import AugmentedModel, get_model, parse_effect, split_name
 from torchcf.pipeline import close_loop, train_and_evaluate
 from torchcf.posterior import Posterior
 from torchcf.synthetic import Gipps, synthetic_pairs
@@ -177,7 +177,7 @@ def test_the_undeclared_effects_are_found_and_help(loops, case):
         truth = dict(zip(get_model(model).param_names, theta, strict=True))
         where = train_pairs.x_follow[train_pairs.mask][::10]
         (chosen,) = result["chosen"]
-        token = model.split("+")[1]
+        token = split_name(model)[1]
         assert profile_agreement(token, truth, chosen, medians, where) >= 0.8
     on_disk = json.loads((out / "loop.json").read_text())
     assert on_disk["chosen"] == result["chosen"]

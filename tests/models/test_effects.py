@@ -868,3 +868,15 @@ def test_sync_differs_from_a_delay(road):
         "idm+delay", torch.tensor([IDM + [0.8]]), road, dtype=torch.float64
     )
     assert bool((synced.score - delayed.score).abs().max() > 1e-3)
+
+
+def test_a_name_splits_at_the_plus_signs_outside_parentheses():
+    """An option written with an exponent (``end=1e+06``) keeps its '+'; the
+    effect kinds drop the options."""
+    from torchcf.models import effect_kinds, split_name
+
+    name = "idm+grade(end=1e+06,knots=4)+lag"
+    assert split_name(name) == ["idm", "grade(end=1e+06,knots=4)", "lag"]
+    assert effect_kinds(name) == ["grade", "lag"]
+    assert effect_kinds("idm") == []
+    assert {"t_lag", "grade_3"} <= set(get_model(name).param_names)  # parsed whole

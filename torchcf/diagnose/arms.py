@@ -48,7 +48,7 @@ from ..abc.rejection import Rollout
 from ..abc.smc import SMCSettings
 from ..config import DiagnoseConfig, TrainConfig
 from ..data import PairSet
-from ..models import get_model
+from ..models import effect_kinds, get_model
 from ..models.effects import RoadProfile, parse_effect
 from .absorption import profile_values
 from .candidates import attribution_rollout, attribution_seed, prior_particles
@@ -615,7 +615,7 @@ def repin(
     token = effect.split("(")[0]
     theta = population.theta.clone()
     for m, name in enumerate(population.models):
-        if token not in [t.split("(")[0] for t in name.split("+")[1:]]:
+        if token not in effect_kinds(name):
             continue
         held = population.model == m
         columns = [get_model(name).param_names.index(n) for n in names]

@@ -61,7 +61,7 @@ from tqdm import tqdm
 from ..config import DiagnoseConfig, TrainConfig, config_hash
 from ..data import PairSet
 from ..files import RunFileError, atomic_torch_save, read_torch
-from ..models import get_model
+from ..models import effect_kinds, get_model
 from ..models.effects import RoadProfile, parse_effect
 from .absorption import absorbed_by, profile_absorption
 from .arms import (
@@ -111,7 +111,7 @@ def estimate(population: Population, effect: str, n: int) -> dict[str, float]:
     picks = population.best(n)
     values = []
     for name in picks.models:
-        if token not in [t.split("(")[0] for t in name.split("+")[1:]]:
+        if token not in effect_kinds(name):
             continue
         pair, slot = picks.model_slots(name)
         columns = [get_model(name).param_names.index(p) for p in names]

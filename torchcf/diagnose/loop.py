@@ -43,6 +43,7 @@ from ..config import (
     validate_config,
 )
 from ..data import PairSet, load_split
+from ..models import effect_kinds
 from ..models.effects import RoadProfile, parse_effect
 from ..posterior import Posterior
 from ..rundir import RunDir
@@ -109,8 +110,7 @@ def effect_posterior(posterior: Posterior, chosen: list[str]) -> dict[str, Any]:
         columns: dict[str, list[Tensor]] = {n: [] for n in names}
         share = 0.0
         for model, particles in posterior.hybrid.items():
-            tokens = model.split("+")[1:]
-            if effect.split("(")[0] not in [t.split("(")[0] for t in tokens]:
+            if effect.split("(")[0] not in effect_kinds(model):
                 continue
             share += posterior.shares.get(model, 0.0)
             for n in names:

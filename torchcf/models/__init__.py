@@ -50,7 +50,7 @@ def get_model(name_or_model: str | CFModel) -> CFModel:
         return MODELS[key]
     if key in _AUGMENTED:
         return _AUGMENTED[key]
-    base_name, *tokens = _split_name(key)
+    base_name, *tokens = split_name(key)
     if base_name not in MODELS:
         where = f" in {name_or_model!r}" if tokens else ""
         raise UnknownModelError(
@@ -69,8 +69,10 @@ def get_model(name_or_model: str | CFModel) -> CFModel:
     return model
 
 
-def _split_name(key: str) -> list[str]:
-    """Split ``"idm+grade(end=600,knots=4)+lag"`` at the '+' outside parentheses."""
+def split_name(key: str) -> list[str]:
+    """Split ``"idm+grade(end=600,knots=4)+lag"`` at the '+' outside parentheses:
+    the base model, then each effect's token (an option such as ``end=1e+06``
+    keeps its '+')."""
     parts, depth, current = [], 0, ""
     for char in key:
         depth += (char == "(") - (char == ")")
@@ -80,6 +82,12 @@ def _split_name(key: str) -> list[str]:
         else:
             current += char
     return [part.strip() for part in parts + [current]]
+
+
+def effect_kinds(name: str) -> list[str]:
+    """The effects' names in a model's name, options dropped:
+    ``"idm+grade(end=1e+06)+lag"`` -> ``["grade", "lag"]``."""
+    return [token.split("(")[0] for token in split_name(name)[1:]]
 
 
 __all__ = [
@@ -92,7 +100,9 @@ __all__ = [
     "ParamSpec",
     "Perception",
     "UnknownModelError",
+    "effect_kinds",
     "first_order_lag_advance",
     "get_model",
     "point_mass_advance",
+    "split_name",
 ]
