@@ -194,7 +194,7 @@ def test_warm_start_from_the_last_plan(monkeypatch):
     first, second = calls
     assert first["active_guess"] is None and first["x0"] is None
     index = second["index"]
-    last = memory.inputs[index]
+    last = memory.inputs[:, index].T
     torch.testing.assert_close(second["active_guess"], last, rtol=0, atol=0)
     shifted = torch.cat((last[:, 1:], last[:, -1:]), dim=1)
     torch.testing.assert_close(second["x0"], shifted, rtol=0, atol=0)

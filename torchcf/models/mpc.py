@@ -88,15 +88,18 @@ class MPCPrepared(NamedTuple):
     params: MPCParams  # fields (B,)
     solver: BoxQP  # B box QPs of n = K variables
     linear: Tensor  # (B, n, 2): q = linear @ z_0
-    free_spacing: Tensor  # (B, n): unconstrained U* = free_spacing e + free_speed dv
-    free_speed: Tensor  # (B, n)
+    # (n, B) each, batch-last: the unconstrained U* = free_spacing e + free_speed dv
+    # and its bounds test are then n contiguous rows of B (the batch-first
+    # (B, n) layout's reductions over n = 5 cost 2.4x more on the CPU)
+    free_spacing: Tensor
+    free_speed: Tensor
     state_shape: tuple[int, ...]
 
 
 class MPCMemory(NamedTuple):
     """The last step's solution; shifted by one step it warm-starts the next."""
 
-    inputs: Tensor  # (B, n)
+    inputs: Tensor  # (n, B), batch-last as MPCPrepared.free_spacing
 
 
 #: Solver settings: tight enough that u_0 meets SPEC's 1e-4 (float64) / 1e-3
@@ -171,8 +174,8 @@ class MPC(CFModel):
             params=flat,
             solver=solver,
             linear=linear,
-            free_spacing=solver.unconstrained(linear[:, :, 0]).contiguous(),
-            free_speed=solver.unconstrained(linear[:, :, 1]).contiguous(),
+            free_spacing=solver.unconstrained(linear[:, :, 0]).T.contiguous(),
+            free_speed=solver.unconstrained(linear[:, :, 1]).T.contiguous(),
             state_shape=tuple(state_shape),
         )
 
@@ -190,11 +193,11 @@ class MPC(CFModel):
         speed_difference = v_lead - v  # (B,)
         # Exact fast path: an unconstrained minimiser inside the box is the solution.
         inputs = (
-            p.free_spacing * spacing_error[:, None]
-            + p.free_speed * speed_difference[:, None]
-        )  # (B, n)
-        lowest, highest = torch.aminmax(inputs, dim=1)
-        outside = (lowest < q.amin) | (highest > q.amax)
+            p.free_spacing * spacing_error + p.free_speed * speed_difference
+        )  # (n, B)
+        # rows' min and max, then one compare each: 5x cheaper than .any(0) of
+        # the (n, B) comparisons, and NaN stays inside either way
+        outside = (inputs.amin(0) < q.amin) | (inputs.amax(0) > q.amax)  # (B,)
         rest = outside.nonzero().squeeze(1)
         if rest.numel():
             z0 = torch.stack((spacing_error[rest], speed_difference[rest]), dim=1)
@@ -206,7 +209,7 @@ class MPC(CFModel):
                 # derives the duals from it, which starts ADMM better than shifted
                 # duals would). The last plan itself, unshifted, is the better guess
                 # of the active set: saturated inputs tend to stay saturated.
-                last = memory.inputs[rest]
+                last = memory.inputs[:, rest].T  # (b, n)
                 warm = torch.cat((last[:, 1:], last[:, -1:]), dim=1)
             result = p.solver.solve(
                 linear_term,
@@ -217,8 +220,8 @@ class MPC(CFModel):
                 method=self.method,
                 active_guess=last,
             )
-            inputs = inputs.index_copy(0, rest, result.x)
-        command = inputs[:, 0].reshape(p.state_shape)
+            inputs = inputs.index_copy(1, rest, result.x.T)
+        command = inputs[0].reshape(p.state_shape)
         return command, MPCMemory(inputs=inputs)
 
     def command(self, p: Any, obs: Perception) -> Tensor:
