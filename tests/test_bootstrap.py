@@ -137,3 +137,16 @@ def test_infinite_on_both_sides_gives_no_interval():
     assert np.isnan(low) and np.isnan(high)
     low, high = percentile_interval(np.empty(0), 0.9)
     assert np.isnan(low) and np.isnan(high)
+
+
+def test_an_interval_reaching_infinite_draws_is_infinite_not_nan():
+    """Linear interpolation between two infinite draws is inf - inf; the bound
+    is then the (infinite) draw itself. A NaN draw still makes it NaN."""
+    from torchcf.evaluation.bootstrap import percentile_interval
+
+    draws = np.array([1.0, 2.0, 3.0] + [np.inf] * 7)
+    low, high = percentile_interval(draws, 0.95)
+    assert float(low) == pytest.approx(1.225)  # 1 + 0.025 x 9 steps of 1
+    assert float(high) == np.inf
+    low, high = percentile_interval(np.array([1.0, np.nan, 2.0]), 0.95)
+    assert np.isnan(low) and np.isnan(high)

@@ -81,6 +81,16 @@ def percentile_interval(
     tail = (1.0 - level) / 2.0
     with np.errstate(invalid="ignore"):
         low, high = np.quantile(draws, [tail, 1.0 - tail], axis=0)
+        # Interpolating between two infinite draws gives inf - inf = NaN; the
+        # neighbouring draw itself (both infinite there) is the bound.
+        low = np.where(
+            np.isnan(low), np.quantile(draws, tail, axis=0, method="lower"), low
+        )
+        high = np.where(
+            np.isnan(high),
+            np.quantile(draws, 1.0 - tail, axis=0, method="higher"),
+            high,
+        )
     return low, high
 
 
