@@ -141,6 +141,7 @@ def loops(tmp_path_factory):
     return run
 
 
+@pytest.mark.slow  # a whole loop per case: 40-90 s each on 2 cores
 @pytest.mark.parametrize("case", FOUND)
 def test_the_undeclared_effects_are_found_and_help(loops, case):
     out, result = loops(case)
@@ -200,6 +201,7 @@ def test_the_undeclared_effects_are_found_and_help(loops, case):
         assert (out / "loop" / f"{figure}.png").stat().st_size > 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["control", "control, LLCTG"])
 def test_control_set_yields_no_effect(loops, case):
     out, result = loops(case)
@@ -208,6 +210,7 @@ def test_control_set_yields_no_effect(loops, case):
     assert "No effect chosen" in (out / "loop.md").read_text()
 
 
+@pytest.mark.slow  # needs the control case's loop
 def test_cli_and_bad_input(loops, tmp_path, capsys):
     out, _ = loops("control")
     capsys.readouterr()  # the loop's own progress bars, when this test runs alone

@@ -128,6 +128,7 @@ def test_training_with_the_filter_reports_it(tmp_path):
         validate_config({**base, "plausibility": {"decelerations": [-1]}})
 
 
+@pytest.mark.slow  # about 20 s: SMC rounds with the whole battery
 def test_smc_with_the_filter_keeps_implausible_particles_out(tmp_path):
     pairs = _pairs()
     test = synthetic_pairs(MODEL, TRUTH, 2, 200, seed=4)

@@ -230,6 +230,7 @@ def run_cli(*args: str, env_extra: dict | None = None) -> subprocess.CompletedPr
     )
 
 
+@pytest.mark.slow  # three trainings in subprocesses
 def test_resume_after_kill_9_equals_an_uninterrupted_run(data_root, tmp_path):
     cfg_path = write_config(tmp_path / "cfg.json")
     reference = run_cli(str(cfg_path), "--out", str(tmp_path / "ref"))
