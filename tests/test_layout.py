@@ -28,7 +28,7 @@ STAGES = [
     {"traffic"},
     {"sumo"},  # the learned hybrid in SUMO (export, co-simulation, verify)
     {"train"},
-    {"pipeline", "crossval", "cli", "demo", "__init__"},  # the top
+    {"pipeline", "crossval", "cli", "demo", "__init__", "__main__"},  # the top
 ]
 #: Command-line modules: the top of the house, imported by nothing in it.
 CLI_MODULES = {
@@ -38,6 +38,7 @@ CLI_MODULES = {
     "torchcf.diagnose.__main__",
     "torchcf.posterior.__main__",
     "torchcf.sumo.__main__",
+    "torchcf.__main__",
 }
 
 
