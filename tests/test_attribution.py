@@ -429,3 +429,14 @@ def test_an_effect_at_its_neutral_value_is_no_effect():
     assert not attribution.active("asymmetry", {"g_close": 1.02, "g_open": 0.99})
     assert attribution.active("asymmetry", {"g_close": 1.02, "g_open": 1.3})
     assert not attribution.active("offset", {"d_offset": 0.0})
+
+
+def test_the_forward_selection_has_one_name_and_the_old_import_works():
+    """``EffectSelection`` (the loop's) is not the hybrid's ``Selection``; the
+    former name still imports."""
+    from torchcf.abc import Selection as HybridSelection
+    from torchcf.diagnose import EffectSelection, Selection
+
+    assert Selection is EffectSelection
+    assert EffectSelection is not HybridSelection
+    assert EffectSelection.__name__ == "EffectSelection"

@@ -27,7 +27,7 @@ Re-exports only.
 """
 
 from .arms import resolve_effect, split_in_time
-from .attribution import Selection, attribute_effects
+from .attribution import EffectSelection, Selection, attribute_effects
 from .candidates import augmented_variants
 from .loop import (
     Candidates,
@@ -56,6 +56,7 @@ __all__ = [
     "DiagnoseError",
     "LoopPlan",
     "Population",
+    "EffectSelection",
     "Selection",
     "active_models",
     "attribute_effects",

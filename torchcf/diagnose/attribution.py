@@ -296,8 +296,9 @@ def ledger_key(cfg: TrainConfig, pool: list[str], effects: list[str]) -> str:
 
 # ------------------------------------------------------------- the selection
 @dataclass(frozen=True)
-class Selection:
-    """The forward selection's result (:func:`attribute_effects`).
+class EffectSelection:
+    """The forward selection's result (:func:`attribute_effects`); not
+    :class:`torchcf.abc.hybrid.Selection`, the hybrid's members.
 
     Attributes:
         steps: per step, the rows of the effects tested, in the order tested,
@@ -352,7 +353,7 @@ def attribute_effects(
     road_profile: RoadProfile | None = None,
     ledger: Path | None = None,
     progress: bool = True,
-) -> Selection:
+) -> EffectSelection:
     """Choose effects by forward selection of nested arms (module docstring).
 
     Args:
@@ -366,7 +367,7 @@ def attribute_effects(
         progress: show a progress bar (it moves every search round).
 
     Returns:
-        the :class:`Selection`.
+        the :class:`EffectSelection`.
     """
     arena = Arena.of(
         cfg,
@@ -470,7 +471,7 @@ def attribute_effects(
         found.append([s.report() for s in arm_signatures(arena, arm.population)])
     bar.close()
     models = list(dict.fromkeys([*pool, *_variants(arm, pool)]))
-    return Selection(
+    return EffectSelection(
         steps=steps,
         signatures=found,
         chosen=list(arm.effects),
@@ -600,11 +601,15 @@ def _judge(
     return rows
 
 
+#: The former name of :class:`EffectSelection`, kept for existing imports.
+Selection = EffectSelection
+
 __all__ = [
     "ACTIVE",
     "LEDGER_FORMAT",
     "Ledger",
     "active",
+    "EffectSelection",
     "Selection",
     "arm_signatures",
     "attribute_effects",

@@ -48,7 +48,7 @@ from ..models.effects import RoadProfile, parse_effect
 from ..posterior import Posterior
 from ..rundir import RunDir
 from .arms import resolve_effect
-from .attribution import Selection, attribute_effects
+from .attribution import EffectSelection, attribute_effects
 from .identifiability import effect_identifiability
 from .recalibrate import recalibrate, recalibration_config, write_run
 from .report import write_report
@@ -232,7 +232,7 @@ class LoopPlan:
     test_pairs: PairSet
     pool: list[str]
     road: dict[str, Any]
-    selection: Selection
+    selection: EffectSelection
     residuals_before: list[dict]
     series_before: Series
     recalibration: TrainConfig | None
@@ -429,7 +429,7 @@ def finish_loop(plan: LoopPlan) -> dict[str, Any]:
     return result
 
 
-def unexplained(selection: Selection) -> list[dict[str, Any]]:
+def unexplained(selection: EffectSelection) -> list[dict[str, Any]]:
     """Structure the library does not explain: every signature still found in
     the final model's residual (the last signatures of the selection) with the
     family it suggests, and whether an effect it points to was tested and not
