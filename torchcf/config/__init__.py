@@ -1,14 +1,17 @@
-"""The run configuration: :mod:`torchcf.config.schema` (the pydantic schema, its
-loader and hash), :mod:`torchcf.config.overrides` (``--set key=VALUE``),
+"""The run configuration: :mod:`torchcf.config.schema` (the pydantic schema),
+:mod:`torchcf.config.loading` (its loader and hash),
+:mod:`torchcf.config.overrides` (``--set key=VALUE``),
 :mod:`torchcf.config.messages` (one-line errors) and ``python -m torchcf.config``
 (:mod:`torchcf.config.__main__`).
 
 Re-exports only.
 """
 
+from .loading import config_hash, load_config, resolved_json, validate_config
+from .messages import ConfigError
+from .overrides import apply_overrides
 from .schema import (
     ABCConfig,
-    ConfigError,
     DataConfig,
     DiagnoseConfig,
     EvalConfig,
@@ -16,11 +19,6 @@ from .schema import (
     PlausibilityConfig,
     SMCConfig,
     TrainConfig,
-    apply_overrides,
-    config_hash,
-    load_config,
-    resolved_json,
-    validate_config,
 )
 
 __all__ = [

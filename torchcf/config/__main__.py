@@ -15,7 +15,8 @@ import json
 from collections.abc import Sequence
 
 from ..cli import DefaultsHelpFormatter, add_overrides, run_main
-from .schema import TrainConfig, config_hash, load_config, resolved_json
+from .loading import config_hash, load_config, resolved_json
+from .schema import TrainConfig
 
 
 def main(argv: Sequence[str] | None = None) -> int:

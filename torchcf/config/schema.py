@@ -10,17 +10,13 @@ A run is described by one JSON object, validated by :class:`TrainConfig`::
     }
 
 Every section rejects unknown keys, so a misspelled or misplaced key fails at load
-time instead of being silently ignored. :func:`load_config` reads a file, applies
-command-line overrides (``--set abc.n_particles=200000``, see
-:func:`apply_overrides`) and validates; every problem is a :class:`ConfigError`
-with a one-line message that names the key, e.g.
-``abc.n_particles: must be > 0, got -5``.
-
-:func:`config_hash` fingerprints the settings that determine the result, so a
-resumed run can refuse a different configuration; :func:`resolved_json` is the
-validated configuration as written beside the results. The ``--set`` syntax lives
-in :mod:`torchcf.config.overrides`, the one-line messages in
-:mod:`torchcf.config.messages`.
+time instead of being silently ignored. Reading a file, the command-line overrides
+(``--set abc.n_particles=200000``) and the fingerprint of a run's settings live in
+:mod:`torchcf.config.loading` (``load_config``, ``config_hash``,
+``resolved_json``); every problem is a :class:`ConfigError` with a one-line
+message that names the key, e.g. ``abc.n_particles: must be > 0, got -5``. The
+``--set`` syntax lives in :mod:`torchcf.config.overrides`, the one-line messages
+in :mod:`torchcf.config.messages`.
 
 Command line (:mod:`torchcf.config.__main__`)::
 
@@ -30,11 +26,7 @@ Command line (:mod:`torchcf.config.__main__`)::
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
-from collections.abc import Sequence
-from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import torch
@@ -42,14 +34,12 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
-    ValidationError,
     ValidationInfo,
     field_validator,
     model_validator,
 )
 
-from torchcf.config.messages import ConfigError, describe
-from torchcf.config.overrides import apply_overrides
+from torchcf.config.messages import ConfigError
 from torchcf.config.raw import RawSource
 from torchcf.data.reader import UNITS, unit_factor
 from torchcf.data.registry import DATASETS
@@ -66,11 +56,6 @@ __all__ = [
     "PlausibilityConfig",
     "SMCConfig",
     "TrainConfig",
-    "apply_overrides",
-    "config_hash",
-    "load_config",
-    "resolved_json",
-    "validate_config",
 ]
 
 
@@ -822,88 +807,3 @@ class TrainConfig(BaseModel):
     def torch_dtype(self) -> torch.dtype:
         """:attr:`dtype` as a ``torch.dtype``."""
         return getattr(torch, self.dtype)
-
-
-# ----------------------------------------------------------------- functions
-def load_config(path: str | Path, overrides: Sequence[str] = ()) -> TrainConfig:
-    """Read, override and validate a JSON run configuration.
-
-    Args:
-        path: the JSON file.
-        overrides: ``dotted.key=VALUE`` items (see :func:`apply_overrides`).
-
-    Returns:
-        The validated configuration; ``output`` defaults to ``runs/<file stem>``.
-
-    Raises:
-        ConfigError: unreadable file, invalid JSON, not an object, a bad override
-            or an invalid configuration.
-    """
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"config file '{path}' not found") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"cannot read config file '{path}': {err}") from None
-    try:
-        raw = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise ConfigError(
-            f"'{path}' is not valid JSON: {err.msg} at line {err.lineno} "
-            f"column {err.colno}"
-        ) from None
-    if not isinstance(raw, dict):
-        raise ConfigError(f"'{path}' must hold a JSON object, got {type(raw).__name__}")
-    raw = apply_overrides(raw, overrides)
-    if raw.get("output") is None:
-        raw["output"] = (Path("runs") / path.stem).as_posix()
-    return validate_config(raw)
-
-
-def validate_config(raw: dict[str, Any]) -> TrainConfig:
-    """Validate a configuration object, every error as one :class:`ConfigError`."""
-    try:
-        return TrainConfig.model_validate(raw)
-    except ValidationError as err:
-        raise ConfigError(describe(err, TrainConfig)) from None
-
-
-# Settings that change how a run is executed or reported but not what it learns:
-# left out of the hash so that a run can resume with them changed.
-_NOT_HASHED: dict[str, Any] = {
-    "output": True,
-    "threads": True,
-    "eval": True,
-    "diagnose": True,
-    # The result does not depend on the chunk size (tested), nor on where the data
-    # folder lies: a run may be resumed with other values of these.
-    "abc": {"checkpoint_every", "chunk_size"},
-    "data": {"root"},
-}
-
-
-def config_hash(cfg: TrainConfig) -> str:
-    """Fingerprint of the settings that determine the learned particle sets.
-
-    Everything except ``output``, ``threads``, ``abc.checkpoint_every``,
-    ``abc.chunk_size``, ``data.root`` and ``eval`` (none changes the result), and
-    ``abc.smc`` in a rejection run.
-    Shorthand and object forms, key order and ``1`` vs ``1.0`` give the same hash.
-
-    Returns:
-        The first 16 hex digits of the SHA-256 of the canonical JSON.
-    """
-    payload = cfg.model_dump(mode="json", exclude=_NOT_HASHED)
-    if payload["abc"]["method"] == "rejection":
-        # The refinement's settings do not enter a rejection run: its hash stays
-        # what it was before they existed (checkpoints of earlier runs resume).
-        del payload["abc"]["method"], payload["abc"]["smc"]
-    text = json.dumps(payload, sort_keys=True, separators=(",", ":"), allow_nan=False)
-    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
-
-
-def resolved_json(cfg: TrainConfig) -> dict[str, Any]:
-    """The configuration as plain JSON data (models as objects), every default
-    filled in; :func:`load_config` of it gives ``cfg`` back."""
-    return cfg.model_dump(mode="json")

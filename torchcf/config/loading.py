@@ -1,0 +1,106 @@
+"""Reading, validating and fingerprinting a run configuration.
+
+:func:`load_config` reads a JSON file, applies ``--set`` overrides
+(:mod:`torchcf.config.overrides`) and validates it against the schema
+(:mod:`torchcf.config.schema`); :func:`config_hash` is the fingerprint a run's
+checkpoint and summary carry; :func:`resolved_json` writes a config back.
+Apart from the schema because these are file and hash concerns, not fields.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from .messages import ConfigError, describe
+from .overrides import apply_overrides
+from .schema import TrainConfig
+
+
+def load_config(path: str | Path, overrides: Sequence[str] = ()) -> TrainConfig:
+    """Read, override and validate a JSON run configuration.
+
+    Args:
+        path: the JSON file.
+        overrides: ``dotted.key=VALUE`` items (see :func:`apply_overrides`).
+
+    Returns:
+        The validated configuration; ``output`` defaults to ``runs/<file stem>``.
+
+    Raises:
+        ConfigError: unreadable file, invalid JSON, not an object, a bad override
+            or an invalid configuration.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"config file '{path}' not found") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"cannot read config file '{path}': {err}") from None
+    try:
+        raw = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ConfigError(
+            f"'{path}' is not valid JSON: {err.msg} at line {err.lineno} "
+            f"column {err.colno}"
+        ) from None
+    if not isinstance(raw, dict):
+        raise ConfigError(f"'{path}' must hold a JSON object, got {type(raw).__name__}")
+    raw = apply_overrides(raw, overrides)
+    if raw.get("output") is None:
+        raw["output"] = (Path("runs") / path.stem).as_posix()
+    return validate_config(raw)
+
+
+def validate_config(raw: dict[str, Any]) -> TrainConfig:
+    """Validate a configuration object, every error as one :class:`ConfigError`."""
+    try:
+        return TrainConfig.model_validate(raw)
+    except ValidationError as err:
+        raise ConfigError(describe(err, TrainConfig)) from None
+
+
+# Settings that change how a run is executed or reported but not what it learns:
+# left out of the hash so that a run can resume with them changed.
+_NOT_HASHED: dict[str, Any] = {
+    "output": True,
+    "threads": True,
+    "eval": True,
+    "diagnose": True,
+    # The result does not depend on the chunk size (tested), nor on where the data
+    # folder lies: a run may be resumed with other values of these.
+    "abc": {"checkpoint_every", "chunk_size"},
+    "data": {"root"},
+}
+
+
+def config_hash(cfg: TrainConfig) -> str:
+    """Fingerprint of the settings that determine the learned particle sets.
+
+    Everything except ``output``, ``threads``, ``abc.checkpoint_every``,
+    ``abc.chunk_size``, ``data.root`` and ``eval`` (none changes the result), and
+    ``abc.smc`` in a rejection run.
+    Shorthand and object forms, key order and ``1`` vs ``1.0`` give the same hash.
+
+    Returns:
+        The first 16 hex digits of the SHA-256 of the canonical JSON.
+    """
+    payload = cfg.model_dump(mode="json", exclude=_NOT_HASHED)
+    if payload["abc"]["method"] == "rejection":
+        # The refinement's settings do not enter a rejection run: its hash stays
+        # what it was before they existed (checkpoints of earlier runs resume).
+        del payload["abc"]["method"], payload["abc"]["smc"]
+    text = json.dumps(payload, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
+
+
+def resolved_json(cfg: TrainConfig) -> dict[str, Any]:
+    """The configuration as plain JSON data (models as objects), every default
+    filled in; :func:`load_config` of it gives ``cfg`` back."""
+    return cfg.model_dump(mode="json")
