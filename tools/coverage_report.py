@@ -19,75 +19,29 @@ import json
 import subprocess
 from pathlib import Path
 
+from torchcf.evaluation.report import (
+    coverage_table,
+    differences_table,
+    intervals_table,
+)
+from torchcf.files import from_json_safe, json_safe
+
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "uncertainty"
 SETS = ("hybrid", "ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc")
-COVERAGE = (
-    "coverage_spacing_50",
-    "coverage_spacing_90",
-    "coverage_speed_50",
-    "coverage_speed_90",
-)
-METRICS = ("min", "beta_ws", "ws")
-LABELS = {"min": "minimum distance", "beta_ws": "0.15-WS", "ws": "WS"}
-
-
-def _interval(entry: dict, key: str, digits: int = 2) -> str:
-    # metrics.json writes infinities as the string "inf"
-    value, low, high = (
-        None if v is None else float(v)
-        for v in (entry[key], entry.get(f"{key}_low"), entry.get(f"{key}_high"))
-    )
-    if low is None or high is None:
-        return f"{value:.{digits}f}"
-    return f"{value:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
 
 
 def run_table(name: str, metrics: dict) -> list[str]:
-    """Markdown lines of one run: coverage, headline metrics, differences."""
-    boot = metrics.get("bootstrap", {})
-    lines = [
+    """Markdown lines of one run: the tables its own ``report/table.md`` has
+    (:mod:`torchcf.evaluation.report`), coverage first."""
+    order = [s for s in SETS if s in metrics]
+    return [
         f"## {name} ({metrics.get('dataset', '?')}, {metrics.get('n_test', '?')} "
         "test pairs)",
         "",
-        f"Intervals: {boot.get('level', 0.95):.0%} percentile bootstrap over test "
-        f"pairs ({boot.get('resamples', '?')} resamples; WS and 0.15-WS "
-        f"{boot.get('resamples_transport', '?')}).",
-        "",
-        "| set | spacing 50 % | spacing 90 % | speed 50 % | speed 90 % |",
-        "|---|---|---|---|---|",
+        coverage_table(metrics, order, metrics.get("coverage_levels", (0.5, 0.9))),
+        intervals_table(metrics, order, metrics["bootstrap"]),
+        differences_table(metrics.get("hybrid_minus", {})),
     ]
-    for s in SETS:
-        if s in metrics and COVERAGE[0] in metrics[s]:
-            cells = [_interval(metrics[s], key) for key in COVERAGE]
-            lines.append(f"| {s} | " + " | ".join(cells) + " |")
-    lines += [
-        "",
-        "| set | " + " | ".join(LABELS[k] for k in METRICS) + " |",
-        "|---|---|---|---|",
-    ]
-    for s in SETS:
-        if s in metrics and "min" in metrics[s]:
-            cells = [_interval(metrics[s], key, 3) for key in METRICS]
-            lines.append(f"| {s} | " + " | ".join(cells) + " |")
-    minus = metrics.get("hybrid_minus", {})
-    if minus:
-        lines += [
-            "",
-            "Hybrid minus each model on the same resamples (negative: the hybrid "
-            "is closer; **bold**: the interval excludes 0):",
-            "",
-            "| model | " + " | ".join(LABELS[k] for k in METRICS) + " |",
-            "|---|---|---|---|",
-        ]
-        for model, row in minus.items():
-            cells = []
-            for key in METRICS:
-                d = row[key]
-                value, low, high = (float(d[k]) for k in ("value", "low", "high"))
-                text = f"{value:+.3f} [{low:+.3f}, {high:+.3f}]"
-                cells.append(f"**{text}**" if d["excludes_zero"] else text)
-            lines.append(f"| {model} | " + " | ".join(cells) + " |")
-    return lines + [""]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -128,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         ],
     )
     for run in args.runs:
-        metrics = json.loads((run / "metrics.json").read_text())
+        metrics = from_json_safe(json.loads((run / "metrics.json").read_text()))
         payload[str(run)] = {
             s: {k: metrics[s].get(k) for k in metrics[s] if k.startswith("coverage")}
             for s in SETS
@@ -137,7 +91,8 @@ def main(argv: list[str] | None = None) -> int:
         payload[str(run)]["hybrid_minus"] = metrics.get("hybrid_minus", {})
         lines += run_table(run.name, metrics)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "coverage.json").write_text(json.dumps(payload, indent=1) + "\n")
+    text = json.dumps(json_safe(payload), indent=1)
+    (args.out / "coverage.json").write_text(text + "\n")
     (args.out / "coverage.md").write_text("\n".join(lines))
     print(f"wrote {args.out / 'coverage.md'}")
     return 0

@@ -218,6 +218,31 @@ def _interval_cell(value: float | None, low: float | None, high: float | None,
     return f"{cell} [{_format(low, digits)}, {_format(high, digits)}]"
 
 
+def _interval_rows(
+    metrics: Mapping[str, Mapping[str, float]],
+    order: Sequence[str],
+    columns: Sequence[tuple[str, str]],
+    digits: int,
+) -> list[str]:
+    """One Markdown row per entry of ``order`` (the hybrid bold): each column's
+    ``key`` as value [``key_low``, ``key_high``], and a closing empty line."""
+    lines = []
+    for name in order:
+        strong = "**" if name.lower() == _HYBRID else ""
+        cells = [f"{strong}{_display_name(name)}{strong}"]
+        for key, _ in columns:
+            cells.append(
+                _interval_cell(
+                    _lookup(metrics, name, key),
+                    _lookup(metrics, name, f"{key}_low"),
+                    _lookup(metrics, name, f"{key}_high"),
+                    digits,
+                )
+            )
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines + [""]
+
+
 def intervals_table(
     metrics: Mapping[str, Mapping[str, float]],
     order: Sequence[str],
@@ -235,20 +260,7 @@ def intervals_table(
         "| Model | " + " | ".join(label for _, label in INTERVAL_COLUMNS) + " |",
         "|---" * (len(INTERVAL_COLUMNS) + 1) + "|",
     ]
-    for name in order:
-        strong = "**" if name.lower() == _HYBRID else ""
-        cells = [f"{strong}{_display_name(name)}{strong}"]
-        for key, _ in INTERVAL_COLUMNS:
-            cells.append(
-                _interval_cell(
-                    _lookup(metrics, name, key),
-                    _lookup(metrics, name, f"{key}_low"),
-                    _lookup(metrics, name, f"{key}_high"),
-                    digits,
-                )
-            )
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + _interval_rows(metrics, order, INTERVAL_COLUMNS, digits))
 
 
 def differences_table(
@@ -303,20 +315,7 @@ def coverage_table(
         "| Model | " + " | ".join(label for _, label in columns) + " |",
         "|---" * (len(columns) + 1) + "|",
     ]
-    for name in order:
-        strong = "**" if name.lower() == _HYBRID else ""
-        cells = [f"{strong}{_display_name(name)}{strong}"]
-        for key, _ in columns:
-            cells.append(
-                _interval_cell(
-                    _lookup(metrics, name, key),
-                    _lookup(metrics, name, f"{key}_low"),
-                    _lookup(metrics, name, f"{key}_high"),
-                    digits,
-                )
-            )
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + _interval_rows(metrics, order, columns, digits))
 
 
 def shares_interval_table(
