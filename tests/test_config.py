@@ -21,11 +21,12 @@ from torchcf.config import (
     apply_overrides,
     config_hash,
     load_config,
+    load_split,
     resolved_json,
     validate_config,
 )
 from torchcf.config.__main__ import main
-from torchcf.data import DataError, kfold_split, load_split
+from torchcf.data import DataError, kfold_split
 from torchcf.models import MODELS, get_model
 
 BASE: dict[str, Any] = {"data": {"name": "car-model-2"}}
@@ -437,6 +438,40 @@ def test_load_split_folder_kfold(tmp_path: Path) -> None:
     assert (train.n_pairs, test.n_pairs) == (4, 2)
     assert sorted(train.pair_ids + test.pair_ids) == list(range(6))
     assert test.pair_ids == kfold_split(pairs, 3, 2, seed=4)[1].pair_ids
+
+
+def test_split_pairs_takes_plain_arguments(tmp_path: Path) -> None:
+    # The data layer's split needs no configuration object: the same folder and
+    # k-fold settings give the pairs load_split gives from a DataConfig.
+    import numpy as np
+
+    from torchcf.data import split_pairs
+    from torchcf.data.reader import FILES
+
+    pairs = synthetic_pairs(n_pairs=6, n_steps=30)
+    for field, file_name in FILES.items():
+        np.savetxt(tmp_path / file_name, getattr(pairs, field).numpy(), delimiter=",")
+    train, test = split_pairs(
+        str(tmp_path), "kfold", folds=3, fold=1, seed=4, dt=0.1, download=False
+    )
+    data = make(
+        data={"path": str(tmp_path), "dt": 0.1, "split": "kfold", "folds": 3}
+        | {"fold": 1, "split_seed": 4}
+    ).data
+    by_config = load_split(data, download=False)
+    assert (train.pair_ids, test.pair_ids) == (
+        by_config[0].pair_ids,
+        by_config[1].pair_ids,
+    )
+    with pytest.raises(DataError, match="split must be 'dataset' or 'kfold'"):
+        split_pairs(str(tmp_path), "random", dt=0.1, download=False)
+
+
+def test_load_split_moved_says_where() -> None:
+    import torchcf.data
+
+    with pytest.raises(AttributeError, match=r"torchcf\.config\.load_split"):
+        torchcf.data.load_split  # noqa: B018
 
 
 def test_load_split_real(data_root: Path) -> None:

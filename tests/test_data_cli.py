@@ -14,8 +14,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from torchcf.config import ConfigError, validate_config
-from torchcf.data import load_pairs, load_split
+from torchcf.config import ConfigError, load_split, validate_config
+from torchcf.data import load_pairs
 from torchcf.data.__main__ import main as data_main
 from torchcf.train import __main__ as train_cli
 

@@ -15,9 +15,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from torchcf.config import validate_config
+from torchcf.config import load_split, validate_config
 from torchcf.config.raw import RawSource
-from torchcf.data import load_split
 from torchcf.data.__main__ import main as data_main
 from torchcf.data.extract import ExtractOptions, extract_pairs
 from torchcf.data.formats import read_trajectories, reader_options

@@ -256,7 +256,7 @@ def squared_distances(n: int, m: int, seed: int) -> np.ndarray:
 def run_costs(run_dir: Path) -> tuple[dict[str, np.ndarray], float]:
     """The learned sets' score matrices of a trained run on its test pairs
     (invalid rollouts at ``inf``, as the metrics see them), and its reg."""
-    from torchcf.data import load_split
+    from torchcf.config import load_split
     from torchcf.evaluate import evaluate_posterior
     from torchcf.rundir import RunDir
 

@@ -61,8 +61,11 @@ from torchcf.abc.rejection import (  # noqa: E402
 )
 from torchcf.abc.smc import SMCSettings, new_state, run_smc  # noqa: E402
 from torchcf.abc.topn import TopN  # noqa: E402
-from torchcf.config import load_config  # noqa: E402
-from torchcf.data import load_pairs, load_split  # noqa: E402
+from torchcf.config import (
+    load_config,  # noqa: E402
+    load_split,  # noqa: E402
+)
+from torchcf.data import load_pairs  # noqa: E402
 from torchcf.models import get_model  # noqa: E402
 from torchcf.posterior import Posterior  # noqa: E402
 from torchcf.runtime import tune_malloc  # noqa: E402

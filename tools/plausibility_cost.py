@@ -30,8 +30,10 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
-from torchcf.config import load_config  # noqa: E402
-from torchcf.data import load_split  # noqa: E402
+from torchcf.config import (
+    load_config,  # noqa: E402
+    load_split,  # noqa: E402
+)
 from torchcf.files import from_json_safe  # noqa: E402
 from torchcf.pipeline import train_and_evaluate  # noqa: E402
 from torchcf.posterior import Posterior  # noqa: E402

@@ -51,8 +51,8 @@ from torch import Tensor
 from tqdm import tqdm
 
 from .cli import DefaultsHelpFormatter, run_main
-from .config import TrainConfig
-from .data import PairSet, load_split
+from .config import TrainConfig, load_split
+from .data import PairSet
 from .errors import TorchcfError
 from .evaluation.coverage import (
     PredictiveCDF,

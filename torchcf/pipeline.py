@@ -20,8 +20,8 @@ from pathlib import Path
 from typing import Any
 
 from .abc.distributed import SINGLE, Group
-from .config import TrainConfig
-from .data import PairSet, load_split
+from .config import TrainConfig, load_split
+from .data import PairSet
 from .data.registry import notes_deferred
 from .diagnose.loop import finish_loop, plan_loop, run_recalibration
 from .evaluate import evaluate_run

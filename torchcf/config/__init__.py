@@ -1,6 +1,7 @@
 """The run configuration: :mod:`torchcf.config.schema` (the pydantic schema),
 :mod:`torchcf.config.loading` (its loader and hash),
 :mod:`torchcf.config.overrides` (``--set key=VALUE``),
+:mod:`torchcf.config.pairs` (the ``data`` section to its pairs: :func:`load_split`),
 :mod:`torchcf.config.messages` (one-line errors) and ``python -m torchcf.config``
 (:mod:`torchcf.config.__main__`).
 
@@ -10,6 +11,7 @@ Re-exports only.
 from .loading import config_hash, load_config, resolved_json, validate_config
 from .messages import ConfigError
 from .overrides import apply_overrides
+from .pairs import load_split
 from .schema import (
     ABCConfig,
     DataConfig,
@@ -34,6 +36,7 @@ __all__ = [
     "apply_overrides",
     "config_hash",
     "load_config",
+    "load_split",
     "resolved_json",
     "validate_config",
 ]

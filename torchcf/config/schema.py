@@ -69,7 +69,7 @@ _NonNegativeFloat = Annotated[float, Field(ge=0)]
 
 # --------------------------------------------------------------------- sections
 class DataConfig(BaseModel):
-    """Which observed pairs to train and test on (``torchcf.data.load_split``)."""
+    """Which observed pairs to train and test on (:func:`torchcf.config.load_split`)."""
 
     model_config = _STRICT
 

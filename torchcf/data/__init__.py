@@ -8,8 +8,9 @@ the named data sets of the ABC paper.
 * :mod:`torchcf.data.registry`: :data:`DATASETS` and :func:`load_pairs`, where the
   files come from (path, ``TORCHCF_DATA``, cache, checked download), the splits
   and the quirks of each data set.
-* :mod:`torchcf.data.splits`: :func:`load_split` and :func:`kfold_split`, the
-  training / test pairs of a run (the data set's own split or seeded k-fold).
+* :mod:`torchcf.data.splits`: :func:`split_pairs` and :func:`kfold_split`, the
+  training / test pairs of a data set (its own split or seeded k-fold). A run's
+  configuration reaches them through :func:`torchcf.config.load_split`.
 """
 
 from torchcf.data.pairset import DataError, PairSet
@@ -20,7 +21,7 @@ from torchcf.data.registry import (
     load_pairs,
     resolve_data_root,
 )
-from torchcf.data.splits import kfold_split, load_split
+from torchcf.data.splits import kfold_split, split_pairs
 
 __all__ = [
     "DATASETS",
@@ -29,7 +30,18 @@ __all__ = [
     "PairSet",
     "kfold_split",
     "load_pairs",
-    "load_split",
     "read_six_csv",
     "resolve_data_root",
+    "split_pairs",
 ]
+
+
+def __getattr__(name: str) -> object:
+    # The name's old home: say where it went instead of a bare AttributeError.
+    if name == "load_split":
+        raise AttributeError(
+            "torchcf.data.load_split moved to torchcf.config.load_split "
+            "(it reads a run's DataConfig; torchcf.data.split_pairs takes plain "
+            "arguments)"
+        )
+    raise AttributeError(f"module 'torchcf.data' has no attribute {name!r}")

@@ -1,6 +1,8 @@
 """Training / test splits of a pair set: the data set's own split or seeded k-fold.
 
-The run configuration (:class:`torchcf.config.DataConfig`) chooses one of three ways:
+Plain arguments only: the step from a run's configuration to these calls is
+:func:`torchcf.config.load_split`, above both. A configuration chooses one of
+three ways:
 
 * ``split="dataset"``: the data set's own split, ``Trajectory/`` for training and
   ``Testing/`` for testing (see :mod:`torchcf.data.registry` for the quirks handled
@@ -16,21 +18,15 @@ The run configuration (:class:`torchcf.config.DataConfig`) chooses one of three 
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 import torch
 
-from torchcf.data.importer import extract_source
 from torchcf.data.pairset import DataError, PairSet
 from torchcf.data.registry import load_pairs
 
-if TYPE_CHECKING:
-    # Typing only: torchcf.config imports torchcf.data, so a runtime import here
-    # would be circular.
-    from torchcf.config import DataConfig
-
-__all__ = ["kfold_split", "load_split"]
+__all__ = ["kfold_split", "split_pairs"]
 
 
 def kfold_split(
@@ -78,49 +74,42 @@ def kfold_split(
     )
 
 
-def load_split(data: DataConfig, *, download: bool = True) -> tuple[PairSet, PairSet]:
-    """Load the training and test pairs a run configuration asks for.
+def split_pairs(
+    source: str,
+    split: str = "dataset",
+    *,
+    folds: int = 5,
+    fold: int = 0,
+    seed: int = 0,
+    **load_options: Any,
+) -> tuple[PairSet, PairSet]:
+    """The training and test pairs of a named data set or a six-CSV folder.
 
     Args:
-        data: the ``data`` section of the run configuration (anything with the
-            attributes of :class:`torchcf.config.DataConfig`).
-        download: allow fetching missing files of a named set into the cache.
+        source: a registered data set's name or a folder path
+            (:func:`torchcf.data.registry.load_pairs`).
+        split: ``"dataset"`` (the set's own ``Trajectory/`` and ``Testing/``) or
+            ``"kfold"`` (fold ``fold`` of ``folds`` of the full set, permuted
+            under ``seed``: :func:`kfold_split`).
+        folds, fold, seed: the k-fold split; ignored for ``"dataset"``.
+        **load_options: passed to :func:`load_pairs` (``units``, ``dt``,
+            ``leader_length``, ``data_root``, ``download``, ``drop_duplicates``,
+            ``min_spacing``).
 
     Returns:
         ``(train, test)`` PairSets in SI units (float64, as loaded).
 
     Raises:
-        DataError: the data cannot be loaded, or the k-fold split is impossible.
+        DataError: the data cannot be loaded, the split is unknown, or the k-fold
+            split is impossible.
     """
-    raw = getattr(data, "raw", None)
-    if raw is not None:
-        extraction = extract_source(
-            raw.source,
-            raw.format,
-            reader_options=raw.reader_options(),
-            options=raw.extract_options(),
-        )
-        if extraction.test is None:
-            raise DataError("data.raw.test_fraction is 0: a run needs test pairs")
-        return extraction.train, extraction.test
-    source = data.name if data.name is not None else data.path
-    if source is None:
-        raise DataError("data: give a dataset name or a folder path")
-    options = dict(
-        units=data.units,
-        dt=data.dt,
-        leader_length=data.leader_length,
-        data_root=data.root,
-        download=download,
-        drop_duplicates=data.drop_duplicates,
-        min_spacing=data.min_spacing,
-    )
-    if data.split == "dataset":
+    if split == "dataset":
         return (
-            load_pairs(source, "train", **options),
-            load_pairs(source, "test", **options),
+            load_pairs(source, "train", **load_options),
+            load_pairs(source, "test", **load_options),
         )
-    if data.split == "kfold":
-        full = load_pairs(source, None, **options)
-        return kfold_split(full, data.folds, data.fold, data.split_seed)
-    raise DataError(f"split must be 'dataset' or 'kfold', got {data.split!r}")
+    if split == "kfold":
+        full = load_pairs(source, None, **load_options)
+        return kfold_split(full, folds, fold, seed)
+    raise DataError(f"split must be 'dataset' or 'kfold', got {split!r}")
+

@@ -40,9 +40,10 @@ from ..config import (
     TrainConfig,
     apply_overrides,
     config_hash,
+    load_split,
     validate_config,
 )
-from ..data import PairSet, load_split
+from ..data import PairSet
 from ..models import effect_kinds
 from ..models.effects import RoadProfile, parse_effect
 from ..posterior import Posterior

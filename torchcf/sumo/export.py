@@ -79,8 +79,8 @@ from xml.sax.saxutils import quoteattr
 
 from torch import Tensor
 
-from ..config import TrainConfig
-from ..data import DATASETS, load_split
+from ..config import TrainConfig, load_split
+from ..data import DATASETS
 from ..files import atomic_write_text, ensure_directory, write_json
 from ..models import get_model
 from ..posterior import Posterior

@@ -47,7 +47,8 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from ..data import PairSet, load_split
+from ..config import load_split
+from ..data import PairSet
 from ..evaluation.metrics import evaluate_costs
 from ..files import atomic_write_text, ensure_directory, read_json_object, write_json
 from ..models import get_model

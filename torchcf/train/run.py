@@ -62,8 +62,8 @@ from ..abc.smc import (
 )
 from ..abc.topn import TopN
 from ..cli import one_line
-from ..config import ConfigError, TrainConfig, config_hash, resolved_json
-from ..data import PairSet, load_split
+from ..config import ConfigError, TrainConfig, config_hash, load_split, resolved_json
+from ..data import PairSet
 from ..data.importer import record_extraction
 from ..errors import TorchcfError
 from ..evaluation.plots import hybrid_images, save_image
