@@ -12,18 +12,20 @@ import pytest
 import torch
 from scipy.stats import multivariate_normal
 
+import torchcf.abc.kernel as kernel_module
 import torchcf.abc.rejection as rejection_module
 import torchcf.abc.smc as smc
+from torchcf.abc.kernel import SMCKernel
 from torchcf.abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
 from torchcf.abc.smc import (
     SMCSettings,
     evidence_shares,
-    log_prior_ratio,
     new_state,
     prior_mass,
     proposals_per_pair,
     run_smc,
     smc_budget,
+    thresholds,
 )
 from torchcf.abc.topn import TopN
 from torchcf.config import ConfigError, TrainConfig, validate_config
@@ -94,7 +96,7 @@ def _logit(theta, bounds):
 def test_kernel_is_twice_the_weighted_covariance(space):
     """In the kernel's space: the logit of the box (the default) or the box."""
     population, bounds = _population()
-    kernel = smc._kernel(population, bounds, space=space)
+    kernel = SMCKernel.fit(population, bounds, space=space)
     width = (bounds[:, 1] - bounds[:, 0]).numpy()
     # the logit's slope at the centre is 4 / width
     floor = np.full_like(width, 4.0) if space == "logit" else width
@@ -116,13 +118,13 @@ def test_log_prior_ratio_matches_a_scipy_mixture(space, monkeypatch):
     """log r = log prior - log proposal density, both in the kernel's space (the
     logit's prior density: prod s(z) (1 - s(z))); in blocks as in one piece."""
     population, bounds = _population()
-    kernel = smc._kernel(population, bounds, space=space)
+    kernel = SMCKernel.fit(population, bounds, space=space)
     g = torch.Generator().manual_seed(5)
     pair = torch.tensor([0, 1, 2, 2, 1, 0])
     start = population["theta"][pair, 0, :-1]
     theta = start + 0.2 * torch.randn(6, 3, generator=g).double()
-    monkeypatch.setattr(smc, "WEIGHT_ROWS", 4)  # two blocks, the second short
-    got = log_prior_ratio(kernel, bounds, theta, pair)
+    monkeypatch.setattr(kernel_module, "WEIGHT_ROWS", 4)  # two blocks, one short
+    got = kernel.log_prior_ratio(theta, pair)
     volume = float(torch.prod(bounds[:, 1] - bounds[:, 0]))
     for q in range(6):
         p = int(pair[q])
@@ -155,8 +157,8 @@ def test_proposals_move_around_their_parents_and_stay_in_the_box():
     pair = torch.arange(n) % 2
     corner, inner = pair == 0, pair == 1
     for space in ("logit", "box"):
-        kernel = smc._kernel(population, bounds, space=space)
-        theta, log_r = smc._propose(kernel, bounds, u, pair)
+        kernel = SMCKernel.fit(population, bounds, space=space)
+        theta, log_r = kernel.propose(u, pair)
         inside = torch.isfinite(log_r)
         in_box = (theta >= bounds[:, 0]) & (theta <= bounds[:, 1])
         assert bool(in_box[inside].all())
@@ -174,13 +176,77 @@ def test_proposals_move_around_their_parents_and_stay_in_the_box():
         np.testing.assert_allclose(np.cov(steps.T) / scale, sigma / scale, atol=0.05)
 
 
+@pytest.mark.parametrize("space", ["logit", "box"])
+def test_a_known_population_gives_its_covariance(space):
+    """Two equally weighted members at +-d of a point (in the kernel's space):
+    Sigma = 2 d d^T plus the floor; one member alone: the floor alone."""
+    bounds = torch.tensor([[0.0, 4.0], [10.0, 30.0]], dtype=torch.float64)
+    width = bounds[:, 1] - bounds[:, 0]
+    floor = torch.full_like(width, 4.0) if space == "logit" else width
+    centre = bounds.mean(1)  # z = 0 in the logit space
+    d = torch.tensor([0.5, 2.0], dtype=torch.float64)
+    if space == "logit":  # the members at z = +-d, mapped to the box
+        theta = bounds[:, 0] + width * torch.sigmoid(torch.stack((d, -d)))
+    else:
+        theta = torch.stack((centre + d, centre - d))
+    population = {
+        "theta": torch.cat((theta, torch.zeros(2, 1).double()), 1)[None],
+        "score": torch.tensor([[0.1, 0.2]], dtype=torch.float64),
+    }
+    kernel = SMCKernel.fit(population, bounds, space=space)
+    expected = 2 * torch.outer(d, d) + torch.diag((smc.KERNEL_FLOOR * floor) ** 2)
+    torch.testing.assert_close(kernel.covariance[0], expected, rtol=1e-9, atol=1e-12)
+    assert kernel.log_w[0].exp().tolist() == pytest.approx([0.5, 0.5])
+    population["score"][0, 1] = math.inf  # one member: collapsed
+    kernel = SMCKernel.fit(population, bounds, space=space)
+    floor_only = torch.diag((smc.KERNEL_FLOOR * floor) ** 2)
+    torch.testing.assert_close(kernel.covariance[0], floor_only)
+
+
+def test_logit_proposals_stay_in_the_box_and_weigh_finite():
+    """Whatever the uniforms (the edges included) and however near a bound the
+    population lies, every logit proposal is in the box, and its importance
+    weight is finite."""
+    population, bounds = _population(n_pairs=3, pop=5, k=3)
+    population["theta"][1, :, 0] = bounds[0, 0]  # a population at a bound
+    population["theta"][2, :, 2] = bounds[2, 1]
+    kernel = SMCKernel.fit(population, bounds)
+    u = torch.rand(3000, 4, generator=torch.Generator().manual_seed(4)).double()
+    u[:10, 1:] = 0.0
+    u[10:20, 1:] = 1.0 - 1e-16
+    pair = torch.arange(3000) % 3
+    theta, log_r = kernel.propose(u, pair)
+    assert bool(((theta >= bounds[:, 0]) & (theta <= bounds[:, 1])).all())
+    assert bool((log_r == 0).all())
+    assert bool(torch.isfinite(kernel.log_prior_ratio(theta, pair)).all())
+
+
+def test_proposals_are_a_pure_function_of_their_uniforms():
+    """A proposal depends on its own row of uniforms and its pair alone, so a
+    round proposes the same particles however it is chunked; its weight too."""
+    population, bounds = _population()
+    kernel = SMCKernel.fit(population, bounds)
+    u = torch.rand(50, 4, generator=torch.Generator().manual_seed(6)).double()
+    pair = torch.arange(50) % 3
+    theta, log_r = kernel.propose(u, pair)
+    parts = [kernel.propose(u[a:b], pair[a:b]) for a, b in ((0, 7), (7, 31), (31, 50))]
+    assert torch.equal(torch.cat([t for t, _ in parts]), theta)
+    assert torch.equal(torch.cat([r for _, r in parts]), log_r)
+    again = SMCKernel.fit(population, bounds).propose(u, pair)[0]
+    assert torch.equal(again, theta)
+    whole = kernel.log_prior_ratio(theta, pair)
+    # rows 0..47 as a grid: pair p holds rows p, p + 3, ... (C = 16 per pair)
+    grid = kernel.grid_log_prior_ratio(theta[:48].reshape(16, 3, 3).transpose(0, 1))
+    torch.testing.assert_close(grid.transpose(0, 1).reshape(-1)[:48], whole[:48])
+
+
 def test_thresholds_are_quantiles_the_population_holds():
     score = torch.tensor(
         [[0.1, 0.4, 0.2, 0.3, math.inf], [math.inf] * 5, [5.0, 1.0, 3.0, 2.0, 4.0]],
         dtype=torch.float64,
     )
-    assert smc._thresholds(score, 0.5).tolist() == [0.2, math.inf, 3.0]
-    assert smc._thresholds(score, 1.0).tolist() == [0.4, math.inf, 5.0]
+    assert thresholds(score, 0.5).tolist() == [0.2, math.inf, 3.0]
+    assert thresholds(score, 1.0).tolist() == [0.4, math.inf, 5.0]
 
 
 def test_prior_mass_and_evidence_shares():
@@ -210,22 +276,20 @@ def test_proposals_per_pair_count_the_prior_round_and_the_rest():
 
 
 # ------------------------------------------------------------ the search
-def _recorded_rounds(mixture, monkeypatch, n_particles, settings):
+def _recorded_rounds(mixture, n_particles, settings):
     """An IDM refinement on the mixture (seed 1), recording at every round's end
     the accepted set (before it becomes the population) and the population
-    after."""
+    after (its scores and particle indices: those of the accepted set, whose
+    ``log r`` the round's end fills in)."""
     rollout = Rollout(mixture, dtype=torch.float64, compile="off")
     bounds = get_model("idm").prior_bounds(torch.float64)
-    accepted, populations = [], []
-    real = smc._next_population
-
-    def record(state, *args):
-        accepted.append({k: v.clone() for k, v in state.accepted.state_dict().items()})
-        real(state, *args)
-        populations.append({k: v.clone() for k, v in state.population.items()})
-
-    monkeypatch.setattr(smc, "_next_population", record)
     state = new_state(mixture.n_pairs, settings, 6)
+    last: dict[int, dict] = {}  # round -> the accepted set after its last chunk
+
+    def after_round(progress, due):
+        held = state.accepted.state_dict()
+        last[state.round] = {k: v.clone() for k, v in held.items()}
+
     run_smc(
         "idm",
         bounds,
@@ -236,16 +300,19 @@ def _recorded_rounds(mixture, monkeypatch, n_particles, settings):
         settings,
         ModelProgress(),
         state,
+        after_round=after_round,
     )
+    accepted = [last[t] for t in sorted(last)]
+    populations = [{"score": a["score"], "index": a["index"]} for a in accepted]
     return rollout, bounds, accepted, populations
 
 
-def test_the_prior_round_is_the_rejection_engines(mixture, monkeypatch):
+def test_the_prior_round_is_the_rejection_engines(mixture):
     """Round 0's population, per pair, is the best `population` of the first n_0
     particles of the model's prior stream: exactly rejection's buffer."""
     settings = SMCSettings(**SETTINGS)
     budget = smc_budget(4000, mixture.n_pairs, settings)
-    rollout, bounds, seen, _ = _recorded_rounds(mixture, monkeypatch, 4000, settings)
+    rollout, bounds, seen, _ = _recorded_rounds(mixture, 4000, settings)
     reference = TopN(mixture.n_pairs, settings.population, 6)
     run_rejection(
         prior_stream("idm", bounds, 1, rollout),
@@ -261,19 +328,17 @@ def test_the_prior_round_is_the_rejection_engines(mixture, monkeypatch):
     assert bool((seen[0]["theta"][..., -1] == 0).all())  # prior draws: r = 1
 
 
-def test_the_population_keeps_its_members_under_the_next_threshold(
-    mixture, monkeypatch
-):
+def test_the_population_keeps_its_members_under_the_next_threshold(mixture):
     """Elitism: every member of a round's population at or under the next
     threshold is in the next population unless ``population`` better particles
     displaced it; so the per-pair threshold never rises and a population never
     falls below half its size (median thresholds)."""
     settings = SMCSettings(**SETTINGS)
-    *_, populations = _recorded_rounds(mixture, monkeypatch, 6000, settings)
+    *_, populations = _recorded_rounds(mixture, 6000, settings)
     assert len(populations) == settings.rounds + 1
     for before, after in zip(populations, populations[1:], strict=False):
-        epsilon = smc._thresholds(before["score"], settings.quantile)
-        assert bool((smc._thresholds(after["score"], 0.5) <= epsilon).all())
+        epsilon = thresholds(before["score"], settings.quantile)
+        assert bool((thresholds(after["score"], 0.5) <= epsilon).all())
         for p in range(mixture.n_pairs):
             count = int(torch.isfinite(before["score"][p]).sum())
             kept = torch.isfinite(after["score"][p])
@@ -319,6 +384,7 @@ def test_smc_fits_better_than_rejection_at_equal_budget(mixture, tmp_path):
     assert evidence["idm"] > 0.4 and evidence["hl"] > 0.2
 
 
+@pytest.mark.slow  # SMC at several chunk sizes
 def test_smc_result_does_not_depend_on_the_chunk_size(mixture, tmp_path):
     posteriors = []
     for chunk in (97, 1000):
@@ -332,6 +398,7 @@ def test_smc_result_does_not_depend_on_the_chunk_size(mixture, tmp_path):
             assert torch.equal(a.buffers[name][key], b.buffers[name][key])
 
 
+@pytest.mark.slow  # SMC runs interrupted and resumed
 def test_smc_resumed_mid_round_equals_an_uninterrupted_run(mixture, tmp_path):
     cfg = config(chunk_size=250, checkpoint_every=1e-9)
     reference = train(cfg, tmp_path / "ref", pairs=(mixture, mixture))
@@ -361,6 +428,7 @@ def test_smc_resumed_mid_round_equals_an_uninterrupted_run(mixture, tmp_path):
             assert torch.equal(a.buffers[name][key], b.buffers[name][key])
 
 
+@pytest.mark.slow  # torchrun in subprocesses
 def test_smc_under_torchrun_equals_one_process(tmp_path):
     data = write_data(tmp_path / "pairs")
     abc = {"method": "smc", "smc": SETTINGS, "n_particles": 4000, "chunk_size": 300}
@@ -382,14 +450,14 @@ def test_a_pair_without_population_draws_from_the_prior():
     (importance weight 1), not steps from nowhere."""
     population, bounds = _population(n_pairs=2, pop=4, k=3)
     population["score"][1] = math.inf  # pair 1: no member
-    kernel = smc._kernel(population, bounds)
+    kernel = SMCKernel.fit(population, bounds)
     assert kernel.empty.tolist() == [False, True]
     u = torch.rand(4000, 4, generator=torch.Generator().manual_seed(8)).double()
     pair = torch.ones(4000, dtype=torch.int64)
-    theta, log_r = smc._propose(kernel, bounds, u, pair)
+    theta, log_r = kernel.propose(u, pair)
     expected = bounds[:, 0] + (bounds[:, 1] - bounds[:, 0]) * u[:, 1:]
     assert torch.equal(theta, expected) and bool((log_r == 0).all())
-    assert bool((log_prior_ratio(kernel, bounds, theta[:5], pair[:5]) == 0).all())
+    assert bool((kernel.log_prior_ratio(theta[:5], pair[:5]) == 0).all())
 
 
 def test_the_attribution_can_draw_its_arms_with_smc(mixture):

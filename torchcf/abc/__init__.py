@@ -9,8 +9,15 @@ loop (:mod:`torchcf.diagnose`). Layers, each importing only those above it:
   ``n`` best ``(score, particle index)``;
 - :mod:`~torchcf.abc.distributed`: :class:`Group`, the processes of a ``torchrun``
   that share a stream (shards of a round, buffers merged after it);
+- :mod:`~torchcf.abc.screen`: the plausibility filter's screen of a chunk;
+- :mod:`~torchcf.abc.rounds`: the round loop both methods share (shard ->
+  simulate -> screen -> push -> end of round), fed by a method's proposals;
 - :mod:`~torchcf.abc.rejection`: :class:`Rollout` (how particles are simulated)
-  and :func:`run_rejection`, the chunked draw -> simulate -> push loop;
+  and :func:`run_rejection`, whose proposals are the prior stream's;
+- :mod:`~torchcf.abc.kernel`: :class:`~torchcf.abc.kernel.SMCKernel`, the
+  refinement's proposal (a Gaussian mixture per pair around its population);
+- :mod:`~torchcf.abc.smc`: :func:`~torchcf.abc.smc.run_smc`, the sequential
+  refinement (proposals per round, the population between rounds);
 - :mod:`~torchcf.abc.hybrid`: the hybrid's selection with the one tie rule (score,
   then particle index, then the model's position), shares, the pairwise table and
   the learned set (:func:`hybrid_posterior`);

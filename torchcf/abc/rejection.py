@@ -1,40 +1,38 @@
 """The rejection engine: draw -> simulate -> keep the n best per pair (SPEC section 5).
 
-One loop serves every caller — training (:mod:`torchcf.train`), cross-validation
+One engine serves every caller — training (:mod:`torchcf.train`), cross-validation
 and the diagnosis loop's attribution (:mod:`torchcf.diagnose.attribution`):
 
-1. **draw** particles ``start .. stop - 1`` of a model's counter-based prior stream
-   (:class:`~torchcf.abc.streams.ParticleStream`: a particle, and in the paired
-   layout its training pair, is a pure function of ``(seed, model, index)``);
-2. **simulate** them on the pairs (:func:`torchcf.simulate`) and score them;
-3. **push** them into the model's per-pair buffer
-   (:class:`~torchcf.abc.topn.TopN`, exactly the ``n`` best by ``(score, index)``).
-
-Particles are processed in *rounds* of one chunk per process (one chunk in a single
-process, see :class:`~torchcf.abc.distributed.Group`); a round always simulates a
-whole chunk, so a compiled block sees one shape and every process simulates the
-chunks a single process would. The buffers after particle ``j`` are therefore the
-same whatever the chunk size, the number of processes or where a run was cut and
-resumed.
+- :class:`Rollout`: how particles are simulated and scored (the pairs, the
+  layout, the precision, the chunk);
+- :func:`run_rejection`: a model's prior stream through its per-pair buffer.
+  Rejection supplies its proposals alone (:func:`prior_proposals`): particles
+  ``start .. stop - 1`` of the model's counter-based prior stream
+  (:class:`~torchcf.abc.streams.ParticleStream`: a particle, and in the paired
+  layout its training pair, is a pure function of ``(seed, model, index)``). The
+  round loop (:mod:`torchcf.abc.rounds`) simulates them, screens them and pushes
+  them into the buffer (:class:`~torchcf.abc.topn.TopN`, exactly the ``n`` best
+  by ``(score, index)``), one chunk per process and round; the buffers after
+  particle ``j`` are therefore the same whatever the chunk size, the number of
+  processes or where a run was cut and resumed.
 
 The engine knows nothing of checkpoints, progress bars or run directories: a
-caller passes :class:`ModelProgress` (where to continue, what was counted) and
-callbacks that run between rounds. A round is thus also the unit of progress and
-of checkpoints (nothing is reported or saved inside one), which is why a model's
-cell budget (:attr:`CFModel.chunk_cells`) is a few seconds of simulation, not a
-whole stream: a million MPC particles are 16 rounds on the CPU. The chunk is set
-by the plan (the budget, or :attr:`Rollout.chunk_size`), never by the clock, so
-that the rounds, like the results, do not depend on timing.
+caller passes :class:`~torchcf.abc.rounds.ModelProgress` (where to continue, what
+was counted) and callbacks that run between rounds. A round is the unit of
+progress and of checkpoints (nothing is reported or saved inside one), which is
+why a model's cell budget (:attr:`CFModel.chunk_cells`) is a few seconds of
+simulation, not a whole stream: a million MPC particles are 16 rounds on the CPU.
+The chunk is set by the plan (the budget, or :attr:`Rollout.chunk_size`), never by
+the clock, so that the rounds, like the results, do not depend on timing.
 
 Shapes: P particles, N pairs, K parameters (:mod:`torchcf.typing`).
 """
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Literal
 
 import torch
 from torch import Tensor
@@ -50,6 +48,7 @@ from ..sim import (
     simulate,
 )
 from .distributed import SINGLE, Group
+from .rounds import Chunk, ModelProgress, Plan, Propose, Sink, run_rounds
 from .screen import PlausibilityScreen
 from .streams import ParticleStream
 from .topn import TopN
@@ -151,37 +150,6 @@ class Rollout:
         return out.score.double(), out.valid
 
 
-@dataclass
-class ModelProgress:
-    """How far one model's stream went (a checkpoint holds it).
-
-    Attributes:
-        next: particles ``0 .. next - 1`` have been offered to the buffer.
-        invalid: invalid rollouts among them (cells, in the full layout).
-        seconds: simulation and selection time spent on them.
-        done: the stream is finished.
-        implausible: particles the plausibility filter rejected, scored
-            ``+inf`` like invalid rollouts; only particles that would otherwise
-            have entered the buffer are tested, so this counts those
-            (:mod:`torchcf.abc.screen`).
-    """
-
-    next: int = 0
-    invalid: int = 0
-    seconds: float = 0.0
-    done: bool = False
-    implausible: int = 0
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "next": self.next,
-            "invalid": self.invalid,
-            "seconds": self.seconds,
-            "done": self.done,
-            "implausible": self.implausible,
-        }
-
-
 def prior_stream(
     name: str, bounds: Tensor, seed: int, rollout: Rollout
 ) -> ParticleStream:
@@ -235,81 +203,38 @@ def run_rejection(
     planned = plan_particles if plan_particles is not None else n_particles
     compiled = rollout.compiled(simulated, planned)
     chunk = rollout.chunk(simulated, planned, compiled)
-    round_size = chunk * group.world_size
-    for first in range(progress.next, n_particles, round_size):
-        began = time.perf_counter()
-        start, stop = group.shard(first, n_particles, chunk)
-        invalid = implausible = 0
-        if start < stop:
-            invalid, implausible = _push_chunk(
-                stream,
-                buffer,
-                rollout,
-                simulated,
-                start,
-                stop,
-                chunk,
-                compiled,
-                fixed,
-                screen,
-            )
-        due = checkpoint_due() if checkpoint_due is not None else False
-        invalid, due = group.end_round(buffer, invalid, due)
-        if screen is not None:
-            implausible = group.sum(implausible)
-        progress.invalid += invalid
-        progress.implausible += implausible
-        progress.next = min(first + round_size, n_particles)
-        progress.seconds += time.perf_counter() - began
-        if after_round is not None:
-            after_round(progress, due)
+    run_rounds(
+        prior_proposals(stream),
+        [Sink(buffer)],
+        Plan(rollout, simulated, chunk, compiled, fixed),
+        progress,
+        progress.next,
+        n_particles,
+        group=group,
+        screen=screen,
+        checkpoint_due=checkpoint_due,
+        after_round=after_round,
+    )
 
 
-def _push_chunk(
-    stream: ParticleStream,
-    buffer: TopN,
-    rollout: Rollout,
-    model: CFModel,
-    start: int,
-    stop: int,
-    chunk: int,
-    compiled: bool,
-    fixed: Tensor | None,
-    screen: PlausibilityScreen | None = None,
-) -> tuple[int, int]:
-    """Draw, simulate, screen and push particles ``start .. stop - 1``; their
-    invalid count and the number the screen rejected.
+def prior_proposals(stream: ParticleStream) -> Propose:
+    """Rejection's proposals: the stream's particles ``start .. stop - 1``
+    (particle index = stream index). Padded to a batch with the stream's next
+    particles, which cost a draw and are the same whatever the chunking."""
 
-    A whole chunk is simulated (the particles past ``stop`` dropped) where the
-    batch size matters: a compiled block sees one shape per model, and a model
-    whose rollout rounds by batch size (:attr:`CFModel.batch_size_invariant`,
-    the MPC) sees one batch size whatever the chunking. Others simulate only
-    what is asked.
-    """
-    fixed_size = compiled or not model.batch_size_invariant
-    drawn = chunk if fixed_size else stop - start
-    theta, pair = stream.draw(start, start + drawn)  # (drawn, K_drawn), (drawn,)
-    if fixed is not None:
-        theta = torch.cat((theta, fixed.expand(theta.shape[0], -1)), dim=1)
-    score, valid = rollout.score(model, theta, pair, chunk=chunk, compiled=compiled)
-    real = stop - start
-    particle = torch.arange(start, stop)
-    score, theta = score[:real], theta[:real]
-    pair = pair[:real] if rollout.paired else None
-    rejected = 0
-    if screen is not None:
-        score, rejected = screen.screen(model, buffer, score, particle, theta, pair)
-    if rollout.paired:
-        buffer.push(pair, score, particle, theta)
-    else:
-        buffer.push_full(score, particle, theta)
-    return int((~valid[:real]).sum()), rejected
+    def propose(start: int, stop: int, batch: int | None) -> Chunk:
+        drawn = batch if batch is not None else stop - start
+        theta, pair = stream.draw(start, start + drawn)  # (drawn, K_drawn), (drawn,)
+        return Chunk(theta, pair, torch.arange(start, stop))
+
+    return propose
 
 
 __all__ = [
     "CUDA_CHUNK_CELLS",
     "ModelProgress",
     "Rollout",
+    "prior_proposals",
     "prior_stream",
     "run_rejection",
 ]

@@ -77,6 +77,14 @@ estimates the prior mass of model ``m`` that fits pair ``p`` within ``tau``
 (:func:`evidence_shares`): what rejection's shares measure, with the prior's Occam
 factor.
 
+**Structure**: the chunks of a round are the round loop's
+(:mod:`torchcf.abc.rounds`, shared with rejection: shard, simulate, screen, push,
+progress and checkpoints). SMC supplies per round its proposals (round 0 the
+prior stream's, later rounds those of the kernel fitted to the population,
+:class:`~torchcf.abc.kernel.SMCKernel`) and where they go (the model's buffer,
+and the round's accepted set below the threshold); at a round's end it weighs the
+round's particles and makes the next population.
+
 Shapes: N pairs, K parameters, ``pop`` = ``population`` (:mod:`torchcf.typing`).
 """
 
@@ -86,7 +94,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal, NamedTuple
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
@@ -94,21 +102,12 @@ from torch import Tensor
 from ..models import CFModel, get_model
 from ..sim import COMPILE_CHUNK_MULTIPLE
 from .distributed import SINGLE, Group
-from .rejection import ModelProgress, Rollout
+from .kernel import KERNEL_FLOOR, SMCKernel
+from .rejection import Rollout
+from .rounds import Chunk, ModelProgress, Plan, Propose, Sink, run_rounds
 from .screen import PlausibilityScreen
 from .streams import ParticleStream, uniforms
 from .topn import TopN
-
-#: Relative size (fraction of each parameter's prior width; in the logit space,
-#: of the width at the box's centre, where dz = 4 dtheta / width) of the diagonal
-#: added to the kernel covariance: a population collapsed onto one point keeps
-#: moving.
-KERNEL_FLOOR = 1e-3
-#: Uniforms are kept this far from 0 and 1 before the normal quantile function.
-_UNIFORM_EDGE = 1e-12
-#: Parameter vectors per block of the importance weights
-#: (:func:`grid_log_prior_ratio`): a block's distances are ``WEIGHT_ROWS x pop``.
-WEIGHT_ROWS = 1 << 14
 
 
 @dataclass(frozen=True)
@@ -257,176 +256,6 @@ def parameter_buffer(buffer: TopN) -> TopN:
     return plain
 
 
-# ----------------------------------------------------------------- the kernel
-@dataclass(frozen=True)
-class _Kernel:
-    """A round's proposal: per pair a Gaussian mixture around its population.
-
-    Attributes:
-        theta: (N, pop, K) the population, in the kernel's space.
-        log_w: (N, pop) normalised log weights (``-inf``: no member).
-        cum_w: (N, pop) cumulative weights (the parent's inverse CDF).
-        chol: (N, K, K) lower Cholesky factor ``L`` of ``Sigma_p``.
-        whiten: (N, K, K) ``L^-1``: ``|L^-1 (a - b)|^2`` is the Mahalanobis
-            distance of ``Sigma_p``.
-        white: (N, pop, K) the population whitened, ``L^-1 theta_i``.
-        log_norm: (N,) ``log`` of the Gaussian's normalising constant.
-        empty: (N,) bool, pairs without a population (they draw from the prior).
-        space: ``"logit"`` or ``"box"`` (:class:`SMCSettings`).
-    """
-
-    theta: Tensor
-    log_w: Tensor
-    cum_w: Tensor
-    chol: Tensor
-    whiten: Tensor
-    white: Tensor
-    log_norm: Tensor
-    empty: Tensor
-    space: str = "logit"
-
-
-def _free(theta: Tensor, bounds: Tensor, space: str) -> Tensor:
-    """Parameters ``theta`` (..., K) in the kernel's space: the logit of their
-    place in the box (a bound itself is read 1e-12 of the width inside), or the
-    box itself."""
-    if space == "box":
-        return theta
-    low, width = bounds[:, 0], bounds[:, 1] - bounds[:, 0]
-    unit = ((theta - low) / width).clamp(_UNIFORM_EDGE, 1 - _UNIFORM_EDGE)
-    return torch.logit(unit)
-
-
-def _boxed(z: Tensor, bounds: Tensor, space: str) -> Tensor:
-    """The inverse of :func:`_free`: parameters (..., K) in the box."""
-    if space == "box":
-        return z
-    low, width = bounds[:, 0], bounds[:, 1] - bounds[:, 0]
-    return low + width * torch.sigmoid(z)
-
-
-def _log_prior(z: Tensor, bounds: Tensor, space: str) -> Tensor:
-    """(Q,) log density of the uniform prior at ``z`` (Q, K) in the kernel's space
-    (inside the box)."""
-    width = bounds[:, 1] - bounds[:, 0]
-    if space == "box":
-        return (-torch.log(width).sum()).expand(z.shape[0])
-    f = torch.nn.functional.softplus
-    return -(f(z) + f(-z)).sum(1)
-
-
-def _kernel(
-    population: dict[str, Tensor],
-    bounds: Tensor,
-    scale: float = 2.0,
-    space: str = "logit",
-) -> _Kernel:
-    """The proposal of the round after ``population`` (module docstring), in
-    ``space``: its ``theta``, ``chol`` and ``white`` are in that space."""
-    theta = _free(population["theta"][..., :-1], bounds, space)  # (N, pop, K)
-    member = torch.isfinite(population["score"])  # (N, pop)
-    log_r = torch.where(member, population["theta"][..., -1], -math.inf)
-    log_w = log_r - torch.logsumexp(log_r, dim=1, keepdim=True)  # (N, pop)
-    empty = ~member.any(dim=1)  # (N,)
-    log_w = torch.where(empty[:, None], -math.inf, log_w)
-    w = torch.exp(log_w)  # (N, pop), 0 for non-members
-    mean = (w[..., None] * theta).sum(1, keepdim=True)  # (N, 1, K)
-    centred = torch.where(member[..., None], theta - mean, 0.0)
-    cov = torch.einsum("np,npk,npl->nkl", w, centred, centred)  # (N, K, K)
-    width = bounds[:, 1] - bounds[:, 0]  # (K,)
-    if space != "box":  # the logit's slope at the box's centre: 4 / width
-        width = torch.full_like(width, 4.0)
-    sigma = scale * cov + torch.diag((KERNEL_FLOOR * width) ** 2)
-    chol = torch.linalg.cholesky(sigma)  # (N, K, K)
-    k = theta.shape[-1]
-    log_det = 2.0 * torch.log(torch.diagonal(chol, dim1=1, dim2=2)).sum(1)
-    log_norm = -0.5 * (k * math.log(2 * math.pi) + log_det)  # (N,)
-    eye = torch.eye(k, dtype=chol.dtype).expand_as(chol)
-    whiten = torch.linalg.solve_triangular(chol, eye, upper=False)  # (N, K, K)
-    white = torch.einsum("nkl,npl->npk", whiten, theta)  # (N, pop, K)
-    cum_w = torch.cumsum(w, dim=1)
-    return _Kernel(theta, log_w, cum_w, chol, whiten, white, log_norm, empty, space)
-
-
-def _propose(
-    kernel: _Kernel, bounds: Tensor, u: Tensor, pair: Tensor
-) -> tuple[Tensor, Tensor]:
-    """Proposals from uniforms ``u`` (Q, 1 + K) on pairs ``pair`` (Q,).
-
-    Column 0 picks the parent (inverse CDF of the pair's weights), columns 1..K
-    the Gaussian step (normal quantiles). A pair without a population draws from
-    the prior instead (columns 1..K as a prior draw).
-
-    Returns:
-        ``theta`` (Q, K) and ``log r`` (Q,) of each proposal (``-inf``: outside
-        the prior box).
-    """
-    low, high = bounds[:, 0], bounds[:, 1]
-    cum = kernel.cum_w[pair]  # (Q, pop)
-    target = u[:, :1] * cum[:, -1:]
-    parent = torch.searchsorted(cum, target).clamp_(max=cum.shape[1] - 1)[:, 0]
-    z = torch.special.ndtri(u[:, 1:].clamp(_UNIFORM_EDGE, 1 - _UNIFORM_EDGE))
-    step = torch.einsum("qkl,ql->qk", kernel.chol[pair], z)  # (Q, K)
-    theta = _boxed(kernel.theta[pair, parent] + step, bounds, kernel.space)
-    prior_draw = low + (high - low) * u[:, 1:]
-    from_prior = kernel.empty[pair]
-    theta = torch.where(from_prior[:, None], prior_draw, theta)
-    inside = ((theta >= low) & (theta <= high)).all(dim=1)
-    log_r = torch.where(inside, 0.0, -math.inf)
-    return theta, log_r
-
-
-def log_prior_ratio(
-    kernel: _Kernel, bounds: Tensor, theta: Tensor, pair: Tensor
-) -> Tensor:
-    """``log pi(theta) - log q(theta)`` (Q,) of proposals ``theta`` (Q, K) on
-    pairs ``pair`` (Q,): the importance weight of the uniform prior with respect
-    to the round's proposal (0 where the pair drew from the prior). Both densities
-    are taken in the kernel's space; their ratio is the same in any.
-
-    The proposals are laid out per pair (:func:`grid_log_prior_ratio`)."""
-    n_pairs = kernel.theta.shape[0]
-    order = torch.sort(pair, stable=True).indices
-    counts = torch.bincount(pair, minlength=n_pairs)
-    slot = torch.empty_like(pair)
-    slot[order] = (
-        torch.arange(pair.numel()) - (torch.cumsum(counts, 0) - counts)[pair[order]]
-    )
-    grid = theta.new_zeros(n_pairs, max(int(counts.max()), 1), theta.shape[1])
-    grid[pair, slot] = theta  # (N, C, K), C the most proposals of a pair
-    return grid_log_prior_ratio(kernel, bounds, grid)[pair, slot]
-
-
-def grid_log_prior_ratio(kernel: _Kernel, bounds: Tensor, theta: Tensor) -> Tensor:
-    """(N, C) ``log r`` of ``theta`` (N, C, K), ``C`` parameter vectors per pair
-    (a buffer's, at the end of a round), as :func:`log_prior_ratio`.
-
-    Per pair the Mahalanobis distances to its population are one small matrix
-    product, ``(C, K) x (K, pop)``, batched over pairs; pairs are taken in blocks
-    of at most :data:`WEIGHT_ROWS` rows (memory ``WEIGHT_ROWS x pop``), fixed,
-    so the result does not depend on how a round was chunked."""
-    n_pairs, width = theta.shape[:2]
-    out = theta.new_empty(n_pairs, width)
-    step = max(1, WEIGHT_ROWS // max(width, 1))
-    for first in range(0, n_pairs, step):
-        block = slice(first, first + step)
-        free = _free(theta[block], bounds, kernel.space)  # (B, C, K)
-        log_prior = _log_prior(free.reshape(-1, free.shape[-1]), bounds, kernel.space)
-        z = torch.einsum("bkl,bcl->bck", kernel.whiten[block], free)  # (B, C, K)
-        members = kernel.white[block]  # (B, pop, K)
-        # |z - z_i|^2 expanded: one batched product per pair instead of C x pop.
-        distance = (
-            (z**2).sum(2, keepdim=True)
-            + (members**2).sum(2)[:, None, :]
-            - 2.0 * torch.bmm(z, members.transpose(1, 2))
-        ).clamp(min=0.0)  # (B, C, pop)
-        log_phi = kernel.log_norm[block, None, None] - 0.5 * distance
-        log_q = torch.logsumexp(kernel.log_w[block, None, :] + log_phi, dim=2)
-        ratio = log_prior.reshape(log_q.shape) - log_q  # (B, C)
-        out[block] = torch.where(kernel.empty[block, None], 0.0, ratio)
-    return out
-
-
 # -------------------------------------------------------------- the rounds
 def run_smc(
     name: str,
@@ -479,58 +308,39 @@ def run_smc(
         )
     compiled = rollout.compiled(model, n_particles)
     chunk = _round_chunk(rollout, model, budget.per_round, compiled)
+    plan = Plan(rollout, model, chunk, compiled, fixed)
     stream = ParticleStream(name, bounds, seed, rollout.pairs.n_pairs)
     if state.accepted is None and state.round <= budget.rounds:
         state.accepted = TopN(*state.shape)
+
+    def reached(done: int) -> None:  # a checkpoint saves the state
+        state.next = done
+
     while state.round <= budget.rounds:
         kernel = (
-            _kernel(state.population, bounds, settings.kernel_scale, settings.space)
+            SMCKernel.fit(
+                state.population, bounds, settings.kernel_scale, settings.space
+            )
             if state.round
             else None
         )
-        size = budget.round_size(state.round)
-        round_size = chunk * group.world_size
-        for first in range(state.next, size, round_size):
-            began = time.perf_counter()
-            start, stop = group.shard(first, size, chunk)
-            invalid = implausible = 0
-            if start < stop:
-                if kernel is None:  # round 0: the prior stream, r = 1
-                    theta, pair = stream.draw(start, stop)
-                    log_r = torch.zeros(theta.shape[0], dtype=torch.float64)
-                else:
-                    key = f"{name}/smc{state.round}"
-                    theta, log_r, pair = _proposals(
-                        kernel, bounds, seed, key, start, stop, budget.per_pair
-                    )
-                invalid, implausible = _offer(
-                    _Chunk(theta, log_r, pair, budget.first_index(state.round) + start),
-                    fixed,
-                    model,
-                    rollout,
-                    buffer,
-                    state,
-                    settings,
-                    kernel,
-                    bounds,
-                    chunk,
-                    compiled,
-                    screen,
-                )
-            due = checkpoint_due() if checkpoint_due is not None else False
-            invalid, due = group.end_round([buffer, state.accepted], invalid, due)
-            if screen is not None:
-                implausible = group.sum(implausible)
-            state.next = min(first + round_size, size)
-            progress.invalid += invalid
-            progress.implausible += implausible
-            progress.next = budget.first_index(state.round) + state.next
-            progress.seconds += time.perf_counter() - began
-            if after_round is not None:
-                after_round(progress, due)
+        run_rounds(
+            _round_proposals(kernel, stream, state.round, budget),
+            _round_sinks(buffer, state, settings),
+            plan,
+            progress,
+            state.next,
+            budget.round_size(state.round),
+            offset=budget.first_index(state.round),
+            reached=reached,
+            group=group,
+            screen=screen,
+            checkpoint_due=checkpoint_due,
+            after_round=after_round,
+        )
         began = time.perf_counter()
         if kernel is not None:
-            _weigh_round(kernel, bounds, buffer, state, budget)
+            _weigh_round(kernel, buffer, state, budget)
         _next_population(state, settings, rollout.pairs.n_pairs, buffer)
         progress.seconds += time.perf_counter() - began
     state.finish()
@@ -553,9 +363,46 @@ def _round_chunk(
     return max(chunk, 1)
 
 
+def _round_proposals(
+    kernel: SMCKernel | None, stream: ParticleStream, t: int, budget: Budget
+) -> Propose:
+    """Round ``t``'s proposals for the round loop (:data:`~torchcf.abc.rounds.
+    Propose`): round 0 the prior stream's particles (their pairs drawn by the
+    stream, ``r = 1``), later rounds the kernel's (:func:`_proposals`). Only the
+    proposals inside the box are simulated; a batch is padded with copies of the
+    first. The buffers hold the searched parameters and a ``log r`` column,
+    filled in at the end of the round (:func:`_weigh_round`)."""
+    first_index = budget.first_index(t)
+
+    def propose(start: int, stop: int, batch: int | None) -> Chunk:
+        if kernel is None:
+            theta, pair = stream.draw(start, stop)
+        else:
+            key = f"{stream.model}/smc{t}"
+            theta, log_r, pair = _proposals(
+                kernel, stream.seed, key, start, stop, budget.per_pair
+            )
+        index = first_index + start + torch.arange(theta.shape[0])
+        if kernel is not None:  # the box kernel's steps outside are not simulated
+            inside = torch.isfinite(log_r).nonzero().squeeze(1)
+            theta, pair, index = theta[inside], pair[inside], index[inside]
+        real = theta.shape[0]
+        if not real:
+            return Chunk(theta, pair, index)
+        pad = batch - real if batch is not None else 0
+        zero = torch.zeros(real, 1, dtype=theta.dtype)
+        return Chunk(
+            torch.cat((theta, theta[:1].expand(pad, -1))),
+            torch.cat((pair, pair[:1].expand(pad))),
+            index,
+            rows=torch.cat((theta, zero), 1),
+        )
+
+    return propose
+
+
 def _proposals(
-    kernel: _Kernel,
-    bounds: Tensor,
+    kernel: SMCKernel,
     seed: int,
     stream_key: str,
     start: int,
@@ -567,89 +414,37 @@ def _proposals(
     ``"<model>/smc<t>"``).
 
     Returns:
-        ``theta`` (Q, K), ``log r`` (Q,) (``-inf`` outside the prior box, 0 for a
-        pair without population), ``pair`` (Q,).
+        ``theta`` (Q, K), ``log r`` (Q,) (``-inf`` outside the prior box, else 0),
+        ``pair`` (Q,).
     """
-    k = bounds.shape[0]
+    k = kernel.bounds.shape[0]
     u = uniforms(seed, stream_key, start, stop, 1 + k)  # (Q, 1 + K)
     pair = torch.arange(start, stop) // per_pair
-    theta, log_r = _propose(kernel, bounds, u, pair)
+    theta, log_r = _propose(kernel, kernel.bounds, u, pair)
     return theta, log_r, pair
 
 
-class _Chunk(NamedTuple):
-    """Proposals of one chunk: ``theta`` (Q, K), ``log_r`` (Q,) (``-inf``: outside
-    the prior box), ``pair`` (Q,), and the particle index of the first."""
+def _propose(
+    kernel: SMCKernel, bounds: Tensor, u: Tensor, pair: Tensor
+) -> tuple[Tensor, Tensor]:
+    """:meth:`SMCKernel.propose` (``bounds`` are the kernel's), called through
+    this module so that a tool can wrap it (``tools/bench_smc.py`` counts the
+    proposals outside the box)."""
+    return kernel.propose(u, pair)
 
-    theta: Tensor
-    log_r: Tensor
-    pair: Tensor
-    first_index: int
 
-
-def _offer(
-    proposals: _Chunk,
-    fixed: Tensor | None,
-    model: CFModel,
-    rollout: Rollout,
-    buffer: TopN,
-    state: SMCState,
-    settings: SMCSettings,
-    kernel: _Kernel | None,
-    bounds: Tensor,
-    chunk: int,
-    compiled: bool,
-    screen: PlausibilityScreen | None = None,
-) -> tuple[int, int]:
-    """Simulate the in-box proposals and offer them to both buffers (the
-    accepted set only below the round's threshold); their invalid count and
-    the number the plausibility screen rejected."""
-    theta, log_r, pair, first_index = proposals
-    index = first_index + torch.arange(theta.shape[0])
-    inside = torch.isfinite(log_r).nonzero().squeeze(1)
-    if not inside.numel():
-        return 0, 0
-    theta, pair, index = theta[inside], pair[inside], index[inside]
-    # One batch size for every simulate call where it matters (as the rejection
-    # engine's whole chunks): a compiled block's one shape, and a model that
-    # rounds by batch size (the MPC's QP) rounds the same whatever the chunking.
-    fixed_size = compiled or not model.batch_size_invariant
-    pad = chunk - theta.shape[0] if fixed_size else 0
-    simulated = torch.cat((theta, theta[:1].expand(pad, -1)))
-    if fixed is not None:  # the searched parameters, then the fixed ones
-        simulated = torch.cat((simulated, fixed.expand(simulated.shape[0], -1)), 1)
-    pair_sim = torch.cat((pair, pair[:1].expand(pad)))
-    score, valid = rollout.score(
-        model, simulated, pair_sim, chunk=chunk, compiled=compiled
-    )
-    score, valid = score[: theta.shape[0]].cpu(), valid[: theta.shape[0]].cpu()
-    # log r is filled in at the end of the round (_weigh_round), for the entries
-    # that are still held then, in one canonical batch.
-    rows = torch.cat((theta, torch.zeros(theta.shape[0], 1, dtype=theta.dtype)), 1)
-    whole = simulated[: theta.shape[0]]  # the simulated parameters, fixed ones too
-    rejected = 0
-    cleared = torch.zeros(theta.shape[0], dtype=torch.bool)  # tested, plausible
-    if screen is not None:
-        score, rejected = screen.screen(
-            model, buffer, score, index, whole, pair, cleared
-        )
-    buffer.push(pair, score, index, rows)
-    epsilon = torch.full((buffer.n_pairs,), math.inf, dtype=torch.float64)
-    if kernel is not None:
-        epsilon = _thresholds(state.population["score"], settings.quantile)
-    accepted = torch.where(score <= epsilon[pair], score, math.inf)
-    if screen is not None:
-        # Candidates of the accepted set the buffer's screen did not reach.
-        accepted, more = screen.screen(
-            model, state.accepted, accepted, index, whole, pair, cleared
-        )
-        rejected += more
-    state.accepted.push(pair, accepted, index, rows)
-    return int((~valid).sum()), rejected
+def _round_sinks(buffer: TopN, state: SMCState, settings: SMCSettings) -> list[Sink]:
+    """Where a round's proposals go: every one to the model's buffer, those at or
+    under the round's threshold to its accepted set (none in round 0)."""
+    if state.round:
+        epsilon = thresholds(state.population["score"], settings.quantile)
+    else:
+        epsilon = torch.full((buffer.n_pairs,), math.inf, dtype=torch.float64)
+    return [Sink(buffer), Sink(state.accepted, ceiling=epsilon)]
 
 
 def _weigh_round(
-    kernel: _Kernel, bounds: Tensor, buffer: TopN, state: SMCState, budget: Budget
+    kernel: SMCKernel, buffer: TopN, state: SMCState, budget: Budget
 ) -> None:
     """End of round ``t``: ``log r`` of the round's particles still held in the
     buffer and the accepted set, computed once, in the buffers' order, so that
@@ -659,11 +454,11 @@ def _weigh_round(
     for held in (buffer, state.accepted):
         mine = (held.index >= first) & (held.index < stop)  # (N, capacity)
         if bool(mine.any()):
-            log_r = grid_log_prior_ratio(kernel, bounds, held.theta[..., :-1])
+            log_r = kernel.grid_log_prior_ratio(held.theta[..., :-1])
             held.theta[..., -1] = torch.where(mine, log_r, held.theta[..., -1])
 
 
-def _thresholds(score: Tensor, quantile: float) -> Tensor:
+def thresholds(score: Tensor, quantile: float) -> Tensor:
     """(N,) the ``quantile`` of each pair's finite population scores (``+inf``
     for a pair without a population): the lower of the two central order
     statistics, so that it is a score the population holds."""
@@ -690,7 +485,7 @@ def _next_population(
     state.next = 0
     state.accepted = TopN(n_pairs, settings.population, buffer.theta.shape[-1])
     score = state.population["score"]  # (N, pop)
-    epsilon = _thresholds(score, settings.quantile)  # (N,)
+    epsilon = thresholds(score, settings.quantile)  # (N,)
     elite = torch.isfinite(score) & (score <= epsilon[:, None])
     rows, slots = elite.nonzero(as_tuple=True)
     state.accepted.push(
@@ -735,14 +530,15 @@ def evidence_shares(names: Sequence[str], masses: Sequence[Tensor]) -> dict[str,
 __all__ = [
     "KERNEL_FLOOR",
     "Budget",
+    "SMCKernel",
     "SMCSettings",
     "SMCState",
     "evidence_shares",
-    "log_prior_ratio",
     "new_state",
     "parameter_buffer",
     "prior_mass",
     "proposals_per_pair",
     "run_smc",
     "smc_budget",
+    "thresholds",
 ]
