@@ -272,6 +272,7 @@ def test_a_config_edited_after_training_is_refused(study, tmp_path):
     ("signum", "code", "word"),
     [(signal.SIGTERM, 143, "terminated"), (signal.SIGINT, 130, "interrupted")],
 )
+@pytest.mark.slow  # a training in a subprocess, signalled
 def test_a_signal_writes_a_checkpoint_and_says_how_to_continue(
     tmp_path, signum, code, word
 ):

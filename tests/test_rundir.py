@@ -458,6 +458,7 @@ def test_text_write_on_a_full_disk(small_fs):
     no_temporary_files(small_fs)
 
 
+@pytest.mark.slow  # evaluation and crossval runs
 def test_evaluate_and_crossval_on_a_full_disk(small_fs, tmp_path, cfg):
     """The commands end with one line and exit code 2, before any work."""
     run = finished_run(small_fs / "run", cfg)
@@ -476,6 +477,7 @@ def test_evaluate_and_crossval_on_a_full_disk(small_fs, tmp_path, cfg):
 
 
 # ------------------------------------------------ commands on damaged files
+@pytest.mark.slow  # a training, then an evaluation
 def test_evaluate_a_run_with_a_truncated_summary(tmp_path, cfg):
     run = finished_run(tmp_path / "run", cfg)
     text = run.summary_json.read_text()
@@ -485,6 +487,7 @@ def test_evaluate_a_run_with_a_truncated_summary(tmp_path, cfg):
     assert not run.is_evaluated()
 
 
+@pytest.mark.slow  # a cross-validation
 def test_crossval_with_a_truncated_fold_metrics(tmp_path, cfg):
     config = tmp_path / "cfg.json"
     config.write_text(json.dumps(resolved_json(cfg)))
@@ -500,6 +503,7 @@ def test_crossval_with_a_truncated_fold_metrics(tmp_path, cfg):
     assert not out.is_evaluated()
 
 
+@pytest.mark.slow  # trainings on a full disk
 @pytest.mark.parametrize("free_kb", [0, 24])
 def test_training_on_a_full_disk(small_fs, tmp_path, free_kb):
     """``python -m torchcf.train`` with ``--out`` on a small file system that is

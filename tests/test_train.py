@@ -108,6 +108,7 @@ def test_buffers_equal_a_brute_force_sort(mixture, tmp_path):
             ]
 
 
+@pytest.mark.slow  # trainings at several chunk sizes
 @pytest.mark.parametrize("layout", ["paired", "full"])
 def test_result_does_not_depend_on_the_chunk_size(mixture, tmp_path, layout):
     results = []
@@ -123,6 +124,7 @@ def test_result_does_not_depend_on_the_chunk_size(mixture, tmp_path, layout):
             assert torch.equal(post_a.buffers[name][key], post_b.buffers[name][key])
 
 
+@pytest.mark.slow  # trainings at 1 and 2 threads
 def test_result_does_not_depend_on_the_number_of_threads(mixture, tmp_path):
     before = torch.get_num_threads()
     try:
@@ -142,6 +144,7 @@ def test_result_does_not_depend_on_the_number_of_threads(mixture, tmp_path):
             )
 
 
+@pytest.mark.slow  # a training with TensorBoard
 def test_outputs_and_event_tags(mixture, tmp_path):
     from tensorboard.backend.event_processing.event_accumulator import (
         EventAccumulator,
@@ -285,6 +288,7 @@ def test_cli_errors_are_one_line_with_exit_code_2(tmp_path, capsys):
     assert "n_particle" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # trainings in subprocesses
 def test_cli_resume_with_a_different_config_is_refused(data_root, tmp_path):
     cfg_path = write_config(tmp_path / "cfg.json", n_particles=2000)
     out = tmp_path / "run"

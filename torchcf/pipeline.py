@@ -10,12 +10,20 @@ chains them; the command lines (``python -m torchcf.train``, ``crossval``,
 
 The pairs are loaded once (on rank 0, after the output directory has been
 checked) and handed to every stage.
+
+:func:`train_and_evaluate` and :func:`run_study` return a :class:`StudyResult`:
+the training summary (:class:`~torchcf.train.summary.RunSummary`) and what the
+call did (evaluated, closed the loop). Compatibility: a :class:`StudyResult` also
+reads as the training summary's dict, which these functions returned before
+(``result["shares"]``, ``"smc" in result``, ``result == run.read_summary()``);
+new code reads ``result.summary.shares``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +34,57 @@ from .data.registry import notes_deferred
 from .diagnose.loop import finish_loop, plan_loop, run_recalibration
 from .evaluate import evaluate_run
 from .rundir import RunDir
-from .train import check_budget, open_run, run_device, train
+from .train import RunSummary, check_budget, open_run, run_device, train
+
+
+@dataclass(frozen=True, eq=False)
+class StudyResult(Mapping[str, Any]):
+    """What a study of a config left in its run directory.
+
+    Attributes:
+        run: the run directory.
+        summary: the training summary (``summary.json``), on every rank.
+        evaluated: this call evaluated the run on the test pairs (rank 0; a
+            finished run resumed is not evaluated again).
+        loop: the loop's result (``loop.json``) when this call closed the loop
+            (rank 0, ``diagnose.run_after_training``), else None.
+
+    As a :class:`~collections.abc.Mapping` it is the training summary's JSON
+    content (``result["shares"]``, ``result.get("smc")``), and it equals a
+    mapping of that content: the compatibility path for callers of the dict
+    these functions returned before.
+    """
+
+    run: Path
+    summary: RunSummary
+    evaluated: bool = False
+    loop: dict[str, Any] | None = None
+
+    def __getitem__(self, key: str) -> Any:
+        """The training summary's JSON value of ``key``."""
+        return self.summary[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.summary)
+
+    def __len__(self) -> int:
+        return len(self.summary)
+
+    def __eq__(self, other: object) -> bool:
+        """Equal to a result of the same fields, or to a mapping equal to the
+        training summary."""
+        if isinstance(other, StudyResult):
+            return (self.run, self.summary, self.evaluated, self.loop) == (
+                other.run,
+                other.summary,
+                other.evaluated,
+                other.loop,
+            )
+        if isinstance(other, Mapping):
+            return self.summary == other
+        return NotImplemented
+
+    __hash__ = None  # type: ignore[assignment]  (holds dicts)
 
 
 def _checked_pairs(
@@ -58,7 +116,7 @@ def train_and_evaluate(
     pairs: tuple[PairSet, PairSet] | None = None,
     evaluate: bool = True,
     group: Group = SINGLE,
-) -> dict[str, Any]:
+) -> StudyResult:
     """Train ``cfg`` into ``out``, then (rank 0) evaluate it on the test pairs.
 
     Args:
@@ -72,7 +130,9 @@ def train_and_evaluate(
         group: the processes sharing the training (:mod:`torchcf.abc.distributed`).
 
     Returns:
-        the training summary (``summary.json``), on every rank.
+        the training summary (``summary.json``) and whether this call evaluated
+        the run, on every rank (:class:`StudyResult`, which also reads as the
+        summary's dict).
     """
     out = Path(out)
     with _held(out, group):
@@ -80,9 +140,10 @@ def train_and_evaluate(
             pairs = _checked_pairs(cfg, out, resume, group)
         summary = train(cfg, out, resume=resume, pairs=pairs, group=group)
         done = resume and RunDir(out).is_evaluated()
-        if evaluate and group.is_main and not done:
+        evaluated = evaluate and group.is_main and not done
+        if evaluated:
             evaluate_run(out, pairs=pairs)
-    return summary
+    return StudyResult(out, summary, evaluated=evaluated)
 
 
 def run_study(
@@ -93,26 +154,28 @@ def run_study(
     pairs: tuple[PairSet, PairSet] | None = None,
     evaluate: bool = True,
     group: Group = SINGLE,
-) -> dict[str, Any]:
+) -> StudyResult:
     """The study of a config: :func:`train_and_evaluate`, then, with
     ``diagnose.run_after_training`` (and an evaluation), :func:`close_loop` on
     rank 0.
 
     Returns:
-        the training summary, on every rank.
+        the training summary, whether this call evaluated the run and the loop's
+        result if it closed the loop (:class:`StudyResult`, which also reads as
+        the summary's dict), on every rank.
     """
     out = Path(out)
     with _held(out, group):
         if pairs is None:
             pairs = _checked_pairs(cfg, out, resume, group)
-        summary = train_and_evaluate(
+        result = train_and_evaluate(
             cfg, out, resume=resume, pairs=pairs, evaluate=evaluate, group=group
         )
         looped = resume and RunDir(out).is_looped()  # a finished loop is not rerun
         if evaluate and cfg.diagnose.run_after_training and group.is_main:
             if not looped:
-                close_loop(out, pairs=pairs)
-    return summary
+                result = replace(result, loop=close_loop(out, pairs=pairs))
+    return result
 
 
 def close_loop(
@@ -150,4 +213,4 @@ def close_loop(
         return finish_loop(plan)
 
 
-__all__ = ["close_loop", "run_study", "train_and_evaluate"]
+__all__ = ["StudyResult", "close_loop", "run_study", "train_and_evaluate"]

@@ -1,26 +1,29 @@
 """A training run: checkpoints, progress, ranks around the ABC engine.
 
 - :mod:`torchcf.train.run`: :func:`train` (one run of a config into a directory,
-  resumable, under ``torchrun`` or alone) and what it is made of;
+  resumable, under ``torchrun`` or alone), the orchestration;
+- :mod:`torchcf.train.checkpoint`: the checkpoint's format, resuming, the
+  checkpointer;
+- :mod:`torchcf.train.engine`: the config translated for the ABC engine (device,
+  budgets, buffers, the rollout, the plausibility battery);
+- :mod:`torchcf.train.summary`: the results and ``summary.json``
+  (:class:`RunSummary`);
 - :mod:`torchcf.train.__main__`: ``python -m torchcf.train CONFIG``, which runs the
   study (:mod:`torchcf.pipeline`).
 
 Re-exports only.
 """
 
-from .run import (
-    RunError,
-    RunState,
-    check_budget,
-    open_run,
-    rollout_of,
-    run_device,
-    train,
-)
+from .checkpoint import RunError, RunState, open_run
+from .engine import check_budget, rollout_of, run_device
+from .run import train
+from .summary import ModelResult, RunSummary
 
 __all__ = [
+    "ModelResult",
     "RunError",
     "RunState",
+    "RunSummary",
     "check_budget",
     "open_run",
     "rollout_of",

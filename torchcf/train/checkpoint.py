@@ -1,0 +1,212 @@
+"""The run's checkpoint: its file format, resuming from it, and the checkpointer.
+
+``checkpoint.pt`` (:meth:`torchcf.rundir.RunDir.save_checkpoint`) is a dict::
+
+    {
+        "format": "torchcf.checkpoint/1",
+        "config_hash": "<16 hex digits: torchcf.config.config_hash of the run>",
+        "progress": {model: ModelProgress.as_dict()},   # particles offered, ...
+        "buffers": {model: TopN.state_dict()},          # per-pair top-N buffers
+        "smc": {model: SMCState.state_dict()},          # abc.method = "smc" only
+    }
+
+A buffer's state holds the tensors ``score`` ``(N, B)`` (the run's distance,
+ascending per pair), ``index`` ``(N, B)`` (the particle's number in its model's
+stream) and ``theta`` ``(N, B, K)`` (SI units, one more column ``log r`` under
+SMC), for ``N`` training pairs and ``B = abc.buffer_size`` slots.
+
+:func:`open_run` checks the output directory against ``--resume`` and, resuming,
+reads the checkpoint into a :class:`RunState` (refusing one of another format,
+another config or a malformed content with a :class:`RunError`);
+:class:`Checkpointer` writes it (rank 0) every ``abc.checkpoint_every`` seconds
+and when a stop is requested.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..abc.distributed import Group
+from ..abc.rejection import ModelProgress
+from ..abc.smc import SMCState
+from ..abc.topn import TopN
+from ..config import TrainConfig, config_hash
+from ..console import one_line
+from ..errors import TorchcfError
+from ..files import RunFileError
+from ..rundir import RunDir
+from ..signals import StopRequest
+
+CHECKPOINT_FORMAT = "torchcf.checkpoint/1"
+#: The tensors every saved buffer must hold.
+BUFFER_TENSORS = ("score", "index", "theta")
+
+
+class RunError(TorchcfError, RuntimeError):
+    """A run that cannot start or continue as asked (one-line message)."""
+
+
+@dataclass
+class RunState:
+    """Everything a checkpoint holds: per model, its progress and its buffer."""
+
+    config_hash: str
+    progress: dict[str, ModelProgress] = field(default_factory=dict)
+    buffers: dict[str, TopN] = field(default_factory=dict)
+    #: the refinement's state per model (``abc.method = "smc"`` only)
+    smc: dict[str, SMCState] = field(default_factory=dict)
+    #: buffer and refinement state dicts read from a checkpoint, until the
+    #: buffers are built
+    saved_buffers: dict[str, dict[str, Any]] = field(default_factory=dict)
+    saved_smc: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    def as_checkpoint(self) -> dict[str, Any]:
+        """The checkpoint's content (the module docstring's format)."""
+        checkpoint = {
+            "format": CHECKPOINT_FORMAT,
+            "config_hash": self.config_hash,
+            "progress": {k: v.as_dict() for k, v in self.progress.items()},
+            "buffers": {k: b.state_dict() for k, b in self.buffers.items()},
+        }
+        if self.smc:
+            checkpoint["smc"] = {k: v.state_dict() for k, v in self.smc.items()}
+        return checkpoint
+
+
+def open_run(cfg: TrainConfig, out: Path, resume: bool) -> RunState:
+    """Check the output directory against ``--resume``, before any data is loaded.
+
+    Probes that the directory can be created and written (leaving nothing
+    behind: a bad config or data set found next must not leave an empty run
+    directory); with ``resume`` loads the checkpoint and checks it was written
+    with this very config.
+
+    Raises:
+        RunError: a run is there and ``resume`` is not asked, or ``resume`` is
+            asked and no (matching, readable) checkpoint is there.
+        RunFileError: the directory cannot be created or written.
+    """
+    run = RunDir(out)
+    digest = config_hash(cfg)
+    if resume:
+        state = resume_state(run, digest)
+        run.probe()
+        return state
+    if out.exists() and not out.is_dir():
+        raise RunError(f"output directory {out} exists and is not a directory")
+    if run.holds_run():
+        raise RunError(
+            f"{out} already holds a run; pass --resume to continue it, or --out "
+            "for a new directory"
+        )
+    run.probe()
+    return RunState(digest)
+
+
+def resume_state(run: RunDir, digest: str) -> RunState:
+    """The state of the checkpoint in ``run``, written with the config of hash
+    ``digest``.
+
+    Raises:
+        RunError: no checkpoint, an unreadable one, one of another format or
+            config, or a malformed content.
+    """
+    if not run.checkpoint.exists():
+        raise RunError(f"--resume: no checkpoint.pt in {run.path}")
+    try:
+        raw = run.load_checkpoint()
+    except RunFileError as error:
+        raise RunError(
+            f"--resume: {one_line(error)}; start again with another --out"
+        ) from None
+    check_header(raw, digest, run)
+    return checkpoint_state(raw, digest, run.checkpoint)
+
+
+def check_header(raw: Any, digest: str, run: RunDir) -> None:
+    """RunError unless ``raw`` is a torchcf checkpoint of the config ``digest``."""
+    if not isinstance(raw, Mapping) or raw.get("format") != CHECKPOINT_FORMAT:
+        raise RunError(f"--resume: {run.checkpoint} is not a torchcf checkpoint")
+    if raw.get("config_hash") != digest:
+        raise RunError(
+            f"--resume: {run.path} was run with a different config (hash "
+            f"{raw.get('config_hash')}, this config {digest}); use another --out"
+        )
+
+
+def checkpoint_state(raw: Mapping[str, Any], digest: str, path: Path) -> RunState:
+    """The RunState of a loaded checkpoint; RunError if its content is malformed.
+
+    Checks the shape of the content only (progress records, the buffers'
+    tensors); whether the buffers fit this run is checked when they are loaded
+    (:func:`torchcf.train.engine.build_buffers`).
+    """
+    state = RunState(digest)
+    try:
+        for name, progress in raw["progress"].items():
+            state.progress[name] = ModelProgress(**progress)
+            if not 0 <= state.progress[name].next:
+                raise ValueError(f"{name}: negative progress")
+        buffers = raw["buffers"]
+        for name, buffer in buffers.items():
+            if not all(
+                isinstance(buffer.get(key), torch.Tensor) for key in BUFFER_TENSORS
+            ):
+                raise ValueError(f"{name}: buffer tensors missing")
+    except (KeyError, TypeError, ValueError, AttributeError) as error:
+        raise RunError(
+            f"--resume: {path} is corrupted ({type(error).__name__}: {error}); "
+            "start again with another --out"
+        ) from None
+    state.saved_buffers = buffers
+    state.saved_smc = raw.get("smc", {})
+    return state
+
+
+class Checkpointer:
+    """Saves the run state on rank 0, every ``every`` seconds when asked, and at
+    once when a stop was requested (Ctrl-C or SIGTERM: :mod:`torchcf.signals`),
+    after which it stops the run."""
+
+    def __init__(
+        self,
+        run: RunDir,
+        state: RunState,
+        every: float,
+        group: Group,
+        stop: StopRequest | None = None,
+    ):
+        self.run, self.state, self.every, self.group = run, state, every, group
+        self.stop = stop
+        self.last = time.perf_counter()
+
+    def due(self) -> bool:
+        """A save is due: ``every`` seconds have passed, or a stop was asked."""
+        if self.stop is not None and self.stop.requested:
+            return True
+        return time.perf_counter() - self.last >= self.every
+
+    def save(self) -> None:
+        """Every rank holds the merged buffers: rank 0 saves them; then a
+        requested stop raises :class:`~torchcf.signals.Stopped`."""
+        self.group.on_main(self.run.save_checkpoint, self.state.as_checkpoint())
+        self.last = time.perf_counter()
+        if self.stop is not None:
+            self.stop.stop(checkpointed=True)
+
+
+__all__ = [
+    "CHECKPOINT_FORMAT",
+    "Checkpointer",
+    "RunError",
+    "RunState",
+    "checkpoint_state",
+    "open_run",
+    "resume_state",
+]

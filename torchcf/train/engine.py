@@ -1,0 +1,237 @@
+"""From a config to the ABC engine (:mod:`torchcf.abc`): what a run hands it.
+
+- the device a process simulates on (:func:`run_device`);
+- the particle budget checked against the training pairs (:func:`check_budget`,
+  and for ``abc.method = "smc"`` the refinement's budget);
+- the refinement's settings (:func:`smc_settings`);
+- every model's per-pair top-N buffer, progress and refinement state, fresh or
+  from the checkpoint (:func:`build_buffers`);
+- how the particles are simulated (:func:`rollout_of`: a
+  :class:`~torchcf.abc.rejection.Rollout`);
+- the plausibility battery (:mod:`torchcf.traffic.battery`) at the training
+  pairs' settings, as the calibration's screen (:func:`plausibility_screen`) and
+  as the report on the hybrid (:func:`hybrid_plausibility`).
+
+Units: SI throughout (m, s, m/s); ``abc.n_particles`` counts particles per
+model; a buffer is ``(N, B)`` scores for ``N`` training pairs and ``B =
+abc.buffer_size`` slots, with ``K`` parameter columns (``K + 1`` under SMC: the
+log of the importance weight's ratio, ``log r``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..abc.distributed import Group
+from ..abc.rejection import ModelProgress, Rollout
+from ..abc.screen import PlausibilityScreen
+from ..abc.smc import SMCSettings, new_state, smc_budget
+from ..abc.topn import TopN
+from ..config import ConfigError, TrainConfig
+from ..data import PairSet
+from ..models import get_model
+from ..posterior import Posterior
+from ..traffic.battery import Battery, battery_speed, check_plausibility, rejects
+from .checkpoint import RunError, RunState
+
+#: Particles per battery call on the hybrid after training. The battery holds
+#: about 350 KiB per particle at its peak (the scenarios' recorded series): its
+#: own default of 16 384 took 5.6 GiB once a model held that many hybrid
+#: particles (10 000 pairs x 5), 2 048 take 0.7 GiB, and run faster (IDM, 8 192
+#: particles: 13 s against 20 s on 1 thread). The result does not depend on it.
+BATTERY_CHUNK = 1 << 11
+
+
+# --------------------------------------------------------------------------------------
+# Device and budget
+
+
+def run_device(cfg: TrainConfig, group: Group) -> torch.device:
+    """The device this process simulates on; ConfigError if it is not there."""
+    device = group.run_device(cfg.device)
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError(
+                f"device: {cfg.device!r} asked for but CUDA is not available"
+            )
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ConfigError(
+                f"device: {str(device)!r} asked for but only "
+                f"{torch.cuda.device_count()} CUDA device(s) are visible"
+            )
+    return device
+
+
+def check_budget(cfg: TrainConfig, pairs: PairSet) -> None:
+    """Every training pair must be able to fill its buffer: ConfigError if not.
+
+    In the paired layout a pair receives ``n_particles / n_pairs`` particles on
+    average, in the full layout every particle; asking for more than that per pair
+    (``top_n`` or an N of ``sensitivity_n``) can only leave buffers short.
+    """
+    abc = cfg.abc
+    if abc.method == "smc":
+        check_smc_budget(abc.n_particles, pairs.n_pairs, smc_settings(cfg))
+    paired = abc.layout == "paired"
+    per_pair = abc.n_particles / pairs.n_pairs if paired else abc.n_particles
+    for key, n in (("top_n", abc.top_n), ("sensitivity_n", max(abc.sensitivity_n))):
+        if n <= per_pair:
+            continue
+        received = (
+            f"abc.n_particles = {abc.n_particles} over {pairs.n_pairs} training "
+            f"pairs, {per_pair:.3g} per pair on average in the paired layout"
+            if paired
+            else f"abc.n_particles = {abc.n_particles} in the full layout"
+        )
+        need = n * pairs.n_pairs if paired else n
+        raise ConfigError(
+            f"abc.{key}: {n} particles per pair asked for, more than a training "
+            f"pair receives ({received}); set abc.n_particles >= {need} or lower "
+            f"abc.{key}"
+        )
+
+
+def check_smc_budget(n_particles: int, n_pairs: int, settings: SMCSettings) -> None:
+    """The refinement needs a population per pair from its prior round and at
+    least one proposal per pair and round: ConfigError if ``n_particles`` (per
+    model) is short for ``n_pairs`` training pairs."""
+    budget = smc_budget(n_particles, n_pairs, settings)
+    need = max(
+        settings.population * n_pairs / settings.prior_fraction,
+        settings.rounds * n_pairs / (1 - settings.prior_fraction),
+    )
+    if budget.prior < settings.population * n_pairs or budget.per_pair < 1:
+        raise ConfigError(
+            f"abc.n_particles = {n_particles} is too few for method 'smc' "
+            f"on {n_pairs} training pairs: its prior round must give every "
+            f"pair abc.smc.population = {settings.population} particles on "
+            f"average and every later round a proposal per pair; set "
+            f"abc.n_particles >= {math.ceil(need)} or lower abc.smc.population "
+            "or abc.smc.rounds"
+        )
+
+
+def smc_settings(cfg: TrainConfig) -> SMCSettings:
+    """The refinement's settings of a config (section ``abc.smc``)."""
+    return SMCSettings(**cfg.abc.smc.model_dump())
+
+
+# --------------------------------------------------------------------------------------
+# Buffers and the rollout
+
+
+def build_buffers(
+    models: Sequence[str],
+    n_pairs: int,
+    buffer_size: int,
+    smc: SMCSettings | None,
+    state: RunState,
+    checkpoint: Path,
+) -> None:
+    """Every model's buffer into ``state`` (from the checkpoint where it has
+    one), its progress and, for SMC (``smc`` given), its refinement state, whose
+    buffer carries one more column, ``log r``.
+
+    Args:
+        models: the run's model names, in the config's order.
+        n_pairs: training pairs ``N``.
+        buffer_size: slots per pair ``B`` (``abc.buffer_size``).
+        smc: the refinement's settings; None for rejection.
+        state: the run state; its saved buffers (a resumed run) are loaded.
+        checkpoint: the checkpoint's path, for the error message.
+
+    Raises:
+        RunError: a saved buffer or refinement state does not fit this run.
+    """
+    for name in models:
+        n_params = len(get_model(name).param_names)
+        buffer = TopN(n_pairs, buffer_size, n_params + (smc is not None))
+        refinement = None if smc is None else new_state(n_pairs, smc, n_params)
+        try:
+            if name in state.saved_buffers:
+                buffer.load_state_dict(state.saved_buffers[name])
+            if refinement is not None and name in state.saved_smc:
+                refinement.load_state_dict(state.saved_smc[name])
+        except (KeyError, ValueError, TypeError) as error:
+            raise RunError(
+                f"--resume: {checkpoint} does not match this run ({error})"
+            ) from None
+        state.buffers[name] = buffer
+        if refinement is not None:
+            state.smc[name] = refinement
+        state.progress.setdefault(name, ModelProgress())
+
+
+def rollout_of(cfg: TrainConfig, pairs: PairSet, device: torch.device) -> Rollout:
+    """How the run's particles are simulated (layout, precision, chunks)."""
+    return Rollout(
+        pairs,
+        paired=cfg.abc.layout == "paired",
+        dtype=getattr(torch, cfg.dtype),
+        device=device,
+        weights=tuple(cfg.abc.weights),
+        compile=cfg.compile,
+        chunk_size=cfg.abc.chunk_size,
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Plausibility
+
+
+def plausibility_battery(cfg: TrainConfig, pairs: PairSet) -> Battery:
+    """The config's battery at the training pairs' dt (s), leader length (m) and
+    (unless ``plausibility.speed`` is set) 95th-percentile leader speed (m/s)."""
+    settings = cfg.plausibility
+    speed = settings.speed or battery_speed(pairs.v_lead, pairs.mask)
+    return Battery(
+        speed=speed,
+        decelerations=tuple(settings.decelerations),
+        collision_spacing=settings.collision_spacing,
+        dt=pairs.dt,
+        leader_length=pairs.leader_length,
+    )
+
+
+def hybrid_plausibility(
+    cfg: TrainConfig, pairs: PairSet, posterior: Posterior
+) -> dict[str, dict[str, Any]]:
+    """The battery's shares per model over the hybrid's particles, on the
+    CPU in float64 (:meth:`torchcf.traffic.Plausibility.summary`), in chunks
+    of :data:`BATTERY_CHUNK` particles."""
+    battery = plausibility_battery(cfg, pairs)
+    return {
+        name: check_plausibility(
+            name, posterior.hybrid[name].theta, battery, chunk=BATTERY_CHUNK
+        ).summary()
+        for name in posterior.models
+        if name in posterior.hybrid and len(posterior.hybrid[name])
+    }
+
+
+def plausibility_screen(cfg: TrainConfig, pairs: PairSet) -> PlausibilityScreen | None:
+    """The calibration's plausibility filter (``plausibility.filter``) on the
+    battery of :func:`plausibility_battery`; None when the filter is off."""
+    if not cfg.plausibility.filter:
+        return None
+    battery = plausibility_battery(cfg, pairs)
+    return PlausibilityScreen(rejects(battery, cfg.plausibility.reject_string_unstable))
+
+
+__all__ = [
+    "BATTERY_CHUNK",
+    "build_buffers",
+    "check_budget",
+    "check_smc_budget",
+    "hybrid_plausibility",
+    "plausibility_battery",
+    "plausibility_screen",
+    "rollout_of",
+    "run_device",
+    "smc_settings",
+]
