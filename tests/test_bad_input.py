@@ -22,6 +22,7 @@ import pytest
 import torch
 
 from torchcf import evaluate as evaluate_cli
+from torchcf.cli import train as train_only_cli
 from torchcf.posterior import Posterior
 from torchcf.train import __main__ as train_cli
 
@@ -74,6 +75,7 @@ def nothing_finished(out: Path) -> None:
 
 
 # ------------------------------------------------------------------ the config
+@pytest.mark.slow  # commands in subprocesses
 def test_malformed_json(tmp_path):
     config = tmp_path / "bad.json"
     config.write_text('{"data": {"path": "x"},\n  "abc": {"n_particles": 5,}}')
@@ -91,6 +93,18 @@ def test_unknown_key(tmp_path, capsys, data):
         capsys, [str(config), "--out", str(tmp_path / "run")], "abc.n_particle"
     )
     assert "unknown key" in line and "did you mean 'n_particles'" in line
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("command", ["study", "train"])
+def test_train_and_study_report_bad_input_alike(tmp_path, capsys, data, command):
+    """``torchcf train`` (training only) and ``torchcf study`` share the options
+    and the one policy: the same exit code and line, nothing written."""
+    cli = train_only_cli if command == "train" else train_cli
+    config = write_config(tmp_path / "cfg.json", data, abc={"n_particle": 5})
+    argv = [str(config), "--out", str(tmp_path / "run")]
+    line = fails_cleanly(capsys, argv, "abc.n_particle", cli=cli)
+    assert "did you mean 'n_particles'" in line
     assert not (tmp_path / "run").exists()
 
 
@@ -237,6 +251,7 @@ def test_output_directory_without_permission(tmp_path, capsys, data):
         locked.chmod(0o700)
 
 
+@pytest.mark.slow  # a training on a full disk
 def test_full_disk_while_checkpointing(tmp_path, capsys, monkeypatch, data, finished):
     """The second checkpoint write fails half-way with ENOSPC: the first survives
     intact, no temporary file is left, and --resume later finishes the run."""

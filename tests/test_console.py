@@ -1,4 +1,9 @@
-"""``torchcf COMMAND``: one entry to every command line (``torchcf/__main__.py``)."""
+"""``torchcf COMMAND``: one entry to every command line (:mod:`torchcf.cli`).
+
+The dispatcher (``torchcf/cli/main.py``), the commands' modules, ``train``
+(training only) against ``study`` (the chain), and the old entries: every
+``python -m torchcf.<x>`` and the names imported from them.
+"""
 
 from __future__ import annotations
 
@@ -10,19 +15,47 @@ from pathlib import Path
 
 import pytest
 
-from torchcf.__main__ import COMMANDS, main
+import torchcf.__main__
+import torchcf.console
+from torchcf import cli
+from torchcf.cli import study as study_cli
+from torchcf.cli import train as train_cli
+from torchcf.cli.main import COMMANDS, main
+from torchcf.train import __main__ as old_train
+
+from .runs import write_config, write_data
 
 ROOT = Path(__file__).resolve().parents[1]
+
+#: Every ``python -m torchcf.<x>`` that runs a command (and ``python -m torchcf``).
+PYTHON_M = [
+    "torchcf",
+    "torchcf.train",
+    "torchcf.evaluate",
+    "torchcf.diagnose",
+    "torchcf.crossval",
+    "torchcf.data",
+    "torchcf.config",
+    "torchcf.posterior",
+    "torchcf.sumo",
+    "torchcf.demo",
+]
 
 
 def test_the_console_script_is_this_entry():
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    assert scripts["scripts"]["torchcf"] == "torchcf.__main__:main"
+    assert scripts["scripts"]["torchcf"] == "torchcf.cli.main:main"
+
+
+def test_python_dash_m_torchcf_is_the_same_entry():
+    assert torchcf.__main__.main is main
+    assert torchcf.__main__.COMMANDS is COMMANDS
 
 
 @pytest.mark.parametrize("name", sorted(COMMANDS))
 def test_every_command_is_a_module_with_main(name):
     module = importlib.import_module(COMMANDS[name][0])
+    assert module.__name__ == f"torchcf.cli.{name}"
     assert callable(module.main)
 
 
@@ -31,6 +64,15 @@ def test_help_lists_every_command(capsys):
     out = capsys.readouterr().out
     for name in COMMANDS:
         assert f"  {name} " in out
+
+
+def test_help_lists_study_and_train_with_one_line_each(capsys):
+    assert main(["--help"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    train = [line for line in lines if line.startswith("  train ")]
+    study = [line for line in lines if line.startswith("  study ")]
+    assert len(train) == 1 and "only" in train[0] and "no evaluation" in train[0]
+    assert len(study) == 1 and "evaluate" in study[0] and "loop" in study[0]
 
 
 def test_a_command_gets_the_rest_of_the_arguments(capsys):
@@ -47,6 +89,7 @@ def test_a_command_gets_the_rest_of_the_arguments(capsys):
         ([], "give a command"),
         (["trian"], "unknown command 'trian' (did you mean 'train'?)"),
         (["wobble"], "unknown command 'wobble'; commands: train, evaluate"),
+        (["stdy"], "unknown command 'stdy' (did you mean 'study'?)"),
     ],
 )
 def test_a_missing_or_unknown_command_is_one_line_and_exit_2(argv, message, capsys):
@@ -55,6 +98,7 @@ def test_a_missing_or_unknown_command_is_one_line_and_exit_2(argv, message, caps
     assert err[-1].startswith("error: ") and message in err[-1]
 
 
+@pytest.mark.slow  # a command in a subprocess
 def test_python_dash_m_torchcf_runs_a_command():
     """As a process: a command's own exit code comes back (its bad input: 2)."""
     done = subprocess.run(
@@ -66,3 +110,124 @@ def test_python_dash_m_torchcf_runs_a_command():
     assert done.returncode == 2
     assert done.stderr.strip().startswith("error:")
     assert "\n" not in done.stderr.strip()
+
+
+#: Runs each ``python -m`` entry of argv[1:] with ``--help`` as ``python -m``
+#: does (:func:`runpy.run_module` as ``__main__``) in one process (torch is
+#: imported once) and prints ``<module> <exit code>`` per entry.
+RUN_HELPS = """
+import contextlib, io, runpy, sys
+for module in sys.argv[1:]:
+    sys.argv = [module, "--help"]
+    with contextlib.redirect_stdout(io.StringIO()) as out:
+        try:
+            runpy.run_module(module, run_name="__main__", alter_sys=True)
+            code = "no exit"
+        except SystemExit as stop:
+            code = stop.code
+    print(module, code if out.getvalue().startswith("usage: ") else "no usage")
+"""
+
+
+def test_every_python_dash_m_entry_still_answers_help():
+    done = subprocess.run(
+        [sys.executable, "-c", RUN_HELPS, *PYTHON_M],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == [f"{module} 0" for module in PYTHON_M]
+
+
+def test_the_help_says_which_is_train_and_which_is_study(capsys):
+    """``torchcf train`` trains only; ``torchcf study`` is the chain, and
+    ``python -m torchcf.train`` is ``torchcf study`` under its old name."""
+    helps = {}
+    for name, run in (
+        ("train", train_cli.main),
+        ("study", study_cli.main),
+        ("python -m torchcf.train", old_train.main),
+    ):
+        with pytest.raises(SystemExit) as stop:
+            run(["--help"])
+        assert stop.value.code == 0
+        helps[name] = " ".join(capsys.readouterr().out.split())
+    assert helps["train"].startswith("usage: torchcf train")
+    assert "Train a config only" in helps["train"]
+    assert "No test-split evaluation and no loop" in helps["train"]
+    assert helps["study"].startswith("usage: torchcf study")
+    assert "'torchcf train' trains only" in helps["study"]
+    assert (
+        "'python -m torchcf.train' is this command under its old name"
+        in (helps["study"])
+    )
+    old = helps["python -m torchcf.train"]
+    assert old.startswith("usage: python -m torchcf.train")
+    assert "'torchcf study', kept under its old name" in old
+
+
+def test_the_old_imports_still_work():
+    """The plumbing through :mod:`torchcf.cli`, and each command's ``main``
+    through the module it was in."""
+    for name in torchcf.console.__all__:
+        assert getattr(cli, name) is getattr(torchcf.console, name)
+    from torchcf.cli import run_main  # noqa: F401  (tools/sumo_network_demo.py)
+
+    for module in ("evaluate", "crossval", "demo"):
+        assert callable(importlib.import_module(f"torchcf.{module}").main)
+    for package in ("train", "diagnose", "data", "config", "posterior", "sumo"):
+        entry = importlib.import_module(f"torchcf.{package}.__main__")
+        assert callable(entry.main)
+
+
+@pytest.mark.parametrize("module", ["evaluate", "crossval"])
+def test_a_library_main_runs_its_command(module, capsys):
+    """``from torchcf.evaluate import main`` is the command, called."""
+    with pytest.raises(SystemExit) as stop:
+        importlib.import_module(f"torchcf.{module}").main(["--help"])
+    assert stop.value.code == 0
+    assert f"usage: python -m torchcf.{module}" in capsys.readouterr().out
+
+
+@pytest.fixture(scope="module")
+def config(tmp_path_factory) -> Path:
+    """A tiny config that asks for the loop after training."""
+    root = tmp_path_factory.mktemp("console")
+    data = write_data(root / "pairs")
+    return write_config(root / "cfg.json", data, diagnose={"run_after_training": True})
+
+
+def test_train_trains_only(config, tmp_path, capsys):
+    """No evaluation and no loop, though the config asks for the loop."""
+    out = tmp_path / "run"
+    assert main(["train", str(config), "--out", str(out)]) == 0
+    assert (out / "summary.json").is_file() and (out / "posterior.pt").is_file()
+    assert not (out / "metrics.json").exists()
+    assert not (out / "loop.json").exists() and not (out / "loop").exists()
+    printed = capsys.readouterr().out
+    assert "hybrid shares" in printed and "test split" not in printed
+    assert printed.splitlines()[-1] == f"wrote {out}"
+
+    assert main(["train", str(config), "--out", str(out), "--resume"]) == 0
+    assert f"{out} is trained: nothing to do" in capsys.readouterr().out
+    assert not (out / "metrics.json").exists()
+
+
+def test_study_trains_and_evaluates(config, tmp_path, capsys):
+    out = tmp_path / "run"
+    no_loop = ["--set", "diagnose.run_after_training=false"]  # the slow test's
+    assert main(["study", str(config), "--out", str(out), *no_loop]) == 0
+    assert (out / "summary.json").is_file() and (out / "metrics.json").is_file()
+    assert not (out / "loop.json").exists()
+    assert "test split" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_study_closes_the_loop_where_the_config_asks(config, tmp_path, capsys):
+    """The whole chain, as ``python -m torchcf.train`` runs it (about 20 s)."""
+    out = tmp_path / "run"
+    assert main(["study", str(config), "--out", str(out)]) == 0
+    for name in ("summary.json", "metrics.json", "loop.json"):
+        assert (out / name).is_file(), name

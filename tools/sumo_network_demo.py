@@ -56,8 +56,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from torch import Tensor  # noqa: E402
 
-from torchcf.cli import run_main  # noqa: E402
 from torchcf.config import load_split  # noqa: E402
+from torchcf.console import run_main  # noqa: E402
 from torchcf.rundir import RunDir  # noqa: E402
 from torchcf.sumo import backend  # noqa: E402
 from torchcf.sumo.cosim import CoSimulation  # noqa: E402

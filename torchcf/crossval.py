@@ -1,4 +1,5 @@
-"""k-fold cross-validation: ``python -m torchcf.crossval CONFIG [--folds 3]``.
+"""k-fold cross-validation: ``torchcf crossval CONFIG [--folds 3]`` (the command
+line: :mod:`torchcf.cli.crossval`; ``python -m torchcf.crossval`` runs it too).
 
 Trains and evaluates one run per fold (``data.split = "kfold"``, ``data.fold = i``,
 pairs partitioned by ``data.split_seed``; :func:`torchcf.pipeline.run_study`, the
@@ -12,14 +13,12 @@ checkpoint). The layout is :mod:`torchcf.rundir`'s.
 
 from __future__ import annotations
 
-import argparse
 import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .cli import DefaultsHelpFormatter, add_overrides, run_main
-from .config import ConfigError, TrainConfig, load_config
+from .config import TrainConfig
 from .evaluation.report import metrics_table
 from .files import atomic_write_text, ensure_directory
 from .pipeline import run_study
@@ -102,35 +101,15 @@ def crossval(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        formatter_class=DefaultsHelpFormatter,
-        prog="python -m torchcf.crossval",
-        description="k-fold cross-validation: one training run per fold, metrics "
-        "averaged over folds.",
-    )
-    parser.add_argument("config")
-    parser.add_argument("--folds", type=int, default=None, help="default data.folds")
-    parser.add_argument("--out", default=None)
-    add_overrides(parser, "KEY=VALUE", "abc.n_particles=200000")
-    parser.add_argument("--resume", action="store_true")
-    args = parser.parse_args(argv)
+    """``python -m torchcf.crossval``: the command :func:`torchcf.cli.crossval.main`
+    (``torchcf crossval``), kept here for ``from torchcf.crossval import main``.
 
-    def body() -> int:
-        cfg = load_config(args.config, args.overrides)
-        folds = args.folds if args.folds is not None else cfg.data.folds
-        if folds < 2:
-            raise ConfigError(f"--folds: need at least 2, got {folds}")
-        out = Path(args.out) if args.out is not None else Path(f"{cfg.output}-cv")
-        result = crossval(cfg, out, folds=folds, resume=args.resume)
-        hybrid = result["hybrid"]
-        print(
-            f"{folds}-fold mean, hybrid: WS {hybrid['ws']:.3f}, 0.15-WS "
-            f"{hybrid['beta_ws']:.3f}, min {hybrid['min']:.3f}"
-        )
-        print(f"wrote {out}")
-        return 0
+    The command line sits above this module: it is imported when called, never
+    on import (the one import up that tests/test_layout.py allows).
+    """
+    from .cli.crossval import main as command
 
-    return run_main(body, interrupted="interrupted: continue with --resume")
+    return command(argv)
 
 
 if __name__ == "__main__":

@@ -1,73 +1,74 @@
 """A simulation demo: each model's prior particles on CAR MODEL II training pairs.
 
-    python -m torchcf.demo [--particles 200000] [--dataset NAME] [--data-root DIR]
+    torchcf demo [--particles 200000] [--dataset NAME] [--data-root DIR]
+    python -m torchcf.demo ...                      # the same
 
 Draws particles uniformly from each model's default prior, simulates each on one
-randomly chosen training pair (the paper's down-sampled layout), and prints per
-model the best and median score, the invalid fraction and the throughput. This is
-the engine underneath ABC; ``python -m torchcf.train`` builds on it.
+randomly chosen training pair (the paper's down-sampled layout), and gives per
+model the best and median score, the invalid fraction and the throughput
+(:func:`prior_rollouts`; the command line that prints them:
+:mod:`torchcf.cli.demo`). This is the engine underneath ABC; ``torchcf train``
+builds on it.
 """
 
 from __future__ import annotations
 
-import argparse
 import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 
 import torch
 
-from . import MODELS, load_pairs, simulate
-from .cli import DefaultsHelpFormatter, run_main
-from .runtime import tune_malloc
+from .data import PairSet
+from .models import MODELS
+from .sim import simulate
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        formatter_class=DefaultsHelpFormatter,
-        prog="python -m torchcf.demo",
-        description=__doc__.splitlines()[0],
-    )
-    parser.add_argument("--particles", type=int, default=200_000)
-    parser.add_argument("--dataset", default="car-model-2")
-    parser.add_argument("--data-root", default=None)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=None)
-    args = parser.parse_args(argv)
-    if args.particles <= 0:
-        parser.error(f"--particles must be positive, got {args.particles}")
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    tune_malloc()
-    return run_main(lambda: _demo(args))
+@dataclass(frozen=True)
+class DemoRow:
+    """One model's prior particles on the pairs."""
+
+    model: str
+    best: float  # the smallest valid score (inf: none valid)
+    median: float  # the median valid score (inf: none valid)
+    invalid: float  # the fraction of invalid rollouts
+    steps_per_second: float  # particle-steps simulated per second
 
 
-def _demo(args: argparse.Namespace) -> int:
-    """Simulate and print the table (module docstring)."""
-    pairs = load_pairs(args.dataset, split="train", data_root=args.data_root)
-    print(
-        f"{pairs.name} train: {pairs.n_pairs} pairs x {pairs.n_steps} steps "
-        f"(dt {pairs.dt} s); {args.particles} particles per model, paired layout"
-    )
-    print(f"{'model':6s} {'best':>8s} {'median':>8s} {'invalid':>8s} {'steps/s':>10s}")
-    generator = torch.Generator().manual_seed(args.seed)
+def prior_rollouts(pairs: PairSet, particles: int, seed: int = 0) -> Iterator[DemoRow]:
+    """Per model, ``particles`` draws of its default prior simulated, each on one
+    random pair of ``pairs`` (one generator seeded ``seed`` for all models)."""
+    generator = torch.Generator().manual_seed(seed)
     for name, model in MODELS.items():
         bounds = model.prior_bounds(torch.float32)
-        unit = torch.rand(args.particles, model.n_params, generator=generator)
+        unit = torch.rand(particles, model.n_params, generator=generator)
         theta = bounds[:, 0] + (bounds[:, 1] - bounds[:, 0]) * unit
-        pair_index = torch.randint(
-            0, pairs.n_pairs, (args.particles,), generator=generator
-        )
+        pair_index = torch.randint(0, pairs.n_pairs, (particles,), generator=generator)
         start = time.perf_counter()
         out = simulate(name, theta, pairs, pair_index)
         elapsed = time.perf_counter() - start
         valid_scores = out.score[out.valid]
         best = float(valid_scores.min()) if valid_scores.numel() else float("inf")
         median = float(valid_scores.median()) if valid_scores.numel() else float("inf")
-        print(
-            f"{name:6s} {best:8.3f} {median:8.3f} "
-            f"{float((~out.valid).float().mean()):8.3%} "
-            f"{args.particles * pairs.n_steps / elapsed:10.3g}"
+        yield DemoRow(
+            name,
+            best,
+            median,
+            float((~out.valid).float().mean()),
+            particles * pairs.n_steps / elapsed,
         )
-    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m torchcf.demo``: the command :func:`torchcf.cli.demo.main`
+    (``torchcf demo``), kept here for ``from torchcf.demo import main``.
+
+    The command line sits above this module: it is imported when called, never
+    on import (the one import up that tests/test_layout.py allows).
+    """
+    from .cli.demo import main as command
+
+    return command(argv)
 
 
 if __name__ == "__main__":

@@ -38,7 +38,6 @@ calls :func:`evaluate_run` after training.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from collections.abc import Sequence
 from contextlib import nullcontext
@@ -50,7 +49,6 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from .cli import DefaultsHelpFormatter, run_main
 from .config import TrainConfig, load_split
 from .data import PairSet
 from .errors import TorchcfError
@@ -592,31 +590,15 @@ def _evaluate_held(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        formatter_class=DefaultsHelpFormatter,
-        prog="python -m torchcf.evaluate",
-        description="Evaluate a trained run on its test pairs (SPEC section 6).",
-    )
-    parser.add_argument("run_dir", type=Path)
-    parser.add_argument("--report", type=Path, default=None, help="report folder")
-    parser.add_argument("--pair", type=int, default=None, help="test pair of Fig. 4")
-    args = parser.parse_args(argv)
+    """``python -m torchcf.evaluate``: the command :func:`torchcf.cli.evaluate.main`
+    (``torchcf evaluate``), kept here for ``from torchcf.evaluate import main``.
 
-    def body() -> int:
-        result = evaluate_run(
-            args.run_dir, report_dir=args.report, figure_pair=args.pair
-        )
-        print(f"{'':8} {'e_p':>8} {'min':>8} {'0.15-WS':>8} {'WS':>8}")
-        for entry, m in result.items():
-            if isinstance(m, dict) and "ws" in m:
-                print(
-                    f"{entry:8} {m['e_p']:8.3f} {m['min']:8.3f} "
-                    f"{m['beta_ws']:8.3f} {m['ws']:8.3f}"
-                )
-        print(f"wrote {RunDir(args.run_dir).metrics_json}")
-        return 0
+    The command line sits above this module: it is imported when called, never
+    on import (the one import up that tests/test_layout.py allows).
+    """
+    from .cli.evaluate import main as command
 
-    return run_main(body)
+    return command(argv)
 
 
 if __name__ == "__main__":

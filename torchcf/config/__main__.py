@@ -1,58 +1,18 @@
 """``python -m torchcf.config``: validate a run configuration, or print the schema.
 
-    python -m torchcf.config configs/carII.json --set abc.seed=3   # resolved + hash
-    python -m torchcf.config --schema                              # every field
-
-The command line lives apart from the schema (:mod:`torchcf.config.schema`) so
-that ``import torchcf`` may load the schema without ``python -m torchcf.config``
-then running a module already imported.
+The command is :mod:`torchcf.cli.config` (``torchcf config``): its options,
+output and exit codes; this module runs it under its ``python -m`` name and keeps
+``from torchcf.config.__main__ import main`` working. It lives apart from the
+schema (:mod:`torchcf.config.schema`) so that ``import torchcf`` may load the
+schema without ``python -m torchcf.config`` then running a module already
+imported.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-from collections.abc import Sequence
+from ..cli.config import main
 
-from ..cli import DefaultsHelpFormatter, add_overrides, run_main
-from .loading import config_hash, load_config, resolved_json
-from .schema import TrainConfig
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m torchcf.config``: print the schema, or a resolved config.
-
-    Returns:
-        0 on success, 2 on a bad configuration (``error: <one line>`` on stderr).
-    """
-    parser = argparse.ArgumentParser(
-        formatter_class=DefaultsHelpFormatter,
-        prog="python -m torchcf.config",
-        description=(
-            "Validate a torchcf run configuration and print it resolved (every "
-            "default filled in) with its hash, or print the JSON schema."
-        ),
-    )
-    parser.add_argument("config", nargs="?", help="JSON run configuration")
-    add_overrides(parser, "KEY=VALUE", "abc.seed=3")
-    parser.add_argument(
-        "--schema", action="store_true", help="print the JSON schema and exit"
-    )
-    args = parser.parse_args(argv)
-    if args.schema:
-        print(json.dumps(TrainConfig.model_json_schema(), indent=2))
-        return 0
-    if args.config is None:
-        parser.error("give a CONFIG file or --schema")
-
-    def body() -> int:
-        cfg = load_config(args.config, args.overrides)
-        resolved = {"config": resolved_json(cfg), "hash": config_hash(cfg)}
-        print(json.dumps(resolved, indent=2))
-        return 0
-
-    return run_main(body)
-
+__all__ = ["main"]
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -112,4 +112,3 @@ def split_pairs(
         full = load_pairs(source, None, **load_options)
         return kfold_split(full, folds, fold, seed)
     raise DataError(f"split must be 'dataset' or 'kfold', got {split!r}")
-

@@ -24,7 +24,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from types import ModuleType
 
-from ..cli import one_line
+from ..console import one_line
 from ..errors import TorchcfError
 
 #: What a user runs to get SUMO.

@@ -1,4 +1,9 @@
-"""One policy for every command line (``python -m torchcf.<x>``).
+"""One policy for every command line (``torchcf COMMAND``, ``python -m torchcf.<x>``).
+
+The plumbing the commands share, low in the house so that any module may use it
+(:mod:`torchcf.cli` holds the commands themselves, at the top, and re-exports
+these names for older imports): the ``--help`` format, ``--set``, the
+``error: <one line>`` of a failure, and the exit codes.
 
 :func:`run_main` runs a command's body and maps its failures to exit codes:
 

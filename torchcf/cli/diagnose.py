@@ -1,0 +1,96 @@
+"""``torchcf diagnose RUN_DIR [--set diagnose.KEY=VALUE ...]`` (``python -m
+torchcf.diagnose``): close the loop on a finished, evaluated run
+(:func:`torchcf.pipeline.close_loop`).
+
+    torchcf diagnose runs/carII --set diagnose.n_particles=100000
+
+Exit codes (:mod:`torchcf.console`): 0 done; 2 a run that is not trained or evaluated,
+a corrupted file, a bad override or a run that cannot be diagnosed (one line on
+stderr, no traceback); 130 interrupted (run it again: the attribution continues
+after its last finished arm, ``RUN_DIR/loop/attribution.pt``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+import torch
+
+from ..console import DefaultsHelpFormatter, add_overrides, print_error, run_main
+from ..diagnose.report import fmt
+from ..pipeline import close_loop
+from ..rundir import RunDir
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        formatter_class=DefaultsHelpFormatter,
+        prog="python -m torchcf.diagnose",
+        description="Close the loop on a finished run: residual diagnosis, effect "
+        "attribution, re-calibration; writes RUN_DIR/loop.json and loop.md.",
+    )
+    parser.add_argument("run_dir", help="a trained and evaluated run directory")
+    add_overrides(parser, "diagnose.KEY=VALUE", "diagnose.n_particles=100000")
+    parser.add_argument("--threads", type=int, default=None, help="CPU threads")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m torchcf.diagnose``.
+
+    Returns:
+        0 done; 2 an error of the user's making or of the machine; 130
+        interrupted.
+    """
+    args = _parser().parse_args(argv)
+    if args.threads is not None:
+        if args.threads < 1:
+            print_error("--threads must be >= 1")
+            return 2
+        torch.set_num_threads(args.threads)
+
+    def body() -> int:
+        _print_result(close_loop(args.run_dir, args.overrides), args.run_dir)
+        return 0
+
+    return run_main(body, interrupted="interrupted: run it again to resume")
+
+
+def _print_result(result: dict, run_dir: str) -> None:
+    found = [m for m in (result["signatures"] or [[]])[0] if m["found"]]
+    if found:
+        print("residual signatures (fit windows):")
+        for mark in found:
+            to = ", ".join(mark["points_to"]) or f"no effect: {mark['family']}"
+            print(
+                f"  {mark['signature']:<20} {fmt(mark['mean'])} {mark['unit']:<6} "
+                f"p {mark['p_value']:.2g}  -> {to}"
+            )
+    print(f"forward selection ({result['dataset']}; alpha {result['alpha']}):")
+    for step, rows in enumerate(result["steps"], start=1):
+        before = result["chosen"][: step - 1]
+        level = result["levels"][step - 1]
+        print(
+            f" step {step}"
+            + (f" (with {' + '.join(before)})" if before else "")
+            + f", level {level:.3g}"
+        )
+        for row in rows:
+            mark = "  <- chosen" if row.get("chosen") else ""
+            print(
+                f"  {row['order']:>2}. {row['effect']:<28} gain {row['gain']:+7.1%}"
+                f"  p {row['p_value']:.4f} (level {row['level']:.2g}){mark}"
+            )
+    reference = result.get("before_same_search")
+    for key, label in (("ws", "WS"), ("min", "minimum distance")):
+        line = f"test {label}: the run {fmt(result['before'].get(key))}"
+        if reference:
+            line += f", searched as after {fmt(reference.get(key))}"
+        print(f"{line}, after {fmt(result['after'].get(key))}")
+    print(f"wrote {RunDir(run_dir).loop_json} and loop.md")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

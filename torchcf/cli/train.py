@@ -1,0 +1,207 @@
+"""``torchcf train CONFIG``: train a config, and nothing after it (no test-split
+evaluation, no loop).
+
+    torchcf train configs/carII.json
+    torchcf train configs/smoke.json --set abc.n_particles=50000 --out runs/smoke
+    torchcf train configs/carII.json --resume      # after a crash or kill -9
+    torchrun --standalone --nproc-per-node 4 -m torchcf.cli.train configs/carII.json
+
+Runs :func:`torchcf.pipeline.train_and_evaluate` with ``evaluate=False`` (the
+output directory, data and budget checked first, then :func:`torchcf.train.train`)
+and prints the shares. ``torchcf evaluate OUT`` and ``torchcf diagnose OUT`` take
+the run from there; ``torchcf study`` (:mod:`torchcf.cli.study`) runs the whole
+chain. The options, the run and its printing are shared with ``study``
+(:func:`run_config`).
+
+Exit codes (:mod:`torchcf.console`): 0 done; 2 bad config, data, arguments or
+output directory, a corrupted checkpoint, or an output that cannot be written
+(one line on stderr, no traceback); 130 interrupted (resume with ``--resume``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from ..abc.distributed import SINGLE, Group, init_from_env
+from ..config import TrainConfig, load_config
+from ..console import DefaultsHelpFormatter, add_overrides, one_line, run_main
+from ..pipeline import train_and_evaluate
+from ..rundir import RunDir
+
+#: A command's work on a loaded config: (cfg, out, resume, group) -> the summary.
+Step = Callable[[TrainConfig, Path, bool, Group], Mapping[str, Any]]
+
+
+def run_parser(prog: str, description: str, epilog: str) -> argparse.ArgumentParser:
+    """The options ``train`` and ``study`` share: CONFIG, --schema, --out, --set,
+    --resume."""
+    parser = argparse.ArgumentParser(
+        prog=prog,
+        formatter_class=DefaultsHelpFormatter,
+        description=description,
+        epilog=epilog,
+    )
+    parser.add_argument(
+        "config", nargs="?", help="JSON config (see configs/ and --schema)"
+    )
+    parser.add_argument(
+        "--schema",
+        action="store_true",
+        help="print the JSON schema of a config (every field) and exit",
+    )
+    parser.add_argument("--out", default=None, help="output directory")
+    add_overrides(parser, "KEY=JSON", "abc.n_particles=200000")
+    parser.add_argument(
+        "--resume", action="store_true", help="continue the run in the output directory"
+    )
+    return parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """``torchcf train``'s parser."""
+    parser = run_parser(
+        "torchcf train",
+        "Train a config only: ABC rejection and hybrid model selection on "
+        "car-following data, into the output directory. No test-split evaluation "
+        "and no loop: 'torchcf evaluate OUT' evaluates the run later, 'torchcf "
+        "study CONFIG' (or python -m torchcf.train CONFIG) runs the whole chain.",
+        "Distributed: torchrun --standalone --nproc-per-node K -m torchcf.cli.train "
+        "CONFIG (docs/training.md, 'Distributed runs').",
+    )
+    parser.add_argument(
+        "--no-eval",
+        action="store_true",
+        help="changes nothing: train never evaluates (accepted for the scripts "
+        "written for the study)",
+    )
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``torchcf train``, alone or under ``torchrun``: training only.
+
+    Returns:
+        0 done; 2 an error of the user's making or of the machine (one line on
+        stderr); 130 interrupted.
+    """
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    return run_config(
+        parser,
+        args,
+        _train,
+        evaluated=False,
+        finished=RunDir.is_trained,
+        finished_note="trained: nothing to do (torchcf evaluate {out} evaluates it)",
+    )
+
+
+def _train(
+    cfg: TrainConfig, out: Path, resume: bool, group: Group
+) -> Mapping[str, Any]:
+    return train_and_evaluate(cfg, out, resume=resume, evaluate=False, group=group)
+
+
+def run_config(
+    parser: argparse.ArgumentParser,
+    args: argparse.Namespace,
+    step: Step,
+    *,
+    evaluated: bool,
+    finished: Callable[[RunDir], bool],
+    finished_note: str,
+) -> int:
+    """Run ``step`` on the config of ``args`` (``--schema``: print it instead)
+    under the one policy (:func:`torchcf.console.run_main`), then print the result.
+
+    Args:
+        parser: for ``parser.error`` on a missing CONFIG.
+        args: the parsed options of :func:`run_parser`.
+        step: the work (training, or the study).
+        evaluated: the step evaluated the run (print its test metrics).
+        finished: on ``--resume``, the run needs nothing more (checked before).
+        finished_note: then printed as ``OUT is <finished_note>``.
+
+    Returns:
+        the exit code.
+    """
+    if args.schema:
+        print(json.dumps(TrainConfig.model_json_schema(), indent=2))
+        return 0
+    if args.config is None:
+        parser.error("give a CONFIG file (or --schema)")
+    group = SINGLE
+
+    def body() -> int:
+        nonlocal group
+        cfg = load_config(args.config, args.overrides)
+        out = Path(args.out) if args.out is not None else Path(cfg.output)
+        group = init_from_env(cfg.device)
+        done = args.resume and group.is_main and finished(RunDir(out))
+        summary = step(cfg, out, args.resume, group)
+        if group.is_main:
+            if done:
+                print(f"{out} is " + finished_note.format(out=out))
+            print_result(summary, RunDir(out), evaluated=evaluated, wrote=not done)
+        return 0
+
+    try:
+        return run_main(
+            body,
+            report=lambda error: report_error(error, group),
+            interrupted="interrupted: continue with --resume"
+            if int(os.environ.get("RANK", "0")) == 0
+            else "",
+        )
+    finally:
+        group.close()
+
+
+def print_result(
+    summary: Mapping[str, Any], run: RunDir, evaluated: bool, wrote: bool = True
+) -> None:
+    """The shares, and the hybrid's test metrics when the run was evaluated;
+    ``wrote``: this command wrote the run (not so for a finished run resumed)."""
+    width = max(len(name) for name in summary["shares"])
+    print(f"hybrid shares ({summary['dataset']}, N = {summary['top_n']}):")
+    for name, share in summary["shares"].items():
+        seconds = summary["per_model"][name]["seconds"]
+        print(f"  {name:<{width}}  {share:6.1%}   ({seconds:.1f} s)")
+    if "smc" in summary:
+        evidence = summary["smc"]["evidence_shares"]
+        shown = ", ".join(f"{m} {v:.1%}" for m, v in evidence.items() if v >= 0.0005)
+        print(f"evidence shares (prior mass within the hybrid's thresholds): {shown}")
+    if evaluated and run.is_evaluated():
+        metrics = run.read_metrics()
+        hybrid = {k: _fmt(v) for k, v in metrics["hybrid"].items()}
+        print(
+            f"test split ({metrics['n_test']} pairs), hybrid: WS {hybrid['ws']}, "
+            f"0.15-WS {hybrid['beta_ws']}, minimum distance {hybrid['min']}"
+        )
+    if wrote:
+        print(f"wrote {run.path}")
+
+
+def report_error(error: BaseException, group: Group) -> None:
+    """``error: <one line>`` on stderr; an error rank 0 already reports is left to
+    it, and another rank's own error names the rank."""
+    if getattr(error, "from_main", False):
+        return
+    rank = int(os.environ.get("RANK", "0")) if group is SINGLE else group.rank
+    where = f"rank {rank}: " if rank else ""
+    print(f"error: {where}{one_line(error)}", file=sys.stderr)
+
+
+def _fmt(value: Any) -> str:
+    """A metric for the console: 3 decimals, or as stored ("inf")."""
+    return f"{value:.3f}" if isinstance(value, int | float) else str(value)
+
+
+if __name__ == "__main__":  # torchrun -m torchcf.cli.train
+    raise SystemExit(main())
