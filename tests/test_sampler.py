@@ -318,6 +318,7 @@ def test_cuda_round_trip():
     assert not sampler.vehicle_particle.is_cuda
 
 
+@pytest.mark.slow  # torch.compile of the sampler
 @pytest.mark.compile
 def test_compiled_forward_equals_eager():
     """Fused groups, MPC left out of the graph, the delay's memory carried."""
@@ -402,10 +403,18 @@ def test_bad_calls_are_one_line():
 
 
 def test_the_readme_snippet_runs(tmp_path):
-    """The README's lines for embedding the sampler, run as written."""
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    section = readme.split("## Using the learned model in a simulation", 1)[1]
-    code = section.split("```python\n", 1)[1].split("```", 1)[0]
+    """The README's lines for embedding the sampler, run as written.
+
+    docs/traffic.md shows the same lines under the same heading.
+    """
+    root = Path(__file__).resolve().parents[1]
+    heading = "## Using the learned model in a simulation"
+    snippets = []
+    for page in (root / "README.md", root / "docs" / "traffic.md"):
+        section = page.read_text().split(heading, 1)[1]
+        snippets.append(section.split("```python\n", 1)[1].split("```", 1)[0])
+    code = snippets[0]
+    assert snippets[1] == code, "docs/traffic.md's snippet is not the README's"
     make_posterior({"idm": 4, "hl": 3}).save(tmp_path / "posterior.pt")
     code = code.replace("runs/carII/posterior.pt", str(tmp_path / "posterior.pt"))
     n = 6

@@ -103,7 +103,7 @@ def main() -> int:
         "",
         "Shares: rejection's and SMC's are the same slot count (the per-pair top-N "
         "across models); SMC's evidence shares estimate each model's prior mass "
-        "within the SMC hybrid's per-pair threshold (README, 'Sequential "
+        "within the SMC hybrid's per-pair threshold (docs/training.md, 'Sequential "
         "refinement').",
         "",
     ]
