@@ -320,6 +320,7 @@ def test_an_offset_is_absorbed_by_the_standstill_gap():
 
 
 # --------------------------------------------------------- ledger and resume
+@pytest.mark.slow  # attributions interrupted and resumed
 def test_an_interrupted_attribution_resumes_to_the_same_result(tmp_path, monkeypatch):
     pairs = synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=4, noise=0.05)
     cfg = _config(max_effects=2)
@@ -355,6 +356,7 @@ def test_an_interrupted_attribution_resumes_to_the_same_result(tmp_path, monkeyp
 
 
 # ------------------------------------------------------------ re-calibration
+@pytest.mark.slow  # a re-calibration
 def test_the_recalibration_holds_the_reference_which_holds_the_run(tmp_path):
     pairs = synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=6, noise=0.05)
     cfg = _config()

@@ -81,6 +81,7 @@ def test_an_equilibrium_is_missing_above_the_models_desired_speed():
     torch.testing.assert_close(steady, torch.zeros_like(steady), atol=1e-6, rtol=0)
 
 
+@pytest.mark.slow  # the battery at three chunk sizes
 def test_outcomes_do_not_depend_on_the_chunk():
     g = torch.Generator().manual_seed(3)
     low = torch.tensor([0.8, 0.3, 0.3, 1.0], dtype=torch.float64)
@@ -100,6 +101,7 @@ def test_outcomes_do_not_depend_on_the_chunk():
     assert float(alone.min_spacing[0]) == pytest.approx(float(whole.min_spacing[5]))
 
 
+@pytest.mark.slow  # the whole battery per model
 @pytest.mark.parametrize("name", ["hl", "fvdm", "llcs", "mpc"])
 def test_the_filters_fast_test_agrees_with_the_whole_battery(name):
     """``collides`` (hardest braking first, survivors only, no platoon) says

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 from tqdm import tqdm
 
@@ -111,6 +112,7 @@ def test_cuda_chunks_are_unchanged():
         assert rollout.chunk(model, 10_000_000, False) == CUDA_CHUNK_CELLS
 
 
+@pytest.mark.slow  # MPC streams
 def test_the_mpc_stream_reports_every_round_with_the_buffers_of_one_chunk(
     monkeypatch,
 ):
@@ -129,6 +131,7 @@ def test_the_mpc_stream_reports_every_round_with_the_buffers_of_one_chunk(
         assert torch.equal(getattr(buffer, key), getattr(one_chunk, key)), key
 
 
+@pytest.mark.slow  # MPC streams cut and resumed
 def test_an_mpc_stream_cut_between_rounds_resumes_to_the_same_buffers():
     rollout = Rollout(_short_pairs(), compile="off")
     chunk = get_model("mpc").chunk_cells
@@ -143,6 +146,7 @@ def test_an_mpc_stream_cut_between_rounds_resumes_to_the_same_buffers():
         assert torch.equal(getattr(whole, key), getattr(resumed, key)), key
 
 
+@pytest.mark.slow  # a training with MPC
 def test_training_moves_the_mpc_bar_and_checkpoints_inside_the_model(
     monkeypatch, tmp_path
 ):

@@ -291,6 +291,7 @@ def test_hybrid_coverage_equals_its_own_rollout_and_bands(evaluated):
             assert result["hybrid"][key] == pytest.approx(fraction, abs=1e-12), key
 
 
+@pytest.mark.slow  # the smoke study end to end
 def test_smoke_config_end_to_end(tmp_path):
     """configs/smoke.json through `python -m torchcf.train`: metrics.json
     carries the coverage and bootstrap keys (real data: skips without

@@ -210,6 +210,7 @@ def runs(tmp_path_factory):
     return config, reference, partial
 
 
+@pytest.mark.slow  # torchrun: three trainings in subprocesses
 @pytest.mark.skipif(sys.platform == "win32", reason="torchrun on POSIX only")
 def test_two_processes_resume_and_equal_a_single_process(runs):
     """torchrun, 2 ranks (gloo): resumes the run cut short (rank 0 reads the

@@ -236,6 +236,7 @@ def test_fold_config():
     assert (cfg.data.split, cfg.data.folds, cfg.data.fold) == ("kfold", 3, 2)
 
 
+@pytest.mark.slow  # a cross-validation on real data
 def test_crossval_runs_every_fold_on_real_data(data_root, tmp_path):
     cfg = small_config(n_particles=600, chunk_size=600)
     result = crossval(cfg, tmp_path / "cv", folds=2)

@@ -531,6 +531,7 @@ def test_peachtree_leaders_and_gaps(peachtree) -> None:
     assert "Time_Headway holds 9999.99 in 2057 rows" in notes
 
 
+@pytest.mark.slow  # the whole I-80 sample
 def test_ngsim_i80_pairs_round_trip(tmp_path: Path) -> None:
     if not os.environ.get("TORCHCF_DATA"):
         pytest.skip("TORCHCF_DATA is not set: no NGSIM I-80 pairs")

@@ -71,6 +71,7 @@ def _reference(paired: bool, n: int = 1500) -> TopN:
     return buffer
 
 
+@pytest.mark.slow  # two trainings with the battery on every particle
 @pytest.mark.parametrize("paired", [True, False])
 def test_the_screen_gives_the_buffers_of_testing_every_particle(paired):
     screen = PlausibilityScreen(rejects(BATTERY))
@@ -102,6 +103,7 @@ def test_string_unstable_particles_are_rejected_when_asked():
     assert not bool((result.collided | result.string_unstable()).any())
 
 
+@pytest.mark.slow  # a training with the screen
 def test_training_with_the_filter_reports_it(tmp_path):
     pairs = _pairs()
     test = synthetic_pairs(MODEL, TRUTH, 2, 200, seed=4)

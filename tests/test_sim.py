@@ -58,6 +58,7 @@ def well_conditioned(name, theta_row, pairs, n, ref) -> bool:
     return abs(moved["score"] - ref["score"]) < 1e-9
 
 
+@pytest.mark.slow  # every model against the loop reference in the full layout
 @pytest.mark.parametrize("name", NAMES)
 def test_full_layout_matches_reference(name, pairs):
     theta = prior_draws(MODELS[name], 12, seed=7)
@@ -103,6 +104,7 @@ def test_paired_equals_gathered_full_layout(name, pairs):
         )
 
 
+@pytest.mark.slow  # every model, one particle at a time
 @pytest.mark.parametrize("name", NAMES)
 def test_batched_equals_looped(name, pairs):
     theta = prior_draws(MODELS[name], 6, seed=5)
@@ -130,6 +132,7 @@ def test_float32_close_to_float64(name):
     )
 
 
+@pytest.mark.slow  # every model at several chunk sizes
 @pytest.mark.parametrize("chunk_size", [1, 7, 64, 1000])
 def test_result_independent_of_chunk_size(chunk_size, pairs):
     theta = prior_draws(MODELS["idm"], 40, seed=1, dtype=torch.float32)

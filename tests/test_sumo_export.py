@@ -117,6 +117,7 @@ def tiny_run(tmp_path_factory) -> Path:
     return folder / "run"
 
 
+@pytest.mark.slow  # a training and a SUMO export
 def test_export_command(tiny_run, tmp_path):
     done = run_module("torchcf.sumo", "export", str(tiny_run), "--out", str(tmp_path))
     assert done.returncode == 0, done.stderr

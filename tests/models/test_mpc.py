@@ -140,6 +140,7 @@ def _osqp_first_inputs(theta, obs, horizon=5):
     return np.array(first), active / theta.shape[0]
 
 
+@pytest.mark.slow  # 10 000 OSQP solves
 @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-4), (torch.float32, 1e-3)])
 def test_first_input_against_osqp_on_10000_instances(dtype, tol):
     model = MODELS["mpc"]
