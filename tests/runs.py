@@ -16,9 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from tests.conftest import synthetic_pairs
 from torchcf.data.reader import FILES
-
-from .conftest import synthetic_pairs
 
 REPO = Path(__file__).resolve().parents[1]
 

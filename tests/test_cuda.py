@@ -14,14 +14,13 @@ import json
 import pytest
 import torch
 
+from tests.conftest import prior_draws, synthetic_pairs
+from tests.runs import run_module, torchrun_train, write_config, write_data
 from torchcf import MODELS, simulate
 from torchcf.config import validate_config
 from torchcf.pipeline import run_study
 from torchcf.posterior import Posterior
 from torchcf.train import train
-
-from .conftest import prior_draws, synthetic_pairs
-from .runs import run_module, torchrun_train, write_config, write_data
 
 pytestmark = pytest.mark.skipif(
     not torch.cuda.is_available(), reason="needs a CUDA GPU"

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.conftest import synthetic_pairs
 from torchcf.config import TrainConfig
 from torchcf.crossval import aggregate, crossval, fold_config
 from torchcf.evaluate import (
@@ -22,8 +23,6 @@ from torchcf.evaluate import (
 from torchcf.evaluation.metrics import evaluate_costs, sinkhorn
 from torchcf.posterior import Posterior
 from torchcf.train import train
-
-from .conftest import synthetic_pairs
 
 
 def small_config(**abc) -> TrainConfig:

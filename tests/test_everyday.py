@@ -19,6 +19,8 @@ import time
 import pytest
 import torch
 
+from tests.conftest import synthetic_pairs
+from tests.runs import REPO, run_module, write_config, write_data
 from torchcf.config import ConfigError, TrainConfig, load_config
 from torchcf.config.overrides import apply_overrides
 from torchcf.data import registry
@@ -32,9 +34,6 @@ from torchcf.pipeline import run_study
 from torchcf.rundir import LOCK_NAME, RunDir
 from torchcf.traffic.scenarios import pair_leader
 from torchcf.train.__main__ import main as train_main
-
-from .conftest import synthetic_pairs
-from .runs import REPO, run_module, write_config, write_data
 
 
 # ------------------------------------------------------------------- names

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.runs import run_module, write_config, write_data
 from torchcf.config import ConfigError, TrainConfig, load_config, resolved_json
 from torchcf.errors import TorchcfError
 from torchcf.files import (
@@ -32,8 +33,6 @@ from torchcf.files import (
 from torchcf.models import get_model
 from torchcf.posterior import ModelParticles, Posterior
 from torchcf.rundir import RunDir
-
-from .runs import run_module, write_config, write_data
 
 #: Size of the small file system of the full-disk tests.
 TMPFS_SIZE = "600k"

@@ -39,7 +39,7 @@ price: during that one step SUMO's other vehicles see the shifted position (by
 the difference: millimetres for HL at 0.1 s).
 The co-simulated positions then equal torchcf's own rollout
 (:func:`torchcf.traffic.platoon`, :func:`torchcf.simulate`) to rounding:
-``tests/test_sumo_cosim.py`` measures the largest difference.
+``tests/sumo/test_sumo_cosim.py`` measures the largest difference.
 
 **Vehicles.** ``vehicles`` is fixed at construction, in the sampler's vehicle
 order (``sampler.vehicle_shape == (V,)`` given; the co-simulation then lays the

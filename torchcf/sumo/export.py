@@ -48,7 +48,7 @@ With ``--step-method.ballistic true`` (SUMO's global option; an additional file
 cannot set it) SUMO moves a vehicle by ``(v + v') dt / 2``, which is SPEC's
 ``v dt + a dt^2 / 2`` with ``a = (v' - v) / dt``; SUMO's default (semi-implicit
 Euler, ``v' dt``) is not. Where the two still differ, measured by
-``python -m torchcf.sumo verify`` and ``tests/test_sumo_verify.py``:
+``python -m torchcf.sumo verify`` and ``tests/sumo/test_sumo_verify.py``:
 
 - the spacing: SUMO's IDM reads ``g = s - length_lead``, so it equals SPEC's IDM
   only where the leader's length is 0 for its follower (``verify`` places each

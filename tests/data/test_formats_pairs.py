@@ -1,7 +1,7 @@
 """Pair-wide tables (``--format pairs``): ULTra-AV names, leader lengths, errors.
 
 Every table is written here in ULTra-AV's layout with a known answer: the
-motions of ``tests/test_extract.py`` (leader speed a sine around 15 m/s, the
+motions of ``tests/data/test_extract.py`` (leader speed a sine around 15 m/s, the
 follower repeating it 1 s later, 20 m further back), written as vehicle-centre
 positions of a 4.8 m leader and a 4.2 m follower, so the bumper-to-bumper gap is
 ``Pos_LV - Pos_FAV - 4.5`` and the leader length torchcf derives is 4.5 m.
@@ -15,6 +15,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from tests.cli.test_bad_input import one_error_line
+from tests.data.test_extract import leader_motion
 from torchcf.config import load_split, validate_config
 from torchcf.config.raw import RawSource
 from torchcf.data.__main__ import main as data_main
@@ -22,9 +24,6 @@ from torchcf.data.extract import ExtractOptions, extract_pairs
 from torchcf.data.formats import read_trajectories, reader_options
 from torchcf.data.formats.pairs import PAIR_COLUMNS, ULTRA_AV, read_pairs
 from torchcf.data.pairset import DataError
-
-from .test_bad_input import one_error_line
-from .test_extract import leader_motion
 
 DT = 0.1
 L_LEAD, L_FOLLOW = 4.8, 4.2

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from tests.test_traffic import sampler_of
+from tests.traffic.test_traffic import sampler_of
 from torchcf.models import FollowerState, get_model
 from torchcf.traffic import (
     Battery,

@@ -16,14 +16,13 @@ import pytest
 import torch
 
 import torchcf.abc.rejection as rejection_module
+from tests.runs import torchrun_train, write_config, write_data
 from torchcf.abc.distributed import SINGLE, Group, GroupError, init_from_env
 from torchcf.abc.topn import TopN
 from torchcf.config import load_config
 from torchcf.evaluate import evaluate_run
 from torchcf.pipeline import run_study
 from torchcf.posterior import Posterior
-
-from .runs import torchrun_train, write_config, write_data
 
 # ------------------------------------------------------------------ the pieces
 

@@ -15,6 +15,9 @@ from scipy.stats import multivariate_normal
 import torchcf.abc.kernel as kernel_module
 import torchcf.abc.rejection as rejection_module
 import torchcf.abc.smc as smc
+from tests.runs import torchrun_train, write_config, write_data
+from tests.train.test_train import config as train_config
+from tests.train.test_train import mixture_pairs
 from torchcf.abc.kernel import SMCKernel
 from torchcf.abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
 from torchcf.abc.smc import (
@@ -32,10 +35,6 @@ from torchcf.config import ConfigError, TrainConfig, validate_config
 from torchcf.models import get_model
 from torchcf.posterior import Posterior
 from torchcf.train import train
-
-from .runs import torchrun_train, write_config, write_data
-from .test_train import config as train_config
-from .test_train import mixture_pairs
 
 SETTINGS = {"population": 20, "rounds": 3, "prior_fraction": 0.3, "quantile": 0.5}
 

@@ -21,12 +21,11 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.runs import run_module, write_config, write_data
 from torchcf import evaluate as evaluate_cli
 from torchcf.cli import train as train_only_cli
 from torchcf.posterior import Posterior
 from torchcf.train import __main__ as train_cli
-
-from .runs import run_module, write_config, write_data
 
 #: Files whose presence says a run (or its evaluation) finished.
 FINISHED = ("posterior.pt", "summary.json", "metrics.json")

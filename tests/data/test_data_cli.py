@@ -14,13 +14,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from tests.cli.test_bad_input import one_error_line
+from tests.data.test_extract import couple_rows
 from torchcf.config import ConfigError, load_split, validate_config
 from torchcf.data import load_pairs
 from torchcf.data.__main__ import main as data_main
 from torchcf.train import __main__ as train_cli
-
-from .test_bad_input import one_error_line
-from .test_extract import couple_rows
 
 FOOT = 0.3048
 COLUMNS = "vehicle=ID,time=t,position=y,speed=kmh,leader=ahead,lane=lane,gap=space"

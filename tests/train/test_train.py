@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.conftest import synthetic_pairs
 from torchcf import PairSet, simulate
 from torchcf.abc.streams import ParticleStream
 from torchcf.config import TrainConfig
@@ -21,9 +22,7 @@ from torchcf.posterior import Posterior
 from torchcf.train import train
 from torchcf.train.__main__ import main
 
-from .conftest import synthetic_pairs
-
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 #: The mixture the recovery test generates: model, true parameters, pairs.
 TRUTH = {

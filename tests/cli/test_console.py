@@ -17,15 +17,14 @@ import pytest
 
 import torchcf.__main__
 import torchcf.console
+from tests.runs import write_config, write_data
 from torchcf import cli
 from torchcf.cli import study as study_cli
 from torchcf.cli import train as train_cli
 from torchcf.cli.main import COMMANDS, main
 from torchcf.train import __main__ as old_train
 
-from .runs import write_config, write_data
-
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 #: Every ``python -m torchcf.<x>`` that runs a command (and ``python -m torchcf``).
 PYTHON_M = [

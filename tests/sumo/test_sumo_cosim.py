@@ -12,8 +12,8 @@ pytest.importorskip(
 )
 
 from tests.conftest import synthetic_pairs  # noqa: E402
-from tests.test_sampler import make_posterior  # noqa: E402
-from tests.test_traffic import KINDS  # noqa: E402
+from tests.traffic.test_sampler import make_posterior  # noqa: E402
+from tests.traffic.test_traffic import KINDS  # noqa: E402
 from torchcf import HybridSampler, PairSet, simulate  # noqa: E402
 from torchcf.sumo import backend  # noqa: E402
 from torchcf.sumo.backend import SumoError  # noqa: E402

@@ -19,8 +19,8 @@ pytest.importorskip(
 
 from tests.conftest import synthetic_pairs  # noqa: E402
 from tests.runs import run_module  # noqa: E402
-from tests.test_sampler import make_posterior  # noqa: E402
-from tests.test_sumo_export import tiny_run  # noqa: E402, F401  (a fixture)
+from tests.sumo.test_sumo_export import tiny_run  # noqa: E402, F401  (a fixture)
+from tests.traffic.test_sampler import make_posterior  # noqa: E402
 from torchcf import simulate  # noqa: E402
 from torchcf.data import load_pairs  # noqa: E402
 from torchcf.sumo.export import VTYPES_FILE, export_hybrid, write_export  # noqa: E402

@@ -11,6 +11,7 @@ import pandas as pd
 import pytest
 import torch
 
+from tests.data.test_extract import T, couple_rows, table_of
 from torchcf.config import TrainConfig
 from torchcf.data import load_pairs
 from torchcf.data.extract import ExtractOptions, extract_pairs
@@ -34,8 +35,6 @@ from torchcf.posterior.tables import (
 )
 from torchcf.rundir import RunDir
 from torchcf.train import train
-
-from .test_extract import T, couple_rows, table_of
 
 MODELS = ("idm", "llctg", "hl")
 #: Training pair id -> slots held per model (top_n = 2): pairs 10-12 in group

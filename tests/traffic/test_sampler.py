@@ -407,7 +407,7 @@ def test_the_readme_snippet_runs(tmp_path):
 
     docs/traffic.md shows the same lines under the same heading.
     """
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     heading = "## Using the learned model in a simulation"
     snippets = []
     for page in (root / "README.md", root / "docs" / "traffic.md"):

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.conftest import synthetic_pairs
 from torchcf.config import TrainConfig
 from torchcf.posterior import ModelParticles, Posterior
 from torchcf.posterior.__main__ import main
@@ -20,8 +21,6 @@ from torchcf.posterior.tables import (
 )
 from torchcf.rundir import RunDir
 from torchcf.train import train
-
-from .conftest import synthetic_pairs
 
 
 def _particles(names, theta, pair_ids, scores):

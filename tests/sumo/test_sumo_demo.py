@@ -14,7 +14,7 @@ import torch
 
 from torchcf.data import PairSet
 
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "sumo_network_demo.py"
+TOOL = Path(__file__).resolve().parents[2] / "tools" / "sumo_network_demo.py"
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from tests.conftest import synthetic_pairs
-from tests.test_sampler import make_posterior
+from tests.traffic.test_sampler import make_posterior
 from torchcf import HybridSampler, PairSet, simulate
 from torchcf.models import FollowerState
 from torchcf.synthetic import leader_profiles

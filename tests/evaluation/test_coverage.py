@@ -212,11 +212,10 @@ def _check_metrics_json(result: dict, models: list[str]) -> None:
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory):
     """A small run on synthetic pairs (no data needed), evaluated."""
+    from tests.conftest import synthetic_pairs
+    from tests.test_evaluate import small_config
     from torchcf.evaluate import evaluate_run
     from torchcf.train import train
-
-    from .conftest import synthetic_pairs
-    from .test_evaluate import small_config
 
     train_pairs = synthetic_pairs(n_pairs=6, n_steps=200, seed=1)
     test_pairs = synthetic_pairs(n_pairs=4, n_steps=200, seed=2)
@@ -304,7 +303,7 @@ def test_smoke_config_end_to_end(tmp_path):
 
     if not os.environ.get("TORCHCF_DATA"):
         pytest.skip("TORCHCF_DATA is not set: no real data to test against")
-    config = Path(__file__).resolve().parents[1] / "configs" / "smoke.json"
+    config = Path(__file__).resolve().parents[2] / "configs" / "smoke.json"
     assert main([str(config), "--out", str(tmp_path / "run")]) == 0
     result = json.loads((tmp_path / "run" / "metrics.json").read_text())
     models = ["ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc"]

@@ -1,7 +1,7 @@
 """Punzo et al.'s six-column trajectory files (``--format punzo``).
 
 Each file is written here with a known answer: the motions of
-``tests/test_extract.py`` (leader speed a sine around 15 m/s, the follower
+``tests/data/test_extract.py`` (leader speed a sine around 15 m/s, the follower
 repeating it 1 s later, 20 m further back), front-bumper positions and a 4.6 m
 leader, so the spacing ``x_lead - x_fol - L_lead`` is known at every step.
 """
@@ -13,14 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.cli.test_bad_input import one_error_line
+from tests.data.test_extract import leader_motion
 from torchcf.data.__main__ import main as data_main
 from torchcf.data.extract import ExtractOptions, extract_pairs
 from torchcf.data.formats import read_trajectories
 from torchcf.data.formats.punzo import read_punzo
 from torchcf.data.pairset import DataError
-
-from .test_bad_input import one_error_line
-from .test_extract import leader_motion
 
 DT = 0.1
 L_LEAD = 4.6

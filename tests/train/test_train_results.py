@@ -11,6 +11,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+from tests.conftest import synthetic_pairs
 from torchcf.abc.rejection import ModelProgress
 from torchcf.abc.topn import TopN
 from torchcf.config import TrainConfig, config_hash
@@ -25,8 +26,6 @@ from torchcf.train.summary import (
     SMCResult,
     Versions,
 )
-
-from .conftest import synthetic_pairs
 
 MODELS = ["idm", "hl"]
 
@@ -314,7 +313,7 @@ def test_the_names_of_the_module_before_its_split_still_import():
         "run_device",
         "smc_settings",
         "train",
-        "tqdm",  # tests/test_chunk_progress.py patches it there
+        "tqdm",  # tests/train/test_chunk_progress.py patches it there
     ):
         assert hasattr(run_module, name), name
     assert run_module.RunError is checkpoint.RunError

@@ -9,6 +9,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from tests.cli.test_bad_input import one_error_line
+from tests.data.test_data_cli import extract_args, write_log
 from torchcf.data.__main__ import main as data_main
 from torchcf.data.formats import read_trajectories
 from torchcf.data.formats.generic import (
@@ -23,9 +25,6 @@ from torchcf.data.formats.generic import (
     unit_factors,
 )
 from torchcf.data.pairset import DataError
-
-from .test_bad_input import one_error_line
-from .test_data_cli import extract_args, write_log
 
 MAP = "vehicle=ID,time=t,position=x,speed=v"
 

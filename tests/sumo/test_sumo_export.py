@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from tests.runs import run_module, write_config, write_data
-from tests.test_sampler import make_posterior
+from tests.traffic.test_sampler import make_posterior
 from torchcf.sumo import backend
 from torchcf.sumo.backend import SumoError, SumoMissingError
 from torchcf.sumo.export import (
