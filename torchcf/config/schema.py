@@ -592,7 +592,11 @@ class DiagnoseConfig(BaseModel):
     model_config = _STRICT
 
     run_after_training: bool = Field(
-        False, description="Run the loop at the end of the study (torchcf study, python -m torchcf.train)."
+        False,
+        description=(
+            "Run the loop at the end of the study (torchcf study, python -m "
+            "torchcf.train)."
+        ),
     )
     effects: list[str] = Field(
         list(EFFECTS),
