@@ -665,6 +665,19 @@ class DiagnoseConfig(BaseModel):
             "steps and scores the fitted particles on the rest (out of sample)."
         ),
     )
+    validation_warmup: float = Field(
+        0.0,
+        ge=0,
+        le=10,
+        description=(
+            "Seconds of recorded history before each validation window [s]: the "
+            "validation rollout starts this long before the split from the "
+            "observed state, and only the steps after the split are scored, so "
+            "a delay's or a lag's memory enters the window filled by the "
+            "recorded leader (0: the window starts at the split, its memory a "
+            "steady past)."
+        ),
+    )
     alpha: float = Field(
         0.05,
         gt=0,

@@ -50,6 +50,7 @@ from ..config import DiagnoseConfig, TrainConfig
 from ..data import PairSet
 from ..models import effect_kinds, get_model
 from ..models.effects import RoadProfile, parse_effect
+from ..sim import simulate
 from .absorption import profile_values
 from .candidates import attribution_rollout, attribution_seed, prior_particles
 from .population import Population, merge, rescore
@@ -94,6 +95,25 @@ def split_in_time(pairs: PairSet, fraction: float) -> tuple[PairSet, PairSet]:
         DiagnoseError: a window would be too short, or fewer than 2 pairs are
             long enough.
     """
+    pairs, split = _long_enough(pairs, fraction)
+    return _window(pairs, slice(0, split)), _window(pairs, slice(split, None))
+
+
+def warmed_validation(
+    pairs: PairSet, fraction: float, warmup: int
+) -> tuple[PairSet, PairSet]:
+    """The validation windows of :func:`split_in_time`, each begun ``warmup``
+    steps early: ``(long, warm)``, the steps ``split - warmup ..`` to the end and
+    ``split - warmup .. split - 1``, for the same pairs (:class:`WarmedRollout`
+    scores the difference). ``warmup`` is cut to the fit window's length."""
+    pairs, split = _long_enough(pairs, fraction)
+    start = split - min(warmup, split - 1)
+    return _window(pairs, slice(start, None)), _window(pairs, slice(start, split))
+
+
+def _long_enough(pairs: PairSet, fraction: float) -> tuple[PairSet, int]:
+    """The pairs with a validation window of at least
+    :data:`MIN_VALIDATION_STEPS` valid steps, and the split step."""
     split = int(round(fraction * pairs.n_steps))
     if split < MIN_VALIDATION_STEPS or pairs.n_steps - split < MIN_VALIDATION_STEPS:
         raise DiagnoseError(
@@ -106,16 +126,78 @@ def split_in_time(pairs: PairSet, fraction: float) -> tuple[PairSet, PairSet]:
             "fewer than 2 training pairs are long enough for out-of-sample "
             "validation; lower diagnose.fit_fraction"
         )
-    pairs = pairs.subset(keep)
+    return pairs.subset(keep), split
 
-    def window(rows: slice) -> PairSet:
-        return dataclasses.replace(
+
+def _window(pairs: PairSet, rows: slice) -> PairSet:
+    """The steps ``rows`` of every pair (a validation window starts from the
+    observed state at its first step)."""
+    return dataclasses.replace(
+        pairs,
+        **{field: t[rows] for field, t in pairs.series().items()},
+        mask=pairs.mask[rows],
+    )
+
+
+@dataclass(frozen=True)
+class WarmedRollout(Rollout):
+    """Scores on validation windows begun early, the early steps unscored.
+
+    The rollout runs on the long windows (``pairs``: the warm-up, then the
+    validation window) and on their warm-ups alone (``warm``); being causal and
+    deterministic, the latter repeats the long rollout's first steps exactly. The
+    validation window's RMSE per channel c is then
+    ``sqrt((n_long e_c,long^2 - n_warm e_c,warm^2) / (n_long - n_warm))`` and its
+    score ``sum_c w_c e_c`` (SPEC section 4's score over the window's steps), so
+    a memory effect (delay, lag, sync) enters the window with the history the
+    recorded leader gave it instead of a steady past. Invalid (``+inf``) when the
+    long rollout is.
+    """
+
+    warm: PairSet | None = None
+
+    def score(self, model, theta, pair, *, chunk=None, compiled=False):
+        if pair is None or self.warm is None:
+            raise ValueError("a warmed validation scores paired particles only")
+        long = self._errors(self.pairs, model, theta, pair, chunk, compiled)
+        early = self._errors(self.warm, model, theta, pair, chunk, compiled)
+        n_long = self.pairs.mask.sum(0).to(torch.float64)[pair]  # (P,)
+        n_warm = self.warm.mask.sum(0).to(torch.float64)[pair]
+        score = torch.zeros_like(n_long)
+        channels = zip(self.weights, long[:3], early[:3], strict=True)
+        for weight, e_long, e_warm in channels:
+            sse = n_long * e_long**2 - n_warm * e_warm**2
+            score += weight * torch.sqrt(sse.clamp(min=0) / (n_long - n_warm))
+        valid = long[3]
+        return torch.where(valid, score, math.inf), valid
+
+    def _errors(self, pairs, model, theta, pair, chunk, compiled):
+        """``(e_p, e_v, e_a, valid)``, (P,) each (float64), on ``pairs``."""
+        out = simulate(
+            model,
+            theta.to(self.dtype),
             pairs,
-            **{field: t[rows] for field, t in pairs.series().items()},
-            mask=pairs.mask[rows],
+            pair,
+            dtype=self.dtype,
+            device=self.device,
+            weights=self.weights,
+            chunk_size=chunk,
+            compile=compiled,
         )
+        errors = (out.e_p.double(), out.e_v.double(), out.e_a.double())
+        return (*(e.cpu() for e in errors), out.valid.cpu())
 
-    return window(slice(0, split)), window(slice(split, None))
+
+def validation_rollout(cfg: TrainConfig, train_pairs: PairSet) -> Rollout | None:
+    """The validation windows' :class:`WarmedRollout` when
+    ``diagnose.validation_warmup`` asks for one, else None."""
+    settings = cfg.diagnose
+    steps = int(round(settings.validation_warmup / train_pairs.dt))
+    if steps < 1:
+        return None
+    long, warm = warmed_validation(train_pairs, settings.fit_fraction, steps)
+    plain = attribution_rollout(cfg, long)
+    return WarmedRollout(**vars(plain), warm=warm)
 
 
 def resolve_effect(token: str, pairs: PairSet) -> str:
@@ -166,7 +248,8 @@ class Arena:
         return cls(
             settings=settings,
             fit=attribution_rollout(cfg, fit),
-            validation=attribution_rollout(cfg, validation),
+            validation=validation_rollout(cfg, train_pairs)
+            or attribution_rollout(cfg, validation),
             seed=attribution_seed(cfg),
             priors={spec.name: spec.bounds(torch.float64) for spec in cfg.models},
             top_n=cfg.abc.top_n,
