@@ -482,3 +482,17 @@ def test_load_split_real(data_root: Path) -> None:
     assert (train.n_pairs, test.n_pairs) == (44, 17)
     assert (train.split, test.split) == ("train", "test")
     assert not set(train.pair_ids) & set(test.pair_ids)
+
+
+def test_model_specs_hold_their_model_objects() -> None:
+    # Parsed once when the config is read: the spec's model is the registry's one
+    # instance of the canonical name; an effect option with an exponent keeps its
+    # '+' (the name is not split by hand).
+    from torchcf.models import get_model
+
+    cfg = make(models=["IDM", "idm+delay", "hl+grade(end=1e+06)"])
+    idm, delayed, graded = cfg.models
+    assert idm.model is get_model("idm") and idm.plain
+    assert delayed.model is get_model("idm+delay") and not delayed.plain
+    assert not graded.plain and graded.model.effects[0].name == "grade"
+    assert graded.model.param_names[-1].startswith("grade")

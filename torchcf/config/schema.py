@@ -43,7 +43,7 @@ from torchcf.config.messages import ConfigError
 from torchcf.config.raw import RawSource
 from torchcf.data.reader import UNITS, unit_factor
 from torchcf.data.registry import DATASETS
-from torchcf.models import EFFECTS, MODELS, UnknownModelError, get_model
+from torchcf.models import EFFECTS, MODELS, CFModel, UnknownModelError, get_model
 from torchcf.models.effects import parse_effect
 
 __all__ = [
@@ -266,10 +266,22 @@ class ModelSpec(BaseModel):
 
     @model_validator(mode="after")
     def _runnable_bounds(self) -> ModelSpec:
-        model = get_model(self.name)
+        model = self.model
         if hasattr(model, "check_bounds"):  # effects limit their priors
             model.check_bounds(self.bounds())
         return self
+
+    @property
+    def model(self) -> CFModel:
+        """The model this spec names, as an object: the name was parsed when the
+        config was read, and :func:`get_model` keeps one instance per canonical
+        name, so this is that instance, not a new parse."""
+        return get_model(self.name)
+
+    @property
+    def plain(self) -> bool:
+        """A pool model without effects (``idm``, not ``idm+delay``)."""
+        return not getattr(self.model, "effects", ())
 
     def bounds(self, dtype: torch.dtype = torch.float64) -> torch.Tensor:
         """The uniform prior box with the overrides applied.
@@ -280,7 +292,7 @@ class ModelSpec(BaseModel):
         Returns:
             (K, 2) tensor of (low, high) per parameter, in the model's order.
         """
-        model = get_model(self.name)
+        model = self.model
         box = model.prior_bounds(dtype)  # (K, 2)
         for key, (low, high) in (self.prior or {}).items():
             box[model.param_names.index(key)] = torch.tensor([low, high], dtype=dtype)

@@ -67,7 +67,7 @@ def active_models(cfg: TrainConfig, posterior: Posterior) -> list[str]:
     """The pool models that get the effects: every plain model of the run
     (``diagnose.models = "all"``), or those with a share of at least
     ``diagnose.min_share`` (at least the largest)."""
-    names = [spec.name for spec in cfg.models if "+" not in spec.name]
+    names = [spec.name for spec in cfg.models if spec.plain]
     if cfg.diagnose.models == "all":
         return names
     active = [
