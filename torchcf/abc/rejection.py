@@ -43,6 +43,7 @@ from ..sim import (
     COMPILE_CHUNK_MULTIPLE,
     CUDA_CHUNK_CELLS,
     DEFAULT_WEIGHTS,
+    SimOutput,
     cell_budget,
     resolve_compile,
     simulate,
@@ -123,6 +124,20 @@ class Rollout:
             ``score`` (P,) or (P, N) float64 on the rollout's device, ``+inf`` for an
             invalid rollout, and ``valid`` of the same shape.
         """
+        out = self.rollouts(model, theta, pair, chunk=chunk, compiled=compiled)
+        return out.score.double(), out.valid
+
+    def rollouts(
+        self,
+        model: CFModel,
+        theta: Tensor,
+        pair: Tensor | None,
+        *,
+        chunk: int | None = None,
+        compiled: bool = False,
+    ) -> SimOutput:
+        """The rollouts :meth:`score` reads: score, the RMSE of each channel and
+        validity, shaped and chunked as there (:class:`torchcf.sim.SimOutput`)."""
         if chunk is None:
             chunk = self.chunk(model, max(theta.shape[0], 1), compiled)
         pairs = self.pairs
@@ -136,7 +151,7 @@ class Rollout:
             if used.numel() < pairs.n_pairs:
                 pairs = pairs.subset(used)
                 pair = torch.searchsorted(used, pair)
-        out = simulate(
+        return simulate(
             model,
             theta.to(self.dtype),
             pairs,
@@ -147,7 +162,6 @@ class Rollout:
             chunk_size=chunk,
             compile=compiled,
         )
-        return out.score.double(), out.valid
 
 
 def prior_stream(

@@ -50,7 +50,6 @@ from ..config import DiagnoseConfig, TrainConfig
 from ..data import PairSet
 from ..models import effect_kinds, get_model
 from ..models.effects import RoadProfile, parse_effect
-from ..sim import simulate
 from .absorption import profile_values
 from .candidates import attribution_rollout, attribution_seed, prior_particles
 from .population import Population, merge, rescore
@@ -159,33 +158,21 @@ class WarmedRollout(Rollout):
     def score(self, model, theta, pair, *, chunk=None, compiled=False):
         if pair is None or self.warm is None:
             raise ValueError("a warmed validation scores paired particles only")
-        long = self._errors(self.pairs, model, theta, pair, chunk, compiled)
-        early = self._errors(self.warm, model, theta, pair, chunk, compiled)
+        run = {"chunk": chunk, "compiled": compiled}
+        long = self.rollouts(model, theta, pair, **run)
+        early = dataclasses.replace(self, pairs=self.warm).rollouts(
+            model, theta, pair, **run
+        )
         n_long = self.pairs.mask.sum(0).to(torch.float64)[pair]  # (P,)
         n_warm = self.warm.mask.sum(0).to(torch.float64)[pair]
         score = torch.zeros_like(n_long)
-        channels = zip(self.weights, long[:3], early[:3], strict=True)
-        for weight, e_long, e_warm in channels:
+        for weight, channel in zip(self.weights, ("e_p", "e_v", "e_a"), strict=True):
+            e_long = getattr(long, channel).double().cpu()
+            e_warm = getattr(early, channel).double().cpu()
             sse = n_long * e_long**2 - n_warm * e_warm**2
             score += weight * torch.sqrt(sse.clamp(min=0) / (n_long - n_warm))
-        valid = long[3]
+        valid = long.valid.cpu()
         return torch.where(valid, score, math.inf), valid
-
-    def _errors(self, pairs, model, theta, pair, chunk, compiled):
-        """``(e_p, e_v, e_a, valid)``, (P,) each (float64), on ``pairs``."""
-        out = simulate(
-            model,
-            theta.to(self.dtype),
-            pairs,
-            pair,
-            dtype=self.dtype,
-            device=self.device,
-            weights=self.weights,
-            chunk_size=chunk,
-            compile=compiled,
-        )
-        errors = (out.e_p.double(), out.e_v.double(), out.e_a.double())
-        return (*(e.cpu() for e in errors), out.valid.cpu())
 
 
 def validation_rollout(cfg: TrainConfig, train_pairs: PairSet) -> Rollout | None:
