@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import os
 import subprocess
@@ -135,14 +136,16 @@ MEASURED = [name for name, case in CASES.items() if case[0] in MEASURED_SOURCES]
 TRAIN_PAIRS = {"action points, 48 pairs": 48}
 
 
-def config(n_particles: int = 40_000, models=("idm", "llctg")):
+def config(n_particles: int = 40_000, models=("idm", "llctg"), diagnose=None):
+    """The cases' config; ``diagnose``: settings of the loop beside its
+    defaults (``--diagnose KEY=JSON``)."""
     return validate_config(
         {
             "data": {"path": "synthetic"},
             "models": list(models),
             "abc": {"n_particles": n_particles, "sensitivity_n": [5]},
             "compile": "off",
-            "diagnose": {"n_particles": n_particles},
+            "diagnose": {"n_particles": n_particles, **(diagnose or {})},
         }
     )
 
@@ -264,14 +267,15 @@ def case_pairs(
     return train, test, ("idm", "llctg")
 
 
-def run_case(name: str, cache: Path) -> dict:
+def run_case(name: str, cache: Path, diagnose: dict | None = None) -> dict:
     model, theta, expected, truth = CASES[name]
     train, test, pool = case_pairs(name, cache)
     particles = 200_000 if model == "zalazone" else 40_000
     began = time.perf_counter()
     with tempfile.TemporaryDirectory() as folder:
         out = Path(folder) / "run"
-        train_and_evaluate(config(particles, models=pool), out, pairs=(train, test))
+        cfg = config(particles, models=pool, diagnose=diagnose)
+        train_and_evaluate(cfg, out, pairs=(train, test))
         trained = time.perf_counter()
         result = close_loop(out, pairs=(train, test), progress=False)
         looped = time.perf_counter() - trained
@@ -388,7 +392,9 @@ def markdown(payload: dict) -> str:
         "# The loop on data with undeclared effects",
         "",
         f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
-        f"git {meta['git']}. The loop at its defaults "
+        f"git {meta['git']}. The loop at its defaults"
+        + "".join(f", {k} = {v}" for k, v in payload.get("diagnose", {}).items())
+        + " "
         f"({payload['cases'][0]['n_effects']} candidate effects where the pairs "
         "share a road, forward selection of nested arms against a placebo, the "
         "fallback procedure at alpha 0.05 over at most 3 steps; re-calibration "
@@ -459,7 +465,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cases", nargs="+", default=None, choices=CASES)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--name", default=None)
+    parser.add_argument(
+        "--diagnose",
+        action="append",
+        default=[],
+        metavar="KEY=JSON",
+        help="a loop setting beside the defaults, e.g. validation='\"pairs\"'",
+    )
     args = parser.parse_args(argv)
+    diagnose = {}
+    for item in args.diagnose:
+        key, _, value = item.partition("=")
+        diagnose[key] = json.loads(value)
     torch.set_num_threads(args.threads)
     group = args.group or "synthetic"
     cases = args.cases or (MEASURED if group == "measured" else synthetic)
@@ -467,14 +484,18 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as cache:
         for case in cases:
-            row = run_case(case, Path(cache))
+            row = run_case(case, Path(cache), diagnose)
             print(
                 f"{case}: chosen {row['chosen']} (expected {row['expected']}), "
                 f"loop {row['loop_seconds']:.0f} s",
                 file=sys.stderr,
             )
             rows.append(row)
-    payload = {"meta": bench_meta(sys.argv, args.threads), "cases": rows}
+    payload = {
+        "meta": bench_meta(sys.argv, args.threads),
+        "diagnose": diagnose,
+        "cases": rows,
+    }
     write_report(REPORTS / name, payload, markdown(payload))
     return 0
 

@@ -310,7 +310,7 @@ def test_an_offset_is_absorbed_by_the_standstill_gap():
     base = base_arm(arena, arm, 1, lambda: None)
     placebo = placebo_arm(arena, arm, base, 1, lambda: None)
     result = effect_arm(arena, arm, base, "offset", 1, lambda: None)
-    validation = pick_scores(placebo, 5, arena.validation).numpy()
+    validation = arena.validation.scores(placebo, 5)
     row = attribution.effect_row(arena, "offset", result, base, placebo, validation)
     found = row["absorbed_by"]
     assert found["parameter"] == "s0" and found["absorbed"]

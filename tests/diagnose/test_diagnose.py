@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -199,6 +200,25 @@ def test_the_undeclared_effects_are_found_and_help(loops, case):
     assert (out / "loop" / "reference" / "metrics.json").exists()
     for figure in ("effects", "before_after", "residuals"):
         assert (out / "loop" / f"{figure}.png").stat().st_size > 0
+
+
+@pytest.mark.slow  # a second loop on the delay case's run
+def test_held_out_pairs_find_the_delay_and_carry_it_to_the_test_split(loops, tmp_path):
+    """validation='pairs' (10 of the 24 pairs held out, whole windows): the
+    delay is chosen by its minimum distance on pairs no arm saw, and it carries
+    to the test split."""
+    trained, _ = loops("delay")
+    out = tmp_path / "run"
+    shutil.copytree(trained, out, ignore=shutil.ignore_patterns("loop*"))
+    pairs = _pairs(*CASES["delay"][:2])
+    result = close_loop(
+        out, ['diagnose.validation="pairs"'], pairs=pairs, progress=False
+    )
+    assert (result["validation"], result["validation_units"]) == ("pairs", 10)
+    assert result["fit_pairs"] == 14
+    assert [e.split("(")[0] for e in result["chosen"]] == ["delay"]
+    assert result["after"]["min"] <= 0.85 * result["before_same_search"]["min"]
+    assert "held-out pairs" in (out / "loop.md").read_text()
 
 
 @pytest.mark.slow

@@ -673,8 +673,21 @@ class DiagnoseConfig(BaseModel):
         gt=0.1,
         lt=0.95,
         description=(
-            "Attribution fits the first fit_fraction of every training pair's "
-            "steps and scores the fitted particles on the rest (out of sample)."
+            "The share of the data the attribution fits: of every training "
+            "pair's steps (validation 'time'), or of the training pairs "
+            "(validation 'pairs'); the rest is out of sample."
+        ),
+    )
+    validation: Literal["auto", "time", "pairs"] = Field(
+        "auto",
+        description=(
+            "How an arm is judged out of sample: 'time' fits the first "
+            "fit_fraction of every training pair's steps and scores each pair's "
+            "picks on the rest; 'pairs' fits the whole windows of fit_fraction of "
+            "the training pairs (a seeded draw) and scores every other pair by "
+            "the best of all the picks (the minimum distance on pairs the arms "
+            "never saw); 'auto': 'pairs' where at least log2(permutations + 1) "
+            "pairs are held out (15 at the defaults), else 'time'."
         ),
     )
     validation_warmup: float = Field(
@@ -742,6 +755,15 @@ class DiagnoseConfig(BaseModel):
         if len(set(names)) != len(names):
             raise ValueError(f"an effect is listed twice: {effects}")
         return [token.strip().lower() for token in effects]
+
+    @model_validator(mode="after")
+    def _warmup_in_time(self) -> DiagnoseConfig:
+        if self.validation == "pairs" and self.validation_warmup > 0:
+            raise ValueError(
+                "diagnose.validation_warmup applies to validation 'time' only: a "
+                "held-out pair is simulated from its first step"
+            )
+        return self
 
 
 def _models_schema(schema: dict[str, Any]) -> None:

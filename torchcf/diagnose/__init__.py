@@ -20,13 +20,15 @@ run through the loop (:func:`torchcf.pipeline.close_loop`). Its concerns:
 - :mod:`.loop`: the loop's steps (:func:`plan_loop`, :func:`run_recalibration`,
   :func:`finish_loop`);
 - :mod:`.road`: road effects at the data's resolution (frame, knot spacing);
+- :mod:`.validation`: how an arm is judged out of sample (in time, or on
+  held-out pairs);
 - :mod:`.report`: ``loop.md``, its figures and ``loop.json``;
 - :mod:`.__main__`: the command line.
 
 Re-exports only.
 """
 
-from .arms import resolve_effect, split_in_time
+from .arms import resolve_effect
 from .attribution import EffectSelection, Selection, attribute_effects
 from .candidates import augmented_variants
 from .loop import (
@@ -50,6 +52,7 @@ from .series import (
     residual_tests,
 )
 from .testing import fallback_levels, sign_flip_test, step_levels
+from .validation import split_by_pair, split_in_time
 
 __all__ = [
     "Candidates",
@@ -76,6 +79,7 @@ __all__ = [
     "reusable",
     "run_recalibration",
     "sign_flip_test",
+    "split_by_pair",
     "split_in_time",
     "step_levels",
 ]

@@ -51,7 +51,7 @@ from ..data import PairSet
 from ..models import effect_kinds, get_model
 from ..models.effects import RoadProfile, parse_effect
 from .absorption import profile_values
-from .candidates import attribution_rollout, attribution_seed, prior_particles
+from .candidates import attribution_seed, prior_particles
 from .population import Population, merge, rescore
 from .search import (
     INVALID_RATIO,
@@ -64,127 +64,17 @@ from .search import (
     model_bounds,
     shared_value,
 )
-from .series import DiagnoseError
+from .validation import Validation, design
 
 #: Multiples of the secant the continuation's predictor tries (each a re-scoring
 #: of the start, far cheaper than a search round): the refit before is short of
 #: the ridge, so its secant is too.
 PREDICTOR_REACH = (0.5, 1.0, 2.0)
-#: Shortest out-of-sample window that counts for a pair [steps].
-MIN_VALIDATION_STEPS = 20
 #: Design points of a driver effect (and of the placebo's refits).
 DESIGN_POINTS = 5
 #: Refinements of a shared value around the profile's best (each halves the
 #: step).
 REFINEMENTS = 2
-
-
-# ------------------------------------------------------------------- the data
-def split_in_time(pairs: PairSet, fraction: float) -> tuple[PairSet, PairSet]:
-    """The first ``fraction`` of the steps and the rest, for the same pairs.
-
-    Pairs with fewer than :data:`MIN_VALIDATION_STEPS` valid steps in the second
-    part are dropped from both, so both sets hold the same pairs.
-
-    Returns:
-        ``(fit, validation)``; the validation set starts from the observed state at
-        the split step.
-
-    Raises:
-        DiagnoseError: a window would be too short, or fewer than 2 pairs are
-            long enough.
-    """
-    pairs, split = _long_enough(pairs, fraction)
-    return _window(pairs, slice(0, split)), _window(pairs, slice(split, None))
-
-
-def warmed_validation(
-    pairs: PairSet, fraction: float, warmup: int
-) -> tuple[PairSet, PairSet]:
-    """The validation windows of :func:`split_in_time`, each begun ``warmup``
-    steps early: ``(long, warm)``, the steps ``split - warmup ..`` to the end and
-    ``split - warmup .. split - 1``, for the same pairs (:class:`WarmedRollout`
-    scores the difference). ``warmup`` is cut to the fit window's length."""
-    pairs, split = _long_enough(pairs, fraction)
-    start = split - min(warmup, split - 1)
-    return _window(pairs, slice(start, None)), _window(pairs, slice(start, split))
-
-
-def _long_enough(pairs: PairSet, fraction: float) -> tuple[PairSet, int]:
-    """The pairs with a validation window of at least
-    :data:`MIN_VALIDATION_STEPS` valid steps, and the split step."""
-    split = int(round(fraction * pairs.n_steps))
-    if split < MIN_VALIDATION_STEPS or pairs.n_steps - split < MIN_VALIDATION_STEPS:
-        raise DiagnoseError(
-            f"diagnose.fit_fraction={fraction}: {pairs.n_steps} steps leave a fit "
-            f"or validation window under {MIN_VALIDATION_STEPS} steps"
-        )
-    keep = pairs.mask[split:].sum(0) >= MIN_VALIDATION_STEPS
-    if int(keep.sum()) < 2:
-        raise DiagnoseError(
-            "fewer than 2 training pairs are long enough for out-of-sample "
-            "validation; lower diagnose.fit_fraction"
-        )
-    return pairs.subset(keep), split
-
-
-def _window(pairs: PairSet, rows: slice) -> PairSet:
-    """The steps ``rows`` of every pair (a validation window starts from the
-    observed state at its first step)."""
-    return dataclasses.replace(
-        pairs,
-        **{field: t[rows] for field, t in pairs.series().items()},
-        mask=pairs.mask[rows],
-    )
-
-
-@dataclass(frozen=True)
-class WarmedRollout(Rollout):
-    """Scores on validation windows begun early, the early steps unscored.
-
-    The rollout runs on the long windows (``pairs``: the warm-up, then the
-    validation window) and on their warm-ups alone (``warm``); being causal and
-    deterministic, the latter repeats the long rollout's first steps exactly. The
-    validation window's RMSE per channel c is then
-    ``sqrt((n_long e_c,long^2 - n_warm e_c,warm^2) / (n_long - n_warm))`` and its
-    score ``sum_c w_c e_c`` (SPEC section 4's score over the window's steps), so
-    a memory effect (delay, lag, sync) enters the window with the history the
-    recorded leader gave it instead of a steady past. Invalid (``+inf``) when the
-    long rollout is.
-    """
-
-    warm: PairSet | None = None
-
-    def score(self, model, theta, pair, *, chunk=None, compiled=False):
-        if pair is None or self.warm is None:
-            raise ValueError("a warmed validation scores paired particles only")
-        run = {"chunk": chunk, "compiled": compiled}
-        long = self.rollouts(model, theta, pair, **run)
-        early = dataclasses.replace(self, pairs=self.warm).rollouts(
-            model, theta, pair, **run
-        )
-        n_long = self.pairs.mask.sum(0).to(torch.float64)[pair]  # (P,)
-        n_warm = self.warm.mask.sum(0).to(torch.float64)[pair]
-        score = torch.zeros_like(n_long)
-        for weight, channel in zip(self.weights, ("e_p", "e_v", "e_a"), strict=True):
-            e_long = getattr(long, channel).double().cpu()
-            e_warm = getattr(early, channel).double().cpu()
-            sse = n_long * e_long**2 - n_warm * e_warm**2
-            score += weight * torch.sqrt(sse.clamp(min=0) / (n_long - n_warm))
-        valid = long.valid.cpu()
-        return torch.where(valid, score, math.inf), valid
-
-
-def validation_rollout(cfg: TrainConfig, train_pairs: PairSet) -> Rollout | None:
-    """The validation windows' :class:`WarmedRollout` when
-    ``diagnose.validation_warmup`` asks for one, else None."""
-    settings = cfg.diagnose
-    steps = int(round(settings.validation_warmup / train_pairs.dt))
-    if steps < 1:
-        return None
-    long, warm = warmed_validation(train_pairs, settings.fit_fraction, steps)
-    plain = attribution_rollout(cfg, long)
-    return WarmedRollout(**vars(plain), warm=warm)
 
 
 def resolve_effect(token: str, pairs: PairSet) -> str:
@@ -205,7 +95,9 @@ class Arena:
 
     Attributes:
         settings: the run's ``diagnose`` section (budgets, search, test).
-        fit: simulates on the fit windows; validation: on the validation windows.
+        fit: simulates on the fit windows (or the fit pairs' whole windows).
+        validation: judges an arm out of sample (:mod:`torchcf.diagnose.
+            validation`).
         seed: the seed every random draw of the attribution derives from
             (:func:`attribution_seed`).
         priors: the run's prior box (K, 2) per pool model.
@@ -219,7 +111,7 @@ class Arena:
 
     settings: DiagnoseConfig
     fit: Rollout
-    validation: Rollout
+    validation: Validation
     seed: int
     priors: dict[str, Tensor]
     top_n: int
@@ -229,15 +121,16 @@ class Arena:
 
     @classmethod
     def of(cls, cfg: TrainConfig, train_pairs: PairSet, **extra: Any) -> Arena:
-        """The arena of the run's config on its training pairs, split in time."""
+        """The arena of the run's config on its training pairs, split as
+        ``diagnose.validation`` asks."""
         settings = cfg.diagnose
-        fit, validation = split_in_time(train_pairs, settings.fit_fraction)
+        seed = attribution_seed(cfg)
+        fit, validation = design(cfg, train_pairs, seed)
         return cls(
             settings=settings,
-            fit=attribution_rollout(cfg, fit),
-            validation=validation_rollout(cfg, train_pairs)
-            or attribution_rollout(cfg, validation),
-            seed=attribution_seed(cfg),
+            fit=fit,
+            validation=validation,
+            seed=seed,
             priors={spec.name: spec.bounds(torch.float64) for spec in cfg.models},
             top_n=cfg.abc.top_n,
             smc=SMCSettings(**cfg.abc.smc.model_dump())
@@ -717,7 +610,6 @@ __all__ = [
     "PREDICTOR_REACH",
     "first_steps_halved",
     "predicted",
-    "MIN_VALIDATION_STEPS",
     "REFINEMENTS",
     "Arena",
     "Arm",
@@ -731,5 +623,4 @@ __all__ = [
     "profile_search",
     "repin",
     "resolve_effect",
-    "split_in_time",
 ]

@@ -1,8 +1,10 @@
 """Attribution: which candidate effects lower the out-of-sample error (loop step 2).
 
-Every training pair is split in time (:func:`~torchcf.diagnose.arms.
-split_in_time`): the arms are fitted on its first ``fit_fraction`` of steps (the
-*fit windows*) and judged on the rest (the *validation windows*), out of sample.
+The training data are split (:mod:`torchcf.diagnose.validation`): in time, the
+arms fitted on every pair's first ``fit_fraction`` of steps (the *fit windows*)
+and judged on the rest (the *validation windows*); or by pair, fitted on
+``fit_fraction`` of the pairs and judged on the others, held out whole. Either
+way they are judged out of sample.
 
 **The arms** (:mod:`torchcf.diagnose.arms`). The current model (at first the
 active pool) is fitted on the fit windows until its search converges. Each step
@@ -12,11 +14,12 @@ and an effect arm per candidate effect. An effect arm holds the base arm, so
 holds the same base arm and the same extra search with common random numbers,
 without the effect.
 
-**The test.** Per pair, an arm's ``top_n`` best (the hybrid's picks) are scored
-on the validation window; the pair's value is their median. The effect's gain is
-the relative drop of the summed validation score against the placebo, its
-p-value the one-sided sign-flip test of the per-pair log ratios
-(:mod:`torchcf.diagnose.testing`).
+**The test.** Per validation unit, the arm's out-of-sample score
+(:meth:`~torchcf.diagnose.validation.Validation.scores`: a pair's ``top_n`` best,
+the hybrid's picks, on its validation window, their median; or a held-out
+pair's best score among all the picks). The effect's gain is the relative drop
+of the summed score against the placebo, its p-value the one-sided sign-flip
+test of the per-unit log ratios (:mod:`torchcf.diagnose.testing`).
 
 **The order and the guard.** The residual signatures of the current model on the
 fit windows (:mod:`torchcf.diagnose.signatures`) point to effects; the effects of
@@ -46,6 +49,7 @@ Shapes: N pairs, S slots per pair, K parameters (:mod:`torchcf.typing`).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Callable
@@ -73,7 +77,7 @@ from .arms import (
     fit_pool,
     placebo_arm,
 )
-from .population import Population, pick_scores
+from .population import Population
 from .road import one_step_residual
 from .series import BestParticles, residual_series
 from .signatures import Signature, pointed_effects, signatures
@@ -138,7 +142,7 @@ def effect_row(
     mine = _fit_statistic(result.population, n).numpy()
     fit_gain, _ = _relative_drop(_fit_statistic(placebo, n).numpy(), mine)
     base_fit_gain, _ = _relative_drop(_fit_statistic(base, n).numpy(), mine)
-    after = pick_scores(result.population, n, arena.validation).numpy()
+    after = arena.validation.scores(result.population, n)
     gain, drops = _relative_drop(placebo_validation, after)
     statistic, p_value = sign_flip_test(drops, arena.settings.permutations)
     usable = np.isfinite(placebo_validation) & np.isfinite(after)
@@ -312,6 +316,8 @@ class EffectSelection:
         shared: per chosen shared effect name, its one value.
         steps_at_most: the selection's steps at most, ``min(max_effects, E)``.
         levels: the level of each step (they sum to ``alpha``).
+        validation: how the arms were judged, ``"time"`` or ``"pairs"``
+            (:mod:`torchcf.diagnose.validation`), and over how many units.
     """
 
     steps: list[list[dict[str, Any]]]
@@ -321,6 +327,7 @@ class EffectSelection:
     shared: dict[str, list[float]]
     steps_at_most: int
     levels: list[float]
+    validation: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @property
     def shared_priors(self) -> dict[str, dict[str, tuple[float, float]]]:
@@ -425,7 +432,7 @@ def attribute_effects(
             tick,
         )
         placebo = _from_dict(raw)
-        placebo_validation = pick_scores(placebo, arena.top_n, arena.validation).numpy()
+        placebo_validation = arena.validation.scores(placebo, arena.top_n)
         rows, arms = [], {}
         for effect in remaining:
             entry = cached(
@@ -479,6 +486,11 @@ def attribute_effects(
         shared={k: v.tolist() for k, v in arm.shared.items()},
         steps_at_most=steps_at_most,
         levels=levels,
+        validation={
+            "kind": arena.validation.kind,
+            "units": arena.validation.n_units,
+            "fit_pairs": arena.fit.pairs.n_pairs,
+        },
     )
 
 

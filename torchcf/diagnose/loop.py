@@ -50,12 +50,14 @@ from ..posterior import Posterior
 from ..rundir import RunDir
 from .arms import resolve_effect
 from .attribution import EffectSelection, attribute_effects
+from .candidates import attribution_seed
 from .identifiability import effect_identifiability
 from .recalibrate import recalibrate, recalibration_config, write_run
 from .report import write_report
-from .road import choose_spacing, fit_window, one_step_residual, shares_road_frame
+from .road import choose_spacing, one_step_residual, shares_road_frame
 from .series import DiagnoseError, best_particles, diagnose_residuals
 from .signatures import FAMILIES
+from .validation import fit_part
 
 FORMAT = "torchcf.loop/2"
 
@@ -169,12 +171,12 @@ def candidate_effects(
     Road effects (``scope = "road"``) only where the pairs share one road frame
     (:func:`~torchcf.diagnose.road.shares_road_frame`); a bare ``grade`` or
     ``bend`` spans the pairs' road section with its knot spacing chosen by
-    cross-validation on the fit windows' one-step residuals
+    cross-validation on the one-step residuals of the part the arms are fitted
+    on (:func:`~torchcf.diagnose.validation.fit_part`)
     (:func:`~torchcf.diagnose.road.choose_spacing`).
     """
     frame, reason = shares_road_frame(train_pairs)
-    fit_steps = int(round(cfg.diagnose.fit_fraction * train_pairs.n_steps))
-    fit_series = fit_window(series, fit_steps)
+    fit_series = fit_part(cfg, attribution_seed(cfg), train_pairs.n_steps, series)
     effects, skipped, profiles, seeds = [], [], [], {}
     profile = None
     for token in cfg.diagnose.effects:
@@ -409,6 +411,10 @@ def finish_loop(plan: LoopPlan) -> dict[str, Any]:
         "levels": selection.levels,
         "alpha": settings.alpha,
         "fit_fraction": settings.fit_fraction,
+        "validation": selection.validation.get("kind", "time"),
+        "validation_asked": settings.validation,
+        "validation_units": selection.validation.get("units"),
+        "fit_pairs": selection.validation.get("fit_pairs"),
         "min_gain": settings.min_gain,
         "search": {
             "population": max(settings.population, plan.cfg.abc.top_n),

@@ -76,12 +76,49 @@ def _method(result: dict[str, Any]) -> list[str]:
     """How an effect is compared with its base, and why the p-value is valid."""
     search = result.get("search", {})
     levels = ", ".join(f"{level:.3g}" for level in result.get("levels", []))
+    by_pair = result.get("validation", "time") == "pairs"
+    if by_pair:
+        split = (
+            "The training pairs are split in two by a seeded draw: "
+            f"{result.get('fit_pairs', '?')} ({result['fit_fraction']:.0%}) are "
+            "the *fit pairs*, whole windows, the other "
+            f"{result.get('validation_units', '?')} the *held-out pairs*, which "
+            "no arm sees. The current model (at first the pool) is fitted on "
+            f"the fit pairs ({search.get('population', '?')} particles per pair)"
+        )
+        judged = (
+            "Every held-out pair is scored by the best of the arm's best "
+            "particles (the hybrid's picks), pooled over the fit pairs: the "
+            "minimum distance of the test split, on pairs the arm never saw; "
+            "*gain* is the relative drop of the summed held-out score, the "
+            "p-value a one-sided sign-flip test of the per-pair log score "
+            "ratios. The held-out pairs are independent of one another and of "
+            "the fit given the fit pairs"
+        )
+    else:
+        fallback = (
+            " (validation 'auto': held out, too few pairs would deny the test "
+            "levels the windows reach)"
+            if result.get("validation_asked") == "auto"
+            else ""
+        )
+        split = (
+            f"Every training pair is split in time{fallback}: the "
+            f"first {result['fit_fraction']:.0%} of its steps are the *fit "
+            "window*, the rest the *validation window*. The current model (at "
+            "first the pool) is fitted on the fit windows "
+            f"({search.get('population', '?')} particles per pair)"
+        )
+        judged = (
+            "Per pair, the arm's best particles (the hybrid's picks) "
+            "are scored on the validation window, out of sample; *gain* is the "
+            "relative drop of the summed validation score, the p-value a "
+            "one-sided sign-flip test of the per-pair log score ratios. The "
+            "pairs are independent and the arms saw only the fit windows"
+        )
     return [
-        "**How an effect is tested.** Every training pair is split in time: the "
-        f"first {result['fit_fraction']:.0%} of its steps are the *fit window*, "
-        "the rest the *validation window*. The current model (at first the pool) "
-        f"is fitted on the fit windows ({search.get('population', '?')} particles "
-        "per pair) until its local search converges. Every candidate effect is "
+        f"**How an effect is tested.** {split} until its local search "
+        "converges. Every candidate effect is "
         "then compared from that one fit: the **base arm** searches "
         f"{search.get('rounds', '?')} more rounds by itself; the **effect arm** "
         "lifts the same particles to the variants with the effect (at its neutral "
@@ -99,12 +136,8 @@ def _method(result: dict[str, Any]) -> list[str]:
         "of refits with the design points' budgets, then the same rounds), with "
         "*common random numbers*. Both hold the base arm and one more search of "
         "equal budget, so the difference is the effect, not a second search "
-        "(which alone lowers the error of a model short of its optimum). Per "
-        "pair, the arm's best particles (the hybrid's picks) "
-        "are scored on the validation window, out of sample; *gain* is the "
-        "relative drop of the summed validation score, the p-value a one-sided "
-        "sign-flip test of the per-pair log score ratios. The pairs are "
-        "independent and the arms saw only the fit windows, so under 'the "
+        "(which alone lowers the error of a model short of its optimum). "
+        f"{judged}, so under 'the "
         "effect does not improve the out-of-sample fit' every pair's ratio is as "
         "likely to fall as to rise: the test is exact, whatever decided the "
         "particles and the order of the tests on the fit windows. *In-sample "
@@ -153,8 +186,9 @@ def _road(road: dict[str, Any] | None) -> list[str]:
         )
         lines.append(
             f"`{profile['effect']}`: knots {profile['spacing']:g} m apart, chosen "
-            "by 5-fold cross-validation over pairs of the fit windows' one-step "
-            f"acceleration residual on the profile (held-out squared error: "
+            "by 5-fold cross-validation over pairs of the one-step acceleration "
+            "residual on the profile, on the part the arms are fitted on (the "
+            "fit windows, or the fit pairs) (held-out squared error: "
             f"{errors})."
         )
     return [*lines, ""]

@@ -190,11 +190,6 @@ def _command_residual(
     )
 
 
-def fit_window(series: dict[str, list[np.ndarray]], steps: int) -> dict[str, list]:
-    """The series cut to each pair's first ``steps`` steps (the fit windows)."""
-    return {key: [a[:steps] for a in arrays] for key, arrays in series.items()}
-
-
 def _least_squares(design: np.ndarray, target: np.ndarray) -> np.ndarray:
     """Ridge-stabilised least squares ``argmin |design b - target|^2``."""
     gram = design.T @ design
@@ -382,7 +377,6 @@ __all__ = [
     "bend_seed",
     "choose_spacing",
     "cross_validated_error",
-    "fit_window",
     "grade_seed",
     "one_step_residual",
     "profile_agreement",

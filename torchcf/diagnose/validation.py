@@ -1,0 +1,324 @@
+"""How the attribution judges an arm out of sample (``diagnose.validation``).
+
+An arm is fitted on one part of the training data and judged on another that
+its search never saw; two designs split the data:
+
+- ``"time"`` (the default): every training pair is split in time
+  (:func:`split_in_time`). The arms are fitted on the first ``fit_fraction`` of
+  its steps (the *fit windows*); per pair, the arm's ``top_n`` best (the
+  hybrid's picks of that pair) are scored on the rest (the *validation window*,
+  begun from the observed state at the split, or earlier with
+  ``validation_warmup``: :class:`WarmedRollout`), and the pair's value is their
+  median (:func:`~torchcf.diagnose.population.pick_scores`). It asks: does the
+  fit of *this* driver carry forward in time?
+- ``"pairs"``: the training pairs are split in two by a seeded draw
+  (:func:`split_by_pair`): the arms are fitted on the whole windows of
+  ``fit_fraction`` of them (the *fit pairs*); every other pair (a *held-out
+  pair*) is scored by the best of all the arm's picks, pooled over the fit
+  pairs (:func:`coverage_scores`): SPEC section 6's minimum distance, on pairs
+  the arm never saw. It asks what the test split asks: does the learned set
+  cover drivers it has not seen? Pairs, not windows, are then the units of the
+  sign-flip test; they are independent of the fit given the fit pairs, so the
+  test is exact as in the time design.
+- ``"auto"`` (the default): ``"pairs"`` where the held-out pairs are enough
+  for the test, else ``"time"`` (:func:`resolve_validation`). A sign-flip test
+  over V units cannot give a p-value below ``2^-V`` (all V drops positive), and
+  the test's own resolution is ``1 / (permutations + 1)``; the held-out pairs
+  are enough when ``2^-V`` is below that resolution (V >= 15 at the default
+  20 000 permutations), so that no test of the step is denied a level the time
+  design could reach. Fewer pairs keep the time design, whose units are all
+  the training pairs. A ``validation_warmup`` asks for the time design.
+
+Shapes: N pairs, S slots per pair, Q particles, V held-out pairs
+(:mod:`torchcf.typing`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..abc.rejection import Rollout
+from ..config import DiagnoseConfig, TrainConfig
+from ..data import PairSet
+from ..models import get_model
+from .candidates import attribution_rollout
+from .population import Population, pick_scores
+from .series import DiagnoseError
+
+#: Shortest out-of-sample window that counts for a pair [steps].
+MIN_VALIDATION_STEPS = 20
+#: Fewest pairs on either side of a split by pair.
+MIN_PAIRS = 2
+
+
+# --------------------------------------------------------- split in time
+def split_in_time(pairs: PairSet, fraction: float) -> tuple[PairSet, PairSet]:
+    """The first ``fraction`` of the steps and the rest, for the same pairs.
+
+    Pairs with fewer than :data:`MIN_VALIDATION_STEPS` valid steps in the second
+    part are dropped from both, so both sets hold the same pairs.
+
+    Returns:
+        ``(fit, validation)``; the validation set starts from the observed state at
+        the split step.
+
+    Raises:
+        DiagnoseError: a window would be too short, or fewer than 2 pairs are
+            long enough.
+    """
+    pairs, split = _long_enough(pairs, fraction)
+    return _window(pairs, slice(0, split)), _window(pairs, slice(split, None))
+
+
+def warmed_validation(
+    pairs: PairSet, fraction: float, warmup: int
+) -> tuple[PairSet, PairSet]:
+    """The validation windows of :func:`split_in_time`, each begun ``warmup``
+    steps early: ``(long, warm)``, the steps ``split - warmup ..`` to the end and
+    ``split - warmup .. split - 1``, for the same pairs (:class:`WarmedRollout`
+    scores the difference). ``warmup`` is cut to the fit window's length."""
+    pairs, split = _long_enough(pairs, fraction)
+    start = split - min(warmup, split - 1)
+    return _window(pairs, slice(start, None)), _window(pairs, slice(start, split))
+
+
+def _long_enough(pairs: PairSet, fraction: float) -> tuple[PairSet, int]:
+    """The pairs with a validation window of at least
+    :data:`MIN_VALIDATION_STEPS` valid steps, and the split step."""
+    split = int(round(fraction * pairs.n_steps))
+    if split < MIN_VALIDATION_STEPS or pairs.n_steps - split < MIN_VALIDATION_STEPS:
+        raise DiagnoseError(
+            f"diagnose.fit_fraction={fraction}: {pairs.n_steps} steps leave a fit "
+            f"or validation window under {MIN_VALIDATION_STEPS} steps"
+        )
+    keep = pairs.mask[split:].sum(0) >= MIN_VALIDATION_STEPS
+    if int(keep.sum()) < 2:
+        raise DiagnoseError(
+            "fewer than 2 training pairs are long enough for out-of-sample "
+            "validation; lower diagnose.fit_fraction"
+        )
+    return pairs.subset(keep), split
+
+
+def _window(pairs: PairSet, rows: slice) -> PairSet:
+    """The steps ``rows`` of every pair (a validation window starts from the
+    observed state at its first step)."""
+    return dataclasses.replace(
+        pairs,
+        **{field: t[rows] for field, t in pairs.series().items()},
+        mask=pairs.mask[rows],
+    )
+
+
+@dataclass(frozen=True)
+class WarmedRollout(Rollout):
+    """Scores on validation windows begun early, the early steps unscored.
+
+    The rollout runs on the long windows (``pairs``: the warm-up, then the
+    validation window) and on their warm-ups alone (``warm``); being causal and
+    deterministic, the latter repeats the long rollout's first steps exactly. The
+    validation window's RMSE per channel c is then
+    ``sqrt((n_long e_c,long^2 - n_warm e_c,warm^2) / (n_long - n_warm))`` and its
+    score ``sum_c w_c e_c`` (SPEC section 4's score over the window's steps), so
+    a memory effect (delay, lag, sync) enters the window with the history the
+    recorded leader gave it instead of a steady past. Invalid (``+inf``) when the
+    long rollout is.
+    """
+
+    warm: PairSet | None = None
+
+    def score(self, model, theta, pair, *, chunk=None, compiled=False):
+        if pair is None or self.warm is None:
+            raise ValueError("a warmed validation scores paired particles only")
+        run = {"chunk": chunk, "compiled": compiled}
+        long = self.rollouts(model, theta, pair, **run)
+        early = dataclasses.replace(self, pairs=self.warm).rollouts(
+            model, theta, pair, **run
+        )
+        n_long = self.pairs.mask.sum(0).to(torch.float64)[pair]  # (P,)
+        n_warm = self.warm.mask.sum(0).to(torch.float64)[pair]
+        score = torch.zeros_like(n_long)
+        for weight, channel in zip(self.weights, ("e_p", "e_v", "e_a"), strict=True):
+            e_long = getattr(long, channel).double().cpu()
+            e_warm = getattr(early, channel).double().cpu()
+            sse = n_long * e_long**2 - n_warm * e_warm**2
+            score += weight * torch.sqrt(sse.clamp(min=0) / (n_long - n_warm))
+        valid = long.valid.cpu()
+        return torch.where(valid, score, math.inf), valid
+
+
+def validation_rollout(cfg: TrainConfig, train_pairs: PairSet) -> Rollout | None:
+    """The validation windows' :class:`WarmedRollout` when
+    ``diagnose.validation_warmup`` asks for one, else None."""
+    settings = cfg.diagnose
+    steps = int(round(settings.validation_warmup / train_pairs.dt))
+    if steps < 1:
+        return None
+    long, warm = warmed_validation(train_pairs, settings.fit_fraction, steps)
+    plain = attribution_rollout(cfg, long)
+    return WarmedRollout(**vars(plain), warm=warm)
+
+
+# ---------------------------------------------------------- split by pair
+def split_by_pair(
+    pairs: PairSet, fraction: float, seed: int
+) -> tuple[PairSet, PairSet]:
+    """``fraction`` of the pairs (a seeded draw, kept in their order) and the
+    rest: ``(fit, held_out)``, whole windows both.
+
+    Raises:
+        DiagnoseError: fewer than :data:`MIN_PAIRS` pairs on a side.
+    """
+    fit, held = pair_split(pairs.n_pairs, fraction, seed)
+    return pairs.subset(fit), pairs.subset(held)
+
+
+def pair_split(n_pairs: int, fraction: float, seed: int) -> tuple[Tensor, Tensor]:
+    """The positions (ascending, int64) of the fit pairs and of the held-out
+    pairs of :func:`split_by_pair`.
+
+    Raises:
+        DiagnoseError: fewer than :data:`MIN_PAIRS` pairs on a side.
+    """
+    n_fit = n_pairs - held_out_count(n_pairs, fraction)
+    if min(n_fit, n_pairs - n_fit) < MIN_PAIRS:
+        raise DiagnoseError(
+            f"diagnose.validation='pairs' with fit_fraction={fraction} leaves fewer "
+            f"than {MIN_PAIRS} of the {n_pairs} training pairs on a side; "
+            "use diagnose.validation='time'"
+        )
+    draw = torch.randperm(n_pairs, generator=torch.Generator().manual_seed(seed))
+    return torch.sort(draw[:n_fit]).values, torch.sort(draw[n_fit:]).values
+
+
+def fit_part(
+    cfg: TrainConfig, seed: int, n_steps: int, series: dict[str, list[np.ndarray]]
+) -> dict[str, list[np.ndarray]]:
+    """The part of per-pair series (one array per training pair, in order) that
+    the arms are fitted on: every pair's fit window, or the fit pairs whole; what
+    is decided from it (a road profile's knot spacing) never sees the data the
+    arms are judged on."""
+    settings = cfg.diagnose
+    n_pairs = len(next(iter(series.values()), []))
+    if resolve_validation(settings, n_pairs) == "pairs":
+        fit, _ = pair_split(n_pairs, settings.fit_fraction, seed)
+        kept = fit.tolist()
+        return {key: [arrays[i] for i in kept] for key, arrays in series.items()}
+    steps = int(round(settings.fit_fraction * n_steps))
+    return {key: [a[:steps] for a in arrays] for key, arrays in series.items()}
+
+
+def coverage_scores(population: Population, n: int, rollout: Rollout) -> Tensor:
+    """(V,) float64: per held-out pair of ``rollout``, the lowest score of the
+    population's ``n`` best per pair, pooled over its pairs (every pick on
+    every held-out pair: ``Q * V`` rollouts); ``+inf`` where none is valid.
+
+    This is SPEC section 6's minimum distance per test pair, with the picks as
+    the learned set and the held-out pairs as the test pairs."""
+    picks = population.best(n)
+    n_held = rollout.pairs.n_pairs
+    best = torch.full((n_held,), math.inf, dtype=torch.float64)
+    for name in picks.models:
+        pair, slot = picks.model_slots(name)
+        if pair.numel() == 0:
+            continue
+        theta = picks.theta[pair, slot, : get_model(name).n_params]  # (Q, K)
+        every = theta.repeat_interleave(n_held, dim=0)  # (Q * V, K)
+        on = torch.arange(n_held).repeat(theta.shape[0])  # (Q * V,)
+        score, _ = rollout.score(get_model(name), every, on)
+        score = score.cpu().double().reshape(theta.shape[0], n_held)
+        best = torch.minimum(best, score.min(0).values)
+    return best
+
+
+# ------------------------------------------------------------- the design
+def held_out_count(n_pairs: int, fraction: float) -> int:
+    """V, the training pairs :func:`split_by_pair` holds out."""
+    return n_pairs - int(round(fraction * n_pairs))
+
+
+def resolve_validation(settings: DiagnoseConfig, n_pairs: int) -> str:
+    """``diagnose.validation``, with ``"auto"`` resolved (module docstring):
+    ``"pairs"`` when the held-out pairs reach the sign-flip test's resolution
+    (``2^-V <= 1 / (permutations + 1)``) and no warm-up asks for windows in
+    time, else ``"time"``."""
+    if settings.validation != "auto":
+        return settings.validation
+    if settings.validation_warmup > 0:
+        return "time"
+    enough = math.ceil(math.log2(settings.permutations + 1))
+    held = held_out_count(n_pairs, settings.fit_fraction)
+    return "pairs" if held >= enough else "time"
+
+
+@dataclass(frozen=True)
+class Validation:
+    """Out-of-sample scores of an arm (module docstring).
+
+    Attributes:
+        kind: ``"time"`` (validation windows of the fit pairs) or ``"pairs"``
+            (held-out pairs).
+        rollout: simulates on the validation windows, or on the held-out pairs.
+    """
+
+    kind: Literal["time", "pairs"]
+    rollout: Rollout
+
+    @property
+    def n_units(self) -> int:
+        """The validation units: pairs with a validation window, or held-out
+        pairs."""
+        return self.rollout.pairs.n_pairs
+
+    @property
+    def units(self) -> str:
+        """What one value of :meth:`scores` is, for the report."""
+        return "validation windows" if self.kind == "time" else "held-out pairs"
+
+    def scores(self, population: Population, n: int) -> np.ndarray:
+        """(U,) float64, one value per validation unit (a fit pair's validation
+        window, or a held-out pair); ``+inf`` where invalid."""
+        if self.kind == "time":
+            return pick_scores(population, n, self.rollout).numpy()
+        return coverage_scores(population, n, self.rollout).numpy()
+
+
+def design(
+    cfg: TrainConfig, train_pairs: PairSet, seed: int
+) -> tuple[Rollout, Validation]:
+    """The fit rollout and the :class:`Validation` of ``diagnose.validation``
+    (``"auto"`` resolved by :func:`resolve_validation`)."""
+    settings = cfg.diagnose
+    if resolve_validation(settings, train_pairs.n_pairs) == "pairs":
+        fit, held = split_by_pair(train_pairs, settings.fit_fraction, seed)
+        return attribution_rollout(cfg, fit), Validation(
+            "pairs", attribution_rollout(cfg, held)
+        )
+    fit, window = split_in_time(train_pairs, settings.fit_fraction)
+    rollout = validation_rollout(cfg, train_pairs) or attribution_rollout(cfg, window)
+    return attribution_rollout(cfg, fit), Validation("time", rollout)
+
+
+__all__ = [
+    "MIN_PAIRS",
+    "MIN_VALIDATION_STEPS",
+    "Validation",
+    "WarmedRollout",
+    "coverage_scores",
+    "design",
+    "fit_part",
+    "held_out_count",
+    "pair_split",
+    "resolve_validation",
+    "split_by_pair",
+    "split_in_time",
+    "validation_rollout",
+    "warmed_validation",
+]
