@@ -62,6 +62,26 @@ def test_fine_structure_gets_fine_knots_and_smooth_gets_coarse():
     assert parse_effect(wavy.token).knots == round(1200 / wavy.spacing) + 1
 
 
+def test_a_residual_the_model_cannot_give_is_left_out_of_the_choice():
+    """A non-finite one-step residual (a command the model cannot give at the
+    observed state) drops its sample: the choice equals the one without it."""
+    series = _series(lambda x: _wavy_grade(x, 800), noise=0.3)
+    spoiled = {k: [a.copy() for a in v] for k, v in series.items()}
+    spoiled["acceleration"][3][10] = np.nan
+    spoiled["acceleration"][7][-1] = np.inf
+    without = {
+        k: [
+            np.delete(a, 10) if i == 3 else a[:-1] if i == 7 else a
+            for i, a in enumerate(v)
+        ]
+        for k, v in series.items()
+    }
+    got = choose_spacing("grade", 0.0, 1200.0, spoiled)
+    expected = choose_spacing("grade", 0.0, 1200.0, without)
+    assert got.token == expected.token and got.errors == expected.errors
+    assert torch.equal(got.seed, expected.seed)
+
+
 def test_the_grade_seed_is_the_profile_in_the_residual():
     series = _series(lambda x: _wavy_grade(x, 600), noise=0.2)
     choice = choose_spacing("grade", 0.0, 1200.0, series)

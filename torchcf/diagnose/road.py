@@ -267,7 +267,10 @@ def choose_spacing(
     name: str, start: float, end: float, series: dict[str, list[np.ndarray]]
 ) -> RoadChoice:
     """The knot spacing of a bare road effect by cross-validation (module
-    docstring), on the residual ``series`` of the fit windows."""
+    docstring), on the residual ``series`` of the part the arms are fitted on.
+    Samples where the residual is not finite (a command the model cannot give
+    at the observed state) are left out."""
+    series = finite_samples(series)
     x, residual = series["x"], series["acceleration"]
     errors: dict[float, float] = {}
     standard: dict[float, float] = {}
@@ -294,6 +297,19 @@ def choose_spacing(
     elif isinstance(effect, Bend) and "v" in series:
         seed = bend_seed(effect, x, series["v"])
     return RoadChoice(effect.token, best, errors, standard, seed)
+
+
+def finite_samples(series: dict[str, list[np.ndarray]]) -> dict[str, list[np.ndarray]]:
+    """The series with, per pair, only the steps where the position and the
+    acceleration residual are finite (every series cut alike)."""
+    keep = [
+        np.isfinite(x) & np.isfinite(r)
+        for x, r in zip(series["x"], series["acceleration"], strict=True)
+    ]
+    return {
+        key: [a[k] for a, k in zip(arrays, keep, strict=True)]
+        for key, arrays in series.items()
+    }
 
 
 def grade_seed(
@@ -377,6 +393,7 @@ __all__ = [
     "bend_seed",
     "choose_spacing",
     "cross_validated_error",
+    "finite_samples",
     "grade_seed",
     "one_step_residual",
     "profile_agreement",
