@@ -117,6 +117,36 @@ def test_training_evaluation_and_diagnosis_on_cuda(tmp_path):
     assert (out / "loop.json").exists() and "effects_ranked" in result
 
 
+def test_held_out_coverage_on_cuda_equals_cpu():
+    """The loop's held-out-pair scores (diagnose.validation = "pairs"): every
+    pick on every held-out pair, its best, on the GPU as on the CPU."""
+    from torchcf.abc.particles import Particles
+    from torchcf.abc.rejection import Rollout
+    from torchcf.diagnose import Population
+    from torchcf.diagnose.validation import coverage_scores, split_by_pair
+    from torchcf.models import get_model
+
+    pairs = synthetic_pairs(n_pairs=10, n_steps=150, seed=6)
+    fit, held = split_by_pair(pairs, 0.6, seed=1)
+    sets = []
+    for s, name in enumerate(("idm", "hl")):
+        theta = prior_draws(get_model(name), 24, seed=s)
+        at = torch.arange(24) % fit.n_pairs
+        rollout = Rollout(fit, True, torch.float64, compile="off")
+        score, _ = rollout.score(get_model(name), theta, at)
+        sets.append(Particles(name, theta, at, score, torch.arange(24)))
+    population = Population.from_particles(sets, fit.n_pairs, 4)
+    on = {
+        device: coverage_scores(
+            population,
+            3,
+            Rollout(held, True, torch.float64, torch.device(device), compile="off"),
+        )
+        for device in ("cpu", "cuda")
+    }
+    torch.testing.assert_close(on["cuda"], on["cpu"], rtol=1e-9, atol=1e-12)
+
+
 @pytest.mark.skipif(
     torch.cuda.device_count() < 2, reason="torchrun with nccl needs two GPUs"
 )
