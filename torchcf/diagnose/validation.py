@@ -218,23 +218,21 @@ def fit_part(
 def coverage_scores(population: Population, n: int, rollout: Rollout) -> Tensor:
     """(V,) float64: per held-out pair of ``rollout``, the lowest score of the
     population's ``n`` best per pair, pooled over its pairs (every pick on
-    every held-out pair: ``Q * V`` rollouts); ``+inf`` where none is valid.
+    every held-out pair: the rollout's full layout, ``Q * V`` rollouts);
+    ``+inf`` where none is valid.
 
     This is SPEC section 6's minimum distance per test pair, with the picks as
     the learned set and the held-out pairs as the test pairs."""
     picks = population.best(n)
-    n_held = rollout.pairs.n_pairs
-    best = torch.full((n_held,), math.inf, dtype=torch.float64)
+    every_pair = dataclasses.replace(rollout, paired=False)
+    best = torch.full((rollout.pairs.n_pairs,), math.inf, dtype=torch.float64)
     for name in picks.models:
         pair, slot = picks.model_slots(name)
         if pair.numel() == 0:
             continue
         theta = picks.theta[pair, slot, : get_model(name).n_params]  # (Q, K)
-        every = theta.repeat_interleave(n_held, dim=0)  # (Q * V, K)
-        on = torch.arange(n_held).repeat(theta.shape[0])  # (Q * V,)
-        score, _ = rollout.score(get_model(name), every, on)
-        score = score.cpu().double().reshape(theta.shape[0], n_held)
-        best = torch.minimum(best, score.min(0).values)
+        score, _ = every_pair.score(get_model(name), theta, None)  # (Q, V)
+        best = torch.minimum(best, score.cpu().min(0).values)
     return best
 
 
