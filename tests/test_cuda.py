@@ -117,6 +117,27 @@ def test_training_evaluation_and_diagnosis_on_cuda(tmp_path):
     assert (out / "loop.json").exists() and "effects_ranked" in result
 
 
+def test_recalibration_by_training_on_cuda_keeps_the_cpu_particles(tmp_path):
+    """The loop's re-calibration by the run's sampler (float64): the reference
+    (the run's streams continued) and after (a variant trained) keep the
+    particles the CPU keeps."""
+    from torchcf.diagnose.retrain import retrain
+
+    pairs = synthetic_pairs(n_pairs=6, n_steps=200, seed=1)
+    results = []
+    for i, device in enumerate(("cpu", "cuda")):
+        cfg = _config(device=device, dtype="float64", models=["idm", "hl"])
+        train(cfg, tmp_path / f"run{i}", pairs=(pairs, pairs))
+        posterior = Posterior.load(tmp_path / f"run{i}" / "posterior.pt")
+        models = ["idm", "hl", "idm+delay"]
+        results.append(retrain(cfg, posterior, models, {}, {}, ["idm"], pairs))
+    for on_cpu, on_gpu in zip(*results, strict=True):
+        for name, cpu in on_cpu.items():
+            gpu = on_gpu[name]
+            assert torch.equal(cpu["index"], gpu["index"]), name
+            torch.testing.assert_close(gpu["score"], cpu["score"], rtol=1e-9, atol=0)
+
+
 def test_held_out_coverage_on_cuda_equals_cpu():
     """The loop's held-out-pair scores (diagnose.validation = "pairs"): every
     pick on every held-out pair, its best, on the GPU as on the CPU."""

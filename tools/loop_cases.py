@@ -55,7 +55,7 @@ from torch import Tensor
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
-from torchcf.config import validate_config  # noqa: E402
+from torchcf.config import DiagnoseConfig, validate_config  # noqa: E402
 from torchcf.data import PairSet, load_pairs  # noqa: E402
 from torchcf.diagnose.road import profile_agreement  # noqa: E402
 from torchcf.models import AugmentedModel, get_model, parse_effect  # noqa: E402
@@ -386,6 +386,21 @@ def profile_correlation(
     return profile_agreement(true_effect.token, truth, token, recovered, grid)
 
 
+#: The re-calibration, as the table's header says it.
+RECALIBRATION = {
+    "train": "re-calibration: the pool's variants trained as the run trained its "
+    "models, beside the run, against the pool given as many more draws",
+    "search": "re-calibration: local search from the run's particles beside the "
+    "same search without the effects",
+}
+
+
+def _recalibration(payload: dict) -> str:
+    """How the payload's loops re-calibrated (reports written before the
+    setting existed: by local search)."""
+    return payload.get("recalibration", "search")
+
+
 def markdown(payload: dict) -> str:
     meta = payload["meta"]
     lines = [
@@ -397,11 +412,11 @@ def markdown(payload: dict) -> str:
         + " "
         f"({payload['cases'][0]['n_effects']} candidate effects where the pairs "
         "share a road, forward selection of nested arms against a placebo, the "
-        "fallback procedure at alpha 0.05 over at most 3 steps; re-calibration "
-        "from the run's particles beside the same search without the effects). "
-        "WS and minimum distance on the test split: the run -> after "
-        "(the run's particles searched as after, without the effects, in "
-        "brackets). Cases: see `tools/loop_cases.py`.",
+        "fallback procedure at alpha 0.05 over at most 3 steps; "
+        + RECALIBRATION[_recalibration(payload)]
+        + "). WS and minimum distance on the test split: the run -> after "
+        "(before, searched as after, in brackets). Cases: see "
+        "`tools/loop_cases.py`.",
         "",
         "| case | pairs | expected | chosen | right | recovered (truth) | "
         "best first-step test | WS | min distance | loop |",
@@ -494,6 +509,9 @@ def main(argv: list[str] | None = None) -> int:
     payload = {
         "meta": bench_meta(sys.argv, args.threads),
         "diagnose": diagnose,
+        "recalibration": diagnose.get(
+            "recalibration", DiagnoseConfig.model_fields["recalibration"].default
+        ),
         "cases": rows,
     }
     write_report(REPORTS / name, payload, markdown(payload))

@@ -38,6 +38,7 @@ calls :func:`evaluate_run` after training.
 
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Sequence
 from contextlib import nullcontext
@@ -511,6 +512,7 @@ def _evaluate_held(
         **{entry: metrics[entry] for entry in entries},
         "hybrid_minus": honest["hybrid_minus"],
         "shares": honest["shares"],
+        "hybrid_min_by_pair": _by_pair(costs["hybrid"]["score"].min(axis=0)),
     }
 
     ensure_directory(report, "report directory")
@@ -587,6 +589,13 @@ def _evaluate_held(
             bar.update()
     run.write_metrics(result)
     return result
+
+
+def _by_pair(best: np.ndarray) -> list[float | None]:
+    """Per test pair, the hybrid's minimum distance (the best score of its
+    particles on that pair; None where none is valid), for paired comparisons
+    of two runs on the same test pairs (:mod:`torchcf.diagnose.loop`)."""
+    return [float(v) if math.isfinite(v) else None for v in best.tolist()]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -35,6 +35,7 @@ from .diagnose.loop import finish_loop, plan_loop, run_recalibration
 from .evaluate import evaluate_run
 from .rundir import RunDir
 from .train import RunSummary, check_budget, open_run, run_device, train
+from .train.engine import plausibility_screen
 
 
 @dataclass(frozen=True, eq=False)
@@ -205,7 +206,10 @@ def close_loop(
     with RunDir(run_dir).locked():
         plan = plan_loop(run_dir, overrides, pairs=pairs, progress=progress)
         if plan.recalibration is not None and not plan.resume_recalibration:
-            run_recalibration(plan, progress=progress)
+            # the re-calibration trains as the run did: with its plausibility
+            # filter, which the training stage builds (the loop sits below it)
+            screen = plausibility_screen(plan.cfg, plan.train_pairs)
+            run_recalibration(plan, progress=progress, screen=screen)
             for out in (plan.reference_dir, plan.recalibration_dir):
                 evaluate_run(
                     out, pairs=(plan.train_pairs, plan.test_pairs), progress=progress

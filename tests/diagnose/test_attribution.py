@@ -22,6 +22,7 @@ from torchcf.diagnose import (
     Population,
     fallback_levels,
     merge,
+    paired_change,
     sign_flip_test,
     step_levels,
 )
@@ -174,6 +175,20 @@ def test_sign_flip_test_calibration():
     assert sign_flip_test(rng.normal(1.0, 1.0, size=20), 2000)[1] < 0.01
     assert sign_flip_test(-np.abs(rng.normal(size=20)), 2000)[1] > 0.9
     assert sign_flip_test(np.zeros(20), 2000) == (0.0, 1.0)  # the same particles
+
+
+def test_paired_change_compares_two_runs_pair_by_pair():
+    before = [1.0, 2.0, None, 4.0, 1.0]
+    after = [0.5, 1.0, 3.0, 2.0, None]  # pairs 2 and 4: one run has no valid particle
+    row = paired_change(before, after, 1000)
+    assert row["pairs"] == 3 and row["better"] == 3
+    assert row["change"] == pytest.approx(-0.5)
+    assert row["p_value"] == pytest.approx(1 / 8, abs=0.04)  # 3 pairs: 2^-3 at best
+    worse = paired_change(after[:2], before[:2], 1000)
+    assert worse["better"] == 0 and worse["change"] == pytest.approx(1.0)
+    assert worse["p_value"] > 0.7
+    assert paired_change([1.0], [1.0, 2.0], 1000) is None  # other test pairs
+    assert paired_change([None], [1.0], 1000) is None
 
 
 # ---------------------------------------------------------------- nested arms

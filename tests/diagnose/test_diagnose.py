@@ -152,12 +152,18 @@ def test_the_undeclared_effects_are_found_and_help(loops, case):
     assert chosen["name"] in expected and chosen["significant"]
     assert chosen["p_value"] <= chosen["level"] and chosen["active"]
     assert sorted(e.split("(")[0] for e in result["chosen"]) == sorted(expected)
-    # against the run's particles searched as after, without the effects: the
-    # effects' share of the improvement; and against the run itself
+    # against the reference (the run with as many more draws, without the
+    # effects): the effects' share of the improvement; and against the run
+    # itself. Trained by the run's sampler (the default re-calibration) the
+    # variants keep the prior draws' spread: the minimum distance falls by
+    # 40-65 % here (tools/loop_cases.py: reports/loop_cases_train.md), WS by
+    # 10-35 % (the Gipps follower, outside the pool, the least).
     for before in (result["before_same_search"], result["before"]):
         assert before["ws"] > 0
-        assert result["after"]["ws"] <= 0.85 * before["ws"]
+        assert result["after"]["ws"] <= 0.93 * before["ws"]
         assert result["after"]["min"] <= 0.85 * before["min"]
+    for paired in result["test_pairs"].values():  # pair by pair, significantly
+        assert paired["change"] < 0 and paired["p_value"] <= 0.05
     medians = {
         name: stats["median"]
         for summary in result["posterior"].values()

@@ -738,6 +738,17 @@ class DiagnoseConfig(BaseModel):
             "abc.seed. Another seed checks that the answer is not luck."
         ),
     )
+    recalibration: Literal["train", "search"] = Field(
+        "train",
+        description=(
+            "How the chosen effects are re-calibrated on the whole training "
+            "windows: 'train' trains every pool model's variant as the run "
+            "trained its models (abc.method, abc.n_particles, beside the run's "
+            "buffers) against the pool given the same draws again; 'search' "
+            "refines the run's best particles by local search, with and without "
+            "the effects."
+        ),
+    )
     method: Literal["rejection", "smc"] = Field(
         "rejection",
         description=(

@@ -12,11 +12,15 @@ run through the loop (:func:`torchcf.pipeline.close_loop`). Its concerns:
 - :mod:`.population`: an arm's particles, per pair S slots;
 - :mod:`.search`: local search with common random numbers, nested starts, a
   shared effect's one value;
-- :mod:`.testing`: the sign-flip test and the fallback procedure;
+- :mod:`.testing`: the sign-flip test, the fallback procedure and the paired
+  comparison of two runs on the test pairs;
 - :mod:`.absorption`: which of a model's own parameters takes an effect up;
 - :mod:`.arms`: the base, placebo and effect arms of a step;
 - :mod:`.attribution`: forward selection of nested arms;
-- :mod:`.recalibrate`: the chosen effects on the whole training windows;
+- :mod:`.retrain`: the chosen effects on the whole training windows, trained by
+  the run's own sampler (``diagnose.recalibration = "train"``);
+- :mod:`.recalibrate`: the same by local search (``"search"``), and the run
+  directories of a re-calibration;
 - :mod:`.loop`: the loop's steps (:func:`plan_loop`, :func:`run_recalibration`,
   :func:`finish_loop`);
 - :mod:`.road`: road effects at the data's resolution (frame, knot spacing);
@@ -51,7 +55,7 @@ from .series import (
     residual_series,
     residual_tests,
 )
-from .testing import fallback_levels, sign_flip_test, step_levels
+from .testing import fallback_levels, paired_change, sign_flip_test, step_levels
 from .validation import split_by_pair, split_in_time
 
 __all__ = [
@@ -78,6 +82,7 @@ __all__ = [
     "resolve_effect",
     "reusable",
     "run_recalibration",
+    "paired_change",
     "sign_flip_test",
     "split_by_pair",
     "split_in_time",

@@ -293,7 +293,9 @@ def _from_dict(raw: dict[str, Any]) -> Population:
 def ledger_key(cfg: TrainConfig, pool: list[str], effects: list[str]) -> str:
     """What the attribution's result depends on (its ledger's key): the run, the
     diagnose settings, the pool and the candidate effects."""
-    settings = cfg.diagnose.model_dump(mode="json", exclude={"run_after_training"})
+    settings = cfg.diagnose.model_dump(
+        mode="json", exclude={"run_after_training", "recalibration"}
+    )
     text = json.dumps(settings, sort_keys=True)
     return f"{config_hash(cfg)}|{text}|{','.join(pool)}|{','.join(effects)}"
 

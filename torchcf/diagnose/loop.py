@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from ..abc.screen import PlausibilityScreen
 from ..config import (
     ConfigError,
     TrainConfig,
@@ -52,11 +53,19 @@ from .arms import resolve_effect
 from .attribution import EffectSelection, attribute_effects
 from .candidates import attribution_seed
 from .identifiability import effect_identifiability
-from .recalibrate import recalibrate, recalibration_config, write_run
+from .population import Population
+from .recalibrate import (
+    model_buffers,
+    recalibrate,
+    recalibration_config,
+    write_run,
+)
 from .report import write_report
+from .retrain import Buffers, buffers_in_order, retrain, variants_of
 from .road import choose_spacing, one_step_residual, shares_road_frame
 from .series import DiagnoseError, best_particles, diagnose_residuals
 from .signatures import FAMILIES
+from .testing import paired_change
 from .validation import fit_part
 
 FORMAT = "torchcf.loop/2"
@@ -340,40 +349,100 @@ def _with_overrides(cfg: TrainConfig, overrides: Sequence[str]) -> TrainConfig:
     return validate_config(apply_overrides(cfg.model_dump(mode="json"), overrides))
 
 
-def run_recalibration(plan: LoopPlan, progress: bool = True) -> None:
-    """Loop step 3 (:mod:`torchcf.diagnose.recalibrate`): the reference and
-    after, written as run directories (evaluation is the caller's:
-    :func:`torchcf.pipeline.close_loop`). Nothing to do when nothing is chosen
+def run_recalibration(
+    plan: LoopPlan,
+    progress: bool = True,
+    screen: PlausibilityScreen | None = None,
+) -> None:
+    """Loop step 3: the reference and after, written as run directories
+    (evaluation is the caller's: :func:`torchcf.pipeline.close_loop`), by the
+    run's own sampler (``diagnose.recalibration = "train"``,
+    :mod:`torchcf.diagnose.retrain`, with the run's plausibility filter
+    ``screen``, built by the caller) or by local search (``"search"``,
+    :mod:`torchcf.diagnose.recalibrate`). Nothing to do when nothing is chosen
     or both are there already."""
     if plan.recalibration is None or plan.resume_recalibration:
         return
-    settings = plan.cfg.diagnose
-    bar = tqdm(
-        total=settings.max_rounds * (1 + len(plan.chosen)),
-        desc="re-calibration",
-        unit="round",
-        disable=not progress,
-    )
-    reference, after = recalibrate(
-        plan.cfg,
-        plan.posterior,
-        plan.chosen,
-        plan.selection.shared,
-        plan.pool,
-        plan.train_pairs,
-        tick=bar.update,
-    )
-    bar.close()
+    names = [spec.name for spec in plan.recalibration.models]
     reference_cfg = recalibration_config(plan.cfg, [], {})
+    run_names = [spec.name for spec in reference_cfg.models]
+    if plan.cfg.diagnose.recalibration == "train":
+        reference, after = _trained_buffers(plan, progress, screen)
+        references = buffers_in_order(reference, run_names)
+        afters = buffers_in_order(after, names)
+        how = "the run's buffers, then the pool's variants trained by the run's "
+        how += "sampler (torchcf.diagnose.retrain)"
+    else:
+        before, now = _searched_populations(plan, progress)
+        references = model_buffers(plan.posterior, before, run_names)
+        afters = model_buffers(plan.posterior, now, names)
+        how = "the run's buffers, then local search (torchcf.diagnose.recalibrate)"
     for directory in (plan.reference_dir, plan.recalibration_dir):
         if directory.exists():
             shutil.rmtree(directory)
     write_run(
-        plan.reference_dir, reference_cfg, plan.posterior, reference, plan.summary
+        plan.reference_dir,
+        reference_cfg,
+        plan.posterior,
+        references,
+        plan.summary,
+        how,
     )
     write_run(
-        plan.recalibration_dir, plan.recalibration, plan.posterior, after, plan.summary
+        plan.recalibration_dir,
+        plan.recalibration,
+        plan.posterior,
+        afters,
+        plan.summary,
+        how,
     )
+
+
+def _trained_buffers(
+    plan: LoopPlan, progress: bool, screen: PlausibilityScreen | None
+) -> tuple[Buffers, Buffers]:
+    """:func:`~torchcf.diagnose.retrain.retrain` with a progress bar in
+    particles (the reference's and every variant's)."""
+    variants = variants_of(plan.selection.models, plan.posterior.models)
+    total = plan.cfg.abc.n_particles * (len(plan.pool) + len(variants))
+    with tqdm(
+        total=total, desc="re-calibration", unit="particle", disable=not progress
+    ) as bar:
+        return retrain(
+            plan.cfg,
+            plan.posterior,
+            plan.selection.models,
+            plan.selection.shared,
+            plan.selection.shared_priors,
+            plan.pool,
+            plan.train_pairs,
+            screen=screen,
+            ledger=plan.run.loop_dir / "retrain.pt",
+            tick=bar.update,
+        )
+
+
+def _searched_populations(
+    plan: LoopPlan, progress: bool
+) -> tuple[Population, Population]:
+    """:func:`~torchcf.diagnose.recalibrate.recalibrate` with a progress bar in
+    search rounds."""
+    settings = plan.cfg.diagnose
+    with tqdm(
+        total=settings.max_rounds * (1 + len(plan.chosen)),
+        desc="re-calibration",
+        unit="round",
+        disable=not progress,
+    ) as bar:
+        return recalibrate(
+            plan.cfg,
+            plan.posterior,
+            plan.chosen,
+            plan.selection.shared,
+            plan.pool,
+            plan.train_pairs,
+            tick=bar.update,
+        )
 
 
 def finish_loop(plan: LoopPlan) -> dict[str, Any]:
@@ -416,6 +485,7 @@ def finish_loop(plan: LoopPlan) -> dict[str, Any]:
         "validation_units": selection.validation.get("units"),
         "fit_pairs": selection.validation.get("fit_pairs"),
         "min_gain": settings.min_gain,
+        "recalibration": settings.recalibration,
         "search": {
             "population": max(settings.population, plan.cfg.abc.top_n),
             "local_copies": settings.local_copies,
@@ -474,6 +544,7 @@ def _after(plan: LoopPlan) -> tuple[dict[str, Any], Series | None]:
             "after_run": None,
             "shares_after": plan.posterior.shares,
             "before_same_search": None,
+            "test_pairs": None,
             "reference_run": None,
             "posterior": {},
             "identifiability": {},
@@ -483,17 +554,38 @@ def _after(plan: LoopPlan) -> tuple[dict[str, Any], Series | None]:
     posterior = after.load_posterior()
     metrics = after.read_metrics()
     residuals, series = diagnose_residuals(posterior, plan.train_pairs)
-    reference = RunDir(plan.reference_dir).read_metrics()["hybrid"]
+    reference = RunDir(plan.reference_dir).read_metrics()
     return {
         "after": metrics["hybrid"],
         "after_run": str(after),
-        "before_same_search": reference,
+        "before_same_search": reference["hybrid"],
+        "test_pairs": _paired_on_test(plan, reference, metrics),
         "reference_run": str(plan.reference_dir),
         "shares_after": posterior.shares,
         "posterior": effect_posterior(posterior, plan.chosen),
         "identifiability": effect_identifiability(posterior, plan.chosen),
         "residuals_after": residuals,
     }, series
+
+
+def _paired_on_test(
+    plan: LoopPlan, reference: dict[str, Any], after: dict[str, Any]
+) -> dict[str, Any]:
+    """After against the run and against the reference, test pair by test pair
+    (their hybrids' minimum distance per pair: :func:`~torchcf.diagnose.
+    testing.paired_change`); None where a run's ``metrics.json`` has no
+    per-pair distances (evaluated before it had them)."""
+    now = after.get("hybrid_min_by_pair")
+    permutations, seed = plan.cfg.diagnose.permutations, attribution_seed(plan.cfg)
+    out = {}
+    for label, metrics in (("run", plan.before), ("reference", reference)):
+        then = metrics.get("hybrid_min_by_pair")
+        out[label] = (
+            paired_change(then, now, permutations, seed)
+            if then is not None and now is not None
+            else None
+        )
+    return out
 
 
 __all__ = [

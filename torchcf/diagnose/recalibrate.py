@@ -191,12 +191,12 @@ def model_buffers(
         theta[pair, slot] = population.theta[pair, slot, :k]
         parts.append((score, index, theta))
         buffer = TopN(n, capacity, k)
-        buffer.load_state_dict(_best_entries(parts, capacity))
+        buffer.load_state_dict(best_entries(parts, capacity))
         out.append(buffer)
     return out
 
 
-def _best_entries(
+def best_entries(
     parts: list[tuple[Tensor, Tensor, Tensor]], capacity: int
 ) -> dict[str, Tensor]:
     """Per pair the ``capacity`` best of the parts' entries by (score, index),
@@ -264,22 +264,24 @@ def write_run(
     out: Path,
     cfg: TrainConfig,
     posterior: Posterior,
-    population: Population,
+    buffers: Sequence[TopN],
     summary: dict[str, Any],
+    how: str,
 ) -> RunDir:
-    """A run directory of a re-calibrated population: ``config.json``,
-    ``posterior.pt`` (the hybrid of every model's buffer: the run's and the
-    population's best) and ``summary.json``, ready for
+    """A run directory of a re-calibration: ``config.json``, ``posterior.pt``
+    (the hybrid of ``buffers``) and ``summary.json``, ready for
     :func:`torchcf.evaluate.evaluate_run`.
 
     Args:
         cfg: its config (:func:`recalibration_config`).
+        buffers: every model's buffer, in the order of ``cfg.models``
+            (:func:`model_buffers` for a searched population).
         summary: the run's summary (its dataset; the rest is recomputed).
+        how: how the buffers were made, for ``summary.json``.
     """
     run = RunDir(out)
     run.prepare()
     names = [spec.name for spec in cfg.models]
-    buffers = model_buffers(posterior, population, names)
     kwargs = {"mode": cfg.abc.selection, "global_size": cfg.abc.global_size}
     selection = select(buffers, names, cfg.abc.top_n, **kwargs)
     table = pairwise_table(buffers, names, cfg.abc.top_n, **kwargs)
@@ -305,14 +307,14 @@ def write_run(
                 "meaning": "table[i][j]: share of models[i] in the hybrid of "
                 "{i, j} alone",
             },
-            "recalibration": "the run's buffers, then local search "
-            "(torchcf.diagnose.recalibrate)",
+            "recalibration": how,
         }
     )
     return run
 
 
 __all__ = [
+    "best_entries",
     "model_buffers",
     "recalibrate",
     "recalibration_config",

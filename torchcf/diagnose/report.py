@@ -372,12 +372,26 @@ def _effort(result: dict[str, Any]) -> list[str]:
             f"Search effort per arm: {search['population']} particles x "
             f"{search['local_copies']} copies x {search['rounds']} rounds per pair "
             f"({search['n_train']} pairs); the attribution starts from "
-            f"{search['n_particles']} prior draws per pool model, the "
-            "re-calibration from the run's own buffers "
-            f"({search['run_particles']} draws per model)."
+            f"{search['n_particles']} prior draws per pool model. "
+            + _recalibration_effort(result, search["run_particles"])
         )
         lines.append("")
     return [*lines, f"Loop time: {result['seconds']:.0f} s."]
+
+
+def _recalibration_effort(result: dict[str, Any], run_particles: int) -> str:
+    """How the re-calibration searched, in one sentence."""
+    if result.get("recalibration", "search") == "train":
+        return (
+            "The re-calibration trains every pool model's variant as the run "
+            f"trained its models ({run_particles} draws each, the run's sampler), "
+            f"and gives the pool models {run_particles} more draws each for the "
+            "reference."
+        )
+    return (
+        "The re-calibration searches from the run's own buffers "
+        f"({run_particles} draws per model)."
+    )
 
 
 def _chosen(result: dict[str, Any]) -> list[str]:
@@ -461,7 +475,17 @@ def _before_after(result: dict[str, Any], figure: str) -> list[str]:
             + " | ".join(fmt(metrics.get(key)) for key, _ in METRIC_COLUMNS)
             + " |"
         )
-    if reference:
+    if reference and result.get("recalibration", "search") == "train":
+        lines += [
+            "",
+            "*Before, searched as after*: the run with as many more draws per "
+            "pool model, by the run's sampler, as after spent on the variants "
+            "(rejection: the run's own streams continued). After holds the run "
+            "and the variants trained exactly as the run trained a model, so the "
+            "change against the reference is the effects'; against the run it "
+            "adds the extra draws'.",
+        ]
+    elif reference:
         lines += [
             "",
             "*Before, searched as after*: the run's particles searched on the "
@@ -491,7 +515,29 @@ def _before_after(result: dict[str, Any], figure: str) -> list[str]:
                 "WS: not finite (a hybrid particle is invalid on every "
                 "test pair, SPEC); see the minimum distance.",
             ]
-    return [*lines, "", f"![before and after]({figure})", ""]
+    return [*lines, *_per_test_pair(result), "", f"![before and after]({figure})", ""]
+
+
+def _per_test_pair(result: dict[str, Any]) -> list[str]:
+    """After against the run and the reference, test pair by test pair."""
+    paired = result.get("test_pairs") or {}
+    parts = [
+        f"against {label}: better on {row['better']} of {row['pairs']} pairs, "
+        f"geometric mean change {row['change']:+.1%}, p {row['p_value']:.2g}"
+        for label, row in (
+            ("the run", paired.get("run")),
+            ("the reference", paired.get("reference")),
+        )
+        if row
+    ]
+    if not parts:
+        return []
+    return [
+        "",
+        "Minimum distance per test pair (one-sided sign flips of the per-pair log "
+        "ratios, 'after no better'; exact, the test pairs being independent of "
+        f"the training): {'; '.join(parts)}.",
+    ]
 
 
 def _residuals(result: dict[str, Any], figure: str) -> list[str]:

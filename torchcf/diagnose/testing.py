@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -84,6 +85,43 @@ def two_sided_sign_flip(values: np.ndarray, permutations: int, seed: int = 0) ->
     )
 
 
+def paired_change(
+    before: Sequence[float | None],
+    after: Sequence[float | None],
+    permutations: int,
+    seed: int = 0,
+) -> dict[str, Any] | None:
+    """Two runs compared pair by pair on the same test pairs: their minimum
+    distance per pair (None: no valid particle there, that pair left out).
+
+    Returns:
+        ``pairs`` (the pairs both cover), ``better`` (those where ``after`` is
+        lower), ``change`` (the geometric mean of ``after / before`` minus 1:
+        negative, after covers the pairs better) and ``p_value`` (one-sided
+        sign flips of the per-pair log ratios, "after no better than before":
+        exact, the test pairs being independent of both runs' training); None
+        when the lists differ in length or no pair is usable.
+    """
+    if len(before) != len(after):
+        return None
+    ratios = np.array(
+        [
+            math.log(b / a)
+            for a, b in zip(before, after, strict=True)
+            if a is not None and b is not None and a > 0 and b > 0
+        ]
+    )
+    if ratios.size == 0:
+        return None
+    _, p_value = sign_flip_test(-ratios, permutations, seed)
+    return {
+        "pairs": int(ratios.size),
+        "better": int(np.count_nonzero(ratios < 0)),
+        "change": float(math.expm1(ratios.mean())),
+        "p_value": p_value,
+    }
+
+
 def step_levels(alpha: float, steps: int) -> list[float]:
     """The level of each forward-selection step: ``alpha / 2, alpha / 4, ...``,
     the last step the rest (they sum to ``alpha``)."""
@@ -129,6 +167,7 @@ def fallback_levels(
 __all__ = [
     "fallback_levels",
     "fallback_weights",
+    "paired_change",
     "sign_flip_test",
     "step_levels",
     "two_sided_sign_flip",

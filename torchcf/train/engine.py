@@ -3,11 +3,13 @@
 - the device a process simulates on (:func:`run_device`);
 - the particle budget checked against the training pairs (:func:`check_budget`,
   and for ``abc.method = "smc"`` the refinement's budget);
-- the refinement's settings (:func:`smc_settings`);
+- the refinement's settings (:func:`smc_settings`, defined in
+  :mod:`torchcf.abc.configured` beside :func:`rollout_of`, which the loop's
+  re-calibration uses too);
 - every model's per-pair top-N buffer, progress and refinement state, fresh or
   from the checkpoint (:func:`build_buffers`);
 - how the particles are simulated (:func:`rollout_of`: a
-  :class:`~torchcf.abc.rejection.Rollout`);
+  :class:`~torchcf.abc.rejection.Rollout`; re-exported);
 - the plausibility battery (:mod:`torchcf.traffic.battery`) at the training
   pairs' settings, as the calibration's screen (:func:`plausibility_screen`) and
   as the report on the hybrid (:func:`hybrid_plausibility`).
@@ -27,8 +29,9 @@ from typing import Any
 
 import torch
 
+from ..abc.configured import rollout_of, smc_settings
 from ..abc.distributed import Group
-from ..abc.rejection import ModelProgress, Rollout
+from ..abc.rejection import ModelProgress
 from ..abc.screen import PlausibilityScreen
 from ..abc.smc import SMCSettings, new_state, smc_budget
 from ..abc.topn import TopN
@@ -116,13 +119,8 @@ def check_smc_budget(n_particles: int, n_pairs: int, settings: SMCSettings) -> N
         )
 
 
-def smc_settings(cfg: TrainConfig) -> SMCSettings:
-    """The refinement's settings of a config (section ``abc.smc``)."""
-    return SMCSettings(**cfg.abc.smc.model_dump())
-
-
 # --------------------------------------------------------------------------------------
-# Buffers and the rollout
+# Buffers
 
 
 def build_buffers(
@@ -165,19 +163,6 @@ def build_buffers(
         if refinement is not None:
             state.smc[name] = refinement
         state.progress.setdefault(name, ModelProgress())
-
-
-def rollout_of(cfg: TrainConfig, pairs: PairSet, device: torch.device) -> Rollout:
-    """How the run's particles are simulated (layout, precision, chunks)."""
-    return Rollout(
-        pairs,
-        paired=cfg.abc.layout == "paired",
-        dtype=getattr(torch, cfg.dtype),
-        device=device,
-        weights=tuple(cfg.abc.weights),
-        compile=cfg.compile,
-        chunk_size=cfg.abc.chunk_size,
-    )
 
 
 # --------------------------------------------------------------------------------------

@@ -1,0 +1,154 @@
+"""The re-calibration by the run's own sampler (torchcf.diagnose.retrain): the
+reference is the run with N more draws per pool model, after the run beside
+the pool's variants trained as the run trains a model."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchcf.diagnose.retrain as retrain_module
+from torchcf.config import validate_config
+from torchcf.diagnose.retrain import buffers_in_order, retrain, searched_box
+from torchcf.diagnose.search import model_bounds
+from torchcf.posterior import Posterior
+from torchcf.synthetic import synthetic_pairs
+from torchcf.train import train
+from torchcf.train.engine import plausibility_screen
+
+IDM = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
+N = 3000
+
+
+def _config(models=("idm", "llctg"), n_particles=N, method="rejection", **top):
+    abc = {"n_particles": n_particles, "sensitivity_n": [5], "method": method}
+    if method == "smc":
+        abc["smc"] = {"population": 20, "rounds": 3}
+    return validate_config(
+        {
+            "data": {"path": "synthetic"},
+            "models": list(models),
+            "abc": abc,
+            "compile": "off",
+            "diagnose": {"recalibration": "train"},
+            **top,
+        }
+    )
+
+
+@pytest.fixture(scope="module")
+def pairs():
+    return synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=6, noise=0.05)
+
+
+def _trained(tmp_path, name, cfg, pairs):
+    train(cfg, tmp_path / name, pairs=(pairs, pairs))
+    return Posterior.load(tmp_path / name / "posterior.pt")
+
+
+def _assert_same(buffer, expected):
+    for key in ("score", "index", "theta"):
+        assert torch.equal(buffer[key], expected[key].to(buffer[key].dtype)), key
+
+
+@pytest.mark.parametrize("method", ["rejection", "smc"])
+def test_after_is_the_run_beside_variants_trained_the_runs_way(tmp_path, pairs, method):
+    cfg = _config(method=method)
+    run = _trained(tmp_path, "run", cfg, pairs)
+    reference, after = retrain(
+        cfg, run, ["idm", "llctg", "idm+delay"], {}, {}, ["idm"], pairs
+    )
+    alone = _trained(tmp_path, "variant", _config(["idm+delay"], method=method), pairs)
+    _assert_same(after["idm+delay"], alone.buffers["idm+delay"])
+    for name in ("idm", "llctg"):  # the run's buffers, untouched
+        _assert_same(after[name], run.buffers[name])
+    _assert_same(reference["llctg"], run.buffers["llctg"])  # not a pool model
+    # the reference holds the run: per pair, no slot is worse than the run's
+    assert bool((reference["idm"]["score"] <= run.buffers["idm"]["score"]).all())
+    assert bool((reference["idm"]["score"] < run.buffers["idm"]["score"]).any())
+
+
+def test_the_plausibility_filter_screens_the_variants_as_it_screened_the_run(
+    tmp_path, pairs
+):
+    screened = {"plausibility": {"filter": True}}
+    cfg = _config(["idm"], **screened)
+    run = _trained(tmp_path, "run", cfg, pairs)
+    screen = plausibility_screen(cfg, pairs)
+    args = (cfg, run, ["idm", "idm+delay"], {}, {}, ["idm"], pairs)
+    _, after = retrain(*args, screen=screen)
+    alone = _trained(tmp_path, "variant", _config(["idm+delay"], **screened), pairs)
+    _assert_same(after["idm+delay"], alone.buffers["idm+delay"])
+
+
+def test_the_reference_of_rejection_is_the_run_with_twice_the_draws(tmp_path, pairs):
+    cfg = _config()
+    run = _trained(tmp_path, "run", cfg, pairs)
+    reference, _ = retrain(cfg, run, ["idm", "llctg"], {}, {}, ["idm"], pairs)
+    double = _trained(tmp_path, "double", _config(["idm"], 2 * N), pairs)
+    _assert_same(reference["idm"], double.buffers["idm"])
+
+
+@pytest.mark.parametrize("method", ["rejection", "smc"])
+def test_a_shared_effect_is_held_at_its_value(tmp_path, pairs, method):
+    cfg = _config(["idm"], method=method)
+    run = _trained(tmp_path, "run", cfg, pairs)
+    _, after = retrain(
+        cfg,
+        run,
+        ["idm", "idm+offset"],
+        {"offset": [-2.5]},
+        {"offset": {"d_offset": (-3.0, -2.0)}},
+        ["idm"],
+        pairs,
+    )
+    theta = after["idm+offset"]["theta"]
+    kept = torch.isfinite(after["idm+offset"]["score"])
+    assert bool(kept.any())
+    assert bool((theta[..., -1][kept] == -2.5).all())
+    (buffer,) = buffers_in_order(after, ["idm+offset"])
+    assert buffer.theta.shape[-1] == 7
+
+
+def test_a_shared_effect_ahead_of_a_driver_effect_is_drawn_from_its_box():
+    bounds = model_bounds(
+        "idm+offset+delay", {}, {"offset": torch.tensor([-2.5], dtype=torch.float64)}
+    )
+    drawn, fixed = searched_box(
+        "idm+offset+delay", bounds, {"offset": {"d_offset": (-3.0, -2.0)}}
+    )
+    assert fixed is None and drawn[-2].tolist() == [-3.0, -2.0]
+    drawn, fixed = searched_box("idm+offset", bounds[:-1], {})
+    assert fixed.tolist() == [-2.5] and drawn.shape == (6, 2)
+    with pytest.raises(ValueError, match="no box"):
+        searched_box("idm+offset+delay", bounds, {})
+
+
+def test_an_interrupted_recalibration_resumes_at_its_model(
+    tmp_path, pairs, monkeypatch
+):
+    cfg = _config(["idm"])
+    run = _trained(tmp_path, "run", cfg, pairs)
+    args = (cfg, run, ["idm", "idm+delay"], {}, {}, ["idm"], pairs)
+    whole = retrain(*args)
+    real, calls = retrain_module._trained, []
+
+    def interrupted(cfg, name, *rest):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(retrain_module, "_trained", interrupted)
+    with pytest.raises(KeyboardInterrupt):  # after the reference, in the variant
+        retrain(*args, ledger=tmp_path / "retrain.pt")
+
+    def counted(cfg, name, *rest):
+        calls.append(name)
+        return real(cfg, name, *rest)
+
+    monkeypatch.setattr(retrain_module, "_trained", counted)
+    done = []
+    resumed = retrain(*args, ledger=tmp_path / "retrain.pt", tick=done.append)
+    assert calls == ["idm+delay"]  # the reference was read back
+    assert sum(done) == 2 * N  # progress counts what was read back too
+    for a, b in zip(resumed, whole, strict=True):
+        for name in b:
+            _assert_same(a[name], b[name])

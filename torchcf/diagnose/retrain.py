@@ -1,0 +1,329 @@
+"""The re-calibration by the run's own sampler (``diagnose.recalibration =
+"train"``): the chosen effects searched as the run searched its models.
+
+The run drew ``N = abc.n_particles`` particles per model with its sampler
+(``abc.method``: rejection or SMC) and kept every model's per-pair best ``C``
+(its buffers). This re-calibration spends the same again on every pool model,
+once with the effects and once without:
+
+- **after**: each pool model's variant with the chosen effects (``idm+delay``)
+  trained exactly as the run trained a model: the same sampler, ``N`` particles
+  from its own stream (seed, variant name), the run's prior box of the pool
+  model and the effect's own prior, the same plausibility filter; beside the
+  run's buffers, so the after hybrid is the run's models and the variants
+  competing pair by pair under the run's selection (a variant that does not
+  help is simply not picked).
+- **reference** ("before, searched the same way"): the pool models given ``N``
+  more particles. Rejection continues each pool model's own stream from
+  particle ``N`` to ``2N`` into the run's buffer: exactly the run with twice
+  the draws for those models. SMC refines each pool model again with a seed
+  derived from the run's and its best ``C`` per pair are merged into the run's
+  buffer.
+
+So after and reference hold the run's particles and ``N`` more per pool model
+drawn the run's way: the test-split change from the reference to after is the
+effects', not the search's, and neither can be worse than the run on the
+training pairs. Unlike the local search (``"search"``,
+:mod:`torchcf.diagnose.recalibrate`), nothing is refined around the training
+pairs' optima, so the spread of particles that covers drivers the run never saw
+is the run's own.
+
+A shared effect (one value for every pair) is held at the value the attribution
+found where its parameters are the variant's last (the samplers draw the others
+and append it, as the attribution's shared search does); ahead of a driver
+effect (``idm+offset+delay``) it is drawn from the box the attribution found it
+in (:attr:`~torchcf.diagnose.attribution.EffectSelection.shared_priors`):
+:func:`searched_box`.
+
+Every model's finished buffer is kept in ``RUN_DIR/loop/retrain.pt``
+(:class:`~torchcf.diagnose.attribution.Ledger`), so an interrupted
+re-calibration resumes at the model it was in.
+
+Shapes: N pairs, C buffer slots, K parameters (:mod:`torchcf.typing`).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ..abc.configured import rollout_of, smc_settings
+from ..abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
+from ..abc.screen import PlausibilityScreen
+from ..abc.smc import new_state, run_smc
+from ..abc.topn import TopN
+from ..config import TrainConfig
+from ..data import PairSet
+from ..models import get_model
+from ..posterior import Posterior
+from .attribution import Ledger, ledger_key
+from .recalibrate import best_entries
+from .search import derive_seed, model_bounds
+
+#: Buffers per model name, as TopN states (``score`` (N, C), ``index`` (N, C),
+#: ``theta`` (N, C, K)).
+Buffers = dict[str, dict[str, Tensor]]
+
+
+def variants_of(models_after: Sequence[str], run_models: Sequence[str]) -> list[str]:
+    """The variants of the after model: its models the run does not have."""
+    return [m for m in models_after if m not in run_models]
+
+
+def retrain(
+    cfg: TrainConfig,
+    posterior: Posterior,
+    models_after: Sequence[str],
+    shared: dict[str, list[float]],
+    shared_priors: dict[str, dict[str, tuple[float, float]]],
+    pool: Sequence[str],
+    train_pairs: PairSet,
+    *,
+    screen: PlausibilityScreen | None = None,
+    ledger: Path | None = None,
+    tick: Callable[[int], None] | None = None,
+) -> tuple[Buffers, Buffers]:
+    """The reference's and after's buffers (module docstring).
+
+    Args:
+        models_after: the final model of the selection: the pool and the
+            variants of the chosen effects.
+        shared: per chosen shared effect name, its value.
+        shared_priors: per chosen shared effect token, the box it was found in.
+        pool: the pool models (the reference gives them ``N`` more particles).
+        screen: the run's plausibility filter (``plausibility.filter``: the
+            caller builds it: :func:`torchcf.train.engine.plausibility_screen`); None
+            when it is off.
+        ledger: where finished models are kept (None: nowhere, no resume).
+        tick: called with the particles done after every round of every model.
+
+    Returns:
+        ``(reference, after)``: the reference's buffers of the run's models,
+        after's of the run's models and the variants (the run's buffers where
+        a model is not searched again).
+    """
+    run_models = list(posterior.models)
+    variants = variants_of(models_after, run_models)
+    rollout = rollout_of(cfg, train_pairs, torch.device(cfg.device))
+    priors = {spec.name: spec.bounds(torch.float64) for spec in cfg.models}
+    values = {k: torch.tensor(v, dtype=torch.float64) for k, v in shared.items()}
+    key = ledger_key(cfg, list(pool), list(models_after))
+    book = Ledger(ledger, f"retrain|{key}|{json.dumps(shared, sort_keys=True)}")
+    run_buffers = {m: _run_buffer(posterior, m) for m in run_models}
+
+    def kept(label: str, compute: Callable[[], dict[str, Tensor]]) -> Any:
+        entry = book.get(label)
+        if entry is None:
+            entry = compute()
+            book.put(label, entry)
+        elif tick is not None:
+            tick(cfg.abc.n_particles)
+        return entry
+
+    reference = dict(run_buffers)
+    for name in pool:
+        reference[name] = kept(
+            f"reference:{name}",
+            lambda name=name: _more_of(
+                cfg, name, priors[name], run_buffers[name], rollout, screen, tick
+            ),
+        )
+    after = dict(run_buffers)
+    for name in variants:
+        bounds, fixed = searched_box(
+            name, model_bounds(name, priors, values), shared_priors
+        )
+        after[name] = kept(
+            f"after:{name}",
+            lambda name=name, bounds=bounds, fixed=fixed: _trained(
+                cfg, name, bounds, cfg.abc.seed, rollout, screen, tick, fixed
+            ),
+        )
+    return reference, after
+
+
+def _run_buffer(posterior: Posterior, name: str) -> dict[str, Tensor]:
+    """The run's buffer of ``name`` with its own parameters (``K_m`` columns)."""
+    raw = posterior.buffers[name]
+    k = get_model(name).n_params
+    return {
+        "score": raw["score"].double(),
+        "index": raw["index"].long(),
+        "theta": raw["theta"].double()[..., :k],
+    }
+
+
+def _more_of(
+    cfg: TrainConfig,
+    name: str,
+    bounds: Tensor,
+    run_buffer: dict[str, Tensor],
+    rollout: Rollout,
+    screen: PlausibilityScreen | None,
+    tick: Callable[[int], None] | None,
+) -> dict[str, Tensor]:
+    """The run's buffer of pool model ``name`` after ``N`` more particles drawn
+    the run's way (module docstring: the reference)."""
+    n_particles = cfg.abc.n_particles
+    if cfg.abc.method == "smc":
+        seed = derive_seed(cfg.abc.seed, "reference", name)
+        fresh = _trained(cfg, name, bounds, seed, rollout, screen, tick)
+        capacity = run_buffer["score"].shape[1]
+        parts = [(b["score"], b["index"], b["theta"]) for b in (run_buffer, fresh)]
+        return best_entries(parts, capacity)
+    n, capacity = run_buffer["score"].shape
+    buffer = TopN(n, capacity, get_model(name).n_params)
+    buffer.load_state_dict(run_buffer)
+    progress = ModelProgress(next=n_particles)
+    run_rejection(
+        prior_stream(name, bounds, cfg.abc.seed, rollout),
+        buffer,
+        rollout,
+        2 * n_particles,
+        progress,
+        plan_particles=n_particles,
+        after_round=_ticker(tick, start=n_particles),
+        screen=screen,
+    )
+    return _cpu(buffer.state_dict())
+
+
+def _trained(
+    cfg: TrainConfig,
+    name: str,
+    bounds: Tensor,
+    seed: int,
+    rollout: Rollout,
+    screen: PlausibilityScreen | None,
+    tick: Callable[[int], None] | None,
+    fixed: Tensor | None = None,
+) -> dict[str, Tensor]:
+    """Model ``name``'s buffer after ``N`` particles from its stream of ``seed``,
+    by the run's sampler, as :func:`torchcf.train.train` does for a model; with
+    ``fixed``, its last parameters held there (in the buffer's ``theta``)."""
+    n_pairs, capacity = rollout.pairs.n_pairs, cfg.abc.buffer_size
+    k = bounds.shape[0]
+    progress = ModelProgress()
+    after_round = _ticker(tick, start=0)
+    if cfg.abc.method == "smc":
+        settings = smc_settings(cfg)
+        buffer = TopN(n_pairs, capacity, k + 1)  # SMC keeps log r beside theta
+        run_smc(
+            name,
+            bounds,
+            seed,
+            buffer,
+            rollout,
+            cfg.abc.n_particles,
+            settings,
+            progress,
+            new_state(n_pairs, settings, k),
+            model=name,
+            fixed=fixed,
+            after_round=after_round,
+            screen=screen,
+        )
+        state = _cpu(buffer.state_dict())
+        state["theta"] = state["theta"][..., :k].contiguous()
+        return _with_fixed(state, fixed)
+    buffer = TopN(n_pairs, capacity, get_model(name).n_params)  # fixed ones too
+    run_rejection(
+        prior_stream(name, bounds, seed, rollout),
+        buffer,
+        rollout,
+        cfg.abc.n_particles,
+        progress,
+        model=name,
+        fixed=fixed,
+        after_round=after_round,
+        screen=screen,
+    )
+    return _cpu(buffer.state_dict())
+
+
+def _with_fixed(state: dict[str, Tensor], fixed: Tensor | None) -> dict[str, Tensor]:
+    """An SMC buffer of the searched parameters with the fixed ones appended to
+    every slot's ``theta`` (N, C, K); rejection's buffers hold them already."""
+    if fixed is None:
+        return state
+    theta = state["theta"]
+    tail = fixed.to(theta).expand(*theta.shape[:2], -1)
+    return state | {"theta": torch.cat((theta, tail), dim=-1)}
+
+
+def searched_box(
+    name: str, bounds: Tensor, shared_priors: dict[str, dict[str, tuple[float, float]]]
+) -> tuple[Tensor, Tensor | None]:
+    """What a variant's sampler draws, ``(K_drawn, 2)``, and the values of its
+    last ``K - K_drawn`` parameters, held (None: all drawn).
+
+    ``bounds`` (:func:`~torchcf.diagnose.search.model_bounds`) pin a shared
+    effect with a zero-width row. Pinned rows that are the last ones are held
+    (the samplers draw a box of positive width only); a pinned row before a
+    drawn one (a recording effect ahead of a driver effect in the variant's
+    name) is drawn from the box the attribution found it in.
+    """
+    pinned = bounds[:, 0] == bounds[:, 1]
+    drawn = int(pinned.numel())
+    while drawn and bool(pinned[drawn - 1]):
+        drawn -= 1
+    fixed = bounds[drawn:, 0].clone() if drawn < pinned.numel() else None
+    out = bounds[:drawn].clone()
+    boxes = {p: box for prior in shared_priors.values() for p, box in prior.items()}
+    names = get_model(name).param_names
+    for column in torch.nonzero(pinned[:drawn]).flatten().tolist():
+        if names[column] not in boxes:
+            raise ValueError(f"{name}: no box for the shared {names[column]}")
+        out[column] = torch.tensor(boxes[names[column]], dtype=torch.float64)
+    return out, fixed
+
+
+def _ticker(
+    tick: Callable[[int], None] | None, start: int
+) -> Callable[[ModelProgress, bool], None] | None:
+    """A sampler's ``after_round`` that reports the particles done since the
+    last call to ``tick``."""
+    if tick is None:
+        return None
+    done = [start]
+
+    def after_round(progress: ModelProgress, _due: bool) -> None:
+        tick(progress.next - done[0])
+        done[0] = progress.next
+
+    return after_round
+
+
+def _cpu(state: dict[str, Tensor]) -> dict[str, Tensor]:
+    """A TopN state on the CPU, score and theta float64."""
+    return {
+        "score": state["score"].detach().double().cpu(),
+        "index": state["index"].detach().long().cpu(),
+        "theta": state["theta"].detach().double().cpu(),
+    }
+
+
+def buffers_in_order(buffers: Buffers, models: Sequence[str]) -> list[TopN]:
+    """``buffers`` as TopN objects in the order of ``models``."""
+    out = []
+    for name in models:
+        state = buffers[name]
+        n, capacity, k = state["theta"].shape
+        buffer = TopN(n, capacity, k)
+        buffer.load_state_dict(state)
+        out.append(buffer)
+    return out
+
+
+__all__ = [
+    "Buffers",
+    "buffers_in_order",
+    "retrain",
+    "searched_box",
+    "variants_of",
+]
