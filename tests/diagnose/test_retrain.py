@@ -9,7 +9,12 @@ import torch
 
 import torchcf.diagnose.retrain as retrain_module
 from torchcf.config import validate_config
-from torchcf.diagnose.retrain import buffers_in_order, retrain, searched_box
+from torchcf.diagnose.retrain import (
+    buffers_in_order,
+    retrain,
+    searched_box,
+    wrapped,
+)
 from torchcf.diagnose.search import model_bounds
 from torchcf.posterior import Posterior
 from torchcf.synthetic import synthetic_pairs
@@ -55,14 +60,14 @@ def _assert_same(buffer, expected):
 def test_after_is_the_run_beside_variants_trained_the_runs_way(tmp_path, pairs, method):
     cfg = _config(method=method)
     run = _trained(tmp_path, "run", cfg, pairs)
-    reference, after = retrain(
-        cfg, run, ["idm", "llctg", "idm+delay"], {}, {}, ["idm"], pairs
+    reference, after = retrain(  # llctg: a pool model no variant wraps
+        cfg, run, ["idm", "llctg", "idm+delay"], {}, {}, ["idm", "llctg"], pairs
     )
     alone = _trained(tmp_path, "variant", _config(["idm+delay"], method=method), pairs)
     _assert_same(after["idm+delay"], alone.buffers["idm+delay"])
     for name in ("idm", "llctg"):  # the run's buffers, untouched
         _assert_same(after[name], run.buffers[name])
-    _assert_same(reference["llctg"], run.buffers["llctg"])  # not a pool model
+    _assert_same(reference["llctg"], run.buffers["llctg"])  # no draws spent
     # the reference holds the run: per pair, no slot is worse than the run's
     assert bool((reference["idm"]["score"] <= run.buffers["idm"]["score"]).all())
     assert bool((reference["idm"]["score"] < run.buffers["idm"]["score"]).any())
@@ -84,7 +89,8 @@ def test_the_plausibility_filter_screens_the_variants_as_it_screened_the_run(
 def test_the_reference_of_rejection_is_the_run_with_twice_the_draws(tmp_path, pairs):
     cfg = _config()
     run = _trained(tmp_path, "run", cfg, pairs)
-    reference, _ = retrain(cfg, run, ["idm", "llctg"], {}, {}, ["idm"], pairs)
+    models = ["idm", "llctg", "idm+delay"]
+    reference, _ = retrain(cfg, run, models, {}, {}, ["idm"], pairs)
     double = _trained(tmp_path, "double", _config(["idm"], 2 * N), pairs)
     _assert_same(reference["idm"], double.buffers["idm"])
 
@@ -108,6 +114,11 @@ def test_a_shared_effect_is_held_at_its_value(tmp_path, pairs, method):
     assert bool((theta[..., -1][kept] == -2.5).all())
     (buffer,) = buffers_in_order(after, ["idm+offset"])
     assert buffer.theta.shape[-1] == 7
+
+
+def test_the_reference_spends_draws_only_on_the_pool_models_a_variant_wraps():
+    assert wrapped(["idm+lag", "gfm+lag"], ["gfm", "idm", "hl"]) == ["gfm", "idm"]
+    assert wrapped([], ["idm"]) == []
 
 
 def test_a_shared_effect_ahead_of_a_driver_effect_is_drawn_from_its_box():

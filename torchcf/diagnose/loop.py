@@ -61,7 +61,7 @@ from .recalibrate import (
     write_run,
 )
 from .report import write_report
-from .retrain import Buffers, buffers_in_order, retrain, variants_of
+from .retrain import Buffers, buffers_in_order, retrain, variants_of, wrapped
 from .road import choose_spacing, one_step_residual, shares_road_frame
 from .series import DiagnoseError, best_particles, diagnose_residuals
 from .signatures import FAMILIES
@@ -404,7 +404,8 @@ def _trained_buffers(
     """:func:`~torchcf.diagnose.retrain.retrain` with a progress bar in
     particles (the reference's and every variant's)."""
     variants = variants_of(plan.selection.models, plan.posterior.models)
-    total = plan.cfg.abc.n_particles * (len(plan.pool) + len(variants))
+    models = len(variants) + len(wrapped(variants, plan.pool))
+    total = plan.cfg.abc.n_particles * models
     with tqdm(
         total=total, desc="re-calibration", unit="particle", disable=not progress
     ) as bar:

@@ -13,12 +13,12 @@ once with the effects and once without:
   run's buffers, so the after hybrid is the run's models and the variants
   competing pair by pair under the run's selection (a variant that does not
   help is simply not picked).
-- **reference** ("before, searched the same way"): the pool models given ``N``
-  more particles. Rejection continues each pool model's own stream from
-  particle ``N`` to ``2N`` into the run's buffer: exactly the run with twice
-  the draws for those models. SMC refines each pool model again with a seed
-  derived from the run's and its best ``C`` per pair are merged into the run's
-  buffer.
+- **reference** ("before, searched the same way"): the pool models that a
+  variant wraps given ``N`` more particles. Rejection continues each pool
+  model's own stream from particle ``N`` to ``2N`` into the run's buffer:
+  exactly the run with twice the draws for those models. SMC refines each
+  pool model again with a seed derived from the run's and its best ``C`` per
+  pair are merged into the run's buffer.
 
 So after and reference hold the run's particles and ``N`` more per pool model
 drawn the run's way: the test-split change from the reference to after is the
@@ -95,10 +95,11 @@ def retrain(
             variants of the chosen effects.
         shared: per chosen shared effect name, its value.
         shared_priors: per chosen shared effect token, the box it was found in.
-        pool: the pool models (the reference gives them ``N`` more particles).
-        screen: the run's plausibility filter (``plausibility.filter``: the
-            caller builds it: :func:`torchcf.train.engine.plausibility_screen`); None
-            when it is off.
+        pool: the pool models; those a variant wraps get ``N`` more particles
+            in the reference (:func:`wrapped`).
+        screen: the run's plausibility filter (``plausibility.filter``), built
+            by the caller (:func:`torchcf.train.engine.plausibility_screen`);
+            None when it is off.
         ledger: where finished models are kept (None: nowhere, no resume).
         tick: called with the particles done after every round of every model.
 
@@ -126,7 +127,7 @@ def retrain(
         return entry
 
     reference = dict(run_buffers)
-    for name in pool:
+    for name in wrapped(variants, pool):
         reference[name] = kept(
             f"reference:{name}",
             lambda name=name: _more_of(
@@ -145,6 +146,13 @@ def retrain(
             ),
         )
     return reference, after
+
+
+def wrapped(variants: Sequence[str], pool: Sequence[str]) -> list[str]:
+    """The pool models the variants wrap, in pool order: those after spends
+    ``N`` particles on (``lag`` cannot wrap HL: HL gets none either way)."""
+    bases = {get_model(v).base.name for v in variants}
+    return [m for m in pool if m in bases]
 
 
 def _run_buffer(posterior: Posterior, name: str) -> dict[str, Tensor]:
@@ -326,4 +334,5 @@ __all__ = [
     "retrain",
     "searched_box",
     "variants_of",
+    "wrapped",
 ]
