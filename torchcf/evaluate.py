@@ -500,6 +500,7 @@ def _evaluate_held(
     )
     for entry in entries:
         metrics[entry].update(honest["per_set"][entry])
+    best = costs["hybrid"]["score"].min(axis=0)  # (n_test,) the hybrid's per pair
     result = {
         "dataset": summary["dataset"],
         "n_test": test.n_pairs,
@@ -512,7 +513,7 @@ def _evaluate_held(
         **{entry: metrics[entry] for entry in entries},
         "hybrid_minus": honest["hybrid_minus"],
         "shares": honest["shares"],
-        "hybrid_min_by_pair": _by_pair(costs["hybrid"]["score"].min(axis=0)),
+        "hybrid_min_by_pair": _by_pair(best),
     }
 
     ensure_directory(report, "report directory")
@@ -537,7 +538,6 @@ def _evaluate_held(
         "particle: `parameters.csv`).\n",
     )
     if figure_pair is None:
-        best = costs["hybrid"]["score"].min(axis=0)  # (n_test,)
         finite = np.where(np.isfinite(best), best, np.inf)
         figure_pair = int(
             np.argmin(np.abs(finite - np.median(best[np.isfinite(best)])))
