@@ -152,8 +152,8 @@ def main(argv: list[str] | None = None) -> int:
         "Per model:" if args.no_cold else "Per model (seconds: cold / warm cache):",
         "",
         "| model | share | seconds | particles/s (warm) | invalid rollouts | "
-        "best score | threshold (mean N-th best) |",
-        "|---|---|---|---|---|---|---|",
+        "stopped early | best score | threshold (mean N-th best) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     cold_seconds = result["cold_cache_per_model_seconds"]
     for name in summary["models"]:
@@ -163,12 +163,21 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(
             f"| {name} | {summary['shares'][name]:.1%} | "
             f"{cold_seconds[name]:.1f} / {m['seconds']:.1f} | "
-            f"{m['particles_per_s']:.3g} | {m['invalid']:,} | {best} | {thr} |"
+            f"{m['particles_per_s']:.3g} | {m['invalid']:,} | "
+            f"{m.get('stopped', 0):,} | {best} | {thr} |"
         )
+    early = any(m.get("stopped", 0) for m in summary["per_model"].values())
     lines += [
         "",
-        "Seconds per model include `torch.compile` of its time loop (MPC runs "
-        "eager: its QP solver is not compiled).",
+        (
+            "Early rejection (`abc.early_rejection`): every model's rollouts run "
+            "eager and stop once their score is sure to exceed their pair's "
+            "buffer threshold; invalid rollouts are counted among those run to "
+            "the end."
+            if early
+            else "Seconds per model include `torch.compile` of its time loop (MPC "
+            "runs eager: its QP solver is not compiled)."
+        ),
         "",
     ]
     write_report(report, result, "\n".join(lines))

@@ -50,9 +50,11 @@ BLOCK_STEPS = 8
 #: Below this many simulated particle-steps, ``compile="auto"`` stays eager: the
 #: one-off compilation (seconds) would cost more than it saves.
 COMPILE_MIN_STEPS = 2e8
-#: With compilation, chunks are a multiple of this: every element then takes the
-#: vectorised path of the fused kernel, never a scalar tail, so results do not
-#: depend on the chunk size.
+#: With compilation or early rejection, chunks are a multiple of this: every
+#: element then takes the vectorised path of a kernel, never a scalar tail
+#: (whose transcendental functions can round differently: seen for ``sigmoid``
+#: on an AMD EPYC), so results do not depend on the chunk size, or on which
+#: particles early rejection left beside a particle.
 COMPILE_CHUNK_MULTIPLE = 64
 #: Simulated cells per chunk on CUDA (at least): a GPU runs one kernel per
 #: operation and step whatever the chunk, so larger chunks amortise the launches.
@@ -61,6 +63,14 @@ COMPILE_CHUNK_MULTIPLE = 64
 CUDA_CHUNK_CELLS = 2**21
 #: Score weights of position, speed and acceleration RMSE (SPEC section 4).
 DEFAULT_WEIGHTS = (0.5, 0.3, 0.2)
+#: Early rejection (a ``ceiling``): blocks between two looks at the scores so
+#: far. A look is a few operations on the chunk and one host sync, against
+#: ``PRUNE_EVERY * BLOCK_STEPS`` model steps.
+PRUNE_EVERY = 2
+#: Early rejection drops the finished particles from the chunk once they are at
+#: least this share of those still simulated: every drop copies the live state,
+#: so dropping a few at a time would cost more than simulating them.
+PRUNE_SHARE = 0.2
 
 # Rows of the observation table (T, 6, N).
 _X_LEAD, _V_LEAD, _X_FOLLOW, _V_FOLLOW, _A_FOLLOW, _MASK = range(6)
@@ -85,6 +95,10 @@ class SimOutput(NamedTuple):
         x: ``(T, P, N)`` or ``(T, P)`` simulated position [m] if ``return_traj``.
         v: same shape, speed [m/s].
         a: same shape, recorded acceleration [m/s^2] (HL: the realised state).
+        pruned: bool, the score's shape: True where early rejection stopped the
+            rollout, its score sure to exceed the ``ceiling`` given to
+            :func:`simulate` (score and errors ``+inf``; ``valid`` as far as it
+            ran); None without a ceiling.
     """
 
     score: Tensor
@@ -95,6 +109,7 @@ class SimOutput(NamedTuple):
     x: Tensor | None = None
     v: Tensor | None = None
     a: Tensor | None = None
+    pruned: Tensor | None = None
 
 
 class _Accumulators(NamedTuple):
@@ -218,6 +233,43 @@ def realise(
     )
 
 
+class _Prune(NamedTuple):
+    """Early rejection of one chunk (:func:`simulate`'s ``ceiling``).
+
+    Attributes:
+        ceiling: float64, the state's shape: a cell whose score is sure to exceed
+            it is stopped.
+        counts: int64 valid steps of each cell (at least 1), broadcastable to the
+            state: the denominators of its RMSE.
+        weights: score weights of (position, speed, acceleration).
+    """
+
+    ceiling: Tensor
+    counts: Tensor
+    weights: tuple[float, float, float]
+
+
+def score_so_far(
+    acc: _Accumulators, counts: Tensor, weights: Sequence[float]
+) -> Tensor:
+    """The score of the steps run so far, over the cell's *whole* count of valid
+    steps: ``sum_c w_c sqrt(S_c(t) / n)`` with ``S_c(t)`` the squared errors of
+    channel c summed up to step t and ``n`` the valid steps of the whole rollout.
+
+    A lower bound of the final score, in floating point too: the sums only grow
+    (a non-negative term is added at every step), and the rounded division,
+    square root, product with a positive weight and sum are each monotone, so the
+    final score (the same expression of the final sums, :func:`simulate`) is at
+    least this value.
+    """
+    w_p, w_v, w_a = (float(w) for w in weights)
+    return (
+        w_p * torch.sqrt(acc.sq_x / counts)
+        + w_v * torch.sqrt(acc.sq_v / counts)
+        + w_a * torch.sqrt(acc.sq_a / counts)
+    )
+
+
 def _rollout_chunk(
     block_fn: Callable[..., Any],
     model: CFModel,
@@ -227,7 +279,8 @@ def _rollout_chunk(
     origin: Tensor,
     dt: float,
     leader_length: float,
-) -> tuple[_Accumulators, Tensor | None]:
+    prune: _Prune | None = None,
+) -> tuple[_Accumulators, Tensor | None, Tensor | None]:
     """Run one chunk of particles over every block; returns sums and trajectory.
 
     Args:
@@ -236,10 +289,13 @@ def _rollout_chunk(
         blocks: ``(BLOCK_STEPS, 6, N)`` observation blocks covering the padded time
             axis.
         origin: ``(N,)`` road position of each pair's relative frame [m].
+        prune: stop the particles whose score is sure to exceed their ceiling
+            (:func:`_run_pruned`); None runs every particle to the end.
 
     Returns:
-        the sums over valid steps and, if recording, the ``(T_pad, 3, *state)``
-        trajectory.
+        the sums over valid steps (of the steps run, for a stopped particle),
+        if recording the ``(T_pad, 3, *state)`` trajectory, and with ``prune``
+        the state-shaped bool of the cells stopped by it.
     """
     first = blocks[0][0]  # (6, N)
     cell_origin = None
@@ -271,6 +327,10 @@ def _rollout_chunk(
     acc = _Accumulators(
         zeros, zeros.clone(), zeros.clone(), torch.zeros_like(zeros, dtype=torch.bool)
     )
+    if prune is not None:
+        rollout = _Live(params, state, acc, memory, pair_index, cell_origin, prune)
+        sums, pruned = _run_pruned(block_fn, model, rollout, blocks)
+        return sums, None, pruned
     recorded = []
     for block in blocks:
         state, acc, memory, block_traj = block_fn(
@@ -278,7 +338,102 @@ def _rollout_chunk(
         )
         if block_traj is not None:
             recorded.append(block_traj)
-    return acc, torch.cat(recorded) if recorded else None
+    return acc, torch.cat(recorded) if recorded else None, None
+
+
+class _Live(NamedTuple):
+    """The particles of a chunk still simulated under early rejection; every
+    field over their rows (dimension 0 of the state)."""
+
+    params: Any
+    state: FollowerState
+    acc: _Accumulators
+    memory: Any
+    pair_index: Tensor | None
+    cell_origin: Tensor | None
+    prune: _Prune
+
+    def take(self, model: CFModel, rows: Tensor) -> _Live:
+        """The same rollout for the particles ``rows`` alone."""
+        paired = self.pair_index is not None
+        params, memory = model.select_particles(self.params, self.memory, rows)
+        counts = self.prune.counts
+        return _Live(
+            params=params,
+            state=FollowerState(*(t.index_select(0, rows) for t in self.state)),
+            acc=_Accumulators(*(t.index_select(0, rows) for t in self.acc)),
+            memory=memory,
+            pair_index=self.pair_index[rows] if paired else None,
+            cell_origin=(
+                self.cell_origin[rows]
+                if paired and self.cell_origin is not None
+                else self.cell_origin
+            ),
+            prune=self.prune._replace(
+                ceiling=self.prune.ceiling.index_select(0, rows),
+                counts=counts.index_select(0, rows) if paired else counts,
+            ),
+        )
+
+
+def _run_pruned(
+    block_fn: Callable[..., Any], model: CFModel, live: _Live, blocks: list[Tensor]
+) -> tuple[_Accumulators, Tensor]:
+    """Run the blocks with early rejection: every :data:`PRUNE_EVERY` blocks, a
+    cell whose score so far (:func:`score_so_far`, a lower bound of its final
+    score) exceeds its ceiling, or that is invalid, is finished; once the
+    particles all of whose cells are finished (a row of the state) are
+    :data:`PRUNE_SHARE` of those still simulated, they leave the chunk and the
+    rest go on.
+
+    Exact: a stopped cell's final score would have exceeded its ceiling; every
+    other cell runs to the end with the arithmetic of an unpruned rollout
+    (elementwise, so independent of its neighbours).
+
+    Returns:
+        the sums of every row of the chunk (of the steps each ran) and the
+        state-shaped bool of the cells stopped above their ceiling (invalid ones
+        are not: they are in the sums' ``invalid``).
+    """
+    sums = _Accumulators(*(t.clone() for t in live.acc))
+    stopped = torch.zeros_like(live.acc.invalid)
+    rows = torch.arange(live.state.x.shape[0], device=live.state.x.device)
+    for number, block in enumerate(blocks, start=1):
+        state, acc, memory, _ = block_fn(
+            live.params,
+            live.state,
+            live.acc,
+            live.memory,
+            block,
+            live.pair_index,
+            live.cell_origin,
+        )
+        live = live._replace(state=state, acc=acc, memory=memory)
+        if number % PRUNE_EVERY or number == len(blocks):
+            continue
+        over = score_so_far(acc, live.prune.counts, live.prune.weights).double()
+        over = over > live.prune.ceiling
+        finished = acc.invalid | over
+        row_finished = finished if finished.ndim == 1 else finished.all(1)
+        n_finished = int(row_finished.sum())
+        if not n_finished or n_finished < PRUNE_SHARE * rows.numel():
+            continue
+        gone = (row_finished & (rows >= 0)).nonzero().squeeze(1)
+        for total, part in zip(sums, acc, strict=True):
+            total[rows[gone]] = part[gone]
+        stopped[rows[gone]] = over[gone] & ~acc.invalid[gone]
+        kept = (~row_finished & (rows >= 0)).nonzero().squeeze(1)
+        if not kept.numel():
+            return sums, stopped
+        # whole vector lanes again (COMPILE_CHUNK_MULTIPLE), with copies of a
+        # kept particle whose results are dropped (row -1)
+        fill = -kept.numel() % COMPILE_CHUNK_MULTIPLE
+        rows = torch.cat((rows[kept], rows.new_full((fill,), -1)))
+        live = live.take(model, torch.cat((kept, kept[:1].expand(fill))))
+    real = rows >= 0
+    for total, part in zip(sums, live.acc, strict=True):
+        total[rows[real]] = part[real]
+    return sums, stopped
 
 
 class _BlockRunner:
@@ -420,6 +575,7 @@ def simulate(
     weights: Sequence[float] = DEFAULT_WEIGHTS,
     chunk_size: int | None = None,
     compile: CompileMode = "auto",
+    ceiling: Tensor | None = None,
 ) -> SimOutput:
     """Simulate particles of one model on leader-follower pairs and score them.
 
@@ -446,6 +602,14 @@ def simulate(
         compile: fuse the time step with ``torch.compile``: True, False or "auto"
             (only for long CPU runs with a C++ compiler, or CUDA). Falls back to
             eager with a warning if compilation fails.
+        ceiling: early rejection: the score's shape, a cell is of no use above
+            it (a buffer's threshold). Every :data:`PRUNE_EVERY` blocks a cell
+            whose score so far (:func:`score_so_far`, a lower bound of its final
+            score) exceeds its ceiling is stopped, ``pruned`` in the output with
+            score ``+inf``; the other cells' results are exactly those of a run
+            without it. Applied on the eager path of a model that can select
+            its particles (:attr:`CFModel.prunable`), without ``return_traj``;
+            elsewhere every cell runs to the end (``pruned`` all False).
 
     Returns:
         :class:`SimOutput` with ``(P, N)`` (full) or ``(P,)`` (paired) fields.
@@ -484,7 +648,10 @@ def simulate(
     use_compile = resolve_compile(
         model, compile, device, n_particles * cells_per_particle * pairs.n_steps
     )
-    if use_compile:
+    prunes = (
+        ceiling is not None and not use_compile and not return_traj and model.prunable
+    )
+    if use_compile or prunes:
         chunk_size = -(-chunk_size // COMPILE_CHUNK_MULTIPLE) * COMPILE_CHUNK_MULTIPLE
 
     table, origin, n_valid = _observation_table(pairs, dtype, device)
@@ -495,6 +662,18 @@ def simulate(
     )
 
     state_shape = (n_particles,) if paired else (n_particles, pairs.n_pairs)
+    if ceiling is not None:
+        ceiling = torch.as_tensor(ceiling, device=device).to(torch.float64)
+        if ceiling.shape != state_shape:
+            raise ValueError(
+                f"ceiling must have the score's shape {state_shape}, "
+                f"got {tuple(ceiling.shape)}"
+            )
+    pruned = (
+        torch.zeros(state_shape, dtype=torch.bool, device=device)
+        if ceiling is not None
+        else None
+    )
     outputs = {
         name: torch.empty(state_shape, dtype=dtype, device=device)
         for name in ("e_p", "e_v", "e_a")
@@ -525,7 +704,18 @@ def simulate(
                     chunk_index = torch.cat(
                         (chunk_index, chunk_index[:1].expand(n_fill))
                     )
-            sums, chunk_traj = _rollout_chunk(
+            counts = (n_valid[chunk_index] if paired else n_valid[None, :]).clamp(min=1)
+            prune = None
+            if prunes:
+                # the padding is stopped at the first look (ceiling -inf)
+                chunk_ceiling = torch.cat(
+                    (
+                        ceiling[start:stop],
+                        ceiling.new_full((n_fill, *state_shape[1:]), -math.inf),
+                    )
+                )
+                prune = _Prune(chunk_ceiling, counts, tuple(weights))
+            sums, chunk_traj, chunk_pruned = _rollout_chunk(
                 block_fn,
                 model,
                 chunk_theta,
@@ -534,23 +724,28 @@ def simulate(
                 origin,
                 pairs.dt,
                 pairs.leader_length,
+                prune,
             )
             keep = slice(0, stop - start)
-            counts = (n_valid[chunk_index] if paired else n_valid[None, :]).clamp(min=1)
             outputs["e_p"][start:stop] = torch.sqrt(sums.sq_x / counts)[keep]
             outputs["e_v"][start:stop] = torch.sqrt(sums.sq_v / counts)[keep]
             outputs["e_a"][start:stop] = torch.sqrt(sums.sq_a / counts)[keep]
+            if chunk_pruned is not None:
+                pruned[start:stop] = chunk_pruned[keep]
             invalid[start:stop] = sums.invalid[keep]
             if traj is not None:
                 traj[:, :, start:stop] = chunk_traj[: pairs.n_steps, :, keep]
 
     inf = torch.tensor(math.inf, dtype=dtype, device=device)
+    unscored = invalid if pruned is None else invalid | pruned
     e_p, e_v, e_a = (
-        torch.where(invalid, inf, outputs[k]) for k in ("e_p", "e_v", "e_a")
+        torch.where(unscored, inf, outputs[k]) for k in ("e_p", "e_v", "e_a")
     )
     w_p, w_v, w_a = (float(w) for w in weights)
-    score = torch.where(invalid, inf, w_p * e_p + w_v * e_v + w_a * e_a)
-    result = SimOutput(score=score, e_p=e_p, e_v=e_v, e_a=e_a, valid=~invalid)
+    score = torch.where(unscored, inf, w_p * e_p + w_v * e_v + w_a * e_a)
+    result = SimOutput(
+        score=score, e_p=e_p, e_v=e_v, e_a=e_a, valid=~invalid, pruned=pruned
+    )
     if traj is None:
         return result
     # Back from per-pair relative positions to road positions.

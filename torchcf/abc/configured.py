@@ -26,6 +26,7 @@ def rollout_of(cfg: TrainConfig, pairs: PairSet, device: torch.device) -> Rollou
         weights=tuple(cfg.abc.weights),
         compile=cfg.compile,
         chunk_size=cfg.abc.chunk_size,
+        early_rejection=cfg.abc.early_rejection,
     )
 
 

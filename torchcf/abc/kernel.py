@@ -144,19 +144,33 @@ class SMCKernel:
             ``-inf`` outside the prior box (the box kernel only). The weight
             proper is :meth:`log_prior_ratio`'s, taken once a round ends.
         """
+        rows = u.shape[0]
+        # Padded to whole vector lanes: CPU kernels of a transcendental function
+        # (the logit space's sigmoid) compute a tensor's last few elements with
+        # a scalar routine whose bits can differ from the vector one (seen on an
+        # AMD EPYC); a proposal must not depend on where its chunk ends.
+        fill = -rows % LANES
+        if fill:
+            u = torch.cat((u, u[-1:].expand(fill, -1)))
+            pair = torch.cat((pair, pair[-1:].expand(fill)))
         low, high = self.bounds[:, 0], self.bounds[:, 1]
         cum = self.cum_w[pair]  # (Q, pop)
         target = u[:, :1] * cum[:, -1:]
         parent = torch.searchsorted(cum, target).clamp_(max=cum.shape[1] - 1)[:, 0]
         z = torch.special.ndtri(u[:, 1:].clamp(UNIFORM_EDGE, 1 - UNIFORM_EDGE))
-        step = torch.einsum("qkl,ql->qk", self.chol[pair], z)  # (Q, K)
+        chol = self.chol[pair]  # (Q, K, K)
+        # L z as K elementwise multiply-adds, not a batched product, whose
+        # kernel (and bits) can depend on Q
+        step = chol[:, :, 0] * z[:, :1]  # (Q, K)
+        for column in range(1, z.shape[1]):
+            step = step + chol[:, :, column] * z[:, column : column + 1]
         theta = _boxed(self.theta[pair, parent] + step, self.bounds, self.space)
         prior_draw = low + (high - low) * u[:, 1:]
         from_prior = self.empty[pair]
         theta = torch.where(from_prior[:, None], prior_draw, theta)
         inside = ((theta >= low) & (theta <= high)).all(dim=1)
         log_r = torch.where(inside, 0.0, -math.inf)
-        return theta, log_r
+        return theta[:rows], log_r[:rows]
 
     def log_prior_ratio(self, theta: Tensor, pair: Tensor) -> Tensor:
         """``log pi(theta) - log q(theta)`` (Q,) of proposals ``theta`` (Q, K) on
@@ -219,6 +233,11 @@ def _free(theta: Tensor, bounds: Tensor, space: str) -> Tensor:
     low, width = bounds[:, 0], bounds[:, 1] - bounds[:, 0]
     unit = ((theta - low) / width).clamp(UNIFORM_EDGE, 1 - UNIFORM_EDGE)
     return torch.logit(unit)
+
+
+#: Rows a proposal batch is padded to a multiple of (whole vector lanes of the
+#: widest CPU vectors, 64 bytes, in float32 twice over: no scalar tail).
+LANES = 32
 
 
 def _boxed(z: Tensor, bounds: Tensor, space: str) -> Tensor:

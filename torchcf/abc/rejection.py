@@ -72,6 +72,9 @@ class Rollout:
             ``torch.compile`` when a model's whole stream is long enough to pay).
         chunk_size: particles per simulate call; None: the model's cell budget
             (:func:`torchcf.sim.cell_budget`).
+        early_rejection: the round loop hands every chunk its buffers'
+            thresholds as a ceiling (:func:`torchcf.abc.rounds.offer_chunk`): a
+            rollout stops once its score is sure to exceed it.
     """
 
     pairs: PairSet
@@ -81,6 +84,7 @@ class Rollout:
     weights: tuple[float, float, float] = DEFAULT_WEIGHTS
     compile: CompileChoice = "auto"
     chunk_size: int | None = None
+    early_rejection: bool = False
 
     @property
     def cells_per_particle(self) -> int:
@@ -92,6 +96,12 @@ class Rollout:
         if self.compile == "on":
             return model.compilable
         if self.compile == "off":
+            return False
+        if self.early_rejection and model.prunable and self.device.type == "cpu":
+            # "auto" with early rejection stays eager (a compiled block has one
+            # shape, so it cannot drop particles): on 2 CPU cores the paper-scale
+            # study then ran as fast as compiled kernels from a warm cache,
+            # with no compilation (reports/bench/train_carII.md)
             return False
         cells = n_particles * self.cells_per_particle * self.pairs.n_steps
         return resolve_compile(model, "auto", self.device, cells)
@@ -113,18 +123,23 @@ class Rollout:
         *,
         chunk: int | None = None,
         compiled: bool = False,
+        ceiling: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
         """Scores of particles ``theta (P, K)`` (float64) on their pairs.
 
         Args:
             pair: (P,) pair of each particle (paired layout), None for the full one.
             chunk: particles per simulate call (default: :meth:`chunk`).
+            ceiling: early rejection (:func:`torchcf.sim.simulate`): the score's
+                shape; a particle stopped above it scores ``+inf`` and is valid.
 
         Returns:
             ``score`` (P,) or (P, N) float64 on the rollout's device, ``+inf`` for an
-            invalid rollout, and ``valid`` of the same shape.
+            invalid or stopped rollout, and ``valid`` of the same shape.
         """
-        out = self.rollouts(model, theta, pair, chunk=chunk, compiled=compiled)
+        out = self.rollouts(
+            model, theta, pair, chunk=chunk, compiled=compiled, ceiling=ceiling
+        )
         return out.score.double(), out.valid
 
     def rollouts(
@@ -135,6 +150,7 @@ class Rollout:
         *,
         chunk: int | None = None,
         compiled: bool = False,
+        ceiling: Tensor | None = None,
     ) -> SimOutput:
         """The rollouts :meth:`score` reads: score, the RMSE of each channel and
         validity, shaped and chunked as there (:class:`torchcf.sim.SimOutput`)."""
@@ -161,6 +177,7 @@ class Rollout:
             weights=self.weights,
             chunk_size=chunk,
             compile=compiled,
+            ceiling=ceiling,
         )
 
 

@@ -38,7 +38,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import torch
 from torch import Tensor
@@ -62,6 +62,10 @@ class ModelProgress:
             ``+inf`` like invalid rollouts; only particles that would otherwise
             have entered the buffer are tested, so this counts those
             (:mod:`torchcf.abc.screen`).
+        stopped: rollouts (cells) early rejection stopped because their score
+            was sure to exceed their buffer's threshold
+            (:attr:`Rollout.early_rejection <torchcf.abc.rejection.Rollout>`);
+            ``invalid`` then counts the invalid rollouts among the others.
     """
 
     next: int = 0
@@ -69,6 +73,7 @@ class ModelProgress:
     seconds: float = 0.0
     done: bool = False
     implausible: int = 0
+    stopped: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -77,6 +82,7 @@ class ModelProgress:
             "seconds": self.seconds,
             "done": self.done,
             "implausible": self.implausible,
+            "stopped": self.stopped,
         }
 
 
@@ -123,6 +129,7 @@ class Scorer(Protocol):
         *,
         chunk: int | None = None,
         compiled: bool = False,
+        ceiling: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]: ...
 
 
@@ -171,6 +178,31 @@ class Sink:
     ceiling: Tensor | None = None
 
 
+#: With early rejection, a stretch that starts from nothing begins with a pilot
+#: round of ``1 / PILOT_ROUND`` of a round: its buffers' thresholds then stop
+#: the rollouts of the first full round early, which would otherwise run whole.
+PILOT_ROUND = 16
+
+
+def round_bounds(
+    plan: Plan, start: int, stop: int, world_size: int
+) -> list[tuple[int, int, int]]:
+    """The rounds of the stretch ``start .. stop - 1``: ``(first, end, chunk)``
+    each, ``chunk`` proposals per process. Set by the plan alone: a round of
+    ``plan.chunk`` per process, after a pilot round (:data:`PILOT_ROUND`) where
+    early rejection is on and the stretch starts at 0. The buffers after a
+    stretch do not depend on its rounds (module docstring)."""
+    size = plan.chunk * world_size
+    rounds, first = [], start
+    if early_rejection(plan) and start == 0 and plan.chunk >= PILOT_ROUND:
+        pilot = plan.chunk // PILOT_ROUND
+        end = min(pilot * world_size, stop)
+        rounds.append((0, end, pilot))
+        first = end
+    rounds += [(f, min(f + size, stop), plan.chunk) for f in range(first, stop, size)]
+    return rounds
+
+
 def run_rounds(
     propose: Propose,
     sinks: Sequence[Sink],
@@ -209,27 +241,68 @@ def run_rounds(
             checkpoint is due.
     """
     buffers = [sink.buffer for sink in sinks]
-    round_size = plan.chunk * group.world_size
-    for first in range(start, stop, round_size):
+    for first, end, chunk_size in round_bounds(plan, start, stop, group.world_size):
         began = time.perf_counter()
-        lo, hi = group.shard(first, stop, plan.chunk)
-        invalid = implausible = 0
+        lo, hi = group.shard(first, end, chunk_size)
+        counts = Offered(0, 0, 0)
         if lo < hi:
             chunk = propose(lo, hi, plan.batch)
-            invalid, implausible = offer_chunk(chunk, sinks, plan, screen)
+            counts = offer_chunk(chunk, sinks, plan, screen)
         due = checkpoint_due() if checkpoint_due is not None else False
-        invalid, due = group.end_round(buffers, invalid, due)
+        invalid, due = group.end_round(buffers, counts.invalid, due)
+        implausible, stopped = counts.implausible, counts.stopped
         if screen is not None:
             implausible = group.sum(implausible)
-        done = min(first + round_size, stop)
+        if early_rejection(plan):
+            stopped = group.sum(stopped)
+        done = end
         if reached is not None:
             reached(done)
         progress.invalid += invalid
         progress.implausible += implausible
+        progress.stopped += stopped
         progress.next = offset + done
         progress.seconds += time.perf_counter() - began
         if after_round is not None:
             after_round(progress, due)
+
+
+class Offered(NamedTuple):
+    """What became of a chunk's proposals (:func:`offer_chunk`): invalid
+    rollouts, proposals the screen rejected, rollouts early rejection stopped."""
+
+    invalid: int
+    implausible: int
+    stopped: int
+
+
+def early_rejection(plan: Plan) -> bool:
+    """Whether the plan's rollout stops rollouts above their buffers' threshold
+    (asked for, and possible: an eager rollout of a model that can select its
+    particles, :func:`torchcf.sim.simulate`)."""
+    asked = bool(getattr(plan.rollout, "early_rejection", False))
+    return asked and not plan.compiled and plan.model.prunable
+
+
+def ceiling_of(sinks: Sequence[Sink], pair: Tensor | None, rows: int) -> Tensor:
+    """The score above which a proposal can enter no sink: per pair the largest,
+    over the sinks, of the buffer's threshold (its worst kept score, ``+inf``
+    while it has room) capped by the sink's own ceiling; float64, (P,) for the
+    paired layout (``pair`` (P,)) or (P, N) for the full one (``rows`` = P).
+
+    A proposal scoring above it now will do so when the chunk is pushed: a
+    buffer's threshold only falls.
+    """
+    tops = []
+    for sink in sinks:
+        top = sink.buffer.threshold()  # (N,)
+        if sink.ceiling is not None:
+            top = torch.minimum(top, sink.ceiling.to(top))
+        tops.append(top)
+    top = torch.stack(tops).amax(0)
+    if pair is None:
+        return top.expand(rows, -1).clone()
+    return top[pair.to(top.device)]
 
 
 def offer_chunk(
@@ -237,24 +310,32 @@ def offer_chunk(
     sinks: Sequence[Sink],
     plan: Plan,
     screen: PlausibilityScreen | None = None,
-) -> tuple[int, int]:
+) -> Offered:
     """Simulate a chunk and offer its proposals to every sink in turn; their
-    invalid count and the number the screen rejected.
+    invalid count, the number the screen rejected and the rollouts early
+    rejection stopped.
 
     A proposal the screen rejects for one sink is out of the later ones too, and
     one it found plausible is not tested again (``cleared``)."""
     real = chunk.size
     if not real:
-        return 0, 0
+        return Offered(0, 0, 0)
     theta = chunk.theta
     if plan.fixed is not None:  # the searched parameters, then the fixed ones
         theta = torch.cat((theta, plan.fixed.expand(theta.shape[0], -1)), dim=1)
+    extra = {}
+    if early_rejection(plan):
+        ceiling = ceiling_of(sinks, chunk.pair, theta.shape[0])
+        ceiling[real:] = -math.inf  # the padding stops at the first look
+        extra["ceiling"] = ceiling
     score, valid = plan.rollout.score(
-        plan.model, theta, chunk.pair, chunk=plan.chunk, compiled=plan.compiled
+        plan.model, theta, chunk.pair, chunk=plan.chunk, compiled=plan.compiled, **extra
     )
     # The screen and the pushes read the scores where the buffers live (the CPU).
     device = sinks[0].buffer.score.device
     score, valid = score[:real].to(device), valid[:real].to(device)
+    # a valid rollout scoring +inf was stopped (early rejection)
+    stopped = int((valid & ~torch.isfinite(score)).sum()) if extra else 0
     whole = theta[:real]  # the simulated parameters, fixed ones too
     pair = chunk.pair[:real] if chunk.pair is not None else None
     rows = chunk.rows if chunk.rows is not None else whole
@@ -277,12 +358,13 @@ def offer_chunk(
             sink.buffer.push_full(offered, chunk.index, rows)
         else:
             sink.buffer.push(pair, offered, chunk.index, rows)
-    return int((~valid).sum()), rejected
+    return Offered(int((~valid).sum()), rejected, stopped)
 
 
 __all__ = [
     "Chunk",
     "ModelProgress",
+    "Offered",
     "Plan",
     "Propose",
     "Scorer",

@@ -381,6 +381,15 @@ class ABCConfig(BaseModel):
         gt=0,
         description="Particles simulated per chunk; None takes the model's default.",
     )
+    early_rejection: bool = Field(
+        False,
+        description=(
+            "Stop a particle's rollout once its score so far (a lower bound of its "
+            "score) exceeds what its pair's buffer keeps: the same buffers, faster; "
+            "invalid rollouts are then counted among the rollouts run to the end "
+            "and the stopped ones counted apart (eager rollouts only)."
+        ),
+    )
     seed: int = Field(
         0, ge=0, description="Seed of the counter-based particle and pair streams."
     )

@@ -134,7 +134,8 @@ class WarmedRollout(Rollout):
 
     warm: PairSet | None = None
 
-    def score(self, model, theta, pair, *, chunk=None, compiled=False):
+    def score(self, model, theta, pair, *, chunk=None, compiled=False, ceiling=None):
+        # no early rejection: the window's score is a difference of two rollouts'
         if pair is None or self.warm is None:
             raise ValueError("a warmed validation scores paired particles only")
         run = {"chunk": chunk, "compiled": compiled}

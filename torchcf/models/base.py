@@ -140,6 +140,10 @@ class CFModel:
     #: simulated in. False for the MPC, whose QP solver picks its kernels by batch
     #: size (LAPACK below a size): the engines then simulate fixed-size batches.
     batch_size_invariant: ClassVar[bool] = True
+    #: Whether a rollout may drop particles midway (early rejection,
+    #: :func:`torchcf.sim.simulate`'s ``ceiling``): :meth:`select_particles`
+    #: knows the model's prepared parameters and memory.
+    prunable: ClassVar[bool] = True
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -179,6 +183,21 @@ class CFModel:
     def command(self, p: Any, obs: Perception) -> Tensor:
         """The acceleration command ``u`` [m/s^2], same shape as ``obs.spacing``."""
         raise NotImplementedError
+
+    def select_particles(self, p: Any, memory: Any, rows: Tensor) -> tuple[Any, Any]:
+        """The prepared parameters and memory of the particles ``rows`` alone.
+
+        Args:
+            p: what :meth:`prepare` returned for a chunk of P particles.
+            memory: the memory of the same chunk.
+            rows: (P',) int64 particles kept (dimension 0 of the state).
+
+        The default serves a model whose prepared parameters are its Params
+        (fields with the particle first) and that has no memory.
+        """
+        if memory is not None:
+            raise NotImplementedError(f"{self.name}: no particle selection of memory")
+        return type(p)(*(field.index_select(0, rows) for field in p)), None
 
     def initial_memory(self, p: Any, first: Perception) -> Any:
         """What a stateful model carries between steps (default: nothing).

@@ -686,6 +686,8 @@ class AugmentedModel(CFModel):
         self.compilable = base.compilable
         self.chunk_cells = base.chunk_cells
         self.batch_size_invariant = base.batch_size_invariant
+        # the effects' prepared values and memories have no particle selection
+        self.prunable = False
         self.uses_position = base.uses_position or any(e.uses_position for e in effects)
         self._realiser = next((e for e in effects if e.stage == "realisation"), None)
         # Parameter slices: the base's first, then each effect's.

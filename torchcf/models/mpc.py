@@ -179,6 +179,30 @@ class MPC(CFModel):
             state_shape=tuple(state_shape),
         )
 
+    def select_particles(
+        self, p: Any, memory: MPCMemory | None, rows: Tensor
+    ) -> tuple[MPCPrepared, MPCMemory | None]:
+        """The chunk's particles ``rows`` alone, their factorised QPs taken as
+        they are (not factorised again: a batch of another size could take
+        other kernels, :attr:`batch_size_invariant`)."""
+        if len(p.state_shape) == 1:
+            cells = rows
+        else:  # the full layout: a particle's cells are a row of (P, N)
+            width = p.state_shape[1]
+            columns = torch.arange(width, device=rows.device)
+            cells = (rows[:, None] * width + columns).reshape(-1)
+        kept = MPCPrepared(
+            params=MPCParams(*(field.index_select(0, cells) for field in p.params)),
+            solver=p.solver.take(cells),
+            linear=p.linear.index_select(0, cells),
+            free_spacing=p.free_spacing.index_select(1, cells),
+            free_speed=p.free_speed.index_select(1, cells),
+            state_shape=(rows.numel(), *p.state_shape[1:]),
+        )
+        if memory is None:
+            return kept, None
+        return kept, MPCMemory(inputs=memory.inputs.index_select(1, cells))
+
     def command_with_memory(
         self, p: Any, obs: Perception, memory: MPCMemory | None
     ) -> tuple[Tensor, MPCMemory]:

@@ -159,6 +159,19 @@ class BoxQP:
     def batch_size(self) -> int:
         return self._P.shape[-1]
 
+    def take(self, index: Tensor) -> BoxQP:
+        """The solver of the instances ``index`` (int64 (b,)) alone, their
+        cached factors taken, not computed again."""
+        kept = object.__new__(BoxQP)
+        kept.settings = self.settings
+        kept.P = self.P.index_select(0, index)
+        kept._P = self._P.index_select(-1, index)
+        kept._p_inverse = self._p_inverse.index_select(-1, index)
+        kept._definite = self._definite.index_select(0, index)
+        kept._leading = self._leading.take(index)
+        kept._kkt = self._kkt.index_select(-1, index)
+        return kept
+
     @property
     def n(self) -> int:
         return self._P.shape[0]

@@ -61,6 +61,19 @@ class _LeadingFactor(NamedTuple):
     # substitution's residual (see :func:`leading_data`).
     tail_row_norm: Tensor
 
+    def take(self, index: Tensor) -> _LeadingFactor:
+        """The factors of the instances ``index`` (int64 (b,)) alone."""
+        n, width = self.diag.shape[0], self.columns.shape[1]
+        batch = self.diag.shape[1]
+        columns = self.columns.reshape(batch, n, width).index_select(0, index)
+        return _LeadingFactor(
+            U=self.U.index_select(-1, index),
+            diag=self.diag.index_select(-1, index),
+            inv_diag=self.inv_diag.index_select(-1, index),
+            columns=columns.reshape(-1, width),
+            tail_row_norm=self.tail_row_norm.index_select(-1, index),
+        )
+
 
 def leading_factor(P: Tensor) -> tuple[_LeadingFactor, Tensor]:
     """The factors of :func:`leading_solve` and :func:`boundary_step` for

@@ -118,6 +118,9 @@ def _stream_model(
         postfix = f"invalid {invalid_rate:.1%}"
         if screen is not None:
             postfix += f", implausible {progress.implausible}"
+        if rollout.early_rejection:
+            cells = progress.next * rollout.cells_per_particle
+            postfix += f", stopped early {progress.stopped / cells:.0%}"
         bar.set_postfix_str(postfix, refresh=False)
         logger.progress(
             name,

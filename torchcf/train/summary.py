@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 import platform
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import MISSING, dataclass, field, fields, replace
 from typing import Any, ClassVar, Self
 
 import numpy as np
@@ -106,7 +106,15 @@ class _Record:
         unknown = [key for key in raw if key not in names]
         if unknown:
             raise ValueError(f"{cls.__name__}: unknown key(s) {unknown}")
-        return cls(**{name: _frozen(raw[name]) for name in names})
+        # a field with a default may be missing (a summary written before it)
+        defaulted = {f.name for f in fields(cls) if f.default is not MISSING}
+        return cls(
+            **{
+                name: _frozen(raw[name])
+                for name in names
+                if name in raw or name not in defaulted
+            }
+        )
 
 
 @dataclass(frozen=True)
@@ -126,6 +134,9 @@ class ModelResult(_Record):
         threshold_max: the largest per-pair N-th best score; None if infinite.
         thresholds: ``(N_pairs,)`` per-pair N-th best score (None: infinite).
         pairs_short_of_n: pairs holding fewer than N finite scores.
+        stopped: rollouts (cells) early rejection stopped above their buffer's
+            threshold (``abc.early_rejection``); ``invalid`` then counts the
+            invalid rollouts among the others.
     """
 
     particles: int
@@ -139,6 +150,7 @@ class ModelResult(_Record):
     threshold_max: float | None
     thresholds: tuple[float | None, ...]
     pairs_short_of_n: int
+    stopped: int = 0
 
 
 @dataclass(frozen=True)
@@ -404,6 +416,7 @@ def model_result(
         threshold_max=_finite_or_none(float(nth.max())),
         thresholds=tuple(_finite_or_none(float(v)) for v in nth),
         pairs_short_of_n=int((~torch.isfinite(nth)).sum()),
+        stopped=progress.stopped,
     )
 
 
