@@ -117,9 +117,7 @@ def test_a_ceiling_stops_only_cells_above_it_and_leaves_the_rest_exact(
     assert bool(kept[plain.score.double() <= ceiling].all())
 
 
-def test_float64_and_a_model_with_effects(pairs):
-    """Exact in float64 too; a model with effects (no particle selection of
-    their memory) ignores the ceiling: nothing stopped, the same result."""
+def test_float64(pairs):
     theta = _prior_draws("hl", 500, seed=4)
     pair = torch.arange(500) % N_PAIRS
     plain = simulate("hl", theta, pairs, pair, dtype=torch.float64)
@@ -127,13 +125,38 @@ def test_float64_and_a_model_with_effects(pairs):
     cut = simulate("hl", theta, pairs, pair, dtype=torch.float64, ceiling=ceiling)
     assert int(cut.pruned.sum()) > 0
     assert torch.equal(cut.score[~cut.pruned], plain.score[~cut.pruned])
-    delayed = get_model("idm+delay")
-    theta = torch.cat((_prior_draws("idm", 200, seed=5), torch.full((200, 1), 0.5)), 1)
-    pair = torch.arange(200) % N_PAIRS
-    plain = simulate(delayed, theta, pairs, pair)
-    cut = simulate(delayed, theta, pairs, pair, ceiling=torch.zeros(200))
-    assert not bool(cut.pruned.any())
-    assert torch.equal(cut.score, plain.score)
+
+
+#: Models with effects of every kind of memory and preparation: a perception
+#: history (delay, sync), a held command (action points), knot values (grade),
+#: a realisation (lag), plain parameters, and the MPC's memory under a delay.
+WITH_EFFECTS = [
+    "idm+delay",
+    "gfm+sync",
+    "hl+action",
+    "idm+grade(start=0,end=400,knots=3)",
+    "ovm+offset+anticipation+lag",
+    "mpc+delay",
+]
+
+
+@pytest.mark.parametrize("name", WITH_EFFECTS)
+@pytest.mark.parametrize("paired", [True, False])
+def test_models_with_effects_stop_exactly_too(pairs, name, paired):
+    model = get_model(name)
+    box = model.prior_bounds(torch.float64)
+    count = 400 if paired else 24
+    u = torch.rand(count, model.n_params, generator=torch.Generator().manual_seed(8))
+    theta = box[:, 0] + u.double() * (box[:, 1] - box[:, 0])
+    pair = torch.arange(count) % N_PAIRS if paired else None
+    plain = simulate(model, theta, pairs, pair, chunk_size=128)
+    ceiling = _ceiling_of(plain.score, pair)
+    cut = simulate(model, theta, pairs, pair, chunk_size=128, ceiling=ceiling)
+    assert int(cut.pruned.sum()) > 0
+    kept = ~cut.pruned
+    assert torch.equal(cut.score[kept], plain.score[kept])
+    assert torch.equal(cut.valid[kept], plain.valid[kept])
+    assert bool((plain.score.double()[cut.pruned] > ceiling[cut.pruned]).all())
 
 
 def test_a_ceiling_of_the_wrong_shape_is_refused(pairs):

@@ -55,6 +55,13 @@ Stage = Literal["perception", "command", "realisation"]
 Scope = Literal["driver", "recording", "road"]
 
 
+def _rows_of(values: Any, rows: Tensor, dim: int = 0) -> Any:
+    """A tuple (or named tuple) of tensors with its particles ``rows`` taken
+    along ``dim``; 0-dimensional tensors are shared and stay."""
+    taken = [t.index_select(dim, rows) if t.ndim else t for t in values]
+    return type(values)(*taken) if hasattr(values, "_fields") else tuple(taken)
+
+
 class Effect:
     """Base class of an effect (see the module docstring).
 
@@ -117,6 +124,13 @@ class Effect:
     def perceive(self, q: Any, obs: Perception, memory: Any) -> tuple[Perception, Any]:
         """Perception stage: the edited perception and the next memory."""
         return obs, memory
+
+    def select(self, q: Any, memory: Any, rows: Tensor) -> tuple[Any, Any]:
+        """What :meth:`prepare` and the memory hold for the particles ``rows``
+        (int64, dimension 0 of the state) alone (early rejection,
+        :meth:`CFModel.select_particles`). The default: tensors with the
+        particle first, a 0-dimensional one shared."""
+        return _rows_of(q, rows), None if memory is None else _rows_of(memory, rows)
 
     def act_with_memory(
         self, q: Any, obs: Perception, u: Tensor, memory: Any
@@ -260,6 +274,12 @@ class Delay(Effect):
             ),
             torch.zeros((), dtype=torch.int64, device=first.spacing.device),
         )
+
+    def select(self, q, memory, rows):
+        # the history is (depth, *state): its particles are dimension 1
+        if memory is None:
+            return _rows_of(q, rows), None
+        return _rows_of(q, rows), _rows_of(memory, rows, dim=1)
 
     def perceive(self, q, obs, memory):
         whole, fraction, depth = q
@@ -521,6 +541,10 @@ class RoadProfile(Effect):
         # gathers per step, whatever the number of knots.
         return (torch.stack(tuple(q)),)
 
+    def select(self, q, memory, rows):
+        # the knot values are (knots, *param shape): particles in dimension 1
+        return _rows_of(q, rows, dim=1), memory
+
     def profile(self, q: tuple[Tensor, ...], position: Tensor) -> Tensor:
         """The profile at ``position`` (linear interpolation of the knots; ``q``
         as :meth:`prepare` returns it)."""
@@ -686,8 +710,7 @@ class AugmentedModel(CFModel):
         self.compilable = base.compilable
         self.chunk_cells = base.chunk_cells
         self.batch_size_invariant = base.batch_size_invariant
-        # the effects' prepared values and memories have no particle selection
-        self.prunable = False
+        self.prunable = base.prunable
         self.uses_position = base.uses_position or any(e.uses_position for e in effects)
         self._realiser = next((e for e in effects if e.stage == "realisation"), None)
         # Parameter slices: the base's first, then each effect's.
@@ -744,6 +767,19 @@ class AugmentedModel(CFModel):
             if effect.stage == "command":
                 u, next_memory[i] = effect.act_with_memory(q, obs, u, next_memory[i])
         return u, (base_memory, tuple(next_memory))
+
+    def select_particles(self, p, memory, rows):
+        base_memory, effect_memory = memory if memory is not None else (None, None)
+        if effect_memory is None:
+            effect_memory = (None,) * len(self.effects)
+        base, base_memory = self.base.select_particles(p.base, base_memory, rows)
+        own, memories = [], []
+        for effect, q, mem in zip(self.effects, p.effects, effect_memory, strict=True):
+            q, mem = effect.select(q, mem, rows)
+            own.append(q)
+            memories.append(mem)
+        kept = _Prepared(base, tuple(own))
+        return kept, None if memory is None else (base_memory, tuple(memories))
 
     def command(self, p, obs):
         """The command for ``obs`` with a steady past (a delay then sees ``obs``)."""
