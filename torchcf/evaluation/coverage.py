@@ -183,14 +183,20 @@ def add_draws(
     targets = feeds[0][0].targets  # (2, T, N), the same for every feed
     every = bool(keep.all())
     for k, (draw, target) in enumerate(zip(draws, targets, strict=True)):
-        kept = draw if every else draw[:, keep]  # (T, P', N)
-        d = kept.to("cpu").permute(2, 0, 1).contiguous()  # (N, T, P')
-        lower, upper = thresholds(target.T[:, :, None], d.dtype)  # (N, T, 1) each
+        d = (draw if every else draw[:, keep]).to("cpu")  # (T, P', N)
+        lower, upper = thresholds(target[:, None, :], d.dtype)  # (T, 1, N) each
         # NaN draws (an invalid rollout) compare False and weigh 0 anyway; the
-        # comparison writes 0/1 straight into the product's dtype
+        # comparison writes 0/1 straight into the product's dtype. Compared in
+        # the draws' own layout, then summed over particles pair by pair: the
+        # product reads (T, P') of pair n in place (a strided batch), where a
+        # copy of the draws into (N, T, P') cost more than the comparisons
         indicator = torch.empty(d.shape, dtype=work)
-        below = torch.bmm(torch.le(d, lower, out=indicator), by_pair)  # (N, T, feeds)
-        at_or_below = torch.bmm(torch.le(d, upper, out=indicator), by_pair)
+        below = torch.bmm(
+            torch.le(d, lower, out=indicator).permute(2, 0, 1), by_pair
+        )  # (N, T, feeds)
+        at_or_below = torch.bmm(
+            torch.le(d, upper, out=indicator).permute(2, 0, 1), by_pair
+        )
         below, at_or_below = below.double(), at_or_below.double()
         for f, (cdf, _) in enumerate(feeds):
             cdf.below[k] += below[:, :, f].T
