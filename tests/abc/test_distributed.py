@@ -15,7 +15,7 @@ import sys
 import pytest
 import torch
 
-import torchcf.abc.rejection as rejection_module
+from tests.abc.interrupt import interrupt_after
 from tests.runs import torchrun_train, write_config, write_data
 from torchcf.abc.distributed import SINGLE, Group, GroupError, init_from_env
 from torchcf.abc.topn import TopN
@@ -190,19 +190,7 @@ def runs(tmp_path_factory):
     run_study(cfg, reference)
 
     partial = root / "partial"
-    calls = [0]
-    real = rejection_module.simulate
-
-    def interrupted(*args, **kwargs):
-        calls[0] += 1
-        if calls[0] > 2:
-            raise KeyboardInterrupt
-        return real(*args, **kwargs)
-
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(rejection_module, "simulate", interrupted)
-        with pytest.raises(KeyboardInterrupt):
-            run_study(cfg, partial)
+    interrupt_after(2, lambda: run_study(cfg, partial))
     saved = torch.load(partial / "checkpoint.pt", weights_only=True)
     assert saved["progress"]["idm"]["next"] == 1000
     assert "llcs" not in saved["progress"] or not saved["progress"]["llcs"]["next"]

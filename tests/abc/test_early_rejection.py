@@ -15,7 +15,7 @@ import math
 import pytest
 import torch
 
-import torchcf.abc.rejection as rejection_module
+from tests.abc.interrupt import interrupt_after, same_buffers
 from torchcf.abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
 from torchcf.abc.rounds import PILOT_ROUND, Plan, round_bounds
 from torchcf.abc.topn import TopN
@@ -267,9 +267,7 @@ def test_a_trained_run_is_the_same_with_early_rejection(pairs, tmp_path, method)
         runs[on] = (summary, Posterior.load(out / "posterior.pt"))
     (plain, a), (fast, b) = runs[False], runs[True]
     assert fast["shares"] == plain["shares"]
-    for name in a.models:
-        for key in ("score", "index", "theta"):
-            assert torch.equal(a.buffers[name][key], b.buffers[name][key]), (name, key)
+    same_buffers(a, b)
     assert fast["per_model"]["idm"]["stopped"] > 0
     assert plain["per_model"]["idm"]["stopped"] == 0
 
@@ -280,24 +278,11 @@ def test_an_interrupted_run_with_early_rejection_resumes_identical(pairs, tmp_pa
     cfg = _config("rejection", early_rejection=True, checkpoint_every=1e-9)
     test = pairs.subset([0, 1])
     reference = train(cfg, tmp_path / "ref", pairs=(pairs, test))
-    calls = [0]
-    real = rejection_module.simulate
-
-    def interrupted(*args, **kwargs):
-        calls[0] += 1
-        if calls[0] > 3:
-            raise KeyboardInterrupt
-        return real(*args, **kwargs)
-
     out = tmp_path / "cut"
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(rejection_module, "simulate", interrupted)
-        with pytest.raises(KeyboardInterrupt):
-            train(cfg, out, pairs=(pairs, test))
+    interrupt_after(3, lambda: train(cfg, out, pairs=(pairs, test)))
     resumed = train(cfg, out, resume=True, pairs=(pairs, test))
     assert resumed["shares"] == reference["shares"]
-    a = Posterior.load(tmp_path / "ref" / "posterior.pt")
-    b = Posterior.load(out / "posterior.pt")
-    for name in a.models:
-        for key in ("score", "index", "theta"):
-            assert torch.equal(a.buffers[name][key], b.buffers[name][key]), (name, key)
+    same_buffers(
+        Posterior.load(tmp_path / "ref" / "posterior.pt"),
+        Posterior.load(out / "posterior.pt"),
+    )

@@ -15,8 +15,8 @@ import math
 import pytest
 import torch
 
-import torchcf.abc.rejection as rejection_module
 import torchcf.abc.smc as smc
+from tests.abc.interrupt import interrupt_after, same_buffers
 from torchcf.abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
 from torchcf.abc.smc import SMCSettings, new_state, run_smc, smc_budget
 from torchcf.abc.topn import TopN
@@ -68,9 +68,7 @@ def _tensor_bytes(value) -> int:
 
 def _same_buffers(a: Posterior, b: Posterior) -> None:
     assert a.shares == b.shares
-    for name in a.models:
-        for key in ("score", "index", "theta"):
-            assert torch.equal(a.buffers[name][key], b.buffers[name][key]), name
+    same_buffers(a, b)
 
 
 # ------------------------------------------------------------ state size
@@ -217,21 +215,10 @@ def test_smc_over_hundreds_of_pairs_resumes_identical(many, tmp_path):
     test = many.subset([0, 1])
     reference = train(cfg, tmp_path / "ref", pairs=(many, test))
     budget = smc_budget(cfg.abc.n_particles, N_PAIRS, SMCSettings(**SETTINGS))
-    calls = [0]
-    real = rejection_module.simulate
     first_round_calls = -(-budget.prior // 2000)
-
-    def interrupted(*args, **kwargs):
-        calls[0] += 1
-        if calls[0] > first_round_calls + 2:  # inside IDM's round 1
-            raise KeyboardInterrupt
-        return real(*args, **kwargs)
-
     out = tmp_path / "cut"
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(rejection_module, "simulate", interrupted)
-        with pytest.raises(KeyboardInterrupt):
-            train(cfg, out, pairs=(many, test))
+    # inside IDM's round 1
+    interrupt_after(first_round_calls + 2, lambda: train(cfg, out, pairs=(many, test)))
     saved = torch.load(out / "checkpoint.pt", weights_only=True)
     assert saved["smc"]["idm"]["round"] == 1 and saved["smc"]["idm"]["next"] > 0
     resumed = train(cfg, out, resume=True, pairs=(many, test))

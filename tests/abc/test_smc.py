@@ -13,8 +13,8 @@ import torch
 from scipy.stats import multivariate_normal
 
 import torchcf.abc.kernel as kernel_module
-import torchcf.abc.rejection as rejection_module
 import torchcf.abc.smc as smc
+from tests.abc.interrupt import interrupt_after, same_buffers
 from tests.runs import torchrun_train, write_config, write_data
 from tests.train.test_train import config as train_config
 from tests.train.test_train import mixture_pairs
@@ -401,20 +401,9 @@ def test_smc_result_does_not_depend_on_the_chunk_size(mixture, tmp_path):
 def test_smc_resumed_mid_round_equals_an_uninterrupted_run(mixture, tmp_path):
     cfg = config(chunk_size=250, checkpoint_every=1e-9)
     reference = train(cfg, tmp_path / "ref", pairs=(mixture, mixture))
-    calls = [0]
-    real = rejection_module.simulate
-
-    def interrupted(*args, **kwargs):
-        calls[0] += 1
-        if calls[0] > 13:  # inside IDM's second round
-            raise KeyboardInterrupt
-        return real(*args, **kwargs)
-
     out = tmp_path / "cut"
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(rejection_module, "simulate", interrupted)
-        with pytest.raises(KeyboardInterrupt):
-            train(cfg, out, pairs=(mixture, mixture))
+    # inside IDM's second round
+    interrupt_after(13, lambda: train(cfg, out, pairs=(mixture, mixture)))
     saved = torch.load(out / "checkpoint.pt", weights_only=True)
     assert saved["smc"]["idm"]["round"] >= 1 and saved["smc"]["idm"]["next"] > 0
     resumed = train(cfg, out, resume=True, pairs=(mixture, mixture))
@@ -422,9 +411,7 @@ def test_smc_resumed_mid_round_equals_an_uninterrupted_run(mixture, tmp_path):
     assert resumed["smc"] == reference["smc"]
     a = Posterior.load(tmp_path / "ref" / "posterior.pt")
     b = Posterior.load(out / "posterior.pt")
-    for name in ("idm", "hl"):
-        for key in ("score", "index", "theta"):
-            assert torch.equal(a.buffers[name][key], b.buffers[name][key])
+    same_buffers(a, b, ("idm", "hl"))
 
 
 @pytest.mark.slow  # torchrun in subprocesses

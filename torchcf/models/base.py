@@ -109,6 +109,14 @@ def first_order_lag_advance(
     )
 
 
+def rows_of(values: Any, rows: Tensor, dim: int = 0) -> Any:
+    """A tuple (or named tuple) of tensors with the particles ``rows`` taken
+    along ``dim`` (early rejection, :meth:`CFModel.select_particles`);
+    0-dimensional tensors are shared and stay."""
+    taken = [t.index_select(dim, rows) if t.ndim else t for t in values]
+    return type(values)(*taken) if hasattr(values, "_fields") else tuple(taken)
+
+
 class CFModel:
     """Base class of a car-following model (see the module docstring).
 
@@ -197,7 +205,7 @@ class CFModel:
         """
         if memory is not None:
             raise NotImplementedError(f"{self.name}: no particle selection of memory")
-        return type(p)(*(field.index_select(0, rows) for field in p)), None
+        return rows_of(p, rows), None
 
     def initial_memory(self, p: Any, first: Perception) -> Any:
         """What a stateful model carries between steps (default: nothing).

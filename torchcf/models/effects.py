@@ -41,6 +41,7 @@ from .base import (
     ParamSpec,
     Perception,
     first_order_lag_advance,
+    rows_of,
     spec,
 )
 
@@ -53,13 +54,6 @@ BEND_RELAXATION = 1.0
 
 Stage = Literal["perception", "command", "realisation"]
 Scope = Literal["driver", "recording", "road"]
-
-
-def _rows_of(values: Any, rows: Tensor, dim: int = 0) -> Any:
-    """A tuple (or named tuple) of tensors with its particles ``rows`` taken
-    along ``dim``; 0-dimensional tensors are shared and stay."""
-    taken = [t.index_select(dim, rows) if t.ndim else t for t in values]
-    return type(values)(*taken) if hasattr(values, "_fields") else tuple(taken)
 
 
 class Effect:
@@ -130,7 +124,7 @@ class Effect:
         (int64, dimension 0 of the state) alone (early rejection,
         :meth:`CFModel.select_particles`). The default: tensors with the
         particle first, a 0-dimensional one shared."""
-        return _rows_of(q, rows), None if memory is None else _rows_of(memory, rows)
+        return rows_of(q, rows), None if memory is None else rows_of(memory, rows)
 
     def act_with_memory(
         self, q: Any, obs: Perception, u: Tensor, memory: Any
@@ -278,8 +272,8 @@ class Delay(Effect):
     def select(self, q, memory, rows):
         # the history is (depth, *state): its particles are dimension 1
         if memory is None:
-            return _rows_of(q, rows), None
-        return _rows_of(q, rows), _rows_of(memory, rows, dim=1)
+            return rows_of(q, rows), None
+        return rows_of(q, rows), rows_of(memory, rows, dim=1)
 
     def perceive(self, q, obs, memory):
         whole, fraction, depth = q
@@ -543,7 +537,7 @@ class RoadProfile(Effect):
 
     def select(self, q, memory, rows):
         # the knot values are (knots, *param shape): particles in dimension 1
-        return _rows_of(q, rows, dim=1), memory
+        return rows_of(q, rows, dim=1), memory
 
     def profile(self, q: tuple[Tensor, ...], position: Tensor) -> Tensor:
         """The profile at ``position`` (linear interpolation of the knots; ``q``

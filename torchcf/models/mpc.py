@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from ..qp import BoxQP, QPSettings
-from .base import CFModel, Perception, spec
+from .base import CFModel, Perception, rows_of, spec
 
 
 def mpc_qp_matrices(
@@ -192,7 +192,7 @@ class MPC(CFModel):
             columns = torch.arange(width, device=rows.device)
             cells = (rows[:, None] * width + columns).reshape(-1)
         kept = MPCPrepared(
-            params=MPCParams(*(field.index_select(0, cells) for field in p.params)),
+            params=rows_of(p.params, cells),
             solver=p.solver.take(cells),
             linear=p.linear.index_select(0, cells),
             free_spacing=p.free_spacing.index_select(1, cells),
