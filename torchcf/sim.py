@@ -78,7 +78,7 @@ _X_LEAD, _V_LEAD, _X_FOLLOW, _V_FOLLOW, _A_FOLLOW, _MASK = range(6)
 if TYPE_CHECKING:
     from .data import PairSet
 
-CompileMode = bool | Literal["auto"]
+CompileMode = bool | Literal["auto", "on", "off"]
 
 
 class SimOutput(NamedTuple):
@@ -509,6 +509,13 @@ def resolve_compile(
     steps) of ``model`` runs compiled: ``compile`` True/False as asked (a model
     that cannot compile never does), "auto" from :data:`COMPILE_MIN_STEPS` cells
     on, where a C++ compiler (CPU) or CUDA is there."""
+    if compile == "on" or compile == "off":  # the config's spelling
+        compile = compile == "on"
+    if compile != "auto" and not isinstance(compile, bool):
+        # a truthy string such as "no" must not silently compile
+        raise ValueError(
+            f'compile must be True, False, "auto", "on" or "off", got {compile!r}'
+        )
     if not model.compilable:
         return False
     if compile == "auto":
