@@ -350,3 +350,32 @@ def test_not_finite_flags_exactly_nan_and_inf(fused):
     fn = torch.compile(check, fullgraph=True) if fused else check
     expected = ~(torch.isfinite(x) & torch.isfinite(v))
     assert torch.equal(fn(x, v, a, b), expected)
+
+
+def test_auto_compiles_from_a_threshold_per_device(monkeypatch):
+    """ "auto" compiles long rollouts only: from COMPILE_MIN_STEPS particle-steps
+    on the CPU (with a C++ compiler), from COMPILE_MIN_STEPS_CUDA on CUDA (where
+    eager rollouts are fast and compiling pays later); "on"/"off" and bools as
+    asked; a model that cannot compile never does."""
+    import torchcf.sim as sim
+
+    monkeypatch.setattr(sim, "_compiler_available", lambda: True)
+    idm, cpu, cuda = MODELS["idm"], torch.device("cpu"), torch.device("cuda")
+    cpu_limit, cuda_limit = int(sim.COMPILE_MIN_STEPS), int(sim.COMPILE_MIN_STEPS_CUDA)
+    assert cpu_limit < cuda_limit
+    assert not sim.resolve_compile(idm, "auto", cpu, cpu_limit - 1)
+    assert sim.resolve_compile(idm, "auto", cpu, cpu_limit)
+    assert not sim.resolve_compile(idm, "auto", cuda, cpu_limit)
+    assert not sim.resolve_compile(idm, "auto", cuda, cuda_limit - 1)
+    assert sim.resolve_compile(idm, "auto", cuda, cuda_limit)
+    for asked, expected in ((True, True), ("on", True), (False, False), ("off", False)):
+        assert sim.resolve_compile(idm, asked, cpu, 1) is expected
+    assert not sim.resolve_compile(MODELS["mpc"], True, cpu, cuda_limit)
+    monkeypatch.setattr(sim, "_compiler_available", lambda: False)
+    assert not sim.resolve_compile(idm, "auto", cpu, cuda_limit)
+
+
+@pytest.mark.parametrize("asked", ["no", "yes", "", 1])
+def test_a_compile_mode_of_another_spelling_is_refused(asked):
+    with pytest.raises(ValueError, match="compile must be"):
+        torchcf.sim.resolve_compile(MODELS["idm"], asked, torch.device("cpu"), 1)

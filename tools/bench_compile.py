@@ -18,6 +18,8 @@ not depend on the block length; eager ones differ by rounding.
 
     python tools/bench_compile.py                     # idm, hl, llctg x 16, 8, 4, 1
     python tools/bench_compile.py --models idm --blocks 16 8
+    python tools/bench_compile.py --device cuda --particles 8388608 --blocks 8 \
+        --out reports/bench/compile_cuda_h100   # on a GPU: where compiling pays
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ logging.disable(logging.WARNING)
 import torchcf, torchcf.sim as sim
 name = sys.argv[1]
 block, threads, n = (int(a) for a in sys.argv[2:5])
+device = sys.argv[5]
 sim.BLOCK_STEPS = block
 torch.set_num_threads(threads)
 pairs = torchcf.load_pairs("car-model-2", split="train")
@@ -54,7 +57,7 @@ theta = low + (high - low) * torch.rand(n, model.n_params, generator=g)
 index = torch.randint(0, pairs.n_pairs, (n,), generator=g)
 def timed(compile):
     start = time.perf_counter()
-    out = torchcf.simulate(name, theta, pairs, index, compile=compile)
+    out = torchcf.simulate(name, theta, pairs, index, compile=compile, device=device)
     return time.perf_counter() - start, float(out.score[out.valid].double().sum())
 first, check_first = timed(True)
 second, check_second = timed(True)
@@ -64,18 +67,18 @@ print(json.dumps({"first": first, "run": second, "eager": eager,
 """
 
 
-def measure(model: str, block: int, threads: int) -> dict:
+def measure(model: str, block: int, threads: int, particles: int, device: str) -> dict:
     """One (model, block) in a fresh process with an empty inductor cache."""
     with tempfile.TemporaryDirectory(prefix="torchcf-inductor-") as cache:
         env = {**os.environ, "TORCHINDUCTOR_CACHE_DIR": cache}
         done = subprocess.run(
             [sys.executable, "-c", _CHILD, model, str(block), str(threads),
-             str(PARTICLES)],
+             str(particles), device],
             capture_output=True, text=True, env=env, check=True,
         )  # fmt: skip
     row = json.loads(done.stdout.strip().splitlines()[-1])
     compile_s = row["first"] - row["run"]
-    compiled_rate, eager_rate = PARTICLES / row["run"], PARTICLES / row["eager"]
+    compiled_rate, eager_rate = particles / row["run"], particles / row["eager"]
     saved_per_particle = 1 / eager_rate - 1 / compiled_rate
     return {
         "model": model,
@@ -100,7 +103,8 @@ def markdown(payload: dict) -> str:
         "",
         f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
         f"{meta['cpu']}, git {meta['git']}. CAR MODEL II training pairs (44 x 576 "
-        f"steps), {PARTICLES} paired particles per call, float32; each row in a "
+        f"steps), {payload['particles']} paired particles per call on "
+        f"{payload['device']}, float32; each row in a "
         "fresh process with an empty inductor cache. *Compile*: first compiled "
         "call minus the second; *break-even*: particles per model above which "
         "compiling pays on a cold cache.",
@@ -122,8 +126,8 @@ def markdown(payload: dict) -> str:
         lines.append(
             f"| {r['model']} | {r['block']} | {r['compile_s']:.1f} | "
             f"{r['compiled_particles_per_s']:.3g} | {r['eager_particles_per_s']:.3g} | "
-            f"{1e6 / r['compiled_particles_per_s']:.1f} / "
-            f"{1e6 / r['eager_particles_per_s']:.1f} | "
+            f"{1e6 / r['compiled_particles_per_s']:.2g} / "
+            f"{1e6 / r['eager_particles_per_s']:.2g} | "
             f"{f'{even:.3g}' if even else 'never'} | {same} | "
             f"{r['eager_relative_difference']:.1e} |"
         )
@@ -135,12 +139,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--models", nargs="+", default=["idm", "hl", "llctg"])
     parser.add_argument("--blocks", nargs="+", type=int, default=[16, 8, 4, 1])
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--particles", type=int, default=PARTICLES, help="per call")
+    parser.add_argument("--device", default="cpu")
     parser.add_argument("--out", type=Path, default=REPORTS / "compile")
     args = parser.parse_args(argv)
     rows = []
     for model in args.models:
         for block in args.blocks:
-            rows.append(measure(model, block, args.threads))
+            rows.append(
+                measure(model, block, args.threads, args.particles, args.device)
+            )
             r = rows[-1]
             print(
                 f"{model} block {block}: compile {r['compile_s']:.1f} s, "
@@ -148,7 +156,12 @@ def main(argv: list[str] | None = None) -> int:
                 f"{r['eager_particles_per_s']:.3g} particles/s",
                 flush=True,
             )
-    payload = {"meta": bench_meta(sys.argv, args.threads), "rows": rows}
+    payload = {
+        "meta": bench_meta(sys.argv, args.threads),
+        "particles": args.particles,
+        "device": args.device,
+        "rows": rows,
+    }
     write_report(args.out, payload, markdown(payload))
     print(f"wrote {args.out.with_suffix('.md')}")
     return 0

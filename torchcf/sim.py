@@ -47,9 +47,17 @@ from .models import CFModel, FollowerState, Perception, get_model
 #: steps compile in 19-28 s, 8 in 14-17 s at the same throughput (-7 % to +58 %
 #: per model), 4 in 12-13 s at 10-20 % less; compiled results do not depend on it.
 BLOCK_STEPS = 8
-#: Below this many simulated particle-steps, ``compile="auto"`` stays eager: the
-#: one-off compilation (seconds) would cost more than it saves.
+#: Below this many simulated particle-steps, ``compile="auto"`` stays eager on
+#: the CPU: the one-off compilation (seconds) would cost more than it saves
+#: (``reports/bench/compile.md``: IDM, HL, LLCTG pay from 1.5e8-3e8 on 2 cores).
 COMPILE_MIN_STEPS = 2e8
+#: The same on CUDA, where eager rollouts are fast too: on one H100 compiling
+#: an 8-step block took 20-26 s and saved 0.13-0.14 us per particle of 576 steps
+#: (IDM and HL at 2^23 particles), so it pays from 1.6e8-2e8 particles, about
+#: 1e11 particle-steps (``reports/bench/compile_cuda_h100_8m.md``); the
+#: paper-scale study (5.8e8) runs eager there in 28 s against 97 s compiled on
+#: an empty cache and 43 s on a full one (``reports/bench/train_carII_cuda_h100*``).
+COMPILE_MIN_STEPS_CUDA = 1e11
 #: With compilation or early rejection, chunks are a multiple of this: every
 #: element then takes the vectorised path of a kernel, never a scalar tail
 #: (whose transcendental functions can round differently: seen for ``sigmoid``
@@ -506,9 +514,10 @@ def resolve_compile(
     model: CFModel, compile: CompileMode, device: torch.device, cells: int
 ) -> bool:
     """Whether a rollout of ``cells`` simulated steps in all (particles x pairs x
-    steps) of ``model`` runs compiled: ``compile`` True/False as asked (a model
-    that cannot compile never does), "auto" from :data:`COMPILE_MIN_STEPS` cells
-    on, where a C++ compiler (CPU) or CUDA is there."""
+    steps) of ``model`` runs compiled: ``compile`` True/False (or "on"/"off") as
+    asked (a model that cannot compile never does); "auto" from
+    :data:`COMPILE_MIN_STEPS` cells on where a C++ compiler is there (CPU), from
+    :data:`COMPILE_MIN_STEPS_CUDA` on CUDA."""
     if compile == "on" or compile == "off":  # the config's spelling
         compile = compile == "on"
     if compile != "auto" and not isinstance(compile, bool):
@@ -520,9 +529,9 @@ def resolve_compile(
         return False
     if compile == "auto":
         # Compilation costs seconds; it pays on long runs only.
-        return cells >= COMPILE_MIN_STEPS and (
-            device.type == "cuda" or _compiler_available()
-        )
+        if device.type == "cuda":
+            return cells >= COMPILE_MIN_STEPS_CUDA
+        return cells >= COMPILE_MIN_STEPS and _compiler_available()
     return bool(compile)
 
 

@@ -22,7 +22,7 @@ from torchcf.abc.topn import TopN
 from torchcf.config import TrainConfig
 from torchcf.models import MODELS, get_model
 from torchcf.posterior import Posterior
-from torchcf.sim import _Accumulators, score_so_far, simulate
+from torchcf.sim import _Accumulators, resolve_compile, score_so_far, simulate
 from torchcf.synthetic import synthetic_pairs
 from torchcf.train import train
 
@@ -234,10 +234,15 @@ def test_a_pilot_round_starts_a_stretch_from_nothing():
 
 def test_auto_compile_stays_eager_with_early_rejection(pairs):
     """ "auto" would compile a long stream; with early rejection it stays eager
-    on the CPU (a compiled block cannot drop particles)."""
-    fast = Rollout(pairs, compile="auto", early_rejection=True)
-    assert not fast.compiled(get_model("idm"), 10**9)
-    assert not Rollout(pairs, compile="off").compiled(get_model("idm"), 10**9)
+    on the CPU and on CUDA (a compiled block cannot drop particles)."""
+    idm, long = get_model("idm"), 10**9
+    for device in (torch.device("cpu"), torch.device("cuda")):
+        fast = Rollout(pairs, compile="auto", early_rejection=True, device=device)
+        assert not fast.compiled(idm, long)
+        assert Rollout(pairs, compile="auto", device=device).compiled(idm, long) == (
+            resolve_compile(idm, "auto", device, long * pairs.n_steps)
+        )
+    assert not Rollout(pairs, compile="off").compiled(idm, long)
 
 
 def _config(method: str, **abc) -> TrainConfig:

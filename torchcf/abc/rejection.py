@@ -97,11 +97,11 @@ class Rollout:
             return model.compilable
         if self.compile == "off":
             return False
-        if self.early_rejection and model.prunable and self.device.type == "cpu":
+        if self.early_rejection and model.prunable:
             # "auto" with early rejection stays eager (a compiled block has one
-            # shape, so it cannot drop particles): on 2 CPU cores the paper-scale
-            # study then ran as fast as compiled kernels from a warm cache,
-            # with no compilation (reports/bench/train_carII.md)
+            # shape, so it cannot drop particles): the paper-scale study then ran
+            # faster than compiled kernels from a warm cache, with no compilation,
+            # on 2 CPU cores and on one H100 (reports/bench/train_carII*.md)
             return False
         cells = n_particles * self.cells_per_particle * self.pairs.n_steps
         return resolve_compile(model, "auto", self.device, cells)
