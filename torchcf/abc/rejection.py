@@ -93,18 +93,14 @@ class Rollout:
 
     def compiled(self, model: CFModel, n_particles: int) -> bool:
         """Whether a stream of ``n_particles`` of ``model`` runs compiled."""
-        if self.compile == "on":
-            return model.compilable
-        if self.compile == "off":
-            return False
-        if self.early_rejection and model.prunable:
+        if self.compile == "auto" and self.early_rejection and model.prunable:
             # "auto" with early rejection stays eager (a compiled block has one
             # shape, so it cannot drop particles): the paper-scale study then ran
             # faster than compiled kernels from a warm cache, with no compilation,
             # on 2 CPU cores and on one H100 (reports/bench/train_carII*.md)
             return False
         cells = n_particles * self.cells_per_particle * self.pairs.n_steps
-        return resolve_compile(model, "auto", self.device, cells)
+        return resolve_compile(model, self.compile, self.device, cells)
 
     def chunk(self, model: CFModel, n_particles: int, compiled: bool) -> int:
         """Particles per simulate call for a stream of ``n_particles``."""
