@@ -22,9 +22,11 @@ from torchcf.diagnose.road import (
     bend_seed,
     choose_spacing,
     grade_seed,
+    pair_weights,
     profile_agreement,
     shares_road_frame,
 )
+from torchcf.diagnose.signatures import road_share
 from torchcf.models.effects import GRAVITY, parse_effect
 from torchcf.synthetic import synthetic_pairs
 
@@ -91,6 +93,57 @@ def test_the_grade_seed_is_the_profile_in_the_residual():
     assert np.corrcoef(seed, truth)[0, 1] >= 0.95
     assert np.abs(seed - truth).max() < 0.01
     assert torch.equal(choice.seed, torch.from_numpy(seed))
+
+
+def _with_a_wild_pair(series, scale=60.0, seed=1):
+    """The series with pair 0's residual replaced by noise of ``scale`` m/s^2
+    (a stiff model commanding from a state it never reaches in closed loop)."""
+    rng = np.random.default_rng(seed)
+    wild = {k: list(v) for k, v in series.items()}
+    wild["acceleration"][0] = scale * rng.standard_normal(wild["x"][0].size)
+    return wild
+
+
+def test_pair_weights_are_inverse_robust_variances_with_a_floor():
+    rng = np.random.default_rng(0)
+    residual = [0.1 * rng.standard_normal(4000), 0.4 * rng.standard_normal(4000)]
+    residual += [np.zeros(50), np.array([])]
+    weights = pair_weights(residual)
+    # 1.4826 MAD estimates the standard deviation: weights ~ 1/0.01, 1/0.16
+    assert weights[0] == pytest.approx(100.0, rel=0.1)
+    assert weights[1] == pytest.approx(1 / 0.16, rel=0.1)
+    # an exact pair is floored at a tenth of the median scale, not infinite
+    median = np.median([0.1, 0.4])
+    assert weights[2] == pytest.approx(1 / (0.1 * median) ** 2, rel=0.1)
+    assert weights[3] == 0.0
+    # a few wild steps do not set a pair's scale
+    spiked = residual[0].copy()
+    spiked[:40] = 1e3
+    assert pair_weights([spiked, residual[1]])[0] == pytest.approx(weights[0], rel=0.1)
+
+
+def test_one_wild_pair_does_not_hide_the_profile():
+    """One pair of 30 with a residual of tens of m/s^2 (measured ZalaZONE pairs
+    had one such FVDM pair of 50) neither moves the seed off the profile nor
+    coarsens the spacing nor makes the road signature negative: every pair is
+    weighted by its own scale."""
+    series = _series(lambda x: _wavy_grade(x, 600), noise=0.2)
+    wild = _with_a_wild_pair(series)
+    clean = choose_spacing("grade", 0.0, 1200.0, series)
+    choice = choose_spacing("grade", 0.0, 1200.0, wild)
+    assert choice.spacing == clean.spacing, (choice.errors, clean.errors)
+    effect = parse_effect(choice.token)
+    truth = _wavy_grade(np.array(effect.knot_positions), 600)
+    seed = choice.seed.numpy()
+    assert np.corrcoef(seed, truth)[0, 1] >= 0.95
+    assert np.abs(seed - truth).max() < 0.01
+    # unweighted, the wild pair alone would set the profile: the check bites
+    x = np.concatenate(wild["x"])
+    design = effect.basis(torch.from_numpy(x)).numpy()
+    plain = np.linalg.lstsq(design, np.concatenate(wild["acceleration"]), rcond=None)
+    assert np.abs(-plain[0] / GRAVITY - truth).max() > 0.01
+    shares = road_share(wild, effect)
+    assert np.median(shares) > 0.2 and shares.mean() > 0.0
 
 
 def test_road_frame_declared_or_decided():

@@ -220,11 +220,15 @@ def road_share(
 ) -> np.ndarray:
     """Per pair, the share of its one-step residual's variance (around the other
     pairs' mean) that the road ``profile`` (a :class:`~torchcf.models.effects.
-    RoadProfile`), fitted on the other folds of pairs, explains."""
-    from .road import _basis, _least_squares  # the profile's regression
+    RoadProfile`), fitted on the other folds of pairs, explains. The fit and the
+    level weigh each pair by :func:`~torchcf.diagnose.road.pair_weights` (one
+    pair with a residual of tens of m/s^2 would otherwise set the profile every
+    other pair is judged by)."""
+    from .road import _basis, fit_profile, pair_weights  # the profile's regression
 
     x, r = one_step["x"], one_step["acceleration"]
     n = len(x)
+    weights = pair_weights(r)
     folds = min(folds, n)
     out = np.full(n, np.nan)
     for fold in range(folds):
@@ -232,10 +236,9 @@ def road_share(
         held = [j for j in range(n) if j % folds == fold]
         if not train:
             continue
-        design = np.concatenate([_basis(profile, x[j]) for j in train])
-        target = np.concatenate([r[j] for j in train])
-        beta = _least_squares(design, target)
-        level = float(target.mean())
+        beta = fit_profile(profile, x, r, weights, train)
+        mass = sum(weights[j] * r[j].size for j in train)
+        level = sum(weights[j] * float(r[j].sum()) for j in train) / max(mass, 1e-300)
         for j in held:
             flat = float(((r[j] - level) ** 2).sum())
             fitted = float(((_basis(profile, x[j]) @ beta - r[j]) ** 2).sum())
