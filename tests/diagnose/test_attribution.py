@@ -44,7 +44,11 @@ from torchcf.diagnose.recalibrate import recalibrate, recalibration_config
 from torchcf.diagnose.road import one_step_residual
 from torchcf.diagnose.search import Noise, lift, local_search, model_bounds
 from torchcf.diagnose.series import residual_series
-from torchcf.diagnose.signatures import response_lag, signatures
+from torchcf.diagnose.signatures import (
+    response_lag,
+    signatures,
+    simulated_covariates,
+)
 from torchcf.diagnose.testing import fallback_weights
 from torchcf.models import get_model
 from torchcf.models.effects import EFFECTS, parse_effect
@@ -310,6 +314,73 @@ def test_the_response_lag_points_to_a_delay():
     truth = {"idm+delay": (torch.tensor([IDM + [1.0]] * 12), torch.arange(12))}
     clean = residual_series(truth, pairs)
     assert np.abs(response_lag(clean, pairs.dt)).max() <= 0.1
+
+
+def _one_step_marks(model: str, theta: list[float], noise: float, lead_noise=0.0):
+    """Signatures of 30 pairs made by ``model`` (theta), driven by the plain IDM
+    at the truth's own parameters."""
+    pairs = synthetic_pairs(model, theta, 30, 400, seed=1, noise=noise)
+    if lead_noise:
+        g = torch.Generator().manual_seed(5)
+        lead = {k: v for k, v in pairs.series().items() if k.endswith("_lead")}
+        noisy = {
+            k: v + lead_noise * torch.randn(v.shape, generator=g).to(v)
+            for k, v in lead.items()
+        }
+        pairs = dataclasses.replace(pairs, **noisy)
+    best = {"idm": (torch.tensor([IDM] * 30, dtype=torch.float64), torch.arange(30))}
+    closed = residual_series(best, pairs)
+    found = signatures(closed, one_step_residual(best, pairs), pairs.dt)
+    return {s.name: s for s in found}
+
+
+ONE_STEP_SIGNATURES = ("closing vs opening", "drag", "command strength")
+
+
+@pytest.mark.parametrize("lead_noise", [0.0, 0.1])
+def test_measurement_noise_alone_leaves_no_one_step_signature(lead_noise):
+    """The model that made the data, position noise of 5 cm (and white noise of
+    0.1 on the leader's series): nothing is missing, so nothing is found. With
+    the observed state's covariates all three were found at p 0.0005 (the
+    residual and its covariates share the state's noise)."""
+    marks = _one_step_marks("idm", IDM, noise=0.05, lead_noise=lead_noise)
+    for name in ONE_STEP_SIGNATURES:
+        assert not marks[name].found, (name, marks[name].mean, marks[name].p_value)
+
+
+@pytest.mark.parametrize(
+    ("model", "extra", "signature", "effect"),
+    [
+        ("idm+saturation", [-3.0, 0.8], "command strength", "saturation"),
+        ("idm+lag", [0.5], "command strength", "lag"),
+        ("idm+asymmetry", [1.6, 0.7], "closing vs opening", "asymmetry"),
+        ("idm+resistance", [0.0015], "drag", "resistance"),
+    ],
+)
+def test_one_step_signatures_point_to_their_effects(model, extra, signature, effect):
+    marks = _one_step_marks(model, IDM + extra, noise=0.05)
+    assert effect in marks[signature].points_to, (
+        marks[signature].mean,
+        marks[signature].p_value,
+    )
+
+
+def test_simulated_covariates_lag_the_simulated_follower():
+    closed = {
+        "v": [np.array([10.0, 11.0, 12.0, 13.0]), np.array([5.0])],
+        "speed": [np.array([1.0, 1.0, 2.0, 2.0]), np.array([0.0])],
+        "dv": [np.array([0.5, 0.0, -0.5, -1.0]), np.array([0.0])],
+        "a": [np.array([1.0, 1.0, 1.0, 1.0]), np.array([0.0])],
+        "acceleration": [np.array([0.5, 0.0, -0.5, 0.0]), np.array([0.0])],
+    }
+    one_step = {"acceleration": [np.array([0.1, 0.2, 0.3])]}  # pair 0 only
+    got = simulated_covariates(closed, one_step, lag=1)
+    np.testing.assert_array_equal(got["acceleration"][0], [0.2, 0.3])
+    np.testing.assert_array_equal(got["v"][0], [9.0, 10.0])  # 10 - 1, 11 - 1
+    np.testing.assert_array_equal(got["dv"][0], [1.5, 1.0])  # v_lead - v_sim
+    np.testing.assert_array_equal(got["predicted"][0], [0.5, 1.0])
+    with pytest.raises(ValueError, match="one-step series"):
+        simulated_covariates(closed, {"acceleration": []}, lag=1)
 
 
 # ----------------------------------------------------------------- absorption

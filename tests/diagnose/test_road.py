@@ -104,22 +104,21 @@ def _with_a_wild_pair(series, scale=60.0, seed=1):
     return wild
 
 
-def test_pair_weights_are_inverse_robust_variances_with_a_floor():
+def test_pair_weights_weigh_down_only_the_far_noisier_pairs():
     rng = np.random.default_rng(0)
-    residual = [0.1 * rng.standard_normal(4000), 0.4 * rng.standard_normal(4000)]
-    residual += [np.zeros(50), np.array([])]
-    weights = pair_weights(residual)
-    # 1.4826 MAD estimates the standard deviation: weights ~ 1/0.01, 1/0.16
-    assert weights[0] == pytest.approx(100.0, rel=0.1)
-    assert weights[1] == pytest.approx(1 / 0.16, rel=0.1)
-    # an exact pair is floored at a tenth of the median scale, not infinite
-    median = np.median([0.1, 0.4])
-    assert weights[2] == pytest.approx(1 / (0.1 * median) ** 2, rel=0.1)
-    assert weights[3] == 0.0
-    # a few wild steps do not set a pair's scale
+    scales = [0.1, 0.2, 0.25, 0.3, 6.0]
+    residual = [s * rng.standard_normal(4000) for s in scales]
+    # a slow profile in a pair's residual is not noise: it keeps its weight
+    residual[1] = residual[1] + 3.0 * np.sin(np.linspace(0, 6, 4000))
+    weights = pair_weights(residual + [np.array([1.0])])
+    assert weights[:4].tolist() == [1.0, 1.0, 1.0, 1.0]
+    # 6.0 against 3 x the median scale (0.25): counted as a pair of 0.75
+    assert weights[4] == pytest.approx((3 * 0.25 / 6.0) ** 2, rel=0.1)
+    assert weights[5] == 0.0  # one sample: no scale, no weight
+    # a few wild steps do not make a pair noisy
     spiked = residual[0].copy()
     spiked[:40] = 1e3
-    assert pair_weights([spiked, residual[1]])[0] == pytest.approx(weights[0], rel=0.1)
+    assert pair_weights([spiked] + residual[1:4])[0] == 1.0
 
 
 def test_one_wild_pair_does_not_hide_the_profile():

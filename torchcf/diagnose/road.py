@@ -19,14 +19,12 @@ the standard error being that of the *paired* difference of the fold errors:
 the folds hold different pairs, whose residuals differ in size far more than two
 spacings differ on one fold, so the spread of a fold's total error would hide
 any profile finer than the coarsest.
-Every regression weighs each pair by the inverse square of its residual's robust
-scale (:func:`pair_weights`): the pairs' residuals are of very different sizes (a
-stiff model, FVDM with tau near 0.1 s, commands tens of m/s^2 from a measured
-state it never reaches in closed loop), and unweighted, one such pair out of 50
-made 96 % of the squared error of a measured data set, hid a planted grade and
-turned the road signature negative. Weighted least squares with per-pair
-variances is the maximum-likelihood fit under independent Gaussian noise of one
-scale per pair; its held-out error is the standardised one.
+Every regression weighs down a pair whose residual is far noisier than the
+others' (:func:`pair_weights`, a Huber weight over pairs): the pairs' residuals
+can be of very different sizes (a stiff model, FVDM with tau near 0.1 s,
+commands tens of m/s^2 from a measured state it never reaches in closed loop),
+and unweighted, one such pair out of 50 made 96 % of the squared error of a
+measured data set and turned the road signature negative.
 The regression on all pairs also gives the grade search its first candidate
 (:func:`grade_seed`), which a random search in tens of knot values could not
 find; a bend's first candidate is the speed no follower exceeds near each knot
@@ -69,10 +67,9 @@ BEND_SEED_WINDOW = 50.0
 #: Ridge added to the normal equations (relative to their trace), so knots no
 #: pair reaches stay at 0 instead of making the fit singular.
 RIDGE = 1e-6
-#: A pair's residual scale is floored at this fraction of the median pair's
-#: (:func:`pair_weights`), so a pair the model reproduces almost exactly (a
-#: constant-speed stretch) cannot outweigh all the others.
-SCALE_FLOOR = 0.1
+#: A pair whose residual scale exceeds this many times the median pair's is
+#: weighed down to count as one of that scale (:func:`pair_weights`).
+OUTLIER_SCALE = 3.0
 #: 1.4826 MAD estimates a Gaussian's standard deviation.
 MAD_TO_SIGMA = 1.4826
 
@@ -216,23 +213,38 @@ def _basis(profile: RoadProfile, x: np.ndarray) -> np.ndarray:
 
 
 def pair_weights(residual: list[np.ndarray]) -> np.ndarray:
-    """(N,) regression weight of each pair, ``1 / sigma_j^2`` [(m/s^2)^-2].
+    """(N,) regression weight of each pair [1]: 1, or less for a pair whose
+    residual is far noisier than the others'.
 
-    ``sigma_j = 1.4826 MAD`` of pair j's residual (robust: a few wild steps do
-    not set the scale), floored at :data:`SCALE_FLOOR` times the median pair's.
-    Pairs without samples weigh 0.
+    ``w_j = min(1, (c sigma_med / sigma_j)^2)`` with ``c =``
+    :data:`OUTLIER_SCALE`, ``sigma_j`` the robust step-to-step scale of pair j's
+    residual (:func:`_step_scale`) and ``sigma_med`` the median pair's: a Huber
+    weight over pairs. Pairs of one scale count alike, as in the unweighted
+    fit (weighing every pair by its own inverse variance favoured the quietest
+    pairs and chose knots too fine for a smooth synthetic grade, which the loop
+    then missed); a pair c times noisier than the median counts as if its
+    residual were only that noisy. Pairs with fewer than two samples weigh 0.
     """
-    scales = np.array(
-        [
-            MAD_TO_SIGMA * float(np.median(np.abs(r - np.median(r)))) if r.size else 0.0
-            for r in residual
-        ]
-    )
-    sized = scales[scales > 0]
-    if not sized.size:  # every pair exact: weigh them alike
-        return np.ones(len(residual))
-    floored = np.maximum(scales, SCALE_FLOOR * float(np.median(sized)))
-    return np.where([r.size > 0 for r in residual], 1.0 / floored**2, 0.0)
+    scales = np.array([_step_scale(r) for r in residual])
+    weights = np.where([r.size > 1 for r in residual], 1.0, 0.0)
+    sized = scales[(scales > 0) & (weights > 0)]
+    if not sized.size:
+        return weights
+    bound = OUTLIER_SCALE * float(np.median(sized))
+    noisy = scales > bound
+    weights[noisy] = (bound / scales[noisy]) ** 2
+    return weights
+
+
+def _step_scale(r: np.ndarray) -> float:
+    """Robust standard deviation of a series' white part [its unit]: 1.4826
+    MAD of its first differences over sqrt(2) (blind to what varies slowly,
+    such as the road profile being fitted); 0 for fewer than two samples."""
+    if r.size < 2:
+        return 0.0
+    steps = np.diff(r)
+    spread = float(np.median(np.abs(steps - np.median(steps))))
+    return MAD_TO_SIGMA * spread / math.sqrt(2)
 
 
 def fit_profile(
@@ -444,9 +456,9 @@ __all__ = [
     "BEND_SEED_WINDOW",
     "FOLDS",
     "MAD_TO_SIGMA",
+    "OUTLIER_SCALE",
     "ROAD_SPACINGS",
     "SAME_START",
-    "SCALE_FLOOR",
     "RoadChoice",
     "bend_seed",
     "choose_spacing",
