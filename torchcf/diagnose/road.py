@@ -361,7 +361,7 @@ def choose_spacing(
     effect = profiles[best]
     seed = None
     if isinstance(effect, Grade):
-        seed = grade_seed(effect, x, residual)
+        seed = grade_seed(effect, x, residual, weights)
     elif isinstance(effect, Bend) and "v" in series:
         seed = bend_seed(effect, x, series["v"])
     return RoadChoice(effect.token, best, errors, standard, seed)
@@ -381,12 +381,16 @@ def finite_samples(series: dict[str, list[np.ndarray]]) -> dict[str, list[np.nda
 
 
 def grade_seed(
-    effect: Grade, x: list[np.ndarray], residual: list[np.ndarray]
+    effect: Grade,
+    x: list[np.ndarray],
+    residual: list[np.ndarray],
+    weights: np.ndarray | None = None,
 ) -> Tensor:
     """Knot values (K,) of the grade that explains the acceleration residual,
-    ``r_a ~ -g G(x)`` (each pair weighted by :func:`pair_weights`), clipped to
-    the prior."""
-    beta = fit_profile(effect, x, residual, pair_weights(residual))
+    ``r_a ~ -g G(x)`` (each pair weighted by ``weights``, default
+    :func:`pair_weights`), clipped to the prior."""
+    weights = pair_weights(residual) if weights is None else weights
+    beta = fit_profile(effect, x, residual, weights)
     low, high = effect.param_specs[0].lower, effect.param_specs[0].upper
     return torch.from_numpy(np.clip(-beta / GRAVITY, low, high))
 
