@@ -18,6 +18,7 @@ from torchcf.data.reader import FILES
 from torchcf.diagnose import candidate_effects
 from torchcf.diagnose.road import (
     BEND_SEED_MARGIN,
+    MIN_LAP_KNOTS,
     ROAD_SPACINGS,
     bend_seed,
     choose_spacing,
@@ -62,6 +63,33 @@ def test_fine_structure_gets_fine_knots_and_smooth_gets_coarse():
     )
     assert 100.0 <= medium.spacing <= 200.0, medium.errors
     assert parse_effect(wavy.token).knots == round(1200 / wavy.spacing) + 1
+
+
+def test_a_tilted_circle_gets_a_profile_round_the_lap():
+    """On a closed track (ZalaZONE's tilted platform: radius ~143 m, slope ~1 %)
+    the odometers run over many laps; the profile is periodic with the lap,
+    never fewer than MIN_LAP_KNOTS knots (two could both sit where the circle is
+    level), and its seed follows the grade ``slope sin(s / R)``."""
+    radius, slope = 143.4, 0.0102
+    lap = 2 * math.pi * radius
+    rng = np.random.default_rng(3)
+    x, residual = [], []
+    for _ in range(40):
+        xi = rng.uniform(0, 8 * lap) + np.linspace(0, 600, 400)
+        x.append(xi)
+        grade = slope * np.sin(xi / radius)
+        residual.append(-GRAVITY * grade + 0.3 * rng.standard_normal(xi.size))
+    choice = choose_spacing(
+        "grade", 0.0, 0.0, {"x": x, "acceleration": residual}, period=lap
+    )
+    effect = parse_effect(choice.token)
+    assert effect.period == lap and effect.knots >= MIN_LAP_KNOTS
+    assert effect.knots == max(MIN_LAP_KNOTS, round(lap / choice.spacing))
+    s = torch.linspace(0, lap, 200, dtype=torch.float64)
+    learned = effect.profile((choice.seed[:, None],), s)
+    truth = slope * torch.sin(s / radius)
+    assert float(torch.corrcoef(torch.stack([learned, truth]))[0, 1]) > 0.95
+    assert float(learned.abs().max()) == pytest.approx(slope, rel=0.35)
 
 
 def test_a_residual_the_model_cannot_give_is_left_out_of_the_choice():
@@ -236,6 +264,18 @@ def test_bend_seed_finds_the_speed_limit_the_followers_press_against():
     assert seed[1].item() == pytest.approx(limit[1] + BEND_SEED_MARGIN, abs=1.5)
     assert seed[4].item() == bend.param_specs[4].upper  # 2400 m: nobody gets there
     assert seed[0].item() > seed[1].item() + 2.0
+
+
+def test_bend_seed_round_a_lap_reads_both_sides_of_the_join():
+    """On a closed track a knot at the lap's start is also where the lap ends:
+    a slow stretch just before the end (and a lap later) sets knot 0."""
+    bend = parse_effect("bend(period=900,knots=9)")  # knots 100 m apart
+    x = [np.array([700.0, 720.0, 895.0, 1795.0]), np.array([300.0, 310.0])]
+    v = [np.array([30.0, 30.0, 9.0, 8.5]), np.array([20.0, 21.0])]
+    seed = bend_seed(bend, x, v)
+    assert seed[0].item() == pytest.approx(9.0 + BEND_SEED_MARGIN)
+    assert seed[3].item() == pytest.approx(21.0 + BEND_SEED_MARGIN)
+    assert seed[7].item() == pytest.approx(30.0 + BEND_SEED_MARGIN)
 
 
 @pytest.mark.parametrize("lag", [0.2, 0.5])

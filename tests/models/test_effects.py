@@ -142,9 +142,18 @@ def split_row(base: str, effects: dict, row: list[float]) -> tuple[list, dict]:
 
 
 def road_profile(options: dict, values: list[float], x: float) -> float:
-    """A profile's value at road position x (constant beyond its ends)."""
+    """A profile's value at road position x (constant beyond its ends; on a
+    closed track, ``period`` > 0, x is taken round the lap and the last knot
+    joins the first)."""
     if options["knots"] == 1:
         return values[0]
+    period = options.get("period", 0.0)
+    if period:
+        start = options["start"]
+        where = start + period * np.arange(options["knots"] + 1) / options["knots"]
+        return float(
+            np.interp(start + (x - start) % period, where, [*values, values[0]])
+        )
     where = np.linspace(options["start"], options["end"], options["knots"])
     return float(np.interp(x, where, values))
 
@@ -381,6 +390,14 @@ CASES = [
         "idm",
         {"grade": {"start": 100.0, "end": 500.0, "knots": 3}},
         [IDM + [0.03, -0.06, 0.05], IDM_B + [-0.04, 0.02, 0.08]],
+    ),
+    (
+        # A closed track of 250 m: the pairs (from -40 m to beyond 600 m) go
+        # round it several times, through the last knot's join to the first.
+        "idm+grade(start=-30,knots=4,period=250)",
+        "idm",
+        {"grade": {"start": -30.0, "knots": 4, "period": 250.0}},
+        [IDM + [0.03, -0.06, 0.05, 0.02], IDM_B + [-0.04, 0.02, 0.08, -0.07]],
     ),
     ("idm+lag", "idm", {"lag": {}}, [IDM + [0.3], IDM_B + [0.8], IDM + [0.05]]),
     ("llcs+lag", "llcs", {"lag": {}}, [LLCS + [0.5], LLCS + [1.5]]),
@@ -847,6 +864,34 @@ def test_a_road_profile_at_a_nan_position_is_nan_not_an_error():
         position = torch.tensor([float("nan"), 300.0, float("inf"), -float("inf")])
         out = effect.profile(values, position)
         assert torch.isnan(out[0]) and torch.isfinite(out[1:]).all()
+
+
+@pytest.mark.parametrize("knots", [1, 2, 3, 7])
+def test_a_lap_profile_is_periodic_continuous_and_its_basis_is_linear(knots):
+    """On a closed track a position and the same position a lap on (or back)
+    read one value; the profile is continuous where the last knot joins the
+    first; ``basis @ values`` is the profile (the diagnosis regresses on it)."""
+    effect = parse_effect(f"grade(start=12.5,period=900,knots={knots})")
+    assert vars(parse_effect(effect.token)) == vars(effect)  # the name round-trips
+    values = torch.linspace(-0.03, 0.05, knots, dtype=torch.float64)
+    q = effect.prepare(tuple(values[:, None]), DT)
+    x = torch.linspace(-2000.0, 3000.0, 5001, dtype=torch.float64)
+    here = effect.profile(q, x)
+    for laps in (-2, 1, 3):
+        torch.testing.assert_close(effect.profile(q, x + laps * 900.0), here)
+    join = torch.tensor([12.5 + 900.0 - 1e-6, 12.5 + 900.0, 12.5], dtype=x.dtype)
+    ends = effect.profile(q, join)
+    torch.testing.assert_close(
+        ends, torch.full_like(ends, float(values[0])), atol=1e-8, rtol=0
+    )
+    torch.testing.assert_close(effect.basis(x) @ values, here)
+    assert torch.allclose(effect.basis(x).sum(-1), torch.ones_like(here))
+
+
+def test_a_lap_profile_is_refused_a_period_that_is_no_length():
+    for bad in ("-5", "inf"):
+        with pytest.raises(ValueError, match="period must be a lap length"):
+            parse_effect(f"grade(period={bad},knots=4)")
 
 
 def test_sync_at_zero_is_the_model_up_to_rounding(road):

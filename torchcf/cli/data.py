@@ -58,6 +58,7 @@ _READER_ARGS: dict[str, object] = {
     "recordings": None,
     "directions": None,
     "follower_classes": None,
+    "lap_frame": False,
 }
 
 
@@ -101,6 +102,15 @@ def _parser() -> argparse.ArgumentParser:
     _add_highd_options(p)
     p.add_argument(
         "--vehicle-length", type=float, default=5.0, help="openacc: vehicle length [m]"
+    )
+    p.add_argument(
+        "--lap-frame",
+        action="store_true",
+        default=_READER_ARGS["lap_frame"],
+        help=(
+            "openacc: the runs go round one circular track; put every run on its "
+            "lap coordinate (E/N, Alt) so road effects can be offered"
+        ),
     )
     cut = p.add_argument_group("windows and split")
     cut.add_argument("--window", type=float, default=40.0, help="pair length [s]")

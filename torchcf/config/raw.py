@@ -118,6 +118,15 @@ class RawSource(BaseModel):
     vehicle_length: float = Field(
         5.0, gt=0, description="openacc only: vehicle length [m] (the files give none)."
     )
+    lap_frame: bool = Field(
+        False,
+        description=(
+            "openacc only: the runs go round one circular track; put them on its "
+            "lap coordinate (from E/N and Alt), one road frame with the lap as "
+            "period, so road effects such as a grade can be offered; runs that "
+            "leave the circle are left out."
+        ),
+    )
     window: float = Field(40.0, gt=0, description="Pair length [s].")
     stride: float | None = Field(
         None, gt=0, description="Start-to-start distance of windows [s]; None = window."

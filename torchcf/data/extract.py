@@ -134,6 +134,8 @@ class Extraction:
         dropped: one row per dropped window or short span, with the reason.
         dt: sampling interval [s].
         road_frame: whether all pairs share one road frame.
+        road_period: the lap length [m] of that road when it is a closed track,
+            else None.
         summary: counts for humans and for ``extract.json``.
         notes: what was found and handled, one line each (the table's notes
             first).
@@ -148,6 +150,7 @@ class Extraction:
     road_frame: bool | None
     summary: dict
     notes: tuple[str, ...]
+    road_period: float | None = None
 
 
 INDEX_COLUMNS = (
@@ -221,6 +224,7 @@ def extract_pairs(
     pairs = dataclasses.replace(
         _pair_set(windows, kept, leader_length, dt, options.name or table.source),
         road_frame=table.road_frame,
+        road_period=table.road_period,
     )
     index = _index(meta, windows, kept, table.source)
     index, train_ids, test_ids = group_split(index, options)
@@ -252,6 +256,7 @@ def extract_pairs(
         dropped=pd.DataFrame(dropped, columns=list(DROPPED_COLUMNS)),
         dt=dt,
         road_frame=table.road_frame,
+        road_period=table.road_period,
         summary=summary,
         notes=(*table.notes, *_notes(index, unmatched, len(meta), options.window)),
     )

@@ -76,6 +76,10 @@ class PairSet:
             pairs), False when each pair has its own frame, None when the data
             do not say (``meta.json``'s ``"road_frame"``; the diagnosis then
             decides, :func:`torchcf.diagnose.road.shares_road_frame`).
+        road_period: the lap length [m] when that road is a closed track
+            (positions are then odometers round it and a road profile is
+            periodic, :class:`torchcf.models.effects.RoadProfile`); None for
+            an open road (``meta.json``'s ``"road_period"``).
     """
 
     x_lead: Tensor
@@ -92,6 +96,7 @@ class PairSet:
     split: str | None = None
     notes: tuple[str, ...] = ()
     road_frame: bool | None = None
+    road_period: float | None = None
 
     def __post_init__(self) -> None:
         n_pairs = self._check_tensors()
@@ -114,6 +119,14 @@ class PairSet:
             raise DataError(
                 f"road_frame must be true, false or null, got {self.road_frame!r}"
             )
+        if self.road_period is not None:
+            self._set(
+                "road_period", positive_float(self.road_period, "road_period", "m")
+            )
+            if self.road_frame is not True:
+                raise DataError(
+                    "road_period (a closed track's lap length) needs road_frame true"
+                )
         arrays, mask = self._host()
         self._check_mask(mask)
         self._check_values(arrays, mask)

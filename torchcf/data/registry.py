@@ -56,7 +56,8 @@ Any other folder in the six-CSV layout loads by path: units default to "m", and
 ``dt`` comes from the argument or from a ``meta.json`` beside the files
 (``{"dt": 0.1, "units": "m", "leader_length": 5.0, "road_frame": true}``;
 ``road_frame``: whether all pairs' positions are on one road, which road effects
-need, see :func:`torchcf.diagnose.road.shares_road_frame`).
+need, see :func:`torchcf.diagnose.road.shares_road_frame`; ``road_period``, with
+it: the lap length [m] of a closed track, whose road profiles are periodic).
 """
 
 from __future__ import annotations
@@ -374,7 +375,12 @@ def _load_folder(
         ),
         name=str(folder),
     )
-    pairs = dataclasses.replace(pairs, split=split, road_frame=meta.get("road_frame"))
+    pairs = dataclasses.replace(
+        pairs,
+        split=split,
+        road_frame=meta.get("road_frame"),
+        road_period=meta.get("road_period"),
+    )
     return _drop_copies(pairs, _column_keys(pairs), drop_duplicates, notes)
 
 
@@ -386,7 +392,7 @@ def _read_meta(folder: Path) -> dict:
         meta = json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise DataError(f"'{path}' is not valid JSON: {err}") from None
-    allowed = {"dt", "units", "leader_length", "road_frame"}
+    allowed = {"dt", "units", "leader_length", "road_frame", "road_period"}
     if not isinstance(meta, dict) or set(meta) - allowed:
         extra = sorted(set(meta) - allowed) if isinstance(meta, dict) else meta
         raise DataError(

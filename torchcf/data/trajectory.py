@@ -86,6 +86,8 @@ class TrajectoryTable:
             one road frame, so pairs cut from it share road effects such as a
             grade profile; False when they do not (e.g. platoon files recorded
             on different roads); None when the source does not say.
+        road_period: the lap length [m] when that road is a closed track
+            (positions are odometers round it), else None.
         notes: what the reader found and handled (one line each, for humans).
     """
 
@@ -94,6 +96,7 @@ class TrajectoryTable:
     format: str = ""
     road_frame: bool | None = None
     notes: tuple[str, ...] = ()
+    road_period: float | None = None
 
     @classmethod
     def from_frame(
@@ -104,6 +107,7 @@ class TrajectoryTable:
         format: str = "",
         road_frame: bool | None = None,
         notes: tuple[str, ...] | list[str] = (),
+        road_period: float | None = None,
     ) -> TrajectoryTable:
         """Build a table from a DataFrame holding some of :data:`COLUMNS`.
 
@@ -156,6 +160,7 @@ class TrajectoryTable:
             format=str(format),
             road_frame=road_frame,
             notes=tuple(notes),
+            road_period=road_period,
         )
 
     def sorted(self) -> TrajectoryTable:

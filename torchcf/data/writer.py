@@ -5,7 +5,7 @@
     Leading Position.csv ... Following Acc.csv   the full set (SI; rows = steps)
     Trajectory/  the six files of the training pairs
     Testing/     the six files of the test pairs (absent when there are none)
-    meta.json    {"dt", "units": "m", "leader_length", "road_frame"}
+    meta.json    {"dt", "units": "m", "leader_length", "road_frame"[, "road_period"]}
     index.csv    one row per pair of the full set: where it came from
     dropped.csv  one row per dropped window or short span: why
     extract.json the counts, the options, the notes and the command
@@ -103,6 +103,11 @@ def write_extraction(
                 "units": "m",
                 "leader_length": extraction.pairs.leader_length,
                 "road_frame": extraction.road_frame,
+                **(
+                    {"road_period": extraction.road_period}
+                    if extraction.road_period is not None
+                    else {}
+                ),
             },
         )
         write_record(extraction, staging, record)

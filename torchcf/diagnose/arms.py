@@ -79,9 +79,14 @@ REFINEMENTS = 2
 
 def resolve_effect(token: str, pairs: PairSet) -> str:
     """The effect's name token; a bare road effect (``grade``, ``bend``) spans
-    the pairs' road section (its knots: see :mod:`torchcf.diagnose.road`)."""
+    the pairs' road section (its knots: see :mod:`torchcf.diagnose.road`), or
+    the whole lap, periodic, when the pairs' road is a closed track
+    (``pairs.road_period``)."""
     effect = parse_effect(token)
     if isinstance(effect, RoadProfile) and "(" not in token:
+        if pairs.road_period:
+            # A closed track: the lap from its reference point, periodic.
+            return type(effect)(period=pairs.road_period, knots=effect.knots).token
         x = pairs.x_follow[pairs.mask]
         start, end = math.floor(float(x.min())), math.ceil(float(x.max()))
         effect = type(effect)(start=start, end=max(end, start + 1), knots=effect.knots)

@@ -195,7 +195,13 @@ def candidate_effects(
             continue
         if isinstance(effect, RoadProfile) and "(" not in token:
             section = parse_effect(resolve_effect(token, train_pairs))
-            choice = choose_spacing(effect.name, section.start, section.end, fit_series)
+            choice = choose_spacing(
+                effect.name,
+                section.start,
+                section.end,
+                fit_series,
+                period=section.period,
+            )
             effects.append(choice.token)
             profiles.append(choice.report())
             if choice.seed is not None:

@@ -52,6 +52,10 @@ from .series import BestParticles
 
 #: Knot spacings [m] a bare road effect chooses from (coarse to fine).
 ROAD_SPACINGS = (400.0, 200.0, 100.0, 50.0)
+#: Fewest knots of a profile round a closed track: with two, a lap's knots
+#: could both sit where a tilted circle is level (its lowest and highest
+#: points) and miss the whole grade.
+MIN_LAP_KNOTS = 3
 #: Folds of the spacing's cross-validation (pairs dealt round-robin).
 FOLDS = 5
 #: Pairs whose first follower positions all lie within this much [m] are taken
@@ -331,12 +335,18 @@ class RoadChoice:
 
 
 def choose_spacing(
-    name: str, start: float, end: float, series: dict[str, list[np.ndarray]]
+    name: str,
+    start: float,
+    end: float,
+    series: dict[str, list[np.ndarray]],
+    period: float = 0.0,
 ) -> RoadChoice:
     """The knot spacing of a bare road effect by cross-validation (module
     docstring), on the residual ``series`` of the part the arms are fitted on.
     Samples where the residual is not finite (a command the model cannot give
-    at the observed state) are left out."""
+    at the observed state) are left out. On a closed track (``period`` > 0,
+    the lap length [m]; ``end`` unused) the profile is periodic with at least
+    :data:`MIN_LAP_KNOTS` knots round the lap."""
     series = finite_samples(series)
     x, residual = series["x"], series["acceleration"]
     errors: dict[float, float] = {}
@@ -344,9 +354,14 @@ def choose_spacing(
     profiles: dict[float, RoadProfile] = {}
     folds: dict[float, np.ndarray] = {}
     weights = pair_weights(residual)
+    kind = type(parse_effect(name))
     for spacing in ROAD_SPACINGS:
-        knots = max(2, round((end - start) / spacing) + 1)
-        effect = parse_effect(f"{name}(start={start:g},end={end:g},knots={knots})")
+        if period:
+            knots = max(MIN_LAP_KNOTS, round(period / spacing))
+            effect = kind(start=start, period=period, knots=knots)
+        else:
+            knots = max(2, round((end - start) / spacing) + 1)
+            effect = kind(start=start, end=end, knots=knots)
         if knots in {p.knots for p in profiles.values()}:
             continue  # a short road: coarser spacings give the same profile
         profiles[spacing] = effect
@@ -441,14 +456,17 @@ def bend_seed(effect: Bend, x: list[np.ndarray], v: list[np.ndarray]) -> Tensor:
     the prior's upper bound (no limit). A limit the driving presses against is
     where it binds; the search starts there and moves knots up where it does
     not."""
-    positions = np.concatenate(x)
+    positions = torch.from_numpy(np.concatenate(x))
     speeds = np.concatenate(v)
-    half = (effect.end - effect.start) / max(effect.knots - 1, 1) / 2.0
+    half = (
+        effect.spacing / 2.0 if effect.knots > 1 else (effect.end - effect.start) / 2.0
+    )
     low, high = effect.param_specs[0].lower, effect.param_specs[0].upper
     seed = np.full(effect.knots, high)
     for k, at in enumerate(effect.knot_positions):
+        distance = effect.distance_to(positions, at).numpy()
         for window in (min(half, BEND_SEED_WINDOW), half):
-            near = np.abs(positions - at) <= window
+            near = distance <= window
             if near.any():
                 seed[k] = speeds[near].max() + BEND_SEED_MARGIN
                 break
@@ -460,6 +478,7 @@ __all__ = [
     "BEND_SEED_WINDOW",
     "FOLDS",
     "MAD_TO_SIGMA",
+    "MIN_LAP_KNOTS",
     "OUTLIER_SCALE",
     "ROAD_SPACINGS",
     "SAME_START",

@@ -483,9 +483,16 @@ class RoadProfile(Effect):
     there the parameters ``<prefix>_0 ...``. A function of the position only, so
     every pair recorded on the road sees the same profile (``shared``).
 
+    On a closed track (``period`` > 0, the lap length) the profile is periodic:
+    the knots lie ``period / knots`` apart from ``start`` round the lap, the
+    last joined to the first, and a position ``x`` reads the profile at
+    ``start + (x - start) mod period`` (positions are odometers, growing over
+    laps; ``end`` is then ``start + period``).
+
     Args:
         start, end: the road section the profile covers [m] (data frame).
         knots: number of profile points (>= 1; 1 is a constant).
+        period: lap length [m] of a closed track; 0 (default) for an open road.
     """
 
     stage = "command"
@@ -497,17 +504,31 @@ class RoadProfile(Effect):
     prior: ClassVar[tuple[float, float]]
     meaning: ClassVar[str]
 
-    def __init__(self, start: float = 0.0, end: float = 2000.0, knots: int = 3):
+    def __init__(
+        self,
+        start: float = 0.0,
+        end: float = 2000.0,
+        knots: int = 3,
+        period: float = 0.0,
+    ):
         if knots != int(knots) or knots < 1:
             raise ValueError(
                 f"{self.name}: knots must be an integer >= 1, got {knots:g}"
             )
         knots = int(knots)
+        if not (math.isfinite(period) and period >= 0):
+            raise ValueError(
+                f"{self.name}: period must be a lap length > 0 [m] or 0 (an "
+                f"open road), got {period:g}"
+            )
+        if period > 0:
+            end = start + period
         if knots > 1 and not end > start:
             raise ValueError(
                 f"{self.name}: needs end > start, got [{start:g}, {end:g}]"
             )
         self.start, self.end, self.knots = float(start), float(end), knots
+        self.period = float(period)
         self.param_specs = tuple(
             spec(
                 f"{self.prefix}_{k}",
@@ -519,16 +540,46 @@ class RoadProfile(Effect):
         )
 
     @property
-    def knot_positions(self) -> list[float]:
+    def spacing(self) -> float:
+        """Distance between neighbouring knots [m] (inf for a constant)."""
         if self.knots == 1:
-            return [self.start]
-        step = (self.end - self.start) / (self.knots - 1)
-        return [self.start + k * step for k in range(self.knots)]
+            return math.inf
+        if self.period:
+            return self.period / self.knots
+        return (self.end - self.start) / (self.knots - 1)
+
+    @property
+    def knot_positions(self) -> list[float]:
+        return [self.start + k * self.spacing for k in range(self.knots)]
 
     def options(self):
-        defaults = {"start": 0.0, "end": 2000.0, "knots": 3}
-        current = {"start": self.start, "end": self.end, "knots": self.knots}
+        defaults = {"start": 0.0, "end": 2000.0, "knots": 3, "period": 0.0}
+        current = {
+            "start": self.start,
+            "end": self.end,
+            "knots": self.knots,
+            "period": self.period,
+        }
+        if self.period:
+            del current["end"]  # start + period
         return {k: v for k, v in current.items() if v != defaults[k]}
+
+    def road_position(self, position: Tensor) -> Tensor:
+        """Where on the profile's section ``position`` [m] reads it: clamped to
+        ``[start, end]`` on an open road, wrapped into ``[start, start +
+        period)`` on a closed track."""
+        if self.period:
+            return self.start + torch.remainder(position - self.start, self.period)
+        return torch.clamp(position, self.start, self.end)
+
+    def distance_to(self, position: Tensor, at: float) -> Tensor:
+        """|position - at| [m] along the road (round the lap on a closed track,
+        the shorter way)."""
+        gap = torch.abs(position - at)
+        if self.period:
+            gap = torch.remainder(gap, self.period)
+            gap = torch.minimum(gap, self.period - gap)
+        return gap
 
     def prepare(self, q, dt):
         # The knot values stacked (knots, *param shape): the profile is then two
@@ -545,17 +596,19 @@ class RoadProfile(Effect):
         (values,) = q
         if self.knots == 1:
             return values[0] + 0.0 * position
-        spacing = (self.end - self.start) / (self.knots - 1)
-        u = (torch.clamp(position, self.start, self.end) - self.start) / spacing
+        u = (self.road_position(position) - self.start) / self.spacing
+        # The last interval: knots - 2 -> knots - 1 on an open road, knots - 1
+        # -> 0 (round the lap) on a closed track.
+        last = self.knots - 1 if self.period else self.knots - 2
         # A NaN position (an exploding rollout) reads knot 0; its NaN fraction
         # keeps the value NaN, so the rollout is still caught as invalid.
-        left = torch.nan_to_num(torch.clamp(torch.floor(u), 0, self.knots - 2), nan=0.0)
+        left = torch.nan_to_num(torch.clamp(torch.floor(u), 0, last), nan=0.0)
         fraction = u - left
         shape = torch.broadcast_shapes(values.shape[1:], position.shape)
         values = values.expand((self.knots, *shape))
         index = left.long().expand(shape)[None]
         low = values.gather(0, index)[0]
-        high = values.gather(0, index + 1)[0]
+        high = values.gather(0, torch.remainder(index + 1, self.knots))[0]
         return low + fraction * (high - low)
 
     def basis(self, position: Tensor) -> Tensor:
@@ -563,10 +616,12 @@ class RoadProfile(Effect):
         ``basis @ values`` (a linear model of the knot values)."""
         if self.knots == 1:
             return torch.ones((*position.shape, 1), dtype=position.dtype)
-        spacing = (self.end - self.start) / (self.knots - 1)
-        x = torch.clamp(position, self.start, self.end)[..., None]
-        knots = torch.tensor(self.knot_positions, dtype=position.dtype)
-        return torch.clamp(1.0 - torch.abs(x - knots) / spacing, min=0.0)
+        x = self.road_position(position)[..., None]
+        hats = [
+            torch.clamp(1.0 - self.distance_to(x[..., 0], at) / self.spacing, min=0.0)
+            for at in self.knot_positions
+        ]
+        return torch.stack(hats, dim=-1)
 
     def position_of(self, obs: Perception) -> Tensor:
         if obs.position is None:

@@ -97,6 +97,20 @@ car; since a follower is placed exactly ``length + IVS`` behind its leader's
 front, the length cancels in every spacing x_k - x_m - length and only shifts
 the followers' absolute positions.
 
+**Lap frame** (``lap_frame=True``, for runs round one circular track such as
+ZalaZONE's dynamic platform; :mod:`torchcf.data.formats.track`). One circle is
+fitted to the E/N paths of every chain's anchor over all runs; a run whose
+anchor strays more than :data:`~torchcf.data.formats.track.OFF_TRACK` from it
+(an access road) or does not go round is left out and noted. Each chain is then
+shifted as a whole so that its anchor's odometer follows the anchor's lap
+coordinate (the median difference over the run is removed): the arc length
+from the track's lowest point (the plane fitted to the anchors' Alt) in the
+run's direction of travel. On a tilted
+plane both directions then feel one grade profile of period ``2 pi R``; the
+spacings stay the recorded IVS. The odometer and the arc length part slowly
+(the speed's bias, the antenna's own radius): the largest difference per run is
+in the notes.
+
 **Table rows.** Vehicle id "K" (the column number), leader "k" or "", speed =
 SpeedK (NaN without the column), gap = the linking IVS, lane "" (the platoon
 tests stay in one lane, so the leader is always the vehicle ahead in the
@@ -129,6 +143,7 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 import os
 import re
 from pathlib import Path
@@ -137,6 +152,14 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 
+from torchcf.data.formats.track import (
+    OFF_TRACK,
+    Circle,
+    fit_circle,
+    fit_tilt,
+    lap_position,
+    travel_direction,
+)
 from torchcf.data.pairset import DataError, positive_float
 from torchcf.data.trajectory import TrajectoryTable
 
@@ -188,8 +211,21 @@ class _Header(NamedTuple):
     speed: dict[int, int]
     ivs: dict[int, int]
     driver: dict[int, int]
+    east: dict[int, int]
+    north: dict[int, int]
+    altitude: dict[int, int]
     vehicles: list[int]  # numbers with a column of their own, ascending
     unread: list[str]  # names of columns that are neither used nor known-unused
+
+
+class _Anchor(NamedTuple):
+    """A chain's anchor with its planar path (for the lap frame)."""
+
+    vehicle: int  # the anchor's number
+    chain: list[int]  # the vehicles placed from it
+    east: np.ndarray  # (T,) E [m], NaN where missing
+    north: np.ndarray  # (T,) N [m]
+    altitude: np.ndarray  # (T,) Alt [m]; all NaN without the column
 
 
 class _Plan(NamedTuple):
@@ -203,7 +239,10 @@ class _Plan(NamedTuple):
 
 # ------------------------------------------------------------------ public API
 def read_openacc(
-    source: str | os.PathLike[str], *, vehicle_length: float = 5.0
+    source: str | os.PathLike[str],
+    *,
+    vehicle_length: float = 5.0,
+    lap_frame: bool = False,
 ) -> TrajectoryTable:
     """Read an OpenACC platoon file, or every platoon file below a folder.
 
@@ -212,12 +251,18 @@ def read_openacc(
             (a whole campaign, e.g. ZalaZONE's ``<setting>/dynamic_part*.csv``).
         vehicle_length: length [m] given to every vehicle, > 0 (OpenACC has
             none; it changes no spacing, see the module docstring).
+        lap_frame: the runs were driven round one circular track (ZalaZONE's
+            dynamic platform): put every run on the track's lap coordinate
+            (module docstring, "Lap frame"), so that all pairs share one road
+            frame with a period, the lap length; runs that leave the circle
+            are left out and noted.
 
     Returns:
         A table with ``format="openacc"``, one run per file (named by its path
         below the folder), and ``road_frame`` True for one file (its positions
         are distances along one route) and False for several (each file is
-        another recording, its positions start at 0); vehicles as the columns
+        another recording, its positions start at 0), or True with
+        ``road_period`` the lap length under ``lap_frame``; vehicles as the columns
         name them, each follower led by the vehicle before it when the IVS
         links them (module docstring). The notes give per run the vehicles by
         name, the couples, the ACC flag and distance setting, and every
@@ -234,10 +279,18 @@ def read_openacc(
     runs, skipped = _platoon_files(path)
     frames: list[pd.DataFrame] = []
     notes: list[str] = []
+    anchors: list[list[_Anchor]] = []
     for run, file in runs:
-        frame, run_notes = _read_file(file, run, length)
+        frame, run_notes, run_anchors = _read_file(file, run, length, lap_frame)
         frames.append(frame)
         notes.extend(run_notes)
+        anchors.append(run_anchors)
+    period = None
+    if lap_frame:
+        frames, period, lap_notes = _on_lap(
+            [run for run, _ in runs], frames, anchors, str(path)
+        )
+        notes.extend(lap_notes)
     notes.append(
         f"positions: each chain of linked vehicles anchored at its first vehicle "
         f"with a Speed column, by integrating that speed over Time (trapezoids, 0 "
@@ -255,7 +308,8 @@ def read_openacc(
         pd.concat(frames, ignore_index=True),
         source=str(path),
         format="openacc",
-        road_frame=len(runs) == 1,
+        road_frame=True if lap_frame else len(runs) == 1,
+        road_period=period,
         notes=notes,
     )
 
@@ -351,8 +405,11 @@ def _skipped_note(skipped: list[str]) -> str:
 
 
 # ---------------------------------------------------------------- one file
-def _read_file(path: Path, run: str, length: float) -> tuple[pd.DataFrame, list[str]]:
-    """One platoon file as table rows (vehicle after vehicle) and its notes."""
+def _read_file(
+    path: Path, run: str, length: float, lap: bool
+) -> tuple[pd.DataFrame, list[str], list[_Anchor]]:
+    """One platoon file as table rows (vehicle after vehicle), its notes and
+    (with ``lap``) its chains' anchors with their E/N/Alt paths."""
     rows = _csv_rows(path)
     meta = _metadata(rows, path)
     if meta.n_rows >= len(rows):
@@ -372,6 +429,20 @@ def _read_file(path: Path, run: str, length: float) -> tuple[pd.DataFrame, list[
     speed = {k: numbers(j) for k, j in header.speed.items()}
     ivs = {k: numbers(j) for k, j in header.ivs.items()}
     driver = {k: np.array(column(j), dtype=object) for k, j in header.driver.items()}
+    place = (
+        {
+            name: {
+                k: numbers(j) for k, j in columns.items() if k in plan.anchor.values()
+            }
+            for name, columns in (
+                ("east", header.east),
+                ("north", header.north),
+                ("altitude", header.altitude),
+            )
+        }
+        if lap
+        else {"east": {}, "north": {}, "altitude": {}}
+    )
 
     notes: list[str] = []
     keep = np.isfinite(time)
@@ -383,6 +454,7 @@ def _read_file(path: Path, run: str, length: float) -> tuple[pd.DataFrame, list[
         speed = {k: v[keep] for k, v in speed.items()}
         ivs = {k: v[keep] for k, v in ivs.items()}
         driver = {k: v[keep] for k, v in driver.items()}
+        place = {n: {k: v[keep] for k, v in c.items()} for n, c in place.items()}
     _check_increasing(time, file_rows, path)
 
     position = _positions(plan, time, speed, ivs, length)
@@ -412,7 +484,19 @@ def _read_file(path: Path, run: str, length: float) -> tuple[pd.DataFrame, list[
         *_plan_notes(run, meta, header, plan),
         *_quality_notes(run, header, time, speed, ivs, position, mode),
     ]
-    return pd.concat(frames, ignore_index=True), notes
+    missing = np.full(time.size, np.nan)
+    anchors = [
+        _Anchor(
+            vehicle=k,
+            chain=next(chain for chain in plan.chains if chain[0] == head),
+            east=place["east"].get(k, missing),
+            north=place["north"].get(k, missing),
+            altitude=place["altitude"].get(k, missing),
+        )
+        for head, k in plan.anchor.items()
+        if lap
+    ]
+    return pd.concat(frames, ignore_index=True), notes, anchors
 
 
 def _csv_rows(path: Path) -> list[list[str]]:
@@ -499,7 +583,14 @@ def _header(cells: list[str], path: Path) -> _Header:
         DataError: no Time column, no Speed column, or a used column twice.
     """
     time: int | None = None
-    used: dict[str, dict[int, int]] = {"speed": {}, "ivs": {}, "driver": {}}
+    used: dict[str, dict[int, int]] = {
+        "speed": {},
+        "ivs": {},
+        "driver": {},
+        "e": {},
+        "n": {},
+        "alt": {},
+    }
     own: set[int] = set()
     unread: list[str] = []
     for j, name in enumerate(cells):
@@ -532,6 +623,9 @@ def _header(cells: list[str], path: Path) -> _Header:
         speed=used["speed"],
         ivs=used["ivs"],
         driver=used["driver"],
+        east=used["e"],
+        north=used["n"],
+        altitude=used["alt"],
         vehicles=sorted(own),
         unread=unread,
     )
@@ -662,6 +756,163 @@ def _odometer(time: np.ndarray, speed: np.ndarray) -> np.ndarray:
     steps = 0.5 * (v[1:] + v[:-1]) * np.diff(t)
     out[finite] = np.concatenate(([0.0], np.cumsum(steps)))
     return out
+
+
+def _on_lap(
+    runs: list[str],
+    frames: list[pd.DataFrame],
+    anchors: list[list[_Anchor]],
+    source: str,
+) -> tuple[list[pd.DataFrame], float, list[str]]:
+    """The runs on one circular track's lap coordinate (module docstring, "Lap
+    frame"): the frames of the runs kept, shifted; the lap length [m]; notes.
+
+    Raises:
+        DataError: no anchor with E/N positions, no run on the track, or runs
+            both ways round it without altitudes to find its lowest point.
+    """
+    paths = [
+        (a.east[ok], a.north[ok])
+        for run_anchors in anchors
+        for a in run_anchors
+        if (ok := np.isfinite(a.east) & np.isfinite(a.north)).any()
+    ]
+    if not paths:
+        raise DataError(
+            f"lap_frame: no anchor vehicle of '{source}' has E/N positions "
+            "(EK, NK columns), so no track can be fitted"
+        )
+    try:
+        circle = fit_circle(paths)
+    except ValueError as err:
+        raise DataError(f"lap_frame: no circular track in '{source}': {err}") from None
+    notes: list[str] = []
+    kept: list[int] = []
+    direction: dict[tuple[int, int], int] = {}
+    for i, (run, run_anchors) in enumerate(zip(runs, anchors, strict=True)):
+        why = _off_track(circle, run_anchors)
+        if why is None:
+            for a in run_anchors:
+                ok = np.isfinite(a.east) & np.isfinite(a.north)
+                direction[i, a.vehicle] = travel_direction(
+                    circle.angle(a.east[ok], a.north[ok])
+                )
+            if 0 in (direction[i, a.vehicle] for a in run_anchors):
+                why = "does not go round the track"
+        if why is None:
+            kept.append(i)
+        else:
+            notes.append(f"lap frame: run {run} left out: {why}")
+    if not kept:
+        raise DataError(
+            f"lap_frame: no run of '{source}' stays on the circle of radius "
+            f"{circle.radius:.1f} m (within {OFF_TRACK:g} m): {'; '.join(notes)}"
+        )
+    ways = [direction[i, a.vehicle] for i in kept for a in anchors[i]]
+    reference, tilt_note = _lowest_point(
+        circle, [anchors[i] for i in kept], set(ways), source
+    )
+    out, drift = [], {}
+    for i in kept:
+        frame = frames[i].copy()
+        for a in anchors[i]:
+            shift, parted = _lap_shift(
+                circle, a, frame, direction[i, a.vehicle], reference
+            )
+            drift[runs[i]] = max(drift.get(runs[i], 0.0), parted)
+            chain = frame["vehicle"].isin([str(k) for k in a.chain])
+            frame.loc[chain, "position"] += shift
+        out.append(frame)
+    worst = max(drift, key=drift.get)
+    notes += [
+        f"lap frame: {len(kept)} of {len(runs)} runs on a circle of radius "
+        f"{circle.radius:.1f} m about E {circle.east:.1f} m, N {circle.north:.1f} "
+        f"m (lap {circle.lap:.1f} m); {ways.count(-1)} chain(s) clockwise, "
+        f"{ways.count(1)} anticlockwise; position = the arc length from the "
+        f"reference point in the direction of travel (each chain's odometer "
+        f"shifted by its median difference to it, so every gap stays the "
+        f"recorded IVS)",
+        tilt_note,
+        f"lap frame: the odometer and the arc length round the circle part by "
+        f"up to {drift[worst]:.1f} m over a run (run {worst}): the speed "
+        f"integrated against the path's angle",
+    ]
+    return out, round(circle.lap, 2), notes
+
+
+def _off_track(circle: Circle, anchors: list[_Anchor]) -> str | None:
+    """Why a run's anchors do not stay on the circle, or None."""
+    for a in anchors:
+        ok = np.isfinite(a.east) & np.isfinite(a.north)
+        if not ok.any():
+            return f"vehicle {a.vehicle} has no E/N position"
+        off = float(circle.distance(a.east[ok], a.north[ok]).max())
+        if off > OFF_TRACK:
+            share = float((circle.distance(a.east[ok], a.north[ok]) > OFF_TRACK).mean())
+            return (
+                f"vehicle {a.vehicle} drives up to {off:.0f} m off the circle "
+                f"({share:.0%} of its samples over {OFF_TRACK:g} m)"
+            )
+    return None
+
+
+def _lowest_point(
+    circle: Circle, anchors: list[list[_Anchor]], ways: set[int], source: str
+) -> tuple[float, str]:
+    """The reference angle [rad] of the lap coordinate and its note: the
+    track's lowest point from the anchors' altitudes, or East of the centre
+    without altitudes when all runs go one way."""
+    angle, altitude = [], []
+    for a in (a for run_anchors in anchors for a in run_anchors):
+        ok = np.isfinite(a.east) & np.isfinite(a.north) & np.isfinite(a.altitude)
+        angle.append(circle.angle(a.east[ok], a.north[ok]))
+        altitude.append(a.altitude[ok])
+    angle_all, altitude_all = np.concatenate(angle), np.concatenate(altitude)
+    try:
+        tilt = fit_tilt(angle_all, altitude_all, circle.radius)
+    except ValueError as err:
+        if len(ways) > 1:
+            raise DataError(
+                f"lap_frame: the runs of '{source}' go both ways round the track "
+                f"and their altitudes (AltK) cannot place its lowest point "
+                f"({err}), so the two directions cannot share a grade profile"
+            ) from None
+        return 0.0, (
+            f"lap frame: no altitudes ({err}); reference point due East of the "
+            "centre (every run goes the same way)"
+        )
+    return tilt.lowest, (
+        f"lap frame: the altitudes ({tilt.samples} samples) lie on a plane of "
+        f"slope {100 * tilt.grade:.2f} % (rms {tilt.rms:.2f} m about it); "
+        f"reference point its lowest point, at {math.degrees(tilt.lowest):.0f} "
+        f"deg from East: the grade at lap coordinate s is about "
+        f"{100 * tilt.grade:.2f} % x sin(s / {circle.radius:.1f} m) either way round"
+    )
+
+
+def _lap_shift(
+    circle: Circle,
+    anchor: _Anchor,
+    frame: pd.DataFrame,
+    direction: int,
+    reference: float,
+) -> tuple[float, float]:
+    """The shift [m] that puts an anchor's odometer on the lap coordinate, and
+    the largest difference [m] left between the shifted odometer and the arc
+    length round the circle.
+
+    The arc length is the lap coordinate at the anchor's first sample with a
+    position and an E/N, continued by the unwrapped angle; the shift is the
+    median of arc length minus odometer over the run, so a slow drift between
+    the two (the speed's bias, the antenna's own radius) is split about the
+    middle of the run instead of growing from its start."""
+    odometer = frame.loc[frame["vehicle"] == str(anchor.vehicle), "position"].to_numpy()
+    ok = np.isfinite(odometer) & np.isfinite(anchor.east) & np.isfinite(anchor.north)
+    angle = circle.angle(anchor.east[ok], anchor.north[ok])
+    start = lap_position(float(angle[0]), direction, reference, circle.radius)
+    arc = start + direction * circle.radius * (np.unwrap(angle) - angle[0])
+    shift = float(np.median(arc - odometer[ok]))
+    return shift, float(np.abs(odometer[ok] + shift - arc).max())
 
 
 def _mode(k: int, driver: np.ndarray | None, meta: _Metadata, n: int) -> np.ndarray:
