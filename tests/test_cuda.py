@@ -58,6 +58,30 @@ def test_simulate_on_cuda_equals_cpu(name, layout):
         )
 
 
+@pytest.mark.parametrize(
+    "name",
+    [
+        "idm+grade(start=0,end=600,knots=4)",
+        "llctg+grade(start=-30,knots=4,period=250)+bend(period=250,knots=5)",
+    ],
+)
+def test_road_profiles_on_cuda_equal_cpu(name):
+    """A grade on an open road and profiles round a closed track (positions
+    wrapped by the lap) give the CPU's scores on the GPU."""
+    from torchcf.models import get_model
+
+    pairs = synthetic_pairs(n_pairs=5, n_steps=200, seed=3)
+    model = get_model(name)
+    theta = prior_draws(model, 300, seed=1).double()
+    cpu = simulate(name, theta, pairs, dtype=torch.float64)
+    gpu = simulate(name, theta, pairs, dtype=torch.float64, device="cuda")
+    both = cpu.valid & gpu.valid.cpu()
+    assert bool(both.any()) and bool((cpu.valid == gpu.valid.cpu()).all())
+    torch.testing.assert_close(
+        gpu.score.cpu()[both], cpu.score[both], rtol=1e-9, atol=1e-9
+    )
+
+
 @pytest.mark.compile
 @pytest.mark.parametrize("name", [m for m in MODELS if MODELS[m].compilable])
 def test_compiled_rollout_on_cuda(name):
