@@ -52,6 +52,7 @@ __all__ = [
     "newey_west_bandwidth",
     "newey_west_cov",
     "norm_sf",
+    "lap_dependence",
     "position_dependence",
     "regression_test",
     "spacing_dependence",
@@ -607,6 +608,23 @@ def position_dependence(residual: Any, x: Any, **kw: Any) -> TestResult:
     :func:`regression_test`.
     """
     return regression_test(residual, {"x": x}, "position_dependence", **kw)
+
+
+def lap_dependence(residual: Any, x: Any, period: float, **kw: Any) -> TestResult:
+    """Does the residual vary round a closed track's lap?
+
+    ``e = b_0 + b_s sin(2 pi x / C) + b_c cos(2 pi x / C) + u``, ``C = period``
+    [m] the lap length, position ``x`` [m] (an odometer over laps), ``H0: b_s =
+    b_c = 0`` (chi2 with 2 degrees of freedom). The lap's first harmonic is what a
+    tilted circular track leaves (its grade is ``slope sin(2 pi s / C)`` from its
+    lowest point); a linear trend in an odometer that runs over many laps would
+    test the wrong thing.
+    """
+    if not (math.isfinite(period) and period > 0):
+        raise ValueError(f"period must be a lap length > 0 [m], got {period}")
+    turns = [2.0 * math.pi * np.asarray(p, dtype=float) / period for p in _as_pairs(x)]
+    regressors = {"sin": [np.sin(t) for t in turns], "cos": [np.cos(t) for t in turns]}
+    return regression_test(residual, regressors, "lap_dependence", **kw)
 
 
 def drift(residual: Any, dt: float, **kw: Any) -> TestResult:

@@ -115,8 +115,14 @@ def residual_series(
     return out
 
 
-def residual_tests(series: dict[str, list[np.ndarray]], dt: float) -> list[dict]:
+def residual_tests(
+    series: dict[str, list[np.ndarray]], dt: float, period: float | None = None
+) -> list[dict]:
     """The structure tests of every residual channel, as JSON rows.
+
+    ``road position`` is a linear trend in ``x`` on an open road, and the lap's
+    first harmonic on a closed track of lap length ``period`` [m]
+    (:func:`~torchcf.diagnose.residuals.lap_dependence`).
 
     Returns:
         one row per (channel, test): ``channel, test, statistic, p_value, effect,
@@ -136,7 +142,11 @@ def residual_tests(series: dict[str, list[np.ndarray]], dt: float) -> list[dict]
             "own speed": lambda e=e: rt.speed_dependence(e, series["v"]),
             "asymmetry": lambda e=e: rt.asymmetry(e, series["dv"]),
             "spacing level": lambda e=e: rt.spacing_dependence(e, series["s"]),
-            "road position": lambda e=e: rt.position_dependence(e, series["x"]),
+            "road position": lambda e=e: (
+                rt.lap_dependence(e, series["x"], period)
+                if period
+                else rt.position_dependence(e, series["x"])
+            ),
             "drift": lambda e=e: rt.drift(e, dt),
         }
         for test, run in tests.items():
@@ -165,7 +175,7 @@ def diagnose_residuals(
     series = residual_series(best_particles(posterior, pairs), pairs, dtype)
     if not series["spacing"]:
         raise DiagnoseError("no training pair has a hybrid particle to diagnose")
-    return residual_tests(series, pairs.dt), series
+    return residual_tests(series, pairs.dt, pairs.road_period), series
 
 
 __all__ = [
