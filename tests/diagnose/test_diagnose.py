@@ -97,7 +97,7 @@ FOUND = [case for case, (_, _, expected, _) in CASES.items() if expected]
 N_PARTICLES = 40_000
 #: The candidates of these tests: every case's effect and its nearest rivals (a
 #: clock offset for a delay, a lag for both, a sensor offset, a road grade, and
-#: an effect of two parameters); tools/loop_cases.py tries all eleven.
+#: an effect of two parameters); tools/loop_cases.py tries them all.
 EFFECTS = ["sync", "offset", "delay", "lag", "asymmetry", "grade"]
 #: A lighter search than the defaults (the defaults: reports/loop_cases.md).
 SEARCH = {"population": 12, "local_copies": 24, "rounds": 6, "max_rounds": 20}

@@ -37,6 +37,7 @@ EFFECT_PARAMS = {
     "sync": 1,
     "offset": 1,
     "delay": 1,
+    "timegap": 1,
     "asymmetry": 2,
     "saturation": 2,
     "resistance": 1,
@@ -48,6 +49,7 @@ CANONICAL = (
     "sync",
     "offset",
     "delay",
+    "timegap",
     "anticipation",
     "asymmetry",
     "saturation",
@@ -215,6 +217,8 @@ def reference_rollout(
 
             s_p = (1 - f) * past(hist_s, k) + f * past(hist_s, k + 1)
             vl_p = (1 - f) * past(hist_vl, k) + f * past(hist_vl, k + 1)
+        if "timegap" in q:  # a time gap growing with the own (measured) speed
+            s_p = s_p - q["timegap"][0] * v * v
         v_p = v
         if "anticipation" in q:  # constant-speed extrapolation, t_ant ahead
             t_ant = q["anticipation"][0]
@@ -399,6 +403,20 @@ CASES = [
         {"grade": {"start": -30.0, "knots": 4, "period": 250.0}},
         [IDM + [0.03, -0.06, 0.05, 0.02], IDM_B + [-0.04, 0.02, 0.08, -0.07]],
     ),
+    (
+        "idm+timegap",
+        "idm",
+        {"timegap": {}},
+        [IDM + [0.02], IDM_B + [-0.01], IDM + [0.0]],
+    ),
+    (
+        # after a delay (the delayed spacing) and before anticipation (the
+        # measured own speed)
+        "llctg+delay+timegap+anticipation",
+        "llctg",
+        {"delay": {}, "timegap": {}, "anticipation": {}},
+        [LLCTG + [0.4, 0.015, 0.8], LLCTG_B + [1.1, -0.02, 0.3]],
+    ),
     ("idm+lag", "idm", {"lag": {}}, [IDM + [0.3], IDM_B + [0.8], IDM + [0.05]]),
     ("llcs+lag", "llcs", {"lag": {}}, [LLCS + [0.5], LLCS + [1.5]]),
     (
@@ -514,6 +532,7 @@ def test_delay_outside_its_history_is_refused(road):
 NEUTRAL = {
     "offset": [0.0],
     "delay": [0.0],
+    "timegap": [0.0],
     "anticipation": [0.0],
     "asymmetry": [1.0, 1.0],
     "saturation": [-1e9, 1e9],
@@ -802,6 +821,7 @@ def test_config_accepts_a_longer_delay_history():
 ACTIVE = [
     ("llctg+offset", [-4.0], [0.0]),
     ("llctg+delay", [0.5], [0.0]),
+    ("llctg+timegap", [0.02], [0.0]),
     ("llctg+asymmetry", [1.6, 1.0], [1.0, 1.0]),  # g_close only: leaders brake
     ("llctg+saturation", [-1.0, 0.5], [-1e9, 1e9]),
     ("llctg+resistance", [2e-3], [0.0]),

@@ -35,7 +35,7 @@ one_step_residual`):
 - ``command strength`` [1]: the slope of ``r`` on the model's acceleration:
   < 0, the follower realises less than commanded (saturation, actuation lag);
 - ``gap vs speed`` [s]: the slope of ``e_s`` on the speed: a time gap that
-  depends on speed otherwise than the models' (no effect of the library);
+  depends on speed otherwise than the models' (``timegap``, either sign);
 - ``drift`` [m/s]: the slope of ``e_s`` on time: parameters that drift within
   a window (no effect of the library).
 
@@ -89,7 +89,7 @@ POINTS_TO: dict[str, dict[str, tuple[str, ...]]] = {
     "closing vs opening": {"+": ("asymmetry",), "-": ("asymmetry",)},
     "drag": {"-": ("resistance",)},
     "command strength": {"-": ("saturation", "lag")},
-    "gap vs speed": {},
+    "gap vs speed": {"+": ("timegap",), "-": ("timegap",)},
     "drift": {},
 }
 #: The model family a signature suggests where no effect of the library

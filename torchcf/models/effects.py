@@ -6,7 +6,8 @@ own named parameters and uniform priors, without touching the model's equations.
 It acts at one of three places of the step (:mod:`torchcf.models.base`):
 
 - **perception** (:meth:`Effect.perceive`): edits what the follower perceives before
-  the model's command (``sync``, ``offset``, ``delay``, ``anticipation``); may
+  the model's command (``sync``, ``offset``, ``delay``, ``timegap``,
+  ``anticipation``); may
   carry memory between steps;
 - **command** (:meth:`Effect.act`, or :meth:`Effect.act_with_memory`): edits the
   command after the model (``asymmetry``, ``saturation``, ``resistance``,
@@ -335,6 +336,32 @@ class Sync(Delay):
 
     def recalled(self, obs, first, second):
         return obs._replace(spacing=first - obs.position, v_lead=second)
+
+
+class TimeGap(Effect):
+    """A time gap that changes with speed: the follower perceives ``s - c_gap
+    v^2`` (``v`` its own speed).
+
+    A model that keeps the spacing ``s_e(v)`` in equilibrium (IDM: ``s0 + T v``)
+    then keeps ``s_e(v) + c_gap v^2``: its time gap ``s / v`` grows by ``c_gap v``
+    (c_gap = 0.02 s^2/m: +0.4 s at 20 m/s), shrinks for ``c_gap < 0``. The
+    family the residual's ``gap vs speed`` signature names (the spacing error
+    trending with the speed within pairs), which no pool model's constant time
+    gap can follow. Own speed as measured (before ``anticipation``
+    extrapolates it).
+    """
+
+    name = "timegap"
+    stage = "perception"
+    param_specs = (spec("c_gap", "s^2/m", -0.05, 0.05, "time gap per unit speed"),)
+
+    @property
+    def neutral(self):
+        return (0.0,)
+
+    def perceive(self, q, obs, memory):
+        (c_gap,) = q
+        return obs._replace(spacing=obs.spacing - c_gap * obs.v * obs.v), memory
 
 
 class Anticipation(Effect):
@@ -709,6 +736,7 @@ EFFECTS: dict[str, type[Effect]] = {
         Sync,
         Offset,
         Delay,
+        TimeGap,
         Anticipation,
         Asymmetry,
         Saturation,
