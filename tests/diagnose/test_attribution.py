@@ -528,3 +528,15 @@ def test_the_forward_selection_has_one_name_and_the_old_import_works():
     assert Selection is EffectSelection
     assert EffectSelection is not HybridSelection
     assert EffectSelection.__name__ == "EffectSelection"
+
+
+@pytest.mark.parametrize("c_gap", [0.01, -0.02])
+def test_a_time_gap_changing_with_speed_points_to_timegap(c_gap):
+    """Followers that keep ``c_gap v^2`` more than IDM's spacing, driven by the
+    plain IDM at their own parameters: the spacing error trends with the speed
+    within pairs, so ``gap vs speed`` is found and points to ``timegap`` (either
+    sign: in closed loop the trend's sign depends on the transients, here it is
+    opposite to c_gap's; the plain IDM's own data give p 0.8)."""
+    mark = _one_step_marks("idm+timegap", IDM + [c_gap], noise=0.05)["gap vs speed"]
+    assert mark.found, (mark.mean, mark.p_value)
+    assert mark.points_to == ("timegap",)
