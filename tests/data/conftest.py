@@ -23,6 +23,17 @@ def real_data() -> Path:
     return Path(root)
 
 
+@pytest.fixture(scope="session")
+def zalazone() -> Path:
+    """The ZalaZONE dynamic-platform campaign (``$TORCHCF_RAW/openacc-zalazone-
+    dynamic``); skips when it is not there."""
+    root = os.environ.get("TORCHCF_RAW")
+    folder = Path(root or "/nonexistent") / "openacc-zalazone-dynamic"
+    if not root or not folder.is_dir():
+        pytest.skip("TORCHCF_RAW is not set or holds no openacc-zalazone-dynamic/")
+    return folder
+
+
 def six_arrays(n_steps: int = 5, n_pairs: int = 3) -> dict[str, np.ndarray]:
     """A small valid pair set: followers 20 m + 3 m per pair behind the leaders.
 

@@ -9,7 +9,6 @@ and spacings; then the real ZalaZONE dynamic-platform campaign under
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -338,15 +337,6 @@ ZALAZONE = {
     "short_setting/dynamic_part26": (699, 5),  # vehicles 1, 2, 5, 6, 7 of 9
     "short_setting/dynamic_part4": (2249, 11),
 }
-
-
-@pytest.fixture(scope="module")
-def zalazone() -> Path:
-    root = os.environ.get("TORCHCF_RAW")
-    folder = Path(root or "/nonexistent") / "openacc-zalazone-dynamic"
-    if not root or not folder.is_dir():
-        pytest.skip("TORCHCF_RAW is not set or holds no openacc-zalazone-dynamic/")
-    return folder
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -207,15 +206,6 @@ def test_extract_writes_the_period_and_the_loop_reads_it(campaign, tmp_path, cap
 
 
 # ------------------------------------------------------------------ real data
-@pytest.fixture(scope="module")
-def zalazone() -> Path:
-    root = os.environ.get("TORCHCF_RAW")
-    path = Path(root or "") / "openacc-zalazone-dynamic"
-    if not root or not path.is_dir():
-        pytest.skip("TORCHCF_RAW is not set or holds no openacc-zalazone-dynamic/")
-    return path
-
-
 def test_zalazone_lap_frame(zalazone):
     """The dynamic platform: a circle of radius ~143.4 m (SOURCE.md: about
     143.6 m, 902 m a lap) tilted about 1 %; the three runs that drive to it on
