@@ -38,7 +38,8 @@ IVSK       m     bumper-to-bumper spacing from vehicle K's rear to the front
 DriverK    -     "Human" or "ACC"; missing for some vehicles
 =========  ====  ==========================================================
 
-Lat/Lon, Alt, E/N/U (m, local ENU) and VE/VN/VU are not used, see below; other
+Lat/Lon, Alt, E/N/U (m, local ENU) and VE/VN/VU are not used for positions, see
+below (E/N and Alt place the runs on a circular track's lap, "Lap frame"); other
 columns (Eff_distanceK, Rel_SpeedK, anything unknown) are listed in the notes
 and not read.
 
@@ -908,6 +909,11 @@ def _lap_shift(
     middle of the run instead of growing from its start."""
     odometer = frame.loc[frame["vehicle"] == str(anchor.vehicle), "position"].to_numpy()
     ok = np.isfinite(odometer) & np.isfinite(anchor.east) & np.isfinite(anchor.north)
+    if not ok.any():
+        raise DataError(
+            f"lap_frame: run {frame['run'].iloc[0]}: vehicle {anchor.vehicle} has "
+            "no sample with both a speed-based position and an E/N position"
+        )
     angle = circle.angle(anchor.east[ok], anchor.north[ok])
     start = lap_position(float(angle[0]), direction, reference, circle.radius)
     arc = start + direction * circle.radius * (np.unwrap(angle) - angle[0])
