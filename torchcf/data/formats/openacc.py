@@ -99,8 +99,8 @@ front, the length cancels in every spacing x_k - x_m - length and only shifts
 the followers' absolute positions.
 
 **Lap frame** (``lap_frame=True``, for runs round one circular track such as
-ZalaZONE's dynamic platform; :mod:`torchcf.data.formats.track`). One circle is
-fitted to the E/N paths of every chain's anchor over all runs; a run whose
+ZalaZONE's dynamic platform; :func:`torchcf.data.formats.track.place_on_lap`).
+One circle is fitted to the E/N paths of every chain's anchor over all runs; a run whose
 anchor strays more than :data:`~torchcf.data.formats.track.OFF_TRACK` from it
 (an access road) or does not go round is left out and noted. Each chain is then
 shifted as a whole so that its anchor's odometer follows the anchor's lap
@@ -144,7 +144,6 @@ from __future__ import annotations
 
 import csv
 import io
-import math
 import os
 import re
 from pathlib import Path
@@ -153,14 +152,7 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 
-from torchcf.data.formats.track import (
-    OFF_TRACK,
-    Circle,
-    fit_circle,
-    fit_tilt,
-    lap_position,
-    travel_direction,
-)
+from torchcf.data.formats.track import Anchor, place_on_lap
 from torchcf.data.pairset import DataError, positive_float
 from torchcf.data.trajectory import TrajectoryTable
 
@@ -219,16 +211,6 @@ class _Header(NamedTuple):
     unread: list[str]  # names of columns that are neither used nor known-unused
 
 
-class _Anchor(NamedTuple):
-    """A chain's anchor with its planar path (for the lap frame)."""
-
-    vehicle: int  # the anchor's number
-    chain: list[int]  # the vehicles placed from it
-    east: np.ndarray  # (T,) E [m], NaN where missing
-    north: np.ndarray  # (T,) N [m]
-    altitude: np.ndarray  # (T,) Alt [m]; all NaN without the column
-
-
 class _Plan(NamedTuple):
     """How one file's vehicles are linked and placed (from its header only)."""
 
@@ -280,7 +262,7 @@ def read_openacc(
     runs, skipped = _platoon_files(path)
     frames: list[pd.DataFrame] = []
     notes: list[str] = []
-    anchors: list[list[_Anchor]] = []
+    anchors: list[list[Anchor]] = []
     for run, file in runs:
         frame, run_notes, run_anchors = _read_file(file, run, length, lap_frame)
         frames.append(frame)
@@ -288,7 +270,7 @@ def read_openacc(
         anchors.append(run_anchors)
     period = None
     if lap_frame:
-        frames, period, lap_notes = _on_lap(
+        frames, period, lap_notes = place_on_lap(
             [run for run, _ in runs], frames, anchors, str(path)
         )
         notes.extend(lap_notes)
@@ -408,7 +390,7 @@ def _skipped_note(skipped: list[str]) -> str:
 # ---------------------------------------------------------------- one file
 def _read_file(
     path: Path, run: str, length: float, lap: bool
-) -> tuple[pd.DataFrame, list[str], list[_Anchor]]:
+) -> tuple[pd.DataFrame, list[str], list[Anchor]]:
     """One platoon file as table rows (vehicle after vehicle), its notes and
     (with ``lap``) its chains' anchors with their E/N/Alt paths."""
     rows = _csv_rows(path)
@@ -487,7 +469,7 @@ def _read_file(
     ]
     missing = np.full(time.size, np.nan)
     anchors = [
-        _Anchor(
+        Anchor(
             vehicle=k,
             chain=next(chain for chain in plan.chains if chain[0] == head),
             east=place["east"].get(k, missing),
@@ -757,168 +739,6 @@ def _odometer(time: np.ndarray, speed: np.ndarray) -> np.ndarray:
     steps = 0.5 * (v[1:] + v[:-1]) * np.diff(t)
     out[finite] = np.concatenate(([0.0], np.cumsum(steps)))
     return out
-
-
-def _on_lap(
-    runs: list[str],
-    frames: list[pd.DataFrame],
-    anchors: list[list[_Anchor]],
-    source: str,
-) -> tuple[list[pd.DataFrame], float, list[str]]:
-    """The runs on one circular track's lap coordinate (module docstring, "Lap
-    frame"): the frames of the runs kept, shifted; the lap length [m]; notes.
-
-    Raises:
-        DataError: no anchor with E/N positions, no run on the track, or runs
-            both ways round it without altitudes to find its lowest point.
-    """
-    paths = [
-        (a.east[ok], a.north[ok])
-        for run_anchors in anchors
-        for a in run_anchors
-        if (ok := np.isfinite(a.east) & np.isfinite(a.north)).any()
-    ]
-    if not paths:
-        raise DataError(
-            f"lap_frame: no anchor vehicle of '{source}' has E/N positions "
-            "(EK, NK columns), so no track can be fitted"
-        )
-    try:
-        circle = fit_circle(paths)
-    except ValueError as err:
-        raise DataError(f"lap_frame: no circular track in '{source}': {err}") from None
-    notes: list[str] = []
-    kept: list[int] = []
-    direction: dict[tuple[int, int], int] = {}
-    for i, (run, run_anchors) in enumerate(zip(runs, anchors, strict=True)):
-        why = _off_track(circle, run_anchors)
-        if why is None:
-            for a in run_anchors:
-                ok = np.isfinite(a.east) & np.isfinite(a.north)
-                direction[i, a.vehicle] = travel_direction(
-                    circle.angle(a.east[ok], a.north[ok])
-                )
-            if 0 in (direction[i, a.vehicle] for a in run_anchors):
-                why = "does not go round the track"
-        if why is None:
-            kept.append(i)
-        else:
-            notes.append(f"lap frame: run {run} left out: {why}")
-    if not kept:
-        raise DataError(
-            f"lap_frame: no run of '{source}' stays on the circle of radius "
-            f"{circle.radius:.1f} m (within {OFF_TRACK:g} m): {'; '.join(notes)}"
-        )
-    ways = [direction[i, a.vehicle] for i in kept for a in anchors[i]]
-    reference, tilt_note = _lowest_point(
-        circle, [anchors[i] for i in kept], set(ways), source
-    )
-    out, drift = [], {}
-    for i in kept:
-        frame = frames[i].copy()
-        for a in anchors[i]:
-            shift, parted = _lap_shift(
-                circle, a, frame, direction[i, a.vehicle], reference
-            )
-            drift[runs[i]] = max(drift.get(runs[i], 0.0), parted)
-            chain = frame["vehicle"].isin([str(k) for k in a.chain])
-            frame.loc[chain, "position"] += shift
-        out.append(frame)
-    worst = max(drift, key=drift.get)
-    notes += [
-        f"lap frame: {len(kept)} of {len(runs)} runs on a circle of radius "
-        f"{circle.radius:.1f} m about E {circle.east:.1f} m, N {circle.north:.1f} "
-        f"m (lap {circle.lap:.1f} m); {ways.count(-1)} chain(s) clockwise, "
-        f"{ways.count(1)} anticlockwise; position = the arc length from the "
-        f"reference point in the direction of travel (each chain's odometer "
-        f"shifted by its median difference to it, so every gap stays the "
-        f"recorded IVS)",
-        tilt_note,
-        f"lap frame: the odometer and the arc length round the circle part by "
-        f"up to {drift[worst]:.1f} m over a run (run {worst}): the speed "
-        f"integrated against the path's angle",
-    ]
-    return out, round(circle.lap, 2), notes
-
-
-def _off_track(circle: Circle, anchors: list[_Anchor]) -> str | None:
-    """Why a run's anchors do not stay on the circle, or None."""
-    for a in anchors:
-        ok = np.isfinite(a.east) & np.isfinite(a.north)
-        if not ok.any():
-            return f"vehicle {a.vehicle} has no E/N position"
-        off = float(circle.distance(a.east[ok], a.north[ok]).max())
-        if off > OFF_TRACK:
-            share = float((circle.distance(a.east[ok], a.north[ok]) > OFF_TRACK).mean())
-            return (
-                f"vehicle {a.vehicle} drives up to {off:.0f} m off the circle "
-                f"({share:.0%} of its samples over {OFF_TRACK:g} m)"
-            )
-    return None
-
-
-def _lowest_point(
-    circle: Circle, anchors: list[list[_Anchor]], ways: set[int], source: str
-) -> tuple[float, str]:
-    """The reference angle [rad] of the lap coordinate and its note: the
-    track's lowest point from the anchors' altitudes, or East of the centre
-    without altitudes when all runs go one way."""
-    angle, altitude = [], []
-    for a in (a for run_anchors in anchors for a in run_anchors):
-        ok = np.isfinite(a.east) & np.isfinite(a.north) & np.isfinite(a.altitude)
-        angle.append(circle.angle(a.east[ok], a.north[ok]))
-        altitude.append(a.altitude[ok])
-    angle_all, altitude_all = np.concatenate(angle), np.concatenate(altitude)
-    try:
-        tilt = fit_tilt(angle_all, altitude_all, circle.radius)
-    except ValueError as err:
-        if len(ways) > 1:
-            raise DataError(
-                f"lap_frame: the runs of '{source}' go both ways round the track "
-                f"and their altitudes (AltK) cannot place its lowest point "
-                f"({err}), so the two directions cannot share a grade profile"
-            ) from None
-        return 0.0, (
-            f"lap frame: no altitudes ({err}); reference point due East of the "
-            "centre (every run goes the same way)"
-        )
-    return tilt.lowest, (
-        f"lap frame: the altitudes ({tilt.samples} samples) lie on a plane of "
-        f"slope {100 * tilt.grade:.2f} % (rms {tilt.rms:.2f} m about it); "
-        f"reference point its lowest point, at {math.degrees(tilt.lowest):.0f} "
-        f"deg from East: the grade at lap coordinate s is about "
-        f"{100 * tilt.grade:.2f} % x sin(s / {circle.radius:.1f} m) either way round"
-    )
-
-
-def _lap_shift(
-    circle: Circle,
-    anchor: _Anchor,
-    frame: pd.DataFrame,
-    direction: int,
-    reference: float,
-) -> tuple[float, float]:
-    """The shift [m] that puts an anchor's odometer on the lap coordinate, and
-    the largest difference [m] left between the shifted odometer and the arc
-    length round the circle.
-
-    The arc length is the lap coordinate at the anchor's first sample with a
-    position and an E/N, continued by the unwrapped angle; the shift is the
-    median of arc length minus odometer over the run, so a slow drift between
-    the two (the speed's bias, the antenna's own radius) is split about the
-    middle of the run instead of growing from its start."""
-    odometer = frame.loc[frame["vehicle"] == str(anchor.vehicle), "position"].to_numpy()
-    ok = np.isfinite(odometer) & np.isfinite(anchor.east) & np.isfinite(anchor.north)
-    if not ok.any():
-        raise DataError(
-            f"lap_frame: run {frame['run'].iloc[0]}: vehicle {anchor.vehicle} has "
-            "no sample with both a speed-based position and an E/N position"
-        )
-    angle = circle.angle(anchor.east[ok], anchor.north[ok])
-    start = lap_position(float(angle[0]), direction, reference, circle.radius)
-    arc = start + direction * circle.radius * (np.unwrap(angle) - angle[0])
-    shift = float(np.median(arc - odometer[ok]))
-    return shift, float(np.abs(odometer[ok] + shift - arc).max())
 
 
 def _mode(k: int, driver: np.ndarray | None, meta: _Metadata, n: int) -> np.ndarray:

@@ -27,16 +27,22 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
+import pandas as pd
+
+from torchcf.data.pairset import DataError
 
 __all__ = [
     "OFF_TRACK",
+    "Anchor",
     "Circle",
     "Tilt",
     "fit_circle",
     "fit_tilt",
     "lap_position",
+    "place_on_lap",
     "travel_direction",
 ]
 
@@ -185,3 +191,177 @@ def lap_position(
     (+1 anticlockwise, -1 clockwise), in ``[0, 2 pi radius)``."""
     turn = (direction * (angle - reference)) % (2.0 * math.pi)
     return float(turn * radius)
+
+
+# ------------------------------------------------------- runs on the lap
+class Anchor(NamedTuple):
+    """A chain's anchor (the car its positions are placed from) with its
+    planar path, as a platoon reader hands it to :func:`place_on_lap`."""
+
+    vehicle: int  # the anchor's number
+    chain: list[int]  # the vehicles placed from it
+    east: np.ndarray  # (T,) E [m], NaN where missing
+    north: np.ndarray  # (T,) N [m]
+    altitude: np.ndarray  # (T,) Alt [m]; all NaN without the column
+
+
+def place_on_lap(
+    runs: list[str],
+    frames: list[pd.DataFrame],
+    anchors: list[list[Anchor]],
+    source: str,
+) -> tuple[list[pd.DataFrame], float, list[str]]:
+    """The runs on one circular track's lap coordinate (module docstring, "Lap
+    frame"): the frames of the runs kept, shifted; the lap length [m]; notes.
+
+    Raises:
+        DataError: no anchor with E/N positions, no run on the track, or runs
+            both ways round it without altitudes to find its lowest point.
+    """
+    paths = [
+        (a.east[ok], a.north[ok])
+        for run_anchors in anchors
+        for a in run_anchors
+        if (ok := np.isfinite(a.east) & np.isfinite(a.north)).any()
+    ]
+    if not paths:
+        raise DataError(
+            f"lap_frame: no anchor vehicle of '{source}' has E/N positions "
+            "(EK, NK columns), so no track can be fitted"
+        )
+    try:
+        circle = fit_circle(paths)
+    except ValueError as err:
+        raise DataError(f"lap_frame: no circular track in '{source}': {err}") from None
+    notes: list[str] = []
+    kept: list[int] = []
+    direction: dict[tuple[int, int], int] = {}
+    for i, (run, run_anchors) in enumerate(zip(runs, anchors, strict=True)):
+        why = _off_track(circle, run_anchors)
+        if why is None:
+            for a in run_anchors:
+                ok = np.isfinite(a.east) & np.isfinite(a.north)
+                direction[i, a.vehicle] = travel_direction(
+                    circle.angle(a.east[ok], a.north[ok])
+                )
+            if 0 in (direction[i, a.vehicle] for a in run_anchors):
+                why = "does not go round the track"
+        if why is None:
+            kept.append(i)
+        else:
+            notes.append(f"lap frame: run {run} left out: {why}")
+    if not kept:
+        raise DataError(
+            f"lap_frame: no run of '{source}' stays on the circle of radius "
+            f"{circle.radius:.1f} m (within {OFF_TRACK:g} m): {'; '.join(notes)}"
+        )
+    ways = [direction[i, a.vehicle] for i in kept for a in anchors[i]]
+    reference, tilt_note = _lowest_point(
+        circle, [anchors[i] for i in kept], set(ways), source
+    )
+    out, drift = [], {}
+    for i in kept:
+        frame = frames[i].copy()
+        for a in anchors[i]:
+            shift, parted = _lap_shift(
+                circle, a, frame, direction[i, a.vehicle], reference
+            )
+            drift[runs[i]] = max(drift.get(runs[i], 0.0), parted)
+            chain = frame["vehicle"].isin([str(k) for k in a.chain])
+            frame.loc[chain, "position"] += shift
+        out.append(frame)
+    worst = max(drift, key=drift.get)
+    notes += [
+        f"lap frame: {len(kept)} of {len(runs)} runs on a circle of radius "
+        f"{circle.radius:.1f} m about E {circle.east:.1f} m, N {circle.north:.1f} "
+        f"m (lap {circle.lap:.1f} m); {ways.count(-1)} chain(s) clockwise, "
+        f"{ways.count(1)} anticlockwise; position = the arc length from the "
+        f"reference point in the direction of travel (each chain's odometer "
+        f"shifted by its median difference to it, so every gap stays the "
+        f"recorded IVS)",
+        tilt_note,
+        f"lap frame: the odometer and the arc length round the circle part by "
+        f"up to {drift[worst]:.1f} m over a run (run {worst}): the speed "
+        f"integrated against the path's angle",
+    ]
+    return out, round(circle.lap, 2), notes
+
+
+def _off_track(circle: Circle, anchors: list[Anchor]) -> str | None:
+    """Why a run's anchors do not stay on the circle, or None."""
+    for a in anchors:
+        ok = np.isfinite(a.east) & np.isfinite(a.north)
+        if not ok.any():
+            return f"vehicle {a.vehicle} has no E/N position"
+        off = float(circle.distance(a.east[ok], a.north[ok]).max())
+        if off > OFF_TRACK:
+            share = float((circle.distance(a.east[ok], a.north[ok]) > OFF_TRACK).mean())
+            return (
+                f"vehicle {a.vehicle} drives up to {off:.0f} m off the circle "
+                f"({share:.0%} of its samples over {OFF_TRACK:g} m)"
+            )
+    return None
+
+
+def _lowest_point(
+    circle: Circle, anchors: list[list[Anchor]], ways: set[int], source: str
+) -> tuple[float, str]:
+    """The reference angle [rad] of the lap coordinate and its note: the
+    track's lowest point from the anchors' altitudes, or East of the centre
+    without altitudes when all runs go one way."""
+    angle, altitude = [], []
+    for a in (a for run_anchors in anchors for a in run_anchors):
+        ok = np.isfinite(a.east) & np.isfinite(a.north) & np.isfinite(a.altitude)
+        angle.append(circle.angle(a.east[ok], a.north[ok]))
+        altitude.append(a.altitude[ok])
+    angle_all, altitude_all = np.concatenate(angle), np.concatenate(altitude)
+    try:
+        tilt = fit_tilt(angle_all, altitude_all, circle.radius)
+    except ValueError as err:
+        if len(ways) > 1:
+            raise DataError(
+                f"lap_frame: the runs of '{source}' go both ways round the track "
+                f"and their altitudes (AltK) cannot place its lowest point "
+                f"({err}), so the two directions cannot share a grade profile"
+            ) from None
+        return 0.0, (
+            f"lap frame: no altitudes ({err}); reference point due East of the "
+            "centre (every run goes the same way)"
+        )
+    return tilt.lowest, (
+        f"lap frame: the altitudes ({tilt.samples} samples) lie on a plane of "
+        f"slope {100 * tilt.grade:.2f} % (rms {tilt.rms:.2f} m about it); "
+        f"reference point its lowest point, at {math.degrees(tilt.lowest):.0f} "
+        f"deg from East: the grade at lap coordinate s is about "
+        f"{100 * tilt.grade:.2f} % x sin(s / {circle.radius:.1f} m) either way round"
+    )
+
+
+def _lap_shift(
+    circle: Circle,
+    anchor: Anchor,
+    frame: pd.DataFrame,
+    direction: int,
+    reference: float,
+) -> tuple[float, float]:
+    """The shift [m] that puts an anchor's odometer on the lap coordinate, and
+    the largest difference [m] left between the shifted odometer and the arc
+    length round the circle.
+
+    The arc length is the lap coordinate at the anchor's first sample with a
+    position and an E/N, continued by the unwrapped angle; the shift is the
+    median of arc length minus odometer over the run, so a slow drift between
+    the two (the speed's bias, the antenna's own radius) is split about the
+    middle of the run instead of growing from its start."""
+    odometer = frame.loc[frame["vehicle"] == str(anchor.vehicle), "position"].to_numpy()
+    ok = np.isfinite(odometer) & np.isfinite(anchor.east) & np.isfinite(anchor.north)
+    if not ok.any():
+        raise DataError(
+            f"lap_frame: run {frame['run'].iloc[0]}: vehicle {anchor.vehicle} has "
+            "no sample with both a speed-based position and an E/N position"
+        )
+    angle = circle.angle(anchor.east[ok], anchor.north[ok])
+    start = lap_position(float(angle[0]), direction, reference, circle.radius)
+    arc = start + direction * circle.radius * (np.unwrap(angle) - angle[0])
+    shift = float(np.median(arc - odometer[ok]))
+    return shift, float(np.abs(odometer[ok] + shift - arc).max())
