@@ -67,8 +67,6 @@ SETTINGS = {"ACC:S": "short", "ACC:M": "medium", "ACC:L": "long"}
 UNVERIFIED = "names unverified"
 #: Clusters of the second bootstrap: the windows of one follower in one run.
 CLUSTER = "run,follower"
-#: Standard gravity [m/s^2], as torchcf.models.effects.GRAVITY.
-GRAVITY_MS2 = 9.81
 #: Figures copied from the run (report/ and loop/), and the largest copied.
 FIGURES = {
     "report": ("shares.png", "pairwise.png", "radar.png", "error_evolution.png"),
@@ -631,7 +629,9 @@ def tilt_in_residual(run_dir: Path, notes: list[str], seed: int = 0) -> dict:
 
 def tilt_lines(tilt: dict) -> list[str]:
     """The README's paragraph on the tilt in the residual."""
-    full = GRAVITY_MS2 * tilt["slope"]
+    from torchcf.models.effects import GRAVITY
+
+    full = GRAVITY * tilt["slope"]
     return [
         "## The platform's tilt in the residual",
         "",

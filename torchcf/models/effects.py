@@ -599,7 +599,7 @@ class RoadProfile(Effect):
             return self.start + torch.remainder(position - self.start, self.period)
         return torch.clamp(position, self.start, self.end)
 
-    def distance_to(self, position: Tensor, at: float) -> Tensor:
+    def distance_to(self, position: Tensor, at: float | Tensor) -> Tensor:
         """|position - at| [m] along the road (round the lap on a closed track,
         the shorter way)."""
         gap = torch.abs(position - at)
@@ -644,11 +644,8 @@ class RoadProfile(Effect):
         if self.knots == 1:
             return torch.ones((*position.shape, 1), dtype=position.dtype)
         x = self.road_position(position)[..., None]
-        hats = [
-            torch.clamp(1.0 - self.distance_to(x[..., 0], at) / self.spacing, min=0.0)
-            for at in self.knot_positions
-        ]
-        return torch.stack(hats, dim=-1)
+        knots = torch.tensor(self.knot_positions, dtype=position.dtype)
+        return torch.clamp(1.0 - self.distance_to(x, knots) / self.spacing, min=0.0)
 
     def position_of(self, obs: Perception) -> Tensor:
         if obs.position is None:

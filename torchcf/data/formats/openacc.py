@@ -468,17 +468,20 @@ def _read_file(
         *_quality_notes(run, header, time, speed, ivs, position, mode),
     ]
     missing = np.full(time.size, np.nan)
-    anchors = [
-        Anchor(
-            vehicle=k,
-            chain=next(chain for chain in plan.chains if chain[0] == head),
-            east=place["east"].get(k, missing),
-            north=place["north"].get(k, missing),
-            altitude=place["altitude"].get(k, missing),
-        )
-        for head, k in plan.anchor.items()
+    anchors = (
+        [
+            Anchor(
+                vehicle=k,
+                chain=next(chain for chain in plan.chains if chain[0] == head),
+                east=place["east"].get(k, missing),
+                north=place["north"].get(k, missing),
+                altitude=place["altitude"].get(k, missing),
+            )
+            for head, k in plan.anchor.items()
+        ]
         if lap
-    ]
+        else []
+    )
     return pd.concat(frames, ignore_index=True), notes, anchors
 
 

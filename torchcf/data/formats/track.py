@@ -293,12 +293,12 @@ def _off_track(circle: Circle, anchors: list[Anchor]) -> str | None:
         ok = np.isfinite(a.east) & np.isfinite(a.north)
         if not ok.any():
             return f"vehicle {a.vehicle} has no E/N position"
-        off = float(circle.distance(a.east[ok], a.north[ok]).max())
-        if off > OFF_TRACK:
-            share = float((circle.distance(a.east[ok], a.north[ok]) > OFF_TRACK).mean())
+        distance = circle.distance(a.east[ok], a.north[ok])
+        if distance.max() > OFF_TRACK:
             return (
-                f"vehicle {a.vehicle} drives up to {off:.0f} m off the circle "
-                f"({share:.0%} of its samples over {OFF_TRACK:g} m)"
+                f"vehicle {a.vehicle} drives up to {distance.max():.0f} m off the "
+                f"circle ({(distance > OFF_TRACK).mean():.0%} of its samples over "
+                f"{OFF_TRACK:g} m)"
             )
     return None
 
