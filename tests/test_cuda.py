@@ -83,7 +83,9 @@ def test_road_profiles_on_cuda_equal_cpu(name):
 
 
 @pytest.mark.compile
-@pytest.mark.parametrize("name", [m for m in MODELS if MODELS[m].compilable])
+@pytest.mark.parametrize(
+    "name", [m for m in MODELS if MODELS[m].compilable or MODELS[m].corrects]
+)
 def test_compiled_rollout_on_cuda(name):
     """Fused on the GPU = eager on the GPU, validity included: a compiler that
     contracts ``a*b - a*b`` into an FMA once made every OVM and IDM rollout

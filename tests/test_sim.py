@@ -312,6 +312,75 @@ def test_compiled_equals_eager(name):
 
 
 @pytest.mark.compile
+@pytest.mark.parametrize(
+    "name, paired",
+    [
+        ("mpc", True),
+        ("mpc", False),
+        ("mpc+delay+saturation", True),
+        ("mpc+lag+action", True),
+    ],
+)
+def test_a_correcting_model_compiles_around_its_correction(name, paired):
+    """MPC (and MPC under effects) compiles every step but its QP
+    (``CFModel.corrects``): the same scores, validity and trajectory as eager,
+    with the QP reached on many steps (the prior's tight limits)."""
+    from torchcf.models import get_model
+
+    model = get_model(name)
+    pairs = synthetic_pairs(n_pairs=4, n_steps=90, seed=5)
+    theta = prior_draws(model, 192, seed=6, dtype=torch.float64)
+    theta[::2, 4:6] = torch.tensor([-0.3, 0.3], dtype=torch.float64)  # box active
+    index = torch.randint(0, 4, (192,)) if paired else None
+    eager = simulate(model, theta, pairs, index, compile=False, return_traj=True)
+    fused = simulate(model, theta, pairs, index, compile=True, return_traj=True)
+    assert bool(eager.valid.any())
+    assert torch.equal(eager.valid, fused.valid)
+    torch.testing.assert_close(fused.score, eager.score, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(fused.a, eager.a, rtol=1e-8, atol=1e-8)
+    saturated = (eager.a.abs() >= 0.3 - 1e-9).float().mean()
+    assert float(saturated) > 0.05, "the QP must be exercised"
+
+
+@pytest.mark.compile
+def test_a_compiled_correcting_model_is_independent_of_chunk_size():
+    pairs = synthetic_pairs(n_pairs=5, n_steps=64)
+    theta = prior_draws(MODELS["mpc"], 300, seed=4, dtype=torch.float32)
+    index = torch.randint(0, 5, (300,))
+    outs = [
+        simulate("mpc", theta, pairs, index, compile=True, chunk_size=size)
+        for size in (100, 300)
+    ]
+    assert torch.equal(outs[0].score, outs[1].score)
+
+
+def test_a_correcting_models_command_is_its_draft_corrected():
+    """``command_with_memory = correct(draft_with_memory)``, with memory, for MPC
+    and MPC under a perception and a command effect."""
+    from torchcf.models import Perception, get_model
+
+    for name in ("mpc", "mpc+delay+action"):
+        model = get_model(name)
+        theta = prior_draws(model, 64, seed=8)
+        params = model.prepare(model.unpack(theta), 0.1, (64,))
+        generator = torch.Generator().manual_seed(9)
+        spacing, v, v_lead = (
+            torch.rand(64, generator=generator, dtype=torch.float64) * scale + low
+            for low, scale in ((5.0, 40.0), (0.0, 25.0), (0.0, 25.0))
+        )
+        obs = Perception(spacing, v, v_lead, torch.zeros(64, dtype=torch.float64), 5.0)
+        memory = model.initial_memory(params, obs)
+        for _ in range(3):
+            whole, whole_memory = model.command_with_memory(params, obs, memory)
+            split, memory = model.correct(
+                params, *model.draft_with_memory(params, obs, memory)
+            )
+            assert torch.equal(whole, split), name
+            torch.testing.assert_close(whole_memory, memory, rtol=0, atol=0)
+            obs = obs._replace(spacing=obs.spacing + 0.5, v=obs.v + 0.2)
+
+
+@pytest.mark.compile
 def test_compiled_result_independent_of_chunk_size():
     pairs = synthetic_pairs(n_pairs=5, n_steps=64)
     theta = prior_draws(MODELS["fvdm"], 300, seed=4, dtype=torch.float32)
@@ -356,7 +425,8 @@ def test_auto_compiles_from_a_threshold_per_device(monkeypatch):
     """ "auto" compiles long rollouts only: from COMPILE_MIN_STEPS particle-steps
     on the CPU (with a C++ compiler), from COMPILE_MIN_STEPS_CUDA on CUDA (where
     eager rollouts are fast and compiling pays later); "on"/"off" and bools as
-    asked; a model that cannot compile never does."""
+    asked; a model that cannot be traced, not even around a correction, never
+    compiles."""
     import torchcf.sim as sim
 
     monkeypatch.setattr(sim, "_compiler_available", lambda: True)
@@ -370,7 +440,11 @@ def test_auto_compiles_from_a_threshold_per_device(monkeypatch):
     assert sim.resolve_compile(idm, "auto", cuda, cuda_limit)
     for asked, expected in ((True, True), ("on", True), (False, False), ("off", False)):
         assert sim.resolve_compile(idm, asked, cpu, 1) is expected
-    assert not sim.resolve_compile(MODELS["mpc"], True, cpu, cuda_limit)
+    mpc = MODELS["mpc"]  # traced around its eager QP (CFModel.corrects)
+    assert sim.resolve_compile(mpc, True, cpu, 1)
+    assert sim.resolve_compile(mpc, "auto", cpu, cpu_limit)
+    untraceable = type("Untraceable", (type(mpc),), {"corrects": False})()
+    assert not sim.resolve_compile(untraceable, True, cpu, cuda_limit)
     monkeypatch.setattr(sim, "_compiler_available", lambda: False)
     assert not sim.resolve_compile(idm, "auto", cpu, cuda_limit)
 

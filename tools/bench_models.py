@@ -4,7 +4,7 @@ For each of the eight models, in one run on one machine:
 
 * **torchcf**: ``--particles`` prior draws, each simulated on one training pair of
   CAR MODEL II (paired layout, 576 steps, float32) by :func:`torchcf.simulate`,
-  fused with ``torch.compile`` where the model allows (MPC runs eager); one warm-up
+  fused with ``torch.compile`` (MPC around its eager QP solver); one warm-up
   call (compilation), then the median of ``--repeats`` timed calls.
 * **peer baseline**: the first ``--baseline-particles`` of the same particles, one
   at a time, by ``tools/peer_numpy.py`` (a Python loop over time steps on NumPy
@@ -139,7 +139,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for name in args.models:
         theta, index = setup(name, n_particles, pairs.n_pairs)
-        fused = args.compile == "on" and MODELS[name].compilable
+        model = MODELS[name]
+        fused = args.compile == "on" and (model.compilable or model.corrects)
         seconds, runs, compile_s, invalid = time_torchcf(
             name, theta, pairs, index, args.device, fused, args.repeats
         )

@@ -750,7 +750,7 @@ def readme(
         f"N = {abc['top_n']} per pair, per-pair selection, seed {abc['seed']}. "
         + loop_budget(payload["loop_set"])
         + " 200,000 particles per model keep the whole study within minutes on "
-        "two cores: 1e6 would run MPC (not compilable) five times longer.",
+        "two cores: 1e6 would run every model five times longer.",
         "",
         *in_short(payload, metrics, loop),
         "## Pairs",

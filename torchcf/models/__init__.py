@@ -7,6 +7,7 @@ shared by everything.
 from __future__ import annotations
 
 from ..errors import did_you_mean
+from .augmented import AugmentedModel
 from .base import (
     CFModel,
     FollowerState,
@@ -15,7 +16,7 @@ from .base import (
     first_order_lag_advance,
     point_mass_advance,
 )
-from .effects import EFFECTS, AugmentedModel, Effect, parse_effect
+from .effects import EFFECTS, Effect, parse_effect
 from .hdv import FVDM, GFM, IDM, OVM
 from .linear import HL, LLCS, LLCTG
 from .mpc import MPC

@@ -132,8 +132,15 @@ class CFModel:
     #: than the command itself (point-mass models).
     acceleration_is_state: ClassVar[bool] = False
     #: False when the command has data-dependent control flow (MPC's QP solver):
-    #: the rollout then never hands it to ``torch.compile``.
+    #: the rollout then never hands :meth:`command_with_memory` whole to
+    #: ``torch.compile``.
     compilable: ClassVar[bool] = True
+    #: True when the command is a compilable draft and an eager correction with
+    #: data-dependent control flow (:meth:`draft_with_memory`, :meth:`correct`;
+    #: MPC: the plan of the unconstrained QP, then a solver for the cells whose
+    #: plan leaves the box). A compiled rollout then fuses everything of a step
+    #: but the correction, which runs eagerly between two compiled calls.
+    corrects: ClassVar[bool] = False
     #: True when the model reads ``Perception.position`` (a road-grade profile);
     #: the rollout computes the absolute position only for such models.
     uses_position: ClassVar[bool] = False
@@ -228,6 +235,27 @@ class CFModel:
     ) -> tuple[Tensor, Any]:
         """The command and the memory for the next step; see :meth:`initial_memory`."""
         return self.command(p, obs), memory
+
+    def draft_with_memory(
+        self, p: Any, obs: Perception, memory: Any
+    ) -> tuple[Any, Any]:
+        """The compilable part of a correcting model's command (:attr:`corrects`).
+
+        Returns:
+            pending: a tuple of tensors, what :meth:`correct` completes; its
+                shapes depend on the state's only, so a compiled draft has one
+                graph.
+            memory: the memory as the draft leaves it.
+
+        ``command_with_memory(p, obs, memory)`` equals
+        ``correct(p, *draft_with_memory(p, obs, memory))``.
+        """
+        raise NotImplementedError(f"{self.name} has no draft (corrects is False)")
+
+    def correct(self, p: Any, pending: Any, memory: Any) -> tuple[Tensor, Any]:
+        """The eager end of a correcting model's command: the command (the
+        state's shape) and the memory for the next step."""
+        raise NotImplementedError(f"{self.name} has no correction (corrects is False)")
 
     def advance(
         self, p: Any, state: FollowerState, u: Tensor, dt: float

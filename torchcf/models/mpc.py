@@ -96,6 +96,15 @@ class MPCPrepared(NamedTuple):
     state_shape: tuple[int, ...]
 
 
+class MPCDraft(NamedTuple):
+    """A step's plan before the box is enforced (:meth:`MPC.draft_with_memory`)."""
+
+    inputs: Tensor  # (n, B) the unconstrained plan, batch-last
+    outside: Tensor  # (B,) bool: the plan leaves the box (the QP must be solved)
+    spacing_error: Tensor  # (B,) z_0[0] = s - v tau - l [m]
+    speed_difference: Tensor  # (B,) z_0[1] = dv [m/s]
+
+
 class MPCMemory(NamedTuple):
     """The last step's solution; shifted by one step it warm-starts the next."""
 
@@ -132,7 +141,10 @@ class MPC(CFModel):
         spec("amin", "m/s^2", -5.0, -3.0, "deceleration limit"),
         spec("amax", "m/s^2", 3.0, 5.0, "acceleration limit"),
     )
+    #: The QP's data-dependent stages cannot be traced; the unconstrained plan
+    #: and its bounds test (every cell, every step) compile with the step.
     compilable = False
+    corrects = True
     #: 65 536 QPs per simulate call: on 2 CPU threads the smallest batch at full
     #: throughput (torch splits an elementwise op over threads by 32 768
     #: elements; larger batches leave the cache: a million CAR MODEL II particles
@@ -203,9 +215,11 @@ class MPC(CFModel):
             return kept, None
         return kept, MPCMemory(inputs=memory.inputs.index_select(1, cells))
 
-    def command_with_memory(
+    def draft_with_memory(
         self, p: Any, obs: Perception, memory: MPCMemory | None
-    ) -> tuple[Tensor, MPCMemory]:
+    ) -> tuple[MPCDraft, MPCMemory | None]:
+        """The unconstrained plan of every cell and where it leaves the box:
+        elementwise, compiled with the rest of the step (:attr:`corrects`)."""
         if not isinstance(p, MPCPrepared):
             raise TypeError("MPC.command needs MPC.prepare(params, dt, state_shape)")
         spacing, v, v_lead = (
@@ -222,6 +236,15 @@ class MPC(CFModel):
         # rows' min and max, then one compare each: 5x cheaper than .any(0) of
         # the (n, B) comparisons, and NaN stays inside either way
         outside = (inputs.amin(0) < q.amin) | (inputs.amax(0) > q.amax)  # (B,)
+        return MPCDraft(inputs, outside, spacing_error, speed_difference), memory
+
+    def correct(
+        self, p: Any, pending: MPCDraft, memory: MPCMemory | None
+    ) -> tuple[Tensor, MPCMemory]:
+        """The QP solved where the unconstrained plan leaves the box; the first
+        input is the command (data-dependent: eager)."""
+        inputs, outside, spacing_error, speed_difference = pending
+        q = p.params
         rest = outside.nonzero().squeeze(1)
         if rest.numel():
             z0 = torch.stack((spacing_error[rest], speed_difference[rest]), dim=1)
@@ -244,9 +267,14 @@ class MPC(CFModel):
                 method=self.method,
                 active_guess=last,
             )
-            inputs = inputs.index_copy(1, rest, result.x.T)
+            inputs.index_copy_(1, rest, result.x.T)  # the draft's own plan
         command = inputs[0].reshape(p.state_shape)
         return command, MPCMemory(inputs=inputs)
+
+    def command_with_memory(
+        self, p: Any, obs: Perception, memory: MPCMemory | None
+    ) -> tuple[Tensor, MPCMemory]:
+        return self.correct(p, *self.draft_with_memory(p, obs, memory))
 
     def command(self, p: Any, obs: Perception) -> Tensor:
         return self.command_with_memory(p, obs, None)[0]
