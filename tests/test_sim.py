@@ -342,18 +342,6 @@ def test_a_correcting_model_compiles_around_its_correction(name, paired):
     assert float(saturated) > 0.05, "the QP must be exercised"
 
 
-@pytest.mark.compile
-def test_a_compiled_correcting_model_is_independent_of_chunk_size():
-    pairs = synthetic_pairs(n_pairs=5, n_steps=64)
-    theta = prior_draws(MODELS["mpc"], 300, seed=4, dtype=torch.float32)
-    index = torch.randint(0, 5, (300,))
-    outs = [
-        simulate("mpc", theta, pairs, index, compile=True, chunk_size=size)
-        for size in (100, 300)
-    ]
-    assert torch.equal(outs[0].score, outs[1].score)
-
-
 def test_a_correcting_models_command_is_its_draft_corrected():
     """``command_with_memory = correct(draft_with_memory)``, with memory, for MPC
     and MPC under a perception and a command effect."""
@@ -381,12 +369,13 @@ def test_a_correcting_models_command_is_its_draft_corrected():
 
 
 @pytest.mark.compile
-def test_compiled_result_independent_of_chunk_size():
+@pytest.mark.parametrize("name", ["fvdm", "mpc"])  # fused whole; around its QP
+def test_compiled_result_independent_of_chunk_size(name):
     pairs = synthetic_pairs(n_pairs=5, n_steps=64)
-    theta = prior_draws(MODELS["fvdm"], 300, seed=4, dtype=torch.float32)
+    theta = prior_draws(MODELS[name], 300, seed=4, dtype=torch.float32)
     index = torch.randint(0, 5, (300,))
     outs = [
-        simulate("fvdm", theta, pairs, index, compile=True, chunk_size=size)
+        simulate(name, theta, pairs, index, compile=True, chunk_size=size)
         for size in (100, 300)
     ]
     assert torch.equal(outs[0].score, outs[1].score)
