@@ -90,8 +90,13 @@ class Effect:
     def neutral(self) -> tuple[float, ...]:
         """Parameter values (K_E,) at which the effect is the model itself, or as
         close as its prior allows (:attr:`exactly_neutral` says which): the
-        start of a nested search, where the augmented model is its base."""
-        return tuple(p.lower for p in self.param_specs)
+        start of a nested search, where the augmented model is its base.
+
+        The default: each parameter's value nearest 0 in its prior (0 where the
+        prior holds it: an added term, shift or delay of zero; else the bound
+        nearer 0). Effects whose identity is elsewhere (a gain of 1, a limit
+        at the far end) override it."""
+        return tuple(min(max(0.0, p.lower), p.upper) for p in self.param_specs)
 
     #: True when :attr:`neutral` gives the base model's rollout exactly.
     exactly_neutral: ClassVar[bool] = True
@@ -172,10 +177,6 @@ class Offset(Effect):
     stage = "perception"
     scope = "recording"
     param_specs = (spec("d_offset", "m", -6.0, 6.0, "spacing-sensor offset"),)
-
-    @property
-    def neutral(self):
-        return (0.0,)
 
     def perceive(self, q, obs, memory):
         (d_offset,) = q
@@ -355,10 +356,6 @@ class TimeGap(Effect):
     name = "timegap"
     stage = "perception"
     param_specs = (spec("c_gap", "s^2/m", -0.05, 0.05, "time gap per unit speed"),)
-
-    @property
-    def neutral(self):
-        return (0.0,)
 
     def perceive(self, q, obs, memory):
         (c_gap,) = q
@@ -662,10 +659,6 @@ class Grade(RoadProfile):
 
     name = "grade"
     prefix, unit, prior, meaning = "grade", "1", (-0.08, 0.08), "road grade"
-
-    @property
-    def neutral(self):
-        return (0.0,) * self.knots
 
     def act(self, q, obs, u):
         return u - GRAVITY * self.profile(q, self.position_of(obs))
