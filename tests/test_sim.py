@@ -381,6 +381,21 @@ def test_compiled_result_independent_of_chunk_size(name):
     assert torch.equal(outs[0].score, outs[1].score)
 
 
+@pytest.mark.compile
+@pytest.mark.parametrize("name, graphs", [("idm", 1), ("mpc", 2)])  # draft, finish
+def test_a_padded_last_chunk_reuses_the_compiled_graph(name, graphs):
+    """Three chunks, the last padded: one trace of the block (or of MPC's two
+    step functions). The padded chunk's inputs once came out of inference mode
+    as another kind of tensor, and each model compiled a second graph."""
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    pairs = synthetic_pairs(n_pairs=5, n_steps=32)
+    theta = prior_draws(MODELS[name], 300, seed=5, dtype=torch.float32)
+    index = torch.arange(300) % 5
+    simulate(name, theta, pairs, index, compile=True, chunk_size=128)
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
+
+
 def test_compile_cache_holds_every_model_and_shape():
     """More than dynamo's default 8 graphs of _block must stay compiled."""
     from torchcf.sim import _compiled_block
@@ -416,7 +431,7 @@ def test_auto_compiles_from_a_threshold_per_device(monkeypatch):
     eager rollouts are fast and compiling pays later); "on"/"off" and bools as
     asked; a model that cannot be traced, not even around a correction, never
     compiles."""
-    import torchcf.sim as sim
+    import torchcf.compiled as sim
 
     monkeypatch.setattr(sim, "_compiler_available", lambda: True)
     idm, cpu, cuda = MODELS["idm"], torch.device("cpu"), torch.device("cuda")

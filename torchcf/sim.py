@@ -29,17 +29,33 @@ Numerics worth knowing:
 
 from __future__ import annotations
 
-import functools
 import math
-import shutil
-import warnings
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any, Literal, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import torch
 from torch import Tensor
 
+from .compiled import (  # noqa: F401 - resolve_compile and the rest: sim's API
+    COMPILE_MIN_STEPS,
+    COMPILE_MIN_STEPS_CUDA,
+    CompileMode,
+    _BlockRunner,
+    _compiled_block,
+    resolve_compile,
+)
 from .models import CFModel, FollowerState, Perception, get_model
+from .step import (  # noqa: F401 - realise: sim's API
+    _A_FOLLOW,
+    _MASK,
+    _V_FOLLOW,
+    _V_LEAD,
+    _X_FOLLOW,
+    _X_LEAD,
+    _Accumulators,
+    _not_finite,
+    realise,
+)
 
 #: Steps per block function call (the unit that ``torch.compile`` fuses). The
 #: compile time grows with the steps unrolled, the throughput with fewer trips
@@ -47,17 +63,6 @@ from .models import CFModel, FollowerState, Perception, get_model
 #: steps compile in 19-28 s, 8 in 14-17 s at the same throughput (-7 % to +58 %
 #: per model), 4 in 12-13 s at 10-20 % less; compiled results do not depend on it.
 BLOCK_STEPS = 8
-#: Below this many simulated particle-steps, ``compile="auto"`` stays eager on
-#: the CPU: the one-off compilation (seconds) would cost more than it saves
-#: (``reports/bench/compile.md``: IDM, HL, LLCTG pay from 1.5e8-3e8 on 2 cores).
-COMPILE_MIN_STEPS = 2e8
-#: The same on CUDA, where eager rollouts are fast too: on one H100 compiling
-#: an 8-step block took 20-26 s and saved 0.13-0.14 us per particle of 576 steps
-#: (IDM and HL at 2^23 particles), so it pays from 1.6e8-2e8 particles, about
-#: 1e11 particle-steps (``reports/bench/compile_cuda_h100_8m.md``); the
-#: paper-scale study (5.8e8) runs eager there in 28 s against 97 s compiled on
-#: an empty cache and 43 s on a full one (``reports/bench/train_carII_cuda_h100*``).
-COMPILE_MIN_STEPS_CUDA = 1e11
 #: With compilation or early rejection, chunks are a multiple of this: every
 #: element then takes the vectorised path of a kernel, never a scalar tail
 #: (whose transcendental functions can round differently: seen for ``sigmoid``
@@ -80,13 +85,9 @@ PRUNE_EVERY = 2
 #: so dropping a few at a time would cost more than simulating them.
 PRUNE_SHARE = 0.2
 
-# Rows of the observation table (T, 6, N).
-_X_LEAD, _V_LEAD, _X_FOLLOW, _V_FOLLOW, _A_FOLLOW, _MASK = range(6)
 
 if TYPE_CHECKING:
     from .data import PairSet
-
-CompileMode = bool | Literal["auto", "on", "off"]
 
 
 class SimOutput(NamedTuple):
@@ -118,238 +119,6 @@ class SimOutput(NamedTuple):
     v: Tensor | None = None
     a: Tensor | None = None
     pruned: Tensor | None = None
-
-
-class _Accumulators(NamedTuple):
-    """Streaming sums over valid steps, each the state's shape."""
-
-    sq_x: Tensor
-    sq_v: Tensor
-    sq_a: Tensor
-    invalid: Tensor  # bool
-
-
-def _block(
-    model: CFModel,
-    paired: bool,
-    dt: float,
-    leader_length: float,
-    record: bool,
-    params: Any,
-    state: FollowerState,
-    acc: _Accumulators,
-    memory: Any,
-    obs: Tensor,
-    pair_index: Tensor | None,
-    origin: Tensor | None,
-) -> tuple[FollowerState, _Accumulators, Any, Tensor | None]:
-    """Advance ``BLOCK_STEPS`` (= ``obs.shape[0]``) steps of SPEC section 2.
-
-    Args:
-        model, paired, dt, leader_length, record: static for a compiled block.
-        params: the model's prepared Params, fields broadcast to the state.
-        state: follower state at the block's first step, ``(P,)`` or ``(P, N)``.
-        acc: streaming sums.
-        memory: what a stateful controller carries between steps (usually None).
-        obs: ``(BLOCK_STEPS, 6, N)`` observation table of the block's steps.
-        pair_index: ``(P,)`` pair of each particle in the paired layout, else None.
-        origin: road position [m] of each cell's relative frame, broadcastable to
-            the state, for models that perceive their road position
-            (``model.uses_position``); else None.
-
-    Returns:
-        the state after the block, the sums, the memory, and if ``record`` the
-        ``(BLOCK_STEPS, 3, *state)`` stack of simulated x, v and recorded a.
-    """
-    recorded = []
-    for obs_step in obs.unbind(0):
-        row = _observed(paired, obs_step, pair_index)
-        perception = _perceive(leader_length, state, row, origin)
-        command, memory = model.command_with_memory(params, perception, memory)
-        state, acc, moved = _score_and_move(
-            model, dt, record, params, state, acc, command, row
-        )
-        recorded.append(moved)
-    return state, acc, memory, torch.stack(recorded) if record else None
-
-
-def _observed(paired: bool, obs_step: Tensor, pair_index: Tensor | None) -> Tensor:
-    """One step's observations per cell: paired, the columns of each particle's
-    pair ``(6, P)``; full, the pairs broadcast over particles ``(6, 1, N)``."""
-    return obs_step.index_select(1, pair_index) if paired else obs_step[:, None]
-
-
-def _perceive(
-    leader_length: float, state: FollowerState, row: Tensor, origin: Tensor | None
-) -> Perception:
-    """What the follower perceives at a step (``row``: :func:`_observed`)."""
-    position = state.x + origin if origin is not None else None
-    return Perception(
-        row[_X_LEAD] - state.x, state.v, row[_V_LEAD], state.a, leader_length, position
-    )
-
-
-def _score_and_move(
-    model: CFModel,
-    dt: float,
-    record: bool,
-    params: Any,
-    state: FollowerState,
-    acc: _Accumulators,
-    command: Tensor,
-    row: Tensor,
-) -> tuple[FollowerState, _Accumulators, Tensor | None]:
-    """The step's squared errors and validity added to the sums, then the
-    command realised; with ``record`` the step's ``(3, *state)`` x, v, a."""
-    x_lead, _, x_obs, v_obs, a_obs, step_valid = row.unbind(0)
-    on_valid_step = step_valid > 0.5
-    zero = torch.zeros((), dtype=state.x.dtype, device=state.x.device)
-    acc_recorded = state.a if model.acceleration_is_state else command
-    not_finite = _not_finite(state.x, state.v, acc_recorded)
-    # spacing <= 0 is False for NaN, so both tests are needed.
-    broken = not_finite | (x_lead - state.x <= 0)
-    acc = _Accumulators(
-        sq_x=acc.sq_x + torch.where(on_valid_step, (state.x - x_obs) ** 2, zero),
-        sq_v=acc.sq_v + torch.where(on_valid_step, (state.v - v_obs) ** 2, zero),
-        sq_a=acc.sq_a + torch.where(on_valid_step, (acc_recorded - a_obs) ** 2, zero),
-        invalid=acc.invalid | (on_valid_step & broken),
-    )
-    moved = torch.stack((state.x, state.v, acc_recorded)) if record else None
-    return realise(model, params, state, command, dt), acc, moved
-
-
-def _draft_step(
-    model: CFModel,
-    paired: bool,
-    leader_length: float,
-    params: Any,
-    state: FollowerState,
-    memory: Any,
-    obs_step: Tensor,
-    pair_index: Tensor | None,
-    origin: Tensor | None,
-) -> tuple[Any, Any]:
-    """A correcting model's step up to its correction (:attr:`CFModel.corrects`):
-    the perception and the model's draft."""
-    row = _observed(paired, obs_step, pair_index)
-    perception = _perceive(leader_length, state, row, origin)
-    return model.draft_with_memory(params, perception, memory)
-
-
-def _finish_step(
-    model: CFModel,
-    paired: bool,
-    dt: float,
-    record: bool,
-    params: Any,
-    state: FollowerState,
-    acc: _Accumulators,
-    command: Tensor,
-    obs_step: Tensor,
-    pair_index: Tensor | None,
-) -> tuple[FollowerState, _Accumulators, Tensor | None]:
-    """A correcting model's step after its correction: :func:`_score_and_move`
-    (the step's observations gathered again: inside a fused call, that costs
-    less than handing them over)."""
-    row = _observed(paired, obs_step, pair_index)
-    return _score_and_move(model, dt, record, params, state, acc, command, row)
-
-
-class _CorrectedBlock:
-    """:func:`_block` for a correcting model, compiled around its correction:
-    per step a compiled draft (:func:`_draft_step`), the eager
-    :meth:`CFModel.correct`, and the compiled errors and motion
-    (:func:`_finish_step`): the arithmetic of :func:`_block`.
-
-    Two compiled calls a step, not one fused block: the MPC's step is bound by
-    its memory traffic, not by the calls (a million CAR MODEL II particles,
-    2 cores: 19-21 s eager, 11-14 s so, 14.5-14.7 s with each step's motion
-    fused with the next step's draft, a third graph to compile).
-    """
-
-    def __init__(
-        self,
-        model: CFModel,
-        paired: bool,
-        dt: float,
-        leader_length: float,
-        record: bool,
-    ) -> None:
-        self.model, self.record = model, record
-        draft = functools.partial(_draft_step, model, paired, leader_length)
-        # The first step of a chunk has no memory yet: eager, so the compiled
-        # draft keeps one graph (one structure of the memory).
-        self._first_draft = draft
-        self._draft = _compile(draft)
-        finish = functools.partial(_finish_step, model, paired, dt, record)
-        self._finish = _compile(finish)
-
-    def __call__(
-        self,
-        params: Any,
-        state: FollowerState,
-        acc: _Accumulators,
-        memory: Any,
-        obs: Tensor,
-        pair_index: Tensor | None,
-        origin: Tensor | None,
-    ) -> tuple[FollowerState, _Accumulators, Any, Tensor | None]:
-        recorded = []
-        for obs_step in obs.unbind(0):
-            draft = self._first_draft if memory is None else self._draft
-            pending, memory = draft(params, state, memory, obs_step, pair_index, origin)
-            command, memory = self.model.correct(params, pending, memory)
-            state, acc, moved = self._finish(
-                params, state, acc, command, obs_step, pair_index
-            )
-            recorded.append(moved)
-        return state, acc, memory, torch.stack(recorded) if self.record else None
-
-
-def _not_finite(x: Tensor, v: Tensor, a: Tensor) -> Tensor:
-    """Where any of ``x, v, a`` (same shape) is NaN or +-inf.
-
-    Eager: ``x - x`` is 0 for a finite x and NaN otherwise, so the sum is nonzero
-    exactly where one is not finite, at a third of three ``isfinite`` calls on
-    small batches. Fused, the compiler may contract ``a*b - a*b`` (the command of a
-    model ending in a product: OVM, IDM) into ``fma(a, b, -(a*b))``, the product's
-    rounding error, which is nonzero for finite values: on CUDA every such rollout
-    came out invalid. A fused block therefore asks ``isfinite``.
-    """
-    if torch.compiler.is_compiling():
-        return ~(torch.isfinite(x) & torch.isfinite(v) & torch.isfinite(a))
-    return (x - x) + (v - v) + (a - a) != 0
-
-
-def realise(
-    model: CFModel, params: Any, state: FollowerState, command: Tensor, dt: float
-) -> FollowerState:
-    """One step of SPEC section 2's state update: the command becomes motion.
-
-    The model's own realisation (``model.advance``: a point mass, HL's or the
-    ``lag`` effect's exact first-order lag), then no reversing:
-    ``v(t+1) = max(v(t+1), 0)``, ``x(t+1) = max(x(t+1), x(t))``. The rollout and
-    :class:`torchcf.HybridSampler` both step through this function.
-
-    Args:
-        model: the model.
-        params: its prepared parameters (:meth:`CFModel.prepare`), broadcast to
-            the state.
-        state: the follower at t; position [m], speed [m/s], acceleration [m/s^2].
-        command: the command ``u(t)`` [m/s^2], the state's shape.
-        dt: step [s].
-
-    Returns:
-        the follower at t + 1, the state's shape.
-    """
-    moved = model.advance(params, state, command, dt)
-    # torch.maximum/clamp propagate NaN, so an exploding rollout stays non-finite
-    # and is caught as invalid.
-    return FollowerState(
-        x=torch.maximum(moved.x, state.x),
-        v=torch.clamp(moved.v, min=0.0),
-        a=moved.a,
-    )
 
 
 class _Prune(NamedTuple):
@@ -426,10 +195,11 @@ def _rollout_chunk(
     else:
         params = model.unpack(theta, state_ndim=2)  # fields (P, 1)
         initial = first[:, None, :].expand(-1, theta.shape[0], -1)  # (6, P, N)
+    # clones, not views: a compiled block guards on the storage offset
     state = FollowerState(
-        x=initial[_X_FOLLOW].contiguous(),
-        v=initial[_V_FOLLOW].contiguous(),
-        a=initial[_A_FOLLOW].contiguous(),
+        x=initial[_X_FOLLOW].clone(),
+        v=initial[_V_FOLLOW].clone(),
+        a=initial[_A_FOLLOW].clone(),
     )
     params = model.prepare(params, dt, tuple(state.x.shape))
     x_lead, v_lead = initial[_X_LEAD], initial[_V_LEAD]
@@ -555,104 +325,12 @@ def _run_pruned(
     return sums, stopped
 
 
-class _BlockRunner:
-    """Calls the block function, compiled when asked; falls back to eager once."""
-
-    def __init__(
-        self,
-        model: CFModel,
-        paired: bool,
-        dt: float,
-        leader_length: float,
-        record: bool,
-        use_compile: bool,
-    ) -> None:
-        self._static = (model, paired, float(dt), float(leader_length), record)
-        self._eager = functools.partial(_block, *self._static)
-        self._compiled = _compiled_block(*self._static) if use_compile else None
-
-    def __call__(self, *args: Any) -> Any:
-        if self._compiled is None:
-            return self._eager(*args)
-        try:
-            return self._compiled(*args)
-        except Exception as error:  # noqa: BLE001 - any compiler failure
-            key = self._static[0].name
-            if key not in _COMPILE_FAILED:
-                _COMPILE_FAILED.add(key)
-                warnings.warn(
-                    f"torch.compile failed for {key} ({type(error).__name__}: "
-                    f"{error}); running eager",
-                    RuntimeWarning,
-                    stacklevel=3,
-                )
-            self._compiled = None
-            return self._eager(*args)
-
-
-def _compiler_available() -> bool:
-    return shutil.which("g++") is not None or shutil.which("c++") is not None
-
-
-@functools.cache
-def _compiled_block(
-    model: CFModel, paired: bool, dt: float, leader_length: float, record: bool
-) -> Callable[..., Any]:
-    """The block function of ``model``, compiled: :func:`_block` fused whole, or
-    for a correcting model (:attr:`CFModel.corrects`) a :class:`_CorrectedBlock`
-    whose steps are fused around the correction."""
-    if model.corrects:
-        return _CorrectedBlock(model, paired, dt, leader_length, record)
-    return _compile(functools.partial(_block, model, paired, dt, leader_length, record))
-
-
-def _compile(function: Callable[..., Any]) -> Callable[..., Any]:
-    # Every model, layout and chunk shape is a separate graph of the same function,
-    # _block; dynamo's default of 8 graphs per function would silently drop the
-    # ninth to eager, so the limit is raised to what a full run can need.
-    dynamo_config = torch._dynamo.config
-    dynamo_config.recompile_limit = max(dynamo_config.recompile_limit, 256)
-    dynamo_config.accumulated_recompile_limit = max(
-        dynamo_config.accumulated_recompile_limit, 1024
-    )
-    return torch.compile(function, dynamic=False, fullgraph=True)
-
-
-_COMPILE_FAILED: set[str] = set()
-
-
 def cell_budget(model: CFModel, device: torch.device) -> int:
     """Simulated cells (particles x pairs) per chunk by default: the model's CPU
     budget, at least :data:`CUDA_CHUNK_CELLS` on CUDA."""
     if device.type == "cuda":
         return max(model.chunk_cells, CUDA_CHUNK_CELLS)
     return model.chunk_cells
-
-
-def resolve_compile(
-    model: CFModel, compile: CompileMode, device: torch.device, cells: int
-) -> bool:
-    """Whether a rollout of ``cells`` simulated steps in all (particles x pairs x
-    steps) of ``model`` runs compiled: ``compile`` True/False (or "on"/"off") as
-    asked (a model that cannot compile never does; a correcting model compiles
-    around its correction, :class:`_CorrectedBlock`); "auto" from
-    :data:`COMPILE_MIN_STEPS` cells on where a C++ compiler is there (CPU), from
-    :data:`COMPILE_MIN_STEPS_CUDA` on CUDA."""
-    if compile == "on" or compile == "off":  # the config's spelling
-        compile = compile == "on"
-    if compile != "auto" and not isinstance(compile, bool):
-        # a truthy string such as "no" must not silently compile
-        raise ValueError(
-            f'compile must be True, False, "auto", "on" or "off", got {compile!r}'
-        )
-    if not (model.compilable or model.corrects):
-        return False
-    if compile == "auto":
-        # Compilation costs seconds; it pays on long runs only.
-        if device.type == "cuda":
-            return cells >= COMPILE_MIN_STEPS_CUDA
-        return cells >= COMPILE_MIN_STEPS and _compiler_available()
-    return bool(compile)
 
 
 def _observation_table(pairs: PairSet, dtype: torch.dtype, device: torch.device):
@@ -784,9 +462,7 @@ def simulate(
     use_compile = resolve_compile(
         model, compile, device, n_particles * cells_per_particle * pairs.n_steps
     )
-    prunes = (
-        ceiling is not None and not use_compile and not return_traj and model.prunable
-    )
+    prunes = ceiling is not None and not return_traj and model.prunable
     if use_compile or prunes:
         chunk_size = -(-chunk_size // COMPILE_CHUNK_MULTIPLE) * COMPILE_CHUNK_MULTIPLE
 
@@ -794,7 +470,13 @@ def simulate(
     # Contiguous blocks: a compiled block then sees the same layout at every call.
     blocks = [block.clone() for block in table.split(BLOCK_STEPS)]
     block_fn = _BlockRunner(
-        model, paired, pairs.dt, pairs.leader_length, return_traj, use_compile
+        model,
+        paired,
+        pairs.dt,
+        pairs.leader_length,
+        return_traj,
+        use_compile,
+        dynamic=prunes,
     )
 
     state_shape = (n_particles,) if paired else (n_particles, pairs.n_pairs)
@@ -825,6 +507,12 @@ def simulate(
     # rollout of a few thousand cells); the outputs were made outside it and
     # stay ordinary tensors.
     with torch.inference_mode():
+        # Every chunk's inputs inference tensors alike (a padded chunk's are made
+        # here): a compiled block guards on the kind, and would otherwise trace
+        # a second graph for the last chunk.
+        theta = theta.clone()
+        if paired:
+            pair_index = pair_index.clone()
         for start in range(0, n_particles, chunk_size):
             stop = min(start + chunk_size, n_particles)
             chunk_theta = theta[start:stop]

@@ -117,6 +117,36 @@ def test_a_ceiling_stops_only_cells_above_it_and_leaves_the_rest_exact(
     assert bool(kept[plain.score.double() <= ceiling].all())
 
 
+@pytest.mark.compile
+@pytest.mark.parametrize(
+    "name, paired, graphs",
+    [("idm", True, 1), ("mpc", False, 2)],  # MPC: draft, finish
+)
+def test_compiled_blocks_stop_exactly_with_one_graph(pairs, name, paired, graphs):
+    """Compiled, a ceiling stops the same cells and leaves the rest bit for bit
+    as the compiled rollout without it, the shrinking batches all run by one
+    graph per function (the particle dimension traced dynamic) rather than one
+    compiled per batch size."""
+    count = 1200 if paired else 160
+    theta = _prior_draws(name, count, seed=6)
+    pair = torch.arange(count) % N_PAIRS if paired else None
+    plain = simulate(name, theta, pairs, pair, chunk_size=256, compile=True)
+    ceiling = _ceiling_of(plain.score, pair)
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    cut = simulate(
+        name, theta, pairs, pair, chunk_size=256, ceiling=ceiling, compile=True
+    )
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
+    stopped = cut.pruned
+    assert 0 < int(stopped.sum()) < stopped.numel()
+    assert bool((plain.score.double()[stopped] > ceiling[stopped]).all())
+    for field in ("score", "e_p", "e_v", "e_a", "valid"):
+        assert torch.equal(
+            getattr(cut, field)[~stopped], getattr(plain, field)[~stopped]
+        )
+
+
 def test_float64(pairs):
     theta = _prior_draws("hl", 500, seed=4)
     pair = torch.arange(500) % N_PAIRS
@@ -215,8 +245,8 @@ def test_rejection_in_the_full_layout_keeps_the_same_buffers(pairs):
 
 
 def test_a_pilot_round_starts_a_stretch_from_nothing():
-    """With early rejection on an eager rollout: a pilot round of 1/PILOT_ROUND
-    of a chunk, then whole rounds; none when resuming, compiled or off."""
+    """With early rejection (eager or compiled): a pilot round of 1/PILOT_ROUND
+    of a chunk, then whole rounds; none when resuming or off."""
     rollout = Rollout(None, compile="off", early_rejection=True)  # type: ignore[arg-type]
     plan = Plan(rollout, get_model("idm"), 1024, compiled=False)
     pilot = 1024 // PILOT_ROUND
@@ -228,13 +258,20 @@ def test_a_pilot_round_starts_a_stretch_from_nothing():
     ]
     assert round_bounds(plan, 100, 1200, 1) == [(100, 1124, 1024), (1124, 1200, 1024)]
     compiled = Plan(rollout, get_model("idm"), 1024, compiled=True)
-    assert round_bounds(compiled, 0, 2048, 1) == [(0, 1024, 1024), (1024, 2048, 1024)]
+    assert round_bounds(compiled, 0, 2048, 1) == [
+        (0, pilot, pilot),
+        (pilot, pilot + 1024, 1024),
+        (pilot + 1024, 2048, 1024),
+    ]
+    off = Plan(Rollout(None, compile="off"), get_model("idm"), 1024, compiled=False)  # type: ignore[arg-type]
+    assert round_bounds(off, 0, 2048, 1) == [(0, 1024, 1024), (1024, 2048, 1024)]
     assert round_bounds(plan, 0, 2000, 2) == [(0, 2 * pilot, pilot), (128, 2000, 1024)]
 
 
 def test_auto_compile_stays_eager_with_early_rejection(pairs):
     """ "auto" would compile a long stream; with early rejection it stays eager
-    on the CPU and on CUDA (a compiled block cannot drop particles)."""
+    on the CPU and on CUDA (faster there on a cold compile cache: see
+    ``Rollout.compiled``); "on" compiles with it."""
     idm, long = get_model("idm"), 10**9
     for device in (torch.device("cpu"), torch.device("cuda")):
         fast = Rollout(pairs, compile="auto", early_rejection=True, device=device)
@@ -243,6 +280,7 @@ def test_auto_compile_stays_eager_with_early_rejection(pairs):
             resolve_compile(idm, "auto", device, long * pairs.n_steps)
         )
     assert not Rollout(pairs, compile="off").compiled(idm, long)
+    assert Rollout(pairs, compile="on", early_rejection=True).compiled(idm, long)
 
 
 def _config(method: str, **abc) -> TrainConfig:

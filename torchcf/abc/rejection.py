@@ -94,10 +94,11 @@ class Rollout:
     def compiled(self, model: CFModel, n_particles: int) -> bool:
         """Whether a stream of ``n_particles`` of ``model`` runs compiled."""
         if self.compile == "auto" and self.early_rejection and model.prunable:
-            # "auto" with early rejection stays eager (a compiled block has one
-            # shape, so it cannot drop particles): the paper-scale study then ran
-            # faster than compiled kernels from a warm cache, with no compilation,
-            # on 2 CPU cores and on one H100 (reports/bench/train_carII*.md)
+            # "auto" with early rejection stays eager: compiled blocks can drop
+            # particles ("on", a dynamic particle dimension), but the paper-scale
+            # study on 2 CPU cores took 32 s so on a warm compile cache against 39
+            # s eager, and 120 s against 43 s on an empty one; eager on one H100
+            # too (reports/bench/train_carII*.md, docs/performance.md)
             return False
         cells = n_particles * self.cells_per_particle * self.pairs.n_steps
         return resolve_compile(model, self.compile, self.device, cells)

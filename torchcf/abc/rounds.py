@@ -278,10 +278,11 @@ class Offered(NamedTuple):
 
 def early_rejection(plan: Plan) -> bool:
     """Whether the plan's rollout stops rollouts above their buffers' threshold
-    (asked for, and possible: an eager rollout of a model that can select its
-    particles, :func:`torchcf.sim.simulate`)."""
+    (asked for, and possible: a model that can select its particles,
+    :func:`torchcf.sim.simulate`; compiled, its blocks then take any number of
+    particles)."""
     asked = bool(getattr(plan.rollout, "early_rejection", False))
-    return asked and not plan.compiled and plan.model.prunable
+    return asked and plan.model.prunable
 
 
 def ceiling_of(sinks: Sequence[Sink], pair: Tensor | None, rows: int) -> Tensor:

@@ -222,9 +222,11 @@ class MPC(CFModel):
         elementwise, compiled with the rest of the step (:attr:`corrects`)."""
         if not isinstance(p, MPCPrepared):
             raise TypeError("MPC.command needs MPC.prepare(params, dt, state_shape)")
+        # broadcast against each other (obs.v has the state's shape), not to
+        # p.state_shape: its ints would fix a compiled graph's particle count
         spacing, v, v_lead = (
-            torch.broadcast_to(t, p.state_shape).reshape(-1)  # (B,)
-            for t in (obs.spacing, obs.v, obs.v_lead)
+            t.reshape(-1)  # (B,)
+            for t in torch.broadcast_tensors(obs.spacing, obs.v, obs.v_lead)
         )
         q = p.params
         spacing_error = spacing - v * q.tau - q.l  # (B,)

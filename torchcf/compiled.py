@@ -1,0 +1,255 @@
+"""``torch.compile`` for the rollout: when to compile, and the compiled block.
+
+:func:`resolve_compile` decides (``compile: "auto"`` compiles long CPU streams);
+:class:`_BlockRunner` calls a model's block of steps (:func:`torchcf.step._block`)
+fused whole, or for a correcting model (:attr:`~torchcf.models.CFModel.corrects`:
+MPC's QP) :class:`_CorrectedBlock`'s two compiled step functions around the eager
+correction; a compiler failure falls back to eager once, with a warning.
+
+Graphs: one per model, layout and record flag, traced for the chunk's particle
+count; with early rejection (``dynamic``) the particle dimension is traced
+symbolic (:func:`mark_batch_dynamic`), so the shrinking batches reuse one graph.
+"""
+
+from __future__ import annotations
+
+import functools
+import shutil
+import warnings
+from collections.abc import Callable
+from typing import Any, Literal
+
+import torch
+from torch import Tensor
+
+from .models import CFModel, FollowerState
+from .step import _Accumulators, _block, _draft_step, _finish_step
+
+#: Below this many simulated particle-steps, ``compile="auto"`` stays eager on
+#: the CPU: the one-off compilation (seconds) would cost more than it saves
+#: (``reports/bench/compile.md``: IDM, HL, LLCTG pay from 1.5e8-3e8 on 2 cores).
+COMPILE_MIN_STEPS = 2e8
+#: The same on CUDA, where eager rollouts are fast too: on one H100 compiling
+#: an 8-step block took 20-26 s and saved 0.13-0.14 us per particle of 576 steps
+#: (IDM and HL at 2^23 particles), so it pays from 1.6e8-2e8 particles, about
+#: 1e11 particle-steps (``reports/bench/compile_cuda_h100_8m.md``); the
+#: paper-scale study (5.8e8) runs eager there in 28 s against 97 s compiled on
+#: an empty cache and 43 s on a full one (``reports/bench/train_carII_cuda_h100*``).
+COMPILE_MIN_STEPS_CUDA = 1e11
+
+
+CompileMode = bool | Literal["auto", "on", "off"]
+
+
+class _CorrectedBlock:
+    """:func:`_block` for a correcting model, compiled around its correction:
+    per step a compiled draft (:func:`_draft_step`), the eager
+    :meth:`CFModel.correct`, and the compiled errors and motion
+    (:func:`_finish_step`): the arithmetic of :func:`_block`.
+
+    Two compiled calls a step, not one fused block: the MPC's step is bound by
+    its memory traffic, not by the calls (a million CAR MODEL II particles,
+    2 cores: 19-21 s eager, 11-14 s so, 14.5-14.7 s with each step's motion
+    fused with the next step's draft, a third graph to compile).
+    """
+
+    def __init__(
+        self,
+        model: CFModel,
+        paired: bool,
+        dt: float,
+        leader_length: float,
+        record: bool,
+        dynamic: bool = False,
+    ) -> None:
+        self.model, self.record = model, record
+        self._draft_marks = _BatchMarks() if dynamic else None
+        self._finish_marks = _BatchMarks() if dynamic else None
+        draft = functools.partial(_draft_step, model, paired, leader_length)
+        # The first step of a chunk has no memory yet: eager, so the compiled
+        # draft keeps one graph (one structure of the memory).
+        self._first_draft = draft
+        self._draft = _compile(draft, dynamic)
+        finish = functools.partial(_finish_step, model, paired, dt, record)
+        self._finish = _compile(finish, dynamic)
+
+    def __call__(
+        self,
+        params: Any,
+        state: FollowerState,
+        acc: _Accumulators,
+        memory: Any,
+        obs: Tensor,
+        pair_index: Tensor | None,
+        origin: Tensor | None,
+    ) -> tuple[FollowerState, _Accumulators, Any, Tensor | None]:
+        recorded = []
+        for obs_step in obs.unbind(0):
+            # a copy (6 x N numbers): a view's storage offset varies by step, and
+            # a graph of symbolic sizes guards on it
+            obs_step = obs_step.clone()
+            draft = self._first_draft if memory is None else self._draft
+            if self._draft_marks is not None and memory is not None:
+                self._draft_marks((params, state, memory, pair_index, origin), state.x)
+            pending, memory = draft(params, state, memory, obs_step, pair_index, origin)
+            command, memory = self.model.correct(params, pending, memory)
+            if self._finish_marks is not None:
+                marked = (params, state, acc, command, pair_index)
+                self._finish_marks(marked, state.x)
+            state, acc, moved = self._finish(
+                params, state, acc, command, obs_step, pair_index
+            )
+            recorded.append(moved)
+        return state, acc, memory, torch.stack(recorded) if self.record else None
+
+
+class _BlockRunner:
+    """Calls the block function, compiled when asked; falls back to eager once."""
+
+    def __init__(
+        self,
+        model: CFModel,
+        paired: bool,
+        dt: float,
+        leader_length: float,
+        record: bool,
+        use_compile: bool,
+        dynamic: bool = False,
+    ) -> None:
+        self._static = (model, paired, float(dt), float(leader_length), record)
+        self._eager = functools.partial(_block, *self._static)
+        self._marks = _BatchMarks() if dynamic and not model.corrects else None
+        self._compiled = (
+            _compiled_block(*self._static, dynamic) if use_compile else None
+        )
+
+    def __call__(self, *args: Any) -> Any:
+        if self._compiled is None:
+            return self._eager(*args)
+        if self._marks is not None:
+            params, state, acc, memory, _, pair_index, origin = args
+            self._marks((params, state, acc, memory, pair_index, origin), state.x)
+        try:
+            return self._compiled(*args)
+        except Exception as error:  # noqa: BLE001 - any compiler failure
+            key = self._static[0].name
+            if key not in _COMPILE_FAILED:
+                _COMPILE_FAILED.add(key)
+                warnings.warn(
+                    f"torch.compile failed for {key} ({type(error).__name__}: "
+                    f"{error}); running eager",
+                    RuntimeWarning,
+                    stacklevel=3,
+                )
+            self._compiled = None
+            return self._eager(*args)
+
+
+def _compiler_available() -> bool:
+    return shutil.which("g++") is not None or shutil.which("c++") is not None
+
+
+@functools.cache
+def _compiled_block(
+    model: CFModel,
+    paired: bool,
+    dt: float,
+    leader_length: float,
+    record: bool,
+    dynamic: bool = False,
+) -> Callable[..., Any]:
+    """The block function of ``model``, compiled: :func:`_block` fused whole, or
+    for a correcting model (:attr:`CFModel.corrects`) a :class:`_CorrectedBlock`
+    whose steps are fused around the correction. ``dynamic``: one graph for every
+    number of particles (:func:`mark_batch_dynamic`), as early rejection needs."""
+    if model.corrects:
+        return _CorrectedBlock(model, paired, dt, leader_length, record, dynamic)
+    block = functools.partial(_block, model, paired, dt, leader_length, record)
+    return _compile(block, dynamic)
+
+
+def mark_batch_dynamic(tree: Any, state: Tensor) -> None:
+    """Mark the particle dimensions of every tensor in ``tree`` (nested tuples)
+    dynamic for ``torch.compile``: each dimension as long as the state's first
+    (particles) or as its cells (particles x pairs, a flattened batch). A graph
+    traced so takes any number of particles: early rejection's shrinking chunks
+    reuse it instead of compiling a graph per size."""
+    sizes = {state.shape[0], state.numel()}
+    if isinstance(tree, Tensor):
+        for dim, size in enumerate(tree.shape):
+            if size in sizes:
+                torch._dynamo.maybe_mark_dynamic(tree, dim)
+    elif isinstance(tree, (tuple, list)):
+        for item in tree:
+            mark_batch_dynamic(item, state)
+
+
+class _BatchMarks:
+    """Marks a compiled function's particle dimensions dynamic
+    (:func:`mark_batch_dynamic`) when the number of particles changes: the graph
+    traced from marked inputs takes unmarked ones of any size (a dimension mark
+    is guarded on only where a tensor carries one), so marking every call would
+    only cost time."""
+
+    def __init__(self) -> None:
+        self._key: tuple[int, int] = (-1, -1)
+
+    def __call__(self, tree: Any, state: Tensor) -> None:
+        # a controller's memory can gain parts (an augmented model's base memory
+        # starts as None): a new structure is traced anew, so marked anew
+        key = (state.shape[0], _count_none(tree))
+        if key != self._key:
+            mark_batch_dynamic(tree, state)
+            self._key = key
+
+
+def _count_none(tree: Any) -> int:
+    """How many leaves of ``tree`` (nested tuples) are None."""
+    if tree is None:
+        return 1
+    if isinstance(tree, (tuple, list)):
+        return sum(_count_none(item) for item in tree)
+    return 0
+
+
+def _compile(function: Callable[..., Any], dynamic: bool = False) -> Callable[..., Any]:
+    # Every model, layout and chunk shape is a separate graph of the same function,
+    # _block; dynamo's default of 8 graphs per function would silently drop the
+    # ninth to eager, so the limit is raised to what a full run can need.
+    dynamo_config = torch._dynamo.config
+    dynamo_config.recompile_limit = max(dynamo_config.recompile_limit, 256)
+    dynamo_config.accumulated_recompile_limit = max(
+        dynamo_config.accumulated_recompile_limit, 1024
+    )
+    # dynamic: None lets the marked dimensions (mark_batch_dynamic) be symbolic
+    # and the rest static; False would ignore the marks.
+    return torch.compile(function, dynamic=None if dynamic else False, fullgraph=True)
+
+
+_COMPILE_FAILED: set[str] = set()
+
+
+def resolve_compile(
+    model: CFModel, compile: CompileMode, device: torch.device, cells: int
+) -> bool:
+    """Whether a rollout of ``cells`` simulated steps in all (particles x pairs x
+    steps) of ``model`` runs compiled: ``compile`` True/False (or "on"/"off") as
+    asked (a model that cannot compile never does; a correcting model compiles
+    around its correction, :class:`_CorrectedBlock`); "auto" from
+    :data:`COMPILE_MIN_STEPS` cells on where a C++ compiler is there (CPU), from
+    :data:`COMPILE_MIN_STEPS_CUDA` on CUDA."""
+    if compile == "on" or compile == "off":  # the config's spelling
+        compile = compile == "on"
+    if compile != "auto" and not isinstance(compile, bool):
+        # a truthy string such as "no" must not silently compile
+        raise ValueError(
+            f'compile must be True, False, "auto", "on" or "off", got {compile!r}'
+        )
+    if not (model.compilable or model.corrects):
+        return False
+    if compile == "auto":
+        # Compilation costs seconds; it pays on long runs only.
+        if device.type == "cuda":
+            return cells >= COMPILE_MIN_STEPS_CUDA
+        return cells >= COMPILE_MIN_STEPS and _compiler_available()
+    return bool(compile)
