@@ -215,15 +215,19 @@ def _on_cpu(out):
     return type(out)(*(None if t is None else t.cpu() for t in out))
 
 
-@pytest.mark.parametrize("name", list(MODELS))
-def test_a_ceiling_on_cuda_stops_only_cells_above_it(name):
-    """Early rejection's rollout on the GPU (eager, float64): the cells it does
-    not stop score bit for bit as without a ceiling (the live batch is compacted
-    as it goes), and every stopped cell scores above its ceiling."""
+@pytest.mark.parametrize(
+    "name, compile",
+    [(name, "off") for name in MODELS] + [("idm", "on"), ("mpc", "on")],
+)
+def test_a_ceiling_on_cuda_stops_only_cells_above_it(name, compile):
+    """Early rejection's rollout on the GPU (float64; eager, and compiled with
+    the particle dimension dynamic): the cells it does not stop score bit for bit
+    as without a ceiling (the live batch is compacted as it goes), and every
+    stopped cell scores above its ceiling."""
     pairs = synthetic_pairs(n_pairs=6, n_steps=200, seed=1)
     theta = prior_draws(MODELS[name], 3000, seed=5)
     pair = torch.arange(3000) % 6
-    run = {"device": "cuda", "chunk_size": 4096, "compile": "off"}
+    run = {"device": "cuda", "chunk_size": 4096, "compile": compile}
     plain = _on_cpu(simulate(name, theta, pairs, pair, **run))
     per_pair = torch.stack(
         [plain.score.double()[pair == j].sort().values[20] for j in range(6)]

@@ -170,8 +170,14 @@ def main(argv: list[str] | None = None) -> int:
     lines += [
         "",
         (
-            "Early rejection (`abc.early_rejection`): every model's rollouts run "
-            "eager and stop once their score is sure to exceed their pair's "
+            "Early rejection (`abc.early_rejection`): every model's rollouts "
+            + (
+                "run compiled (`compile` on: one graph per model for every batch "
+                "size)"
+                if any("compile=on" in o.replace(" ", "") for o in args.overrides)
+                else 'run eager (`compile: "auto"` stays eager with it)'
+            )
+            + " and stop once their score is sure to exceed their pair's "
             "buffer threshold; invalid rollouts are counted among those run to "
             "the end."
             if early
