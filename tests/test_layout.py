@@ -20,7 +20,7 @@ STAGES = [
     {"errors", "typing", "runtime", "files", "signals", "console"},  # plumbing
     {"data", "qp"},  # pairs in; the MPC's solver
     {"models"},
-    {"sim", "synthetic"},  # the rollout; pairs made by it
+    {"step", "compiled", "sim", "synthetic"},  # the rollout; pairs made by it
     {"config", "posterior", "rundir"},  # the run's config and files
     {"abc"},  # the ABC engine
     {"evaluation", "metrics", "tblog"},

@@ -222,13 +222,15 @@ class MPC(CFModel):
         elementwise, compiled with the rest of the step (:attr:`corrects`)."""
         if not isinstance(p, MPCPrepared):
             raise TypeError("MPC.command needs MPC.prepare(params, dt, state_shape)")
-        # broadcast against each other (obs.v has the state's shape), not to
-        # p.state_shape: its ints would fix a compiled graph's particle count
-        spacing, v, v_lead = (
-            t.reshape(-1)  # (B,)
-            for t in torch.broadcast_tensors(obs.spacing, obs.v, obs.v_lead)
-        )
         q = p.params
+        # In a rollout the perception has the state's shape (its speed is the
+        # state's): broadcast against each other, not to p.state_shape, whose
+        # ints would fix a compiled graph's particle count. A direct call may
+        # give parts of it (a scalar speed): those are expanded to the state.
+        parts = torch.broadcast_tensors(obs.spacing, obs.v, obs.v_lead)
+        if parts[0].numel() != q.tau.numel():
+            parts = tuple(t.expand(p.state_shape) for t in parts)
+        spacing, v, v_lead = (t.reshape(-1) for t in parts)  # (B,)
         spacing_error = spacing - v * q.tau - q.l  # (B,)
         speed_difference = v_lead - v  # (B,)
         # Exact fast path: an unconstrained minimiser inside the box is the solution.
