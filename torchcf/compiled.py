@@ -84,16 +84,19 @@ class _CorrectedBlock:
         origin: Tensor | None,
     ) -> tuple[FollowerState, _Accumulators, Any, Tensor | None]:
         recorded = []
+        dynamic = self._draft_marks is not None
         for obs_step in obs.unbind(0):
-            # a copy (6 x N numbers): a view's storage offset varies by step, and
-            # a graph of symbolic sizes guards on it
-            obs_step = obs_step.clone()
+            if dynamic:
+                # a copy (6 x N numbers): a view's storage offset varies by step,
+                # and a graph of symbolic sizes guards on it
+                obs_step = obs_step.clone()
             draft = self._first_draft if memory is None else self._draft
-            if self._draft_marks is not None and memory is not None:
-                self._draft_marks((params, state, memory, pair_index, origin), state.x)
+            if dynamic and memory is not None:
+                marked = (params, state, memory, pair_index, origin)
+                self._draft_marks(marked, state.x, memory)
             pending, memory = draft(params, state, memory, obs_step, pair_index, origin)
             command, memory = self.model.correct(params, pending, memory)
-            if self._finish_marks is not None:
+            if dynamic:
                 marked = (params, state, acc, command, pair_index)
                 self._finish_marks(marked, state.x)
             state, acc, moved = self._finish(
@@ -128,7 +131,8 @@ class _BlockRunner:
             return self._eager(*args)
         if self._marks is not None:
             params, state, acc, memory, _, pair_index, origin = args
-            self._marks((params, state, acc, memory, pair_index, origin), state.x)
+            marked = (params, state, acc, memory, pair_index, origin)
+            self._marks(marked, state.x, memory)
         try:
             return self._compiled(*args)
         except Exception as error:  # noqa: BLE001 - any compiler failure
@@ -194,10 +198,10 @@ class _BatchMarks:
     def __init__(self) -> None:
         self._key: tuple[int, int] = (-1, -1)
 
-    def __call__(self, tree: Any, state: Tensor) -> None:
+    def __call__(self, tree: Any, state: Tensor, memory: Any = None) -> None:
         # a controller's memory can gain parts (an augmented model's base memory
         # starts as None): a new structure is traced anew, so marked anew
-        key = (state.shape[0], _count_none(tree))
+        key = (state.shape[0], _count_none(memory))
         if key != self._key:
             mark_batch_dynamic(tree, state)
             self._key = key

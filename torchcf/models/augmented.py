@@ -121,12 +121,17 @@ class AugmentedModel(CFModel):
         u, base_memory = self.base.correct(p.base, base_pending, base_memory)
         return self._act(p, obs, u, base_memory, effect_memory)
 
-    def _perceive(self, p, obs, memory):
-        """The perception stage: what the base perceives, the base's memory and
-        the effects' memories after it."""
+    def _split_memory(self, memory):
+        """The base's memory and a tuple of the effects' (None where absent)."""
         base_memory, effect_memory = memory if memory is not None else (None, None)
         if effect_memory is None:
             effect_memory = (None,) * len(self.effects)
+        return base_memory, effect_memory
+
+    def _perceive(self, p, obs, memory):
+        """The perception stage: what the base perceives, the base's memory and
+        the effects' memories after it."""
+        base_memory, effect_memory = self._split_memory(memory)
         perceived, next_memory = obs, []
         for effect, q, mem in zip(self.effects, p.effects, effect_memory, strict=True):
             if effect.stage == "perception":
@@ -144,9 +149,7 @@ class AugmentedModel(CFModel):
         return u, (base_memory, tuple(next_memory))
 
     def select_particles(self, p, memory, rows):
-        base_memory, effect_memory = memory if memory is not None else (None, None)
-        if effect_memory is None:
-            effect_memory = (None,) * len(self.effects)
+        base_memory, effect_memory = self._split_memory(memory)
         base, base_memory = self.base.select_particles(p.base, base_memory, rows)
         own, memories = [], []
         for effect, q, mem in zip(self.effects, p.effects, effect_memory, strict=True):
