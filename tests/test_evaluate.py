@@ -159,6 +159,7 @@ def test_metrics_equal_a_direct_computation(trained):
     on_disk = json.loads((out / "metrics.json").read_text())
     assert set(on_disk) >= {"hybrid", "idm", "llctg", "n_test", "test_pair_ids"}
     assert on_disk["n_test"] == 4
+    assert 0 < on_disk["seconds"] < 600  # the evaluation's own wall time
     for name in ("table.md", "shares.png", "pairwise.png", "radar.png"):
         assert (out / "report" / name).exists()
     table = (out / "report" / "table.md").read_text()

@@ -404,6 +404,36 @@ def test_compile_cache_holds_every_model_and_shape():
     assert torch._dynamo.config.recompile_limit >= 64
 
 
+@pytest.mark.compile
+def test_the_vector_isa_probed_once_is_the_one_inductor_picks():
+    """configure_compiler probes the first ISA the CPU reports and spares the
+    rest: the kernels must use the ISA that inductor's full probe would pick.
+    Each side in a fresh process (inductor caches its probe per process)."""
+    import platform
+    import subprocess
+    import sys
+
+    if platform.machine() not in ("x86_64", "AMD64") or sys.platform != "linux":
+        pytest.skip("the probe is trimmed on x86 Linux only")
+    pick = "from torch._inductor.cpu_vec_isa import pick_vec_isa; print(pick_vec_isa())"
+
+    def run(code: str) -> list[str]:
+        done = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, check=True
+        )
+        return done.stdout.strip().splitlines()
+
+    probed, trusted, trimmed = run(
+        "import torch; from torchcf.compiled import configure_compiler, "
+        "_probe_vector_isa; configure_compiler(); print(_probe_vector_isa()); "
+        "print(torch._inductor.config.cpp.vec_isa_ok); " + pick
+    )[-3:]
+    full = run("import torch; " + pick)[-1]
+    assert trimmed == full
+    if probed != "None":  # the first ISA passed: the others were spared
+        assert (probed, trusted) == (full, "True")
+
+
 @pytest.mark.parametrize(
     "fused", [False, pytest.param(True, marks=pytest.mark.compile)]
 )

@@ -43,6 +43,7 @@ import sys
 from collections.abc import Sequence
 from contextlib import nullcontext
 from pathlib import Path
+from time import perf_counter
 from typing import Any
 
 import numpy as np
@@ -470,6 +471,7 @@ def _evaluate_held(
     progress: bool,
 ) -> dict[str, Any]:
     """:func:`evaluate_run` with the run directory held."""
+    started = perf_counter()
     cfg, posterior, summary = run.load_run()
     report = Path(report_dir) if report_dir is not None else run.report_dir
     # The outputs' folders must take files before the data are loaded: fail fast
@@ -587,6 +589,9 @@ def _evaluate_held(
                 )
                 logger.evaluation({}, tensorboard_scalars(honest))
             bar.update()
+    # the evaluation's own wall time (loading its data included), beside the
+    # training's per-model seconds in summary.json
+    result["seconds"] = round(perf_counter() - started, 3)
     run.write_metrics(result)
     return result
 

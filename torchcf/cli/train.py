@@ -180,9 +180,10 @@ def print_result(
     if evaluated and run.is_evaluated():
         metrics = run.read_metrics()
         hybrid = {k: _fmt(v) for k, v in metrics["hybrid"].items()}
+        took = f" ({metrics['seconds']:.1f} s)" if "seconds" in metrics else ""
         print(
             f"test split ({metrics['n_test']} pairs), hybrid: WS {hybrid['ws']}, "
-            f"0.15-WS {hybrid['beta_ws']}, minimum distance {hybrid['min']}"
+            f"0.15-WS {hybrid['beta_ws']}, minimum distance {hybrid['min']}{took}"
         )
     if wrote:
         print(f"wrote {run.path}")

@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import torch
 from torch import Tensor
 
+from ..compiled import configure_compiler
 from ..models import FollowerState
 from .safety import DEFAULT_SAFETY, SafetyLayer
 from .sampler import HybridSampler, increasing_root
@@ -215,13 +216,9 @@ def _maybe_compile(fn: Callable[..., Any], compile: bool) -> Callable[..., Any]:
     if not compile:
         return fn
     # Each sampler (its groups), a fresh or carried memory and each piece around
-    # MPC's eager solver is a separate graph of the same step function; dynamo's
-    # default of 8 per function would silently drop the rest to eager.
-    dynamo_config = torch._dynamo.config
-    dynamo_config.recompile_limit = max(dynamo_config.recompile_limit, 256)
-    dynamo_config.accumulated_recompile_limit = max(
-        dynamo_config.accumulated_recompile_limit, 1024
-    )
+    # MPC's eager solver is a separate graph of the same step function: the
+    # raised recompile limits of configure_compiler.
+    configure_compiler()
     # dynamic=None: the groups' sizes change when the vehicles are redrawn, and
     # after the first change dynamo compiles shape-generic graphs.
     return torch.compile(fn, dynamic=None)
