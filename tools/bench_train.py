@@ -172,8 +172,7 @@ def main(argv: list[str] | None = None) -> int:
         (
             "Early rejection (`abc.early_rejection`): every model's rollouts "
             + (
-                "run compiled (`compile` on: one graph per model for every batch "
-                "size)"
+                "run compiled (`compile` on: one graph per model for every batch size)"
                 if any("compile=on" in o.replace(" ", "") for o in args.overrides)
                 else 'run eager (`compile: "auto"` stays eager with it)'
             )
