@@ -45,6 +45,9 @@ from torchcf.diagnose.road import one_step_residual
 from torchcf.diagnose.search import Noise, lift, local_search, model_bounds
 from torchcf.diagnose.series import residual_series
 from torchcf.diagnose.signatures import (
+    POINTS_TO,
+    Signature,
+    family_of,
     response_lag,
     signatures,
     simulated_covariates,
@@ -314,6 +317,30 @@ def test_the_response_lag_points_to_a_delay():
     truth = {"idm+delay": (torch.tensor([IDM + [1.0]] * 12), torch.arange(12))}
     clean = residual_series(truth, pairs)
     assert np.abs(response_lag(clean, pairs.dt)).max() <= 0.1
+
+
+def test_a_signature_no_effect_leaves_names_the_family_of_its_own_sign():
+    """A found signature points to the library's effects of its sign, and only
+    where none leaves it to a family: positive drag (the follower gains at
+    speed) is not "a resistance", which the library has."""
+    values = np.full(12, 0.02)
+    up = Signature("drag", values, 0.02, 0.001)
+    down = Signature("drag", -values, -0.02, 0.001)
+    assert down.points_to == ("resistance",) and down.family is None
+    assert up.points_to == () and "resistance" not in up.family
+    assert up.family == family_of("drag", 0.02) != family_of("drag", -0.02)
+    weaker = Signature("command strength", -values, -0.5, 0.001)
+    stronger = Signature("command strength", values, 0.5, 0.001)
+    assert weaker.points_to == ("saturation", "lag") and weaker.family is None
+    assert stronger.family == "a response stronger than the model's command " + (
+        "(a gain above one)"
+    )
+    # every found signature names effects or a family, whichever sign
+    for name in POINTS_TO:
+        for mean in (-1.0, 1.0):
+            mark = Signature(name, np.full(12, mean), mean, 0.001)
+            assert bool(mark.points_to) != bool(mark.family), (name, mean)
+    assert Signature("drag", values, 0.02, 0.5).family is None  # not found
 
 
 def _one_step_marks(model: str, theta: list[float], noise: float, lead_noise=0.0):

@@ -64,7 +64,7 @@ from .report import write_report
 from .retrain import Buffers, buffers_in_order, retrain, variants_of, wrapped
 from .road import choose_spacing, one_step_residual, shares_road_frame
 from .series import DiagnoseError, best_particles, diagnose_residuals
-from .signatures import FAMILIES
+from .signatures import family_of
 from .testing import paired_change
 from .validation import fit_part
 
@@ -536,7 +536,7 @@ def unexplained(selection: EffectSelection) -> list[dict[str, Any]]:
                 "unit": mark["unit"],
                 "p_value": mark["p_value"],
                 "tested_not_chosen": [e for e in pointed if e in tested],
-                "family": FAMILIES[mark["signature"]],
+                "family": family_of(mark["signature"], mark["mean"]),
             }
         )
     return out

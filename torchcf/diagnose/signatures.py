@@ -93,15 +93,29 @@ POINTS_TO: dict[str, dict[str, tuple[str, ...]]] = {
     "drift": {},
 }
 #: The model family a signature suggests where no effect of the library
-#: explains it.
-FAMILIES = {
+#: explains it; where the two signs tell different stories, one per sign
+#: (:func:`family_of`).
+FAMILIES: dict[str, str | dict[str, str]] = {
     "response lag": "a response delay beyond the library's priors",
     "spacing bias": "a spacing measured from another reference point",
     "road position": "a road effect at a finer resolution than the knots tried",
     "closing vs opening": "separate models for closing in and falling back "
     "(regime switching)",
-    "drag": "a speed-dependent resistance",
-    "command strength": "a command that saturates or is filtered",
+    # the residual's slope on v^2: negative, the follower loses speed the model
+    # keeps (resistance, which the library has); positive, it gains at speed
+    # what the model takes away, which no effect of the library gives
+    "drag": {
+        "-": "a speed-dependent resistance",
+        "+": "acceleration that grows with speed beyond the model's (a free-road "
+        "term that brakes too early: its own desired speed or exponent; a "
+        "speed-dependent thrust)",
+    },
+    # the residual's slope on the model's command: negative, the response is
+    # weaker (saturation, lag); positive, stronger than any effect makes it
+    "command strength": {
+        "-": "a command that saturates or is filtered",
+        "+": "a response stronger than the model's command (a gain above one)",
+    },
     "gap vs speed": "a speed-dependent time gap",
     "drift": "parameters that drift within a window (regime switching, "
     "changing conditions)",
@@ -155,7 +169,7 @@ class Signature:
     def family(self) -> str | None:
         """The model family it suggests when found and no effect leaves it."""
         if self.found and not self.points_to:
-            return FAMILIES[self.name]
+            return family_of(self.name, self.mean)
         return None
 
     def report(self) -> dict[str, Any]:
@@ -170,6 +184,15 @@ class Signature:
             "points_to": list(self.points_to),
             "family": self.family,
         }
+
+
+def family_of(name: str, mean: float) -> str:
+    """The family of model signature ``name`` suggests with a mean of ``mean``
+    (:data:`FAMILIES`)."""
+    family = FAMILIES[name]
+    if isinstance(family, str):
+        return family
+    return family["+" if mean >= 0 else "-"]
 
 
 def _slope(y: np.ndarray, x: np.ndarray) -> float:
@@ -367,6 +390,7 @@ def pointed_effects(found: list[Signature]) -> dict[str, list[str]]:
 __all__ = [
     "COVARIATE_LAG_S",
     "FAMILIES",
+    "family_of",
     "FOUND",
     "MAX_LAG_S",
     "POINTS_TO",
