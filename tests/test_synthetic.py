@@ -80,3 +80,56 @@ def test_a_delayed_gipps_follower_reacts_later():
         1.2, abs=0.3
     )
     assert "gipps+delay" in delayed.notes[0]
+
+
+# ------------------------------------------------- drivers who differ
+def test_every_heterogeneous_pair_has_its_own_plausible_driver():
+    """A two-model mixture in equal shares, every driver its own parameters
+    within the prior, replayable from its parameters, following plausibly;
+    ragged prefix masks; the same seed the same pairs."""
+    from torchcf.sim import simulate
+    from torchcf.synthetic import (
+        PLAUSIBLE_MIN_GAP,
+        heterogeneous_pairs,
+    )
+
+    pairs, drivers = heterogeneous_pairs(
+        ["idm", "gfm"], 8, 200, effect="delay", effect_values=[0.5], seed=3,
+        lengths=(0.6, 1.0),
+    )  # fmt: skip
+    assert drivers.model == ("idm+delay", "gfm+delay") * 4
+    idm = drivers.theta[::2, :7]
+    assert len({tuple(row) for row in idm.tolist()}) == 4  # all differ
+    box = get_model("idm").prior_bounds(torch.float64)
+    assert bool(((idm[:, :6] >= box[:, 0]) & (idm[:, :6] <= box[:, 1])).all())
+    assert bool((idm[:, 6] == 0.5).all())
+    valid = pairs.mask.sum(0)
+    assert int(valid.min()) >= 120 and int(valid.max()) <= 200
+    assert bool((pairs.mask[:-1] >= pairs.mask[1:]).all())  # prefix masks
+    # without noise, each follower is its driver's rollout behind its leader
+    index = torch.arange(0, 8, 2)
+    replay = simulate(
+        "idm+delay", idm, pairs, index, dtype=torch.float64, return_traj=True
+    )
+    observed = pairs.x_follow[:, index]
+    torch.testing.assert_close(
+        torch.where(pairs.mask[:, index], replay.x - observed, 0.0),
+        torch.zeros_like(observed), atol=1e-6, rtol=0,
+    )  # fmt: skip
+    gap = pairs.x_lead - pairs.x_follow - pairs.leader_length
+    assert float(gap[pairs.mask].min()) >= PLAUSIBLE_MIN_GAP
+    again, _ = heterogeneous_pairs(
+        ["idm", "gfm"], 8, 200, effect="delay", effect_values=[0.5], seed=3,
+        lengths=(0.6, 1.0),
+    )  # fmt: skip
+    torch.testing.assert_close(again.x_follow, pairs.x_follow)
+
+
+def test_heterogeneous_pairs_refuse_a_box_without_plausible_drivers():
+    from torchcf.synthetic import heterogeneous_pairs
+
+    # IDM with a desired time gap of 10 s: no plausible follower (time gap <= 4 s)
+    box = get_model("idm").prior_bounds(torch.float64).clone()
+    box[3] = torch.tensor([9.9, 10.0])
+    with pytest.raises(ValueError, match="too few plausible drivers of idm"):
+        heterogeneous_pairs(["idm"], 4, 200, boxes={"idm": box}, seed=0)

@@ -9,6 +9,12 @@ how the close-the-loop tests check that the effect is found.
 :class:`Gipps` is a follower *outside* the pool (not in the model registry):
 data it drives test the loop where no candidate model is the truth, as with a
 user's data.
+
+:func:`heterogeneous_pairs` makes data that look like measured data: every pair
+its own driver, drawn from a mixture of models with parameters drawn over a box
+(the model's prior by default) and kept where it follows plausibly, pairs of
+ragged length, measurement noise; one effect, planted in every driver, is what
+the loop should find.
 """
 
 from __future__ import annotations
@@ -209,4 +215,192 @@ def synthetic_pairs(
         dt=dt,
         name=name,
         notes=(f"followers: {cf_model.name} theta={theta[0].tolist()}",),
+    )
+
+
+# ------------------------------------------------------- drivers who differ
+#: A plausible follower: its mean time gap (spacing minus the leader's length,
+#: over its speed, where it moves faster than 2 m/s) lies in this range [s] ...
+PLAUSIBLE_TIME_GAP = (0.5, 4.0)
+#: ... its bumper-to-bumper gap never falls below this [m] ...
+PLAUSIBLE_MIN_GAP = 1.0
+#: ... and its acceleration stays within this bound [m/s^2]. A draw that is not
+#: plausible is drawn again.
+PLAUSIBLE_ACCELERATION = 6.0
+
+
+class Drivers(NamedTuple):
+    """Who drives each pair of :func:`heterogeneous_pairs`.
+
+    Attributes:
+        model: (N,) the generating model of each pair, planted effects included
+            (``"idm+delay"``).
+        theta: (N, K) float64 its parameters, in that model's order; NaN past its
+            own K (K: the widest model's).
+    """
+
+    model: tuple[str, ...]
+    theta: Tensor
+
+
+def heterogeneous_pairs(
+    models: Sequence[str],
+    n_pairs: int,
+    n_steps: int = 500,
+    dt: float = 0.1,
+    *,
+    effect: str = "",
+    effect_values: Sequence[float] = (),
+    boxes: dict[str, Tensor] | None = None,
+    seed: int = 0,
+    noise: float = 0.0,
+    lengths: tuple[float, float] = (1.0, 1.0),
+    start: tuple[float, float] = (0.0, 0.0),
+    name: str = "heterogeneous",
+) -> tuple[PairSet, Drivers]:
+    """Pairs whose followers differ from one another, as measured drivers do.
+
+    Pair j is driven by ``models[j % len(models)]`` (equal shares of a mixture),
+    with its own parameters drawn uniformly over the model's box (``boxes``, by
+    default its prior) and, when ``effect`` is given (``"delay"``, ``"sync"``,
+    ``"grade(start=0,end=1200,knots=7)"``), that effect at ``effect_values``
+    (K_E,) in every driver: a behavioural effect of every driver, or a
+    recording effect of the whole data set. A draw is kept only where it
+    follows plausibly with the effect (a valid rollout, a mean time gap in
+    :data:`PLAUSIBLE_TIME_GAP`, a gap of at least :data:`PLAUSIBLE_MIN_GAP`, an
+    acceleration within :data:`PLAUSIBLE_ACCELERATION`); otherwise the pair's
+    driver and leader are drawn again (so the drivers are the box's plausible
+    part, not the whole box). Leaders as in :func:`leader_profiles`.
+
+    Args:
+        n_steps: T, steps of the longest pair.
+        lengths: range of each pair's valid share of ``n_steps`` (ragged pairs,
+            a prefix mask), drawn uniformly.
+        noise: measurement noise as in :func:`synthetic_pairs` [m].
+        start: range of the leaders' initial road positions [m] (a spread
+            puts the pairs on one road, as a road effect needs).
+
+    Returns:
+        the pairs, and who drives them (:class:`Drivers`).
+
+    Raises:
+        ValueError: no plausible driver in many draws (the box or the effect
+            leaves none).
+    """
+    if not models:
+        raise ValueError("heterogeneous_pairs: give at least one model")
+    g = torch.Generator().manual_seed(seed)
+    names = [f"{m}+{effect}" if effect else m for m in models]
+    width = max(get_model(n).n_params for n in names)
+    want = [len(range(i, n_pairs, len(models))) for i in range(len(models))]
+    found: list[list[tuple[Tensor, Tensor]]] = [[] for _ in models]
+    for _ in range(50):  # batches of candidates, until every model has its share
+        short = [i for i in range(len(models)) if len(found[i]) < want[i]]
+        if not short:
+            break
+        batch = max(16, 2 * max(want[i] - len(found[i]) for i in short))
+        drawn = _plausible_batch(
+            models, names, effect_values, boxes, batch, n_steps, dt, g, start
+        )
+        for i, theta, series in drawn:
+            found[i].append((theta, series))
+    short = [names[i] for i in range(len(models)) if len(found[i]) < want[i]]
+    if short:
+        raise ValueError(
+            f"heterogeneous_pairs: too few plausible drivers of {', '.join(short)} "
+            "in 50 batches; widen the box or lower the effect"
+        )
+    order = [i % len(models) for i in range(n_pairs)]  # pair j: model j % M
+    taken = [0] * len(models)
+    chosen = []
+    for i in order:
+        theta, series = found[i][taken[i]]
+        taken[i] += 1
+        chosen.append((i, theta, series))
+    series = torch.stack([r[2] for r in chosen], dim=2)  # (6, T, N)
+    theta = torch.full((n_pairs, width), math.nan, dtype=torch.float64)
+    for j, r in enumerate(chosen):
+        theta[j, : r[1].numel()] = r[1]
+    x_lead, v_lead, a_lead, x, v, a = series
+    if noise > 0:
+        x = x + noise * torch.randn(x.shape, generator=g, dtype=torch.float64)
+        v = v + 0.1 * noise / dt * torch.randn(x.shape, generator=g, dtype=x.dtype)
+        a = a + 0.01 * noise / dt**2 * torch.randn(x.shape, generator=g, dtype=x.dtype)
+    share = lengths[0] + (lengths[1] - lengths[0]) * torch.rand(
+        n_pairs, generator=g, dtype=torch.float64
+    )
+    valid = torch.clamp((share * n_steps).round().long(), 2, n_steps)
+    mask = torch.arange(n_steps)[:, None] < valid[None, :]
+    drivers = Drivers(tuple(names[r[0]] for r in chosen), theta)
+    mix = ", ".join(dict.fromkeys(drivers.model))
+    pairs = PairSet.from_arrays(
+        x_lead, v_lead, a_lead, x, v, a, dt=dt, mask=mask, name=name,
+        notes=(f"followers: {mix}, one driver per pair",),
+    )  # fmt: skip
+    return pairs, drivers
+
+
+def _plausible_batch(
+    models: Sequence[str],
+    names: Sequence[str],
+    effect_values: Sequence[float],
+    boxes: dict[str, Tensor] | None,
+    batch: int,
+    n_steps: int,
+    dt: float,
+    g: torch.Generator,
+    start: tuple[float, float],
+) -> list[tuple[int, Tensor, Tensor]]:
+    """One batch of candidate drivers (each model's share of ``batch``) and
+    their leaders; the plausible ones, in the order drawn, as ``(model
+    position, theta, series (6, T): leader x, v, a, follower x, v, a)``."""
+    leader_seed = int(torch.randint(0, 2**62, (1,), generator=g))
+    x_lead, v_lead, a_lead = leader_profiles(
+        batch, n_steps, dt, seed=leader_seed, start=start
+    )
+    gap = 1.0 + torch.rand(batch, generator=g, dtype=torch.float64)
+    x0 = x_lead[0] - gap * v_lead[0] - 8.0
+    first = PairSet.from_arrays(
+        x_lead, v_lead, a_lead, x0[None].expand(n_steps, -1),
+        v_lead[0][None].expand(n_steps, -1),
+        torch.zeros(n_steps, batch, dtype=torch.float64), dt=dt,
+    )  # fmt: skip
+    which = torch.arange(batch) % len(models)
+    kept = []
+    plant = torch.as_tensor(list(effect_values), dtype=torch.float64)
+    for i, (model, name) in enumerate(zip(models, names, strict=True)):
+        index = (which == i).nonzero().squeeze(1)
+        box = (boxes or {}).get(model)
+        if box is None:
+            box = get_model(model).prior_bounds(torch.float64)
+        u = torch.rand(index.numel(), box.shape[0], generator=g, dtype=torch.float64)
+        own = box[:, 0] + u * (box[:, 1] - box[:, 0])
+        theta = torch.cat((own, plant.expand(index.numel(), -1)), dim=1)
+        out = simulate(name, theta, first, index, dtype=torch.float64, return_traj=True)
+        ok = out.valid & _plausible(out, x_lead[:, index], first.leader_length)
+        for j in ok.nonzero().squeeze(1).tolist():
+            p = int(index[j])
+            series = torch.stack(
+                (x_lead[:, p], v_lead[:, p], a_lead[:, p],
+                 out.x[:, j], out.v[:, j], out.a[:, j])
+            )  # fmt: skip
+            kept.append((p, i, theta[j], series))
+    return [row[1:] for row in sorted(kept, key=lambda row: row[0])]
+
+
+def _plausible(out, x_lead: Tensor, leader_length: float) -> Tensor:
+    """(P,) bool: the simulated followers (T, P) that follow plausibly (the
+    bounds of :func:`heterogeneous_pairs`)."""
+    gap = x_lead - out.x - leader_length  # (T, P) bumper to bumper [m]
+    moving = out.v > 2.0
+    headway = torch.where(moving, gap / out.v.clamp(min=2.0), 0.0)
+    count = moving.sum(0).clamp(min=1)
+    mean_headway = headway.sum(0) / count
+    low, high = PLAUSIBLE_TIME_GAP
+    return (
+        (gap.min(0).values >= PLAUSIBLE_MIN_GAP)
+        & (mean_headway >= low)
+        & (mean_headway <= high)
+        & (out.a.abs().max(0).values <= PLAUSIBLE_ACCELERATION)
+        & (moving.sum(0) > 0)
     )
