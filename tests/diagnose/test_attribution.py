@@ -16,6 +16,7 @@ import pytest
 import torch
 
 import torchcf.diagnose.attribution as attribution
+import torchcf.diagnose.search as search_module
 from torchcf.abc.particles import Particles
 from torchcf.config import validate_config
 from torchcf.diagnose import (
@@ -34,8 +35,10 @@ from torchcf.diagnose.arms import (
     effect_arm,
     first_steps_halved,
     fit_pool,
+    parabola_minimum,
     placebo_arm,
     predicted,
+    profile_interval,
 )
 from torchcf.diagnose.attribution import _fit_statistic, attribute_effects
 from torchcf.diagnose.candidates import attribution_rollout
@@ -205,7 +208,7 @@ def start():
     pairs = synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=3, noise=0.05)
     cfg = _config(models=("idm", "llcs"))
     arena = Arena.of(cfg, pairs)
-    return arena, fit_pool(arena, ["idm", "llcs"], lambda: None)
+    return arena, fit_pool(arena, ["idm", "llcs"], lambda *_: None)
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
@@ -423,13 +426,32 @@ def test_an_offset_is_absorbed_by_the_standstill_gap():
     base = base_arm(arena, arm, 1, lambda: None)
     placebo = placebo_arm(arena, arm, base, 1, lambda: None)
     result = effect_arm(arena, arm, base, "offset", 1, lambda: None)
-    validation = arena.validation.scores(placebo, 5)
-    row = attribution.effect_row(arena, "offset", result, base, placebo, validation)
+    judge = arena.validation.judge(placebo, 5, 1)
+    row = attribution.effect_row(arena, "offset", result, base, placebo, judge)
     found = row["absorbed_by"]
     assert found["parameter"] == "s0" and found["absorbed"]
     assert found["correlation"] > 0.9
     assert found["slope"] == pytest.approx(1.0, abs=0.25)
     assert len(found["profile"]["values"]) >= len(profile_values("offset"))
+
+
+def test_a_shared_value_is_refined_between_the_values_tried():
+    """The local profile's least-squares parabola puts the value between the
+    values tried; a profile that keeps falling gives its end; the interval
+    over resampled pairs holds the value and narrows with sharper pairs."""
+    x = torch.tensor([-1.0, -0.5, 0.0, 0.5, 1.0], dtype=torch.float64)
+    assert parabola_minimum(x, (x - 0.3) ** 2 + 2, best=0.5) == pytest.approx(0.3)
+    assert parabola_minimum(x, -x, best=0.0) == pytest.approx(1.0)
+    assert parabola_minimum(x[:2], x[:2], best=-0.5) == -0.5  # too few points
+    g = torch.Generator().manual_seed(0)
+    centres = 0.3 + 0.2 * torch.randn(60, generator=g, dtype=torch.float64)
+    ratios = 1 + (x[:, None] - centres[None, :]) ** 2  # (G, N) per-pair profiles
+    low, high = profile_interval(x, ratios, 0.5, ("test",)).tolist()
+    assert low < parabola_minimum(x, ratios.mean(1), 0.5) < high
+    assert high - low < 0.3
+    sharp = 1 + (x[:, None] - (0.3 + 0.02 * (centres[None, :] - 0.3) / 0.2)) ** 2
+    narrow = profile_interval(x, sharp, 0.5, ("test",))
+    assert float(narrow[1] - narrow[0]) < (high - low) / 5
 
 
 # --------------------------------------------------------- ledger and resume
@@ -461,11 +483,72 @@ def test_an_interrupted_attribution_resumes_to_the_same_result(tmp_path, monkeyp
     )
     assert resumed.chosen == whole.chosen
     assert resumed.steps == whole.steps
+    assert "stages kept (pool" in attribution.resuming(
+        attribution.Ledger(
+            tmp_path / "a.pt", attribution.ledger_key(cfg, ["idm"], effects)
+        )
+    )
     # another setting is another attribution: nothing is read back
     other = _config(max_effects=2, rounds=1)
     assert attribution.ledger_key(other, ["idm"], effects) != attribution.ledger_key(
         cfg, ["idm"], effects
     )
+
+
+def test_an_interrupted_pool_fit_resumes_from_its_last_state(tmp_path, monkeypatch):
+    """The pool's fit keeps each model's ABC result and its search's state as
+    it goes: stopped in the middle of its search, it resumes from the last
+    state kept, not from the start, and ends where an uninterrupted fit ends."""
+    pairs = synthetic_pairs("idm", IDM, 6, 200, seed=4, noise=0.05)
+    cfg = _config(max_rounds=6)
+    arena = Arena.of(cfg, pairs)
+    real = search_module.search_round
+    calls = {"n": 0, "stop": 0}
+
+    def counted(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == calls["stop"]:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(search_module, "search_round", counted)
+    whole = fit_pool(arena, ["idm", "llcs"], lambda *_: None).population
+    rounds, calls["n"], calls["stop"] = calls["n"], 0, 3
+    assert rounds > 3
+    monkeypatch.setattr(attribution, "CHECKPOINT_SECONDS", 0.0)  # keep every round
+    book = attribution.Ledger(tmp_path / "a.pt", "key")
+    with pytest.raises(KeyboardInterrupt):
+        fit_pool(arena, ["idm", "llcs"], lambda *_: None, book.within("pool"))
+    reread = attribution.Ledger(tmp_path / "a.pt", "key")
+    assert attribution.resuming(reread).endswith("pool midway")
+    assert reread.get("pool/abc/idm") is not None
+    assert reread.get("pool/abc/llcs") is not None
+    assert reread.get("pool/converge/pool")["rounds"] == 2
+    calls["n"], calls["stop"] = 0, 0
+    resumed = fit_pool(arena, ["idm", "llcs"], lambda *_: None, reread.within("pool"))
+    assert calls["n"] == rounds - 2  # from the third round on
+    for got, want in zip(
+        (resumed.population.score, resumed.population.theta),
+        (whole.score, whole.theta),
+        strict=True,
+    ):
+        torch.testing.assert_close(got, want, equal_nan=True)
+
+
+@pytest.mark.slow  # two attributions
+def test_the_effect_arms_are_the_same_in_worker_processes():
+    """Arms searched side by side in two worker processes give the selection
+    one process gives (every arm draws from its own seeded streams)."""
+    pairs = synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=4, noise=0.05)
+    effects = ["delay", "offset", "lag"]
+    alone, side_by_side = (
+        attribute_effects(
+            _config(max_effects=1, workers=w), ["idm"], effects, pairs, progress=False
+        )
+        for w in (1, 2)
+    )
+    assert side_by_side.chosen == alone.chosen
+    assert side_by_side.steps == alone.steps
 
 
 # ------------------------------------------------------------ re-calibration

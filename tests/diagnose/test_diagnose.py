@@ -115,8 +115,8 @@ def _config(n_particles=N_PARTICLES, **diagnose):
     )
 
 
-def _loop_config():
-    return _config(effects=EFFECTS, **SEARCH)
+def _loop_config(detectable=True):
+    return _config(effects=EFFECTS, detectable=detectable, **SEARCH)
 
 
 def _pairs(model, theta):
@@ -132,10 +132,13 @@ def loops(tmp_path_factory):
 
     def run(case):
         if case not in results:
-            model, theta, _, _ = CASES[case]
+            model, theta, expected, _ = CASES[case]
             pairs = _pairs(model, theta)
             out = tmp_path_factory.mktemp(case.replace(" ", "")) / "run"
-            train_and_evaluate(_loop_config(), out, pairs=pairs)
+            # the sizes the data could have shown: asked of the controls (the
+            # last step of the others is a control of the same kind)
+            config = _loop_config(detectable=not expected)
+            train_and_evaluate(config, out, pairs=pairs)
             results[case] = (out, close_loop(out, pairs=pairs, progress=False))
         return results[case]
 
@@ -202,6 +205,9 @@ def test_the_undeclared_effects_are_found_and_help(loops, case):
         assert key in on_disk
     text = (out / "loop.md").read_text()
     assert "WS change" in text and "From the residual to the effects" in text
+    if "offset" in case:  # a recording effect: its behavioural twin named
+        assert "the data's fault or the drivers' habit?" in text
+        assert "To separate them" in text
     assert (out / "loop" / "after" / "metrics.json").exists()
     assert (out / "loop" / "reference" / "metrics.json").exists()
     for figure in ("effects", "before_after", "residuals"):
@@ -233,7 +239,14 @@ def test_control_set_yields_no_effect(loops, case):
     out, result = loops(case)
     assert result["chosen"] == []
     assert result["after"] == result["before"]
-    assert "No effect chosen" in (out / "loop.md").read_text()
+    text = (out / "loop.md").read_text()
+    assert "No effect chosen" in text
+    # what these data could have shown, per effect with a one-number size
+    assert "What these data could have shown" in text
+    sized = [r for r in result["steps"][-1] if r["name"] in ("delay", "lag", "sync")]
+    assert sized and all(r["detectable"] for r in sized)
+    delay = next(r for r in sized if r["name"] == "delay")["detectable"]
+    assert delay["if_first"]["above"] is not None  # 24 pairs can show a delay
 
 
 @pytest.mark.slow  # needs the control case's loop

@@ -161,15 +161,25 @@ def test_the_design_follows_the_config():
     assert fit.pairs.n_steps == pairs.n_steps
 
 
-def test_a_warmup_with_held_out_pairs_is_refused():
+@pytest.mark.parametrize("kind", ["pairs", "refit"])
+def test_a_warmup_with_held_out_pairs_is_refused(kind):
     with pytest.raises(ValueError, match="validation 'time' only"):
         TrainConfig.model_validate(
             {
                 "data": {"name": "car-model-2"},
                 "models": ["idm"],
-                "diagnose": {"validation": "pairs", "validation_warmup": 2.0},
+                "diagnose": {"validation": kind, "validation_warmup": 2.0},
             }
         )
+    # with "auto", a warm-up asks for windows in time
+    cfg = TrainConfig.model_validate(
+        {
+            "data": {"name": "car-model-2"},
+            "models": ["idm"],
+            "diagnose": {"validation_warmup": 2.0},
+        }
+    )
+    assert resolve_validation(cfg.diagnose, 327) == "time"
 
 
 def _particles(name: str, theta: torch.Tensor, pairs) -> Particles:
@@ -183,9 +193,9 @@ def _particles(name: str, theta: torch.Tensor, pairs) -> Particles:
     ("n_pairs", "permutations", "warmup", "kind"),
     [
         (24, 20_000, 0.0, "time"),  # 10 held out: 2^-10 > 1/20 001
-        (38, 20_000, 0.0, "pairs"),  # 15 held out: 2^-15 < 1/20 001
+        (38, 20_000, 0.0, "refit"),  # 15 held out: 2^-15 < 1/20 001
         (36, 20_000, 0.0, "time"),  # 14 held out
-        (24, 1_000, 0.0, "pairs"),  # 10 held out reach 1/1 001
+        (24, 1_000, 0.0, "refit"),  # 10 held out reach 1/1 001
         (327, 20_000, 2.0, "time"),  # a warm-up asks for windows in time
     ],
 )

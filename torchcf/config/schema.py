@@ -687,7 +687,7 @@ class DiagnoseConfig(BaseModel):
             "(validation 'pairs'); the rest is out of sample."
         ),
     )
-    validation: Literal["auto", "time", "pairs"] = Field(
+    validation: Literal["auto", "time", "pairs", "refit"] = Field(
         "auto",
         description=(
             "How an arm is judged out of sample: 'time' fits the first "
@@ -695,8 +695,19 @@ class DiagnoseConfig(BaseModel):
             "picks on the rest; 'pairs' fits the whole windows of fit_fraction of "
             "the training pairs (a seeded draw) and scores every other pair by "
             "the best of all the picks (the minimum distance on pairs the arms "
-            "never saw); 'auto': 'pairs' where at least log2(permutations + 1) "
-            "pairs are held out (15 at the defaults), else 'time'."
+            "never saw); 'refit' splits as 'pairs' and refits every held-out "
+            "pair by a short search of its own, with and without the effect "
+            "(pinned at the value the fit pairs gave), from one start; 'auto': "
+            "'refit' where at least log2(permutations + 1) pairs are held out "
+            "(15 at the defaults), else 'time'."
+        ),
+    )
+    refit_rounds: int = Field(
+        6,
+        ge=0,
+        description=(
+            "Local-search rounds of a held-out pair's refit (validation "
+            "'refit'), of top_n particles and local_copies / 2 copies each."
         ),
     )
     validation_warmup: float = Field(
@@ -704,12 +715,14 @@ class DiagnoseConfig(BaseModel):
         ge=0,
         le=10,
         description=(
-            "Seconds of recorded history before each validation window [s]: the "
-            "validation rollout starts this long before the split from the "
-            "observed state, and only the steps after the split are scored, so "
-            "a delay's or a lag's memory enters the window filled by the "
+            "Seconds of recorded history before each validation window [s] "
+            "(validation 'time'; with 'auto' it asks for it): the validation "
+            "rollout starts this long before the split from the observed state, "
+            "and only the steps after the split are scored, so a delay's, a "
+            "clock offset's or a lag's memory enters the window filled by the "
             "recorded leader (0: the window starts at the split, its memory a "
-            "steady past)."
+            "steady past). Held-out pairs ('pairs', 'refit') are simulated from "
+            "their first step."
         ),
     )
     alpha: float = Field(
@@ -720,6 +733,18 @@ class DiagnoseConfig(BaseModel):
             "Family-wise significance level of the whole selection: step s is "
             "tested at alpha / 2^s (the last step the rest), each by the fallback "
             "procedure in the order the fit windows give."
+        ),
+    )
+    levels: Literal["halving", "pointed", "equal"] = Field(
+        "halving",
+        description=(
+            "How a step's level is shared among its tests, in their order: "
+            "'halving' gives the i-th test 2^-i of it (the first half, whatever "
+            "pointed to it); 'pointed' gives the effects a residual signature "
+            "points to half of it in equal shares and the others the other half "
+            "in equal shares; 'equal' gives every test the same share "
+            "(Bonferroni). The fallback procedure passes a significant test's "
+            "level on to the next under each."
         ),
     )
     min_gain: float = Field(
@@ -758,6 +783,27 @@ class DiagnoseConfig(BaseModel):
             "the effects."
         ),
     )
+    detectable: bool = Field(
+        True,
+        description=(
+            "Where the loop chooses nothing (its first step), estimate per "
+            "tested effect the "
+            "smallest size its test would have found in these data "
+            "(:mod:`torchcf.diagnose.power`; one refit per size tried). Off "
+            "only to save that time where the sizes are not read (a power "
+            "study)."
+        ),
+    )
+    workers: int = Field(
+        0,
+        ge=0,
+        description=(
+            "Processes that search a step's effect arms side by side, one "
+            "thread each: 0 (auto) one per core where an arm's search rounds "
+            "are large enough to pay for starting them, 1 none (the results are "
+            "the same either way)."
+        ),
+    )
     method: Literal["rejection", "smc"] = Field(
         "rejection",
         description=(
@@ -778,10 +824,13 @@ class DiagnoseConfig(BaseModel):
 
     @model_validator(mode="after")
     def _warmup_in_time(self) -> DiagnoseConfig:
-        if self.validation == "pairs" and self.validation_warmup > 0:
+        asked = "validation_warmup" in self.model_fields_set
+        held = self.validation in ("pairs", "refit")
+        if held and asked and self.validation_warmup > 0:
             raise ValueError(
                 "diagnose.validation_warmup applies to validation 'time' only: a "
-                "held-out pair is simulated from its first step"
+                f"held-out pair ('{self.validation}') is simulated from its first "
+                "step"
             )
         return self
 

@@ -33,6 +33,7 @@ Shapes: N pairs, S slots, K parameters, G profile values (:mod:`torchcf.typing`)
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -40,6 +41,7 @@ from torch import Tensor
 
 from ..models import get_model
 from ..models.effects import parse_effect
+from ..models.steady import equilibrium_spacing, time_gap
 from .identifiability import RIDGE_CORRELATION, within_pair_correlation
 from .population import Population
 
@@ -169,8 +171,9 @@ def profile_absorption(
     lifted_from: dict[str, str],
     start: Population,
     estimate: Tensor | None,
+    steady: Steady | None = None,
 ) -> dict[str, Any] | None:
-    """The strongest partner of a shared effect along its profile.
+    """The strongest partner of a one-parameter effect along its profile.
 
     Args:
         values: (G, K_E) the fixed values (:func:`profile_values`).
@@ -179,12 +182,14 @@ def profile_absorption(
         start: the population the profile started from (the pool's fit).
         estimate: the effect's value found by the attribution (the shift is read
             at the profile value nearest to it), or None.
+        steady: where to read the pool's steady state along the profile
+            (:func:`steady_shift`), or None.
 
     Returns:
         ``{"parameter", "model", "correlation", "slope", "shift", "absorbed",
-        "n_pairs", "profile"}`` (``profile``: per value, the summed relative fit
-        score), or None where no pair's best particle carries the effect at
-        every value.
+        "n_pairs", "profile", "steady"}`` (``profile``: per value, the summed
+        relative fit score; ``steady``: :func:`steady_shift`), or None where no
+        pair's best particle carries the effect at every value.
     """
     g = values.shape[0]
     reference = start.score[:, 0]
@@ -200,6 +205,7 @@ def profile_absorption(
         if m >= 0
     }
     best = None
+    along: list[tuple[str, Tensor]] = []  # per pool model, its best particles
     for parent in sorted(m for m in models if m):
         names = get_model(parent).param_names
         # (N, G, K): each pair's best particle per value, where it descends
@@ -220,6 +226,7 @@ def profile_absorption(
         if int(complete.sum()) < 2:
             continue
         rows = rows[complete]
+        along.append((parent, rows))
         x = values[:, 0][None, :].expand(rows.shape[0], -1)  # (N', G)
         xc = x - x.mean(1, keepdim=True)
         for k, name in enumerate(names):
@@ -255,12 +262,93 @@ def profile_absorption(
         "values": values[:, 0].tolist(),
         "relative_fit": objective,
     }
+    best["steady"] = (
+        steady_shift(values[:, 0], along, steady) if steady is not None else None
+    )
     return best
+
+
+@dataclass(frozen=True)
+class Steady:
+    """Where the pool's steady state is read: a speed [m/s] (the data's median
+    follower speed), the sampling interval [s] and the leader's length [m]."""
+
+    speed: float
+    dt: float
+    leader_length: float
+
+
+def steady_shift(
+    values: Tensor, along: list[tuple[str, Tensor]], steady: Steady
+) -> dict[str, Any] | None:
+    """How the pool's own behaviour moves as an effect is fixed along its
+    profile: each pair's best particle's equilibrium spacing at
+    ``steady.speed`` and its time gap there (:mod:`torchcf.models.steady`),
+    regressed within pairs on the effect's value (pooled over the pool's
+    models).
+
+    The reading a user needs when an effect is absorbed: a spacing-sensor
+    offset ``d`` is a standstill gap ``-d`` in equilibrium, a leader log ``t``
+    ahead a time gap ``+t``; the slopes say how much of it the pool's fit takes
+    up (``gap_slope`` -1 m per m of offset: all of it).
+
+    Args:
+        values: (G,) the effect's fixed values.
+        along: per pool model, each pair's best particle at every value (N',
+            G, K), pairs where that model held the best at every value.
+
+    Returns:
+        ``{"speed", "gap_slope", "gap_r", "time_gap_slope", "time_gap_r",
+        "n_pairs"}`` ([m] and [s] per unit of the effect), or None where no
+        pair has an equilibrium at that speed at every value.
+    """
+    xs, gaps, time_gaps = [], [], []
+    for name, rows in along:
+        model = get_model(name)
+        flat = rows.reshape(-1, rows.shape[-1])
+        run = {"leader_length": steady.leader_length, "dt": steady.dt}
+        gap = equilibrium_spacing(model, flat, steady.speed, **run)
+        gap = gap.reshape(rows.shape[:2])  # (N', G)
+        tg = time_gap(model, flat, steady.speed, **run).reshape(rows.shape[:2])
+        keep = torch.isfinite(gap).all(1) & torch.isfinite(tg).all(1)
+        if not bool(keep.any()):
+            continue
+        xs.append(values[None, :].expand(int(keep.sum()), -1))
+        gaps.append(gap[keep])
+        time_gaps.append(tg[keep])
+    if not xs:
+        return None
+    x = torch.cat(xs)
+    gap_slope, gap_r = _pooled_slope(x, torch.cat(gaps))
+    tg_slope, tg_r = _pooled_slope(x, torch.cat(time_gaps))
+    return {
+        "speed": steady.speed,
+        "gap_slope": gap_slope,
+        "gap_r": gap_r,
+        "time_gap_slope": tg_slope,
+        "time_gap_r": tg_r,
+        "n_pairs": int(x.shape[0]),
+    }
+
+
+def _pooled_slope(x: Tensor, y: Tensor) -> tuple[float | None, float | None]:
+    """Within-row least-squares slope of ``y`` on ``x`` (N', G), pooled, and the
+    pooled correlation."""
+    xc = x - x.mean(1, keepdim=True)
+    yc = y - y.mean(1, keepdim=True)
+    sxx, syy = float((xc * xc).sum()), float((yc * yc).sum())
+    if sxx <= 0:
+        return None, None
+    sxy = float((xc * yc).sum())
+    r = sxy / math.sqrt(sxx * syy) if syy > 0 else 0.0
+    return sxy / sxx, r
 
 
 __all__ = [
     "PROFILE_VALUES",
+    "Steady",
     "absorbed_by",
     "profile_absorption",
     "profile_values",
+    "steady_shift",
 ]

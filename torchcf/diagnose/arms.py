@@ -39,22 +39,32 @@ import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from ..abc.particles import Particles
 from ..abc.rejection import Rollout
 from ..abc.smc import SMCSettings
 from ..config import DiagnoseConfig, TrainConfig
 from ..data import PairSet
 from ..models import effect_kinds, get_model
 from ..models.effects import RoadProfile, parse_effect
-from .absorption import profile_values
+from .absorption import PROFILE_VALUES, profile_values
 from .candidates import attribution_seed, prior_particles
-from .population import Population, merge, rescore
+from .population import (
+    Population,
+    merge,
+    particles_dict,
+    population_dict,
+    population_of,
+    rescore,
+)
 from .search import (
     INVALID_RATIO,
+    Converging,
     Noise,
     converge,
     effect_prior,
@@ -72,9 +82,18 @@ from .validation import Validation, design
 PREDICTOR_REACH = (0.5, 1.0, 2.0)
 #: Design points of a driver effect (and of the placebo's refits).
 DESIGN_POINTS = 5
-#: Refinements of a shared value around the profile's best (each halves the
-#: step).
-REFINEMENTS = 2
+
+
+class Checkpoints(Protocol):
+    """Where a long fit keeps its state as it goes (the attribution's ledger)."""
+
+    def get(self, name: str) -> Any:
+        """The state kept under ``name``, or None."""
+
+    def keep(self, name: str, value: Any, *, now: bool = False) -> None:
+        """Keep ``value`` under ``name``: written to disk now, or with the next
+        write when the last was recent (:data:`torchcf.diagnose.attribution.
+        CHECKPOINT_SECONDS`)."""
 
 
 def resolve_effect(token: str, pairs: PairSet) -> str:
@@ -159,10 +178,34 @@ class Arena:
         shared: dict[str, Tensor],
         label: tuple,
         tick: Callable[[], None],
+        checkpoints: Checkpoints | None = None,
     ) -> Population:
         """Local search on the fit windows until it converges (at most
-        ``max_rounds`` rounds): the start of a step's comparisons."""
-        converged, _ = converge(
+        ``max_rounds`` rounds): the start of a step's comparisons. With
+        ``checkpoints``, its state after a round is kept under the label (and a
+        search interrupted there resumes from it); ``tick`` is called for every
+        round, and for the rounds it stops short of ``max_rounds``, so that a
+        progress bar counts ``max_rounds``."""
+        key = "/".join(map(str, ("converge", *label)))
+        saved = checkpoints.get(key) if checkpoints is not None else None
+        resume = None
+        if saved is not None:
+            resume = Converging(
+                population_of(saved["population"]), saved["rounds"], saved["calm"]
+            )
+            for _ in range(resume.rounds):
+                tick()
+
+        def keep(state: Converging) -> None:
+            if checkpoints is not None:
+                entry = {
+                    "population": population_dict(state.population),
+                    "rounds": state.rounds,
+                    "calm": state.calm,
+                }
+                checkpoints.keep(key, entry)
+
+        converged, rounds = converge(
             population,
             self.fit,
             self.bounds(population.models, shared),
@@ -171,7 +214,11 @@ class Arena:
             copies=self.settings.local_copies,
             max_rounds=self.settings.max_rounds,
             progress=tick,
+            resume=resume,
+            after_round=keep,
         )
+        for _ in range(self.settings.max_rounds - rounds):
+            tick()
         return converged
 
     def search(
@@ -219,25 +266,72 @@ class Arm:
     shared: dict[str, Tensor]
 
 
-def fit_pool(arena: Arena, pool: list[str], tick: Callable[[], None]) -> Arm:
+def fit_pool(
+    arena: Arena,
+    pool: list[str],
+    tick: Callable[..., None],
+    checkpoints: Checkpoints | None = None,
+) -> Arm:
     """The pool alone: a small ABC run of ``n_particles`` per model on the fit
-    windows, its ``S`` best per pair, then local search until it converges."""
+    windows, its ``S`` best per pair, then local search until it converges.
+
+    Args:
+        tick: progress, in search rounds: each model's ABC run counts one
+            (``tick(share)`` as it streams), the search ``max_rounds``.
+        checkpoints: where each model's ABC result and the search's state are
+            kept as they finish (a fit interrupted resumes from them).
+    """
     sets = []
     for name in pool:
-        box = model_bounds(name, arena.priors)
-        (particles,) = prior_particles(
-            name,
-            arena.fit,
-            (arena.settings.n_particles,),
-            arena.size,
-            box,
-            arena.seed,
-            smc=arena.smc,
-        )
+        key = f"abc/{name}"
+        kept = checkpoints.get(key) if checkpoints is not None else None
+        if kept is None:
+            box = model_bounds(name, arena.priors)
+            (particles,) = prior_particles(
+                name,
+                arena.fit,
+                (arena.settings.n_particles,),
+                arena.size,
+                box,
+                arena.seed,
+                smc=arena.smc,
+                progress=tick,
+            )
+            if checkpoints is not None:
+                checkpoints.keep(key, particles_dict(particles), now=True)
+        else:
+            particles = Particles(**kept)
+            tick(1.0)
         sets.append(particles)
-    tick()
     start = Population.from_particles(sets, arena.fit.pairs.n_pairs, arena.size)
-    return Arm((), arena.converge(start, {}, ("pool",), tick), {})
+    return Arm((), arena.converge(start, {}, ("pool",), tick, checkpoints), {})
+
+
+def pool_units(arena: Arena, pool: list[str]) -> int:
+    """The pool's fit in the units of its progress (:func:`fit_pool`)."""
+    return len(pool) + arena.settings.max_rounds
+
+
+def arm_units(arena: Arena, effect: str | None) -> int:
+    """An arm's search rounds, the units of its progress (at most: a shared
+    value's refinements may skip a value outside the prior): the base arm
+    (``effect`` None), or an effect arm's design points (and a one-parameter
+    shared effect's refinements) and rounds."""
+    rounds = max(1, arena.settings.rounds)
+    if effect is None:
+        return rounds
+    spec = parse_effect(effect)
+    if len(spec.param_specs) == 1:
+        points = PROFILE_VALUES if spec.shared else DESIGN_POINTS
+        design = first_steps_halved(effect, profile_values(effect, points)).shape[0]
+        refine = LOCAL_POINTS if spec.shared else 0
+        return design + refine + rounds
+    return (0 if spec.shared else DESIGN_POINTS) + rounds
+
+
+def placebo_units(arena: Arena) -> int:
+    """The placebo arm's search rounds (:func:`placebo_arm`)."""
+    return DESIGN_POINTS + 1 + max(1, arena.settings.rounds)
 
 
 def base_arm(arena: Arena, arm: Arm, step: int, tick: Callable[[], None]) -> Population:
@@ -450,6 +544,8 @@ class EffectArm:
         shared_prior: a shared effect's box (K_E, 2) around its value.
         design: a one-parameter effect's design points (G, 1) and the fit at
             each (its profile), else None.
+        interval: a one-parameter shared effect's 90 % interval (2,) over
+            pairs (:func:`profile_interval`), else None.
     """
 
     population: Population
@@ -457,6 +553,7 @@ class EffectArm:
     value: Tensor | None = None
     shared_prior: Tensor | None = None
     design: tuple[Tensor, list[Population]] | None = None
+    interval: Tensor | None = None
 
 
 def effect_arm(
@@ -474,8 +571,9 @@ def effect_arm(
     noise = extra_noise(arena, arm, step, effect)
     shared = dict(arm.shared)
     value = box = design = None
+    interval = None
     if spec.shared and len(spec.param_specs) == 1:
-        value, values, fits, lifted_from = profile_search(
+        value, values, fits, lifted_from, interval = profile_search(
             arena, arm, effect, step, tick
         )
         design, box = (values, fits), _box_around(values, value)
@@ -503,26 +601,29 @@ def effect_arm(
     parents = {m: m for m in start.models} | lifted_from
     searched = arena.search(begin, noise, parents, shared, tick)
     population = merge([base, searched], arena.size)
-    return EffectArm(population, lifted_from, value, box, design)
+    return EffectArm(population, lifted_from, value, box, design, interval)
 
 
 def profile_search(
     arena: Arena, arm: Arm, effect: str, step: int, tick: Callable[[], None]
-) -> tuple[Tensor, Tensor, list[Population], dict[str, str]]:
+) -> tuple[Tensor, Tensor, list[Population], dict[str, str], Tensor]:
     """A one-parameter shared effect's profile over its prior, and its value.
 
     The effect is fixed at the :data:`~torchcf.diagnose.absorption.
     PROFILE_VALUES` values of its profile and the pairs refitted
-    (:func:`design_fits`); the value whose fit is best (the mean over pairs of
-    each pair's best score relative to the start's) is then refined
-    :data:`REFINEMENTS` times: the best and the values half a step on either
-    side are each refitted from the best's fit with equal budgets (a comparison
-    at equal depth: a value refitted once more would look better for that
-    alone), and the best of the three kept.
+    (:func:`design_fits`). Around the value whose fit is best (the mean over
+    pairs of each pair's best score relative to the start's), a *local
+    profile* of :data:`LOCAL_POINTS` values half a grid step apart is refitted,
+    every value from the best's fit with the same budget (a comparison at equal
+    depth: a value refitted once more would look better for that alone). The
+    value is the minimum of the least-squares parabola through the local
+    profile (:func:`parabola_minimum`): an estimate between the values tried,
+    and its interval that of the same minimum over the pairs resampled
+    (:func:`profile_interval`): wide where the profile is flat along a ridge.
 
     Returns:
         the value (1,), every value fitted (G, 1) ascending, their latest fits,
-        and per variant the model lifted from.
+        per variant the model lifted from, and the value's 90 % interval (2,).
     """
     spec = parse_effect(effect)
     start = arm.population
@@ -532,45 +633,98 @@ def profile_search(
     fits, lifted_from = design_fits(arena, arm, effect, step, tick, values)
     parents = {m: m for m in start.models} | lifted_from
 
-    def objective(population: Population) -> float:
+    def ratios(population: Population) -> Tensor:
+        """(N',) each usable pair's best score relative to the start's."""
         ratio = population.score[usable, 0] / reference[usable]
-        ratio = torch.where(torch.isfinite(ratio), ratio, INVALID_RATIO)
-        return float(ratio.mean())
+        return torch.where(torch.isfinite(ratio), ratio, INVALID_RATIO)
 
     fitted = {
-        float(v): (fit, objective(fit))
+        float(v): (fit, ratios(fit))
         for v, fit in zip(values[:, 0].tolist(), fits, strict=True)
     }
-    best = min(fitted, key=lambda v: fitted[v][1])
-    step_size = float(values[1, 0] - values[0, 0])
+    best = min(fitted, key=lambda v: float(fitted[v][1].mean()))
+    half = float(values[-1, 0] - values[0, 0]) / (PROFILE_VALUES - 1) / 2
     low, high = spec.param_specs[0].lower, spec.param_specs[0].upper
-    for r in range(REFINEMENTS):
-        step_size /= 2
-        origin = fitted[best][0]
-        trial = {}
-        for value in (best - step_size, best, best + step_size):
-            if not low <= value <= high:
-                continue
-            at = torch.tensor([value], dtype=torch.float64)
-            begin = merge([repin(origin, effect, at, arena.fit)], arena.size)
-            noise = Noise(
-                (arena.seed, "step", step, "refine", effect, r, value),
-                _current(start),
-                effect,
-            )
-            shared = dict(arm.shared) | {spec.name: at}
-            refit = _refit(arena, arm, begin, noise, parents, shared)
-            trial[value] = (refit, objective(refit))
-            tick()
-        fitted |= trial
-        best = min(trial, key=lambda v: trial[v][1])
+    reach = (LOCAL_POINTS - 1) // 2
+    local = {}
+    origin = fitted[best][0]
+    for k in range(-reach, reach + 1):
+        value = best + k * half
+        if not low <= value <= high:
+            continue
+        at = torch.tensor([value], dtype=torch.float64)
+        begin = merge([repin(origin, effect, at, arena.fit)], arena.size)
+        noise = Noise(
+            (arena.seed, "step", step, "local", effect, k), _current(start), effect
+        )
+        shared = dict(arm.shared) | {spec.name: at}
+        refit = _refit(arena, arm, begin, noise, parents, shared)
+        local[value] = (refit, ratios(refit))
+        tick()
+    grid = sorted(local)
+    table = torch.stack([local[v][1] for v in grid])  # (G', N')
+    x = torch.tensor(grid, dtype=torch.float64)
+    value = parabola_minimum(x, table.mean(1), best)
+    interval = profile_interval(x, table, best, (arena.seed, "interval", effect))
+    nearest = grid[int(torch.argmin((x - value).abs()))]
+    fitted |= {v: local[v] for v in grid}
+    fitted[value] = (local[nearest][0], local[nearest][1])  # its start: the nearest
     order = sorted(fitted)
     return (
-        torch.tensor([best], dtype=torch.float64),
+        torch.tensor([value], dtype=torch.float64),
         torch.tensor(order, dtype=torch.float64)[:, None],
         [fitted[v][0] for v in order],
         lifted_from,
+        interval,
     )
+
+
+#: Values of a one-parameter shared effect's local profile around the grid's
+#: best, half a grid step apart (odd: the best in the middle).
+LOCAL_POINTS = 7
+#: Resamples of the pairs for a shared value's interval.
+BOOTSTRAP = 200
+
+
+def parabola_minimum(x: Tensor, y: Tensor, best: float) -> float:
+    """The minimum over ``[x.min(), x.max()]`` of the least-squares parabola
+    through the points (x, y) (G,); ``best`` where there are fewer than three.
+    Without a minimum inside (a profile that keeps falling), the lower end.
+    (The normal equations solved in float64 by numpy: the same digits whatever
+    the threads.)"""
+    if x.numel() < 3:
+        return best
+    xs, ys = x.double().numpy(), y.double().numpy()
+    centre = float(xs.mean())
+    scale = float(xs.max() - xs.min()) / 2 or 1.0
+    u = (xs - centre) / scale
+    design = np.stack((u * u, u, np.ones_like(u)), axis=1)
+    a, b, _ = np.linalg.solve(design.T @ design, design.T @ ys)
+    lowest, highest = float(u.min()), float(u.max())
+    if a > 0:
+        vertex = min(max(-b / (2 * a), lowest), highest)
+    else:
+        left = a * lowest * lowest + b * lowest
+        right = a * highest * highest + b * highest
+        vertex = lowest if left <= right else highest
+    return centre + scale * float(vertex)
+
+
+def profile_interval(x: Tensor, ratios: Tensor, best: float, key: tuple) -> Tensor:
+    """(2,) the 90 % interval of a shared value over pairs: the pairs resampled
+    :data:`BOOTSTRAP` times, each resample's local profile (the mean of its
+    pairs' relative scores ``ratios`` (G', N') at the values ``x``) minimised
+    as the value itself was (:func:`parabola_minimum`)."""
+    g = generator(*key)
+    n = ratios.shape[1]
+    found = [
+        parabola_minimum(
+            x, ratios[:, torch.randint(n, (n,), generator=g)].mean(1), best
+        )
+        for _ in range(BOOTSTRAP)
+    ]
+    quantiles = torch.tensor([0.05, 0.95], dtype=torch.float64)
+    return torch.quantile(torch.tensor(found, dtype=torch.float64), quantiles)
 
 
 def repin(
@@ -611,11 +765,12 @@ def _box_around(values: Tensor, value: Tensor) -> Tensor:
 
 
 __all__ = [
+    "Checkpoints",
     "DESIGN_POINTS",
     "PREDICTOR_REACH",
     "first_steps_halved",
     "predicted",
-    "REFINEMENTS",
+    "LOCAL_POINTS",
     "Arena",
     "Arm",
     "EffectArm",
@@ -623,7 +778,10 @@ __all__ = [
     "design_fits",
     "design_values",
     "effect_arm",
+    "arm_units",
     "fit_pool",
+    "placebo_units",
+    "pool_units",
     "placebo_arm",
     "profile_search",
     "repin",

@@ -49,9 +49,12 @@ Shapes: N pairs, S slots per pair, K parameters (:mod:`torchcf.typing`).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
+import sys
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -67,24 +70,36 @@ from ..data import PairSet
 from ..files import RunFileError, atomic_torch_save, read_torch
 from ..models import effect_kinds, get_model
 from ..models.effects import RoadProfile, parse_effect
-from .absorption import absorbed_by, profile_absorption
+from .absorption import Steady, absorbed_by, profile_absorption
 from .arms import (
     Arena,
     Arm,
+    Checkpoints,
     EffectArm,
+    arm_units,
     base_arm,
     effect_arm,
     fit_pool,
     placebo_arm,
+    placebo_units,
+    pool_units,
 )
-from .population import Population
+from .population import Population, population_dict, population_of
+from .power import detectable_sizes
+from .refit import Pin
 from .road import one_step_residual
 from .series import BestParticles, residual_series
 from .signatures import Signature, pointed_effects, signatures
-from .testing import fallback_levels, sign_flip_test, step_levels
+from .testing import fallback_levels, level_weights, sign_flip_test, step_levels
+from .validation import Judge
+from .workers import ArmPool, worker_count
+from .workers import tick as worker_tick
 
 #: Ledger format (``RUN_DIR/loop/attribution.pt``).
-LEDGER_FORMAT = "torchcf.attribution/9"
+LEDGER_FORMAT = "torchcf.attribution/10"
+#: A fit's state is written to the ledger at least this often while it runs
+#: [s] (the pool's search, a converging search), besides every finished arm.
+CHECKPOINT_SECONDS = 30.0
 
 
 # ---------------------------------------------------------------- the report
@@ -126,13 +141,27 @@ def estimate(population: Population, effect: str, n: int) -> dict[str, float]:
     return dict(zip(names, median.tolist(), strict=True))
 
 
+def pinned(effect: str, result: EffectArm, estimate: dict[str, float]) -> Pin:
+    """The value an effect is held at on the held-out pairs (validation
+    ``"refit"``): a shared effect's one value, a driver effect's estimate (the
+    median over the arm's picks that carry it; neutral where none does)."""
+    if result.value is not None:
+        return Pin(effect, result.value.to(torch.float64))
+    spec = parse_effect(effect)
+    value = [
+        estimate.get(p.name, neutral)
+        for p, neutral in zip(spec.param_specs, spec.neutral, strict=True)
+    ]
+    return Pin(effect, torch.tensor(value, dtype=torch.float64))
+
+
 def effect_row(
     arena: Arena,
     effect: str,
     result: EffectArm,
     base: Population,
     placebo: Population,
-    placebo_validation: np.ndarray,
+    judge: Judge,
 ) -> dict[str, Any]:
     """The effect's report row, against the placebo: in-sample and validation
     gain, sign-flip test, scores, estimate, absorption (the order and the
@@ -142,7 +171,9 @@ def effect_row(
     mine = _fit_statistic(result.population, n).numpy()
     fit_gain, _ = _relative_drop(_fit_statistic(placebo, n).numpy(), mine)
     base_fit_gain, _ = _relative_drop(_fit_statistic(base, n).numpy(), mine)
-    after = arena.validation.scores(result.population, n)
+    found = estimate(result.population, effect, n)
+    pin = pinned(effect, result, found)
+    placebo_validation, after = judge(result.population, result.lifted_from, pin)
     gain, drops = _relative_drop(placebo_validation, after)
     statistic, p_value = sign_flip_test(drops, arena.settings.permutations)
     usable = np.isfinite(placebo_validation) & np.isfinite(after)
@@ -162,8 +193,13 @@ def effect_row(
         "score_after": float(after[usable].mean()) if usable.any() else None,
         "n_pairs": int(usable.sum()),
         "pairs_changed": int(np.count_nonzero(drops)),
+        "pinned": dict(
+            zip([p.name for p in spec.param_specs], pin.value.tolist(), strict=True)
+        )
+        if judge.validation.kind == "refit"
+        else None,
         "variants": sorted(result.lifted_from),
-        "estimate": estimate(result.population, effect, n),
+        "estimate": found,
         "per_pair": {
             "before": [_finite_or_none(v) for v in placebo_validation.tolist()],
             "after": [_finite_or_none(v) for v in after.tolist()],
@@ -177,6 +213,9 @@ def effect_row(
                 k: tuple(b)
                 for k, b in zip(names, result.shared_prior.tolist(), strict=True)
             },
+            "interval": None
+            if result.interval is None
+            else {names[0]: result.interval.tolist()},
         }
         row["estimate"] = row["shared"]["value"]
     row["active"] = active(effect, row["estimate"])
@@ -186,7 +225,7 @@ def effect_row(
         if found is None and row["estimate"]:  # a driver effect: the picks' median
             found = torch.tensor(list(row["estimate"].values()), dtype=torch.float64)
         row["absorbed_by"] = profile_absorption(
-            effect, values, fits, result.lifted_from, base, found
+            effect, values, fits, result.lifted_from, base, found, _steady(arena)
         )
     elif not spec.shared:
         row["absorbed_by"] = absorbed_by(
@@ -195,6 +234,14 @@ def effect_row(
     else:
         row["absorbed_by"] = None
     return row
+
+
+def _steady(arena: Arena) -> Steady:
+    """Where the pool's steady state is read for absorption: the fit pairs'
+    median follower speed."""
+    pairs = arena.fit.pairs
+    speed = float(pairs.v_follow[pairs.mask].double().median())
+    return Steady(max(speed, 1.0), pairs.dt, pairs.leader_length)
 
 
 def _finite_or_none(value: float) -> float | None:
@@ -249,6 +296,7 @@ class Ledger:
     def __init__(self, path: Path | None, key: str) -> None:
         self.path, self.key = path, key
         self.entries: dict[str, Any] = {}
+        self.written = -math.inf
         if path is not None and path.exists():
             try:
                 raw = read_torch(path)
@@ -265,29 +313,64 @@ class Ledger:
         return self.entries.get(name)
 
     def put(self, name: str, value: Any) -> None:
+        """Keep a finished result, written to disk now."""
+        self.keep(name, value, now=True)
+
+    def keep(self, name: str, value: Any, *, now: bool = False) -> None:
+        """Keep ``value`` under ``name``: written now, or where the last write is
+        less than :data:`CHECKPOINT_SECONDS` old, with the next one (a state
+        that a later round replaces)."""
         self.entries[name] = value
-        if self.path is not None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            atomic_torch_save(
-                {"format": LEDGER_FORMAT, "key": self.key, "entries": self.entries},
-                self.path,
-            )
+        if self.path is None:
+            return
+        if not now and time.monotonic() - self.written < CHECKPOINT_SECONDS:
+            return
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_torch_save(
+            {"format": LEDGER_FORMAT, "key": self.key, "entries": self.entries},
+            self.path,
+        )
+        self.written = time.monotonic()
+
+    def within(self, prefix: str) -> Checkpoints:
+        """The ledger's entries under ``prefix/``, as a fit keeps its state."""
+        return _Prefixed(self, prefix)
 
 
-def _to_dict(population: Population) -> dict[str, Any]:
-    return {
-        "models": list(population.models),
-        "model": population.model,
-        "theta": population.theta,
-        "score": population.score,
-        "index": population.index,
-    }
-
-
-def _from_dict(raw: dict[str, Any]) -> Population:
-    return Population(
-        tuple(raw["models"]), raw["model"], raw["theta"], raw["score"], raw["index"]
+def resuming(book: Ledger) -> str:
+    """One line saying what an interrupted attribution reuses: its finished
+    stages (``pool``, ``1/base``, ``1/<effect>`` ...) and those it resumes
+    midway (the state kept under a stage's prefix: ``pool/...``,
+    ``1/converged/...``)."""
+    finished = [n for n in book.entries if n.count("/") <= 1]
+    midway = set()
+    for name in book.entries:
+        if name.count("/") > 1:
+            parts = name.split("/")
+            stage = parts[0] if parts[0] == "pool" else "/".join(parts[:2])
+            if stage not in book.entries:
+                midway.add(stage)
+    kept = ", ".join(finished[:6]) + (" ..." if len(finished) > 6 else "")
+    return (
+        f"attribution: resuming from {book.path}: "
+        + (f"{len(finished)} stages kept ({kept})" if finished else "")
+        + (", " if finished and midway else "")
+        + (f"{', '.join(sorted(midway))} midway" if midway else "")
     )
+
+
+class _Prefixed:
+    """A ledger seen through a prefix (:class:`~torchcf.diagnose.arms.
+    Checkpoints`)."""
+
+    def __init__(self, ledger: Ledger, prefix: str) -> None:
+        self.ledger, self.prefix = ledger, prefix
+
+    def get(self, name: str) -> Any:
+        return self.ledger.get(f"{self.prefix}/{name}")
+
+    def keep(self, name: str, value: Any, *, now: bool = False) -> None:
+        self.ledger.keep(f"{self.prefix}/{name}", value, now=now)
 
 
 def ledger_key(cfg: TrainConfig, pool: list[str], effects: list[str]) -> str:
@@ -388,96 +471,167 @@ def attribute_effects(
     steps_at_most = min(settings.max_effects, len(effects))
     levels = step_levels(settings.alpha, steps_at_most)
     book = Ledger(ledger, ledger_key(cfg, pool, effects))
-    per_arm = settings.rounds + 1
+    if progress and book.entries:
+        print(resuming(book), file=sys.stderr, flush=True)
+    units = {effect: arm_units(arena, effect) for effect in effects}
+    per_step = arm_units(arena, None) + placebo_units(arena) + settings.max_rounds
+    tested = sum(len(effects) - s for s in range(steps_at_most))  # effect arms
     bar = tqdm(
-        total=per_arm * (1 + steps_at_most * (2 + len(effects))),
+        total=pool_units(arena, pool)
+        + steps_at_most * per_step
+        + round(tested * sum(units.values()) / max(1, len(units))),
         desc="attribution",
         unit="round",
         disable=not progress,
     )
 
-    def tick() -> None:
-        bar.update()
+    def tick(amount: float = 1.0) -> None:
+        bar.update(amount)
 
-    def cached(name: str, label: str, compute: Callable[..., Any], *args: Any) -> Any:
-        """The ledger's entry ``name``, or ``compute(*args)`` kept there."""
+    counted: set[str] = set()  # stages the bar counted already (in workers)
+
+    def cached(
+        name: str, label: str, size: int, compute: Callable[..., Any], *args: Any
+    ) -> Any:
+        """The ledger's entry ``name``, or ``compute(*args)`` kept there; the
+        bar advances by the stage's ``size`` in search rounds either way."""
         bar.set_postfix_str(label, refresh=True)
-        hit = book.get(name)
-        if hit is not None:
-            bar.update(per_arm)
-            return hit
-        value = compute(*args)
-        book.put(name, value)
+        began = bar.n
+        value = book.get(name)
+        if value is None:
+            value = compute(*args)
+            book.put(name, value)
+        if name not in counted and bar.n - began < size:
+            bar.update(size - (bar.n - began))
         return value
 
-    raw = cached("pool", "pool", _pool_entry, arena, pool, tick)
-    arm = Arm((), _from_dict(raw), {})
+    raw = cached(
+        "pool",
+        "pool",
+        pool_units(arena, pool),
+        _pool_entry,
+        arena,
+        pool,
+        tick,
+        book.within("pool"),
+    )
+    arm = Arm((), population_of(raw), {})
     steps: list[list[dict[str, Any]]] = []
     found: list[list[dict[str, Any]]] = []
     remaining = list(effects)
-    for step, level in enumerate(levels, start=1):
-        marks = arm_signatures(arena, arm.population)
-        found.append([s.report() for s in marks])
-        pointed = pointed_effects([s for s in marks if s.found])
-        raw = cached(
-            f"{step}/base", f"step {step}: base", _base_entry, arena, arm, step, tick
-        )
-        base = _from_dict(raw)
-        raw = cached(
-            f"{step}/placebo",
-            f"step {step}: placebo",
-            _placebo_entry,
-            arena,
-            arm,
-            base,
-            step,
-            tick,
-        )
-        placebo = _from_dict(raw)
-        placebo_validation = arena.validation.scores(placebo, arena.top_n)
-        rows, arms = [], {}
-        for effect in remaining:
-            entry = cached(
-                f"{step}/{effect}",
-                f"step {step}: {effect.split('(')[0]}",
-                _arm_entry,
+    processes: ArmPool | None = None  # worker processes, where they pay
+    with contextlib.ExitStack() as stack:
+        for step, level in enumerate(levels, start=1):
+            marks = arm_signatures(arena, arm.population)
+            found.append([s.report() for s in marks])
+            pointed = pointed_effects([s for s in marks if s.found])
+            raw = cached(
+                f"{step}/base",
+                f"step {step}: base",
+                arm_units(arena, None),
+                _base_entry,
                 arena,
                 arm,
-                base,
-                placebo,
-                placebo_validation,
-                effect,
                 step,
                 tick,
             )
-            rows.append(dict(entry["row"]))
-            arms[effect] = entry
-        rows = _judge(test_order(rows, pointed), pointed, level, settings)
-        steps.append(rows)
-        best = choose(rows, settings.min_gain)
-        if best is None:
-            break
-        best["chosen"] = True
-        entry = arms[best["effect"]]
-        shared = dict(arm.shared)
-        if entry["value"] is not None:
-            shared[parse_effect(best["effect"]).name] = entry["value"]
-        raw = cached(
-            f"{step}/converged",
-            f"step {step}: {best['name']} converges",
-            _converged_entry,
-            arena,
-            _from_dict(entry["population"]),
-            shared,
-            step,
-            tick,
-        )
-        arm = Arm((*arm.effects, best["effect"]), _from_dict(raw), shared)
-        remaining.remove(best["effect"])
-        if not remaining:
-            break
+            base = population_of(raw)
+            raw = cached(
+                f"{step}/placebo",
+                f"step {step}: placebo",
+                placebo_units(arena),
+                _placebo_entry,
+                arena,
+                arm,
+                base,
+                step,
+                tick,
+            )
+            placebo = population_of(raw)
+            judge = arena.validation.judge(placebo, arena.top_n, step, arm.shared)
+            todo = [e for e in remaining if book.get(f"{step}/{e}") is None]
+            count = worker_count(settings.workers, len(todo), round_steps(arena))
+            if count > 1:
+                if processes is None:
+                    processes = stack.enter_context(ArmPool(count, tick))
+                bar.set_postfix_str(f"step {step}: {len(todo)} arms", refresh=True)
+                began = bar.n
+                tasks = [
+                    (e, (arena, arm, base, placebo, judge, e, step, worker_tick))
+                    for e in todo
+                ]
+                for effect, entry in processes.results(_arm_entry, tasks):
+                    book.put(f"{step}/{effect}", entry)
+                    counted.add(f"{step}/{effect}")
+                due = sum(units[e] for e in todo)
+                if bar.n - began < due:
+                    bar.update(due - (bar.n - began))
+            rows, arms = [], {}
+            for effect in remaining:
+                entry = cached(
+                    f"{step}/{effect}",
+                    f"step {step}: {effect.split('(')[0]}",
+                    units[effect],
+                    _arm_entry,
+                    arena,
+                    arm,
+                    base,
+                    placebo,
+                    judge,
+                    effect,
+                    step,
+                    tick,
+                )
+                rows.append(dict(entry["row"]))
+                arms[effect] = entry
+            rows = _judge(test_order(rows, pointed), pointed, level, settings)
+            steps.append(rows)
+            best = choose(rows, settings.min_gain)
+            if best is None and step == 1 and settings.detectable:
+                # nothing chosen at all: what the data could have shown (after
+                # a choice the chosen effect's own test says what was seen)
+                sizes = book.get(f"{step}/detectable")
+                if sizes is None:
+                    detectable_sizes(
+                        judge,
+                        rows,
+                        rows[0]["level"] if rows else level,
+                        settings.min_gain,
+                        settings.permutations,
+                        lambda label: bar.set_postfix_str(
+                            f"step 1: detectable sizes, {label}", refresh=True
+                        ),
+                    )
+                    sizes = {row["effect"]: row["detectable"] for row in rows}
+                    book.put(f"{step}/detectable", sizes)
+                for row in rows:
+                    row["detectable"] = sizes.get(row["effect"])
+            if best is None:
+                break
+            best["chosen"] = True
+            entry = arms[best["effect"]]
+            shared = dict(arm.shared)
+            if entry["value"] is not None:
+                shared[parse_effect(best["effect"]).name] = entry["value"]
+            raw = cached(
+                f"{step}/converged",
+                f"step {step}: {best['name']} converges",
+                settings.max_rounds,
+                _converged_entry,
+                arena,
+                population_of(entry["population"]),
+                shared,
+                step,
+                tick,
+                book.within(f"{step}/converged"),
+            )
+            arm = Arm((*arm.effects, best["effect"]), population_of(raw), shared)
+            remaining.remove(best["effect"])
+            if not remaining:
+                break
     if arm.effects:  # the final model's signatures: what the effects left
         found.append([s.report() for s in arm_signatures(arena, arm.population)])
+    bar.total = bar.n  # a selection that stops early: done
     bar.close()
     models = list(dict.fromkeys([*pool, *_variants(arm, pool)]))
     return EffectSelection(
@@ -496,9 +650,20 @@ def attribute_effects(
     )
 
 
-def _pool_entry(arena: Arena, pool: list[str], tick: Callable[[], None]) -> dict:
-    """The pool's fit, as the ledger keeps it."""
-    return _to_dict(fit_pool(arena, pool, tick).population)
+def round_steps(arena: Arena) -> float:
+    """Simulated steps of one search round of an arm (its cost)."""
+    pairs = arena.fit.pairs
+    return float(pairs.mask.sum()) * arena.size * arena.settings.local_copies
+
+
+def _pool_entry(
+    arena: Arena,
+    pool: list[str],
+    tick: Callable[..., None],
+    checkpoints: Checkpoints,
+) -> dict:
+    """The pool's fit, as the ledger keeps it (its state kept as it goes)."""
+    return population_dict(fit_pool(arena, pool, tick, checkpoints).population)
 
 
 def _converged_entry(
@@ -507,16 +672,18 @@ def _converged_entry(
     shared: dict[str, Tensor],
     step: int,
     tick: Callable[[], None],
+    checkpoints: Checkpoints,
 ) -> dict[str, Any]:
     """A chosen arm converged, the next step's start, as the ledger keeps it."""
-    return _to_dict(arena.converge(population, shared, ("step", step), tick))
+    converged = arena.converge(population, shared, ("step", step), tick, checkpoints)
+    return population_dict(converged)
 
 
 def _base_entry(
     arena: Arena, arm: Arm, step: int, tick: Callable[[], None]
 ) -> dict[str, Any]:
     """A step's base arm, as the ledger keeps it."""
-    return _to_dict(base_arm(arena, arm, step, tick))
+    return population_dict(base_arm(arena, arm, step, tick))
 
 
 def _variants(arm: Arm, pool: list[str]) -> list[str]:
@@ -528,7 +695,7 @@ def _placebo_entry(
     arena: Arena, arm: Arm, base: Population, step: int, tick: Callable[[], None]
 ) -> dict[str, Any]:
     """A step's placebo arm, as the ledger keeps it."""
-    return _to_dict(placebo_arm(arena, arm, base, step, tick))
+    return population_dict(placebo_arm(arena, arm, base, step, tick))
 
 
 def _arm_entry(
@@ -536,17 +703,17 @@ def _arm_entry(
     arm: Arm,
     base: Population,
     placebo: Population,
-    placebo_validation: np.ndarray,
+    judge: Judge,
     effect: str,
     step: int,
     tick: Callable[[], None],
 ) -> dict[str, Any]:
     """An effect arm and its row, as the ledger keeps them."""
     result = effect_arm(arena, arm, base, effect, step, tick)
-    row = effect_row(arena, effect, result, base, placebo, placebo_validation)
+    row = effect_row(arena, effect, result, base, placebo, judge)
     return {
         "row": row,
-        "population": _to_dict(result.population),
+        "population": population_dict(result.population),
         "value": result.value,
     }
 
@@ -601,10 +768,12 @@ def _judge(
 ) -> list[dict[str, Any]]:
     """The fallback procedure over the rows in their order: each row's
     ``order``, ``pointed_by``, ``level`` and ``significant``."""
+    weights = level_weights([r["name"] in pointed for r in rows], settings.levels)
     levels, significant = fallback_levels(
         [r["p_value"] for r in rows],
         [r["gain"] >= settings.min_gain and r["active"] for r in rows],
         level,
+        weights,
     )
     for i, (row, at, yes) in enumerate(zip(rows, levels, significant, strict=True)):
         row["order"] = i + 1

@@ -11,7 +11,7 @@ Shapes: Q particles of a set, N pairs, K parameters (:mod:`torchcf.typing`).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -66,6 +66,7 @@ def prior_particles(
     seed: int,
     fixed: Tensor | None = None,
     smc: SMCSettings | None = None,
+    progress: Callable[[float], None] | None = None,
 ) -> list[Particles]:
     """Paired ABC of one model (or variant) on the rollout's pairs: rejection, or
     with ``smc`` the sequential refinement at each budget.
@@ -82,16 +83,29 @@ def prior_particles(
         smc: the refinement's settings; result ``i`` is then the ``keep`` best per
             pair of an SMC run of ``budgets[i]`` proposals (its own run: an SMC
             run of a larger budget is not a continuation of a smaller one).
+        progress: called with the share of the largest budget each round of
+            rejection simulated (the shares sum to 1); SMC calls it once, at
+            the end.
     """
     model = get_model(name)
     if smc is not None:
-        return [
+        sets = [
             _refined_particles(model, rollout, budget, keep, bounds, seed, fixed, smc)
             for budget in budgets
         ]
+        if progress is not None:
+            progress(1.0)
+        return sets
     stream = prior_stream(model.name, bounds, seed, rollout)
     buffer = TopN(rollout.pairs.n_pairs, keep, model.n_params)
-    progress = ModelProgress()
+    streamed = ModelProgress()
+    total, reported = max(budgets), [0]
+
+    def after_round(state: ModelProgress, _due: bool) -> None:
+        if progress is not None:
+            progress((state.next - reported[0]) / total)
+            reported[0] = state.next
+
     sets = []
     for budget in budgets:
         run_rejection(
@@ -99,10 +113,11 @@ def prior_particles(
             buffer,
             rollout,
             budget,
-            progress,
+            streamed,
             model=model,
             fixed=fixed,
             plan_particles=min(budgets),
+            after_round=after_round,
         )
         sets.append(Particles.from_buffer(model.name, buffer, keep))
     return sets

@@ -497,6 +497,8 @@ def finish_loop(plan: LoopPlan) -> dict[str, Any]:
             "population": max(settings.population, plan.cfg.abc.top_n),
             "local_copies": settings.local_copies,
             "rounds": settings.rounds,
+            "refit_rounds": settings.refit_rounds,
+            "validation_warmup": settings.validation_warmup,
             "n_particles": settings.n_particles,
             "run_particles": plan.cfg.abc.n_particles,
             "n_train": plan.train_pairs.n_pairs,

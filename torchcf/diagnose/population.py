@@ -260,4 +260,42 @@ def pick_scores(population: Population, n: int, rollout: Rollout) -> Tensor:
     return torch.where(count > 0, median, math.inf)
 
 
-__all__ = ["Population", "merge", "pick_scores", "rescore", "score_on"]
+def population_dict(population: Population) -> dict:
+    """A population as a checkpoint keeps it (plain types and tensors)."""
+    return {
+        "models": list(population.models),
+        "model": population.model,
+        "theta": population.theta,
+        "score": population.score,
+        "index": population.index,
+    }
+
+
+def population_of(raw: dict) -> Population:
+    """The population :func:`population_dict` kept."""
+    return Population(
+        tuple(raw["models"]), raw["model"], raw["theta"], raw["score"], raw["index"]
+    )
+
+
+def particles_dict(particles: Particles) -> dict:
+    """A particle set as a checkpoint keeps it (``Particles(**kept)`` reads it)."""
+    return {
+        "model": particles.model,
+        "theta": particles.theta,
+        "pair": particles.pair,
+        "score": particles.score,
+        "index": particles.index,
+    }
+
+
+__all__ = [
+    "Population",
+    "merge",
+    "particles_dict",
+    "pick_scores",
+    "population_dict",
+    "population_of",
+    "rescore",
+    "score_on",
+]

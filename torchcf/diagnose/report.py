@@ -18,6 +18,7 @@ import numpy as np
 from ..evaluation.plots import loop_figures, save_figure
 from ..evaluation.report import METRIC_COLUMNS
 from ..files import ensure_directory
+from ..models.effects import parse_effect
 from ..rundir import RunDir
 from ..tblog import RunLogger
 
@@ -63,8 +64,10 @@ def loop_markdown(result: dict[str, Any], figures: dict[str, str]) -> str:
         *_signatures(result),
         *_steps(result, figures["effects"]),
         *_absorption(result),
+        *_recording(result),
         *_unexplained(result),
         *(_chosen(result) if result["chosen"] else _none_chosen()),
+        *_detectable(result),
         *_before_after(result, figures["before_after"]),
         *_residuals(result, figures["residuals"]),
         *_effort(result),
@@ -76,16 +79,35 @@ def _method(result: dict[str, Any]) -> list[str]:
     """How an effect is compared with its base, and why the p-value is valid."""
     search = result.get("search", {})
     levels = ", ".join(f"{level:.3g}" for level in result.get("levels", []))
-    by_pair = result.get("validation", "time") == "pairs"
-    if by_pair:
-        split = (
-            "The training pairs are split in two by a seeded draw: "
-            f"{result.get('fit_pairs', '?')} ({result['fit_fraction']:.0%}) are "
-            "the *fit pairs*, whole windows, the other "
-            f"{result.get('validation_units', '?')} the *held-out pairs*, which "
-            "no arm sees. The current model (at first the pool) is fitted on "
-            f"the fit pairs ({search.get('population', '?')} particles per pair)"
+    kind = result.get("validation", "time")
+    held_out = (
+        "The training pairs are split in two by a seeded draw: "
+        f"{result.get('fit_pairs', '?')} ({result['fit_fraction']:.0%}) are "
+        "the *fit pairs*, whole windows, the other "
+        f"{result.get('validation_units', '?')} the *held-out pairs*, which "
+        "no arm sees. The current model (at first the pool) is fitted on "
+        f"the fit pairs ({search.get('population', '?')} particles per pair)"
+    )
+    if kind == "refit":
+        split = held_out
+        judged = (
+            "Every held-out pair is then refitted by a short local search of "
+            f"its own ({search.get('refit_rounds', '?')} rounds), once from the "
+            "placebo's best particles without the effect and once from the "
+            "effect arm's with the effect pinned at the value the fit pairs "
+            "gave it (a driver effect: the median over the arm's picks; a "
+            "recording or road effect: its one value), the model's own "
+            "parameters free on both sides and the same random numbers: the "
+            "model class with the effect against the class without it, on "
+            "drivers no arm saw, whose own parameters are found for them. "
+            "*Gain* is the relative drop of the summed refitted score, the "
+            "p-value a one-sided sign-flip test of the per-pair log score "
+            "ratios. The held-out pairs are independent of one another and of "
+            "the fit given the fit pairs, and the effect's value was not chosen "
+            "on them"
         )
+    elif kind == "pairs":
+        split = held_out
         judged = (
             "Every held-out pair is scored by the best of the arm's best "
             "particles (the hybrid's picks), pooled over the fit pairs: the "
@@ -109,10 +131,18 @@ def _method(result: dict[str, Any]) -> list[str]:
             "first the pool) is fitted on the fit windows "
             f"({search.get('population', '?')} particles per pair)"
         )
+        warmup = search.get("validation_warmup") or 0.0
+        begun = (
+            f" (its rollout begun {warmup:g} s early from the recorded state, "
+            "the early steps unscored, so that a delay's or a lag's memory "
+            "enters it with the recorded history)"
+            if warmup > 0
+            else ""
+        )
         judged = (
             "Per pair, the arm's best particles (the hybrid's picks) "
-            "are scored on the validation window, out of sample; *gain* is the "
-            "relative drop of the summed validation score, the p-value a "
+            f"are scored on the validation window{begun}, out of sample; *gain* "
+            "is the relative drop of the summed validation score, the p-value a "
             "one-sided sign-flip test of the per-pair log score ratios. The "
             "pairs are independent and the arms saw only the fit windows"
         )
@@ -344,6 +374,94 @@ def _absorption(result: dict[str, Any]) -> list[str]:
     ]
 
 
+#: Per recording effect: its behavioural twin in equilibrium, and what data
+#: would tell the two apart (:func:`_recording`).
+RECORDING_READINGS = {
+    "offset": (
+        "a constant error of the recorded spacing and drivers who keep a "
+        "standstill gap that much longer (or shorter) give the same "
+        "equilibrium: an offset d_offset is a standstill gap -d_offset",
+        "a stop in the data (the gap at rest, which a sensor offset shifts and "
+        "a standstill gap sets), or a second measurement of the spacing (a "
+        "radar range beside the positions)",
+    ),
+    "sync": (
+        "a leader log running t ahead of the follower's, and drivers who keep a "
+        "time gap t longer and react t late, move the follower nearly alike: a "
+        "clock offset t_sync is a time gap +t_sync with a delay of the leader's "
+        "speed",
+        "a log known to be synchronised (both vehicles on one GPS time base), "
+        "or a second sensor on the follower (its own range to the leader, which "
+        "no clock offset between two logs touches)",
+    ),
+}
+
+
+def _recording(result: dict[str, Any]) -> list[str]:
+    """Each recording effect of step 1: its estimate, its interval, and, where
+    the pool takes it up, the behavioural reading with the sizes of both and
+    what would separate them."""
+    rows = [r for r in (result["steps"][0] if result["steps"] else [])]
+    rows = [r for r in rows if r["scope"] == "recording" and r.get("shared")]
+    if not rows:
+        return []
+    lines = [
+        "## Recording effects: the data's fault or the drivers' habit?",
+        "",
+        "A recording effect (one for the whole data set) has a behavioural "
+        "twin the pool can play itself; the profile says how much of it the "
+        "pool's own parameters took up (its steady state read at the fit "
+        "pairs' median speed, each pair's best particle at every fixed value). "
+        "Interval: 90 % of the pairs resampled put the profile's minimum "
+        "there.",
+        "",
+    ]
+    for row in rows:
+        name = row["name"]
+        (param, value), *_ = row["shared"]["value"].items()
+        interval = (row["shared"].get("interval") or {}).get(param)
+        reading, separation = RECORDING_READINGS.get(name, ("", ""))
+        verdict = (
+            "**chosen**"
+            if row.get("chosen")
+            else "significant"
+            if row["significant"]
+            else "not significant"
+        )
+        text = (
+            f"- **{name}**: {param} {fmt(value)}"
+            + (f" [{fmt(interval[0])}, {fmt(interval[1])}]" if interval else "")
+            + f"; held out {row['gain']:+.1%}, p {row['p_value']:.2g} at level "
+            f"{row['level']:.2g}: {verdict}."
+        )
+        found = row.get("absorbed_by") or {}
+        steady = found.get("steady")
+        if found:
+            text += (
+                f" Along its profile {found['model']}'s {found['parameter']} "
+                f"moves {fmt(found.get('slope'))} per unit (r "
+                f"{found['correlation']:+.2f}; shifted {fmt(found.get('shift'))} "
+                "at the value found)"
+                + (": **absorbed**" if found.get("absorbed") else "")
+                + "."
+            )
+        if steady:
+            text += (
+                f" The pool's equilibrium gap at {steady['speed']:.1f} m/s moves "
+                f"{fmt(steady['gap_slope'])} m (r {_signed(steady['gap_r'])}) and "
+                f"its time gap {fmt(steady['time_gap_slope'])} s (r "
+                f"{_signed(steady['time_gap_r'])}) per unit of {param}."
+            )
+        if reading:
+            text += f" In a user's terms: {reading}. To separate them: {separation}."
+        lines.append(text)
+    return [*lines, ""]
+
+
+def _signed(value: Any) -> str:
+    return "—" if value is None else f"{value:+.2f}"
+
+
 def _unexplained(result: dict[str, Any]) -> list[str]:
     """Structure still in the residual that no chosen effect explains."""
     items = result.get("unexplained") or []
@@ -445,6 +563,72 @@ def _identifiability(result: dict[str, Any]) -> list[str]:
         *rows,
         "",
     ]
+
+
+def _detectable(result: dict[str, Any]) -> list[str]:
+    """Per tested effect of the last step, the smallest size its test would
+    have found in these data (:mod:`torchcf.diagnose.power`)."""
+    steps = result.get("steps") or []
+    rows = [r for r in (steps[-1] if steps else []) if r.get("detectable")]
+    if not rows:
+        return []
+    last = len(steps)
+    given = result["chosen"][: last - 1]
+    lines = [
+        "## What these data could have shown",
+        "",
+        f"Step {last}"
+        + (f" (with {' + '.join(given)})" if given else "")
+        + " chose nothing more. Would its tests have found an effect that was "
+        "there? Per tested effect with a one-number size, the smallest size "
+        "at which its test passes, on these data: each validation unit "
+        "refitted with the effect fixed at the size against refitted without "
+        "it, from the same start with the same random numbers. A fit's profile "
+        "is symmetric near its best (fixing a parameter a distance off its best "
+        "costs about the same on either side), so that is what the test would "
+        "see if the data carried the effect at that size. Sizes tried: 1/64 to "
+        "all of the way from the neutral value to each end of the prior (a "
+        "grade: the amplitude of a profile whose knots alternate in sign); "
+        "'beyond the prior': not even at its end. *At its place*: at the level "
+        "the effect was tested at; *tested first*: at the step's first level, "
+        "had the residual pointed to it.",
+        "",
+        "| effect | neutral | at its place (level) | tested first (level) | "
+        "its test here |",
+        "|---|---|---|---|---|",
+    ]
+    for row in rows:
+        found = row["detectable"]
+        unit = found["unit"]
+        neutral = _neutral_text(row)
+        lines.append(
+            f"| {row['name']} | {neutral} | "
+            f"{_sides(found['at_level'], unit)} ({found['level']:.2g}) | "
+            f"{_sides(found['if_first'], unit)} ({found['first_level']:.2g}) | "
+            f"{row['gain']:+.1%}, p {row['p_value']:.2g} |"
+        )
+    return [*lines, ""]
+
+
+def _neutral_text(row: dict[str, Any]) -> str:
+    spec = parse_effect(row["effect"])
+    if len(spec.neutral) == 1:
+        return fmt(float(spec.neutral[0]))
+    return "0 (flat)"
+
+
+def _sides(sides: dict[str, float | None], unit: str) -> str:
+    """``>= 0.4 s`` / ``<= -1.5 m or >= 3 m`` / ``beyond the prior``."""
+    parts = []
+    for side, size in sides.items():
+        if size is None:
+            continue
+        sign = "<=" if side == "below" else ">="
+        parts.append(f"{sign} {fmt(size)}")
+    if not parts:
+        return "beyond the prior"
+    unit = unit.split(" ")[0]
+    return " or ".join(parts) + ("" if unit == "1" else f" {unit}")
 
 
 def _none_chosen() -> list[str]:

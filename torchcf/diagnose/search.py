@@ -257,6 +257,22 @@ def local_search(
     return population
 
 
+@dataclass(frozen=True)
+class Converging:
+    """Where a converging search stands after a round (what resumes it).
+
+    Attributes:
+        population: the population after ``rounds`` rounds.
+        rounds: rounds done.
+        calm: rounds in a row, up to the last, that lowered the pairs' summed
+            best score by less than :data:`CONVERGED`.
+    """
+
+    population: Population
+    rounds: int
+    calm: int
+
+
 def converge(
     population: Population,
     rollout: Rollout,
@@ -267,6 +283,8 @@ def converge(
     copies: int,
     max_rounds: int,
     progress: Callable[[], None] | None = None,
+    resume: Converging | None = None,
+    after_round: Callable[[Converging], None] | None = None,
 ) -> tuple[Population, int]:
     """Local search until it converges: rounds of :func:`local_search` until two
     rounds in a row lower the pairs' summed best score by less than
@@ -276,11 +294,18 @@ def converge(
     optimum gains from any change of its search (a redundant parameter moves
     it faster), which would pass for the effect.
 
+    Args:
+        resume: continue from this state (a round's random numbers are those
+            of its number, so the result is the uninterrupted search's).
+        after_round: called with the state after every round (a checkpoint).
+
     Returns:
         the population and the rounds it took.
     """
     shape = (population.n_pairs, population.size, copies)
     calm, rounds = 0, 0
+    if resume is not None:
+        population, rounds, calm = resume.population, resume.rounds, resume.calm
     cache: dict[str, Tensor] = {}
 
     def columns(name: str) -> Tensor:
@@ -299,6 +324,8 @@ def converge(
         calm = calm + 1 if before - after < CONVERGED * before else 0
         if progress is not None:
             progress()
+        if after_round is not None:
+            after_round(Converging(population, rounds, calm))
     return population, rounds
 
 
@@ -509,6 +536,7 @@ def effect_prior(effect: str) -> Tensor:
 
 __all__ = [
     "CONVERGED",
+    "Converging",
     "INVALID_RATIO",
     "LOCAL_SCALES",
     "SHARED_ROUNDS",

@@ -137,8 +137,43 @@ def fallback_weights(n_tests: int) -> list[float]:
     return [2.0 ** -(i + 1) / total for i in range(n_tests)]
 
 
+#: The ways a step's level is shared among its tests (``diagnose.levels``).
+LEVEL_SCHEMES = ("halving", "pointed", "equal")
+
+
+def level_weights(pointed: Sequence[bool], scheme: str = "halving") -> list[float]:
+    """Each test's share of its step's level, in the order of testing (they sum
+    to 1).
+
+    Args:
+        pointed: per test, whether a found residual signature points to its
+            effect (such tests come first in the order).
+        scheme: ``"halving"``: ``2^-i`` (:func:`fallback_weights`), the first
+            test half the level whatever pointed to it; ``"pointed"``: the
+            tests a signature points to share half the level equally, the
+            others the other half equally (all of it where none, or all, are
+            pointed to); ``"equal"``: ``1/E`` each (Bonferroni's shares).
+    """
+    n = len(pointed)
+    if n == 0:
+        return []
+    if scheme == "halving":
+        return fallback_weights(n)
+    if scheme == "equal":
+        return [1.0 / n] * n
+    if scheme != "pointed":
+        raise ValueError(f"unknown level scheme {scheme!r}; one of {LEVEL_SCHEMES}")
+    k = sum(pointed)
+    if k in (0, n):
+        return [1.0 / n] * n
+    return [0.5 / k if mark else 0.5 / (n - k) for mark in pointed]
+
+
 def fallback_levels(
-    p_values: Sequence[float], passes: Sequence[bool], alpha: float
+    p_values: Sequence[float],
+    passes: Sequence[bool],
+    alpha: float,
+    weights: Sequence[float] | None = None,
 ) -> tuple[list[float], list[bool]]:
     """The fallback procedure over tests in their order (module docstring).
 
@@ -148,6 +183,8 @@ def fallback_levels(
             ``diagnose.min_gain``); a test that fails it is not rejected and
             passes no level on.
         alpha: the step's level.
+        weights: each test's share of ``alpha`` (:func:`level_weights`;
+            default: :func:`fallback_weights`).
 
     Returns:
         the level each test was judged at, and whether it was rejected
@@ -155,7 +192,9 @@ def fallback_levels(
     """
     levels, rejected = [], []
     carried = 0.0
-    for w, p, ok in zip(fallback_weights(len(p_values)), p_values, passes, strict=True):
+    if weights is None:
+        weights = fallback_weights(len(p_values))
+    for w, p, ok in zip(weights, p_values, passes, strict=True):
         level = w * alpha + carried
         significant = bool(ok and p <= level)
         levels.append(level)
@@ -165,8 +204,10 @@ def fallback_levels(
 
 
 __all__ = [
+    "LEVEL_SCHEMES",
     "fallback_levels",
     "fallback_weights",
+    "level_weights",
     "paired_change",
     "sign_flip_test",
     "step_levels",

@@ -1,16 +1,17 @@
 """How the attribution judges an arm out of sample (``diagnose.validation``).
 
 An arm is fitted on one part of the training data and judged on another that
-its search never saw; two designs split the data:
+its search never saw; three designs split the data:
 
-- ``"time"`` (the default): every training pair is split in time
-  (:func:`split_in_time`). The arms are fitted on the first ``fit_fraction`` of
-  its steps (the *fit windows*); per pair, the arm's ``top_n`` best (the
-  hybrid's picks of that pair) are scored on the rest (the *validation window*,
-  begun from the observed state at the split, or earlier with
-  ``validation_warmup``: :class:`WarmedRollout`), and the pair's value is their
-  median (:func:`~torchcf.diagnose.population.pick_scores`). It asks: does the
-  fit of *this* driver carry forward in time?
+- ``"time"``: every training pair is split in time (:func:`split_in_time`).
+  The arms are fitted on the first ``fit_fraction`` of its steps (the *fit
+  windows*); per pair, the arm's ``top_n`` best (the hybrid's picks of that
+  pair) are scored on the rest (the *validation window*, begun from the
+  observed state at the split, or earlier with ``validation_warmup``, the
+  early steps unscored, so that a memory effect enters it with the recorded
+  history: :class:`WarmedRollout`), and the pair's value is their median
+  (:func:`~torchcf.diagnose.population.pick_scores`). It asks: does the fit of
+  *this* driver carry forward in time?
 - ``"pairs"``: the training pairs are split in two by a seeded draw
   (:func:`split_by_pair`): the arms are fitted on the whole windows of
   ``fit_fraction`` of them (the *fit pairs*); every other pair (a *held-out
@@ -20,7 +21,16 @@ its search never saw; two designs split the data:
   cover drivers it has not seen? Pairs, not windows, are then the units of the
   sign-flip test; they are independent of the fit given the fit pairs, so the
   test is exact as in the time design.
-- ``"auto"`` (the default): ``"pairs"`` where the held-out pairs are enough
+- ``"refit"``: the split of ``"pairs"``, but every held-out pair is refitted
+  by a short local search of its own, from the placebo's picks without the
+  effect and from the effect arm's picks with it (pinned at the value the fit
+  pairs gave; common random numbers: :mod:`torchcf.diagnose.refit`), and the
+  two refits' scores compared. It asks whether the model *class* with the
+  effect fits drivers it has not seen better, where ``"pairs"`` asks whether
+  the arm's few hundred particles happen to lie near them: with drivers who
+  differ, as measured drivers do, that is ruled by how sparse the particles
+  are, not by the effect.
+- ``"auto"`` (the default): ``"refit"`` where the held-out pairs are enough
   for the test, else ``"time"`` (:func:`resolve_validation`). A sign-flip test
   over V units cannot give a p-value below ``2^-V`` (all V drops positive), and
   the test's own resolution is ``1 / (permutations + 1)``; the held-out pairs
@@ -50,6 +60,7 @@ from ..data import PairSet
 from ..models import get_model
 from .candidates import attribution_rollout
 from .population import Population, pick_scores
+from .refit import Pin, RefitBudget, candidates, refit_paired, refit_scores
 from .series import DiagnoseError
 
 #: Shortest out-of-sample window that counts for a pair [steps].
@@ -208,7 +219,7 @@ def fit_part(
     arms are judged on."""
     settings = cfg.diagnose
     n_pairs = len(next(iter(series.values()), []))
-    if resolve_validation(settings, n_pairs) == "pairs":
+    if held_out(resolve_validation(settings, n_pairs)):
         fit, _ = pair_split(n_pairs, settings.fit_fraction, seed)
         kept = fit.tolist()
         return {key: [arrays[i] for i in kept] for key, arrays in series.items()}
@@ -245,7 +256,7 @@ def held_out_count(n_pairs: int, fraction: float) -> int:
 
 def resolve_validation(settings: DiagnoseConfig, n_pairs: int) -> str:
     """``diagnose.validation``, with ``"auto"`` resolved (module docstring):
-    ``"pairs"`` when the held-out pairs reach the sign-flip test's resolution
+    ``"refit"`` when the held-out pairs reach the sign-flip test's resolution
     (``2^-V <= 1 / (permutations + 1)``) and no warm-up asks for windows in
     time, else ``"time"``."""
     if settings.validation != "auto":
@@ -254,7 +265,12 @@ def resolve_validation(settings: DiagnoseConfig, n_pairs: int) -> str:
         return "time"
     enough = math.ceil(math.log2(settings.permutations + 1))
     held = held_out_count(n_pairs, settings.fit_fraction)
-    return "pairs" if held >= enough else "time"
+    return "refit" if held >= enough else "time"
+
+
+def held_out(kind: str) -> bool:
+    """Whether a design judges on held-out pairs (``"pairs"``, ``"refit"``)."""
+    return kind in ("pairs", "refit")
 
 
 @dataclass(frozen=True)
@@ -262,13 +278,21 @@ class Validation:
     """Out-of-sample scores of an arm (module docstring).
 
     Attributes:
-        kind: ``"time"`` (validation windows of the fit pairs) or ``"pairs"``
-            (held-out pairs).
+        kind: ``"time"`` (validation windows of the fit pairs), ``"pairs"``
+            (held-out pairs, the pooled picks' coverage) or ``"refit"``
+            (held-out pairs, each refitted).
         rollout: simulates on the validation windows, or on the held-out pairs.
+        budget: a validation unit's refit (the test of ``"refit"``; the
+            profile of :meth:`Judge.profile` in every design).
+        priors: the run's prior box (K, 2) per pool model.
+        seed: the attribution's seed (the refits' random numbers).
     """
 
-    kind: Literal["time", "pairs"]
+    kind: Literal["time", "pairs", "refit"]
     rollout: Rollout
+    budget: RefitBudget | None = None
+    priors: dict[str, Tensor] = dataclasses.field(default_factory=dict)
+    seed: int = 0
 
     @property
     def n_units(self) -> int:
@@ -283,10 +307,108 @@ class Validation:
 
     def scores(self, population: Population, n: int) -> np.ndarray:
         """(U,) float64, one value per validation unit (a fit pair's validation
-        window, or a held-out pair); ``+inf`` where invalid."""
+        window, or a held-out pair covered by the pooled picks); ``+inf`` where
+        invalid. Not for ``"refit"``, which scores two arms together
+        (:meth:`judge`)."""
         if self.kind == "time":
             return pick_scores(population, n, self.rollout).numpy()
-        return coverage_scores(population, n, self.rollout).numpy()
+        if self.kind == "pairs":
+            return coverage_scores(population, n, self.rollout).numpy()
+        raise ValueError("a refit judges an arm against the placebo: use judge()")
+
+    def refit(
+        self,
+        members: dict[str, Tensor],
+        step: int,
+        shared: dict[str, Tensor],
+        pin: Pin | None = None,
+    ) -> np.ndarray:
+        """(V,) float64 each held-out pair's score after its refit from the
+        candidates ``members`` (:func:`~torchcf.diagnose.refit.candidates`),
+        with the effect ``pin`` held at its value (None: without)."""
+        if self.budget is None:
+            raise ValueError("a refit needs its budget")
+        key = (self.seed, "refit", step)
+        return refit_scores(
+            members, self.rollout, self.budget, self.priors, shared, key, pin
+        ).numpy()
+
+    def judge(
+        self,
+        placebo: Population,
+        n: int,
+        step: int,
+        shared: dict[str, Tensor] | None = None,
+    ) -> Judge:
+        """The step's judge of effect arms against its placebo arm."""
+        shared = dict(shared or {})
+        if self.kind == "refit":
+            before = self.refit(candidates(placebo, n, {}, self.seed), step, shared)
+        else:
+            before = self.scores(placebo, n)
+        return Judge(self, placebo, n, step, shared, before)
+
+
+@dataclass(frozen=True)
+class Judge:
+    """Judges the effect arms of one step against its placebo arm.
+
+    Attributes:
+        validation: the design.
+        placebo: the step's placebo arm.
+        n: picks per pair (``abc.top_n``).
+        step: the step (its refits' random numbers).
+        shared: per chosen shared effect, its value (pinned on both sides).
+        before: the placebo's scores per unit (a refit's: each held-out pair
+            refitted from the placebo's picks, without the effect).
+    """
+
+    validation: Validation
+    placebo: Population
+    n: int
+    step: int
+    shared: dict[str, Tensor]
+    before: np.ndarray
+
+    def __call__(
+        self, arm: Population, lifted_from: dict[str, str], pin: Pin | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(U,) float64 each: the scores per unit without and with the effect.
+
+        Args:
+            arm: the effect arm.
+            lifted_from: per variant carrying the effect, the current model it
+                was lifted from.
+            pin: the effect at the value the fit pairs gave it (``"refit"``;
+                None for the others, which score the arm's own particles).
+        """
+        v = self.validation
+        if v.kind != "refit":
+            return self.before, v.scores(arm, self.n)
+        if pin is None:
+            raise ValueError("a refit needs the effect's value")
+        mine = candidates(arm, self.n, lifted_from, v.seed)
+        return self.before, v.refit(mine, self.step, self.shared, pin)
+
+    def profile(self, pin: Pin | None) -> np.ndarray:
+        """(U,) float64 every validation unit refitted from the placebo's picks,
+        the effect ``pin`` held at its value (None: without it), with the step's
+        random numbers: held-out pairs from the pooled picks (``"refit"``,
+        ``"pairs"``), a pair's validation window from its own picks
+        (``"time"``). The profile of the placebo's model class over the effect
+        (:mod:`torchcf.diagnose.power`)."""
+        v = self.validation
+        budget = v.budget or RefitBudget(self.n, 16, 6)
+        key = (v.seed, "profile", self.step)
+        if v.kind == "time":
+            scores = refit_paired(
+                self.placebo, v.rollout, budget, v.priors, self.shared, key, pin
+            )
+            return scores.numpy()
+        members = candidates(self.placebo, self.n, {}, v.seed)
+        return refit_scores(
+            members, v.rollout, budget, v.priors, self.shared, key, pin
+        ).numpy()
 
 
 def design(
@@ -295,17 +417,33 @@ def design(
     """The fit rollout and the :class:`Validation` of ``diagnose.validation``
     (``"auto"`` resolved by :func:`resolve_validation`)."""
     settings = cfg.diagnose
-    if resolve_validation(settings, train_pairs.n_pairs) == "pairs":
+    kind = resolve_validation(settings, train_pairs.n_pairs)
+    budget = refit_budget(settings, cfg.abc.top_n)
+    priors = {spec.name: spec.bounds(torch.float64) for spec in cfg.models}
+    if held_out(kind):
         fit, held = split_by_pair(train_pairs, settings.fit_fraction, seed)
         return attribution_rollout(cfg, fit), Validation(
-            "pairs", attribution_rollout(cfg, held)
+            kind, attribution_rollout(cfg, held), budget, priors, seed
         )
     fit, window = split_in_time(train_pairs, settings.fit_fraction)
     rollout = validation_rollout(cfg, train_pairs) or attribution_rollout(cfg, window)
-    return attribution_rollout(cfg, fit), Validation("time", rollout)
+    return attribution_rollout(cfg, fit), Validation(
+        "time", rollout, budget, priors, seed
+    )
+
+
+def refit_budget(settings: DiagnoseConfig, top_n: int) -> RefitBudget:
+    """A held-out pair's refit: ``top_n`` particles, ``local_copies / 2``
+    copies, ``refit_rounds`` rounds."""
+    return RefitBudget(
+        slots=top_n,
+        copies=max(1, settings.local_copies // 2),
+        rounds=settings.refit_rounds,
+    )
 
 
 __all__ = [
+    "Judge",
     "MIN_PAIRS",
     "MIN_VALIDATION_STEPS",
     "Validation",
@@ -313,7 +451,9 @@ __all__ = [
     "coverage_scores",
     "design",
     "fit_part",
+    "held_out",
     "held_out_count",
+    "refit_budget",
     "pair_split",
     "resolve_validation",
     "split_by_pair",

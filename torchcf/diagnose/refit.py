@@ -1,0 +1,277 @@
+"""Held-out pairs refitted: the model class judged on drivers no arm saw.
+
+``diagnose.validation = "refit"`` (:mod:`torchcf.diagnose.validation`). The
+arms are fitted on the *fit pairs*; each *held-out pair* is then refitted by a
+short local search of its own, once without the effect and once with it, and
+the two refits' scores on that pair are compared:
+
+- **each side from its own arm**: the *candidates* of the side without the
+  effect are the placebo arm's picks (each fit pair's ``top_n`` best), those
+  of the side with it the effect arm's picks (:func:`candidates`); at most
+  :data:`REFIT_CANDIDATES` of each, so that the cost stays linear in the
+  pairs. Every candidate is scored on every held-out pair, and a pair starts
+  from its ``slots`` best. The two arms had equal search budgets on the fit
+  pairs, so neither side starts better placed but by the effect;
+- **the effect pinned**: the side with the effect lifts every candidate to
+  ``m+E`` with E at one value learned on the fit pairs (a driver effect's
+  estimate, the median over the arm's picks that carry it; a shared effect's
+  one value: :func:`lifted`) and never moves it; the refit moves the model's
+  own parameters only, as the side without it does. Both sides have the same
+  free parameters on the held-out pair, and E's value was not chosen on it
+  (an arm's picks with their own values of E would let the held-out pair
+  choose among them: a fit of E on the pair itself);
+- **common random numbers**: both refits draw their steps from one key by
+  slot (:class:`~torchcf.diagnose.search.Noise`).
+
+What the comparison asks: fitted to a driver it has not seen, does the model
+with E (at the value the other drivers gave) fit that driver better than the
+model without it? The pooled picks' coverage of new drivers (``"pairs"``) asks
+instead whether the arm's few hundred particles happen to lie near them, which
+with drivers who differ is ruled by how sparse the particles are in six
+dimensions, not by the effect.
+
+Shapes: N fit pairs, V held-out pairs, S slots, Q candidates, K parameters
+(:mod:`torchcf.typing`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..abc.particles import Particles
+from ..abc.rejection import Rollout
+from ..models import get_model
+from ..models.effects import parse_effect
+from .population import Population, merge, rescore
+from .search import Noise, generator, lift, local_search, model_bounds, variant_of
+
+#: Candidates a held-out pair's refit starts from, at most (the placebo's and
+#: the effect arm's picks pooled; subsampled by fit pair beyond it), so that
+#: scoring them on every held-out pair costs the same per pair whatever the
+#: number of fit pairs.
+REFIT_CANDIDATES = 600
+
+
+@dataclass(frozen=True)
+class RefitBudget:
+    """The local search of a held-out pair's refit.
+
+    Attributes:
+        slots: S, the particles each held-out pair keeps and searches from.
+        copies: perturbed copies of each per round.
+        rounds: rounds of the search.
+    """
+
+    slots: int
+    copies: int
+    rounds: int
+
+
+@dataclass(frozen=True)
+class Pin:
+    """An effect held at one value on the held-out pairs.
+
+    Attributes:
+        effect: the effect's token.
+        value: (K_E,) float64 its parameters, in the effect's order.
+    """
+
+    effect: str
+    value: Tensor
+
+
+def candidates(
+    population: Population,
+    n: int,
+    current: Mapping[str, str],
+    seed: int,
+    cap: int = REFIT_CANDIDATES,
+) -> dict[str, Tensor]:
+    """An arm's picks, each as its current model.
+
+    Args:
+        population: the arm (the placebo, or an effect arm).
+        n: picks per fit pair (``abc.top_n``).
+        current: per model of the population, the current model it descends
+            from (itself for a current model; ``m`` for ``m+E``).
+        seed: draws which fit pairs give candidates when there are more than
+            ``cap`` of them (the same fit pairs for every arm).
+        cap: candidates at most.
+
+    Returns:
+        per current model, (Q_m, K_m) float64 parameters: the effect's own
+        dropped, exact repeats removed.
+    """
+    n_pairs = population.n_pairs
+    per_pair = max(1, min(n, cap // max(1, n_pairs)))
+    keep = torch.arange(n_pairs)
+    if n_pairs * per_pair > cap:
+        order = torch.randperm(n_pairs, generator=generator(seed, "refit-candidates"))
+        keep = torch.sort(order[:cap]).values
+    parts: dict[str, list[Tensor]] = {}
+    picks = population.best(per_pair)
+    for name in picks.models:
+        pair, slot = picks.model_slots(name)
+        chosen = torch.isin(pair, keep)
+        if not bool(chosen.any()):
+            continue
+        parent = current.get(name, name)
+        own = get_model(name).param_names
+        columns = [own.index(p) for p in get_model(parent).param_names]
+        theta = picks.theta[pair[chosen], slot[chosen]][:, columns]
+        parts.setdefault(parent, []).append(theta)
+    return {
+        name: torch.unique(torch.cat(thetas), dim=0) for name, thetas in parts.items()
+    }
+
+
+def lifted(candidates: Mapping[str, Tensor], pin: Pin) -> dict[str, Tensor]:
+    """Every candidate as ``m+E`` with E at ``pin.value`` (K_E,); a model the
+    effect cannot wrap (``lag`` on HL) stays as it is."""
+    names = [p.name for p in parse_effect(pin.effect).param_specs]
+    out = {}
+    for name, theta in candidates.items():
+        variant = variant_of(name, pin.effect)
+        if variant is None:
+            out[name] = theta
+            continue
+        own = get_model(name).param_names
+        columns = [
+            pin.value[names.index(p)].expand(theta.shape[0]).to(torch.float64)
+            if p in names
+            else theta[:, own.index(p)]
+            for p in get_model(variant).param_names
+        ]
+        out[variant] = torch.stack(columns, dim=1)
+    return out
+
+
+def start(candidates: Mapping[str, Tensor], rollout: Rollout, slots: int) -> Population:
+    """Per held-out pair of ``rollout``, its ``slots`` best candidates (every
+    candidate scored on every pair: the rollout's full layout)."""
+    every = dataclasses.replace(rollout, paired=False)
+    n_held = rollout.pairs.n_pairs
+    sets, index = [], 0
+    for name, theta in candidates.items():
+        if theta.shape[0] == 0:
+            continue
+        score, _ = every.score(get_model(name), theta, None)  # (Q, V)
+        q = theta.shape[0]
+        sets.append(
+            Particles(
+                name,
+                theta.repeat_interleave(n_held, dim=0),
+                torch.arange(n_held).repeat(q),
+                score.cpu().double().reshape(-1),
+                (index + torch.arange(q)).repeat_interleave(n_held),
+            )
+        )
+        index += q
+    return Population.from_particles(sets, n_held, slots)
+
+
+def refit_paired(
+    population: Population,
+    rollout: Rollout,
+    budget: RefitBudget,
+    priors: Mapping[str, Tensor],
+    shared: Mapping[str, Tensor],
+    key: tuple,
+    pin: Pin | None = None,
+) -> Tensor:
+    """(N,) float64 each pair's best score after a refit on ``rollout``'s pairs
+    (the same pairs as ``population``'s, in order: a pair's validation window),
+    from its own ``budget.slots`` best particles (current models), with the
+    effect ``pin`` held at its value (None: without); ``+inf`` where none is
+    valid. The twin of :func:`refit_scores` for windows in time."""
+    members = population.best(budget.slots)
+    current = {name: get_model(name).param_names for name in members.models}
+    parents = {name: name for name in members.models}
+    if pin is not None:
+        members, lifted_from = lift(members, pin.effect, pin.value)
+        parents |= lifted_from
+    members = merge([rescore(members, rollout)], budget.slots)
+    return _searched(
+        members, rollout, budget, priors, shared, key, pin, current, parents
+    )
+
+
+def refit_scores(
+    candidates: Mapping[str, Tensor],
+    rollout: Rollout,
+    budget: RefitBudget,
+    priors: Mapping[str, Tensor],
+    shared: Mapping[str, Tensor],
+    key: tuple,
+    pin: Pin | None = None,
+) -> Tensor:
+    """(V,) float64 each held-out pair's best score after its refit (``+inf``:
+    no valid particle).
+
+    Args:
+        candidates: the current models' candidates (:func:`candidates`).
+        rollout: simulates on the held-out pairs.
+        priors: the run's prior box (K, 2) per pool model.
+        shared: per chosen shared effect, its one value (pinned on both sides).
+        key: the refit's random numbers (the same for both sides).
+        pin: the effect and its value (None: the side without it).
+    """
+    current = {name: get_model(name).param_names for name in candidates}
+    members = candidates if pin is None else lifted(candidates, pin)
+    parents = {name: name for name in candidates}
+    if pin is not None:
+        parents |= {variant_of(m, pin.effect) or m: m for m in candidates}
+    population = start(members, rollout, budget.slots)
+    return _searched(
+        population, rollout, budget, priors, shared, key, pin, current, parents
+    )
+
+
+def _searched(
+    population: Population,
+    rollout: Rollout,
+    budget: RefitBudget,
+    priors: Mapping[str, Tensor],
+    shared: Mapping[str, Tensor],
+    key: tuple,
+    pin: Pin | None,
+    current: dict[str, tuple[str, ...]],
+    parents: dict[str, str],
+) -> Tensor:
+    """(V,) the best score per pair of ``population`` after ``budget.rounds``
+    rounds of local search within the priors, the chosen shared effects and
+    ``pin`` held at their values (``+inf``: no valid particle)."""
+    pinned = dict(shared)
+    if pin is not None:
+        pinned[parse_effect(pin.effect).name] = pin.value
+    bounds = {m: model_bounds(m, dict(priors), pinned) for m in population.models}
+    noise = Noise(key, current, pin.effect if pin is not None else None)
+    if budget.rounds > 0:
+        population = local_search(
+            population,
+            rollout,
+            bounds,
+            noise,
+            parents,
+            rounds=budget.rounds,
+            copies=budget.copies,
+        )
+    return torch.where(population.filled[:, 0], population.score[:, 0], math.inf)
+
+
+__all__ = [
+    "REFIT_CANDIDATES",
+    "Pin",
+    "RefitBudget",
+    "candidates",
+    "lifted",
+    "refit_paired",
+    "refit_scores",
+    "start",
+]
