@@ -55,7 +55,7 @@ from torchcf.diagnose.signatures import (
     signatures,
     simulated_covariates,
 )
-from torchcf.diagnose.testing import fallback_weights
+from torchcf.diagnose.testing import comparable, fallback_weights
 from torchcf.models import get_model
 from torchcf.models.effects import EFFECTS, parse_effect
 from torchcf.posterior import Posterior
@@ -433,6 +433,14 @@ def test_an_offset_is_absorbed_by_the_standstill_gap():
     assert found["correlation"] > 0.9
     assert found["slope"] == pytest.approx(1.0, abs=0.25)
     assert len(found["profile"]["values"]) >= len(profile_values("offset"))
+
+
+def test_an_invalid_side_counts_as_a_large_loss_not_a_dropped_pair():
+    before = np.array([1.0, 2.0, np.inf, np.inf, 4.0])
+    after = np.array([0.5, np.inf, 3.0, np.inf, 0.0])
+    usable, b, a = comparable(before, after, 10.0)
+    assert usable.tolist() == [True, True, True, False, False]
+    assert b[:3].tolist() == [1.0, 2.0, 30.0] and a[:3].tolist() == [0.5, 20.0, 3.0]
 
 
 def test_a_shared_value_is_refined_between_the_values_tried():

@@ -86,3 +86,24 @@ def test_every_row_with_a_size_gets_its_detectable_sizes():
     assert delay["unit"] == "s" and delay["at_level"]["above"] is not None
     assert set(offset["if_first"]) == {"below", "above"}
     assert offset["tried"]["below"] and offset["tried"]["above"]
+
+
+class CollidingJudge(CostlyJudge):
+    """Beyond half the prior every rollout of every unit collides (``inf``)."""
+
+    def profile(self, pin):
+        scores = super().profile(pin)
+        if pin is not None and float(pin.value.abs().max()) > 1.5:
+            return np.full(UNITS, np.inf)
+        return scores
+
+
+def test_a_size_that_makes_every_rollout_collide_counts_as_a_loss():
+    """A unit whose refit with the effect has no valid rollout is a loss there
+    (an invalid side counts INVALID_RATIO times the valid one), not a unit
+    left out: such a size is detectable."""
+    judge = CollidingJudge(slope=1e-4)  # no gain anywhere before the collisions
+    ladder = Ladder(judge, "delay", judge.profile(None), permutations=2000)
+    assert ladder.smallest("above", level=0.01, min_gain=0.05) == pytest.approx(3.0)
+    top = ladder.rung("above", len(LADDER) - 1)
+    assert top.gain == pytest.approx(0.9) and top.p_value < 0.01

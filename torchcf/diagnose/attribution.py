@@ -88,9 +88,16 @@ from .population import Population, population_dict, population_of
 from .power import detectable_sizes
 from .refit import Pin
 from .road import one_step_residual
+from .search import INVALID_RATIO
 from .series import BestParticles, residual_series
 from .signatures import Signature, pointed_effects, signatures
-from .testing import fallback_levels, level_weights, sign_flip_test, step_levels
+from .testing import (
+    comparable,
+    fallback_levels,
+    level_weights,
+    sign_flip_test,
+    step_levels,
+)
 from .validation import Judge
 from .workers import ArmPool, worker_count
 from .workers import tick as worker_tick
@@ -114,8 +121,10 @@ def _fit_statistic(population: Population, n: int) -> Tensor:
 
 def _relative_drop(before: np.ndarray, after: np.ndarray) -> tuple[float, np.ndarray]:
     """The relative drop of the summed score and the per-pair log ratios, over the
-    pairs finite on both sides."""
-    usable = np.isfinite(before) & np.isfinite(after) & (after > 0) & (before > 0)
+    pairs valid on at least one side (:func:`~torchcf.diagnose.testing.
+    comparable`: an invalid side counts :data:`~torchcf.diagnose.search.
+    INVALID_RATIO` times the valid one)."""
+    usable, before, after = comparable(before, after, INVALID_RATIO)
     if not usable.any():
         return 0.0, np.empty(0)
     gain = float((before[usable] - after[usable]).sum() / before[usable].sum())
@@ -176,7 +185,9 @@ def effect_row(
     placebo_validation, after = judge(result.population, result.lifted_from, pin)
     gain, drops = _relative_drop(placebo_validation, after)
     statistic, p_value = sign_flip_test(drops, arena.settings.permutations)
-    usable = np.isfinite(placebo_validation) & np.isfinite(after)
+    usable, placebo_validation, after = comparable(
+        placebo_validation, after, INVALID_RATIO
+    )
     spec = parse_effect(effect)
     row: dict[str, Any] = {
         "name": spec.name,

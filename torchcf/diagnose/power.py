@@ -44,7 +44,8 @@ from torch import Tensor
 
 from ..models.effects import Grade, parse_effect
 from .refit import Pin
-from .testing import sign_flip_test
+from .search import INVALID_RATIO
+from .testing import comparable, sign_flip_test
 from .validation import Judge
 
 #: The sizes tried, as shares of the way from the neutral value to each end of
@@ -148,7 +149,9 @@ class Ladder:
 
 
 def _rung(size: float, before: np.ndarray, after: np.ndarray, perms: int) -> Rung:
-    usable = np.isfinite(before) & np.isfinite(after) & (before > 0) & (after > 0)
+    # a size at which every rollout of a unit collides is a loss there, not a
+    # unit left out (testing.comparable)
+    usable, before, after = comparable(before, after, INVALID_RATIO)
     if not usable.any():
         return Rung(size, 0.0, 1.0)
     drops = np.log(after[usable] / before[usable])

@@ -122,6 +122,29 @@ def paired_change(
     }
 
 
+def comparable(
+    before: np.ndarray, after: np.ndarray, invalid_ratio: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Two sides' scores per unit made comparable: where one side has no valid
+    rollout (``inf``: every particle collided or left the road) and the other
+    has, the invalid side counts ``invalid_ratio`` times the valid one (a loss
+    as large as the search counts it, not a unit dropped: an effect that makes
+    every rollout of a pair collide must lose there, and one that rescues a
+    pair must win); units invalid on both sides, or not positive, are left out.
+
+    Returns:
+        the usable units' mask (U,), and both sides over all units (U,) with
+        the invalid side replaced.
+    """
+    before = np.asarray(before, dtype=np.float64)
+    after = np.asarray(after, dtype=np.float64)
+    finite_b, finite_a = np.isfinite(before), np.isfinite(after)
+    before = np.where(~finite_b & finite_a, invalid_ratio * after, before)
+    after = np.where(~finite_a & finite_b, invalid_ratio * before, after)
+    usable = np.isfinite(before) & np.isfinite(after) & (before > 0) & (after > 0)
+    return usable, before, after
+
+
 def step_levels(alpha: float, steps: int) -> list[float]:
     """The level of each forward-selection step: ``alpha / 2, alpha / 4, ...``,
     the last step the rest (they sum to ``alpha``)."""
@@ -205,6 +228,7 @@ def fallback_levels(
 
 __all__ = [
     "LEVEL_SCHEMES",
+    "comparable",
     "fallback_levels",
     "fallback_weights",
     "level_weights",
