@@ -415,7 +415,7 @@ def _needed(seeds: int) -> int:
 
 
 def _median(values: list[float]) -> float:
-    return float(torch.tensor(values, dtype=torch.float64).median())
+    return float(torch.tensor(values, dtype=torch.float64).quantile(0.5))
 
 
 def _fmt(value) -> str:
