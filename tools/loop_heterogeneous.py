@@ -477,7 +477,8 @@ def main(argv: list[str] | None = None) -> int:
         power(args.effects, args.pairs, args.seeds, diagnose, done, save)
         return 0
     done = {(r["case"], r["seed"]): r for r in earlier.get("runs", [])}
-    runs = []
+    grid = {(name, seed) for seed in range(args.seeds) for name in args.cases}
+    runs = [r for key, r in done.items() if key not in grid]  # other cases kept
     for seed in range(args.seeds):
         for name in args.cases:
             row = done.get((name, seed)) or run_case(name, seed, diagnose=diagnose)
