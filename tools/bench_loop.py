@@ -122,15 +122,20 @@ def config(data: Path, n_particles: int, threads: int, path: Path) -> Path:
     return path
 
 
+def clear_loop(run: Path) -> None:
+    """Remove a run's loop folder and reports: the next loop starts from nothing."""
+    for stale in ("loop", "loop.json", "loop.md"):
+        target = run / stale
+        if target.is_dir():
+            shutil.rmtree(target)
+        elif target.exists():
+            target.unlink()
+
+
 def time_loop(run: Path, threads: int, repeats: int) -> tuple[list[float], dict]:
     times = []
     for _ in range(repeats):
-        for stale in ("loop", "loop.json", "loop.md"):
-            target = run / stale
-            if target.is_dir():
-                shutil.rmtree(target)
-            elif target.exists():
-                target.unlink()
+        clear_loop(run)
         began = time.perf_counter()
         subprocess.run(
             [sys.executable, "-m", "torchcf.diagnose", str(run),

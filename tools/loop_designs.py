@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_loop import config, measured_data  # noqa: E402
+from bench_loop import clear_loop, config, measured_data  # noqa: E402
 from bench_sim import bench_meta, write_report  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
@@ -40,12 +40,7 @@ def run_design(run: Path, design: str, out: Path, threads: int) -> dict:
     if (out / "loop.json").exists():
         seconds = json.loads((out / "seconds.json").read_text())
         return {**json.loads((out / "loop.json").read_text()), **seconds}
-    for stale in ("loop", "loop.json", "loop.md"):
-        target = run / stale
-        if target.is_dir():
-            shutil.rmtree(target)
-        elif target.exists():
-            target.unlink()
+    clear_loop(run)
     began = time.perf_counter()
     subprocess.run(
         [sys.executable, "-m", "torchcf.diagnose", str(run), "--threads",
