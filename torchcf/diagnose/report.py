@@ -271,13 +271,7 @@ def _signatures(result: dict[str, Any]) -> list[str]:
                     f"- {mark['signature']} -> {effect}: not a candidate here."
                 )
                 continue
-            verdict = (
-                "**chosen**"
-                if row.get("chosen")
-                else "significant"
-                if row["significant"]
-                else "not significant"
-            )
+            verdict = _verdict(row)
             trace.append(
                 f"- {mark['signature']} ({fmt(mark['mean'])} {mark['unit']}) -> "
                 f"`{row['effect']}`: tested {_ordinal(row['order'])}, gain "
@@ -397,6 +391,13 @@ RECORDING_READINGS = {
 }
 
 
+def _verdict(row: dict[str, Any]) -> str:
+    """A tested effect's verdict in words."""
+    if row.get("chosen"):
+        return "**chosen**"
+    return "significant" if row["significant"] else "not significant"
+
+
 def _recording(result: dict[str, Any]) -> list[str]:
     """Each recording effect of step 1: its estimate, its interval, and, where
     the pool takes it up, the behavioural reading with the sizes of both and
@@ -421,13 +422,7 @@ def _recording(result: dict[str, Any]) -> list[str]:
         (param, value), *_ = row["shared"]["value"].items()
         interval = (row["shared"].get("interval") or {}).get(param)
         reading, separation = RECORDING_READINGS.get(name, ("", ""))
-        verdict = (
-            "**chosen**"
-            if row.get("chosen")
-            else "significant"
-            if row["significant"]
-            else "not significant"
-        )
+        verdict = _verdict(row)
         text = (
             f"- **{name}**: {param} {fmt(value)}"
             + (f" [{fmt(interval[0])}, {fmt(interval[1])}]" if interval else "")
