@@ -7,6 +7,7 @@ function-level import that dodges a cycle counts too), not by importing.
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -243,3 +244,20 @@ def test_a_delegate_is_excused_only_for_its_command_in_main(tmp_path):
     path.write_text("from .cli.evaluate import main\n")
     assert _imports("torchcf.evaluate", path, known) == {"torchcf.cli.evaluate"}
     assert "torchcf.cli.evaluate" not in _graph()["torchcf.evaluate"]
+
+
+def test_every_numeric_option_of_a_tool_is_checked():
+    """The tools take numbers through the checked types of
+    :mod:`torchcf.console` (``count``, ``positive``...): a bare ``type=int`` or
+    ``type=float`` lets ``-3`` or ``nan`` through to a traceback deep in the
+    run. (The ``torchcf`` commands check theirs where the library reads them,
+    each with its one-line message: tests/cli/test_bad_input.py.)"""
+    bare = re.compile(r"\btype=(int|float)\b")
+    places = sorted(ROOT.parent.joinpath("tools").glob("*.py"))
+    found = [
+        f"{path.relative_to(ROOT.parent)}:{number}"
+        for path in places
+        for number, line in enumerate(path.read_text().splitlines(), 1)
+        if bare.search(line)
+    ]
+    assert not found, f"unchecked numeric options: {found}"

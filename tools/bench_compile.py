@@ -35,6 +35,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
+from torchcf.console import count  # noqa: E402
+
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
 PARTICLES = 1 << 18
 
@@ -137,9 +139,9 @@ def markdown(payload: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", nargs="+", default=["idm", "hl", "llctg"])
-    parser.add_argument("--blocks", nargs="+", type=int, default=[16, 8, 4, 1])
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--particles", type=int, default=PARTICLES, help="per call")
+    parser.add_argument("--blocks", nargs="+", type=count, default=[16, 8, 4, 1])
+    parser.add_argument("--threads", type=count, default=2)
+    parser.add_argument("--particles", type=count, default=PARTICLES, help="per call")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--out", type=Path, default=REPORTS / "compile")
     args = parser.parse_args(argv)

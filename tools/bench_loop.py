@@ -48,6 +48,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 from loop_cases import planted  # noqa: E402
 
+from torchcf.console import count  # noqa: E402
 from torchcf.data import load_pairs  # noqa: E402
 from torchcf.data.writer import write_six_csv  # noqa: E402
 from torchcf.synthetic import synthetic_pairs  # noqa: E402
@@ -148,9 +149,9 @@ def time_loop(run: Path, threads: int, repeats: int) -> tuple[list[float], dict]
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=1)
-    parser.add_argument("--particles", type=float, default=2e5)
+    parser.add_argument("--threads", type=count, default=2)
+    parser.add_argument("--repeats", type=count, default=1)
+    parser.add_argument("--particles", type=count, default=2e5)
     parser.add_argument("--out", default=str(REPORTS / "bench" / "loop"))
     parser.add_argument(
         "--campaign", action="store_true",

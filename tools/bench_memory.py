@@ -34,6 +34,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
+from torchcf.console import count, natural, positive  # noqa: E402
+
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
 
 
@@ -77,20 +79,20 @@ def child(n_particles: int, args: argparse.Namespace) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", type=float, nargs="+", default=[1e5, 1e7])
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--sizes", type=count, nargs="+", default=[1e5, 1e7])
+    parser.add_argument("--threads", type=count, default=2)
     parser.add_argument("--compile", choices=("on", "off"), default="on")
     parser.add_argument("--device", default="cpu")
     parser.add_argument(
         "--chunk-size",
-        type=int,
+        type=natural,
         default=100_000,
         help="particles per chunk in every run (0: the model's default)",
     )
-    parser.add_argument("--target", type=float, default=1.1)
+    parser.add_argument("--target", type=positive, default=1.1)
     parser.add_argument("--data-root", default=None)
     parser.add_argument("--out", type=Path, default=REPORTS / "memory")
-    parser.add_argument("--child", type=float, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--child", type=count, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child is not None:
         print(json.dumps(child(int(args.child), args)))

@@ -63,6 +63,8 @@ from torchcf.evaluation.metrics import (
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import cpu_model, git_sha, write_report  # noqa: E402
 
+from torchcf.console import count, natural, open_fraction, positive  # noqa: E402
+
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 DEFAULT_SIZES = ["225x18", "525x45", "5000x1000"]
 
@@ -455,20 +457,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--sizes", nargs="+", type=parse_size, default=DEFAULT_SIZES, help="PxN"
     )
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--beta", type=float, default=0.15)
-    parser.add_argument("--reg", type=float, default=0.05)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=count, default=5)
+    parser.add_argument("--beta", type=open_fraction, default=0.15)
+    parser.add_argument("--reg", type=positive, default=0.05)
+    parser.add_argument("--seed", type=natural, default=0)
+    parser.add_argument("--threads", type=count, default=2)
     parser.add_argument(
         "--linprog-limit",
-        type=float,
+        type=positive,
         default=600.0,
         help="HiGHS time limit per LP [s]",
     )
     parser.add_argument(
         "--single-run-cells",
-        type=float,
+        type=count,
         default=1e6,
         help="above this many cells linprog runs once (ours at most 3 times)",
     )
@@ -479,10 +481,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--sqdist", type=parse_size, default=(500, 300), help="structured case PxN"
     )
-    parser.add_argument("--sqdist-reg", type=float, default=1e-3)
+    parser.add_argument("--sqdist-reg", type=positive, default=1e-3)
     parser.add_argument(
         "--sinkhorn-budget",
-        type=float,
+        type=positive,
         default=30.0,
         help="a Sinkhorn solver stops repeating once its runs took this long [s]",
     )

@@ -44,6 +44,7 @@ from peer_numpy import quiet_stdout, simulate_one  # noqa: E402
 
 import torchcf  # noqa: E402
 from torchcf import MODELS, simulate  # noqa: E402
+from torchcf.console import count  # noqa: E402
 from torchcf.runtime import tune_malloc  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
@@ -114,11 +115,11 @@ def check_scores(name, theta, pairs, index, baseline: np.ndarray) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--particles", type=float, default=1e6)
-    parser.add_argument("--baseline-particles", type=int, default=40)
+    parser.add_argument("--particles", type=count, default=1e6)
+    parser.add_argument("--baseline-particles", type=count, default=40)
     parser.add_argument("--models", nargs="+", default=list(MODELS))
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=count, default=2)
+    parser.add_argument("--repeats", type=count, default=3)
     parser.add_argument("--device", default="cpu")
     parser.add_argument(
         "--compile",

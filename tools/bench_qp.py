@@ -35,6 +35,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import cpu_model, git_sha, write_report  # noqa: E402
 from peer_numpy import quiet_stdout  # noqa: E402
 
+from torchcf.console import count  # noqa: E402
+
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 
 
@@ -147,13 +149,13 @@ def _osqp_sequence(H, G, amin, amax, z0) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--batch", type=float, default=1e5)
-    parser.add_argument("--steps", type=int, default=20)
-    parser.add_argument("--osqp-problems", type=int, default=200)
-    parser.add_argument("--mpc-particles", type=float, default=1e6)
+    parser.add_argument("--batch", type=count, default=1e5)
+    parser.add_argument("--steps", type=count, default=20)
+    parser.add_argument("--osqp-problems", type=count, default=200)
+    parser.add_argument("--mpc-particles", type=count, default=1e6)
     parser.add_argument("--horizons", default="5,20", help="comma-separated K")
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument("--threads", type=count, default=2)
+    parser.add_argument("--repeats", type=count, default=1)
     parser.add_argument("--data-root", default=None)
     parser.add_argument("--out", type=Path, default=REPORTS / "bench_qp")
     args = parser.parse_args(argv)

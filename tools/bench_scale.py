@@ -51,6 +51,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
+from torchcf.console import count, natural  # noqa: E402
 from torchcf.data import PairSet  # noqa: E402
 from torchcf.models import get_model  # noqa: E402
 from torchcf.synthetic import Gipps, synthetic_pairs  # noqa: E402
@@ -242,19 +243,19 @@ def run_size(n: int, args: argparse.Namespace) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--pairs", type=int, nargs="+", default=[150, 1000, 10000])
+    parser.add_argument("--pairs", type=count, nargs="+", default=[150, 1000, 10000])
     parser.add_argument(
         "--per-pair",
-        type=int,
+        type=count,
         default=500,
         help="proposals per pair and model (full layout: particles per model)",
     )
     parser.add_argument("--method", default="smc", choices=("smc", "rejection"))
     parser.add_argument("--layout", default="paired", choices=("paired", "full"))
     parser.add_argument("--models", nargs="+", default=list(MODELS))
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=count, default=2)
     parser.add_argument("--compile", default="auto", choices=("auto", "on", "off"))
-    parser.add_argument("--chunk-size", type=int, default=0)
+    parser.add_argument("--chunk-size", type=natural, default=0)
     parser.add_argument("--name", default="scale")
     parser.add_argument(
         "--render",
@@ -262,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
         help="rewrite <name>.md from <name>.json (no run)",
     )
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
-    parser.add_argument("--n", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--n", type=count, help=argparse.SUPPRESS)
     parser.add_argument("--result", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:

@@ -29,6 +29,7 @@ import torch
 
 import torchcf
 from torchcf import MODELS, simulate
+from torchcf.console import count
 from torchcf.runtime import tune_malloc
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
@@ -122,18 +123,18 @@ def time_run(model_name, theta, pairs, pair_index, compile_mode, repeats):
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--particles", type=float, default=1e6)
+    parser.add_argument("--particles", type=count, default=1e6)
     parser.add_argument(
         "--eager-particles",
-        type=float,
+        type=count,
         default=2e5,
         help="particles for the (slow) eager runs",
     )
     # MPC is benchmarked by tools/bench_qp.py (its solver is not compiled).
     default_models = [name for name, model in MODELS.items() if model.compilable]
     parser.add_argument("--models", nargs="+", default=default_models)
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=count, default=2)
+    parser.add_argument("--repeats", type=count, default=3)
     parser.add_argument("--data-root", default=None)
     parser.add_argument("--out", type=Path, default=REPORTS / "bench_sim")
     args = parser.parse_args(argv)

@@ -65,6 +65,7 @@ from torchcf.config import (
     load_config,  # noqa: E402
     load_split,  # noqa: E402
 )
+from torchcf.console import count, natural  # noqa: E402
 from torchcf.data import load_pairs  # noqa: E402
 from torchcf.models import get_model  # noqa: E402
 from torchcf.posterior import Posterior  # noqa: E402
@@ -293,7 +294,7 @@ def engine_quality(
     if method == "smc":
         buffer = TopN(pairs.n_pairs, n, model.n_params + 1)
         state = new_state(pairs.n_pairs, settings, model.n_params)
-        with _Outside() as count:
+        with _Outside() as tally:
             run_smc(
                 name,
                 bounds,
@@ -305,7 +306,7 @@ def engine_quality(
                 ModelProgress(),
                 state,
             )
-        outside = count.fraction
+        outside = tally.fraction
     else:
         buffer = TopN(pairs.n_pairs, n, model.n_params)
         stream = prior_stream(name, bounds, seed, rollout)
@@ -545,38 +546,40 @@ def main(argv: list[str] | None = None) -> int:
     parts = parser.add_subparsers(dest="part", required=True)
     data = parts.add_parser("datasets", help="rejection vs SMC on the data sets")
     data.add_argument("--configs", nargs="+", default=list(CONFIGS))
-    data.add_argument("--rejection", nargs="+", type=int, default=[100_000, 1_000_000])
     data.add_argument(
-        "--smc", nargs="+", type=int, default=[25_000, 50_000, 100_000, 200_000]
+        "--rejection", nargs="+", type=count, default=[100_000, 1_000_000]
     )
-    data.add_argument("--threads", type=int, default=2)
+    data.add_argument(
+        "--smc", nargs="+", type=count, default=[25_000, 50_000, 100_000, 200_000]
+    )
+    data.add_argument("--threads", type=count, default=2)
     data.add_argument("--compile", default="off", choices=("off", "auto", "on"))
     data.add_argument("--name", default="smc_datasets")
     per_model = parts.add_parser("models", help="SMC designs per model")
     per_model.add_argument("--configs", nargs="+", default=list(CONFIGS))
-    per_model.add_argument("--rejection", type=int, default=1_000_000)
-    per_model.add_argument("--budget", type=int, default=50_000)
-    per_model.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    per_model.add_argument("--threads", type=int, default=2)
+    per_model.add_argument("--rejection", type=count, default=1_000_000)
+    per_model.add_argument("--budget", type=count, default=50_000)
+    per_model.add_argument("--seeds", nargs="+", type=natural, default=[0, 1, 2])
+    per_model.add_argument("--threads", type=count, default=2)
     per_model.add_argument("--name", default="smc_models")
     single = parts.add_parser("pyabc", help="the engine against pyABC on one pair")
     single.add_argument("--trace", default=str(REPORTS / "pyabc_carII_idm.json"))
     single.add_argument(
         "--budgets",
         nargs="+",
-        type=int,
+        type=count,
         default=[2_000, 5_000, 10_000, 20_000, 50_000, 100_000, 200_000, 1_000_000],
     )
-    single.add_argument("--population", type=int, default=SMCSettings().population)
+    single.add_argument("--population", type=count, default=SMCSettings().population)
     single.add_argument(
         "--rounds",
         nargs="+",
-        type=int,
+        type=count,
         default=[SMCSettings().rounds],
         help="SMC refinement rounds; several: one SMC series each",
     )
     single.add_argument("--dtype", default="float64", choices=("float32", "float64"))
-    single.add_argument("--threads", type=int, default=1)
+    single.add_argument("--threads", type=count, default=1)
     single.add_argument("--name", default="smc_pyabc")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)

@@ -37,6 +37,8 @@ from torchcf.traffic.scenarios import ring_initial_state, ring_road
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
+from torchcf.console import count, natural  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_POSTERIORS = [
     ROOT / "runs/paper/ngsim/posterior.pt",
@@ -94,12 +96,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--posteriors", nargs="+", type=Path, default=DEFAULT_POSTERIORS
     )
-    parser.add_argument("--vehicles", type=float, default=1e5)
-    parser.add_argument("--steps", type=int, default=100)
-    parser.add_argument("--warmup", type=int, default=10)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--vehicles", type=count, default=1e5)
+    parser.add_argument("--steps", type=count, default=100)
+    parser.add_argument("--warmup", type=natural, default=10)
+    parser.add_argument("--repeats", type=count, default=3)
     parser.add_argument(
-        "--threads", type=int, nargs="+", default=[2], help="one or more counts"
+        "--threads", type=count, nargs="+", default=[2], help="one or more counts"
     )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--no-compile", action="store_true")

@@ -28,6 +28,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
+from torchcf.console import count  # noqa: E402
+
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
 
 
@@ -73,9 +75,9 @@ def _run(args, stem: str, env: dict[str, str]) -> dict | None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("config", type=Path)
-    parser.add_argument("--threads", type=int, default=2, help="per process")
+    parser.add_argument("--threads", type=count, default=2, help="per process")
     parser.add_argument(
-        "--nproc", type=int, default=1, help="processes (torchrun) on this machine"
+        "--nproc", type=count, default=1, help="processes (torchrun) on this machine"
     )
     parser.add_argument(
         "--no-cold",

@@ -60,6 +60,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
 from torchcf.config import DiagnoseConfig, validate_config  # noqa: E402
+from torchcf.console import count  # noqa: E402
 from torchcf.data import PairSet, load_pairs  # noqa: E402
 from torchcf.diagnose.attribution import attribute_effects  # noqa: E402
 from torchcf.diagnose.loop import active_models  # noqa: E402
@@ -538,7 +539,7 @@ def main(argv: list[str] | None = None) -> int:
     synthetic = [name for name in CASES if name not in MEASURED]
     parser.add_argument("--group", choices=("synthetic", "measured"), default=None)
     parser.add_argument("--cases", nargs="+", default=None, choices=CASES)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=count, default=2)
     parser.add_argument("--name", default=None)
     parser.add_argument(
         "--diagnose",

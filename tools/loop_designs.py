@@ -30,6 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_loop import clear_loop, config, measured_data  # noqa: E402
 from bench_sim import bench_meta, write_report  # noqa: E402
 
+from torchcf.console import count, finite  # noqa: E402
+
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 DESIGNS = ("refit", "pairs", "time")
 
@@ -87,9 +89,9 @@ def markdown(payload: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--work", required=True)
-    parser.add_argument("--shift", type=float, default=0.8)
+    parser.add_argument("--shift", type=finite, default=0.8)
     parser.add_argument("--designs", nargs="+", default=list(DESIGNS))
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=count, default=2)
     parser.add_argument("--out", default=str(REPORTS / "loop_designs"))
     args = parser.parse_args(argv)
     raw = Path(os.environ.get("TORCHCF_RAW", "../shared/data/raw"))

@@ -48,6 +48,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 from loop_cases import config as loop_cases_config  # noqa: E402
 
+from torchcf.console import count, natural  # noqa: E402
 from torchcf.data import PairSet  # noqa: E402
 from torchcf.diagnose.attribution import choose  # noqa: E402
 from torchcf.diagnose.testing import (  # noqa: E402
@@ -430,11 +431,11 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=CASES)
     parser.add_argument("--effects", nargs="+", default=list(POWER_SIZES))
-    parser.add_argument("--pairs", nargs="+", type=int, default=[50, 200])
-    parser.add_argument("--seeds", type=int, default=5)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--pairs", nargs="+", type=count, default=[50, 200])
+    parser.add_argument("--seeds", type=count, default=5)
+    parser.add_argument("--threads", type=count, default=2)
     parser.add_argument(
-        "--workers", type=int, default=0,
+        "--workers", type=natural, default=0,
         help="diagnose.workers (the results are the same for any; not a setting "
         "of the report)",
     )  # fmt: skip

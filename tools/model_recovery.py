@@ -40,6 +40,7 @@ from bench_sim import bench_meta, write_report  # noqa: E402
 from sbc_study import DT, NOISE, TOP_N, calibrate, join, prior_pairs  # noqa: E402
 
 from torchcf.abc.hybrid import rank_per_pair  # noqa: E402
+from torchcf.console import count  # noqa: E402
 from torchcf.evaluation import sbc  # noqa: E402
 from torchcf.posterior.tables import pair_slots  # noqa: E402
 
@@ -400,12 +401,12 @@ def render(payload: dict) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--pairs", type=int, default=24)
-    parser.add_argument("--steps", type=int, default=300)
+    parser.add_argument("--pairs", type=count, default=24)
+    parser.add_argument("--steps", type=count, default=300)
     parser.add_argument("--methods", nargs="+", default=["rejection", "smc"])
-    parser.add_argument("--per-pair", type=int, default=20000)
-    parser.add_argument("--smc-per-pair", type=int, default=1000)
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--per-pair", type=count, default=20000)
+    parser.add_argument("--smc-per-pair", type=count, default=1000)
+    parser.add_argument("--threads", type=count, default=1)
     parser.add_argument("--render", action="store_true")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)

@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
 from torchcf.config import load_split  # noqa: E402
+from torchcf.console import count  # noqa: E402
 from torchcf.diagnose.testing import sign_flip_test  # noqa: E402
 from torchcf.evaluate import cost_matrices  # noqa: E402
 from torchcf.rundir import RunDir  # noqa: E402
@@ -107,8 +108,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path)
     parser.add_argument("--compare", nargs="+", required=True, metavar="A:B")
-    parser.add_argument("--permutations", type=int, default=20_000)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--permutations", type=count, default=20_000)
+    parser.add_argument("--threads", type=count, default=2)
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument(
         "--trained-by",

@@ -34,6 +34,7 @@ from torchcf.config import (
     load_config,  # noqa: E402
     load_split,  # noqa: E402
 )
+from torchcf.console import count  # noqa: E402
 from torchcf.files import from_json_safe  # noqa: E402
 from torchcf.pipeline import train_and_evaluate  # noqa: E402
 from torchcf.posterior import Posterior  # noqa: E402
@@ -181,8 +182,8 @@ def _f(value) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sets", nargs="+", default=list(SETS), choices=SETS)
-    parser.add_argument("--n-particles", type=int, default=200_000)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--n-particles", type=count, default=200_000)
+    parser.add_argument("--threads", type=count, default=2)
     parser.add_argument("--out", type=Path, default=ROOT / "reports/plausibility")
     parser.add_argument(
         "--keep", type=Path, default=None, help="keep the runs in this folder"

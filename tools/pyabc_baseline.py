@@ -82,6 +82,8 @@ REPO = TOOLS.parent
 sys.path.insert(0, str(TOOLS))
 from peer_numpy import simulate_one  # noqa: E402  (NumPy only, no torch)
 
+from torchcf.console import count, natural, positive  # noqa: E402
+
 #: torchcf/data/registry.py: DATASETS["car-model-2"].
 FOLDER = "AV/CAR MODEL II"
 DT = 0.1  # [s]
@@ -309,23 +311,23 @@ def main(argv: list[str] | None = None) -> int:
     which = parser.add_mutually_exclusive_group()
     which.add_argument(
         "--pair-position",
-        type=int,
+        type=natural,
         default=0,
         help="position in the de-duplicated training split (default 0)",
     )
     which.add_argument(
         "--pair-id",
-        type=int,
+        type=natural,
         default=None,
         help="full-set column (0-based pair id) instead",
     )
-    parser.add_argument("--population", type=int, default=1000)
-    parser.add_argument("--max-generations", type=int, default=8)
-    parser.add_argument("--max-seconds", type=float, default=600.0)
-    parser.add_argument("--seed", type=int, default=0, help="numpy's global seed")
+    parser.add_argument("--population", type=count, default=1000)
+    parser.add_argument("--max-generations", type=count, default=8)
+    parser.add_argument("--max-seconds", type=positive, default=600.0)
+    parser.add_argument("--seed", type=natural, default=0, help="numpy's global seed")
     parser.add_argument(
         "--time-peer",
-        type=int,
+        type=natural,
         default=300,
         help="prior draws timed before the run (0: skip)",
     )

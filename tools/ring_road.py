@@ -44,6 +44,7 @@ import torch  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
 from torchcf import HybridSampler  # noqa: E402
+from torchcf.console import count, natural, positive  # noqa: E402
 from torchcf.data import DataError, load_pairs  # noqa: E402
 from torchcf.files import json_safe  # noqa: E402
 from torchcf.posterior import Posterior  # noqa: E402
@@ -418,22 +419,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--carII", type=Path, default=ROOT / "runs/paper/carII/posterior.pt"
     )
-    parser.add_argument("--vehicles", type=int, default=40)
-    parser.add_argument("--spacing", type=float, default=25.0, help="[m]")
-    parser.add_argument("--duration", type=float, default=3600.0, help="[s]")
-    parser.add_argument("--scenarios", type=int, default=16)
-    parser.add_argument("--platoon", type=int, default=10)
-    parser.add_argument("--brake-speed", type=float, default=20.0, help="[m/s]")
-    parser.add_argument("--brake-decel", type=float, default=6.0, help="[m/s^2]")
+    parser.add_argument("--vehicles", type=count, default=40)
+    parser.add_argument("--spacing", type=positive, default=25.0, help="[m]")
+    parser.add_argument("--duration", type=positive, default=3600.0, help="[s]")
+    parser.add_argument("--scenarios", type=count, default=16)
+    parser.add_argument("--platoon", type=count, default=10)
+    parser.add_argument("--brake-speed", type=positive, default=20.0, help="[m/s]")
+    parser.add_argument("--brake-decel", type=positive, default=6.0, help="[m/s^2]")
     parser.add_argument(
         "--battery-speed",
-        type=float,
+        type=positive,
         default=None,
         help="[m/s]; default: the data's 95th-percentile leader speed",
     )
-    parser.add_argument("--record-every", type=int, default=5, help="steps")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--record-every", type=count, default=5, help="steps")
+    parser.add_argument("--seed", type=natural, default=0)
+    parser.add_argument("--threads", type=count, default=2)
     parser.add_argument("--out", type=Path, default=ROOT / "reports/traffic")
     args = parser.parse_args(argv)
     if args.vehicles < 2 or args.scenarios < 1 or args.platoon < 2:

@@ -38,6 +38,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
+from torchcf.console import count  # noqa: E402
 from torchcf.data import PairSet  # noqa: E402
 from torchcf.evaluation import sbc  # noqa: E402
 from torchcf.models import get_model  # noqa: E402
@@ -458,14 +459,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", nargs="+", default=list(MODELS))
     parser.add_argument("--methods", nargs="+", default=["rejection", "smc"])
-    parser.add_argument("--pairs", type=int, default=60)
-    parser.add_argument("--steps", type=int, default=300)
-    parser.add_argument("--per-pair", type=int, default=20000)
-    parser.add_argument("--smc-per-pair", type=int, default=1000)
+    parser.add_argument("--pairs", type=count, default=60)
+    parser.add_argument("--steps", type=count, default=300)
+    parser.add_argument("--per-pair", type=count, default=20000)
+    parser.add_argument("--smc-per-pair", type=count, default=1000)
     parser.add_argument(
-        "--wide-n", type=int, default=20, help="also rank among this many best"
+        "--wide-n", type=count, default=20, help="also rank among this many best"
     )
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--threads", type=count, default=1)
     parser.add_argument("--render", action="store_true")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)

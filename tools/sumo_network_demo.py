@@ -56,8 +56,15 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from torch import Tensor  # noqa: E402
 
-from torchcf.config import load_split  # noqa: E402
-from torchcf.console import run_main  # noqa: E402
+from torchcf.config import ConfigError, load_split  # noqa: E402
+from torchcf.console import (  # noqa: E402
+    count,
+    natural,
+    nonnegative,
+    positive,
+    run_main,
+)
+from torchcf.files import no_empty_folder_left  # noqa: E402
 from torchcf.rundir import RunDir  # noqa: E402
 from torchcf.sumo import backend  # noqa: E402
 from torchcf.sumo.cosim import CoSimulation  # noqa: E402
@@ -87,13 +94,16 @@ def parse_fleet(items: list[str]) -> list[tuple[str, float]]:
         run, sep, fraction = item.rpartition(":")
         if not sep:
             run, fraction = item, "1"
-        value = float(fraction)
-        if not value >= 0.0:
-            raise ValueError(f"--fleet {item}: the fraction must be >= 0")
+        try:
+            value = nonnegative(fraction)
+        except argparse.ArgumentTypeError:
+            raise ConfigError(
+                f"--fleet {item[:80]}: the fraction must be a number >= 0"
+            ) from None
         fleet.append((run, value))
     total = sum(f for _, f in fleet)
     if not fleet or total <= 0.0:
-        raise ValueError("--fleet: needs a run with a positive fraction")
+        raise ConfigError("--fleet: needs a run with a fraction > 0")
     return [(run, f / total) for run, f in fleet]
 
 
@@ -564,12 +574,12 @@ def main(argv: list[str] | None = None) -> int:
         help="the classes of the fleet: a run directory and its fraction",
     )  # fmt: skip
     parser.add_argument("--out", default="reports/sumo")
-    parser.add_argument("--ring-vehicles", type=int, default=30)
-    parser.add_argument("--ring-length", type=float, default=900.0)
-    parser.add_argument("--highway-length", type=float, default=2500.0)
-    parser.add_argument("--demand", type=float, default=7000.0, help="veh/h")
-    parser.add_argument("--duration", type=float, default=400.0, help="s")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--ring-vehicles", type=count, default=30)
+    parser.add_argument("--ring-length", type=positive, default=900.0)
+    parser.add_argument("--highway-length", type=positive, default=2500.0)
+    parser.add_argument("--demand", type=positive, default=7000.0, help="veh/h")
+    parser.add_argument("--duration", type=positive, default=400.0, help="s")
+    parser.add_argument("--seed", type=natural, default=0)
     args = parser.parse_args(argv)
 
     def body() -> int:
@@ -580,7 +590,7 @@ def main(argv: list[str] | None = None) -> int:
         dt, length = components[0].dt, components[0].length
         for c in components[1:]:
             if c.dt != dt or c.length != length:
-                raise ValueError(
+                raise ConfigError(
                     f"--fleet: {c.run} has dt {c.dt}, length {c.length}; "
                     f"{components[0].run} has {dt}, {length}"
                 )
@@ -645,7 +655,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote {out}/network_demo.md")
         return 0
 
-    return run_main(body)
+    return run_main(lambda: _leaving_no_empty_folder(body, Path(args.out)))
+
+
+def _leaving_no_empty_folder(body, out: Path) -> int:
+    with no_empty_folder_left(out):
+        return body()
 
 
 if __name__ == "__main__":

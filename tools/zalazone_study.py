@@ -53,6 +53,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import cpu_model, git_sha  # noqa: E402
 
+from torchcf.console import count, natural  # noqa: E402
+
 CONFIG = "configs/zalazone.json"
 #: The campaign folder as the commands in the report name it.
 RAW_VAR = "$TORCHCF_RAW/openacc-zalazone-dynamic"
@@ -796,9 +798,11 @@ def readme(
     per_setting = drops["per_setting"]
     settings = [k for k in ("S", "M", "L")]
     rows = []
-    for reason, count in s["windows_dropped"].items():
+    for reason, dropped in s["windows_dropped"].items():
         row = per_setting.get(reason, {})
-        rows.append([f"window: `{reason}`", count, *(row.get(k, 0) for k in settings)])
+        rows.append(
+            [f"window: `{reason}`", dropped, *(row.get(k, 0) for k in settings)]
+        )
     short = per_setting.get("short", {})
     rows.append(
         [
@@ -945,9 +949,9 @@ def main(argv: list[str] | None = None) -> int:
         ),
         help="the campaign folder",
     )
-    parser.add_argument("--bootstrap", type=int, default=2000, help="resamples")
+    parser.add_argument("--bootstrap", type=natural, default=2000, help="resamples")
     parser.add_argument(
-        "--threads", type=int, default=None, help="OMP_NUM_THREADS of the steps"
+        "--threads", type=count, default=None, help="OMP_NUM_THREADS of the steps"
     )
     parser.add_argument(
         "--loop-set",

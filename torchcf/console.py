@@ -22,6 +22,7 @@ Anything else is a bug and keeps its traceback.
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 from collections.abc import Callable
@@ -69,6 +70,46 @@ def add_overrides(parser: argparse.ArgumentParser, metavar: str, example: str) -
     )
 
 
+def _whole(text: str) -> int:
+    """``"200000"``, ``"2e5"`` -> 200000; anything else raises ValueError."""
+    try:
+        return int(text)
+    except ValueError:
+        value = float(text)  # "2e5"; raises ValueError on words
+        if not value.is_integer():
+            raise ValueError(text) from None
+        return int(value)
+
+
+def _checked(parse: Callable[[str], float], holds: Callable[[float], bool], what: str):
+    """An argparse ``type=``: ``parse`` the text and keep it if ``holds``, else
+    a one-line usage error naming ``what`` was expected."""
+
+    def convert(text: str):
+        try:
+            value = parse(text)
+        except (ValueError, OverflowError):
+            value = None
+        if value is None or not holds(value):
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text[:40]!r}")
+        return value
+
+    convert.__name__ = what  # argparse names the type in some messages
+    return convert
+
+
+#: Checked argparse ``type=`` of every numeric option (tests/test_layout.py
+#: refuses a bare ``type=int`` / ``type=float`` in the commands and tools: a
+#: negative count or a NaN duration is refused at the command line, not found
+#: as a traceback deep in the run). Counts accept ``2e5``.
+count = _checked(_whole, lambda n: n >= 1, "a whole number >= 1")
+natural = _checked(_whole, lambda n: n >= 0, "a whole number >= 0")
+positive = _checked(float, lambda x: math.isfinite(x) and x > 0.0, "a number > 0")
+nonnegative = _checked(float, lambda x: math.isfinite(x) and x >= 0.0, "a number >= 0")
+finite = _checked(float, math.isfinite, "a finite number")
+open_fraction = _checked(float, lambda x: 0.0 < x < 1.0, "a number between 0 and 1")
+
+
 def run_main(
     body: Callable[[], int],
     *,
@@ -114,7 +155,13 @@ __all__ = [
     "DefaultsHelpFormatter",
     "EXIT_INTERRUPTED",
     "add_overrides",
+    "count",
     "EXIT_USER_ERROR",
+    "finite",
+    "natural",
+    "nonnegative",
+    "open_fraction",
+    "positive",
     "one_line",
     "print_error",
     "run_main",

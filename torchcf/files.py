@@ -139,6 +139,25 @@ def ensure_directory(
     return path
 
 
+@contextlib.contextmanager
+def no_empty_folder_left(path: StrPath) -> Iterator[None]:
+    """A command that writes under ``path`` and fails leaves no empty folder
+    there: on any failure, the directories under ``path`` (and ``path``) that
+    hold no file are removed, if ``path`` did not exist before. A folder that
+    holds a file (a checkpoint to resume from) stays as it is.
+    """
+    path = Path(path)
+    existed = path.exists()
+    try:
+        yield
+    except BaseException:
+        if not existed and path.is_dir():
+            for folder, _, _ in sorted(os.walk(path), key=lambda w: -len(w[0])):
+                with contextlib.suppress(OSError):
+                    Path(folder).rmdir()  # refuses a folder that holds anything
+        raise
+
+
 def remove_file(path: StrPath) -> None:
     """Remove ``path`` if it exists.
 
@@ -293,6 +312,7 @@ __all__ = [
     "atomic_write_text",
     "ensure_directory",
     "json_safe",
+    "no_empty_folder_left",
     "read_json_object",
     "read_torch",
     "remove_file",

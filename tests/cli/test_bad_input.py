@@ -361,3 +361,34 @@ def test_cuda_asked_for_without_cuda(tmp_path, capsys, data):
         capsys, [str(config), "--out", str(out)], "device", "CUDA is not available"
     )
     assert not out.exists()
+
+
+def test_crossval_with_more_folds_than_pairs_leaves_no_folder(tmp_path, capsys, data):
+    from torchcf.cli import crossval as crossval_cli
+
+    config = write_config(tmp_path / "cfg.json", data)
+    out = tmp_path / "cv"
+    assert crossval_cli.main([str(config), "--folds", "50", "--out", str(out)]) == 2
+    one_error_line(capsys.readouterr().err, "fold")
+    assert not out.exists()
+
+
+def test_no_empty_folder_left_keeps_what_holds_a_file(tmp_path):
+    from torchcf.files import no_empty_folder_left
+
+    out = tmp_path / "out"
+    with pytest.raises(RuntimeError), no_empty_folder_left(out):
+        (out / "a" / "b").mkdir(parents=True)
+        raise RuntimeError("refused")
+    assert not out.exists()
+    with pytest.raises(RuntimeError), no_empty_folder_left(out):
+        (out / "fold0").mkdir(parents=True)
+        (out / "empty").mkdir()
+        (out / "fold0" / "checkpoint.pt").write_text("x")
+        raise RuntimeError("failed after a checkpoint")
+    assert (out / "fold0" / "checkpoint.pt").exists() and not (out / "empty").exists()
+    existing = tmp_path / "existing"
+    existing.mkdir()
+    with pytest.raises(RuntimeError), no_empty_folder_left(existing):
+        raise RuntimeError("refused")
+    assert existing.is_dir()  # the user's folder is not ours to remove

@@ -170,7 +170,7 @@ def test_the_help_says_which_is_train_and_which_is_study(capsys):
 def test_the_old_imports_still_work():
     """The plumbing through :mod:`torchcf.cli`, and each command's ``main``
     through the module it was in."""
-    for name in torchcf.console.__all__:
+    for name in cli.__all__:  # the plumbing as it was before torchcf.console
         assert getattr(cli, name) is getattr(torchcf.console, name)
     from torchcf.cli import run_main  # noqa: F401  (tools/sumo_network_demo.py)
 
@@ -230,3 +230,45 @@ def test_study_closes_the_loop_where_the_config_asks(config, tmp_path, capsys):
     assert main(["study", str(config), "--out", str(out)]) == 0
     for name in ("summary.json", "metrics.json", "loop.json"):
         assert (out / name).is_file(), name
+
+
+@pytest.mark.parametrize(
+    ("kind", "good", "bad"),
+    [
+        (
+            "count",
+            {"3": 3, "2e5": 200_000, "1": 1},
+            ["0", "-3", "1.5", "nan", "x", "inf"],
+        ),
+        ("natural", {"0": 0, "7": 7, "1e3": 1000}, ["-1", "2.5", "nan", ""]),
+        ("positive", {"0.5": 0.5, "1e6": 1e6}, ["0", "-1", "nan", "inf", "-inf", "x"]),
+        ("nonnegative", {"0": 0.0, "2.5": 2.5}, ["-0.1", "nan", "inf"]),
+        ("finite", {"-3": -3.0, "0": 0.0}, ["nan", "inf", "y"]),
+        ("open_fraction", {"0.3": 0.3}, ["0", "1", "1.5", "-0.2", "nan"]),
+    ],
+)
+def test_checked_numeric_options(kind, good, bad):
+    """Each checked ``type=`` keeps what it promises and refuses the rest with
+    a usage error (argparse's one line and exit code 2, never a traceback)."""
+    import argparse
+
+    convert = getattr(torchcf.console, kind)
+    for text, value in good.items():
+        assert convert(text) == value
+        assert type(convert(text)) is type(value)
+    for text in bad:
+        with pytest.raises(argparse.ArgumentTypeError, match="expected"):
+            convert(text)
+    parser = argparse.ArgumentParser(prog="p")
+    parser.add_argument("--n", type=convert)
+    with pytest.raises(SystemExit) as stop:
+        parser.parse_args(["--n", bad[0]])
+    assert stop.value.code == 2
+
+
+def test_a_long_bad_value_is_quoted_short():
+    import argparse
+
+    with pytest.raises(argparse.ArgumentTypeError) as error:
+        torchcf.console.count("9" * 5000 + "x")
+    assert len(str(error.value)) < 80

@@ -19,6 +19,7 @@ from torchcf.data.formats.generic import (
     LENGTH_UNITS,
     SPEED_UNITS,
     TIME_UNITS,
+    columns_text,
     parse_column_map,
     read_csv_table,
     time_factor,
@@ -296,3 +297,27 @@ def test_empty_vehicle_cell_raises(tmp_path: Path) -> None:
     path = write(tmp_path / "e.csv", frame)
     with pytest.raises(DataError, match=r"e\.csv.*'vehicle' has 1 empty"):
         read_csv_table(path)
+
+
+@pytest.mark.parametrize("fmt", ["csv", "pairs", "punzo", "highd", "ngsim"])
+def test_a_binary_file_is_refused_in_one_short_line(tmp_path, capsys, fmt) -> None:
+    """A file of NUL bytes is 'not text', whatever the format; the message
+    never quotes the file (a CSV parser reads it whole as one header name)."""
+    path = tmp_path / "01_tracks.csv"
+    path.write_bytes(b"\x00" * 300_000)
+    if fmt == "highd":  # a recording is three files; the tracks are read first
+        for meta in ("01_tracksMeta.csv", "01_recordingMeta.csv"):
+            (tmp_path / meta).write_bytes(b"\x00" * 1000)
+    out = tmp_path / "out"
+    argv = ["extract", str(path), "--format", fmt, "--out", str(out)]
+    if fmt == "csv":
+        argv += ["--columns", MAP]
+    assert data_main(argv) == 2
+    line = one_error_line(capsys.readouterr().err, "not text (NUL bytes)")
+    assert len(line) < 300
+    assert not out.exists()
+
+
+def test_column_names_are_cut_in_messages() -> None:
+    text = columns_text(["a" * 5000, "speed"])
+    assert len(text) < 60 and text.endswith("..., speed")

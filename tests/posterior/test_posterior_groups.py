@@ -236,6 +236,19 @@ def test_mapping_file_joins_on_its_key_columns(tmp_path) -> None:
         groups_from_file(table, path)
 
 
+@pytest.mark.parametrize(
+    "text", ["pair,group\n", "pair,group\n1000,a\n-1,b\n2.5,c\n", "pair,group\nx,a\n"]
+)
+def test_a_mapping_file_naming_no_pair_is_refused(tmp_path, text) -> None:
+    """A file of other pairs' keys (or none) would put every pair in
+    ``(none)``: an error naming the keys the pairs have, not a table."""
+    table = _index("rrrrrr")
+    path = tmp_path / "g.csv"
+    path.write_text(text)
+    with pytest.raises(GroupError, match=r"no row names a training pair.*'pair': '0'"):
+        groups_from_file(table, path)
+
+
 def test_locate_index_follows_the_data_section(tmp_path) -> None:
     data = SimpleNamespace(raw=None, path=str(tmp_path), name=None, split="dataset")
     with pytest.raises(GroupError, match="no index.csv in"):
@@ -337,8 +350,9 @@ def test_command_line_groups_from_a_mapping_file(extracted_run, tmp_path, capsys
     path = tmp_path / "make.csv"
     path.write_text("run,follower,group\nr0,F0,tesla\nr1,F1,tesla\nr0,F2,bmw\n")
     assert main([str(run.path), "--groups", str(path), "--bootstrap", "0"]) == 0
-    text = capsys.readouterr().out
-    assert "## Shares by make" in text and "| tesla |" in text
+    captured = capsys.readouterr()
+    assert "## Shares by make" in captured.out and "| tesla |" in captured.out
+    assert "training pairs are in no row of" in captured.err  # the others
 
 
 @pytest.mark.parametrize(

@@ -70,3 +70,30 @@ def test_ks_distance(demo):
     x, y = rng.normal(size=300), rng.normal(0.5, 1.0, size=200)
     scipy_stats = pytest.importorskip("scipy.stats")
     assert demo.ks_distance(x, y) == pytest.approx(scipy_stats.ks_2samp(x, y).statistic)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--ring-vehicles", "-3"], "--ring-vehicles: expected a whole number >= 1"),
+        (["--duration", "nan"], "--duration: expected a number > 0"),
+        (["--demand", "inf"], "--demand: expected a number > 0"),
+        (["--fleet", "RUN:0"], "--fleet: needs a run with a fraction > 0"),
+        (["--fleet", "RUN:x"], "--fleet RUN:x: the fraction must be a number >= 0"),
+        (["--fleet", "no/such/run:1"], "no/such/run"),
+    ],
+)
+def test_bad_arguments_are_one_line_and_leave_no_folder(
+    demo, tmp_path, argv, message, capsys
+):
+    out = tmp_path / "out"
+    try:
+        code = demo.main([*argv, "--out", str(out)])
+    except SystemExit as stop:  # argparse's usage error
+        code = stop.code
+    err = capsys.readouterr().err
+    assert code == 2
+    assert message in err
+    assert "Traceback" not in err
+    assert len(err.strip().splitlines()[-1]) < 200
+    assert not out.exists()

@@ -22,6 +22,7 @@ from pathlib import Path
 from ..config import ConfigError, load_config
 from ..console import DefaultsHelpFormatter, add_overrides, run_main
 from ..crossval import crossval
+from ..files import no_empty_folder_left
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -55,7 +56,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if folds < 2:
             raise ConfigError(f"--folds: need at least 2, got {folds}")
         out = Path(args.out) if args.out is not None else Path(f"{cfg.output}-cv")
-        result = crossval(cfg, out, folds=folds, resume=args.resume)
+        with no_empty_folder_left(out):
+            result = crossval(cfg, out, folds=folds, resume=args.resume)
         hybrid = result["hybrid"]
         print(
             f"{folds}-fold mean, hybrid: WS {hybrid['ws']:.3f}, 0.15-WS "

@@ -41,6 +41,7 @@ from ..posterior.learned_set import Posterior
 from ..posterior.tables import (
     LEVEL,
     N_BOOTSTRAP,
+    NO_GROUP,
     GroupedShares,
     GroupError,
     grouped_shares,
@@ -186,6 +187,13 @@ def _grouped(
         groups, by = groups_by_column(table, args.by, source), args.by
     else:
         groups, by = groups_from_file(table, args.groups, source), args.groups.stem
+        ungrouped = groups.count(NO_GROUP)
+        if ungrouped:
+            print(
+                f"note: {ungrouped} of {len(groups)} training pairs are in no row "
+                f"of {args.groups} (their group: {NO_GROUP})",
+                file=sys.stderr,
+            )
         source = f"{args.groups} joined to {source}"
     clusters, unit = None, "pair"
     if args.cluster:

@@ -395,8 +395,9 @@ def groups_from_file(
     its own, compared as text; a pair no row names is :data:`NO_GROUP`.
 
     Raises:
-        GroupError: no ``group`` or key column, a key ``table`` lacks, or two
-            rows giving one key different groups.
+        GroupError: no ``group`` or key column, a key ``table`` lacks, two
+            rows giving one key different groups, or no row naming any pair
+            (a file of other pairs' keys is a mistake, not a grouping).
     """
     mapping = read_index(path)
     if GROUP_COLUMN not in mapping.columns:
@@ -416,6 +417,13 @@ def groups_from_file(
             f"'{path}': key {dict(zip(keys, first, strict=True))} has two groups"
         )
     joined = table[keys].merge(mapping, on=keys, how="left", validate="many_to_one")
+    if joined[GROUP_COLUMN].isna().all():
+        example = table[keys].iloc[0].tolist() if len(table) else []
+        raise GroupError(
+            f"'{path}': no row names a training pair of {source} "
+            f"({len(mapping)} rows; {source}'s keys look like "
+            f"{dict(zip(keys, example, strict=True))})"
+        )
     return [_label(v) for v in joined[GROUP_COLUMN].fillna("")]
 
 

@@ -98,6 +98,10 @@ _QUANTITY: dict[str, str] = {
 
 #: How many source columns a "not in FILE; it has: ..." message lists.
 _SHOWN_COLUMNS = 12
+#: Characters of one column name shown in a message.
+_SHOWN_NAME = 40
+#: Bytes read at the start of a file to tell text from binary.
+_SNIFF_BYTES = 1 << 16
 
 
 def parse_column_map(text: str, known: Iterable[str] = COLUMNS) -> dict[str, str]:
@@ -228,8 +232,10 @@ def source_files(
 
 
 def columns_text(columns: Iterable[object]) -> str:
-    """The first column names of a file, for "it has: ..." messages."""
-    names = [str(c) for c in columns]
+    """The first column names of a file, for "it has: ..." messages (each cut
+    to :data:`_SHOWN_NAME` characters: a binary file's 'header' can be a
+    whole file long)."""
+    names = [_short(str(c)) for c in columns]
     shown = ", ".join(names[:_SHOWN_COLUMNS])
     more = len(names) - _SHOWN_COLUMNS
     return f"{shown}, ... ({more} more)" if more > 0 else shown
@@ -401,12 +407,32 @@ def read_selected(
     return pd.DataFrame({c: raw[s] for c, s in chosen.items()})
 
 
+def _short(text: str) -> str:
+    return text if len(text) <= _SHOWN_NAME else text[: _SHOWN_NAME - 3] + "..."
+
+
+def require_text(path: Path) -> None:
+    """Refuse a binary file before a CSV parser reads it whole as one 'header'.
+
+    Raises:
+        DataError: NUL bytes in the file's first 64 KiB (text has none).
+    """
+    try:
+        with path.open("rb") as fh:
+            start = fh.read(_SNIFF_BYTES)
+    except OSError as err:
+        raise DataError(f"cannot read '{path}': {err.strerror}") from None
+    if b"\x00" in start:
+        raise DataError(f"'{path}' is not text (NUL bytes)")
+
+
 def read_header(path: Path, sep: str) -> list[str]:
     """The column names of a CSV file.
 
     Raises:
-        DataError: the file is empty or does not parse.
+        DataError: the file is binary, empty or does not parse.
     """
+    require_text(path)
     try:
         return [
             str(c)
@@ -419,8 +445,10 @@ def read_header(path: Path, sep: str) -> list[str]:
 
 
 def first_line(err: Exception) -> str:
-    """An exception's message cut to its first line, for one-line errors."""
-    return str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    """An exception's message cut to its first line (at most 200 characters:
+    a parser may quote the offending input), for one-line errors."""
+    text = str(err).strip()
+    return text.splitlines()[0][:200] if text else type(err).__name__
 
 
 def _unit(value: str, units: dict[str, float], quantity: str) -> float:

@@ -68,7 +68,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from torchcf.data.formats.generic import columns_text
+from torchcf.data.formats.generic import columns_text, require_text
 from torchcf.data.pairset import DataError
 from torchcf.data.trajectory import TrajectoryTable
 
@@ -287,6 +287,7 @@ def _read_csv(
         DataError: an unreadable file, the exiD/inD/rounD layout, or a missing
             column (named with the columns the file has).
     """
+    require_text(path)
     try:
         header = list(pd.read_csv(path, nrows=0, encoding="utf-8-sig").columns)
     except pd.errors.EmptyDataError:

@@ -44,7 +44,12 @@ from pathlib import Path
 
 import pandas as pd
 
-from torchcf.data.formats.generic import first_line, source_files, unit_factors
+from torchcf.data.formats.generic import (
+    first_line,
+    require_text,
+    source_files,
+    unit_factors,
+)
 from torchcf.data.formats.pairs import (
     LENGTH_TOLERANCE,
     QUANTITY,
@@ -122,6 +127,7 @@ def read_punzo(
 
 def _read_one(path: Path, units: dict[str, float]) -> pd.DataFrame:
     """One file as pair columns (:data:`PUNZO_COLUMNS`) in SI, pair = stem."""
+    require_text(path)
     data_line, skip = _layout(path)
     sep, decimal_comma = _separator(data_line)
     try:
