@@ -82,12 +82,17 @@ def test_the_docs_links_lead_to_files_of_the_project():
 
 
 def test_the_docs_home_shows_the_readme_set_up_lines():
-    """docs/index.md repeats the README's two set-up lines (lines 4 and 5) exactly."""
+    """docs/index.md repeats the README's two set-up lines exactly: the first
+    code block, on the README's first screen (its first 25 lines)."""
     readme = (ROOT / "README.md").read_text().splitlines()
-    assert all(line.startswith("python3 -m venv") for line in readme[3:5])
+    first = readme.index("```bash") + 1
+    assert first < 25
+    setup = readme[first : first + 2]
+    assert all(line.startswith("python3 -m venv") for line in setup)
+    assert readme[first + 2] == "```"
     index = (ROOT / "docs" / "index.md").read_text().splitlines()
-    start = index.index(readme[3])
-    assert index[start + 1] == readme[4]
+    start = index.index(setup[0])
+    assert index[start + 1] == setup[1]
 
 
 def test_the_docs_site_builds_strict(tmp_path):
@@ -113,3 +118,8 @@ def test_the_docs_site_builds_strict(tmp_path):
     for page, link in told:
         target = ((docs / page).parent / link.split("#", 1)[0]).resolve()
         assert not target.is_relative_to(docs), f"{page}: broken link {link}\n{output}"
+        assert "reports/" not in link, f"{page}: {link} leads nowhere in the site"
+    # the reports the pages cite are published beside them (tools/docs_reports.py)
+    assert (site / "reports" / "loop_cases" / "index.html").exists()
+    loop = (site / "loop" / "index.html").read_text()
+    assert 'href="../reports/loop_heterogeneous/"' in loop

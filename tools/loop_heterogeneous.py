@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import sys
 import tempfile
 import time
@@ -282,6 +283,7 @@ def cases_markdown(payload: dict) -> str:
         f"{len(controls)} runs. Behavioural effects (delay, lag): "
         f"{sum(r['hit'] for r in behaviour)} hits in {len(behaviour)} runs.",
         *levels_markdown(rows),
+        *detectable_markdown(rows),
         "",
         "Per run (chosen, in order):",
         "",
@@ -293,6 +295,75 @@ def cases_markdown(payload: dict) -> str:
             f"{_fmt(r['min'][1])}, searched as after {_fmt(r['same_search'][1])})"
         )
     return "\n".join(lines) + "\n"
+
+
+def detectable_markdown(rows: list[dict]) -> list[str]:
+    """What the controls could have shown: the loop's own detectable sizes
+    (:mod:`torchcf.diagnose.power`, computed where nothing is chosen) on each
+    control's data, median over seeds, beside the planted case of the same
+    mixture and its hit rate: the estimate's check against planted effects."""
+    lines = []
+    for control in ("control (human)", "control (ACC)"):
+        runs = [r for r in rows if r["case"] == control]
+        if not runs:
+            continue
+        mixture = CASES[control].mixture
+        lines += [
+            "",
+            f"What {control} could have shown: the loop's detectable sizes on "
+            f"its data (step 1, {len(runs)} seeds; median over seeds, at the "
+            "effect's level / if tested first; '>' where the largest size "
+            "tried was not chosen), beside the planted case of this mixture:",
+            "",
+            "| effect | side | detectable at its level | if tested first | "
+            "planted case | hits |",
+            "|---|---|---|---|---|---|",
+        ]
+        names = sorted({t["name"] for r in runs for t in r["first_step"] if t})
+        for name in names:
+            found = [
+                t["detectable"] for r in runs for t in r["first_step"]
+                if t and t["name"] == name and t.get("detectable")
+            ]  # fmt: skip
+            for side in ("above", "below"):
+                sizes = [d for d in found if side in (d.get("at_level") or {})]
+                if not sizes:
+                    continue
+                case = next(
+                    (c for n, c in CASES.items()
+                     if c.mixture == mixture and c.effect.split("(")[0] == name
+                     and (c.size >= 0) == (side == "above")),
+                    None,
+                )  # fmt: skip
+                planted = next(
+                    (n for n, c in CASES.items() if c is case), None
+                )  # fmt: skip
+                hits = [r["hit"] for r in rows if r["case"] == planted]
+                largest = max(
+                    abs(t["size"]) for d in sizes for t in d["tried"].get(side, [])
+                )  # fmt: skip
+                lines.append(
+                    f"| {name} | {'+' if side == 'above' else '-'} | "
+                    f"{_detectable(sizes, 'at_level', side, largest)} | "
+                    f"{_detectable(sizes, 'if_first', side, largest)} | "
+                    + (f"{case.size:g}" if case else "—")
+                    + " | "
+                    + (f"{sum(hits)}/{len(hits)}" if hits else "—")
+                    + " |"
+                )
+    return lines
+
+
+def _detectable(found: list[dict], key: str, side: str, largest: float) -> str:
+    """The median over seeds of one side's detectable size (absolute; a seed
+    where none was chosen counts as above every size tried)."""
+    values = [
+        abs(d[key][side]) if (d.get(key) or {}).get(side) is not None else math.inf
+        for d in found
+    ]
+    median = sorted(values)[(len(values) - 1) // 2]  # the lower median
+    unit = found[0]["unit"]
+    return f"> {largest:.3g} {unit}" if median == math.inf else f"{median:.3g} {unit}"
 
 
 def first_choice(run: dict, scheme: str, min_gain: float = 0.05) -> str | None:
