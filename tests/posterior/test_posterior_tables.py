@@ -18,6 +18,7 @@ from torchcf.posterior.tables import (
     parameter_summary,
     parameters_csv,
     parameters_markdown,
+    piled_at_bounds,
 )
 from torchcf.rundir import RunDir
 from torchcf.train import train
@@ -164,3 +165,40 @@ def test_command_line_on_a_folder_without_a_run_is_one_line(tmp_path, capsys):
     assert main([str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and err.count("\n") == 1
+
+
+def test_a_posterior_piled_at_a_prior_bound_is_flagged():
+    """IDM's v0 prior is [20, 40]: 12 of 20 particles within 5 % of its width
+    (1 m/s) of 40 is a pile (60 % against the 5 % a uniform spread puts
+    there); LLCTG's l spread evenly over [1, 11] is not, nor is a share at
+    the threshold (5 of 20 = 25 %, not more)."""
+    idm = np.tile([1.0, 2.0, 30.0, 1.5, 1.5, 3.0], (20, 1))  # a b v0 T s0 delta
+    idm[:12, 2] = 39.5  # 12 of 20 within 1 m/s of v0's upper bound 40
+    idm[:5, 4] = 0.55  # 5 of 20 within 0.125 m of s0's lower bound 0.5: 25 %
+    llctg = np.tile([1.0, 1.0, 1.0, 0.0], (20, 1))  # tau ks kv l
+    llctg[:, 3] = np.linspace(1.0, 11.0, 20)
+    names = {
+        "idm": ("a", "b", "v0", "T", "s0", "delta"),
+        "llctg": ("tau", "ks", "kv", "l"),
+    }
+    posterior = Posterior(
+        dataset="test", selection="per_pair", top_n=1, models=("idm", "llctg"),
+        shares={"idm": 0.5, "llctg": 0.5}, train_pair_ids=torch.arange(20),
+        hybrid={
+            m: _particles(names[m], theta, list(range(20)), np.ones(20))
+            for m, theta in (("idm", idm), ("llctg", llctg))
+        },
+        buffers={"idm": {}, "llctg": {}},
+    )  # fmt: skip
+    piled = piled_at_bounds(posterior)
+    assert [(p.model, p.parameter, p.side, p.bound) for p in piled] == [
+        ("idm", "v0", "upper", 40.0)
+    ]
+    assert piled[0].share == pytest.approx(12 / 20)
+    text = parameters_markdown(posterior)
+    assert (
+        "**At a prior bound.** IDM `v0`: 60% of its particles within 5% of the" in text
+    )
+    assert "upper bound 40" in text and "widen that prior" in text
+    # l at 1.0 and 11.0 exactly: 1 particle at each end of 20 (5 %) is not a pile
+    assert "`l`" not in text

@@ -32,6 +32,7 @@ from ..abc.distributed import SINGLE, Group, init_from_env
 from ..config import TrainConfig, load_config
 from ..console import DefaultsHelpFormatter, add_overrides, one_line, run_main
 from ..pipeline import train_and_evaluate
+from ..posterior.tables import piled_at_bounds
 from ..rundir import RunDir
 
 #: A command's work on a loaded config: (cfg, out, resume, group) -> the summary.
@@ -173,6 +174,9 @@ def print_result(
     for name, share in summary["shares"].items():
         seconds = summary["per_model"][name]["seconds"]
         print(f"  {name:<{width}}  {share:6.1%}   ({seconds:.1f} s)")
+    if run.posterior_pt.is_file():
+        for piled in piled_at_bounds(run.load_posterior()):
+            print(f"  at a prior bound: {piled.sentence()} (see parameters.md)")
     if "smc" in summary:
         evidence = summary["smc"]["evidence_shares"]
         shown = ", ".join(f"{m} {v:.1%}" for m, v in evidence.items() if v >= 0.0005)

@@ -50,6 +50,11 @@ from .learned_set import Posterior
 
 #: Quantiles of the Markdown table's range.
 RANGE = (0.05, 0.95)
+#: The band at each prior bound, as a fraction of the prior's width, and the
+#: share of a model's hybrid particles in it above which the posterior is said
+#: to pile up at the bound (a uniform spread puts EDGE_BAND in each band).
+EDGE_BAND = 0.05
+EDGE_SHARE = 0.25
 #: Significant digits of values in the CSV (float64 holds 17; 10 keeps a
 #: parameter's value exact to well below any physical meaning).
 CSV_DIGITS = 10
@@ -124,23 +129,87 @@ def parameters_csv(posterior: Posterior) -> str:
 
 
 def parameter_summary(posterior: Posterior, model: str) -> list[dict[str, object]]:
-    """Per parameter of ``model``: its :class:`ParameterInfo` fields and the
+    """Per parameter of ``model``: its :class:`ParameterInfo` fields, the
     ``median``, ``low`` and ``high`` (:data:`RANGE` quantiles) over the model's
-    hybrid particles (None without particles)."""
+    hybrid particles, and ``near_lower`` / ``near_upper``: the share of them
+    within :data:`EDGE_BAND` of the prior's width from each bound (None without
+    particles or a known prior)."""
     particles = posterior.hybrid[model]
     theta = particles.theta.double()  # (h, K)
     out = []
     for k, info in enumerate(parameter_info(model, particles.param_names)):
         row: dict[str, object] = dict(info.__dict__)
+        row.update(median=None, low=None, high=None, near_lower=None, near_upper=None)
         if len(particles):
             values = theta[:, k]
             q = torch.tensor([0.5, *RANGE], dtype=torch.float64)
             median, low, high = torch.quantile(values, q).tolist()
             row.update(median=median, low=low, high=high)
-        else:
-            row.update(median=None, low=None, high=None)
+            if info.lower is not None and info.upper is not None:
+                band = EDGE_BAND * (info.upper - info.lower)
+                row["near_lower"] = float((values <= info.lower + band).double().mean())
+                row["near_upper"] = float((values >= info.upper - band).double().mean())
         out.append(row)
     return out
+
+
+@dataclass(frozen=True)
+class PiledAtBound:
+    """A parameter whose hybrid particles pile up at a bound of its prior.
+
+    Attributes:
+        model, parameter: which.
+        bound: the bound's value (SI units); ``side``: "lower" or "upper".
+        share: the share of the model's hybrid particles within
+            :data:`EDGE_BAND` of the prior's width from it, in [0, 1].
+    """
+
+    model: str
+    parameter: str
+    side: str
+    bound: float
+    share: float
+
+    def sentence(self) -> str:
+        return (
+            f"{self.model.upper()} `{self.parameter}`: {self.share:.0%} of its "
+            f"particles within {EDGE_BAND:.0%} of the prior's width from its "
+            f"{self.side} bound {_short(self.bound)}"
+        )
+
+
+def piled_at_bounds(posterior: Posterior) -> list[PiledAtBound]:
+    """Every (model, parameter) whose hybrid particles pile up at a prior bound:
+    more than :data:`EDGE_SHARE` of them within :data:`EDGE_BAND` of it (a
+    uniform spread puts EDGE_BAND there). The data may prefer a value the prior
+    cuts off, or the parameter trades off against another at its bound."""
+    out = []
+    for model in posterior.models:
+        for row in parameter_summary(posterior, model):
+            for side in ("lower", "upper"):
+                share = row[f"near_{side}"]
+                if share is not None and share > EDGE_SHARE:
+                    out.append(
+                        PiledAtBound(model, str(row["name"]), side, row[side], share)
+                    )
+    return out
+
+
+def bounds_markdown(piled: Sequence[PiledAtBound]) -> list[str]:
+    """The note under the parameter tables: what piles up where, and what to
+    do (nothing when nothing does)."""
+    if not piled:
+        return []
+    return [
+        "**At a prior bound.** "
+        + "; ".join(p.sentence() for p in piled)
+        + f" (a uniform spread would put {EDGE_BAND:.0%} there). The data may "
+        "prefer a value beyond the prior, or the parameter trades off against "
+        'another one there: widen that prior (`models: [{"name": ..., '
+        '"prior": {...}}]` in the run config) and train again to see which; '
+        "until then, read the median as a bound, not an estimate.",
+        "",
+    ]
 
 
 def parameters_markdown(posterior: Posterior, heading: str = "##") -> str:
@@ -187,6 +256,7 @@ def parameters_markdown(posterior: Posterior, heading: str = "##") -> str:
                 f"{row['meaning']} |"
             )
         lines.append("")
+    lines += bounds_markdown(piled_at_bounds(posterior))
     return "\n".join(lines)
 
 
@@ -799,6 +869,11 @@ def _short(value: object) -> str:
 
 __all__ = [
     "ALL",
+    "EDGE_BAND",
+    "EDGE_SHARE",
+    "PiledAtBound",
+    "bounds_markdown",
+    "piled_at_bounds",
     "CSV_NAME",
     "FEW_UNITS",
     "GROUP_COLUMN",
