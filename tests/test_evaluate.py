@@ -164,6 +164,7 @@ def test_metrics_equal_a_direct_computation(trained):
         assert (out / "report" / name).exists()
     table = (out / "report" / "table.md").read_text()
     assert "WS" in table and "IDM" in table
+    assert "What the columns are" in table  # every metric defined where shown
 
 
 def test_metrics_json_records_the_sinkhorn_solve(trained, capsys):

@@ -73,6 +73,7 @@ from .evaluation.plots import (
     shares_figure,
 )
 from .evaluation.report import (
+    METRIC_NOTES,
     coverage_table,
     differences_table,
     intervals_table,
@@ -526,6 +527,7 @@ def _evaluate_held(
         f"{posterior.top_n} best particles per training pair; hybrid: "
         f"{sum(len(p) for p in posterior.hybrid.values())} particles.\n\n"
         + metrics_table(metrics, entries)
+        + f"\n{METRIC_NOTES}\n"
         + "\n## Uncertainty\n\n"
         + intervals_table(metrics, entries, honest["bootstrap"])
         + "\n"

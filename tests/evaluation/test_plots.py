@@ -197,6 +197,21 @@ def test_plausibility_table() -> None:
     assert rows[-2] == ["HL", "40", "25.0%", "50.0%", "0.0%", "–"]
     assert rows[-1][2] == "0.0%"
     assert plausibility_table({}) == ""
+    # what it means, for the models concerned only, and what to do
+    assert "Particles that collide (HL 25% of each model's)" in table
+    assert '"plausibility": {"filter": true}' in table and "safety layer" in table
+    assert "String-unstable particles (HL 50%, IDM 50%)" in table
+    assert "without an equilibrium" not in table
+    calm = {**row, "collided": 0.0, "string_unstable": 0.0}
+    assert "No particle collided" in plausibility_table({"idm": calm})
+
+
+def test_every_report_table_says_what_its_columns_are() -> None:
+    from torchcf.evaluation.report import METRIC_NOTES
+
+    for column in ("Minimum distance", "WS distance", "0.15-WS distance", "Avg"):
+        assert f"*{column}" in METRIC_NOTES
+    assert "beta = 0.15" in METRIC_NOTES and "judged by the distances" in METRIC_NOTES
 
 
 def test_metrics_table_with_paper() -> None:

@@ -134,6 +134,27 @@ def _without_particles_never_valid(
     return lines
 
 
+#: What the metric table's columns are and why the hybrid is judged by the
+#: distances (SPEC section 6), under every metric table of a report.
+METRIC_NOTES = (
+    "What the columns are (SPEC section 6, `docs/evaluation.md`): every particle "
+    "is simulated on every test pair and scored as in training (the weighted RMSE "
+    "of position, speed and acceleration). *Avg ... error*: the mean error over "
+    "all (particle, test pair) cells; a particle fitted to one driver is charged "
+    "on every other driver too, so a set whose particles fit different drivers "
+    "(the hybrid, a mixture of models) scores badly here by construction. "
+    "*Minimum distance*: the mean over test pairs of the best particle's score "
+    "(can some particle reproduce each driver?). *WS distance*: the exact "
+    "Wasserstein distance between the particles (weight 1/n each) and the test "
+    "pairs (1/n_test each): the least cost of matching the whole set to the "
+    "drivers, no particle left idle (does the set reproduce the drivers' "
+    "spread?). *0.15-WS distance*: the same with each particle held to at least "
+    "15 % of its weight (beta = 0.15), between the two. The hybrid is a "
+    "distribution over drivers, so it is judged by the distances; the average "
+    "errors are kept for comparison with the paper's tables."
+)
+
+
 def relative_difference(
     ours: Mapping[str, Mapping[str, float]], paper: Mapping[str, Mapping[str, float]]
 ) -> dict[str, dict[str, float]]:
@@ -198,7 +219,62 @@ def plausibility_table(per_model: Mapping[str, Mapping[str, object]]) -> str:
             f"{row['no_equilibrium']:.1%} | "
             f"{_MISSING if ttc is None else f'{ttc:.2f}'} |"
         )
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + ["", *plausibility_meaning(per_model)]) + "\n"
+
+
+def plausibility_meaning(per_model: Mapping[str, Mapping[str, object]]) -> list[str]:
+    """What the battery's table means for using the hybrid, and what to do:
+    a paragraph per finding (collisions, string instability, no equilibrium),
+    naming the models concerned; one line when nothing was found."""
+
+    def which(key: str) -> str:
+        found = [
+            f"{_display_name(m)} {float(r[key]):.0%}"
+            for m, r in per_model.items()
+            if m.lower() != _HYBRID and float(r[key]) > 0.0
+        ]
+        return ", ".join(found)
+
+    collided, unstable, drifting = (
+        which(k) for k in ("collided", "string_unstable", "no_equilibrium")
+    )
+    lines = []
+    if collided:
+        lines += [
+            f"What it means. Particles that collide ({collided} of each model's): "
+            "run alone, they crash in at least one scenario, most often behind a "
+            "leader braking hard to a stop, which the training data rarely hold. "
+            "In torchcf's traffic simulations (`platoon`, `ring_road`) the safety "
+            "layer (Gipps' safe speed, on by default) brakes them instead and "
+            "`output.interventions` counts how often; SUMO bounds its vehicles by "
+            "its own safe speed. Where the learned behaviour itself must not "
+            'collide (a safety study), train with `"plausibility": {"filter": '
+            "true}`: such particles never enter the hybrid, at a cost in fit and "
+            'time (`docs/traffic.md`, "What the filter costs").',
+            "",
+        ]
+    if unstable:
+        lines += [
+            f"String-unstable particles ({unstable}): a platoon of them amplifies "
+            "a speed disturbance from vehicle to vehicle, so dense traffic of one "
+            "such model grows stop-and-go waves; in a mixed fleet, read the "
+            "waves a simulation shows with this in mind.",
+            "",
+        ]
+    if drifting:
+        lines += [
+            f"Particles without an equilibrium at some speed up to the battery's "
+            f"({drifting}): following a steady leader at that speed, their gap "
+            "never settles (it keeps opening or closing), usually a speed range "
+            "the training pairs never reached. Keep simulations within the "
+            "data's speeds, or screen them as above.",
+            "",
+        ]
+    return lines or [
+        "No particle collided, amplified a disturbance or lacked an "
+        "equilibrium in the battery.",
+        "",
+    ]
 
 
 # ------------------------------------------------------------- uncertainty
