@@ -24,6 +24,7 @@ from torchcf.data import (
 )
 from torchcf.data.pairset import SERIES
 from torchcf.data.reader import FILES
+from torchcf.data.registry import short_note
 
 
 def assert_same(a: PairSet, b: PairSet) -> None:
@@ -86,7 +87,7 @@ def test_real_ngsim_short_spacing(real_data: Path, caplog, monkeypatch) -> None:
     (note,) = pairs.notes
     assert note.startswith("9 pairs with a minimum front-to-front spacing under 4.572")
     assert ", ".join(map(str, short)) in note
-    assert note in caplog.text
+    assert short_note(note) in caplog.text and "docs/data.md" in caplog.text
     kept = load_pairs("ngsim-i80", download=False, min_spacing=4.572)
     assert kept.n_pairs == 141 and not set(short) & set(kept.pair_ids)
     assert "dropped 9 pairs with a minimum spacing under 4.572 m" in kept.notes[1]
@@ -110,7 +111,7 @@ def test_real_car_model_2_duplicates_and_leak(real_data: Path) -> None:
     kept = load_pairs("car-model-2", "test", download=False, drop_duplicates=False)
     assert (test.n_pairs, kept.n_pairs) == (17, 18)
     assert 16 in kept.pair_ids and 16 not in test.pair_ids
-    assert any(n.startswith("leak: Testing/ pair id 16") for n in test.notes)
+    assert any(n.startswith("Testing/ pair id 16") for n in test.notes)
     assert any("kept (drop_duplicates=False)" in n for n in kept.notes)
 
     train = load_pairs("car-model-2", "train", download=False)
@@ -290,7 +291,8 @@ def test_synthetic_quirks(tree: Path) -> None:
         "distinct pair ids in order (Trajectory/: 1; Testing/: 3)",
         "full-set column 4 (0-based pair id) is in neither Trajectory/ nor Testing/: "
         "2 + 2 = 4 of 5 pairs are split",
-        "leak: Testing/ pair id 3 exactly duplicates Trajectory/ pair id 1; dropped "
+        "Testing/ pair id 3 exactly duplicates Trajectory/ pair id 1 (a train-to-test "
+        "leak); dropped "
         "from the test split, 1 of 2 pairs kept (drop_duplicates=True)",
     )
     kept = load_pairs("car-model-2", "test", data_root=tree, drop_duplicates=False)
@@ -389,3 +391,27 @@ def test_min_spacing_and_short_spacing_note(
         "position errors: pair id 1 (smallest 3 m, pair id 1); min_spacing= drops them",
     )
     assert "pair id 1 (smallest 3 m" in caplog.text
+
+
+def test_notes_are_logged_once_short_and_say_where_explained(
+    tree: Path, caplog, monkeypatch
+) -> None:
+    """Both splits of a set with a duplicate, a leak and an unsplit column: one
+    line per load, each note in its first clause, the leak once (the test
+    split's note differs from the training split's only after its ';'), and
+    where the quirks are explained; the full notes stay in PairSet.notes."""
+    monkeypatch.setattr("torchcf.data.registry._ANNOUNCED", set())
+    with caplog.at_level(logging.INFO, logger="torchcf.data"):
+        train = load_pairs("car-model-2", "train", data_root=tree)
+        test = load_pairs("car-model-2", "test", data_root=tree)
+        load_pairs("car-model-2", "test", data_root=tree)  # nothing new
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1, lines  # the test split adds nothing the train split said
+    (line,) = lines
+    assert line.startswith("car-model-2: ") and "docs/data.md" in line
+    assert line.count("Testing/ pair id 3 exactly duplicates") == 1
+    assert "leak:" not in line and "(a train-to-test leak)" in line
+    for note in (*train.notes, *test.notes):
+        assert short_note(note) in line
+    assert any("; dropped from the test split" in n for n in test.notes)
+    assert "; dropped from the test split" not in line

@@ -33,10 +33,11 @@ A split cannot be loaded alone: its columns are copies of full-set columns, and
 ``pair_ids`` name the full-set column, so loading a split reads (and if needed
 downloads) the full set and both splits.
 
-Quirks, found generically and reported in ``PairSet.notes`` every time a set is
-loaded, and through the ``torchcf.data`` logger once per process (a note the
-training and test splits share, or a second load of the same set, is not
-repeated):
+Quirks, found generically and reported in ``PairSet.notes`` (in full) every time
+a set is loaded, and through the ``torchcf.data`` logger once per process, as one
+line per load with each new note in its short form (:func:`short_note`; a note
+the training and test splits share, or a second load of the same set, is not
+repeated) and where the quirks are explained (:data:`EXPLAINED`):
 
 * Duplicated pairs (CAR MODEL II: full-set columns 6 & 16 and 7 & 17, 0-based,
   are identical; ``Trajectory/`` holds both copies of 7/17, and one copy of 6/16
@@ -244,31 +245,54 @@ def load_pairs(
         )
 
     pairs = _check_spacing(pairs, min_spacing, notes)
-    for level, text in notes:
-        _announce(level, pairs.name, pairs.split, text)
+    _announce(pairs.name, notes)
     return dataclasses.replace(pairs, notes=tuple(text for _, text in notes))
 
 
-#: (data set, note) pairs this process has logged: a command loads a data set's
-#: training and test splits, often more than once (train, evaluate, the loop),
-#: and its quirks are the same each time (``PairSet.notes`` keeps them all).
+#: (data set, short note) pairs this process has logged: a command loads a data
+#: set's training and test splits, often more than once (train, evaluate, the
+#: loop), and its quirks are the same each time (``PairSet.notes`` keeps them
+#: all, in full).
 _ANNOUNCED: set[tuple[str, str]] = set()
+#: Where the quirks of the data sets are explained (the logged line says so).
+EXPLAINED = "docs/data.md, 'Errors and quirks'"
+#: Characters of one note in the logged line.
+_SHORT = 120
 
 
 #: Notes held back by :func:`notes_deferred` (None: none is active).
 _DEFERRED: list[tuple[int, str, str]] | None = None
 
 
-def _announce(level: int, name: str, split: str | None, text: str) -> None:
-    """Log a data note once per process and data set (module docstring)."""
-    if (name, text) in _ANNOUNCED:
+def short_note(text: str) -> str:
+    """A note's short form: its first clause (up to the first ``;``), at most
+    :data:`_SHORT` characters. Both splits' notes of one quirk share it."""
+    head = text.split("; ", 1)[0]
+    return head if len(head) <= _SHORT else head[: _SHORT - 3] + "..."
+
+
+def _announce(name: str, notes: list[tuple[int, str]]) -> None:
+    """Log a load's notes as one line, each note in its short form, once per
+    process and data set (a second load, or the other split, adds only what is
+    new), with where they are explained and where they are kept in full."""
+    fresh = []
+    for level, text in notes:
+        short = short_note(text)
+        if (name, short) not in _ANNOUNCED:
+            _ANNOUNCED.add((name, short))
+            fresh.append((level, short))
+    if not fresh:
         return
-    _ANNOUNCED.add((name, text))
-    where = name + (f" ({split})" if split else "")
+    level = max(lvl for lvl, _ in fresh)
+    count = f"{len(fresh)} data note{'s' if len(fresh) > 1 else ''}"
+    text = (
+        f"{count}, handled as documented ({EXPLAINED}; in full in PairSet.notes): "
+        + "; ".join(short for _, short in fresh)
+    )
     if _DEFERRED is not None:
-        _DEFERRED.append((level, where, text))
+        _DEFERRED.append((level, name, text))
         return
-    logger.log(level, "%s: %s", where, text)
+    logger.log(level, "%s: %s", name, text)
 
 
 @contextmanager
@@ -522,10 +546,10 @@ def _handle_leak(
     if not leaks:
         return pairs
     text = (
-        "leak: Testing/ pair id"
+        "Testing/ pair id"
         f"{_s(leaks)} {_join(t for t, _ in leaks)} exactly duplicate"
         f"{'' if len(leaks) > 1 else 's'} Trajectory/ pair id{_s(leaks)} "
-        f"{_join(t for _, t in leaks)}; "
+        f"{_join(t for _, t in leaks)} (a train-to-test leak); "
     )
     if pairs.split == "train":
         notes.append(
