@@ -172,8 +172,7 @@ def print_result(
     width = max(len(name) for name in summary["shares"])
     print(f"hybrid shares ({summary['dataset']}, N = {summary['top_n']}):")
     for name, share in summary["shares"].items():
-        seconds = summary["per_model"][name]["seconds"]
-        print(f"  {name:<{width}}  {share:6.1%}   ({seconds:.1f} s)")
+        print(f"  {name:<{width}}  {share:6.1%}   ({_counts(summary, name)})")
     if run.posterior_pt.is_file():
         for piled in piled_at_bounds(run.load_posterior()):
             print(f"  at a prior bound: {piled.sentence()} (see parameters.md)")
@@ -191,6 +190,20 @@ def print_result(
         )
     if wrote:
         print(f"wrote {run.path}")
+
+
+def _counts(summary: Mapping[str, Any], name: str) -> str:
+    """A model's time and its rollouts' fates (SPEC section 2): invalid, and
+    rejected early (stopped once they could not enter a buffer), each as a
+    share of the rollouts run (cells, in the full layout)."""
+    model = summary["per_model"][name]
+    cells = model["particles"] * (
+        1 if summary["layout"] == "paired" else summary["n_train"]
+    )
+    text = f"{model['seconds']:.1f} s, invalid {model['invalid_rate']:.1%}"
+    if model.get("stopped"):
+        text += f", rejected early {model['stopped'] / max(cells, 1):.0%}"
+    return text
 
 
 def report_error(error: BaseException, group: Group) -> None:

@@ -382,12 +382,13 @@ class ABCConfig(BaseModel):
         description="Particles simulated per chunk; None takes the model's default.",
     )
     early_rejection: bool = Field(
-        False,
+        True,
         description=(
             "Stop a particle's rollout once its score so far (a lower bound of its "
-            "score) exceeds what its pair's buffer keeps: the same buffers, faster; "
-            "invalid rollouts are then counted among the rollouts run to the end "
-            "and the stopped ones counted apart (eager rollouts only)."
+            "score) exceeds what its pair's buffer keeps: the same buffers, faster "
+            "(SPEC section 2, amended); the stopped rollouts are counted as "
+            "rejected early, apart from the invalid ones, which then count the "
+            "rollouts that turned invalid before they stopped or ended."
         ),
     )
     seed: int = Field(

@@ -120,7 +120,7 @@ def _stream_model(
             postfix += f", implausible {progress.implausible}"
         if rollout.early_rejection:
             cells = progress.next * rollout.cells_per_particle
-            postfix += f", stopped early {progress.stopped / cells:.0%}"
+            postfix += f", rejected early {progress.stopped / cells:.0%}"
         bar.set_postfix_str(postfix, refresh=False)
         logger.progress(
             name,
