@@ -123,3 +123,7 @@ def test_verify_command(tiny_run, tmp_path):  # noqa: F811
     assert vtypes["max_position_difference_at_or_below_v0_m"] < 1e-6
     table = (tmp_path / "verify.md").read_text()
     assert "SUMO co-simulation" in table and "SUMO exported vTypes" in table
+    # never silent: each stage said, a bar over SUMO's steps for each replay
+    for stage in ("loading the run", "torchcf's rollout", "exported vTypes",
+                  "co-simulation"):  # fmt: skip
+        assert f"sumo verify: {stage}" in done.stderr, done.stderr

@@ -134,7 +134,11 @@ def _verify(args: argparse.Namespace) -> int:
 
         ensure_directory(args.keep, "--keep directory")
     report = verify_run(
-        args.run_dir, args.out, max_particles=args.max_particles, workdir=args.keep
+        args.run_dir,
+        args.out,
+        max_particles=args.max_particles,
+        workdir=args.keep,
+        progress=True,
     )
     for key, label in (("vtypes", "exported vTypes"), ("cosim", "co-simulation")):
         part = report.get(key)

@@ -38,6 +38,7 @@ SPEC section 4 (RMSE over the valid steps; a non-finite value or a spacing
 from __future__ import annotations
 
 import math
+import sys
 import tempfile
 from collections.abc import Sequence
 from contextlib import nullcontext
@@ -46,6 +47,7 @@ from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 from ..config import load_split
 from ..data import PairSet
@@ -119,6 +121,7 @@ def replay(
     additional: str | Path | None = None,
     sampler: HybridSampler | None = None,
     safety: SafetyLayer | None = None,
+    progress: str | None = None,
 ) -> Replay:
     """Replay test pairs in SUMO, followers driven by vTypes or co-simulated.
 
@@ -131,6 +134,7 @@ def replay(
         additional: SUMO additional file of ``vtypes``.
         sampler: the co-simulation's sampler, ``vehicle_shape == (C,)``.
         safety: the co-simulation's safety layer (None: off).
+        progress: the label of a progress bar over SUMO's steps (None: none).
 
     Returns:
         :class:`Replay`, ``(T, C)``.
@@ -207,7 +211,11 @@ def replay(
                 position_offset=(-offset).to(sampler.dtype),
                 initial_acceleration=test.a_follow[0, index].to(sampler.dtype),
             )
-        for t in range(n_steps):  # SUMO rows 1 .. T: one past the end (module doc)
+        steps = tqdm(
+            range(n_steps), desc=progress, unit="step", disable=progress is None,
+            mininterval=1.0, postfix=f"{n_cells} followers",
+        )  # fmt: skip
+        for t in steps:  # SUMO rows 1 .. T: one past the end (module doc)
             if cosim is not None:
                 cosim.command()
             forced = [c for c in range(n_cells) if t + 1 < n_valid[c]]
@@ -292,6 +300,7 @@ def verify_run(
     max_particles: int | None = None,
     test: PairSet | None = None,
     workdir: str | Path | None = None,
+    progress: bool = False,
 ) -> dict[str, Any]:
     """Replay a trained run's test split in SUMO and score it beside torchcf.
 
@@ -303,6 +312,7 @@ def verify_run(
             all); torchcf's figures are computed on the same particles.
         test: the test pairs (default: the run's test split).
         workdir: where SUMO's files go (default: a temporary folder, removed).
+        progress: say each stage on stderr and show a bar over SUMO's steps.
 
     Returns:
         the report (also in ``verify.json``).
@@ -316,7 +326,7 @@ def verify_run(
     run = RunDir(run_dir)
     # No training or evaluation rewrites the run meanwhile.
     with run.locked() if run.path.is_dir() else nullcontext():
-        return _verify_held(run, out_dir, max_particles, test, workdir)
+        return _verify_held(run, out_dir, max_particles, test, workdir, progress)
 
 
 def _verify_held(
@@ -325,8 +335,15 @@ def _verify_held(
     max_particles: int | None,
     test: PairSet | None,
     workdir: str | Path | None,
+    progress: bool,
 ) -> dict[str, Any]:
     """:func:`verify_run` with the run directory held."""
+
+    def say(text: str) -> None:
+        if progress:
+            print(f"sumo verify: {text}", file=sys.stderr, flush=True)
+
+    say("loading the run and its test split")
     cfg, posterior, _ = run.load_run()
     if test is None:
         test = load_split(cfg.data)[1]
@@ -344,6 +361,10 @@ def _verify_held(
     mask_all = test.mask
 
     # torchcf's own rollout of the same particles, float64.
+    say(
+        f"torchcf's rollout of {sum(len(t) for t in theta.values())} particles on "
+        f"{n_test} test pairs"
+    )
     own = {
         n: simulate(
             n, theta[n], test, dtype=torch.float64, return_traj=True, weights=weights
@@ -382,6 +403,7 @@ def _verify_held(
                 workdir=folder,
                 vtypes=types_a,
                 additional=folder / VTYPES_FILE,
+                progress="sumo verify: exported vTypes" if progress else None,
             )
             scored = score_cells(run_a.x, run_a.v, run_a.a, test, pairs_a, weights)
             reference = torch.cat(
@@ -429,7 +451,10 @@ def _verify_held(
                     pairs_b.append(j)
                     particles_b.append(i)
         sampler.assign(torch.tensor(particles_b))
-        run_b = replay(test, pairs_b, workdir=folder, sampler=sampler)
+        run_b = replay(
+            test, pairs_b, workdir=folder, sampler=sampler,
+            progress="sumo verify: co-simulation" if progress else None,
+        )  # fmt: skip
         scored = score_cells(run_b.x, run_b.v, run_b.a, test, pairs_b, weights)
         reference = torch.cat([own[n].x.reshape(test.n_steps, -1) for n in names], 1)
         mask = mask_all[:, torch.tensor(pairs_b)]
