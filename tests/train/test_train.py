@@ -258,6 +258,7 @@ def test_resume_after_kill_9_equals_an_uninterrupted_run(data_root, tmp_path):
     assert not (out / "summary.json").exists()
     resumed = run_cli(str(cfg_path), "--out", str(out), "--resume")
     assert resumed.returncode == 0, resumed.stderr
+    assert "resuming from checkpoint.pt: " in resumed.stderr  # says what it reuses
     a = Posterior.load(tmp_path / "ref" / "posterior.pt")
     b = Posterior.load(out / "posterior.pt")
     assert a.shares == b.shares

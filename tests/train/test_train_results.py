@@ -18,7 +18,7 @@ from torchcf.config import TrainConfig, config_hash
 from torchcf.pipeline import StudyResult, train_and_evaluate
 from torchcf.rundir import RunDir
 from torchcf.train import ModelResult, RunError, RunState, RunSummary, open_run
-from torchcf.train.checkpoint import CHECKPOINT_FORMAT
+from torchcf.train.checkpoint import CHECKPOINT_FORMAT, resume_note
 from torchcf.train.engine import build_buffers
 from torchcf.train.summary import (
     Pairwise,
@@ -243,6 +243,19 @@ def test_a_checkpoint_resumes_to_its_state(tmp_path):
     build_buffers(MODELS, 3, cfg.abc.buffer_size, None, state, run.checkpoint)
     assert float(state.buffers["idm"].score[0, 0]) == 0.25
     assert isinstance(state.buffers["hl"], TopN)
+
+
+def test_resume_says_what_it_reuses():
+    state = RunState("h")
+    state.progress["idm"] = ModelProgress(next=1000, done=True)
+    state.progress["gfm"] = ModelProgress(next=340)
+    note = resume_note(state, ["idm", "gfm", "hl", "mpc"], 1000)
+    assert note == (
+        "resuming from checkpoint.pt: idm finished; gfm at 340 of 1,000; hl, mpc to run"
+    )
+    assert resume_note(RunState("h"), ["idm"], 10).endswith(
+        "no model finished; idm to run"
+    )
 
 
 @pytest.mark.parametrize(

@@ -109,6 +109,28 @@ def open_run(cfg: TrainConfig, out: Path, resume: bool) -> RunState:
     return RunState(digest)
 
 
+def resume_note(state: RunState, models: list[str], n_particles: int) -> str:
+    """What ``--resume`` reuses from the checkpoint, in one line: the models
+    finished, the one stopped part-way and how far, the ones still to run.
+
+    Args:
+        state: the checkpoint's state.
+        models: the config's models, in run order.
+        n_particles: particles per model (``abc.n_particles``).
+    """
+    progress = state.progress
+    done = [m for m in models if m in progress and progress[m].done]
+    partial = [
+        m for m in models if m in progress and not progress[m].done and progress[m].next
+    ]
+    todo = [m for m in models if m not in done and m not in partial]
+    parts = [f"{', '.join(done)} finished" if done else "no model finished"]
+    parts += [f"{m} at {progress[m].next:,} of {n_particles:,}" for m in partial]
+    if todo:
+        parts.append(f"{', '.join(todo)} to run")
+    return "resuming from checkpoint.pt: " + "; ".join(parts)
+
+
 def resume_state(run: RunDir, digest: str) -> RunState:
     """The state of the checkpoint in ``run``, written with the config of hash
     ``digest``.

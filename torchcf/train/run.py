@@ -70,6 +70,7 @@ from .checkpoint import (
     RunState,
     checkpoint_state,
     open_run,
+    resume_note,
 )
 from .engine import (
     BATTERY_CHUNK,
@@ -250,6 +251,9 @@ def _train_held(
     finished = group.on_main(_finished_summary, run, resume)
     if finished is not None:  # resumed after it ended: nothing left to do
         return finished
+    if resume and group.is_main:
+        models = [spec.name for spec in cfg.models]
+        print(resume_note(state, models, cfg.abc.n_particles), file=sys.stderr)
     if pairs is None:
         pairs = group.on_main(load_split, cfg.data)
     train_pairs, test_pairs = pairs
