@@ -70,6 +70,17 @@ def add_overrides(parser: argparse.ArgumentParser, metavar: str, example: str) -
     )
 
 
+#: Seconds between a progress bar's lines where stderr is no terminal (a log
+#: file, a pipe): progress moves at least every 10 s without flooding the log.
+LOG_INTERVAL = 9.0
+
+
+def bar_interval() -> float:
+    """tqdm's ``mininterval`` for a bar on stderr: live on a terminal, a line
+    every :data:`LOG_INTERVAL` seconds otherwise."""
+    return 0.1 if sys.stderr.isatty() else LOG_INTERVAL
+
+
 def _whole(text: str) -> int:
     """``"200000"``, ``"2e5"`` -> 200000; anything else raises ValueError."""
     try:
@@ -154,7 +165,9 @@ def _print(error: BaseException) -> None:
 __all__ = [
     "DefaultsHelpFormatter",
     "EXIT_INTERRUPTED",
+    "LOG_INTERVAL",
     "add_overrides",
+    "bar_interval",
     "count",
     "EXIT_USER_ERROR",
     "finite",

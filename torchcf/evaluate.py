@@ -52,6 +52,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from .config import TrainConfig, load_split
+from .console import bar_interval
 from .data import PairSet
 from .errors import TorchcfError
 from .evaluation.coverage import (
@@ -251,7 +252,7 @@ def _bar(total: int, desc: str, unit: str, progress: bool) -> tqdm:
         unit=unit,
         dynamic_ncols=True,
         file=sys.stderr,
-        mininterval=0.1 if sys.stderr.isatty() else 30.0,
+        mininterval=bar_interval(),
         disable=not progress,
     )
 

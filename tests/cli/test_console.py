@@ -272,3 +272,12 @@ def test_a_long_bad_value_is_quoted_short():
     with pytest.raises(argparse.ArgumentTypeError) as error:
         torchcf.console.count("9" * 5000 + "x")
     assert len(str(error.value)) < 80
+
+
+def test_a_bar_in_a_log_file_moves_at_least_every_10_s(monkeypatch):
+    """Live on a terminal; in a log or a pipe one line at most every 9 s, so a
+    stage's progress never stays still for 10 s without flooding the log."""
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
+    assert torchcf.console.bar_interval() == 0.1
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: False, raising=False)
+    assert torchcf.console.bar_interval() == torchcf.console.LOG_INTERVAL < 10.0

@@ -24,6 +24,7 @@ from torchcf.abc.rejection import (
     prior_stream,
     run_rejection,
 )
+from torchcf.abc.rounds import PILOT_ROUND
 from torchcf.abc.topn import TopN
 from torchcf.config import TrainConfig
 from torchcf.models import MODELS, get_model
@@ -184,7 +185,9 @@ def test_training_moves_the_mpc_bar_and_checkpoints_inside_the_model(
     )
     pairs = _short_pairs()
     train(cfg, tmp_path / "run", pairs=(pairs, pairs))
-    assert updates == [chunk, chunk, 1000]
+    # early rejection (the default) opens with a pilot round of 1/16 of a chunk
+    pilot = chunk // PILOT_ROUND
+    assert updates == [pilot, chunk, n - pilot - chunk]
     inside = [s["next"] for s in saves if not s["done"]]
-    assert inside == [chunk, 2 * chunk, n]
+    assert inside == [pilot, pilot + chunk, n]
     assert Posterior.load(tmp_path / "run" / "posterior.pt").buffers["mpc"]

@@ -50,6 +50,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from ..config import load_split
+from ..console import bar_interval
 from ..data import PairSet
 from ..evaluation.metrics import evaluate_costs
 from ..files import atomic_write_text, ensure_directory, read_json_object, write_json
@@ -213,7 +214,7 @@ def replay(
             )
         steps = tqdm(
             range(n_steps), desc=progress, unit="step", disable=progress is None,
-            mininterval=1.0, postfix=f"{n_cells} followers",
+            mininterval=bar_interval(), postfix=f"{n_cells} followers",
         )  # fmt: skip
         for t in steps:  # SUMO rows 1 .. T: one past the end (module doc)
             if cosim is not None:

@@ -23,11 +23,13 @@ log of the importance weight's ratio, ``log r``).
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
+from tqdm import tqdm
 
 from ..abc.configured import rollout_of, smc_settings
 from ..abc.distributed import Group
@@ -36,6 +38,7 @@ from ..abc.screen import PlausibilityScreen
 from ..abc.smc import SMCSettings, new_state, smc_budget
 from ..abc.topn import TopN
 from ..config import ConfigError, TrainConfig
+from ..console import bar_interval
 from ..data import PairSet
 from ..models import get_model
 from ..posterior import Posterior
@@ -184,19 +187,28 @@ def plausibility_battery(cfg: TrainConfig, pairs: PairSet) -> Battery:
 
 
 def hybrid_plausibility(
-    cfg: TrainConfig, pairs: PairSet, posterior: Posterior
+    cfg: TrainConfig, pairs: PairSet, posterior: Posterior, progress: bool = False
 ) -> dict[str, dict[str, Any]]:
     """The battery's shares per model over the hybrid's particles, on the
     CPU in float64 (:meth:`torchcf.traffic.Plausibility.summary`), in chunks
-    of :data:`BATTERY_CHUNK` particles."""
+    of :data:`BATTERY_CHUNK` particles; ``progress``: a bar over the models on
+    stderr."""
     battery = plausibility_battery(cfg, pairs)
-    return {
-        name: check_plausibility(
+    names = [
+        name for name in posterior.models
+        if name in posterior.hybrid and len(posterior.hybrid[name])
+    ]  # fmt: skip
+    bar = tqdm(
+        names, desc="plausibility battery", unit="model", file=sys.stderr,
+        mininterval=bar_interval(), disable=not progress,
+    )  # fmt: skip
+    out = {}
+    for name in bar:
+        bar.set_postfix_str(f"{name}, {len(posterior.hybrid[name])} particles")
+        out[name] = check_plausibility(
             name, posterior.hybrid[name].theta, battery, chunk=BATTERY_CHUNK
         ).summary()
-        for name in posterior.models
-        if name in posterior.hybrid and len(posterior.hybrid[name])
-    }
+    return out
 
 
 def plausibility_screen(cfg: TrainConfig, pairs: PairSet) -> PlausibilityScreen | None:

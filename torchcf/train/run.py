@@ -53,6 +53,7 @@ from ..abc.distributed import SINGLE, Group
 from ..abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
 from ..abc.smc import run_smc
 from ..config import TrainConfig, load_split, resolved_json
+from ..console import bar_interval
 from ..data import PairSet
 from ..data.importer import record_extraction
 from ..evaluation.plots import hybrid_images, save_image
@@ -178,7 +179,7 @@ def _progress_bar(name: str, total: int, initial: int, enabled: bool) -> tqdm:
         dynamic_ncols=True,
         file=sys.stderr,
         # In a log file (no terminal) a line every 30 s instead of a live bar.
-        mininterval=0.1 if sys.stderr.isatty() else 30.0,
+        mininterval=bar_interval(),
         disable=not enabled,
     )
 
@@ -279,7 +280,7 @@ def _train_held(
             cfg, train_pairs, test_pairs, state, wall, group.world_size
         )
         if cfg.plausibility.report and group.is_main:
-            report = hybrid_plausibility(cfg, train_pairs, posterior)
+            report = hybrid_plausibility(cfg, train_pairs, posterior, progress=True)
             summary = summary.with_plausibility(report)
             logger.plausibility(report)
         images = None
