@@ -23,11 +23,18 @@ control, or an effect other than the planted one), per case, in
 step only (the attribution with ``max_effects`` 1: was the planted effect
 chosen first?), until a size is chosen in fewer than 80 % of the seeds; the
 smallest size chosen in at least 80 % is the effect's detectable size at that
-number of pairs (``reports/loop_power.{json,md}``). Beside it, what the loop's
-own estimate (:mod:`torchcf.diagnose.power`) says on the control's data.
+number of pairs (``reports/loop_power.{json,md}``).
+
+**Detectable** (``detectable``): the loop's own power estimate
+(:mod:`torchcf.diagnose.power`, what each tested effect would have had to
+measure to be chosen) on the controls' data at each ``--pairs``, the first step
+over ``--seeds`` seeds, beside the planted cases' hit rates
+(``reports/loop_detectable.{json,md}``): one run per control and seed where
+the ``power`` mode needs one per effect, size and seed.
 
     python tools/loop_heterogeneous.py                      # the cases
     python tools/loop_heterogeneous.py power --pairs 50 200
+    python tools/loop_heterogeneous.py detectable --pairs 200 --seeds 2
     python tools/loop_heterogeneous.py report               # markdown from JSON
 """
 
@@ -297,11 +304,15 @@ def cases_markdown(payload: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def detectable_markdown(rows: list[dict]) -> list[str]:
+def detectable_markdown(
+    rows: list[dict], planted: list[dict] | None = None
+) -> list[str]:
     """What the controls could have shown: the loop's own detectable sizes
     (:mod:`torchcf.diagnose.power`, computed where nothing is chosen) on each
     control's data, median over seeds, beside the planted case of the same
-    mixture and its hit rate: the estimate's check against planted effects."""
+    mixture and its hit rate (from ``planted``, default ``rows``): the
+    estimate's check against planted effects."""
+    planted_rows = rows if planted is None else planted
     lines = []
     for control in ("control (human)", "control (ACC)"):
         runs = [r for r in rows if r["case"] == control]
@@ -310,7 +321,8 @@ def detectable_markdown(rows: list[dict]) -> list[str]:
         mixture = CASES[control].mixture
         lines += [
             "",
-            f"What {control} could have shown: the loop's detectable sizes on "
+            f"What {control} could have shown at {runs[0]['n_train']} training "
+            f"pairs: the loop's detectable sizes on "
             f"its data (step 1, {len(runs)} seeds; median over seeds, at the "
             "effect's level / if tested first; '>' where the largest size "
             "tried was not chosen), beside the planted case of this mixture:",
@@ -338,7 +350,7 @@ def detectable_markdown(rows: list[dict]) -> list[str]:
                 planted = next(
                     (n for n, c in CASES.items() if c is case), None
                 )  # fmt: skip
-                hits = [r["hit"] for r in rows if r["case"] == planted]
+                hits = [r["hit"] for r in planted_rows if r["case"] == planted]
                 largest = max(
                     abs(t["size"]) for d in sizes for t in d["tried"].get(side, [])
                 )  # fmt: skip
@@ -481,6 +493,56 @@ def power(
     return out
 
 
+def detectable(
+    pairs: list[int], seeds: int, diagnose: dict, done: dict[tuple, dict], save
+) -> list[dict]:
+    """The loop's own power estimate (:mod:`torchcf.diagnose.power`) on the
+    controls' data at each number of training pairs: every control over
+    ``seeds`` seeds, the first step only (``done``: runs read back, by (case,
+    pairs, seed); ``save`` is called after every run)."""
+    rows = []
+    for n_train in pairs:
+        for seed in range(seeds):
+            for name in ("control (human)", "control (ACC)"):
+                row = done.get((name, n_train, seed)) or run_case(
+                    name, seed, n_train=n_train, first_step=True, diagnose=diagnose
+                )
+                print(
+                    f"detectable: {name}, {n_train} pairs, seed {seed}, "
+                    f"loop {row['loop_seconds']:.0f} s",
+                    file=sys.stderr,
+                )
+                rows.append(row)
+                save(rows)
+    return rows
+
+
+def detectable_report(payload: dict, planted: list[dict]) -> str:
+    """The markdown of ``detectable``: per number of pairs, each control's
+    table (:func:`detectable_markdown`), the planted cases' hits beside."""
+    meta = payload["meta"]
+    lines = [
+        "# What the loop could show where drivers differ: its own power estimate",
+        "",
+        f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
+        f"{meta['cpu']}, git {meta['git']}. The controls of "
+        "`tools/loop_heterogeneous.py` (nothing planted) at each number of "
+        "training pairs (20 test pairs), the loop's first step: the sizes "
+        "each tested effect would have had to have to be chosen "
+        "(`torchcf.diagnose.power`). Hits: the planted cases of "
+        "`reports/loop_heterogeneous.md` (50 pairs).",
+    ]
+    for n_train in sorted({r["n_train"] for r in payload["runs"]}):
+        runs = [r for r in payload["runs"] if r["n_train"] == n_train]
+        seconds = _median([r["loop_seconds"] for r in runs])
+        lines += [
+            "",
+            f"## {n_train} training pairs (loop {seconds:.0f} s, median)",
+            *detectable_markdown(runs, planted if n_train == 50 else []),
+        ]
+    return "\n".join(lines) + "\n"
+
+
 def _needed(seeds: int) -> int:
     """Hits out of ``seeds`` for 80 %."""
     return -(-4 * seeds // 5)
@@ -497,8 +559,10 @@ def _fmt(value) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "what", nargs="?", choices=("cases", "power", "report"), default="cases",
-        help="report: write the cases' markdown again from their JSON",
+        "what", nargs="?", choices=("cases", "power", "detectable", "report"),
+        default="cases",
+        help="detectable: the loop's own power estimate on the controls at each "
+        "--pairs; report: write the cases' markdown again from their JSON",
     )  # fmt: skip
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=CASES)
     parser.add_argument("--effects", nargs="+", default=list(POWER_SIZES))
@@ -527,13 +591,28 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     payload = {"meta": bench_meta(sys.argv, args.threads), "diagnose": diagnose}
     diagnose = {**diagnose, "workers": args.workers}
-    default = "loop_power" if args.what == "power" else "loop_heterogeneous"
+    default = {"power": "loop_power", "detectable": "loop_detectable"}.get(
+        args.what, "loop_heterogeneous"
+    )
     out = REPORTS / (args.name or default)
     if args.what == "report":
         written = json.loads(out.with_suffix(".json").read_text())
         write_report(out, written, cases_markdown(written))
         return 0
     earlier = _earlier(out, payload["diagnose"]) if args.resume else {}
+    if args.what == "detectable":
+        cases = REPORTS / "loop_heterogeneous.json"
+        planted = json.loads(cases.read_text())["runs"] if cases.exists() else []
+        done = {
+            (r["case"], r["n_train"], r["seed"]): r for r in earlier.get("runs", [])
+        }
+
+        def save_rows(rows: list[dict]) -> None:
+            payload["runs"] = rows
+            write_report(out, payload, detectable_report(payload, planted))
+
+        detectable(args.pairs, args.seeds, diagnose, done, save_rows)
+        return 0
     if args.what == "power":
         done = {
             (e["effect"], e["pairs"], s["size"], r["seed"]): r
