@@ -39,6 +39,7 @@ from torchcf.data.formats.generic import (
     TIME_UNITS,
     parse_column_map,
 )
+from torchcf.data.formats.gps import GPS_COLUMNS
 from torchcf.data.formats.pairs import LENGTH_TOLERANCE, PAIR_COLUMNS
 from torchcf.data.importer import extract_source
 from torchcf.data.trajectory import COLUMNS
@@ -59,6 +60,10 @@ _READER_ARGS: dict[str, object] = {
     "directions": None,
     "follower_classes": None,
     "lap_frame": False,
+    "time_format": "auto",
+    "leader_rule": None,
+    "platoon": None,
+    "path_file": None,
 }
 
 
@@ -100,6 +105,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     _add_reader_options(p)
     _add_highd_options(p)
+    _add_gps_options(p)
     p.add_argument(
         "--vehicle-length", type=float, default=5.0, help="openacc: vehicle length [m]"
     )
@@ -227,6 +233,35 @@ def _add_highd_options(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_gps_options(p: argparse.ArgumentParser) -> None:
+    """The options of the GPS reader (time format, leaders, path)."""
+    group = p.add_argument_group(
+        "gps format (columns: " + ", ".join(GPS_COLUMNS) + "; --time-unit, "
+        "--speed-unit as above)"
+    )
+    group.add_argument(
+        "--time-format",
+        choices=("auto", "seconds", "gps-week", "timestamp"),
+        default=_READER_ARGS["time_format"],
+        help="numbers, GPS week seconds (rollovers undone) or date stamps",
+    )
+    group.add_argument(
+        "--leader-rule",
+        choices=("column", "platoon", "nearest"),
+        default=_READER_ARGS["leader_rule"],
+        help="each vehicle's leader: a leader column, --platoon's order, or the "
+        "nearest vehicle ahead on the path (None: column, else platoon, else nearest)",
+    )
+    group.add_argument(
+        "--platoon", default=None, help='the vehicles in driving order, "A,B,C"'
+    )
+    group.add_argument(
+        "--path-file",
+        default=None,
+        help="a CSV of the road's lat, lon in driving order (None: the platoon's path)",
+    )
+
+
 def _reader_fields(args: argparse.Namespace) -> dict:
     """The reader options as RawSource fields: all that ``args.format`` takes,
     and any other one set on the command line (RawSource refuses those)."""
@@ -237,7 +272,9 @@ def _reader_fields(args: argparse.Namespace) -> dict:
         if name not in takes and value == default:
             continue
         if name == "columns" and value is not None:
-            known = PAIR_COLUMNS if args.format == "pairs" else COLUMNS
+            known = {"pairs": PAIR_COLUMNS, "gps": GPS_COLUMNS}.get(
+                args.format, COLUMNS
+            )
             value = parse_column_map(value, known)
         elif name == "road_frame" and value is not None:
             value = value == "yes"

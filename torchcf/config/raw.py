@@ -32,6 +32,7 @@ __all__ = ["RawSource"]
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 _OptionalPositive = float | None
+Format = Literal["ngsim", "openacc", "csv", "pairs", "punzo", "highd", "gps"]
 
 
 class RawSource(BaseModel):
@@ -41,16 +42,14 @@ class RawSource(BaseModel):
     model_config = _STRICT
 
     source: str = Field(min_length=1, description="Raw file or folder.")
-    format: Literal["ngsim", "openacc", "csv", "pairs", "punzo", "highd"] = Field(
-        description=f"Reader: one of {', '.join(FORMATS)}."
-    )
+    format: Format = Field(description=f"Reader: one of {', '.join(FORMATS)}.")
     columns: dict[str, str] | None = Field(
         None,
         description=(
-            "csv and pairs only: source column of each table column, e.g. "
-            '{"vehicle": "ID", "time": "t", "position": "x"} (csv) or '
-            '{"pair": "ID", "x_lead": "xl"} (pairs); None = the reader\'s '
-            "default names."
+            "csv, pairs and gps only: source column of each table column, e.g. "
+            '{"vehicle": "ID", "time": "t", "position": "x"} (csv), '
+            '{"pair": "ID", "x_lead": "xl"} (pairs) or {"lat": "Latitude"} (gps); '
+            "None = the reader's default names."
         ),
     )
     length_unit: str = Field(
@@ -106,6 +105,33 @@ class RawSource(BaseModel):
         description=(
             'highd only: vehicle classes that may follow, e.g. "Car" or '
             '"Car,Truck"; other vehicles stay as leaders. None = all.'
+        ),
+    )
+    time_format: Literal["auto", "seconds", "gps-week", "timestamp"] = Field(
+        "auto",
+        description=(
+            "gps only: numbers in time_unit ('seconds'), GPS week seconds "
+            "('gps-week': rollovers undone), date stamps ('timestamp'), or 'auto' "
+            "(numbers with rollovers undone, text as dates)."
+        ),
+    )
+    leader_rule: Literal["column", "platoon", "nearest"] | None = Field(
+        None,
+        description=(
+            "gps only: each vehicle's leader from a leader column, the platoon's "
+            "order, or the nearest vehicle ahead on the path; None = the column "
+            "if there is one, else the platoon if given, else the nearest."
+        ),
+    )
+    platoon: str | None = Field(
+        None,
+        description='gps only: the vehicles in driving order, e.g. "A,B,C" (A leads).',
+    )
+    path_file: str | None = Field(
+        None,
+        description=(
+            "gps only: a CSV of the road's lat, lon in driving order; None = the "
+            "platoon's own smoothed path."
         ),
     )
     road_frame: bool | None = Field(

@@ -21,6 +21,9 @@ punzo      Punzo et al.'s six-column files (t, x_lead,  :mod:`.punzo`
 highd      highD drone recordings (XX_tracks.csv,       :mod:`.highd`
            XX_tracksMeta.csv, XX_recordingMeta.csv); a
            folder of recordings or one file of one
+gps        GPS logs: time, latitude, longitude (and     :mod:`.gps`
+           speed) per vehicle, one file per car or a
+           long table, put on one road path
 =========  ==========================================  ===========================
 
 :func:`read_trajectories` dispatches on the format name; :func:`reader_options`
@@ -36,6 +39,7 @@ from collections.abc import Callable
 from typing import Any
 
 from torchcf.data.formats.generic import read_csv_table
+from torchcf.data.formats.gps import read_gps
 from torchcf.data.formats.highd import read_highd
 from torchcf.data.formats.ngsim import read_ngsim
 from torchcf.data.formats.openacc import read_openacc
@@ -54,6 +58,7 @@ FORMATS: dict[str, Callable[..., TrajectoryTable]] = {
     "pairs": read_pairs,
     "punzo": read_punzo,
     "highd": read_highd,
+    "gps": read_gps,
 }
 
 
