@@ -251,6 +251,8 @@ def test_the_command_line_extracts_pairs_from_gps_logs(tmp_path, capsys):
     argv = ["extract", str(folder), "--format", "gps", "--platoon", "A,B,C",
             "--out", str(out), "--window", "40", "--test-fraction", "0.5"]  # fmt: skip
     assert data_main(argv) == 0, capsys.readouterr().err
+    printed = capsys.readouterr().out
+    assert "couple spans shorter than a window of 40 s (" in printed  # the window
     record = json.loads((out / "extract.json").read_text())
     assert record["summary"]["pairs"] == 4
     # an option of another format is refused in one line

@@ -316,8 +316,9 @@ def _report(extraction, out, seconds: float) -> None:
         f"dt = {summary['dt']:g} s from {summary['vehicles']} vehicles in "
         f"{summary['runs']} run(s); {summary['candidate_windows']} candidate windows, "
         f"dropped: {', '.join(f'{k} {v}' for k, v in dropped.items()) or 'none'}; "
-        f"{summary['spans_short']} couple spans shorter than a window "
-        f"({summary['seconds_in_short_spans']:.0f} s)"
+        f"{summary['spans_short']} couple spans shorter than a window of "
+        f"{summary['window_steps'] * summary['dt']:g} s "
+        f"({summary['seconds_in_short_spans']:.0f} s of data in them)"
     )
     print(f"wrote {out} in {seconds:.1f} s")
 
