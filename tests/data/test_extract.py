@@ -216,8 +216,28 @@ def test_no_window_left_names_the_filters() -> None:
     frames[1]["acceleration"] = 9.0
     with pytest.raises(DataError, match=r"no window .* passed .* acceleration 3"):
         extract_pairs(table_of(frames), options())
-    with pytest.raises(DataError, match=r"lasts one window \(60 s\).*longest lasts 30"):
+    with pytest.raises(DataError, match=r"lasts one window \(60 s\).*longest 30"):
         extract_pairs(table_of(couple_rows(T)), options(window=60.0))
+
+
+def test_short_couples_get_a_window_proposed_and_auto_picks_it() -> None:
+    """Couples of 6, 8 and 12 s (a data set of short trajectories): the
+    default window's error names the spans and proposes the median, 8 s;
+    ``window="auto"`` takes it, so two of the three couples give a pair."""
+    frames = []
+    for k, seconds in enumerate((6.0, 8.0, 12.0)):
+        t = np.round(np.arange(0.0, seconds, DT), 10)
+        frames += couple_rows(t, run=f"r{k}")
+    table = table_of(frames)
+    with pytest.raises(DataError) as error:
+        extract_pairs(table, options(window=40.0))
+    message = str(error.value)
+    assert "3 couple spans, median 8.0 s, the longest 12.0 s" in message
+    assert "the data support --window 8 (--window auto: the median" in message
+    chosen = extract_pairs(table, options(window="auto"))
+    assert chosen.summary["window_steps"] == 80
+    assert chosen.pairs.n_pairs == 2
+    assert any(n.startswith("window 8 s from the data (auto:") for n in chosen.notes)
 
 
 def test_overlapping_vehicles_are_a_non_positive_gap() -> None:

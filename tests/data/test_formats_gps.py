@@ -255,6 +255,17 @@ def test_the_command_line_extracts_pairs_from_gps_logs(tmp_path, capsys):
     assert "couple spans shorter than a window of 40 s (" in printed  # the window
     record = json.loads((out / "extract.json").read_text())
     assert record["summary"]["pairs"] == 4
+    # a window from the data: the couples last the whole 90 s, auto caps at 40 s
+    auto = [
+        *argv[: argv.index("--window")],
+        "--window",
+        "auto",
+        *argv[argv.index("--window") + 2 :],
+    ]
+    assert data_main([*auto, "--overwrite"]) == 0
+    assert (
+        json.loads((out / "extract.json").read_text())["summary"]["window_steps"] == 400
+    )
     # an option of another format is refused in one line
     argv[argv.index("--platoon")] = "--recordings"
     assert data_main([*argv, "--overwrite"]) == 2

@@ -77,6 +77,18 @@ def _optional_float(text: str) -> float | None:
         raise argparse.ArgumentTypeError(f"not a number or 'none': {text!r}") from None
 
 
+def _window(text: str) -> float | str:
+    """A window length [s], or "auto"."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"not a number of seconds or 'auto': {text[:40]!r}"
+        ) from None
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m torchcf.data",
@@ -119,7 +131,13 @@ def _parser() -> argparse.ArgumentParser:
         ),
     )
     cut = p.add_argument_group("windows and split")
-    cut.add_argument("--window", type=float, default=40.0, help="pair length [s]")
+    cut.add_argument(
+        "--window",
+        type=_window,
+        default=40.0,
+        help="pair length [s], or 'auto': the median length of the couples' "
+        "spans, rounded down to 0.5 s, at most 40 s",
+    )
     cut.add_argument(
         "--stride", type=float, default=None, help="[s] between windows (None: window)"
     )

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, model_validator
 
 from torchcf.data.extract import ExtractOptions
 from torchcf.data.formats import FORMATS
@@ -153,7 +153,13 @@ class RawSource(BaseModel):
             "leave the circle are left out."
         ),
     )
-    window: float = Field(40.0, gt=0, description="Pair length [s].")
+    window: PositiveFloat | Literal["auto"] = Field(
+        40.0,
+        description=(
+            "Pair length [s], or 'auto': the median length of the couples' spans, "
+            "rounded down to 0.5 s, at most 40 s."
+        ),
+    )
     stride: float | None = Field(
         None, gt=0, description="Start-to-start distance of windows [s]; None = window."
     )

@@ -61,6 +61,17 @@ __all__ = [
 MAX_SPEED = 70.0
 
 SplitBy = Literal["follower", "couple", "run"]
+#: ``window="auto"``: the window is chosen from the data (:func:`auto_window`).
+AUTO = "auto"
+#: The default window [s] and the cap of an automatic one: long enough to hold
+#: several speed changes (the paper's pairs last 35-58 s).
+DEFAULT_WINDOW = 40.0
+#: An automatic window is a whole multiple of this [s].
+AUTO_STEP = 0.5
+AUTO_RULE = (
+    "the median length of the couples' spans, rounded down to 0.5 s, at most "
+    "40 s: at least half the couples then give a pair"
+)
 
 
 @dataclass(frozen=True)
@@ -85,7 +96,7 @@ class ExtractOptions:
         name: name of the pair set (defaults to the table's source).
     """
 
-    window: float = 40.0
+    window: float | Literal["auto"] = DEFAULT_WINDOW
     stride: float | None = None
     leader_length: float | None = None
     default_length: float = 5.0
@@ -98,8 +109,9 @@ class ExtractOptions:
     name: str = ""
 
     def __post_init__(self) -> None:
+        if self.window != AUTO:
+            _positive_number("window", self.window)
         for label, value in (
-            ("window", self.window),
             ("default_length", self.default_length),
             ("speed_window", self.speed_window),
             ("acceleration_window", self.acceleration_window),
@@ -120,6 +132,11 @@ class ExtractOptions:
             raise DataError(
                 f"test_fraction must be in [0, 1), got {self.test_fraction}"
             )
+
+
+def _positive_number(label: str, value: object) -> None:
+    if not (isinstance(value, int | float) and np.isfinite(value) and value > 0):
+        raise DataError(f"{label} must be > 0 or 'auto', got {value!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -201,20 +218,33 @@ def extract_pairs(
     )
     source = table.source or "the table"
     frame, dt = _on_grid(table.frame, options, source)
+    couples = _couple_rows(frame)
+    chosen: tuple[str, ...] = ()
+    if options.window == AUTO:
+        spans, _ = _spans(couples, int(round(DEFAULT_WINDOW / dt)))
+        options = dataclasses.replace(options, window=auto_window(spans, dt))
+        chosen = (f"window {options.window:g} s from the data (auto: {AUTO_RULE})",)
     width = int(round(options.window / dt))
     if width < 2:
         raise DataError(f"window {options.window} s is under two steps of {dt} s")
     stride = width if options.stride is None else max(1, round(options.stride / dt))
 
-    couples = _couple_rows(frame)
     spans, unmatched = _spans(couples, width)
     windows, meta, dropped = _candidate_windows(couples, spans, width, stride, dt)
     if not meta:
-        longest = max((s.stop - s.start for s in spans), default=0) * dt
+        lengths = np.array([s.stop - s.start for s in spans]) * dt
+        longest = float(lengths.max()) if lengths.size else 0.0
+        proposal = (
+            f"; the data support --window {auto_window(spans, dt):g} "
+            f"(--window auto: {AUTO_RULE})"
+            if lengths.size and lengths.max() >= 2 * dt
+            else ""
+        )
         raise DataError(
             f"no leader-follower couple in '{source}' lasts one window "
-            f"({options.window:g} s): the longest lasts {longest:.1f} s; "
-            "use a shorter --window"
+            f"({options.window:g} s): {lengths.size} couple spans, median "
+            f"{np.median(lengths) if lengths.size else 0.0:.1f} s, the longest "
+            f"{longest:.1f} s{proposal}"
         )
     kept, counts = _filter(windows, meta, dropped, options.quality, source)
 
@@ -258,8 +288,27 @@ def extract_pairs(
         road_frame=table.road_frame,
         road_period=table.road_period,
         summary=summary,
-        notes=(*table.notes, *_notes(index, unmatched, len(meta), options.window)),
+        notes=(
+            *table.notes,
+            *chosen,
+            *_notes(index, unmatched, len(meta), options.window),
+        ),
     )
+
+
+def auto_window(spans: list[_Span], dt: float) -> float:
+    """The window ``--window auto`` picks (:data:`AUTO_RULE`): the median
+    length of the couples' spans, rounded down to a multiple of
+    :data:`AUTO_STEP` (at least two steps), at most :data:`DEFAULT_WINDOW`.
+
+    Raises:
+        DataError: no couple at all.
+    """
+    if not spans:
+        raise DataError("no leader-follower couple to choose a window from")
+    median = float(np.median([s.stop - s.start for s in spans])) * dt
+    window = min(DEFAULT_WINDOW, np.floor(median / AUTO_STEP) * AUTO_STEP)
+    return float(max(window, 2 * dt))
 
 
 def _on_grid(
