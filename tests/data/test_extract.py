@@ -307,8 +307,40 @@ def test_units_that_cannot_be_right() -> None:
     for frame in frames:
         frame["position"] /= 0.3048  # positions in feet, speeds in m/s
     frames[1]["gap"] /= 0.3048
-    with pytest.raises(DataError, match="positions in ft, speeds in m/s"):
+    with pytest.raises(DataError, match="position in ft, speed in m/s"):
         extract_pairs(table_of(frames), options())
+
+
+@pytest.mark.parametrize(
+    ("factor", "needle"),
+    [(1e-3, "time in s read as ms? (--time-unit s)"),
+     (1e3, "time in ms read as s? (--time-unit ms)")],
+)  # fmt: skip
+def test_a_time_step_no_recording_has_names_the_time_column(factor, needle) -> None:
+    """Times in seconds read as milliseconds (or the reverse): the error names
+    the time column's unit, not the positions and speeds."""
+    frames = couple_rows(T)
+    for frame in frames:
+        frame["time"] *= factor
+    with pytest.raises(DataError) as error:
+        extract_pairs(table_of(frames), options(window=10.0 * factor))
+    assert "time column's unit cannot be right" in str(error.value)
+    assert needle in str(error.value)
+
+
+def test_lengths_no_car_has_are_flagged_with_the_likely_unit() -> None:
+    """A file in feet read as metres, positions, speeds and lengths alike: they
+    agree with each other, but 5 m cars are 16.4 "m" long (feet?)."""
+    frames = couple_rows(T)
+    for frame in frames:
+        for column in ("position", "speed", "acceleration", "length"):
+            frame[column] /= 0.3048
+    frames[1]["gap"] /= 0.3048
+    result = extract_pairs(table_of(frames), options())
+    (flag,) = [n for n in result.notes if n.startswith("vehicle lengths of")]
+    assert "16.4 m (median of 2 vehicles)" in flag and "--length-unit ft" in flag
+    clean = extract_pairs(table_of(couple_rows(T)), options())
+    assert not [n for n in clean.notes if n.startswith("vehicle lengths")]
 
 
 def test_off_grid_time_and_duplicate_rows() -> None:

@@ -338,6 +338,8 @@ def _report(extraction, out, seconds: float) -> None:
         f"{summary['window_steps'] * summary['dt']:g} s "
         f"({summary['seconds_in_short_spans']:.0f} s of data in them)"
     )
+    for note in extraction.notes:  # what the readers and checks found
+        print(f"note: {note}")
     print(f"wrote {out} in {seconds:.1f} s")
 
 

@@ -9,9 +9,11 @@ where every pair came from and of what was dropped and why:
 2. **Time grid.** ``dt`` is the median time step of all vehicles; every time stamp
    must lie on the grid ``t0 + k dt`` of its run (within 5 % of dt), and one
    vehicle may not have two rows at one step.
-3. **Units.** Speeds over :data:`MAX_SPEED` or positions that move at a multiple of
-   the recorded speeds (feet taken for metres, km/h for m/s) stop the extraction
-   with an error that names the likely unit.
+3. **Units**, checked against what cars do (:mod:`torchcf.data.physics`): a time
+   step no recording has, speeds over :data:`MAX_SPEED` or positions that move
+   at a multiple of the recorded speeds stop the extraction with an error that
+   names the column and its likely unit; vehicle lengths no car has are flagged
+   in the notes (``feet?``).
 4. **Couples.** A follower row belongs to its couple's *span* while its leader
    stays the same, the follower stays in its lane and control mode, and the
    leader has a row at the same step in the same lane. A leader change, lane
@@ -45,6 +47,7 @@ import torch
 
 from torchcf.data.derive import fill_derivatives
 from torchcf.data.pairset import DataError, PairSet
+from torchcf.data.physics import MAX_SPEED, check_time_step, check_units
 from torchcf.data.quality import FILTERS, QualityThresholds, Windows, first_failure
 from torchcf.data.trajectory import TrajectoryTable
 
@@ -56,9 +59,6 @@ __all__ = [
     "group_split",
 ]
 
-#: Fastest plausible road-vehicle speed [m/s] (252 km/h): anything faster is a
-#: unit error (km/h or ft/s read as m/s).
-MAX_SPEED = 70.0
 
 SplitBy = Literal["follower", "couple", "run"]
 #: ``window="auto"``: the window is chosen from the data (:func:`auto_window`).
@@ -217,7 +217,7 @@ def extract_pairs(
         acceleration_window=options.acceleration_window,
     )
     source = table.source or "the table"
-    frame, dt = _on_grid(table.frame, options, source)
+    frame, dt, flags = _on_grid(table.frame, options, source)
     couples = _couple_rows(frame)
     chosen: tuple[str, ...] = ()
     if options.window == AUTO:
@@ -290,6 +290,7 @@ def extract_pairs(
         summary=summary,
         notes=(
             *table.notes,
+            *flags,
             *chosen,
             *_notes(index, unmatched, len(meta), options.window),
         ),
@@ -313,14 +314,16 @@ def auto_window(spans: list[_Span], dt: float) -> float:
 
 def _on_grid(
     frame: pd.DataFrame, options: ExtractOptions, source: str
-) -> tuple[pd.DataFrame, float]:
-    """Steps 2-3: the rows with their integer ``step`` and lengths filled, and dt."""
+) -> tuple[pd.DataFrame, float, list[str]]:
+    """Steps 2-3: the rows with their integer ``step`` and lengths filled, dt,
+    and what the unit checks flag (:mod:`torchcf.data.physics`)."""
     frame = frame.copy()
     dt = infer_dt(frame, source)
+    check_time_step(dt, source)
     frame["step"] = grid_steps(frame, dt, source)
-    check_units(frame, dt, source)
+    flags = check_units(frame, dt, source)
     frame["length"] = frame["length"].fillna(options.default_length)
-    return frame, dt
+    return frame, dt, flags
 
 
 def _filter(
@@ -411,51 +414,6 @@ def grid_steps(frame: pd.DataFrame, dt: float, source: str) -> np.ndarray:
             f"({int(twice.sum())} such rows): vehicle ids must be unique per run"
         )
     return steps
-
-
-def check_units(frame: pd.DataFrame, dt: float, source: str) -> None:
-    """Stop on speeds no road vehicle reaches, or positions out of step with them.
-
-    Raises:
-        DataError: the 99th percentile speed is over :data:`MAX_SPEED`, or the
-            median position rate |dx/dt| differs from the median |speed| by a
-            factor outside [0.5, 2] (the message names the unit factor it looks
-            like: 3.28 ft per m, 3.6 km/h per m/s, 2.24 mph per m/s).
-    """
-    speed = frame["speed"].to_numpy()
-    speed = speed[np.isfinite(speed)]
-    if speed.size and np.quantile(np.abs(speed), 0.99) > MAX_SPEED:
-        top = float(np.quantile(np.abs(speed), 0.99))
-        raise DataError(
-            f"speeds up to {top:.1f} m/s (99th percentile) in '{source}': no road "
-            f"vehicle is that fast (> {MAX_SPEED:g} m/s); the units cannot be right "
-            "(speeds in km/h or ft/s read as m/s?)"
-        )
-    by_vehicle = frame.groupby(["run", "vehicle"], sort=False)
-    rate = (by_vehicle["position"].diff() / (by_vehicle["step"].diff() * dt)).to_numpy()
-    moving = np.isfinite(rate) & (frame["speed"].to_numpy() > 1.0)
-    if moving.sum() < 10:
-        return
-    ratio = float(np.median(np.abs(rate[moving]))) / float(
-        np.median(frame["speed"].to_numpy()[moving])
-    )
-    if not 0.5 <= ratio <= 2.0:
-        raise DataError(
-            f"positions in '{source}' move {ratio:.2f} times as fast as the recorded "
-            f"speeds: the units of position and speed disagree ({_likely(ratio)})"
-        )
-
-
-def _likely(ratio: float) -> str:
-    factors = {
-        1 / 0.3048: "positions in ft, speeds in m/s?",
-        0.3048: "positions in m, speeds in ft/s?",
-        3.6: "speeds in m/s, positions in a unit 3.6 times smaller, or km/h?",
-        1 / 3.6: "speeds in km/h read as m/s?",
-        1 / 2.23694: "speeds in mph read as m/s?",
-    }
-    best = min(factors, key=lambda f: abs(np.log(ratio / f)))
-    return factors[best] if abs(np.log(ratio / best)) < 0.1 else "check both"
 
 
 # --------------------------------------------------------------------- couples
