@@ -3,7 +3,7 @@ with the number of pairs.
 
 The targets: on 2 quiet cores ``python -m torchcf.diagnose RUN`` at its
 defaults, on a run of 50 measured training pairs where an effect is chosen and
-re-calibrated, in <= 5 minutes, on the 470-pair ZalaZONE campaign in <= 20
+re-calibrated, in <= 5 minutes, on the whole ZalaZONE campaign (451 pairs) in <= 20
 minutes, its cost linear in pairs. The runs (eight models trained with 2e5
 particles each by ``python -m torchcf.train``, not timed):
 

@@ -92,14 +92,19 @@ def test_openacc_windows_and_their_drops() -> None:
     summary = result.summary
     assert summary["runs"] == 4 and summary["vehicles"] == 12
     assert summary["candidate_windows"] == 21
-    # Vicolungo's last follower has a 23 m spacing jump in its first window,
-    # Cherasco's follower an 18 m drift in its first: both dropped and named
-    assert summary["windows_dropped"] == {"jump": 1, "gap_consistency": 1}
+    # Vicolungo's last follower has a 23 m spacing jump in its first window
+    # and steps 3.3 m/s off its speed in another, Cherasco's follower an 18 m
+    # drift in its first: all dropped and named
+    assert summary["windows_dropped"] == {
+        "jump": 1, "speed_mismatch": 1, "gap_consistency": 1,
+    }  # fmt: skip
     dropped = result.dropped.set_index("reason")
     assert dropped.loc["jump", "run"].startswith("Vicolungo")
     assert dropped.loc["jump", "value"] == pytest.approx(23.07, abs=0.05)
+    assert dropped.loc["speed_mismatch", "run"].startswith("Vicolungo")
+    assert dropped.loc["speed_mismatch", "value"] == pytest.approx(3.26, abs=0.01)
     assert dropped.loc["gap_consistency", "run"].startswith("Cherasco")
-    assert result.pairs.n_pairs == 19
+    assert result.pairs.n_pairs == 18
     assert result.index.groupby(["run", "follower"])["split"].nunique().max() == 1
     assert result.road_frame is False and result.train.road_frame is False  # 4 roads
     # accelerations were derived from the Doppler speeds

@@ -163,6 +163,12 @@ def _parser() -> argparse.ArgumentParser:
     quality = p.add_argument_group("quality filters ('none' switches one off)")
     quality.add_argument("--jump", type=_optional_float, default=1.0, help="[m]")
     quality.add_argument(
+        "--speed-mismatch",
+        type=_optional_float,
+        default=3.0,
+        help="[m/s] a step's speed against the recorded speeds",
+    )
+    quality.add_argument(
         "--max-acceleration", type=_optional_float, default=8.0, help="[m/s^2]"
     )
     quality.add_argument("--gap-drift", type=_optional_float, default=2.0, help="[m]")
@@ -310,6 +316,7 @@ def _raw_source(args: argparse.Namespace) -> RawSource:
         "leader_length": args.leader_length,
         "default_length": args.default_length,
         "jump": args.jump,
+        "speed_mismatch": args.speed_mismatch,
         "max_acceleration": args.max_acceleration,
         "gap_drift": args.gap_drift,
         "gap_drift_rate": args.gap_drift_rate,

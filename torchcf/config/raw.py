@@ -174,6 +174,14 @@ class RawSource(BaseModel):
         gt=0,
         description="Jump filter: largest position-step disagreement [m]; null = off.",
     )
+    speed_mismatch: _OptionalPositive = Field(
+        3.0,
+        gt=0,
+        description=(
+            "Speed-mismatch filter: largest disagreement of a step's speed (position "
+            "difference over dt) with the recorded speeds [m/s]; null = off."
+        ),
+    )
     max_acceleration: _OptionalPositive = Field(
         8.0, gt=0, description="Acceleration filter: largest |a| [m/s^2]; null = off."
     )
@@ -242,6 +250,7 @@ class RawSource(BaseModel):
             default_length=self.default_length,
             quality=QualityThresholds(
                 jump=self.jump,
+                speed_mismatch=self.speed_mismatch,
                 max_acceleration=self.max_acceleration,
                 gap_drift=self.gap_drift,
                 gap_drift_rate=self.gap_drift_rate,

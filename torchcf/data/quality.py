@@ -15,6 +15,11 @@ non_positive_gap    the bumper-to-bumper gap ``x_l - L_l - x_f`` is <= 0 at
 jump                a position step disagrees with the speeds:
                     ``|x(k+1) - x(k) - (v(k) + v(k+1)) dt / 2| > jump`` [m] for
                     either vehicle (a GNSS or tracking jump)
+speed_mismatch      a position step's speed departs from the recorded one:
+                    ``|(x(k+1) - x(k)) / dt - (v(k) + v(k+1)) / 2| >
+                    speed_mismatch`` [m/s] for either vehicle (positions built
+                    from a noisy range sensor; the jump filter's measure per
+                    second, so it does not loosen as the rate rises)
 acceleration        ``|a| > max_acceleration`` [m/s^2] for either vehicle
 gap_consistency     the recorded gap drifts from the speeds' integral:
                     ``max_k |g(k) - g(0) - sum (v_l - v_f) dt|`` [m] exceeds
@@ -26,7 +31,10 @@ leader_standstill   the leader's speed stays under ``standstill_speed`` [m/s]
 
 Every threshold can be switched off with ``None``. The defaults are for 10 Hz
 data of passenger cars: 1 m per step is about three times the position noise of
-tracked video or GNSS and far below a tracking jump; 8 m/s^2 (0.8 g) is beyond the
+tracked video or GNSS and far below a tracking jump; a step's speed may depart
+from the recorded speed by 3 m/s (at 10 Hz, 0.3 m: the noise of a position
+differenced over one step, where a range sensor's glitch reaches 9 m/s on the
+ZalaZONE runs); 8 m/s^2 (0.8 g) is beyond the
 emergency braking of most passenger cars on dry asphalt, so larger values are
 measurement noise. The gap may drift by 2 m (a GNSS multipath error) plus 0.2 m/s
 times the window's duration (a bias of 0.2 m/s, 0.7 km/h, between two vehicles'
@@ -52,6 +60,8 @@ class QualityThresholds:
 
     Attributes:
         jump: largest disagreement of a position step with the speeds [m].
+        speed_mismatch: largest disagreement of a step's speed, position
+            difference over dt, with the recorded speeds [m/s].
         max_acceleration: largest plausible |acceleration| [m/s^2].
         gap_drift: drift of the recorded gap from the integral of the speed
             difference allowed at any duration [m].
@@ -63,6 +73,7 @@ class QualityThresholds:
     """
 
     jump: float | None = 1.0
+    speed_mismatch: float | None = 3.0
     max_acceleration: float | None = 8.0
     gap_drift: float | None = 2.0
     gap_drift_rate: float = 0.2
@@ -131,6 +142,16 @@ def _step_disagreement(x: np.ndarray, v: np.ndarray, dt: float) -> np.ndarray:
     return np.abs(step).max(axis=0)
 
 
+def _speed_mismatch(w: Windows, q: QualityThresholds):
+    if q.speed_mismatch is None:
+        return None
+    worst = np.maximum(
+        _step_disagreement(w.x_lead, w.v_lead, w.dt),
+        _step_disagreement(w.x_follow, w.v_follow, w.dt),
+    ) / w.dt
+    return worst > q.speed_mismatch, worst
+
+
 def _acceleration(w: Windows, q: QualityThresholds):
     if q.max_acceleration is None:
         return None
@@ -180,6 +201,7 @@ FILTERS: dict[str, tuple[Check, str]] = {
     "missing": (_missing, "steps"),
     "non_positive_gap": (_non_positive_gap, "m (smallest gap)"),
     "jump": (_jump, "m (largest step disagreement)"),
+    "speed_mismatch": (_speed_mismatch, "m/s (largest step-speed disagreement)"),
     "acceleration": (_acceleration, "m/s^2 (largest |a|)"),
     "gap_consistency": (_gap_consistency, "m (largest drift)"),
     "leader_standstill": (_leader_standstill, "m/s (leader's top speed)"),
