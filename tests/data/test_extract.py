@@ -393,3 +393,14 @@ def test_written_folder_loads_as_pairs(tmp_path) -> None:
     with pytest.raises(DataError, match="not an extraction"):
         write_extraction(result, tmp_path / "other")
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_accelerations_no_car_reaches_are_flagged() -> None:
+    """Accelerations of 5 m/s^2 written in ft/s^2 (16.4) and read as m/s^2."""
+    frames = couple_rows(T)
+    for frame in frames:
+        frame["acceleration"] = 5.0 / 0.3048
+    no_filter = QualityThresholds(max_acceleration=None)
+    result = extract_pairs(table_of(frames), options(quality=no_filter))
+    (flag,) = [n for n in result.notes if n.startswith("accelerations up to")]
+    assert "16.4 m/s^2" in flag and "--acceleration-unit ft/s^2" in flag

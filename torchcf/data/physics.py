@@ -14,6 +14,8 @@ position rate   the median |dx/dt| within a factor 2 of     refused, the factor'
                 the median recorded speed                   likely unit named
 vehicle length  median of the known ones 2-12 m (cars       flagged in the notes
                 3.5-5.5 m, buses and trucks to 18 m)        (feet?)
+acceleration    99 % of the recorded ones under             flagged in the notes
+                :data:`MAX_ACCELERATION` (1.2 g)            (ft/s^2?)
 ==============  ==========================================  =====================
 
 A refusal is a :class:`~torchcf.data.pairset.DataError` naming the column and
@@ -33,6 +35,9 @@ __all__ = ["MAX_SPEED", "check_time_step", "check_units"]
 #: Fastest plausible road-vehicle speed [m/s] (252 km/h): anything faster is a
 #: unit error (km/h or ft/s read as m/s).
 MAX_SPEED = 70.0
+#: Largest plausible |acceleration| of a road vehicle [m/s^2] (1.2 g: beyond
+#: any emergency stop on dry asphalt).
+MAX_ACCELERATION = 12.0
 #: Sampling steps [s] of vehicle recordings: a 200 Hz radar to a 0.2 Hz log.
 TIME_STEPS = (0.005, 5.0)
 #: Median vehicle length [m] a data set of road vehicles has (cars 3.5-5.5 m;
@@ -119,7 +124,29 @@ def check_units(frame: pd.DataFrame, dt: float, source: str) -> list[str]:
                 "recorded speeds: the units of the position and speed columns "
                 f"disagree ({_likely_rate_slip(ratio)})"
             )
-    return _length_flags(frame, source)
+    return [*_length_flags(frame, source), *_acceleration_flags(frame, source)]
+
+
+def _acceleration_flags(frame: pd.DataFrame, source: str) -> list[str]:
+    """A flag where 1 % of the accelerations (recorded, or derived from the
+    speeds) exceed :data:`MAX_ACCELERATION`."""
+    recorded = frame["acceleration"].to_numpy()
+    recorded = np.abs(recorded[np.isfinite(recorded)])
+    if recorded.size < 10:
+        return []
+    top = float(np.quantile(recorded, 0.99))
+    if top <= MAX_ACCELERATION:
+        return []
+    guess = (
+        f"the acceleration column in ft/s^2? ({top * 0.3048:.1f} m/s^2; "
+        "--acceleration-unit ft/s^2)"
+        if top * 0.3048 <= MAX_ACCELERATION
+        else "noisy positions or a unit slip"
+    )
+    return [
+        f"accelerations up to {top:.1f} m/s^2 (99th percentile) in '{source}': "
+        f"road vehicles stay under {MAX_ACCELERATION:g} m/s^2; {guess}"
+    ]
 
 
 def _length_flags(frame: pd.DataFrame, source: str) -> list[str]:

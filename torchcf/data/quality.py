@@ -145,10 +145,13 @@ def _step_disagreement(x: np.ndarray, v: np.ndarray, dt: float) -> np.ndarray:
 def _speed_mismatch(w: Windows, q: QualityThresholds):
     if q.speed_mismatch is None:
         return None
-    worst = np.maximum(
-        _step_disagreement(w.x_lead, w.v_lead, w.dt),
-        _step_disagreement(w.x_follow, w.v_follow, w.dt),
-    ) / w.dt
+    worst = (
+        np.maximum(
+            _step_disagreement(w.x_lead, w.v_lead, w.dt),
+            _step_disagreement(w.x_follow, w.v_follow, w.dt),
+        )
+        / w.dt
+    )
     return worst > q.speed_mismatch, worst
 
 
