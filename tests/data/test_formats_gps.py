@@ -19,7 +19,7 @@ import pytest
 
 from torchcf.data.extract import ExtractOptions, extract_pairs
 from torchcf.data.formats import read_trajectories
-from torchcf.data.formats.gps import parse_times, read_gps
+from torchcf.data.formats.gps import fuse_with_speed, parse_times, read_gps
 from torchcf.data.pairset import DataError
 
 pyproj = pytest.importorskip("pyproj")
@@ -122,14 +122,30 @@ def test_a_loop_driven_twice_counts_its_distance_on(tmp_path):
     assert np.abs(spacing_error(table, truth, "B", "A")).max() < 0.15
 
 
-def test_receiver_noise_leaves_the_gap_error_of_the_fixes(tmp_path):
-    """0.5 m of noise on every fix (each axis): the spacing's error is that of
-    two noisy positions along the road, about 0.5 * sqrt(2) m, not more."""
+def test_receiver_noise_is_tamed_by_the_recorded_speed(tmp_path):
+    """0.5 m of white noise on every fix (each axis): fused with the recorded
+    speeds, the spacing's error falls well under that of two noisy positions
+    (0.5 sqrt(2) m), without bias; without speeds, it stays that of the fixes."""
     folder, truth = platoon_logs(bend, tmp_path / "logs", noise=0.5)
     table = read_gps(folder, platoon="A,B,C")
     error = spacing_error(table, truth, "B", "A")
-    assert np.sqrt(np.mean(error**2)) < 0.9
+    assert np.sqrt(np.mean(error**2)) < 0.25
     assert abs(np.mean(error)) < 0.1  # no bias
+    for car in "ABC":
+        log = pd.read_csv(folder / f"{car}.csv").drop(columns="speed")
+        log.to_csv(folder / f"{car}.csv", index=False, float_format="%.10f")
+    raw = spacing_error(read_gps(folder, platoon="A,B,C"), truth, "B", "A")
+    assert 0.5 < np.sqrt(np.mean(raw**2)) < 0.9
+
+
+def test_the_fusion_follows_a_speed_and_restarts_after_a_gap():
+    t = np.r_[np.arange(0.0, 5.0, 0.1), np.arange(10.0, 12.0, 0.1)]
+    speed = np.full(t.size, 10.0)
+    exact = 10.0 * t
+    assert fuse_with_speed(exact, speed, t, 0.1) == pytest.approx(exact)
+    shifted = exact + np.where(t >= 10.0, 3.0, 0.0)  # a jump across the dropout
+    fused = fuse_with_speed(shifted, speed, t, 0.1)
+    assert fused[t >= 10.0] == pytest.approx(shifted[t >= 10.0])  # restarted
 
 
 def test_a_dropout_leaves_its_steps_out_and_a_jump_is_dropped(tmp_path):
@@ -157,6 +173,7 @@ def test_receivers_on_different_clocks_meet_on_one_grid(tmp_path):
     late = log["time"].to_numpy()
     b_at = 100.0 + 15.0 * late - (25.0 + 5.0 * np.sin(0.2 * late))  # B's truth
     log["lat"], log["lon"] = to_latlon(straight(b_at))
+    log["speed"] = 15.0 - np.cos(0.2 * late)  # and its speed then
     log.to_csv(folder / "B.csv", index=False, float_format="%.10f")
     table = read_gps(folder, platoon="A,B,C")
     frame = table.frame.pivot_table(index="time", columns="vehicle", values="position")
