@@ -498,11 +498,14 @@ def detectable(
 ) -> list[dict]:
     """The loop's own power estimate (:mod:`torchcf.diagnose.power`) on the
     controls' data at each number of training pairs: every control over
-    ``seeds`` seeds, the first step only (``done``: runs read back, by (case,
-    pairs, seed); ``save`` is called after every run)."""
+    ``seeds`` seeds (and every seed ``done`` holds), the first step only
+    (``done``: runs read back, by (case, pairs, seed), the cases' controls
+    among them: their first step is the same; ``save`` is called after every
+    run)."""
     rows = []
     for n_train in pairs:
-        for seed in range(seeds):
+        known = {seed for (_, n, seed) in done if n == n_train}
+        for seed in sorted(known | set(range(seeds))):
             for name in ("control (human)", "control (ACC)"):
                 row = done.get((name, n_train, seed)) or run_case(
                     name, seed, n_train=n_train, first_step=True, diagnose=diagnose
@@ -603,8 +606,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.what == "detectable":
         cases = REPORTS / "loop_heterogeneous.json"
         planted = json.loads(cases.read_text())["runs"] if cases.exists() else []
+        controls = [r for r in planted if not r["expected"]]  # the same step 1
         done = {
-            (r["case"], r["n_train"], r["seed"]): r for r in earlier.get("runs", [])
+            (r["case"], r["n_train"], r["seed"]): r
+            for r in [*controls, *earlier.get("runs", [])]
         }
 
         def save_rows(rows: list[dict]) -> None:
