@@ -404,3 +404,23 @@ def test_accelerations_no_car_reaches_are_flagged() -> None:
     result = extract_pairs(table_of(frames), options(quality=no_filter))
     (flag,) = [n for n in result.notes if n.startswith("accelerations up to")]
     assert "16.4 m/s^2" in flag and "--acceleration-unit ft/s^2" in flag
+
+
+def test_the_command_line_shows_what_needs_attention(tmp_path, capsys) -> None:
+    """A file in feet read as metres: the flag is printed, the other notes are
+    counted and left to extract.json."""
+    from torchcf.data.__main__ import main as data_main
+
+    frames = couple_rows(T)
+    for frame in frames:
+        for column in ("position", "speed", "acceleration", "length"):
+            frame[column] = frame[column] / 0.3048
+    frames[1]["gap"] /= 0.3048
+    path = tmp_path / "feet.csv"
+    pd.concat(frames).to_csv(path, index=False)
+    argv = ["extract", str(path), "--format", "csv", "--window", "10",
+            "--test-fraction", "0", "--out", str(tmp_path / "out")]  # fmt: skip
+    assert data_main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "note: vehicle lengths of 16.4 m" in printed
+    assert "more note" in printed and "in extract.json" in printed

@@ -345,9 +345,11 @@ def _report(extraction, out, seconds: float) -> None:
         f"{summary['window_steps'] * summary['dt']:g} s "
         f"({summary['seconds_in_short_spans']:.0f} s of data in them)"
     )
-    for note in extraction.notes:  # what the readers and checks found
+    for note in extraction.attention:  # units that look wrong, a chosen window
         print(f"note: {note}")
-    print(f"wrote {out} in {seconds:.1f} s")
+    others = len(extraction.notes) - len(extraction.attention)
+    more = f"{others} more note{'s' if others != 1 else ''} in extract.json"
+    print(f"wrote {out} in {seconds:.1f} s ({more})")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -156,6 +156,9 @@ class Extraction:
         summary: counts for humans and for ``extract.json``.
         notes: what was found and handled, one line each (the table's notes
             first).
+        attention: the notes a user must see (among ``notes``): units that
+            look wrong (:mod:`torchcf.data.physics`), a window chosen from the
+            data.
     """
 
     pairs: PairSet
@@ -168,6 +171,7 @@ class Extraction:
     summary: dict
     notes: tuple[str, ...]
     road_period: float | None = None
+    attention: tuple[str, ...] = ()
 
 
 INDEX_COLUMNS = (
@@ -294,6 +298,7 @@ def extract_pairs(
             *chosen,
             *_notes(index, unmatched, len(meta), options.window),
         ),
+        attention=(*flags, *chosen),
     )
 
 
