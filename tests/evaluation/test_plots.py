@@ -198,9 +198,9 @@ def test_plausibility_table() -> None:
     assert rows[-1][2] == "0.0%"
     assert plausibility_table({}) == ""
     # what it means, for the models concerned only, and what to do
-    assert "Particles that collide (HL 25% of each model's)" in table
+    assert "Particles that collide (of each model's: HL 25%)" in table
     assert '"plausibility": {"filter": true}' in table and "safety layer" in table
-    assert "String-unstable particles (HL 50%, IDM 50%)" in table
+    assert "String-unstable particles (of each model's: HL 50%, IDM 50%)" in table
     assert "without an equilibrium" not in table
     calm = {**row, "collided": 0.0, "string_unstable": 0.0}
     assert "No particle collided" in plausibility_table({"idm": calm})

@@ -241,7 +241,7 @@ def plausibility_meaning(per_model: Mapping[str, Mapping[str, object]]) -> list[
     lines = []
     if collided:
         lines += [
-            f"What it means. Particles that collide ({collided} of each model's): "
+            f"What it means. Particles that collide (of each model's: {collided}): "
             "run alone, they crash in at least one scenario, most often behind a "
             "leader braking hard to a stop, which the training data rarely hold. "
             "In torchcf's traffic simulations (`platoon`, `ring_road`) the safety "
@@ -255,7 +255,8 @@ def plausibility_meaning(per_model: Mapping[str, Mapping[str, object]]) -> list[
         ]
     if unstable:
         lines += [
-            f"String-unstable particles ({unstable}): a platoon of them amplifies "
+            f"String-unstable particles (of each model's: {unstable}): a platoon of "
+            "them amplifies "
             "a speed disturbance from vehicle to vehicle, so dense traffic of one "
             "such model grows stop-and-go waves; in a mixed fleet, read the "
             "waves a simulation shows with this in mind.",
@@ -264,7 +265,8 @@ def plausibility_meaning(per_model: Mapping[str, Mapping[str, object]]) -> list[
     if drifting:
         lines += [
             f"Particles without an equilibrium at some speed up to the battery's "
-            f"({drifting}): following a steady leader at that speed, their gap "
+            f"(of each model's: {drifting}): following a steady leader at that "
+            "speed, their gap "
             "never settles (it keeps opening or closing), usually a speed range "
             "the training pairs never reached. Keep simulations within the "
             "data's speeds, or screen them as above.",
