@@ -106,28 +106,34 @@ def fresh_notes(monkeypatch):
 
 
 def test_a_data_note_is_logged_once_per_process(fresh_notes, caplog):
+    """One line per load, each note once per data set, in its short form."""
+    warn = logging.WARNING
     with caplog.at_level(logging.INFO, logger="torchcf.data"):
-        registry._announce(logging.WARNING, "set", "train", "a quirk")
-        registry._announce(logging.WARNING, "set", "test", "a quirk")
-        registry._announce(logging.WARNING, "set", "test", "another")
-        registry._announce(logging.WARNING, "other", "train", "a quirk")
-    assert [r.getMessage() for r in caplog.records] == [
-        "set (train): a quirk",
-        "set (test): another",
-        "other (train): a quirk",
-    ]
+        registry._announce("set", [(warn, "a quirk; dropped from train")])
+        registry._announce("set", [(warn, "a quirk; dropped from test")])
+        registry._announce("set", [(warn, "a quirk"), (warn, "another")])
+        registry._announce("other", [(warn, "a quirk")])
+    messages = [r.getMessage() for r in caplog.records]
+    assert len(messages) == 3
+    assert messages[0].startswith("set: 1 data note, handled as documented")
+    assert messages[0].endswith(": a quirk")
+    assert messages[1].endswith(": another")
+    assert messages[2].startswith("other: 1 data note")
+    assert "docs/data.md" in messages[2]
 
 
 def test_deferred_notes_follow_the_block_or_go_with_its_error(fresh_notes, caplog):
+    warn = logging.WARNING
     with caplog.at_level(logging.INFO, logger="torchcf.data"):
         with pytest.raises(ConfigError), notes_deferred():
-            registry._announce(logging.WARNING, "set", None, "first")
+            registry._announce("set", [(warn, "first")])
             raise ConfigError("abc.top_n: too many")
         assert caplog.records == []
         with notes_deferred():
-            registry._announce(logging.WARNING, "set", None, "second")
+            registry._announce("set", [(warn, "second")])
             assert caplog.records == []
-        assert [r.getMessage() for r in caplog.records] == ["set: second"]
+        (message,) = [r.getMessage() for r in caplog.records]
+        assert message.startswith("set: 1 data note") and message.endswith(": second")
 
 
 def test_the_paper_data_notes_are_not_repeated(fresh_notes, data_root, caplog):
@@ -155,7 +161,7 @@ def test_help_shows_the_defaults(capsys):
     with pytest.raises(SystemExit):
         data_main(["extract", "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    assert "pair length [s] (default: 40.0)" in text
+    assert "pair length [s], or 'auto'" in text and "(default: 40.0)" in text
     assert "share of groups for test (default: 0.3)" in text
     assert "the raw format (default" not in text  # required: no default to show
 

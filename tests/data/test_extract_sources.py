@@ -24,6 +24,7 @@ OPENACC = RAW / "openacc"
 
 ALL_OFF = QualityThresholds(
     jump=None,
+    speed_mismatch=None,
     max_acceleration=None,
     gap_drift=None,
     standstill_speed=None,
