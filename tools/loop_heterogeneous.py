@@ -571,6 +571,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--effects", nargs="+", default=list(POWER_SIZES))
     parser.add_argument("--pairs", nargs="+", type=count, default=[50, 200])
     parser.add_argument("--seeds", type=count, default=5)
+    parser.add_argument(
+        "--from-seed", type=natural, default=0,
+        help="cases: start at this seed (a design tried on the seeds it missed)",
+    )  # fmt: skip
     parser.add_argument("--threads", type=count, default=2)
     parser.add_argument(
         "--workers", type=natural, default=0,
@@ -633,9 +637,10 @@ def main(argv: list[str] | None = None) -> int:
         power(args.effects, args.pairs, args.seeds, diagnose, done, save)
         return 0
     done = {(r["case"], r["seed"]): r for r in earlier.get("runs", [])}
-    grid = {(name, seed) for seed in range(args.seeds) for name in args.cases}
+    seeds = range(args.from_seed, args.seeds)
+    grid = {(name, seed) for seed in seeds for name in args.cases}
     runs = [r for key, r in done.items() if key not in grid]  # other cases kept
-    for seed in range(args.seeds):
+    for seed in seeds:
         for name in args.cases:
             row = done.get((name, seed)) or run_case(name, seed, diagnose=diagnose)
             print(
