@@ -222,6 +222,31 @@ def test_gps_week_seconds_and_time_stamps():
         parse_times(pd.Series(["2026-05-01", "soon"]), "timestamp", 1.0)
 
 
+def test_a_week_rollover_is_undone_per_vehicle(tmp_path):
+    """Two cars logged in GPS week seconds across the week's end, one file
+    each: each car's clock rolls over once, whatever the other's does."""
+    folder, truth = platoon_logs(straight, tmp_path / "logs", seconds=20.0)
+    for car in "ABC":
+        log = pd.read_csv(folder / f"{car}.csv")
+        log["time"] = (log["time"] + 604_790.0) % 604_800.0
+        log.to_csv(folder / f"{car}.csv", index=False, float_format="%.10f")
+    table = read_gps(folder, platoon="A,B,C")
+    for car in "ABC":
+        times = table.frame.loc[table.frame["vehicle"] == car, "time"].to_numpy()
+        assert times.min() == pytest.approx(604_790.0, abs=0.1)
+        assert np.all(np.diff(times) > 0) and times.max() < 604_811.0
+    assert np.abs(spacing_error_shifted(table, truth, 604_790.0)).max() < 0.01
+
+
+def spacing_error_shifted(table, truth, shift: float) -> np.ndarray:
+    frame = table.frame.pivot_table(index="time", columns="vehicle", values="position")
+    both = frame[["A", "B"]].dropna()
+    t = both.index.to_numpy() - shift
+    stamps = np.arange(len(truth["A"])) * DT
+    true = np.interp(t, stamps, truth["A"] - truth["B"])
+    return (both["A"] - both["B"]).to_numpy() - true
+
+
 def test_pairs_cut_from_gps_logs_carry_the_spacing(tmp_path):
     """End to end: logs -> table -> pairs, whose spacing is the true one."""
     folder, truth = platoon_logs(bend, tmp_path / "logs", seconds=90.0)

@@ -225,7 +225,10 @@ def read_gps(
     paths = source_files(source, (".csv",), "gps")
     fixes = pd.concat([_read_one(p, given, sep) for p in paths], ignore_index=True)
     rule = _leader_rule(leader_rule, fixes, order)
-    fixes["time"] = parse_times(fixes["time"], time_format, TIME_UNITS[time_unit])
+    factor = TIME_UNITS[time_unit]
+    fixes["time"] = fixes.groupby(["run", "vehicle"], sort=False)["time"].transform(
+        lambda t: pd.Series(parse_times(t, time_format, factor), index=t.index)
+    )  # per vehicle, in its file's order: a week's rollover is the vehicle's own
     fixes["speed"] = fixes["speed"] * SPEED_UNITS[speed_unit]
     dropped: dict[str, int] = {}
     fixes = _drop(fixes, ~_valid_fix(fixes), "no fix", dropped)
