@@ -125,5 +125,5 @@ def test_verify_command(tiny_run, tmp_path):  # noqa: F811
     assert "SUMO co-simulation" in table and "SUMO exported vTypes" in table
     # never silent: each stage said, a bar over SUMO's steps for each replay
     for stage in ("loading the run", "torchcf's rollout", "exported vTypes",
-                  "co-simulation"):  # fmt: skip
+                  "co-simulation", "co-simulation: reading SUMO's FCD"):  # fmt: skip
         assert f"sumo verify: {stage}" in done.stderr, done.stderr

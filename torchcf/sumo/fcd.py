@@ -11,13 +11,16 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
+from ..console import bar_interval
 from .backend import SumoError
 
 #: The options torchcf adds to a SUMO run whose FCD it reads back.
@@ -47,6 +50,7 @@ def read_fcd(
     begin: float,
     dt: float,
     n_steps: int,
+    progress: str | None = None,
 ) -> Fcd:
     """The rows ``begin + k dt``, ``k = 0 .. n_steps - 1``, of ``vehicles``.
 
@@ -56,6 +60,8 @@ def read_fcd(
         begin: the time of the first row [s].
         dt: the step [s].
         n_steps: rows.
+        progress: the label of a progress bar over the file's time steps on
+            stderr (None: none): a big replay's file takes tens of seconds.
 
     Raises:
         SumoError: the file cannot be read or parsed.
@@ -65,6 +71,10 @@ def read_fcd(
     out = {k: torch.full(shape, math.nan, dtype=torch.float64) for k in Fcd._fields[1:]}
     pos, speed, acc = (out[k].numpy() for k in ("pos", "speed", "acceleration"))
     row = -1
+    bar = tqdm(
+        total=n_steps, desc=progress, unit="step", file=sys.stderr,
+        mininterval=bar_interval(), disable=progress is None,
+    )  # fmt: skip
     try:
         for event, element in ET.iterparse(os.fspath(path), events=("start", "end")):
             if event == "start":
@@ -79,8 +89,11 @@ def read_fcd(
                     acc[row, j] = float(element.get("acceleration", "nan"))
             elif element.tag == "timestep":
                 element.clear()
+                bar.update(1)
     except (ET.ParseError, OSError, TypeError, ValueError) as error:
         raise SumoError(f"{path}: unreadable FCD output ({error})") from None
+    finally:
+        bar.close()
     return Fcd(torch.arange(n_steps, dtype=torch.float64) * dt + begin, **out)
 
 

@@ -230,7 +230,10 @@ def replay(
             collisions += sumo.simulation.getCollidingVehiclesNumber()
             emergency += sumo.simulation.getEmergencyStoppingVehiclesNumber()
     # FCD stamps the state after a step with the step's start time: 0 = insertion.
-    fcd = read_fcd(fcd_path, followers, begin=0.0, dt=dt, n_steps=n_steps + 1)
+    fcd = read_fcd(
+        fcd_path, followers, begin=0.0, dt=dt, n_steps=n_steps + 1,
+        progress=None if progress is None else f"{progress}: reading SUMO's FCD",
+    )  # fmt: skip
     x = fcd.pos[:n_steps] - offset[None, :]  # (T, C)
     v = fcd.speed[:n_steps].clone()
     # Row 0 is written at insertion, before setPreviousSpeed gave the speed.
