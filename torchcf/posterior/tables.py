@@ -46,15 +46,11 @@ import torch
 from ..errors import TorchcfError, did_you_mean
 from ..files import atomic_write_text
 from ..models import get_model
+from .bounds import EDGE_BAND, EDGE_SHARE, PiledAtBound, bounds_markdown
 from .learned_set import Posterior
 
 #: Quantiles of the Markdown table's range.
 RANGE = (0.05, 0.95)
-#: The band at each prior bound, as a fraction of the prior's width, and the
-#: share of a model's hybrid particles in it above which the posterior is said
-#: to pile up at the bound (a uniform spread puts EDGE_BAND in each band).
-EDGE_BAND = 0.05
-EDGE_SHARE = 0.25
 #: Significant digits of values in the CSV (float64 holds 17; 10 keeps a
 #: parameter's value exact to well below any physical meaning).
 CSV_DIGITS = 10
@@ -153,31 +149,6 @@ def parameter_summary(posterior: Posterior, model: str) -> list[dict[str, object
     return out
 
 
-@dataclass(frozen=True)
-class PiledAtBound:
-    """A parameter whose hybrid particles pile up at a bound of its prior.
-
-    Attributes:
-        model, parameter: which.
-        bound: the bound's value (SI units); ``side``: "lower" or "upper".
-        share: the share of the model's hybrid particles within
-            :data:`EDGE_BAND` of the prior's width from it, in [0, 1].
-    """
-
-    model: str
-    parameter: str
-    side: str
-    bound: float
-    share: float
-
-    def sentence(self) -> str:
-        return (
-            f"{self.model.upper()} `{self.parameter}`: {self.share:.0%} of its "
-            f"particles within {EDGE_BAND:.0%} of the prior's width from its "
-            f"{self.side} bound {_short(self.bound)}"
-        )
-
-
 def piled_at_bounds(posterior: Posterior) -> list[PiledAtBound]:
     """Every (model, parameter) whose hybrid particles pile up at a prior bound:
     more than :data:`EDGE_SHARE` of them within :data:`EDGE_BAND` of it (a
@@ -193,23 +164,6 @@ def piled_at_bounds(posterior: Posterior) -> list[PiledAtBound]:
                         PiledAtBound(model, str(row["name"]), side, row[side], share)
                     )
     return out
-
-
-def bounds_markdown(piled: Sequence[PiledAtBound]) -> list[str]:
-    """The note under the parameter tables: what piles up where, and what to
-    do (nothing when nothing does)."""
-    if not piled:
-        return []
-    return [
-        "**At a prior bound.** "
-        + "; ".join(p.sentence() for p in piled)
-        + f" (a uniform spread would put {EDGE_BAND:.0%} there). The data may "
-        "prefer a value beyond the prior, or the parameter trades off against "
-        'another one there: widen that prior (`models: [{"name": ..., '
-        '"prior": {...}}]` in the run config) and train again to see which; '
-        "until then, read the median as a bound, not an estimate.",
-        "",
-    ]
 
 
 def parameters_markdown(posterior: Posterior, heading: str = "##") -> str:
