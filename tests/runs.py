@@ -7,11 +7,14 @@ a whole run (two models, a few thousand particles, evaluation) takes seconds.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -96,3 +99,14 @@ def torchrun_train(*args: str) -> subprocess.CompletedProcess[str]:
         *args,
         env={"OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"},
     )
+
+
+def tool_module(name: str) -> Iterator[ModuleType]:
+    """``tools/<name>.py`` imported as a module for a test (a generator for a
+    fixture: the module is dropped from ``sys.modules`` afterwards)."""
+    spec = importlib.util.spec_from_file_location(name, REPO / "tools" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    yield module
+    sys.modules.pop(spec.name, None)

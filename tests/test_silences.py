@@ -2,23 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import sys
-from pathlib import Path
 
 import pytest
 
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "silences.py"
+from tests.runs import tool_module
 
 
 @pytest.fixture(scope="module")
 def silences():
-    spec = importlib.util.spec_from_file_location("silences", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    yield module
-    sys.modules.pop(spec.name, None)
+    yield from tool_module("silences")
 
 
 def test_the_longest_gap_between_writes_with_what_framed_it(silences):

@@ -3,28 +3,19 @@ headways from a PairSet, the two-sample KS distance (no SUMO needed)."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from tests.runs import tool_module
 from torchcf.data import PairSet
-
-TOOL = Path(__file__).resolve().parents[2] / "tools" / "sumo_network_demo.py"
 
 
 @pytest.fixture(scope="module")
 def demo():
-    spec = importlib.util.spec_from_file_location("sumo_network_demo", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    yield module
-    sys.modules.pop(spec.name, None)
+    yield from tool_module("sumo_network_demo")
 
 
 def test_parse_fleet_normalises(demo):
