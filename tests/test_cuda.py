@@ -18,8 +18,8 @@ from tests.conftest import prior_draws, synthetic_pairs
 from tests.runs import run_module, torchrun_train, write_config, write_data
 from torchcf import MODELS, simulate
 from torchcf.config import validate_config
-from torchcf.pipeline import run_study
 from torchcf.posterior import Posterior
+from torchcf.study.pipeline import run_study
 from torchcf.train import train
 
 pytestmark = pytest.mark.skipif(
@@ -121,7 +121,7 @@ def test_training_on_cuda_keeps_the_cpu_particles(tmp_path):
 
 
 def test_training_evaluation_and_diagnosis_on_cuda(tmp_path):
-    from torchcf.pipeline import close_loop
+    from torchcf.study.pipeline import close_loop
 
     train_pairs = synthetic_pairs(n_pairs=6, n_steps=200, seed=1)
     test_pairs = synthetic_pairs(n_pairs=4, n_steps=200, seed=2)

@@ -119,6 +119,10 @@ def test_the_docs_site_builds_strict(tmp_path):
         target = ((docs / page).parent / link.split("#", 1)[0]).resolve()
         assert not target.is_relative_to(docs), f"{page}: broken link {link}\n{output}"
         assert "reports/" not in link, f"{page}: {link} leads nowhere in the site"
+    # the API reference is generated from the docstrings (mkdocstrings)
+    public = (site / "api" / "public" / "index.html").read_text()
+    for name in ("load_pairs", "simulate", "HybridSampler", "get_model"):
+        assert f'id="torchcf.{name}"' in public, name
     # the reports the pages cite are published beside them (tools/docs_reports.py)
     assert (site / "reports" / "loop_cases" / "index.html").exists()
     loop = (site / "loop" / "index.html").read_text()

@@ -10,18 +10,18 @@ import pytest
 import torch
 
 from tests.conftest import synthetic_pairs
+from torchcf.cli.evaluate import main as evaluate_command
 from torchcf.config import TrainConfig
-from torchcf.crossval import aggregate, crossval, fold_config
-from torchcf.evaluate import (
+from torchcf.evaluation.evaluate import (
     cost_matrices,
     evaluate_posterior,
     evaluate_run,
     hybrid_rows_in_single,
-    main,
     single_model_particles,
 )
 from torchcf.evaluation.metrics import evaluate_costs, sinkhorn
 from torchcf.posterior import Posterior
+from torchcf.study.crossval import aggregate, crossval, fold_config
 from torchcf.train import train
 
 
@@ -205,7 +205,7 @@ def test_sinkhorn_iteration_cap_comes_from_the_config(trained, capsys):
 
 
 def test_evaluate_cli_refuses_an_unfinished_run(tmp_path, capsys):
-    assert main([str(tmp_path)]) == 2
+    assert evaluate_command([str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error:") and "no finished run" in err and "\n" not in err
 

@@ -26,12 +26,12 @@ from torchcf.config.overrides import apply_overrides
 from torchcf.data import registry
 from torchcf.data.__main__ import main as data_main
 from torchcf.data.registry import notes_deferred
-from torchcf.errors import did_you_mean
-from torchcf.evaluate import evaluate_run
-from torchcf.files import RunFileError
+from torchcf.evaluation.evaluate import evaluate_run
 from torchcf.models import get_model, parse_effect
-from torchcf.pipeline import run_study
-from torchcf.rundir import LOCK_NAME, RunDir
+from torchcf.runs.directory import LOCK_NAME, RunDir
+from torchcf.study.pipeline import run_study
+from torchcf.system.errors import did_you_mean
+from torchcf.system.files import RunFileError
 from torchcf.traffic.scenarios import pair_leader
 from torchcf.train.__main__ import main as train_main
 
@@ -178,7 +178,7 @@ def test_pair_leader_takes_one_pair_as_an_int():
 _HOLD = textwrap.dedent(
     """
     import sys, time
-    from torchcf.rundir import RunDir
+    from torchcf.runs.directory import RunDir
     with RunDir(sys.argv[1]).locked():
         print("held", flush=True)
         time.sleep(60)

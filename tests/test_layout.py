@@ -18,35 +18,20 @@ ROOT = Path(__file__).resolve().parents[1] / "torchcf"
 #: and the stages before it, never a later one. (Checked per top-level name under
 #: ``torchcf``; a name missing here is a new module that must be placed.)
 STAGES = [
-    {"errors", "typing", "runtime", "files", "signals", "console"},  # plumbing
+    {"typing", "system"},  # plumbing: errors, files, signals, the console
     {"data", "qp"},  # pairs in; the MPC's solver
     {"models"},
-    {"step", "compiled", "sim", "synthetic"},  # the rollout; pairs made by it
-    {"config", "posterior", "rundir"},  # the run's config and files
+    {"sim"},  # the rollout; pairs made by it
+    {"config", "posterior", "runs"},  # the run's config, learned set and folder
     {"abc"},  # the ABC engine
-    {"evaluation", "metrics", "tblog"},
-    {"evaluate", "diagnose"},
+    {"evaluation"},  # metrics and the test-split evaluation
+    {"diagnose"},
     {"traffic"},
     {"sumo"},  # the learned hybrid in SUMO (export, co-simulation, verify)
     {"train"},
-    {"pipeline", "crossval", "demo", "__init__"},  # the study and its variants
+    {"study", "__init__"},  # the study and its variants
     {"cli"},  # the command lines: parse, call the library, print
 ]
-#: Modules that only re-export another module's names, staged as that module:
-#: ``torchcf.cli`` (the package's ``__init__``, not its commands) keeps ``from
-#: torchcf.cli import run_main`` working for scripts written before the plumbing
-#: moved to :mod:`torchcf.console`, and imports nothing but it (checked below).
-REEXPORTS = {"torchcf.cli": "torchcf.console"}
-#: Library modules that ``python -m`` also runs, and their command: the module's
-#: top-level ``def main`` (kept for ``from torchcf.evaluate import main``) may
-#: import that command when called. Only that import, only there: an import of
-#: the command anywhere else in the module (at its top, in another function)
-#: still counts, and nothing else in ``main`` is excused.
-DELEGATES = {
-    "torchcf.evaluate": "torchcf.cli.evaluate",
-    "torchcf.crossval": "torchcf.cli.crossval",
-    "torchcf.demo": "torchcf.cli.demo",
-}
 #: Entry modules (``python -m torchcf.<x>`` where <x> is a package, and
 #: ``python -m torchcf``): above the commands they run, imported by nothing.
 CLI_MODULES = {
@@ -78,7 +63,6 @@ def _imports(name: str, path: Path, known: set[str]) -> set[str]:
     package = name.split(".") if is_package else name.split(".")[:-1]
     found = set()
     tree = ast.parse(path.read_text(), str(path))
-    excused = _delegating(tree) if name in DELEGATES else set()
     for node in _runtime_nodes(tree):
         if isinstance(node, ast.Import):
             targets = [alias.name for alias in node.names]
@@ -100,23 +84,9 @@ def _imports(name: str, path: Path, known: set[str]) -> set[str]:
         for target in targets:
             while target and target not in known:
                 target = target.rpartition(".")[0]
-            if id(node) in excused and target == DELEGATES[name]:
-                continue  # main hands over to its command (DELEGATES)
             if target.startswith("torchcf") and target != name:
                 found.add(target)
     return found
-
-
-def _delegating(tree: ast.Module) -> set[int]:
-    """The ``id`` of every import statement in the module's top-level ``def
-    main`` (:data:`DELEGATES`)."""
-    return {
-        id(node)
-        for function in tree.body
-        if isinstance(function, ast.FunctionDef) and function.name == "main"
-        for node in ast.walk(function)
-        if isinstance(node, ast.Import | ast.ImportFrom)
-    }
 
 
 def _runtime_nodes(tree: ast.AST):
@@ -138,7 +108,6 @@ def _graph() -> dict[str, set[str]]:
 def _stage(module: str) -> int:
     if module in CLI_MODULES:
         return len(STAGES)
-    module = REEXPORTS.get(module, module)
     top = module.split(".")[1] if "." in module else "__init__"
     for rank, names in enumerate(STAGES):
         if top in names:
@@ -206,49 +175,40 @@ def test_the_graph_sees_relative_and_function_level_imports():
     """The checks above can fail: the parser finds what they look for."""
     graph = _graph()
     assert "torchcf.abc.rejection" in graph["torchcf.train.run"]
-    assert "torchcf.sim" in graph["torchcf.abc.rejection"]
-    assert "torchcf.pipeline" in graph["torchcf.cli.study"]
-    assert "torchcf.cli.study" in graph["torchcf.train.__main__"]
+    assert "torchcf.sim.rollout" in graph["torchcf.abc.rejection"]
+    assert "torchcf.study.pipeline" in graph["torchcf.cli.train"]
+    assert "torchcf.cli.train" in graph["torchcf.train.__main__"]
 
 
 def test_the_commands_sit_above_the_study():
     """The command package is its own stage, the last one, above the pipeline;
     the plumbing the lower modules share is a stage of its own, the first."""
     assert STAGES[-1] == {"cli"}
-    assert _stage("torchcf.cli.train") > _stage("torchcf.pipeline")
-    assert _stage("torchcf.console") == 0 and _stage("torchcf.cli") == 0
+    assert _stage("torchcf.cli.train") > _stage("torchcf.study.pipeline")
+    assert _stage("torchcf.system.console") == 0
+    assert _stage("torchcf.cli") == len(STAGES) - 1
 
 
-def test_a_reexport_imports_only_what_it_reexports():
-    graph = _graph()
-    for module, target in REEXPORTS.items():
-        assert graph[module] == {target}, (module, graph[module])
-
-
-def test_a_delegate_is_excused_only_for_its_command_in_main(tmp_path):
-    """The DELEGATES rule drops one edge: ``main``'s import of the module's own
-    command. The same import at the module's top, or another import in
-    ``main``, is still seen."""
-    known = set(_modules())
-    package = tmp_path / "torchcf"
-    package.mkdir()
-    path = package / "evaluate.py"
-    path.write_text(
-        "def main(argv=None):\n"
-        "    from .cli.evaluate import main as command\n"
-        "    from .cli.train import main\n"
-        "    return command(argv)\n"
-    )
-    found = _imports("torchcf.evaluate", path, known)
-    assert found == {"torchcf.cli.train"}
-    path.write_text("from .cli.evaluate import main\n")
-    assert _imports("torchcf.evaluate", path, known) == {"torchcf.cli.evaluate"}
-    assert "torchcf.cli.evaluate" not in _graph()["torchcf.evaluate"]
+def test_only_the_command_lines_hold_main():
+    """A command's ``main`` lives in :mod:`torchcf.cli` (and the ``python -m``
+    entry modules that call it): a library module with its own ``main`` would
+    hand over to a command above it, an import up the house."""
+    holders = []
+    for name, path in _modules().items():
+        if name.startswith("torchcf.cli") or name in CLI_MODULES:
+            continue
+        tree = ast.parse(path.read_text(), str(path))
+        if any(
+            isinstance(node, ast.FunctionDef) and node.name == "main"
+            for node in tree.body
+        ):
+            holders.append(name)
+    assert not holders, f"main outside torchcf.cli: {holders}"
 
 
 def test_every_numeric_option_of_a_tool_is_checked():
     """The tools take numbers through the checked types of
-    :mod:`torchcf.console` (``count``, ``positive``...): a bare ``type=int`` or
+    :mod:`torchcf.system.console` (``count``, ``positive``...): a bare ``type=int`` or
     ``type=float`` lets ``-3`` or ``nan`` through to a traceback deep in the
     run. (The ``torchcf`` commands check theirs where the library reads them,
     each with its one-line message: tests/cli/test_bad_input.py.)"""

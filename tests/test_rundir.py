@@ -1,7 +1,8 @@
-"""The run directory (torchcf.rundir) and its files (torchcf.files): every file
-round-trips, a damaged one is a RunFileError naming it, and a full disk — a real,
-small file system where the machine lets us mount one — keeps the previous file
-intact and ends a command with one line and exit code 2."""
+"""The run directory (torchcf.runs.directory) and its files
+(torchcf.system.files): every file round-trips, a damaged one is a RunFileError
+naming it, and a full disk — a real, small file system where the machine lets
+us mount one — keeps the previous file intact and ends a command with one line
+and exit code 2."""
 
 from __future__ import annotations
 
@@ -19,8 +20,11 @@ import torch
 
 from tests.runs import run_module, write_config, write_data
 from torchcf.config import ConfigError, TrainConfig, load_config, resolved_json
-from torchcf.errors import TorchcfError
-from torchcf.files import (
+from torchcf.models import get_model
+from torchcf.posterior import ModelParticles, Posterior
+from torchcf.runs.directory import RunDir
+from torchcf.system.errors import TorchcfError
+from torchcf.system.files import (
     RunFileError,
     atomic_torch_save,
     atomic_write_text,
@@ -30,9 +34,6 @@ from torchcf.files import (
     read_torch,
     write_json,
 )
-from torchcf.models import get_model
-from torchcf.posterior import ModelParticles, Posterior
-from torchcf.rundir import RunDir
 
 #: Size of the small file system of the full-disk tests.
 TMPFS_SIZE = "600k"
@@ -146,7 +147,7 @@ def test_layout(tmp_path):
 def test_error_classes_share_one_base():
     from torchcf.abc.distributed import GroupError
     from torchcf.data import DataError
-    from torchcf.evaluate import EvaluationError
+    from torchcf.evaluation.evaluate import EvaluationError
 
     for kind in (RunFileError, ConfigError, DataError, GroupError, EvaluationError):
         assert issubclass(kind, TorchcfError), kind
@@ -462,7 +463,7 @@ def test_evaluate_and_crossval_on_a_full_disk(small_fs, tmp_path, cfg):
     """The commands end with one line and exit code 2, before any work."""
     run = finished_run(small_fs / "run", cfg)
     fill(small_fs)
-    result = run_module("torchcf.evaluate", str(run))
+    result = run_module("torchcf.evaluation.evaluate", str(run))
     one_error_line(result, f"output directory {run.path}", "No space left on device")
     assert not run.is_evaluated()
     no_temporary_files(small_fs)
@@ -470,7 +471,7 @@ def test_evaluate_and_crossval_on_a_full_disk(small_fs, tmp_path, cfg):
     config = tmp_path / "cfg.json"
     config.write_text(json.dumps(resolved_json(cfg)))
     out = small_fs / "cv"
-    result = run_module("torchcf.crossval", str(config), "--out", str(out))
+    result = run_module("torchcf.study.crossval", str(config), "--out", str(out))
     one_error_line(result, "cannot", str(out), "No space left on device")
     no_temporary_files(small_fs)
 
@@ -481,7 +482,7 @@ def test_evaluate_a_run_with_a_truncated_summary(tmp_path, cfg):
     run = finished_run(tmp_path / "run", cfg)
     text = run.summary_json.read_text()
     run.summary_json.write_text(text[: len(text) // 2])
-    result = run_module("torchcf.evaluate", str(run))
+    result = run_module("torchcf.evaluation.evaluate", str(run))
     one_error_line(result, str(run.summary_json), "is corrupted")
     assert not run.is_evaluated()
 
@@ -496,7 +497,7 @@ def test_crossval_with_a_truncated_fold_metrics(tmp_path, cfg):
     damaged = out.fold(1).metrics_json
     damaged.write_text(damaged.read_text()[:20])
     result = run_module(
-        "torchcf.crossval", str(config), "--folds", "2", "--out", str(out)
+        "torchcf.study.crossval", str(config), "--folds", "2", "--out", str(out)
     )
     one_error_line(result, str(damaged), "is corrupted")
     assert not out.is_evaluated()

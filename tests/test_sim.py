@@ -398,7 +398,7 @@ def test_a_padded_last_chunk_reuses_the_compiled_graph(name, graphs):
 
 def test_compile_cache_holds_every_model_and_shape():
     """More than dynamo's default 8 graphs of _block must stay compiled."""
-    from torchcf.sim import _compiled_block
+    from torchcf.sim.rollout import _compiled_block
 
     _compiled_block(MODELS["llcs"], True, 0.1, 5.0, False)
     assert torch._dynamo.config.recompile_limit >= 64
@@ -424,7 +424,7 @@ def test_the_vector_isa_probed_once_is_the_one_inductor_picks():
         return done.stdout.strip().splitlines()
 
     probed, trusted, trimmed = run(
-        "import torch; from torchcf.compiled import configure_compiler, "
+        "import torch; from torchcf.sim.compiled import configure_compiler, "
         "_probe_vector_isa; configure_compiler(); print(_probe_vector_isa()); "
         "print(torch._inductor.config.cpp.vec_isa_ok); " + pick
     )[-3:]
@@ -441,7 +441,7 @@ def test_not_finite_flags_exactly_nan_and_inf(fused):
     """The rollout's finiteness test, eager and inside a compiled block: True
     exactly where x, v or a is NaN or +-inf, False for finite products (a fused
     ``u - u`` of a product can be an FMA's rounding error, not 0)."""
-    from torchcf.sim import _not_finite
+    from torchcf.sim.rollout import _not_finite
 
     a, b = torch.rand(1000, dtype=torch.float32) * 7, torch.rand(1000) * 3
     x = torch.tensor([1.0, math.nan, 2.0, 3.0, 4.0, 5.0]).repeat(200)[:1000]
@@ -461,7 +461,7 @@ def test_auto_compiles_from_a_threshold_per_device(monkeypatch):
     eager rollouts are fast and compiling pays later); "on"/"off" and bools as
     asked; a model that cannot be traced, not even around a correction, never
     compiles."""
-    import torchcf.compiled as sim
+    import torchcf.sim.compiled as sim
 
     monkeypatch.setattr(sim, "_compiler_available", lambda: True)
     idm, cpu, cuda = MODELS["idm"], torch.device("cpu"), torch.device("cuda")
@@ -486,4 +486,6 @@ def test_auto_compiles_from_a_threshold_per_device(monkeypatch):
 @pytest.mark.parametrize("asked", ["no", "yes", "", 1])
 def test_a_compile_mode_of_another_spelling_is_refused(asked):
     with pytest.raises(ValueError, match="compile must be"):
-        torchcf.sim.resolve_compile(MODELS["idm"], asked, torch.device("cpu"), 1)
+        torchcf.sim.rollout.resolve_compile(
+            MODELS["idm"], asked, torch.device("cpu"), 1
+        )

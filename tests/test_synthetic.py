@@ -1,4 +1,4 @@
-"""torchcf.synthetic: the Gipps follower outside the pool, and data it drives."""
+"""torchcf.sim.synthetic: the Gipps follower outside the pool, and data it drives."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchcf.models import MODELS, AugmentedModel, Perception, get_model, parse_effect
-from torchcf.synthetic import Gipps, synthetic_pairs
+from torchcf.sim.synthetic import Gipps, synthetic_pairs
 
 #: a, b, b_lead, v0, tau, size
 THETA = [1.5, 2.5, 3.0, 30.0, 0.8, 7.0]
@@ -87,8 +87,8 @@ def test_every_heterogeneous_pair_has_its_own_plausible_driver():
     """A two-model mixture in equal shares, every driver its own parameters
     within the prior, replayable from its parameters, following plausibly;
     ragged prefix masks; the same seed the same pairs."""
-    from torchcf.sim import simulate
-    from torchcf.synthetic import (
+    from torchcf.sim.rollout import simulate
+    from torchcf.sim.synthetic import (
         PLAUSIBLE_MIN_GAP,
         heterogeneous_pairs,
     )
@@ -126,7 +126,7 @@ def test_every_heterogeneous_pair_has_its_own_plausible_driver():
 
 
 def test_heterogeneous_pairs_refuse_a_box_without_plausible_drivers():
-    from torchcf.synthetic import heterogeneous_pairs
+    from torchcf.sim.synthetic import heterogeneous_pairs
 
     # IDM with a desired time gap of 10 s: no plausible follower (time gap <= 4 s)
     box = get_model("idm").prior_bounds(torch.float64).clone()

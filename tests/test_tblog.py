@@ -16,11 +16,12 @@ from tensorboard.plugins.hparams import plugin_data_pb2
 
 from torchcf.evaluation.plots import (
     figure_to_array,
+    hybrid_images,
     pairwise_figure,
     save_figure,
     shares_figure,
 )
-from torchcf.tblog import RunLogger, markdown_summary
+from torchcf.runs.tensorboard import RunLogger, markdown_summary
 
 MODELS = ("idm", "gfm")
 SUMMARY = {
@@ -64,12 +65,10 @@ def _write_run(logdir: Path) -> None:
         theta = torch.rand(16, 2, dtype=torch.float64)
         logger.posterior("idm", ["v0", "s0"], theta)
         logger.posterior("gfm", ["v0", "tau"], theta[:0])  # empty: skipped
-        logger.hybrid(
-            SUMMARY["shares"],
-            list(MODELS),
-            torch.tensor([[1.0, 0.8], [0.2, 1.0]]),
-            sensitivity=SUMMARY["sensitivity"],
+        images = hybrid_images(
+            SUMMARY["shares"], list(MODELS), torch.tensor([[1.0, 0.8], [0.2, 1.0]])
         )
+        logger.hybrid(SUMMARY["shares"], images, sensitivity=SUMMARY["sensitivity"])
         logger.text("summary", markdown_summary(SUMMARY))
         logger.hparams(
             {
@@ -149,7 +148,7 @@ def test_disabled_writes_nothing(tmp_path: Path) -> None:
             "idm", particles=1, threshold=1.0, particles_per_s=1.0, invalid_rate=0.0
         )
         logger.posterior("idm", ["v0"], torch.ones(3, 1))
-        logger.hybrid({"idm": 1.0}, ["idm"], [[1.0]])
+        logger.hybrid({"idm": 1.0}, hybrid_images({"idm": 1.0}, ["idm"], [[1.0]]))
         logger.text("summary", "x")
         logger.hparams({"a": 1}, {"m": 1.0})
         logger.flush()

@@ -2,7 +2,7 @@
 
 The cold start of a paper-scale run is mostly compilation (``reports/bench/
 train_carII.md``: 206 s on an empty compile cache, 80 s on a full one). This
-measures, per model and per fused block length (``torchcf.sim.BLOCK_STEPS``,
+measures, per model and per fused block length (``torchcf.sim.rollout.BLOCK_STEPS``,
 the time steps one compiled call unrolls), in a fresh process with an empty
 inductor cache each:
 
@@ -35,7 +35,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
-from torchcf.console import count  # noqa: E402
+from torchcf.system.console import count  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
 PARTICLES = 1 << 18
@@ -45,7 +45,7 @@ _CHILD = """
 import json, logging, sys, time
 import torch
 logging.disable(logging.WARNING)
-import torchcf, torchcf.sim as sim
+import torchcf, torchcf.sim.rollout as sim
 name = sys.argv[1]
 block, threads, n = (int(a) for a in sys.argv[2:5])
 device = sys.argv[5]

@@ -16,7 +16,7 @@ particles each by ``python -m torchcf.train``, not timed):
   effect and re-calibrates;
 - **measured, as measured**: the same pairs as recorded;
 - **synthetic delay**: 50 training and 20 test pairs from IDM with a 0.8 s
-  perception delay the pool does not have (``torchcf.synthetic``);
+  perception delay the pool does not have (``torchcf.sim.synthetic``);
 - **campaign, N pairs** (``--campaign``): the same plant on 150 pairs drawn from
   the campaign (105 / 45) and on the whole campaign (its own split), the cost's
   growth in pairs.
@@ -48,10 +48,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 from loop_cases import planted  # noqa: E402
 
-from torchcf.console import count  # noqa: E402
 from torchcf.data import load_pairs  # noqa: E402
 from torchcf.data.writer import write_six_csv  # noqa: E402
-from torchcf.synthetic import synthetic_pairs  # noqa: E402
+from torchcf.sim.synthetic import synthetic_pairs  # noqa: E402
+from torchcf.system.console import count  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 MODELS = ["ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc"]

@@ -3,7 +3,7 @@
 For every size (particles x test pairs) one random score-like matrix
 (``gamma(2, 1.5)``, so scores of about 0.1-15) is drawn, and in the same run
 
-- ours: :func:`torchcf.metrics.wasserstein`, ``beta_wasserstein(beta)``,
+- ours: :func:`torchcf.evaluation.metrics.wasserstein`, ``beta_wasserstein(beta)``,
   ``min_distance`` and ``sinkhorn(reg)``, median of ``--repeats`` timed runs after
   one warm-up;
 - linprog: ``scipy.optimize.linprog(method="highs")`` on the *original* LPs of SPEC
@@ -63,7 +63,7 @@ from torchcf.evaluation.metrics import (
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import cpu_model, git_sha, write_report  # noqa: E402
 
-from torchcf.console import count, natural, open_fraction, positive  # noqa: E402
+from torchcf.system.console import count, natural, open_fraction, positive  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 DEFAULT_SIZES = ["225x18", "525x45", "5000x1000"]
@@ -259,8 +259,8 @@ def run_costs(run_dir: Path) -> tuple[dict[str, np.ndarray], float]:
     """The learned sets' score matrices of a trained run on its test pairs
     (invalid rollouts at ``inf``, as the metrics see them), and its reg."""
     from torchcf.config import load_split
-    from torchcf.evaluate import evaluate_posterior
-    from torchcf.rundir import RunDir
+    from torchcf.evaluation.evaluate import evaluate_posterior
+    from torchcf.runs.directory import RunDir
 
     cfg, posterior, _ = RunDir(run_dir).load_run()
     test = load_split(cfg.data)[1]

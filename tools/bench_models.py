@@ -44,8 +44,8 @@ from peer_numpy import quiet_stdout, simulate_one  # noqa: E402
 
 import torchcf  # noqa: E402
 from torchcf import MODELS, simulate  # noqa: E402
-from torchcf.console import count  # noqa: E402
-from torchcf.runtime import tune_malloc  # noqa: E402
+from torchcf.system.console import count  # noqa: E402
+from torchcf.system.process import tune_malloc  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
 

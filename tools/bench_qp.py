@@ -29,13 +29,13 @@ import torch
 import torchcf
 from torchcf.models.mpc import MPC, mpc_qp_matrices
 from torchcf.qp import BoxQP, QPStatus
-from torchcf.runtime import tune_malloc
+from torchcf.system.process import tune_malloc
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import cpu_model, git_sha, write_report  # noqa: E402
 from peer_numpy import quiet_stdout  # noqa: E402
 
-from torchcf.console import count  # noqa: E402
+from torchcf.system.console import count  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 

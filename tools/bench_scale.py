@@ -51,10 +51,10 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
-from torchcf.console import count, natural  # noqa: E402
 from torchcf.data import PairSet  # noqa: E402
 from torchcf.models import get_model  # noqa: E402
-from torchcf.synthetic import Gipps, synthetic_pairs  # noqa: E402
+from torchcf.sim.synthetic import Gipps, synthetic_pairs  # noqa: E402
+from torchcf.system.console import count, natural  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
 MODELS = ("ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc")

@@ -29,8 +29,8 @@ import torch
 
 import torchcf
 from torchcf import MODELS, simulate
-from torchcf.console import count
-from torchcf.runtime import tune_malloc
+from torchcf.system.console import count
+from torchcf.system.process import tune_malloc
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 

@@ -65,11 +65,11 @@ from torchcf.config import (
     load_config,  # noqa: E402
     load_split,  # noqa: E402
 )
-from torchcf.console import count, natural  # noqa: E402
 from torchcf.data import load_pairs  # noqa: E402
 from torchcf.models import get_model  # noqa: E402
 from torchcf.posterior import Posterior  # noqa: E402
-from torchcf.runtime import tune_malloc  # noqa: E402
+from torchcf.system.console import count, natural  # noqa: E402
+from torchcf.system.process import tune_malloc  # noqa: E402
 from torchcf.train import train  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"

@@ -31,13 +31,13 @@ from pathlib import Path
 import torch
 
 from torchcf import HybridSampler
-from torchcf.runtime import tune_malloc
+from torchcf.system.process import tune_malloc
 from torchcf.traffic.scenarios import ring_initial_state, ring_road
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
-from torchcf.console import count, natural  # noqa: E402
+from torchcf.system.console import count, natural  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_POSTERIORS = [

@@ -1,6 +1,6 @@
 """Predictive coverage and bootstrap intervals of evaluated runs, side by side.
 
-Reads each run's ``metrics.json`` (written by ``python -m torchcf.evaluate RUN``,
+Reads each run's ``metrics.json`` (written by ``torchcf evaluate RUN``,
 :mod:`torchcf.evaluation.uncertainty` lists its keys) and writes one table per
 run: for every learned set, the fraction of the test split's observed spacings and
 speeds inside its central 50 % and 90 % predictive bands, with their bootstrap
@@ -24,7 +24,7 @@ from torchcf.evaluation.report import (
     differences_table,
     intervals_table,
 )
-from torchcf.files import from_json_safe, json_safe
+from torchcf.system.files import from_json_safe, json_safe
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "uncertainty"
 SETS = ("hybrid", "ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc")
@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
             "",
             f"`python tools/coverage_report.py {' '.join(map(str, args.runs))}` "
             f"(git {revision}); each run evaluated by "
-            "`python -m torchcf.evaluate RUN`.",
+            "`torchcf evaluate RUN`.",
             "",
             "How to read: a set's central q band at each step runs between the "
             "(1 - q)/2 and (1 + q)/2 quantiles of its particles' simulated spacing "

@@ -2,13 +2,13 @@
 
 **Synthetic cases** (regression tests of the loop): each generates training (24)
 and test (12) pairs of 500 steps from a pool model with effects torchcf is not
-told about (``torchcf.synthetic``, position noise 0.05 m), calibrates the pool
+told about (``torchcf.sim.synthetic``, position noise 0.05 m), calibrates the pool
 (IDM and LLCTG, 40 000 particles per model, rejection), runs the whole loop
-(``torchcf.pipeline.close_loop`` at its defaults) and records what was chosen,
+(``torchcf.study.pipeline.close_loop`` at its defaults) and records what was chosen,
 the recovered parameters (median over the re-calibrated hybrid's particles that
 carry the effect) and the test-split WS and minimum distance before (the run's
 particles searched as after, without the effects) and after. The case "delay,
-Gipps outside the pool" is driven by :class:`torchcf.synthetic.Gipps`, a
+Gipps outside the pool" is driven by :class:`torchcf.sim.synthetic.Gipps`, a
 follower no pool model is. Writes ``reports/loop_cases.{json,md}``.
 
 **Measured cases** (``--group measured``; the development cases on real data):
@@ -60,17 +60,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
 from torchcf.config import DiagnoseConfig, validate_config  # noqa: E402
-from torchcf.console import count  # noqa: E402
 from torchcf.data import PairSet, load_pairs  # noqa: E402
 from torchcf.diagnose.attribution import attribute_effects  # noqa: E402
 from torchcf.diagnose.loop import active_models  # noqa: E402
 from torchcf.diagnose.road import profile_agreement  # noqa: E402
 from torchcf.models import AugmentedModel, get_model, parse_effect  # noqa: E402
 from torchcf.models.effects import RoadProfile  # noqa: E402
-from torchcf.pipeline import close_loop, train_and_evaluate  # noqa: E402
-from torchcf.rundir import RunDir  # noqa: E402
-from torchcf.sim import simulate  # noqa: E402
-from torchcf.synthetic import Gipps, synthetic_pairs  # noqa: E402
+from torchcf.runs.directory import RunDir  # noqa: E402
+from torchcf.sim.rollout import simulate  # noqa: E402
+from torchcf.sim.synthetic import Gipps, synthetic_pairs  # noqa: E402
+from torchcf.study.pipeline import close_loop, train_and_evaluate  # noqa: E402
+from torchcf.system.console import count  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 IDM = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]

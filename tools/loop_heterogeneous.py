@@ -2,7 +2,7 @@
 
 Measured drivers differ from one another; a regression case that copies one
 driver to every pair makes the loop's job easy (the pooled particles cover new
-drivers). Here every pair has its own driver (``torchcf.synthetic.
+drivers). Here every pair has its own driver (``torchcf.sim.synthetic.
 heterogeneous_pairs``): a two-model mixture, each driver's parameters drawn
 uniformly over the model's prior and kept where it follows plausibly, pairs of
 ragged length (60-100 % of 50 s), position noise 0.1 m (speed 0.1 m/s,
@@ -56,17 +56,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 from loop_cases import config as loop_cases_config  # noqa: E402
 
-from torchcf.console import count, natural  # noqa: E402
 from torchcf.data import PairSet  # noqa: E402
 from torchcf.diagnose.attribution import choose  # noqa: E402
-from torchcf.diagnose.testing import (  # noqa: E402
+from torchcf.diagnose.significance import (  # noqa: E402
     LEVEL_SCHEMES,
     fallback_levels,
     level_weights,
 )
 from torchcf.models.effects import parse_effect  # noqa: E402
-from torchcf.pipeline import close_loop, train_and_evaluate  # noqa: E402
-from torchcf.synthetic import heterogeneous_pairs  # noqa: E402
+from torchcf.sim.synthetic import heterogeneous_pairs  # noqa: E402
+from torchcf.study.pipeline import close_loop, train_and_evaluate  # noqa: E402
+from torchcf.system.console import count, natural  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 #: The pool calibrated on every case (two of them drive the data; LLCTG and HL

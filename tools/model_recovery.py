@@ -4,7 +4,8 @@ For each of the eight pool models, ``--pairs`` synthetic pairs driven by it with
 parameters drawn from its uniform prior (one draw per pair, a spread of the
 prior; ``tools/sbc_study.py``'s :func:`prior_pairs`: ``--steps`` steps at dt
 0.1, measurement noise 0.05 m on the position). All ``8 x pairs`` pairs are
-calibrated together with the eight models (``torchcf.pipeline.train_and_evaluate``,
+calibrated together with the eight models
+(``torchcf.study.pipeline.train_and_evaluate``,
 paired layout, top_n = 5, ``--per-pair`` particles per pair and model); the
 per-pair buffers are independent across pairs, so this is the same as eight
 runs. Per pair, the share of its 5 best held by each model (the hybrid's
@@ -40,9 +41,9 @@ from bench_sim import bench_meta, write_report  # noqa: E402
 from sbc_study import DT, NOISE, TOP_N, calibrate, join, prior_pairs  # noqa: E402
 
 from torchcf.abc.hybrid import rank_per_pair  # noqa: E402
-from torchcf.console import count  # noqa: E402
 from torchcf.evaluation import sbc  # noqa: E402
 from torchcf.posterior.tables import pair_slots  # noqa: E402
+from torchcf.system.console import count  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "uncertainty"
 MODELS = ("ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc")

@@ -30,10 +30,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
 from torchcf.config import load_split  # noqa: E402
-from torchcf.console import count  # noqa: E402
-from torchcf.diagnose.testing import sign_flip_test  # noqa: E402
-from torchcf.evaluate import cost_matrices  # noqa: E402
-from torchcf.rundir import RunDir  # noqa: E402
+from torchcf.diagnose.significance import sign_flip_test  # noqa: E402
+from torchcf.evaluation.evaluate import cost_matrices  # noqa: E402
+from torchcf.runs.directory import RunDir  # noqa: E402
+from torchcf.system.console import count  # noqa: E402
 
 
 def minimum_distances(run: Path) -> tuple[dict[str, np.ndarray], int]:

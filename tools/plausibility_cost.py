@@ -34,11 +34,11 @@ from torchcf.config import (
     load_config,  # noqa: E402
     load_split,  # noqa: E402
 )
-from torchcf.console import count  # noqa: E402
-from torchcf.files import from_json_safe  # noqa: E402
-from torchcf.pipeline import train_and_evaluate  # noqa: E402
 from torchcf.posterior import Posterior  # noqa: E402
-from torchcf.rundir import RunDir  # noqa: E402
+from torchcf.runs.directory import RunDir  # noqa: E402
+from torchcf.study.pipeline import train_and_evaluate  # noqa: E402
+from torchcf.system.console import count  # noqa: E402
+from torchcf.system.files import from_json_safe  # noqa: E402
 from torchcf.traffic import HybridSampler  # noqa: E402
 from torchcf.traffic.battery import plausibility_by_model  # noqa: E402
 from torchcf.train.run import plausibility_battery  # noqa: E402

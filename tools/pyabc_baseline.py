@@ -82,7 +82,7 @@ REPO = TOOLS.parent
 sys.path.insert(0, str(TOOLS))
 from peer_numpy import simulate_one  # noqa: E402  (NumPy only, no torch)
 
-from torchcf.console import count, natural, positive  # noqa: E402
+from torchcf.system.console import count, natural, positive  # noqa: E402
 
 #: torchcf/data/registry.py: DATASETS["car-model-2"].
 FOLDER = "AV/CAR MODEL II"

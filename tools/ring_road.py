@@ -44,10 +44,10 @@ import torch  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
 from torchcf import HybridSampler  # noqa: E402
-from torchcf.console import count, natural, positive  # noqa: E402
 from torchcf.data import DataError, load_pairs  # noqa: E402
-from torchcf.files import json_safe  # noqa: E402
 from torchcf.posterior import Posterior  # noqa: E402
+from torchcf.system.console import count, natural, positive  # noqa: E402
+from torchcf.system.files import json_safe  # noqa: E402
 from torchcf.traffic import (  # noqa: E402
     DEFAULT_SAFETY,
     Battery,

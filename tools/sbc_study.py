@@ -4,7 +4,7 @@ For each pool model, ``--pairs`` synthetic pairs whose followers are driven by
 the model with parameters drawn from its uniform prior (one draw per pair;
 :func:`prior_pairs`: ``--steps`` steps at dt 0.1, measurement noise 0.05 m on the
 position as in ``tools/bench_scale.py``). The model alone is calibrated on them
-(``torchcf.pipeline.train_and_evaluate``, paired layout, ``abc.top_n`` = 5,
+(``torchcf.study.pipeline.train_and_evaluate``, paired layout, ``abc.top_n`` = 5,
 ``--per-pair`` prior draws per pair for rejection, ``--smc-per-pair`` proposals
 per pair for SMC), and per pair the rank of the true parameter among the pair's
 5 accepted particles (the run's posterior) is counted
@@ -38,11 +38,11 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
-from torchcf.console import count  # noqa: E402
 from torchcf.data import PairSet  # noqa: E402
 from torchcf.evaluation import sbc  # noqa: E402
 from torchcf.models import get_model  # noqa: E402
-from torchcf.synthetic import synthetic_pairs  # noqa: E402
+from torchcf.sim.synthetic import synthetic_pairs  # noqa: E402
+from torchcf.system.console import count  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "uncertainty"
 MODELS = ("ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc")
@@ -109,8 +109,8 @@ def calibrate(
     seconds). The test split is the first pair (no evaluation is run); the
     buffers keep the ``keep`` best per pair (``>= TOP_N``)."""
     from torchcf.config import validate_config
-    from torchcf.pipeline import train_and_evaluate
     from torchcf.posterior import Posterior
+    from torchcf.study.pipeline import train_and_evaluate
 
     raw = {
         "data": {"path": "synthetic prior draws (tools/sbc_study.py)"},
@@ -332,7 +332,7 @@ def markdown(payload: dict) -> str:
         f"git {meta['git']}, total wall {payload['wall_seconds']:.0f} s",
         f"- pairs per model: {payload['pairs']} synthetic, {payload['steps']} steps "
         f"at dt {DT} s, noise {NOISE} m on the position (speed and acceleration "
-        "scaled as in `torchcf.synthetic`), one prior draw per pair",
+        "scaled as in `torchcf.sim.synthetic`), one prior draw per pair",
         f"- each model calibrated alone on its own pairs, paired layout, "
         f"top_n = {TOP_N}; per-pair budgets: "
         + ", ".join(f"{m} {b['per_pair']} per pair" for m, b in res["methods"].items())

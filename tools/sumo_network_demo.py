@@ -57,15 +57,7 @@ import torch  # noqa: E402
 from torch import Tensor  # noqa: E402
 
 from torchcf.config import ConfigError, load_split  # noqa: E402
-from torchcf.console import (  # noqa: E402
-    count,
-    natural,
-    nonnegative,
-    positive,
-    run_main,
-)
-from torchcf.files import no_empty_folder_left  # noqa: E402
-from torchcf.rundir import RunDir  # noqa: E402
+from torchcf.runs.directory import RunDir  # noqa: E402
 from torchcf.sumo import backend  # noqa: E402
 from torchcf.sumo.cosim import CoSimulation  # noqa: E402
 from torchcf.sumo.export import (  # noqa: E402
@@ -75,6 +67,14 @@ from torchcf.sumo.export import (  # noqa: E402
     run_constants,
 )
 from torchcf.sumo.network import highway, ring  # noqa: E402
+from torchcf.system.console import (  # noqa: E402
+    count,
+    natural,
+    nonnegative,
+    positive,
+    run_main,
+)
+from torchcf.system.files import no_empty_folder_left  # noqa: E402
 from torchcf.traffic import HybridSampler  # noqa: E402
 
 COSIM_TYPE = "torchcf_cosim"

@@ -11,7 +11,7 @@ torchcf's commands, each as its own process, timed:
    access roads left out; 40 s windows, split by follower);
 2. **train**: ``python -m torchcf.train configs/zalazone.json --no-eval`` (the
    eight models, ABC rejection, the config's budget);
-3. **evaluate**: ``python -m torchcf.evaluate RUN`` (the test split);
+3. **evaluate**: ``torchcf evaluate RUN`` (the test split);
 4. **loop**: ``python -m torchcf.diagnose RUN`` (at its defaults);
 5. **shares**: ``python -m torchcf.posterior RUN --by mode`` (the ACC distance
    setting), ``--groups make.csv`` (the car make, from
@@ -53,7 +53,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import cpu_model, git_sha  # noqa: E402
 
-from torchcf.console import count, natural  # noqa: E402
+from torchcf.system.console import count, natural  # noqa: E402
 
 CONFIG = "configs/zalazone.json"
 #: The campaign folder as the commands in the report name it.
@@ -174,7 +174,7 @@ def study(args: argparse.Namespace) -> dict:
             [*py, "torchcf.train", CONFIG, "--out", RUN, "--no-eval"],
             run / "summary.json",
         ),
-        ("evaluate", [*py, "torchcf.evaluate", RUN], run / "metrics.json"),
+        ("evaluate", [*py, "torchcf.evaluation.evaluate", RUN], run / "metrics.json"),
         (
             "loop",
             [*py, "torchcf.diagnose", RUN,
@@ -578,7 +578,7 @@ def tilt_in_residual(run_dir: Path, notes: list[str], seed: int = 0) -> dict:
     from torchcf.diagnose.road import finite_samples, one_step_residual, pair_weights
     from torchcf.diagnose.series import best_particles
     from torchcf.models.effects import GRAVITY
-    from torchcf.rundir import RunDir
+    from torchcf.runs.directory import RunDir
 
     (slope_note,) = [n for n in notes if "lie on a plane of slope" in n]
     slope = float(re.search(r"slope ([0-9.]+) %", slope_note).group(1)) / 100

@@ -2,7 +2,7 @@
 (:mod:`torchcf.cli.main`, where the commands are listed), under ``python -m``.
 
     python -m torchcf --help
-    python -m torchcf study configs/carII.json
+    python -m torchcf train configs/carII.json
 
 Exit codes: the command's own; 0 for ``--help``; 2 for a missing or unknown
 command.

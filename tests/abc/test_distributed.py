@@ -20,9 +20,9 @@ from tests.runs import torchrun_train, write_config, write_data
 from torchcf.abc.distributed import SINGLE, Group, GroupError, init_from_env
 from torchcf.abc.topn import TopN
 from torchcf.config import load_config
-from torchcf.evaluate import evaluate_run
-from torchcf.pipeline import run_study
+from torchcf.evaluation.evaluate import evaluate_run
 from torchcf.posterior import Posterior
+from torchcf.study.pipeline import run_study
 
 # ------------------------------------------------------------------ the pieces
 

@@ -22,8 +22,8 @@ from torchcf.abc.topn import TopN
 from torchcf.config import TrainConfig
 from torchcf.models import MODELS, get_model
 from torchcf.posterior import Posterior
-from torchcf.sim import _Accumulators, resolve_compile, score_so_far, simulate
-from torchcf.synthetic import synthetic_pairs
+from torchcf.sim.rollout import _Accumulators, resolve_compile, score_so_far, simulate
+from torchcf.sim.synthetic import synthetic_pairs
 from torchcf.train import train
 
 IDM = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]

@@ -23,8 +23,8 @@ from torchcf.abc.topn import TopN
 from torchcf.config import TrainConfig
 from torchcf.models import get_model
 from torchcf.posterior import Posterior
-from torchcf.sim import simulate
-from torchcf.synthetic import synthetic_pairs
+from torchcf.sim.rollout import simulate
+from torchcf.sim.synthetic import synthetic_pairs
 from torchcf.train import train
 
 IDM = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]

@@ -13,7 +13,7 @@ from torchcf.abc.topn import TopN
 from torchcf.config import validate_config
 from torchcf.models import get_model
 from torchcf.posterior import Posterior
-from torchcf.synthetic import synthetic_pairs
+from torchcf.sim.synthetic import synthetic_pairs
 from torchcf.traffic import Battery, check_plausibility
 from torchcf.traffic.battery import rejects
 from torchcf.train import train

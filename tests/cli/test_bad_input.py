@@ -22,9 +22,8 @@ import pytest
 import torch
 
 from tests.runs import run_module, write_config, write_data
-from torchcf import evaluate as evaluate_cli
 from torchcf.abc.rounds import PILOT_ROUND
-from torchcf.cli import train as train_only_cli
+from torchcf.cli import evaluate as evaluate_cli
 from torchcf.posterior import Posterior
 from torchcf.train import __main__ as train_cli
 
@@ -96,13 +95,14 @@ def test_unknown_key(tmp_path, capsys, data):
     assert not (tmp_path / "run").exists()
 
 
-@pytest.mark.parametrize("command", ["study", "train"])
-def test_train_and_study_report_bad_input_alike(tmp_path, capsys, data, command):
-    """``torchcf train`` (training only) and ``torchcf study`` share the options
-    and the one policy: the same exit code and line, nothing written."""
-    cli = train_only_cli if command == "train" else train_cli
+@pytest.mark.parametrize("no_eval", [[], ["--no-eval"]])
+def test_train_and_train_only_report_bad_input_alike(tmp_path, capsys, data, no_eval):
+    """``torchcf train`` and ``torchcf train --no-eval`` (training only) share
+    the options and the one policy: the same exit code and line, nothing
+    written."""
+    cli = train_cli
     config = write_config(tmp_path / "cfg.json", data, abc={"n_particle": 5})
-    argv = [str(config), "--out", str(tmp_path / "run")]
+    argv = [str(config), "--out", str(tmp_path / "run"), *no_eval]
     line = fails_cleanly(capsys, argv, "abc.n_particle", cli=cli)
     assert "did you mean 'n_particles'" in line
     assert not (tmp_path / "run").exists()
@@ -376,7 +376,7 @@ def test_crossval_with_more_folds_than_pairs_leaves_no_folder(tmp_path, capsys, 
 
 
 def test_no_empty_folder_left_keeps_what_holds_a_file(tmp_path):
-    from torchcf.files import no_empty_folder_left
+    from torchcf.system.files import no_empty_folder_left
 
     out = tmp_path / "out"
     with pytest.raises(RuntimeError), no_empty_folder_left(out):

@@ -16,10 +16,9 @@ from pathlib import Path
 import pytest
 
 import torchcf.__main__
-import torchcf.console
+import torchcf.system.console
 from tests.runs import write_config, write_data
 from torchcf import cli
-from torchcf.cli import study as study_cli
 from torchcf.cli import train as train_cli
 from torchcf.cli.main import COMMANDS, main
 from torchcf.train import __main__ as old_train
@@ -30,14 +29,11 @@ ROOT = Path(__file__).resolve().parents[2]
 PYTHON_M = [
     "torchcf",
     "torchcf.train",
-    "torchcf.evaluate",
     "torchcf.diagnose",
-    "torchcf.crossval",
     "torchcf.data",
     "torchcf.config",
     "torchcf.posterior",
     "torchcf.sumo",
-    "torchcf.demo",
 ]
 
 
@@ -65,13 +61,12 @@ def test_help_lists_every_command(capsys):
         assert f"  {name} " in out
 
 
-def test_help_lists_study_and_train_with_one_line_each(capsys):
+def test_help_lists_train_with_one_line(capsys):
     assert main(["--help"]) == 0
     lines = capsys.readouterr().out.splitlines()
     train = [line for line in lines if line.startswith("  train ")]
-    study = [line for line in lines if line.startswith("  study ")]
-    assert len(train) == 1 and "only" in train[0] and "no evaluation" in train[0]
-    assert len(study) == 1 and "evaluate" in study[0] and "loop" in study[0]
+    assert len(train) == 1 and "evaluate" in train[0] and "loop" in train[0]
+    assert not [line for line in lines if line.startswith("  study ")]
 
 
 def test_a_command_gets_the_rest_of_the_arguments(capsys):
@@ -88,7 +83,8 @@ def test_a_command_gets_the_rest_of_the_arguments(capsys):
         ([], "give a command"),
         (["trian"], "unknown command 'trian' (did you mean 'train'?)"),
         (["wobble"], "unknown command 'wobble'; commands: train, evaluate"),
-        (["stdy"], "unknown command 'stdy' (did you mean 'study'?)"),
+        (["evalute"], "unknown command 'evalute' (did you mean 'evaluate'?)"),
+        (["study"], "unknown command 'study': the study is 'torchcf train'"),
     ],
 )
 def test_a_missing_or_unknown_command_is_one_line_and_exit_2(argv, message, capsys):
@@ -140,54 +136,37 @@ def test_every_python_dash_m_entry_still_answers_help():
     assert done.stdout.splitlines() == [f"{module} 0" for module in PYTHON_M]
 
 
-def test_the_help_says_which_is_train_and_which_is_study(capsys):
-    """``torchcf train`` trains only; ``torchcf study`` is the chain, and
-    ``python -m torchcf.train`` is ``torchcf study`` under its old name."""
+def test_train_is_one_command_under_both_names(capsys):
+    """``torchcf train`` and ``python -m torchcf.train`` are one command (the
+    study; ``--no-eval`` trains only): the same help but its name."""
     helps = {}
     for name, run in (
-        ("train", train_cli.main),
-        ("study", study_cli.main),
+        ("torchcf train", train_cli.main),
         ("python -m torchcf.train", old_train.main),
     ):
         with pytest.raises(SystemExit) as stop:
             run(["--help"])
         assert stop.value.code == 0
         helps[name] = " ".join(capsys.readouterr().out.split())
-    assert helps["train"].startswith("usage: torchcf train")
-    assert "Train a config only" in helps["train"]
-    assert "No test-split evaluation and no loop" in helps["train"]
-    assert helps["study"].startswith("usage: torchcf study")
-    assert "'torchcf train' trains only" in helps["study"]
-    assert (
-        "'python -m torchcf.train' is this command under its old name"
-        in (helps["study"])
-    )
-    old = helps["python -m torchcf.train"]
-    assert old.startswith("usage: python -m torchcf.train")
-    assert "'torchcf study', kept under its old name" in old
+    for name, text in helps.items():
+        assert text.startswith(f"usage: {name}")
+        assert "then the test-split evaluation" in text and "--no-eval" in text
+    assert helps["torchcf train"].replace("torchcf train", "X") == helps[
+        "python -m torchcf.train"
+    ].replace("python -m torchcf.train", "X")
+    assert "study" not in COMMANDS  # one name, one meaning
 
 
-def test_the_old_imports_still_work():
-    """The plumbing through :mod:`torchcf.cli`, and each command's ``main``
-    through the module it was in."""
-    for name in cli.__all__:  # the plumbing as it was before torchcf.console
-        assert getattr(cli, name) is getattr(torchcf.console, name)
-    from torchcf.cli import run_main  # noqa: F401  (tools/sumo_network_demo.py)
-
-    for module in ("evaluate", "crossval", "demo"):
-        assert callable(importlib.import_module(f"torchcf.{module}").main)
+def test_the_command_modules_are_reached_through_cli_only():
+    """No plumbing through :mod:`torchcf.cli`, no ``main`` left in the
+    library modules that had one; each package's ``python -m`` entry runs its
+    command."""
+    assert not hasattr(cli, "run_main")
+    for module in ("evaluation.evaluate", "study.crossval", "study.demo"):
+        assert not hasattr(importlib.import_module(f"torchcf.{module}"), "main")
     for package in ("train", "diagnose", "data", "config", "posterior", "sumo"):
         entry = importlib.import_module(f"torchcf.{package}.__main__")
         assert callable(entry.main)
-
-
-@pytest.mark.parametrize("module", ["evaluate", "crossval"])
-def test_a_library_main_runs_its_command(module, capsys):
-    """``from torchcf.evaluate import main`` is the command, called."""
-    with pytest.raises(SystemExit) as stop:
-        importlib.import_module(f"torchcf.{module}").main(["--help"])
-    assert stop.value.code == 0
-    assert f"usage: python -m torchcf.{module}" in capsys.readouterr().out
 
 
 @pytest.fixture(scope="module")
@@ -198,10 +177,10 @@ def config(tmp_path_factory) -> Path:
     return write_config(root / "cfg.json", data, diagnose={"run_after_training": True})
 
 
-def test_train_trains_only(config, tmp_path, capsys):
+def test_train_no_eval_trains_only(config, tmp_path, capsys):
     """No evaluation and no loop, though the config asks for the loop."""
     out = tmp_path / "run"
-    assert main(["train", str(config), "--out", str(out)]) == 0
+    assert main(["train", str(config), "--out", str(out), "--no-eval"]) == 0
     assert (out / "summary.json").is_file() and (out / "posterior.pt").is_file()
     assert not (out / "metrics.json").exists()
     assert not (out / "loop.json").exists() and not (out / "loop").exists()
@@ -209,25 +188,25 @@ def test_train_trains_only(config, tmp_path, capsys):
     assert "hybrid shares" in printed and "test split" not in printed
     assert printed.splitlines()[-1] == f"wrote {out}"
 
-    assert main(["train", str(config), "--out", str(out), "--resume"]) == 0
+    assert main(["train", str(config), "--out", str(out), "--resume", "--no-eval"]) == 0
     assert f"{out} is trained: nothing to do" in capsys.readouterr().out
     assert not (out / "metrics.json").exists()
 
 
-def test_study_trains_and_evaluates(config, tmp_path, capsys):
+def test_train_trains_and_evaluates(config, tmp_path, capsys):
     out = tmp_path / "run"
     no_loop = ["--set", "diagnose.run_after_training=false"]  # the slow test's
-    assert main(["study", str(config), "--out", str(out), *no_loop]) == 0
+    assert main(["train", str(config), "--out", str(out), *no_loop]) == 0
     assert (out / "summary.json").is_file() and (out / "metrics.json").is_file()
     assert not (out / "loop.json").exists()
     assert "test split" in capsys.readouterr().out
 
 
 @pytest.mark.slow
-def test_study_closes_the_loop_where_the_config_asks(config, tmp_path, capsys):
+def test_train_closes_the_loop_where_the_config_asks(config, tmp_path, capsys):
     """The whole chain, as ``python -m torchcf.train`` runs it (about 20 s)."""
     out = tmp_path / "run"
-    assert main(["study", str(config), "--out", str(out)]) == 0
+    assert main(["train", str(config), "--out", str(out)]) == 0
     for name in ("summary.json", "metrics.json", "loop.json"):
         assert (out / name).is_file(), name
 
@@ -252,7 +231,7 @@ def test_checked_numeric_options(kind, good, bad):
     a usage error (argparse's one line and exit code 2, never a traceback)."""
     import argparse
 
-    convert = getattr(torchcf.console, kind)
+    convert = getattr(torchcf.system.console, kind)
     for text, value in good.items():
         assert convert(text) == value
         assert type(convert(text)) is type(value)
@@ -270,7 +249,7 @@ def test_a_long_bad_value_is_quoted_short():
     import argparse
 
     with pytest.raises(argparse.ArgumentTypeError) as error:
-        torchcf.console.count("9" * 5000 + "x")
+        torchcf.system.console.count("9" * 5000 + "x")
     assert len(str(error.value)) < 80
 
 
@@ -278,6 +257,10 @@ def test_a_bar_in_a_log_file_moves_at_least_every_10_s(monkeypatch):
     """Live on a terminal; in a log or a pipe one line at most every 9 s, so a
     stage's progress never stays still for 10 s without flooding the log."""
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
-    assert torchcf.console.bar_interval() == 0.1
+    assert torchcf.system.console.bar_interval() == 0.1
     monkeypatch.setattr(sys.stderr, "isatty", lambda: False, raising=False)
-    assert torchcf.console.bar_interval() == torchcf.console.LOG_INTERVAL < 10.0
+    assert (
+        torchcf.system.console.bar_interval()
+        == torchcf.system.console.LOG_INTERVAL
+        < 10.0
+    )

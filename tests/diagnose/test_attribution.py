@@ -55,11 +55,11 @@ from torchcf.diagnose.signatures import (
     signatures,
     simulated_covariates,
 )
-from torchcf.diagnose.testing import comparable, fallback_weights
+from torchcf.diagnose.significance import comparable, fallback_weights
 from torchcf.models import get_model
 from torchcf.models.effects import EFFECTS, parse_effect
 from torchcf.posterior import Posterior
-from torchcf.synthetic import synthetic_pairs
+from torchcf.sim.synthetic import synthetic_pairs
 from torchcf.train import train
 
 IDM = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]

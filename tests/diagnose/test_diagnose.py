@@ -1,7 +1,7 @@
 """Closing the loop (torchcf.diagnose) on data with undeclared effects.
 
 Synthetic pairs are generated here from a model plus effects the engine is not
-told about (torchcf.synthetic); the pool (IDM, LLCTG) is calibrated without
+told about (torchcf.sim.synthetic); the pool (IDM, LLCTG) is calibrated without
 them, and the loop must choose them, recover their parameters and lower the
 test WS and minimum distance by >= 15 % against the pool searched the same way.
 Control sets without an effect must give "none".
@@ -42,9 +42,9 @@ from torchcf.diagnose.candidates import (
 from torchcf.diagnose.road import profile_agreement
 from torchcf.diagnose.search import Noise, model_bounds
 from torchcf.models import AugmentedModel, get_model, parse_effect, split_name
-from torchcf.pipeline import close_loop, train_and_evaluate
 from torchcf.posterior import Posterior
-from torchcf.synthetic import Gipps, synthetic_pairs
+from torchcf.sim.synthetic import Gipps, synthetic_pairs
+from torchcf.study.pipeline import close_loop, train_and_evaluate
 from torchcf.train import train
 
 IDM_TRUTH = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]

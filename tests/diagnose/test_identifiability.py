@@ -17,7 +17,7 @@ from torchcf.diagnose.identifiability import (
     within_pair_correlation,
 )
 from torchcf.models import get_model
-from torchcf.synthetic import synthetic_pairs
+from torchcf.sim.synthetic import synthetic_pairs
 
 
 def test_within_pair_correlation_matches_numpy():

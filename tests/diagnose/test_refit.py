@@ -24,7 +24,7 @@ from torchcf.diagnose.refit import (
 )
 from torchcf.diagnose.validation import design
 from torchcf.models import get_model
-from torchcf.synthetic import heterogeneous_pairs, synthetic_pairs
+from torchcf.sim.synthetic import heterogeneous_pairs, synthetic_pairs
 
 IDM = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
 PRIORS = {"idm": get_model("idm").prior_bounds(torch.float64)}

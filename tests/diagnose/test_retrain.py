@@ -17,7 +17,7 @@ from torchcf.diagnose.retrain import (
 )
 from torchcf.diagnose.search import model_bounds
 from torchcf.posterior import Posterior
-from torchcf.synthetic import synthetic_pairs
+from torchcf.sim.synthetic import synthetic_pairs
 from torchcf.train import train
 from torchcf.train.engine import plausibility_screen
 

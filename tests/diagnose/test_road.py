@@ -29,7 +29,7 @@ from torchcf.diagnose.road import (
 )
 from torchcf.diagnose.signatures import road_share
 from torchcf.models.effects import GRAVITY, parse_effect
-from torchcf.synthetic import synthetic_pairs
+from torchcf.sim.synthetic import synthetic_pairs
 
 IDM_TRUTH = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
 

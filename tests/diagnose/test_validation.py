@@ -28,7 +28,7 @@ from torchcf.diagnose.validation import (
     warmed_validation,
 )
 from torchcf.models import get_model
-from torchcf.sim import simulate
+from torchcf.sim.rollout import simulate
 
 WEIGHTS = (0.5, 0.3, 0.2)
 

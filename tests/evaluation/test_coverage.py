@@ -214,7 +214,7 @@ def evaluated(tmp_path_factory):
     """A small run on synthetic pairs (no data needed), evaluated."""
     from tests.conftest import synthetic_pairs
     from tests.test_evaluate import small_config
-    from torchcf.evaluate import evaluate_run
+    from torchcf.evaluation.evaluate import evaluate_run
     from torchcf.train import train
 
     train_pairs = synthetic_pairs(n_pairs=6, n_steps=200, seed=1)
@@ -257,7 +257,7 @@ def test_hybrid_coverage_equals_its_own_rollout_and_bands(evaluated):
     """The hybrid's coverage, assembled from the single models' rollouts, equals
     the bands of a fresh rollout of its particles (weighted_quantiles)."""
     from torchcf.posterior import Posterior
-    from torchcf.sim import simulate
+    from torchcf.sim.rollout import simulate
 
     cfg, out, test, result = evaluated
     posterior = Posterior.load(out / "posterior.pt")
@@ -337,7 +337,7 @@ def test_slicing_the_particles_changes_neither_costs_nor_coverage(
 ):
     """Under a small trajectory budget the rollout runs in slices of particles:
     the same cost matrices and the same predictive sums."""
-    import torchcf.evaluate as evaluate
+    import torchcf.evaluation.evaluate as evaluate
     from torchcf.posterior import Posterior
 
     cfg, out, test, _ = evaluated

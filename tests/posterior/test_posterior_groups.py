@@ -33,7 +33,7 @@ from torchcf.posterior.tables import (
     shares_markdown,
     training_pairs,
 )
-from torchcf.rundir import RunDir
+from torchcf.runs.directory import RunDir
 from torchcf.train import train
 
 MODELS = ("idm", "llctg", "hl")

@@ -20,7 +20,7 @@ from torchcf.posterior.tables import (
     parameters_markdown,
     piled_at_bounds,
 )
-from torchcf.rundir import RunDir
+from torchcf.runs.directory import RunDir
 from torchcf.train import train
 
 

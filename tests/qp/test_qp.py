@@ -910,7 +910,7 @@ def test_guesses_that_are_not_a_leading_block_are_still_solved():
 
 
 def test_tune_malloc_is_idempotent():
-    from torchcf.runtime import tune_malloc
+    from torchcf.system.process import tune_malloc
 
     first = tune_malloc()
     assert tune_malloc() is first

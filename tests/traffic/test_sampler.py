@@ -14,7 +14,7 @@ from tests.conftest import prior_draws
 from torchcf import HybridSampler, get_model
 from torchcf.models import FollowerState, Perception
 from torchcf.posterior import ModelParticles, Posterior
-from torchcf.sim import realise
+from torchcf.sim.rollout import realise
 
 #: A learned set with every kind of model: point masses, HL's lag, MPC's solver,
 #: a perception delay (memory), an added lag, a road grade (position).

@@ -9,7 +9,7 @@ from tests.conftest import synthetic_pairs
 from tests.traffic.test_sampler import make_posterior
 from torchcf import HybridSampler, PairSet, simulate
 from torchcf.models import FollowerState
-from torchcf.synthetic import leader_profiles
+from torchcf.sim.synthetic import leader_profiles
 from torchcf.traffic.scenarios import (
     RingState,
     pair_leader,

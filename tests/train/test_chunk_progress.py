@@ -30,8 +30,8 @@ from torchcf.config import TrainConfig
 from torchcf.models import MODELS, get_model
 from torchcf.models.mpc import MPC
 from torchcf.posterior import Posterior
-from torchcf.rundir import RunDir
-from torchcf.synthetic import synthetic_pairs
+from torchcf.runs.directory import RunDir
+from torchcf.sim.synthetic import synthetic_pairs
 from torchcf.train import train
 
 #: The MPC's chunk before rounds were made small: a million particles in one.

@@ -17,8 +17,8 @@ from tests.conftest import synthetic_pairs
 from torchcf import PairSet, simulate
 from torchcf.abc.streams import ParticleStream
 from torchcf.config import TrainConfig
-from torchcf.pipeline import run_study
 from torchcf.posterior import Posterior
+from torchcf.study.pipeline import run_study
 from torchcf.train import train
 from torchcf.train.__main__ import main
 

@@ -15,8 +15,8 @@ from tests.conftest import synthetic_pairs
 from torchcf.abc.rejection import ModelProgress
 from torchcf.abc.topn import TopN
 from torchcf.config import TrainConfig, config_hash
-from torchcf.pipeline import StudyResult, train_and_evaluate
-from torchcf.rundir import RunDir
+from torchcf.runs.directory import RunDir
+from torchcf.study.pipeline import StudyResult, train_and_evaluate
 from torchcf.train import ModelResult, RunError, RunState, RunSummary, open_run
 from torchcf.train.checkpoint import CHECKPOINT_FORMAT, resume_note
 from torchcf.train.engine import build_buffers

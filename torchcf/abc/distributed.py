@@ -43,7 +43,7 @@ import torch
 import torch.distributed as dist
 from torch import Tensor
 
-from ..errors import TorchcfError
+from ..system.errors import TorchcfError
 from .topn import TopN
 
 __all__ = ["SINGLE", "Group", "GroupError", "init_from_env"]

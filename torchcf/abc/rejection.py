@@ -39,7 +39,7 @@ from torch import Tensor
 
 from ..data import PairSet
 from ..models import CFModel, get_model
-from ..sim import (
+from ..sim.rollout import (
     COMPILE_CHUNK_MULTIPLE,
     CUDA_CHUNK_CELLS,
     DEFAULT_WEIGHTS,
@@ -71,7 +71,7 @@ class Rollout:
         compile: ``"on"``, ``"off"`` or ``"auto"`` (fuse the time loop with
             ``torch.compile`` when a model's whole stream is long enough to pay).
         chunk_size: particles per simulate call; None: the model's cell budget
-            (:func:`torchcf.sim.cell_budget`).
+            (:func:`torchcf.sim.rollout.cell_budget`).
         early_rejection: the round loop hands every chunk its buffers'
             thresholds as a ceiling (:func:`torchcf.abc.rounds.offer_chunk`): a
             rollout stops once its score is sure to exceed it.
@@ -108,7 +108,9 @@ class Rollout:
         budget = cell_budget(model, self.device)
         chunk = self.chunk_size or max(1, budget // self.cells_per_particle)
         chunk = min(chunk, n_particles)
-        if compiled:  # compiled blocks want whole vector lanes (see torchcf.sim)
+        if (
+            compiled
+        ):  # compiled blocks want whole vector lanes (see torchcf.sim.rollout)
             chunk = -(-chunk // COMPILE_CHUNK_MULTIPLE) * COMPILE_CHUNK_MULTIPLE
         return chunk
 
@@ -127,7 +129,7 @@ class Rollout:
         Args:
             pair: (P,) pair of each particle (paired layout), None for the full one.
             chunk: particles per simulate call (default: :meth:`chunk`).
-            ceiling: early rejection (:func:`torchcf.sim.simulate`): the score's
+            ceiling: early rejection (:func:`torchcf.sim.rollout.simulate`): the score's
                 shape; a particle stopped above it scores ``+inf`` and is valid.
 
         Returns:
@@ -150,7 +152,8 @@ class Rollout:
         ceiling: Tensor | None = None,
     ) -> SimOutput:
         """The rollouts :meth:`score` reads: score, the RMSE of each channel and
-        validity, shaped and chunked as there (:class:`torchcf.sim.SimOutput`)."""
+        validity, shaped and chunked as there
+        (:class:`torchcf.sim.rollout.SimOutput`)."""
         if chunk is None:
             chunk = self.chunk(model, max(theta.shape[0], 1), compiled)
         pairs = self.pairs

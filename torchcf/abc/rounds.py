@@ -279,7 +279,7 @@ class Offered(NamedTuple):
 def early_rejection(plan: Plan) -> bool:
     """Whether the plan's rollout stops rollouts above their buffers' threshold
     (asked for, and possible: a model that can select its particles,
-    :func:`torchcf.sim.simulate`; compiled, its blocks then take any number of
+    :func:`torchcf.sim.rollout.simulate`; compiled, its blocks then take any number of
     particles)."""
     asked = bool(getattr(plan.rollout, "early_rejection", False))
     return asked and plan.model.prunable

@@ -100,7 +100,7 @@ import torch
 from torch import Tensor
 
 from ..models import CFModel, get_model
-from ..sim import COMPILE_CHUNK_MULTIPLE
+from ..sim.rollout import COMPILE_CHUNK_MULTIPLE
 from .distributed import SINGLE, Group
 from .kernel import KERNEL_FLOOR, SMCKernel
 from .rejection import Rollout

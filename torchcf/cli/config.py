@@ -5,7 +5,7 @@ configuration, or print the schema.
     torchcf config --schema                              # every field
     python -m torchcf.config --schema                    # the same
 
-Exit codes (:mod:`torchcf.console`): 0 done; 2 a bad configuration (one line on
+Exit codes (:mod:`torchcf.system.console`): 0 done; 2 a bad configuration (one line on
 stderr) or bad arguments.
 """
 
@@ -17,7 +17,7 @@ from collections.abc import Sequence
 
 from ..config.loading import config_hash, load_config, resolved_json
 from ..config.schema import TrainConfig
-from ..console import DefaultsHelpFormatter, add_overrides, run_main
+from ..system.console import DefaultsHelpFormatter, add_overrides, run_main
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,14 +1,14 @@
-"""``torchcf crossval CONFIG [--folds 3]`` (``python -m torchcf.crossval``):
+"""``torchcf crossval CONFIG [--folds 3]``:
 k-fold cross-validation of a config.
 
     torchcf crossval configs/carII.json --folds 3 --out runs/carII-cv
     torchcf crossval configs/carII.json --out runs/carII-cv --resume
 
-Runs :func:`torchcf.crossval.crossval` (one study per fold into ``OUT/fold<i>/``,
+Runs :func:`torchcf.study.crossval.crossval` (one study per fold into ``OUT/fold<i>/``,
 the folds' metrics averaged into ``OUT/metrics.json``) and prints the hybrid's
 mean metrics.
 
-Exit codes (:mod:`torchcf.console`): 0 done; 2 bad config (fewer than 2 folds
+Exit codes (:mod:`torchcf.system.console`): 0 done; 2 bad config (fewer than 2 folds
 included), data, arguments or output directory, or a corrupted fold (one line
 on stderr, no traceback); 130 interrupted (continue with ``--resume``).
 """
@@ -20,16 +20,16 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from ..config import ConfigError, load_config
-from ..console import DefaultsHelpFormatter, add_overrides, run_main
-from ..crossval import crossval
-from ..files import no_empty_folder_left
+from ..study.crossval import crossval
+from ..system.console import DefaultsHelpFormatter, add_overrides, run_main
+from ..system.files import no_empty_folder_left
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """``python -m torchcf.crossval``'s parser."""
+    """``torchcf crossval``'s parser."""
     parser = argparse.ArgumentParser(
         formatter_class=DefaultsHelpFormatter,
-        prog="python -m torchcf.crossval",
+        prog="torchcf crossval",
         description="k-fold cross-validation: one training run per fold, metrics "
         "averaged over folds.",
     )

@@ -30,7 +30,6 @@ from pydantic import ValidationError
 
 from torchcf.config.messages import ConfigError, describe
 from torchcf.config.raw import RawSource
-from torchcf.console import DefaultsHelpFormatter, run_main
 from torchcf.data.formats import FORMATS, reader_options
 from torchcf.data.formats.generic import (
     FRAME_UNIT,
@@ -44,6 +43,7 @@ from torchcf.data.formats.pairs import LENGTH_TOLERANCE, PAIR_COLUMNS
 from torchcf.data.importer import extract_source
 from torchcf.data.trajectory import COLUMNS
 from torchcf.data.writer import write_extraction
+from torchcf.system.console import DefaultsHelpFormatter, run_main
 
 #: RawSource fields set by the reader options of the command line, and their
 #: defaults there (those of the readers).

@@ -1,12 +1,12 @@
-"""``torchcf demo`` (``python -m torchcf.demo``): each model's prior particles
+"""``torchcf demo``: each model's prior particles
 simulated on CAR MODEL II training pairs, as a table.
 
     torchcf demo [--particles 200000] [--dataset NAME] [--data-root DIR]
 
-Prints :func:`torchcf.demo.prior_rollouts`: per model the best and median score,
+Prints :func:`torchcf.study.demo.prior_rollouts`: per model the best and median score,
 the invalid fraction and the throughput.
 
-Exit codes (:mod:`torchcf.console`): 0 done; 2 bad arguments or data that cannot
+Exit codes (:mod:`torchcf.system.console`): 0 done; 2 bad arguments or data that cannot
 be loaded (one line on stderr); 130 interrupted.
 """
 
@@ -17,17 +17,17 @@ from collections.abc import Sequence
 
 import torch
 
-from ..console import DefaultsHelpFormatter, run_main
 from ..data import load_pairs
-from ..demo import prior_rollouts
-from ..runtime import tune_malloc
+from ..study.demo import prior_rollouts
+from ..system.console import DefaultsHelpFormatter, run_main
+from ..system.process import tune_malloc
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """``python -m torchcf.demo``'s parser."""
+    """``torchcf demo``'s parser."""
     parser = argparse.ArgumentParser(
         formatter_class=DefaultsHelpFormatter,
-        prog="python -m torchcf.demo",
+        prog="torchcf demo",
         description="A simulation demo: each model's prior particles on CAR MODEL "
         "II training pairs.",
     )

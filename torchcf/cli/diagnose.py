@@ -1,13 +1,14 @@
 """``torchcf diagnose RUN_DIR [--set diagnose.KEY=VALUE ...]`` (``python -m
 torchcf.diagnose``): close the loop on a finished, evaluated run
-(:func:`torchcf.pipeline.close_loop`).
+(:func:`torchcf.study.pipeline.close_loop`).
 
     torchcf diagnose runs/carII --set diagnose.n_particles=100000
 
-Exit codes (:mod:`torchcf.console`): 0 done; 2 a run that is not trained or evaluated,
-a corrupted file, a bad override or a run that cannot be diagnosed (one line on
-stderr, no traceback); 130 interrupted (run it again: the attribution continues
-after its last finished arm, ``RUN_DIR/loop/attribution.pt``).
+Exit codes (:mod:`torchcf.system.console`): 0 done; 2 a run that is not trained or
+evaluated, a corrupted file, a bad override or a run that cannot be diagnosed
+(one line on stderr, no traceback); 130 interrupted (run it again: the
+attribution continues after its last finished arm,
+``RUN_DIR/loop/attribution.pt``).
 """
 
 from __future__ import annotations
@@ -18,10 +19,10 @@ from collections.abc import Sequence
 
 import torch
 
-from ..console import DefaultsHelpFormatter, add_overrides, print_error, run_main
 from ..diagnose.report import fmt
-from ..pipeline import close_loop
-from ..rundir import RunDir
+from ..runs.directory import RunDir
+from ..study.pipeline import close_loop
+from ..system.console import DefaultsHelpFormatter, add_overrides, print_error, run_main
 
 
 def _parser() -> argparse.ArgumentParser:

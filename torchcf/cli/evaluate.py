@@ -1,14 +1,14 @@
-"""``torchcf evaluate RUN_DIR`` (``python -m torchcf.evaluate RUN_DIR``): the
+"""``torchcf evaluate RUN_DIR``: the
 test-split evaluation of a trained run.
 
     torchcf evaluate runs/carII
     torchcf evaluate runs/carII --report elsewhere/ --pair 3
 
-Runs :func:`torchcf.evaluate.evaluate_run` (which writes ``RUN_DIR/metrics.json``
-and the report) and prints each learned set's average position error, minimum
-distance, 0.15-WS and WS.
+Runs :func:`torchcf.evaluation.evaluate.evaluate_run` (which writes
+``RUN_DIR/metrics.json`` and the report) and prints each learned set's average
+position error, minimum distance, 0.15-WS and WS.
 
-Exit codes (:mod:`torchcf.console`): 0 done; 2 a run that is not trained, a
+Exit codes (:mod:`torchcf.system.console`): 0 done; 2 a run that is not trained, a
 corrupted file, data that cannot be loaded or an output that cannot be written
 (one line on stderr, no traceback); 130 interrupted.
 """
@@ -20,16 +20,16 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ..console import DefaultsHelpFormatter, run_main
-from ..evaluate import evaluate_run
-from ..rundir import RunDir
+from ..evaluation.evaluate import evaluate_run
+from ..runs.directory import RunDir
+from ..system.console import DefaultsHelpFormatter, run_main
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """``python -m torchcf.evaluate``'s parser."""
+    """``torchcf evaluate``'s parser."""
     parser = argparse.ArgumentParser(
         formatter_class=DefaultsHelpFormatter,
-        prog="python -m torchcf.evaluate",
+        prog="torchcf evaluate",
         description="Evaluate a trained run on its test pairs (SPEC section 6).",
     )
     parser.add_argument("run_dir", type=Path)

@@ -2,18 +2,18 @@
 entry to every command line.
 
     torchcf --help
-    torchcf study configs/carII.json
+    torchcf train configs/carII.json
     torchcf evaluate runs/carII
 
 Each command is a module of :mod:`torchcf.cli` whose ``main`` gets the rest of
 the arguments; ``python -m torchcf.<x>`` runs the same ``main`` (``torchcf
-evaluate RUN`` is ``python -m torchcf.evaluate RUN``: the same options, help,
+evaluate RUN`` is ``torchcf evaluate RUN``: the same options, help,
 output and exit codes). A command's module is imported only when it is run, so
 ``torchcf --help`` answers at once.
 
-``train`` trains only; ``study`` runs the study of a config (training, the
-test-split evaluation and, where ``diagnose.run_after_training`` asks, the loop),
-as ``python -m torchcf.train`` always has.
+``train`` runs the study of a config (training, the test-split evaluation and,
+where ``diagnose.run_after_training`` asks, the loop; ``--no-eval``: training
+only), as ``python -m torchcf.train`` does.
 
 Exit codes: the command's own; 0 for ``--help``; 2 for a missing or unknown
 command (one line on stderr).
@@ -25,17 +25,16 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from ..console import EXIT_USER_ERROR, print_error
-from ..errors import did_you_mean
+from ..system.console import EXIT_USER_ERROR, print_error
+from ..system.errors import did_you_mean
 
 #: command -> (its module, one line of help)
 COMMANDS = {
-    "train": ("torchcf.cli.train", "train a config only (no evaluation, no loop)"),
-    "evaluate": ("torchcf.cli.evaluate", "evaluate a trained run on its test split"),
-    "study": (
-        "torchcf.cli.study",
+    "train": (
+        "torchcf.cli.train",
         "the study of a config: train, evaluate, the loop if configured",
     ),
+    "evaluate": ("torchcf.cli.evaluate", "evaluate a trained run on its test split"),
     "diagnose": ("torchcf.cli.diagnose", "close the loop on a trained run"),
     "crossval": ("torchcf.cli.crossval", "k-fold cross-validation of a config"),
     "data": ("torchcf.cli.data", "extract pairs from raw trajectory files"),
@@ -44,6 +43,10 @@ COMMANDS = {
     "sumo": ("torchcf.cli.sumo", "the learned hybrid in Eclipse SUMO"),
     "demo": ("torchcf.cli.demo", "a small end-to-end example"),
 }
+
+#: Names that commands had before, and what a user types instead (the error
+#: says so; the old name runs nothing).
+FORMER = {"study": "the study is 'torchcf train'"}
 
 
 def usage() -> str:
@@ -57,8 +60,8 @@ def usage() -> str:
     lines += [f"  {name:<{width}}  {text}" for name, (_, text) in COMMANDS.items()]
     lines += [
         "",
-        "python -m torchcf.<module> runs the same commands; python -m torchcf.train",
-        "is torchcf study under its old name.",
+        "python -m torchcf.<package> runs the same commands (train, data, diagnose,",
+        "config, posterior, sumo).",
     ]
     return "\n".join(lines)
 
@@ -75,6 +78,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print_error("give a command")
         return EXIT_USER_ERROR
     name, rest = args[0], args[1:]
+    if name in FORMER:
+        print_error(f"unknown command {name!r}: {FORMER[name]}")
+        return EXIT_USER_ERROR
     if name not in COMMANDS:
         hint = did_you_mean(name, COMMANDS)
         print_error(f"unknown command {name!r}{hint}; commands: {', '.join(COMMANDS)}")

@@ -23,7 +23,7 @@ mapping file (a ``group`` column and key columns of the index, e.g. ``pair`` or
 group, with a bootstrap interval over pairs (``--cluster``: over clusters of
 pairs).
 
-Exit codes (:mod:`torchcf.console`): 0 done; 2 no finished run there, a column or
+Exit codes (:mod:`torchcf.system.console`): 0 done; 2 no finished run there, a column or
 mapping that cannot group the pairs, or an output that cannot be written (one
 line on stderr).
 """
@@ -35,8 +35,6 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from ..console import DefaultsHelpFormatter, run_main
-from ..files import atomic_write_text, ensure_directory
 from ..posterior.learned_set import Posterior
 from ..posterior.tables import (
     LEVEL,
@@ -57,7 +55,9 @@ from ..posterior.tables import (
     write_grouped_shares,
     write_parameter_tables,
 )
-from ..rundir import RunDir
+from ..runs.directory import RunDir
+from ..system.console import DefaultsHelpFormatter, run_main
+from ..system.files import atomic_write_text, ensure_directory
 
 #: ``--csv`` without a path: the run's report folder.
 DEFAULT = "report"

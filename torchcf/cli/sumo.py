@@ -10,7 +10,7 @@ DIR]`` (``python -m torchcf.sumo ...``): the learned hybrid in Eclipse SUMO.
   torchcf's own rollout: ``DIR/verify.json`` and ``verify.md`` (default
   ``DIR = RUN/sumo``); :mod:`torchcf.sumo.verify`.
 
-Exit codes (:mod:`torchcf.console`): 0 done; 2 a run that is not trained, a
+Exit codes (:mod:`torchcf.system.console`): 0 done; 2 a run that is not trained, a
 corrupted file, bad arguments, SUMO not installed (the message names the extra
 ``torchcf[sumo]``) or refusing its input (one line on stderr, no traceback);
 130 interrupted.
@@ -23,9 +23,9 @@ import math
 import sys
 from collections.abc import Sequence
 
-from ..console import DefaultsHelpFormatter, print_error, run_main
-from ..rundir import RunDir
+from ..runs.directory import RunDir
 from ..sumo.export import EMERGENCY_DECEL, export_hybrid, run_constants, write_export
+from ..system.console import DefaultsHelpFormatter, print_error, run_main
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -130,7 +130,7 @@ def _verify(args: argparse.Namespace) -> int:
     from ..sumo.verify import verify_run
 
     if args.keep is not None:
-        from ..files import ensure_directory
+        from ..system.files import ensure_directory
 
         ensure_directory(args.keep, "--keep directory")
     report = verify_run(

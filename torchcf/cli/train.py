@@ -1,19 +1,21 @@
-"""``torchcf train CONFIG``: train a config, and nothing after it (no test-split
-evaluation, no loop).
+"""``torchcf train CONFIG`` (and ``python -m torchcf.train CONFIG``): the study of
+a config, alone or under torchrun: training, then the test-split evaluation, then
+the loop where configured.
 
     torchcf train configs/carII.json
     torchcf train configs/smoke.json --set abc.n_particles=50000 --out runs/smoke
     torchcf train configs/carII.json --resume      # after a crash or kill -9
-    torchrun --standalone --nproc-per-node 4 -m torchcf.cli.train configs/carII.json
+    torchcf train configs/carII.json --no-eval     # training only
+    torchrun --standalone --nproc-per-node 4 -m torchcf.train configs/carII.json
 
-Runs :func:`torchcf.pipeline.train_and_evaluate` with ``evaluate=False`` (the
-output directory, data and budget checked first, then :func:`torchcf.train.train`)
-and prints the shares. ``torchcf evaluate OUT`` and ``torchcf diagnose OUT`` take
-the run from there; ``torchcf study`` (:mod:`torchcf.cli.study`) runs the whole
-chain. The options, the run and its printing are shared with ``study``
-(:func:`run_config`).
+Runs :func:`torchcf.study.pipeline.run_study` (the output directory, data and
+budget checked first, then :func:`torchcf.train.train`, then the test-split
+evaluation unless ``--no-eval``, then the diagnosis loop if
+``diagnose.run_after_training``) and prints the shares and the hybrid's test
+metrics. With ``--no-eval`` nothing runs after the training: ``torchcf evaluate
+OUT`` and ``torchcf diagnose OUT`` take the run from there.
 
-Exit codes (:mod:`torchcf.console`): 0 done; 2 bad config, data, arguments or
+Exit codes (:mod:`torchcf.system.console`): 0 done; 2 bad config, data, arguments or
 output directory, a corrupted checkpoint, or an output that cannot be written
 (one line on stderr, no traceback); 130 interrupted (resume with ``--resume``).
 """
@@ -30,17 +32,17 @@ from typing import Any
 
 from ..abc.distributed import SINGLE, Group, init_from_env
 from ..config import TrainConfig, load_config
-from ..console import DefaultsHelpFormatter, add_overrides, one_line, run_main
-from ..pipeline import train_and_evaluate
 from ..posterior.tables import piled_at_bounds
-from ..rundir import RunDir
+from ..runs.directory import RunDir
+from ..study.pipeline import run_study
+from ..system.console import DefaultsHelpFormatter, add_overrides, one_line, run_main
 
 #: A command's work on a loaded config: (cfg, out, resume, group) -> the summary.
 Step = Callable[[TrainConfig, Path, bool, Group], Mapping[str, Any]]
 
 
 def run_parser(prog: str, description: str, epilog: str) -> argparse.ArgumentParser:
-    """The options ``train`` and ``study`` share: CONFIG, --schema, --out, --set,
+    """The command's options but ``--no-eval``: CONFIG, --schema, --out, --set,
     --resume."""
     parser = argparse.ArgumentParser(
         prog=prog,
@@ -64,49 +66,70 @@ def run_parser(prog: str, description: str, epilog: str) -> argparse.ArgumentPar
     return parser
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """``torchcf train``'s parser."""
+#: The prog of ``torchcf train``.
+PROG = "torchcf train"
+
+#: What the command does, in its help.
+DESCRIPTION = (
+    "The study of a config: ABC rejection and hybrid model selection on "
+    "car-following data (training), then the test-split evaluation, then the "
+    "loop where diagnose.run_after_training asks. With --no-eval, training "
+    "only: 'torchcf evaluate OUT' evaluates the run later."
+)
+
+
+def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
+    """The command's parser, named ``prog`` (``torchcf train`` or ``python -m
+    torchcf.train``: the same command)."""
     parser = run_parser(
-        "torchcf train",
-        "Train a config only: ABC rejection and hybrid model selection on "
-        "car-following data, into the output directory. No test-split evaluation "
-        "and no loop: 'torchcf evaluate OUT' evaluates the run later, 'torchcf "
-        "study CONFIG' (or python -m torchcf.train CONFIG) runs the whole chain.",
-        "Distributed: torchrun --standalone --nproc-per-node K -m torchcf.cli.train "
+        prog,
+        DESCRIPTION,
+        "Distributed: torchrun --standalone --nproc-per-node K -m torchcf.train "
         "CONFIG (docs/training.md, 'Distributed runs').",
     )
     parser.add_argument(
         "--no-eval",
         action="store_true",
-        help="changes nothing: train never evaluates (accepted for the scripts "
-        "written for the study)",
+        help="train only: no test-split evaluation and no loop (torchcf evaluate "
+        "OUT later)",
     )
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """``torchcf train``, alone or under ``torchrun``: training only.
+def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
+    """``torchcf train`` (``python -m torchcf.train``), alone or under
+    ``torchrun``: training, evaluation, and the loop if configured
+    (:mod:`torchcf.study.pipeline`); training only with ``--no-eval``.
 
     Returns:
         0 done; 2 an error of the user's making or of the machine (one line on
         stderr); 130 interrupted.
     """
-    parser = build_parser()
+    parser = build_parser(prog)
     args = parser.parse_args(argv)
+    evaluate = not args.no_eval
+
+    def study(
+        cfg: TrainConfig, out: Path, resume: bool, group: Group
+    ) -> Mapping[str, Any]:
+        return run_study(cfg, out, resume=resume, evaluate=evaluate, group=group)
+
+    if evaluate:
+        finished, note = (
+            RunDir.is_evaluated,
+            (
+                "finished (trained and evaluated): nothing to do (delete its "
+                "metrics.json to evaluate it again)"
+            ),
+        )
+    else:
+        finished, note = (
+            RunDir.is_trained,
+            ("trained: nothing to do (torchcf evaluate {out} evaluates it)"),
+        )
     return run_config(
-        parser,
-        args,
-        _train,
-        evaluated=False,
-        finished=RunDir.is_trained,
-        finished_note="trained: nothing to do (torchcf evaluate {out} evaluates it)",
+        parser, args, study, evaluated=evaluate, finished=finished, finished_note=note
     )
-
-
-def _train(
-    cfg: TrainConfig, out: Path, resume: bool, group: Group
-) -> Mapping[str, Any]:
-    return train_and_evaluate(cfg, out, resume=resume, evaluate=False, group=group)
 
 
 def run_config(
@@ -119,12 +142,13 @@ def run_config(
     finished_note: str,
 ) -> int:
     """Run ``step`` on the config of ``args`` (``--schema``: print it instead)
-    under the one policy (:func:`torchcf.console.run_main`), then print the result.
+    under the one policy (:func:`torchcf.system.console.run_main`), then print
+    the result.
 
     Args:
         parser: for ``parser.error`` on a missing CONFIG.
         args: the parsed options of :func:`run_parser`.
-        step: the work (training, or the study).
+        step: the work (the study, or its training only).
         evaluated: the step evaluated the run (print its test metrics).
         finished: on ``--resume``, the run needs nothing more (checked before).
         finished_note: then printed as ``OUT is <finished_note>``.

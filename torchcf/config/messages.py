@@ -15,7 +15,7 @@ from typing import Any
 
 from pydantic import BaseModel, ValidationError
 
-from torchcf.errors import TorchcfError
+from torchcf.system.errors import TorchcfError
 
 __all__ = ["ConfigError", "describe"]
 

@@ -616,7 +616,7 @@ class DiagnoseConfig(BaseModel):
     run_after_training: bool = Field(
         False,
         description=(
-            "Run the loop at the end of the study (torchcf study, python -m "
+            "Run the loop at the end of the study (torchcf train, python -m "
             "torchcf.train)."
         ),
     )

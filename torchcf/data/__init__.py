@@ -34,14 +34,3 @@ __all__ = [
     "resolve_data_root",
     "split_pairs",
 ]
-
-
-def __getattr__(name: str) -> object:
-    # The name's old home: say where it went instead of a bare AttributeError.
-    if name == "load_split":
-        raise AttributeError(
-            "torchcf.data.load_split moved to torchcf.config.load_split "
-            "(it reads a run's DataConfig; torchcf.data.split_pairs takes plain "
-            "arguments)"
-        )
-    raise AttributeError(f"module 'torchcf.data' has no attribute {name!r}")

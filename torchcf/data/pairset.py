@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchcf.errors import TorchcfError
+from torchcf.system.errors import TorchcfError
 
 __all__ = ["DataError", "PairSet", "SERIES"]
 

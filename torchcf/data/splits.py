@@ -91,7 +91,9 @@ def split_pairs(
         split: ``"dataset"`` (the set's own ``Trajectory/`` and ``Testing/``) or
             ``"kfold"`` (fold ``fold`` of ``folds`` of the full set, permuted
             under ``seed``: :func:`kfold_split`).
-        folds, fold, seed: the k-fold split; ignored for ``"dataset"``.
+        folds: the k-fold split's number of folds; ignored for ``"dataset"``.
+        fold: the test fold, in ``[0, folds)``; ignored for ``"dataset"``.
+        seed: the k-fold permutation's seed; ignored for ``"dataset"``.
         **load_options: passed to :func:`load_pairs` (``units``, ``dt``,
             ``leader_length``, ``data_root``, ``download``, ``drop_duplicates``,
             ``min_spacing``).

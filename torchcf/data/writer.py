@@ -27,7 +27,7 @@ from typing import Any
 from torchcf.data.extract import Extraction
 from torchcf.data.pairset import DataError, PairSet
 from torchcf.data.reader import FILES
-from torchcf.files import ensure_directory, write_json
+from torchcf.system.files import ensure_directory, write_json
 
 __all__ = ["write_extraction", "write_record", "write_six_csv"]
 

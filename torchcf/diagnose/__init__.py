@@ -2,7 +2,7 @@
 
 ``python -m torchcf.diagnose RUN_DIR [--set diagnose.key=VALUE ...]`` (or
 ``diagnose.run_after_training`` in the run's config) takes a finished, evaluated
-run through the loop (:func:`torchcf.pipeline.close_loop`). Its concerns:
+run through the loop (:func:`torchcf.study.pipeline.close_loop`). Its concerns:
 
 - :mod:`.series`: the best hybrid particle per pair, its residual series and
   their structure tests (:mod:`.residuals`, the statistics);
@@ -33,7 +33,7 @@ Re-exports only.
 """
 
 from .arms import resolve_effect
-from .attribution import EffectSelection, Selection, attribute_effects
+from .attribution import EffectSelection, attribute_effects
 from .candidates import augmented_variants
 from .loop import (
     Candidates,
@@ -55,7 +55,7 @@ from .series import (
     residual_series,
     residual_tests,
 )
-from .testing import fallback_levels, paired_change, sign_flip_test, step_levels
+from .significance import fallback_levels, paired_change, sign_flip_test, step_levels
 from .validation import split_by_pair, split_in_time
 
 __all__ = [
@@ -64,7 +64,6 @@ __all__ = [
     "LoopPlan",
     "Population",
     "EffectSelection",
-    "Selection",
     "active_models",
     "attribute_effects",
     "augmented_variants",

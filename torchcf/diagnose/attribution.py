@@ -19,14 +19,14 @@ without the effect.
 the hybrid's picks, on its validation window, their median; or a held-out
 pair's best score among all the picks). The effect's gain is the relative drop
 of the summed score against the placebo, its p-value the one-sided sign-flip
-test of the per-unit log ratios (:mod:`torchcf.diagnose.testing`).
+test of the per-unit log ratios (:mod:`torchcf.diagnose.significance`).
 
 **The order and the guard.** The residual signatures of the current model on the
 fit windows (:mod:`torchcf.diagnose.signatures`) point to effects; the effects of
 a step are tested in the order: pointed to by a signature first, then by their
 in-sample gain against the placebo (:func:`test_order`), with the fallback
-procedure at the step's level (:func:`~torchcf.diagnose.testing.
-fallback_levels`, :func:`~torchcf.diagnose.testing.step_levels`), and an effect
+procedure at the step's level (:func:`~torchcf.diagnose.significance.
+fallback_levels`, :func:`~torchcf.diagnose.significance.step_levels`), and an effect
 must also gain at least ``min_gain``. Among the significant effects the one of
 largest gain is chosen (a recording effect only by a clear margin over a
 behavioural one: :func:`choose`), its arm converges and becomes the current
@@ -67,9 +67,9 @@ from tqdm import tqdm
 
 from ..config import DiagnoseConfig, TrainConfig, config_hash
 from ..data import PairSet
-from ..files import RunFileError, atomic_torch_save, read_torch
 from ..models import effect_kinds, get_model
 from ..models.effects import RoadProfile, parse_effect
+from ..system.files import RunFileError, atomic_torch_save, read_torch
 from .absorption import Steady, absorbed_by, profile_absorption
 from .arms import (
     Arena,
@@ -91,7 +91,7 @@ from .road import one_step_residual
 from .search import INVALID_RATIO
 from .series import BestParticles, residual_series
 from .signatures import Signature, pointed_effects, signatures
-from .testing import (
+from .significance import (
     comparable,
     fallback_levels,
     level_weights,
@@ -121,7 +121,7 @@ def _fit_statistic(population: Population, n: int) -> Tensor:
 
 def _relative_drop(before: np.ndarray, after: np.ndarray) -> tuple[float, np.ndarray]:
     """The relative drop of the summed score and the per-pair log ratios, over the
-    pairs valid on at least one side (:func:`~torchcf.diagnose.testing.
+    pairs valid on at least one side (:func:`~torchcf.diagnose.significance.
     comparable`: an invalid side counts :data:`~torchcf.diagnose.search.
     INVALID_RATIO` times the valid one)."""
     usable, before, after = comparable(before, after, INVALID_RATIO)
@@ -795,16 +795,12 @@ def _judge(
     return rows
 
 
-#: The former name of :class:`EffectSelection`, kept for existing imports.
-Selection = EffectSelection
-
 __all__ = [
     "ACTIVE",
     "LEDGER_FORMAT",
     "Ledger",
     "active",
     "EffectSelection",
-    "Selection",
     "arm_signatures",
     "attribute_effects",
     "choose",

@@ -16,7 +16,7 @@ The loop takes a finished, evaluated run and
    ``RUN_DIR/loop/`` (:mod:`torchcf.diagnose.report`).
 
 :func:`plan_loop` does steps 1-2, :func:`run_recalibration` step 3 (the caller,
-:func:`torchcf.pipeline.close_loop`, evaluates its runs) and :func:`finish_loop`
+:func:`torchcf.study.pipeline.close_loop`, evaluates its runs) and :func:`finish_loop`
 step 4.
 """
 
@@ -48,7 +48,7 @@ from ..data import PairSet
 from ..models import effect_kinds
 from ..models.effects import RoadProfile, parse_effect
 from ..posterior import Posterior
-from ..rundir import RunDir
+from ..runs.directory import RunDir
 from .arms import resolve_effect
 from .attribution import EffectSelection, attribute_effects
 from .candidates import attribution_seed
@@ -65,7 +65,7 @@ from .retrain import Buffers, buffers_in_order, retrain, variants_of, wrapped
 from .road import choose_spacing, one_step_residual, shares_road_frame
 from .series import DiagnoseError, best_particles, diagnose_residuals
 from .signatures import family_of
-from .testing import paired_change
+from .significance import paired_change
 from .validation import fit_part
 
 FORMAT = "torchcf.loop/2"
@@ -361,7 +361,7 @@ def run_recalibration(
     screen: PlausibilityScreen | None = None,
 ) -> None:
     """Loop step 3: the reference and after, written as run directories
-    (evaluation is the caller's: :func:`torchcf.pipeline.close_loop`), by the
+    (evaluation is the caller's: :func:`torchcf.study.pipeline.close_loop`), by the
     run's own sampler (``diagnose.recalibration = "train"``,
     :mod:`torchcf.diagnose.retrain`, with the run's plausibility filter
     ``screen``, built by the caller) or by local search (``"search"``,

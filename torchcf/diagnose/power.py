@@ -45,7 +45,7 @@ from torch import Tensor
 from ..models.effects import Grade, parse_effect
 from .refit import Pin
 from .search import INVALID_RATIO
-from .testing import comparable, sign_flip_test
+from .significance import comparable, sign_flip_test
 from .validation import Judge
 
 #: The sizes tried, as shares of the way from the neutral value to each end of

@@ -44,7 +44,7 @@ from ..data import PairSet
 from ..models import get_model
 from ..models.effects import parse_effect
 from ..posterior import Posterior
-from ..rundir import RunDir
+from ..runs.directory import RunDir
 from .arms import Arena, Arm, design_fits, design_values
 from .candidates import attribution_rollout, attribution_seed
 from .population import Population, merge
@@ -270,7 +270,7 @@ def write_run(
 ) -> RunDir:
     """A run directory of a re-calibration: ``config.json``, ``posterior.pt``
     (the hybrid of ``buffers``) and ``summary.json``, ready for
-    :func:`torchcf.evaluate.evaluate_run`.
+    :func:`torchcf.evaluation.evaluate.evaluate_run`.
 
     Args:
         cfg: its config (:func:`recalibration_config`).

@@ -4,7 +4,7 @@
 the chosen ones with their learned parameters, the test-split error of the hybrid
 before and after, and the residual diagnostics before and after; its figures go
 to ``RUN_DIR/loop/`` and its text to TensorBoard. :func:`write_report` writes
-``loop.json`` last (:meth:`torchcf.rundir.RunDir.write_loop`): its presence says
+``loop.json`` last (:meth:`torchcf.runs.directory.RunDir.write_loop`): its presence says
 the loop finished.
 """
 
@@ -17,10 +17,10 @@ import numpy as np
 
 from ..evaluation.plots import loop_figures, save_figure
 from ..evaluation.report import METRIC_COLUMNS
-from ..files import ensure_directory
 from ..models.effects import parse_effect
-from ..rundir import RunDir
-from ..tblog import RunLogger
+from ..runs.directory import RunDir
+from ..runs.tensorboard import RunLogger
+from ..system.files import ensure_directory
 
 Series = dict[str, list[np.ndarray]]
 

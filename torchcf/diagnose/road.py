@@ -47,7 +47,7 @@ from torch import Tensor
 from ..data import PairSet
 from ..models import FollowerState, Perception, get_model
 from ..models.effects import GRAVITY, Bend, Grade, RoadProfile, parse_effect
-from ..sim import realise
+from ..sim.rollout import realise
 from .series import BestParticles
 
 #: Knot spacings [m] a bare road effect chooses from (coarse to fine).
@@ -110,7 +110,7 @@ def one_step_residual(best: BestParticles, pairs: PairSet) -> dict[str, list]:
 
     At every valid step t (but the last) the follower is put in its observed
     state, the model commands from the observed perception and realises one step
-    (:func:`torchcf.sim.realise`); the residual is what the *command* missed
+    (:func:`torchcf.sim.rollout.realise`); the residual is what the *command* missed
     [m/s^2], so that an effect acting on the command (a grade's ``-g G(x)``)
     appears in it whole, whatever the realisation:
 

@@ -22,9 +22,9 @@ from torch import Tensor
 
 from ..abc.particles import Particles, best_per_pair
 from ..data import PairSet
-from ..errors import TorchcfError
 from ..posterior import Posterior
-from ..sim import simulate
+from ..sim.rollout import simulate
+from ..system.errors import TorchcfError
 from . import residuals as rt
 
 #: A pair's best particle per model: ``{model: (theta (k, K) float64, pair position

@@ -64,7 +64,7 @@ from typing import Any
 
 import numpy as np
 
-from .testing import two_sided_sign_flip
+from .significance import two_sided_sign_flip
 
 #: p-value (across pairs) under which a signature is found.
 FOUND = 0.05

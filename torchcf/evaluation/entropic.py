@@ -39,17 +39,15 @@ same start ``u = v = 0``. Three things bound the time it takes:
   rounding), and the padding shrinks with the batch.
 
 Epsilon-scaling (``eps`` halved from the cost range down to the target, the
-potentials warm-started) was measured on the smoke run's nine cost matrices and
-is not used: plain Sinkhorn went from 10229 iterations in all to 12069 with one
-iteration per stage and 10046 with every stage converged to 1e-4; over-relaxed,
-from 1779 to 1636 and 2566, single matrices both gaining (the longest, 681 ->
-451) and losing (121 -> 211): the last stage's linear rate dominates.
+potentials warm-started) is not used: on the smoke run's cost matrices it saved
+no iterations in all, single matrices both gaining and losing (the last
+stage's linear rate dominates; the figures: ``docs/performance.md``,
+"Sinkhorn").
 
 **Threads.** A Sinkhorn step on the evaluation's matrices (a few 10^4 cells) is
 far too small for torch's intra-op threads to pay, and on a loaded machine every
-parallel region waits for a descheduled thread: one 220 x 17 iteration took
-3.4 ms with 2 threads against 0.05 ms with one (2-core machine, load 4). So small
-batches run on one thread (:func:`limit_threads`).
+parallel region waits for a descheduled thread, so small batches run on one
+thread (:func:`limit_threads`).
 """
 
 from __future__ import annotations

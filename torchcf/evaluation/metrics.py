@@ -486,7 +486,9 @@ def sinkhorn_many(
 
     Args:
         costs: (P_b, N_b) cost matrices; ``inf``/NaN = invalid cell.
-        reg, max_iter, stop_thr: as :func:`sinkhorn`.
+        reg: the entropic regularisation, as :func:`sinkhorn`.
+        max_iter: the iteration cap, as :func:`sinkhorn`.
+        stop_thr: the marginal error that stops, as :func:`sinkhorn`.
         callback: ``(iterations, matrices done)`` at every stopping test (for a
             progress bar); an infeasible matrix (never solved) counts as done.
 
@@ -593,7 +595,9 @@ def evaluate_cost_sets(
 
     Args:
         sets: per learned set, (P_s, N) score and RMSE matrices.
-        beta, sinkhorn_reg, sinkhorn_max_iter: as :func:`evaluate_costs`.
+        beta: the beta of beta-WS, as :func:`evaluate_costs`.
+        sinkhorn_reg: as :func:`evaluate_costs`.
+        sinkhorn_max_iter: as :func:`evaluate_costs`.
         callback: progress, called as ``("exact", sets done, len(sets))`` after
             each set's exact metrics and ``("sinkhorn", iterations, problems
             done)`` at every Sinkhorn stopping test.

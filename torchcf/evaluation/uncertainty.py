@@ -1,6 +1,6 @@
 """Honest uncertainty of an evaluation: predictive coverage and bootstrap intervals.
 
-Assembles, from what :func:`torchcf.evaluate.evaluate_posterior` already
+Assembles, from what :func:`torchcf.evaluation.evaluate.evaluate_posterior` already
 simulated (no second rollout), the numbers metrics.json, the report and
 TensorBoard carry:
 
@@ -188,10 +188,11 @@ def _shares(
 
 
 def tensorboard_scalars(result: Mapping[str, Any]) -> dict[str, dict[str, float]]:
-    """``{model: {key: value}}`` for :meth:`torchcf.tblog.RunLogger.evaluation`
-    (tags ``eval/<key>/<model>``): the hybrid's differences as
-    ``hybrid_minus_<metric>[_low|_high]`` and the shares as
-    ``share[_low|_high]``; the per-set keys travel with the set's metrics."""
+    """``{model: {key: value}}`` for
+    :meth:`torchcf.runs.tensorboard.RunLogger.evaluation` (tags
+    ``eval/<key>/<model>``): the hybrid's differences as
+    ``hybrid_minus_<metric>[_low|_high]`` and the shares as ``share[_low|_high]``;
+    the per-set keys travel with the set's metrics."""
     out: dict[str, dict[str, float]] = {}
     for model, row in result["hybrid_minus"].items():
         for key, d in row.items():

@@ -6,7 +6,7 @@ shared by everything.
 
 from __future__ import annotations
 
-from ..errors import did_you_mean
+from ..system.errors import did_you_mean
 from .augmented import AugmentedModel
 from .base import (
     CFModel,

@@ -149,14 +149,14 @@ class CFModel:
     #: choose: per-step overhead vs. memory and cache. A chunk is also the
     #: rejection engine's round, the unit of progress and checkpoints: a budget
     #: should be seconds of simulation, a small part of a long stream (on CUDA
-    #: chunks hold at least :data:`torchcf.sim.CUDA_CHUNK_CELLS`).
+    #: chunks hold at least :data:`torchcf.sim.rollout.CUDA_CHUNK_CELLS`).
     chunk_cells: ClassVar[int] = 1 << 18
     #: Whether a particle's rollout rounds the same whatever the batch it is
     #: simulated in. False for the MPC, whose QP solver picks its kernels by batch
     #: size (LAPACK below a size): the engines then simulate fixed-size batches.
     batch_size_invariant: ClassVar[bool] = True
     #: Whether a rollout may drop particles midway (early rejection,
-    #: :func:`torchcf.sim.simulate`'s ``ceiling``): :meth:`select_particles`
+    #: :func:`torchcf.sim.rollout.simulate`'s ``ceiling``): :meth:`select_particles`
     #: knows the model's prepared parameters and memory.
     prunable: ClassVar[bool] = True
 

@@ -36,7 +36,7 @@ from typing import Any, ClassVar, Literal
 import torch
 from torch import Tensor
 
-from ..errors import did_you_mean
+from ..system.errors import did_you_mean
 from .base import (
     CFModel,
     FollowerState,

@@ -30,7 +30,7 @@ from typing import Any
 
 from torch import Tensor
 
-from ..files import RunFileError, atomic_torch_save, read_torch
+from ..system.files import RunFileError, atomic_torch_save, read_torch
 
 FORMAT = "torchcf.posterior/1"
 

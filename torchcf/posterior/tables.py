@@ -43,9 +43,9 @@ import numpy as np
 import pandas as pd
 import torch
 
-from ..errors import TorchcfError, did_you_mean
-from ..files import atomic_write_text
 from ..models import get_model
+from ..system.errors import TorchcfError, did_you_mean
+from ..system.files import atomic_write_text
 from .bounds import EDGE_BAND, EDGE_SHARE, PiledAtBound, bounds_markdown
 from .learned_set import Posterior
 

@@ -24,8 +24,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from types import ModuleType
 
-from ..console import one_line
-from ..errors import TorchcfError
+from ..system.console import one_line
+from ..system.errors import TorchcfError
 
 #: What a user runs to get SUMO.
 INSTALL_HINT = "pip install 'torchcf[sumo]' (eclipse-sumo and libsumo 1.28)"

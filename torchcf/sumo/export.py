@@ -81,9 +81,9 @@ from torch import Tensor
 
 from ..config import TrainConfig, load_split
 from ..data import DATASETS
-from ..files import atomic_write_text, ensure_directory, write_json
 from ..models import get_model
 from ..posterior import Posterior
+from ..system.files import atomic_write_text, ensure_directory, write_json
 from .backend import SumoError
 
 #: The ``vTypeDistribution`` id of an export.

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from ..console import bar_interval
+from ..system.console import bar_interval
 from .backend import SumoError
 
 #: The options torchcf adds to a SUMO run whose FCD it reads back.

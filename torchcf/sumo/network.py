@@ -22,7 +22,7 @@ import os
 import subprocess
 from pathlib import Path
 
-from ..files import atomic_write_text
+from ..system.files import atomic_write_text
 from .backend import SumoError, binary
 
 #: Spacing [m] between parallel edges (drawing only: unconnected edges never

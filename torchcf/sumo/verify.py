@@ -50,13 +50,18 @@ from torch import Tensor
 from tqdm import tqdm
 
 from ..config import load_split
-from ..console import bar_interval
 from ..data import PairSet
 from ..evaluation.metrics import evaluate_costs
-from ..files import atomic_write_text, ensure_directory, read_json_object, write_json
 from ..models import get_model
-from ..rundir import RunDir
-from ..sim import DEFAULT_WEIGHTS, simulate
+from ..runs.directory import RunDir
+from ..sim.rollout import DEFAULT_WEIGHTS, simulate
+from ..system.console import bar_interval
+from ..system.files import (
+    atomic_write_text,
+    ensure_directory,
+    read_json_object,
+    write_json,
+)
 from ..traffic import HybridSampler, SafetyLayer
 from . import backend
 from .backend import SumoError

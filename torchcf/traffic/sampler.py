@@ -15,8 +15,8 @@ vehicles with it:
   its group's gathered tensors and scatters the commands back. The loop is over the
   (few) models, never over vehicles;
 - :meth:`HybridSampler.advance` realises the commands (SPEC section 2 through
-  :func:`torchcf.sim.realise`: a point mass, or HL's / the ``lag`` effect's exact
-  first-order lag, then no reversing).
+  :func:`torchcf.sim.rollout.realise`: a point mass, or HL's / the ``lag``
+  effect's exact first-order lag, then no reversing).
 
 The learned particles and the assignment are buffers: they move with ``.to()``,
 change dtype with ``.double()`` and round-trip through ``state_dict``. What a
@@ -47,11 +47,11 @@ from torch import Tensor, nn
 from torch.utils import _pytree as pytree
 
 from ..data import DATASETS
-from ..files import RunFileError
 from ..models import CFModel, FollowerState, Perception, get_model
 from ..posterior import Posterior
-from ..rundir import RunDir
-from ..sim import check_theta, realise
+from ..runs.directory import RunDir
+from ..sim.rollout import check_theta, realise
+from ..system.files import RunFileError
 
 #: The base class realises a command as a point mass (it ignores its parameters):
 #: :meth:`HybridSampler.advance` moves every vehicle with it at once, then
@@ -186,8 +186,10 @@ class HybridSampler(nn.Module):
 
         Args:
             path: the ``posterior.pt`` (or the run directory holding it).
-            dt, leader_length: default: the registry's values for the posterior's
-                named data set, else those of the ``config.json`` beside the file.
+            dt: the time step [s]; default: the registry's value for the
+                posterior's named data set, else the ``config.json``'s beside
+                the file.
+            leader_length: the leader's length [m]; default as ``dt``.
             dtype: float32 or float64.
 
         Raises:
@@ -271,7 +273,9 @@ class HybridSampler(nn.Module):
         """``(P_m, K_m)`` the learned particles of ``model``."""
         return self.get_buffer(f"theta_{self._model_id(model)}")
 
-    def particle_ids(self, model: str, rows: Tensor | Sequence[int] | None = None):
+    def particle_ids(
+        self, model: str, rows: Tensor | Sequence[int] | None = None
+    ) -> Tensor:
         """Learned-set indices of rows of ``model``'s particles (for :meth:`assign`).
 
         Args:
@@ -522,7 +526,7 @@ class HybridSampler(nn.Module):
 
         Each vehicle moves by its model's realisation (a point mass, or the exact
         first-order lag of HL and ``+lag``), then ``v >= 0`` and ``x`` never
-        decreases: :func:`torchcf.sim.realise`, the rollout's own update.
+        decreases: :func:`torchcf.sim.rollout.realise`, the rollout's own update.
 
         Args:
             x: ``vehicle_shape`` position [m] (any frame: the update only adds to

@@ -6,7 +6,7 @@ sampler's ``vehicle_shape`` is ``(S, n)``; draw it with
 
 - :func:`platoon`: ``n`` followers behind a given leader trajectory ``(T, S)`` —
   a measured pair's leader (:func:`pair_leader`) or a synthetic one
-  (:func:`torchcf.synthetic.leader_profiles`). Follower 0 follows the leader,
+  (:func:`torchcf.sim.synthetic.leader_profiles`). Follower 0 follows the leader,
   follower ``j`` follows follower ``j - 1``.
 - :func:`ring_road`: ``n`` vehicles on a circle of length ``L``; vehicle ``i``
   follows vehicle ``i + 1``, and the last follows the first across the wrap
@@ -15,9 +15,9 @@ sampler's ``vehicle_shape`` is ``(S, n)``; draw it with
 Every step is the calibration rollout's (SPEC section 2): each vehicle perceives
 its spacing to the vehicle ahead, its own speed and acceleration and the leader's
 speed at step t; the sampler returns every command in one call; the commands are
-realised by each model's own update (:func:`torchcf.sim.realise`); then all vehicles
-move at once. A one-vehicle platoon behind a measured leader, without the safety
-layer, is exactly :func:`torchcf.simulate`'s rollout of that pair.
+realised by each model's own update (:func:`torchcf.sim.rollout.realise`); then
+all vehicles move at once. A one-vehicle platoon behind a measured leader,
+without the safety layer, is exactly :func:`torchcf.simulate`'s rollout of that pair.
 
 **Safety layer.** By default every vehicle's step is bounded by a safe speed
 (:class:`~torchcf.traffic.safety.SafetyLayer`: Gipps' bound, an emergency
@@ -51,8 +51,8 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import torch
 from torch import Tensor
 
-from ..compiled import configure_compiler
 from ..models import FollowerState
+from ..sim.compiled import configure_compiler
 from .safety import DEFAULT_SAFETY, SafetyLayer
 from .sampler import HybridSampler, increasing_root
 

@@ -9,7 +9,7 @@
 - :mod:`torchcf.train.summary`: the results and ``summary.json``
   (:class:`RunSummary`);
 - :mod:`torchcf.train.__main__`: ``python -m torchcf.train CONFIG``, which runs the
-  study (:mod:`torchcf.pipeline`).
+  study (:mod:`torchcf.study.pipeline`).
 
 Re-exports only.
 """

@@ -1,6 +1,6 @@
 """The run's checkpoint: its file format, resuming from it, and the checkpointer.
 
-``checkpoint.pt`` (:meth:`torchcf.rundir.RunDir.save_checkpoint`) is a dict::
+``checkpoint.pt`` (:meth:`torchcf.runs.directory.RunDir.save_checkpoint`) is a dict::
 
     {
         "format": "torchcf.checkpoint/1",
@@ -37,11 +37,11 @@ from ..abc.rejection import ModelProgress
 from ..abc.smc import SMCState
 from ..abc.topn import TopN
 from ..config import TrainConfig, config_hash
-from ..console import one_line
-from ..errors import TorchcfError
-from ..files import RunFileError
-from ..rundir import RunDir
-from ..signals import StopRequest
+from ..runs.directory import RunDir
+from ..system.console import one_line
+from ..system.errors import TorchcfError
+from ..system.files import RunFileError
+from ..system.signals import StopRequest
 
 CHECKPOINT_FORMAT = "torchcf.checkpoint/1"
 #: The tensors every saved buffer must hold.
@@ -193,7 +193,7 @@ def checkpoint_state(raw: Mapping[str, Any], digest: str, path: Path) -> RunStat
 
 class Checkpointer:
     """Saves the run state on rank 0, every ``every`` seconds when asked, and at
-    once when a stop was requested (Ctrl-C or SIGTERM: :mod:`torchcf.signals`),
+    once when a stop was requested (Ctrl-C or SIGTERM: :mod:`torchcf.system.signals`),
     after which it stops the run."""
 
     def __init__(
@@ -216,7 +216,7 @@ class Checkpointer:
 
     def save(self) -> None:
         """Every rank holds the merged buffers: rank 0 saves them; then a
-        requested stop raises :class:`~torchcf.signals.Stopped`."""
+        requested stop raises :class:`~torchcf.system.signals.Stopped`."""
         self.group.on_main(self.run.save_checkpoint, self.state.as_checkpoint())
         self.last = time.perf_counter()
         if self.stop is not None:

@@ -38,10 +38,10 @@ from ..abc.screen import PlausibilityScreen
 from ..abc.smc import SMCSettings, new_state, smc_budget
 from ..abc.topn import TopN
 from ..config import ConfigError, TrainConfig
-from ..console import bar_interval
 from ..data import PairSet
 from ..models import get_model
 from ..posterior import Posterior
+from ..system.console import bar_interval
 from ..traffic.battery import Battery, battery_speed, check_plausibility, rejects
 from .checkpoint import RunError, RunState
 

@@ -24,18 +24,18 @@ every rank holds the merged buffers). Its parts, by concern:
 Their public names are importable from here too, as before the split.
 
 The command line (:mod:`torchcf.train.__main__`) runs the study
-(:func:`torchcf.pipeline.run_study`): training, then the test-split evaluation
+(:func:`torchcf.study.pipeline.run_study`): training, then the test-split evaluation
 (unless ``--no-eval``) and, with ``diagnose.run_after_training``, the diagnosis
 loop.
 
-The output directory (:class:`torchcf.rundir.RunDir`) receives ``config.json``
+The output directory (:class:`torchcf.runs.directory.RunDir`) receives ``config.json``
 (resolved), ``checkpoint.pt``, TensorBoard event files under ``tb/``, and at the
 end ``posterior.pt`` and ``summary.json``, written last: a directory without
 ``summary.json`` holds an unfinished run.
 
-Exit codes (:mod:`torchcf.console`): 0 done; 2 bad config, data, arguments or output
-directory, a corrupted checkpoint, or an output that cannot be written (one line
-on stderr, no traceback); 130 interrupted (resume with ``--resume``).
+Exit codes (:mod:`torchcf.system.console`): 0 done; 2 bad config, data, arguments
+or output directory, a corrupted checkpoint, or an output that cannot be
+written (one line on stderr, no traceback); 130 interrupted (resume with ``--resume``).
 """
 
 from __future__ import annotations
@@ -53,17 +53,17 @@ from ..abc.distributed import SINGLE, Group
 from ..abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
 from ..abc.smc import run_smc
 from ..config import TrainConfig, load_split, resolved_json
-from ..console import bar_interval
 from ..data import PairSet
 from ..data.importer import record_extraction
 from ..evaluation.plots import hybrid_images, save_image
-from ..files import ensure_directory, writing
 from ..posterior import Posterior
 from ..posterior.tables import parameters_markdown, write_parameter_tables
-from ..rundir import RunDir
-from ..runtime import tune_malloc
-from ..signals import StopRequest
-from ..tblog import RunLogger, markdown_summary
+from ..runs.directory import RunDir
+from ..runs.tensorboard import RunLogger, markdown_summary
+from ..system.console import bar_interval
+from ..system.files import ensure_directory, writing
+from ..system.process import tune_malloc
+from ..system.signals import StopRequest
 from .checkpoint import (
     CHECKPOINT_FORMAT,
     Checkpointer,
@@ -199,7 +199,7 @@ def train(
     """Run (or resume) the ABC rejection and hybrid selection of ``cfg`` into ``out``.
 
     Training only: the evaluation and the diagnosis loop are run after it by
-    :mod:`torchcf.pipeline`.
+    :mod:`torchcf.study.pipeline`.
 
     Args:
         cfg: the run's configuration.
@@ -351,9 +351,9 @@ def _log_results(
     for name in names:
         particles = posterior.hybrid[name]
         logger.posterior(name, particles.param_names, particles.theta)
-    table = torch.tensor(summary.pairwise.table, dtype=torch.float64)
     sensitivity = dict(summary.sensitivity)
-    logger.hybrid(posterior.shares, names, table, sensitivity, images)
+    if images is not None:  # rendered on rank 0, whose logger writes
+        logger.hybrid(posterior.shares, images, sensitivity)
     logger.text("summary", markdown_summary(summary.to_json()))
     logger.text("parameters", parameters_markdown(posterior))
     logger.hparams(

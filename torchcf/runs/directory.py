@@ -18,15 +18,15 @@ A run directory, as the commands leave it::
     ├── loop.json         diagnose  written LAST by the loop: the loop finished
     └── .lock             train, evaluate, diagnose: held while one works here
 
-A cross-validation (``python -m torchcf.crossval``) writes one run directory per
+A cross-validation (``torchcf crossval``) writes one run directory per
 fold, ``OUT/fold<i>/``, then the folds' mean in ``OUT/report/table.md`` and, last,
 ``OUT/metrics.json``.
 
 Each step's last file marks its completion, so a directory never looks more
-finished than it is: every file is written atomically (:mod:`torchcf.files`: a
+finished than it is: every file is written atomically (:mod:`torchcf.system.files`: a
 temporary file renamed into place; a full disk keeps the previous checkpoint
 intact), and a file that cannot be read or written is a
-:class:`~torchcf.files.RunFileError` with one line naming it (a configuration
+:class:`~torchcf.system.files.RunFileError` with one line naming it (a configuration
 that is readable but invalid: a :class:`~torchcf.config.ConfigError`).
 
 One command at a time works in a run directory (:meth:`RunDir.locked`): a
@@ -47,14 +47,15 @@ try:  # POSIX; elsewhere a run directory is not locked
 except ImportError:  # pragma: no cover - Windows
     fcntl = None  # type: ignore[assignment]
 
-from .config import (
+from ..config import (
     ConfigError,
     TrainConfig,
     config_hash,
     resolved_json,
     validate_config,
 )
-from .files import (
+from ..posterior import Posterior
+from ..system.files import (
     RunFileError,
     atomic_torch_save,
     atomic_write_text,
@@ -64,7 +65,6 @@ from .files import (
     remove_file,
     write_json,
 )
-from .posterior import Posterior
 
 #: The lock file of a run directory (:meth:`RunDir.locked`).
 LOCK_NAME = ".lock"
@@ -399,7 +399,7 @@ class RunDir:
         self._require(
             self.metrics_json,
             f"{self._path} is not evaluated (no metrics.json); run "
-            f"python -m torchcf.evaluate {self._path}",
+            f"torchcf evaluate {self._path}",
         )
         metrics = read_json_object(self.metrics_json)
         if not isinstance(metrics.get("hybrid"), dict):

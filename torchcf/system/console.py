@@ -9,12 +9,12 @@ these names for older imports): the ``--help`` format, ``--set``, the
 
 - 0: done;
 - 2: an error of the user's making or of the machine — a
-  :class:`~torchcf.errors.TorchcfError` (bad config, data, arguments, run
+  :class:`~torchcf.system.errors.TorchcfError` (bad config, data, arguments, run
   directory, a corrupted or unwritable file) or an ``OSError`` (a file system or
   device failing underneath) — printed as ``error: <one line>`` on stderr, never a
   traceback;
 - 130: interrupted (Ctrl-C), 143: terminated (SIGTERM, treated as Ctrl-C:
-  :mod:`torchcf.signals`), each with a hint on how to continue.
+  :mod:`torchcf.system.signals`), each with a hint on how to continue.
 
 Anything else is a bug and keeps its traceback.
 """

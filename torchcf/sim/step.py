@@ -1,6 +1,6 @@
 """One step of the rollout (SPEC section 2), and a block of steps: the arithmetic
-:func:`torchcf.sim.simulate` runs, eager or fused by ``torch.compile``
-(:mod:`torchcf.compiled`).
+:func:`torchcf.sim.rollout.simulate` runs, eager or fused by ``torch.compile``
+(:mod:`torchcf.sim.compiled`).
 
 A step gathers each cell's observations from the ``(6, N)`` table row of its time
 step, perceives (spacing, speeds, the leader's length), asks the model for its
@@ -19,7 +19,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from .models import CFModel, FollowerState, Perception
+from ..models import CFModel, FollowerState, Perception
 
 # Rows of the observation table (T, 6, N).
 _X_LEAD, _V_LEAD, _X_FOLLOW, _V_FOLLOW, _A_FOLLOW, _MASK = range(6)

@@ -1,6 +1,6 @@
 """Atomic writes and checked reads of the files torchcf writes.
 
-The low level under :mod:`torchcf.rundir` (which knows the names and layout of a
+The low level under :mod:`torchcf.runs.directory` (which knows the names and layout of a
 run directory); it knows nothing of runs. Every failure is a
 :class:`RunFileError` whose one-line message names the file and the reason: a
 file missing, unreadable, truncated or corrupted, a directory that cannot be

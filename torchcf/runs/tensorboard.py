@@ -27,7 +27,7 @@ run wrote at or past the checkpoint's step.
 failure there (a full disk) would print that thread's traceback and surface later
 as a bare ``OSError`` in whatever call came next. The logger keeps the thread
 quiet (:func:`_quiet_writer_threads`) and reports the failure from its own
-methods as one :class:`~torchcf.files.RunFileError` naming the event directory.
+methods as one :class:`~torchcf.system.files.RunFileError` naming the event directory.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from torch import Tensor
 
-from .files import RunFileError, writing
+from ..system.files import RunFileError, writing
 
 if TYPE_CHECKING:
     from torch.utils.tensorboard import SummaryWriter
@@ -199,28 +199,20 @@ class RunLogger:
     def hybrid(
         self,
         shares: Mapping[str, float],
-        pairwise_models: Sequence[str],
-        pairwise_table: Sequence[Sequence[float]] | Tensor | np.ndarray,
+        images: Mapping[str, np.ndarray],
         sensitivity: Mapping[int, Mapping[str, float]] | None = None,
-        images: Mapping[str, np.ndarray] | None = None,
     ) -> None:
         """The hybrid model: share figures and share scalars.
 
         Args:
             shares: model name -> share in [0, 1].
-            pairwise_models: the M models of ``pairwise_table``.
-            pairwise_table: (M, M) share of row model i in the hybrid of {i, j}.
+            images: the figures ``shares`` and ``pairwise``, rendered
+                (:func:`torchcf.evaluation.plots.hybrid_images`).
             sensitivity: optional top-N size ``n`` (accepted particles per pair)
                 -> shares; logged under the tag ``hybrid/sensitivity/N=<n>``.
-            images: the two figures already rendered
-                (:func:`torchcf.evaluation.plots.hybrid_images`); None: drawn here.
         """
         if self._writer is None:
             return
-        if images is None:
-            from .evaluation.plots import hybrid_images
-
-            images = hybrid_images(shares, pairwise_models, pairwise_table)
         self._writer.add_image("hybrid/shares", images["shares"], dataformats="HWC")
         self._writer.add_image("hybrid/pairwise", images["pairwise"], dataformats="HWC")
         for model, share in shares.items():

@@ -1,14 +1,14 @@
-"""k-fold cross-validation: ``torchcf crossval CONFIG [--folds 3]`` (the command
-line: :mod:`torchcf.cli.crossval`; ``python -m torchcf.crossval`` runs it too).
+"""k-fold cross-validation (the command line ``torchcf crossval CONFIG [--folds 3]``:
+:mod:`torchcf.cli.crossval`).
 
 Trains and evaluates one run per fold (``data.split = "kfold"``, ``data.fold = i``,
-pairs partitioned by ``data.split_seed``; :func:`torchcf.pipeline.run_study`, the
+pairs partitioned by ``data.split_seed``; :func:`torchcf.study.pipeline.run_study`, the
 loop included with ``diagnose.run_after_training``) into ``OUT/fold<i>/``, then
 aggregates the folds' metrics by the mean, as the paper does (SPEC section 6),
 into ``OUT/report/table.md`` and, last, ``OUT/metrics.json``. Each fold is an
 ordinary run directory: an interrupted cross-validation continues with
 ``--resume`` (finished folds are kept, the unfinished one resumes from its
-checkpoint). The layout is :mod:`torchcf.rundir`'s.
+checkpoint). The layout is :mod:`torchcf.runs.directory`'s.
 """
 
 from __future__ import annotations
@@ -18,11 +18,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .config import TrainConfig
-from .evaluation.report import metrics_table
-from .files import atomic_write_text, ensure_directory
+from ..config import TrainConfig
+from ..evaluation.report import metrics_table
+from ..runs.directory import RunDir
+from ..system.files import atomic_write_text, ensure_directory
 from .pipeline import run_study
-from .rundir import RunDir
 
 METRIC_KEYS = ("e_p", "e_v", "e_a", "min", "beta_ws", "ws", "sinkhorn")
 
@@ -98,19 +98,3 @@ def crossval(
     )
     out.write_metrics(result)  # last: its presence says the cross-validation ended
     return result
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m torchcf.crossval``: the command :func:`torchcf.cli.crossval.main`
-    (``torchcf crossval``), kept here for ``from torchcf.crossval import main``.
-
-    The command line sits above this module: it is imported when called, never
-    on import (the one import up that tests/test_layout.py allows).
-    """
-    from .cli.crossval import main as command
-
-    return command(argv)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

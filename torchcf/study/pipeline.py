@@ -1,7 +1,7 @@
 """The study, in one place: train -> evaluate -> close the loop.
 
 Each stage is a library function that does its own work only:
-:func:`torchcf.train.train` writes the learned set, :func:`torchcf.evaluate.
+:func:`torchcf.train.train` writes the learned set, :func:`torchcf.evaluation.evaluate.
 evaluate_run` the test-split metrics, :mod:`torchcf.diagnose.loop` the diagnosis
 (:func:`~torchcf.diagnose.loop.plan_loop` up to the choice of effects,
 :func:`~torchcf.diagnose.loop.finish_loop` after the re-calibration). This module
@@ -27,15 +27,15 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from .abc.distributed import SINGLE, Group
-from .config import TrainConfig, load_split
-from .data import PairSet
-from .data.registry import notes_deferred
-from .diagnose.loop import finish_loop, plan_loop, run_recalibration
-from .evaluate import evaluate_run
-from .rundir import RunDir
-from .train import RunSummary, check_budget, open_run, run_device, train
-from .train.engine import plausibility_screen
+from ..abc.distributed import SINGLE, Group
+from ..config import TrainConfig, load_split
+from ..data import PairSet
+from ..data.registry import notes_deferred
+from ..diagnose.loop import finish_loop, plan_loop, run_recalibration
+from ..evaluation.evaluate import evaluate_run
+from ..runs.directory import RunDir
+from ..train import RunSummary, check_budget, open_run, run_device, train
+from ..train.engine import plausibility_screen
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,7 +104,7 @@ def _checked_pairs(
 
 def _held(out: Path, group: Group) -> AbstractContextManager[Any]:
     """The run directory held by rank 0 for the whole stage
-    (:meth:`~torchcf.rundir.RunDir.locked`): a second study started into it
+    (:meth:`~torchcf.runs.directory.RunDir.locked`): a second study started into it
     meanwhile is refused instead of mixing its files with this one's."""
     return RunDir(out).locked() if group.is_main else nullcontext()
 

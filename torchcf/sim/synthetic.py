@@ -26,10 +26,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .data import PairSet
-from .models import CFModel, get_model
-from .models.base import Perception, spec
-from .sim import simulate
+from ..data import PairSet
+from ..models import CFModel, get_model
+from ..models.base import Perception, spec
+from .rollout import simulate
 
 
 class GippsParams(NamedTuple):

@@ -4,7 +4,7 @@ A batch system ends a job with SIGTERM, a user with Ctrl-C (SIGINT). Python
 turns Ctrl-C into :class:`KeyboardInterrupt` wherever the program happens to
 be, and ends on SIGTERM at once with exit code 143 and no word. Two pieces:
 
-- :func:`terminate_as_interrupt` (every command line, :func:`torchcf.console.
+- :func:`terminate_as_interrupt` (every command line, :func:`torchcf.system.console.
   run_main`): SIGTERM raises :class:`Stopped`, a ``KeyboardInterrupt``, so a
   terminated command unwinds like an interrupted one (files being written stay
   whole: every write is atomic) and says so; its exit code stays 143.

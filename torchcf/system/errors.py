@@ -3,7 +3,7 @@
 An error of the user's making (config, data, arguments, a run directory) or of the
 machine (a full disk, an unreachable process group) is a :class:`TorchcfError`;
 every ``python -m torchcf.<x>`` prints it as ``error: <one line>`` and exits with
-code 2 (:mod:`torchcf.console`). Anything else is a bug and keeps its traceback.
+code 2 (:mod:`torchcf.system.console`). Anything else is a bug and keeps its traceback.
 
 Each module's own error derives from it (and, where callers catch a builtin,
 from that builtin too: :class:`torchcf.config.ConfigError` is also a

@@ -1,7 +1,7 @@
 """``torch.compile`` for the rollout: when to compile, and the compiled block.
 
 :func:`resolve_compile` decides (``compile: "auto"`` compiles long CPU streams);
-:class:`_BlockRunner` calls a model's block of steps (:func:`torchcf.step._block`)
+:class:`_BlockRunner` calls a model's block of steps (:func:`torchcf.sim.step._block`)
 fused whole, or for a correcting model (:attr:`~torchcf.models.CFModel.corrects`:
 MPC's QP) :class:`_CorrectedBlock`'s two compiled step functions around the eager
 correction; a compiler failure falls back to eager once, with a warning.
@@ -25,7 +25,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
-from .models import CFModel, FollowerState
+from ..models import CFModel, FollowerState
 from .step import _Accumulators, _block, _draft_step, _finish_step
 
 #: Below this many simulated particle-steps, ``compile="auto"`` stays eager on
@@ -51,9 +51,9 @@ class _CorrectedBlock:
     (:func:`_finish_step`): the arithmetic of :func:`_block`.
 
     Two compiled calls a step, not one fused block: the MPC's step is bound by
-    its memory traffic, not by the calls (a million CAR MODEL II particles,
-    2 cores: 19-21 s eager, 11-14 s so, 14.5-14.7 s with each step's motion
-    fused with the next step's draft, a third graph to compile).
+    its memory traffic, not by the calls (fusing each step's motion with the
+    next step's draft, a third graph to compile, was no faster:
+    ``docs/performance.md``, "MPC").
     """
 
     def __init__(
@@ -230,7 +230,7 @@ def configure_compiler() -> None:
     """Settings every ``torch.compile`` of torchcf needs (idempotent).
 
     Every model, layout and chunk shape is a separate graph of the same function
-    (:func:`torchcf.step._block`); dynamo's default of 8 graphs per function
+    (:func:`torchcf.sim.step._block`); dynamo's default of 8 graphs per function
     would silently drop the ninth to eager, so the limit is raised to what a
     full run can need. And the CPU's vector instruction set is probed once,
     for the set the kernels will use (:func:`_probe_vector_isa`).

@@ -1,4 +1,4 @@
-"""Test-split evaluation of a trained run: ``python -m torchcf.evaluate RUN_DIR``.
+"""Test-split evaluation of a trained run: ``torchcf evaluate RUN_DIR``.
 
 SPEC section 6. Every particle of a learned set is simulated on every test pair
 (full layout), giving the cost matrix ``C`` (particles x test pairs) of scores and
@@ -32,8 +32,8 @@ coverage), ``calibration.png`` (nominal against observed coverage),
 particles against all of them on one test pair) and ``radar.png`` (Figs. 5-6); the
 figures and metrics are also logged to the run's TensorBoard folder; and last
 ``RUN_DIR/metrics.json``, so that a run directory with ``metrics.json`` holds a
-complete evaluation (the layout: :mod:`torchcf.rundir`). :mod:`torchcf.pipeline`
-calls :func:`evaluate_run` after training.
+complete evaluation (the layout: :mod:`torchcf.runs.directory`).
+:mod:`torchcf.study.pipeline` calls :func:`evaluate_run` after training.
 """
 
 from __future__ import annotations
@@ -51,20 +51,25 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from .config import TrainConfig, load_split
-from .console import bar_interval
-from .data import PairSet
-from .errors import TorchcfError
-from .evaluation.coverage import (
+from ..config import TrainConfig, load_split
+from ..data import PairSet
+from ..posterior import Posterior
+from ..runs.directory import RunDir
+from ..runs.tensorboard import RunLogger
+from ..sim.rollout import simulate
+from ..system.console import bar_interval
+from ..system.errors import TorchcfError
+from ..system.files import atomic_write_text, ensure_directory, writing
+from .coverage import (
     PredictiveCDF,
     add_draws,
     observed,
     predicted,
     scored_steps,
 )
-from .evaluation.entropic import limit_threads
-from .evaluation.metrics import evaluate_cost_sets
-from .evaluation.plots import (
+from .entropic import limit_threads
+from .metrics import evaluate_cost_sets
+from .plots import (
     calibration_figure,
     error_evolution_figure,
     figure_to_array,
@@ -73,7 +78,7 @@ from .evaluation.plots import (
     save_image,
     shares_figure,
 )
-from .evaluation.report import (
+from .report import (
     METRIC_NOTES,
     coverage_table,
     differences_table,
@@ -82,12 +87,7 @@ from .evaluation.report import (
     plausibility_table,
     shares_interval_table,
 )
-from .evaluation.uncertainty import tensorboard_scalars, uncertainty
-from .files import atomic_write_text, ensure_directory, writing
-from .posterior import Posterior
-from .rundir import RunDir
-from .sim import simulate
-from .tblog import RunLogger
+from .uncertainty import tensorboard_scalars, uncertainty
 
 #: Bytes of trajectories one rollout may hold for the predictive coverage
 #: (:func:`cost_matrices` slices the particles to stay below).
@@ -436,7 +436,7 @@ def evaluate_run(
     """Evaluate the finished run in ``run_dir``; write metrics.json and the report.
 
     Args:
-        run_dir: a trainer output directory (:class:`~torchcf.rundir.RunDir`).
+        run_dir: a trainer output directory (:class:`~torchcf.runs.directory.RunDir`).
         report_dir: where the report goes (default ``run_dir/report``).
         pairs: optional ``(train, test)`` instead of loading the run's data config.
         figure_pair: the test pair (position) of the Fig. 4 figure; default the one
@@ -604,19 +604,3 @@ def _by_pair(best: np.ndarray) -> list[float | None]:
     particles on that pair; None where none is valid), for paired comparisons
     of two runs on the same test pairs (:mod:`torchcf.diagnose.loop`)."""
     return [float(v) if math.isfinite(v) else None for v in best.tolist()]
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m torchcf.evaluate``: the command :func:`torchcf.cli.evaluate.main`
-    (``torchcf evaluate``), kept here for ``from torchcf.evaluate import main``.
-
-    The command line sits above this module: it is imported when called, never
-    on import (the one import up that tests/test_layout.py allows).
-    """
-    from .cli.evaluate import main as command
-
-    return command(argv)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

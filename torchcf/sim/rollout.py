@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import torch
 from torch import Tensor
 
+from ..models import CFModel, FollowerState, Perception, get_model
 from .compiled import (  # noqa: F401 - resolve_compile and the rest: sim's API
     COMPILE_MIN_STEPS,
     COMPILE_MIN_STEPS_CUDA,
@@ -44,7 +45,6 @@ from .compiled import (  # noqa: F401 - resolve_compile and the rest: sim's API
     _compiled_block,
     resolve_compile,
 )
-from .models import CFModel, FollowerState, Perception, get_model
 from .step import (  # noqa: F401 - realise: sim's API
     _A_FOLLOW,
     _MASK,
@@ -87,7 +87,7 @@ PRUNE_SHARE = 0.2
 
 
 if TYPE_CHECKING:
-    from .data import PairSet
+    from ..data import PairSet
 
 
 class SimOutput(NamedTuple):

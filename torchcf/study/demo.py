@@ -1,7 +1,6 @@
 """A simulation demo: each model's prior particles on CAR MODEL II training pairs.
 
     torchcf demo [--particles 200000] [--dataset NAME] [--data-root DIR]
-    python -m torchcf.demo ...                      # the same
 
 Draws particles uniformly from each model's default prior, simulates each on one
 randomly chosen training pair (the paper's down-sampled layout), and gives per
@@ -14,14 +13,14 @@ builds on it.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import torch
 
-from .data import PairSet
-from .models import MODELS
-from .sim import simulate
+from ..data import PairSet
+from ..models import MODELS
+from ..sim.rollout import simulate
 
 
 @dataclass(frozen=True)
@@ -57,19 +56,3 @@ def prior_rollouts(pairs: PairSet, particles: int, seed: int = 0) -> Iterator[De
             float((~out.valid).float().mean()),
             particles * pairs.n_steps / elapsed,
         )
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m torchcf.demo``: the command :func:`torchcf.cli.demo.main`
-    (``torchcf demo``), kept here for ``from torchcf.demo import main``.
-
-    The command line sits above this module: it is imported when called, never
-    on import (the one import up that tests/test_layout.py allows).
-    """
-    from .cli.demo import main as command
-
-    return command(argv)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
