@@ -637,13 +637,14 @@ def test_an_effect_at_its_neutral_value_is_no_effect():
     assert not attribution.active("offset", {"d_offset": 0.0})
 
 
-def test_the_forward_selection_has_one_name_and_the_old_import_works():
-    """``EffectSelection`` (the loop's) is not the hybrid's ``Selection``; the
-    former name still imports."""
+def test_the_forward_selection_has_one_name():
+    """``EffectSelection`` (the loop's) is not the hybrid's ``Selection``, and
+    the loop has no second name for it."""
+    import torchcf.diagnose
     from torchcf.abc import Selection as HybridSelection
-    from torchcf.diagnose import EffectSelection, Selection
+    from torchcf.diagnose import EffectSelection
 
-    assert Selection is EffectSelection
+    assert not hasattr(torchcf.diagnose, "Selection")
     assert EffectSelection is not HybridSelection
     assert EffectSelection.__name__ == "EffectSelection"
 
