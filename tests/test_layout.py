@@ -206,14 +206,14 @@ def test_only_the_command_lines_hold_main():
     assert not holders, f"main outside torchcf.cli: {holders}"
 
 
-def test_every_numeric_option_of_a_tool_is_checked():
-    """The tools take numbers through the checked types of
+def test_every_numeric_option_is_checked():
+    """The commands and the tools take numbers through the checked types of
     :mod:`torchcf.system.console` (``count``, ``positive``...): a bare ``type=int`` or
     ``type=float`` lets ``-3`` or ``nan`` through to a traceback deep in the
-    run. (The ``torchcf`` commands check theirs where the library reads them,
-    each with its one-line message: tests/cli/test_bad_input.py.)"""
+    run."""
     bare = re.compile(r"\btype=(int|float)\b")
     places = sorted(ROOT.parent.joinpath("tools").glob("*.py"))
+    places += sorted(ROOT.joinpath("cli").glob("*.py"))
     found = [
         f"{path.relative_to(ROOT.parent)}:{number}"
         for path in places
@@ -221,3 +221,19 @@ def test_every_numeric_option_of_a_tool_is_checked():
         if bare.search(line)
     ]
     assert not found, f"unchecked numeric options: {found}"
+
+
+def test_every_tool_runs_under_the_one_policy():
+    """A tool's entry is ``run_main(main)``: a missing file or a corrupted run
+    is one ``error:`` line and exit code 2, as in the commands."""
+    entry = "raise SystemExit(run_main(main))"
+    # a MkDocs hook, a module, a script for pyABC's own environment
+    skipped = {"docs_reports.py", "peer_numpy.py", "pyabc_baseline.py"}
+    missing = [
+        path.name
+        for path in sorted(ROOT.parent.joinpath("tools").glob("*.py"))
+        if path.name not in skipped
+        and entry not in path.read_text()
+        and "return run_main(" not in path.read_text()
+    ]
+    assert not missing, f"tools not under run_main: {missing}"

@@ -35,7 +35,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
-from torchcf.system.console import count  # noqa: E402
+from torchcf.system.console import count, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
 PARTICLES = 1 << 18
@@ -170,4 +170,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

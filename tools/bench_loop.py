@@ -51,7 +51,7 @@ from loop_cases import planted  # noqa: E402
 from torchcf.data import load_pairs  # noqa: E402
 from torchcf.data.writer import write_six_csv  # noqa: E402
 from torchcf.sim.synthetic import synthetic_pairs  # noqa: E402
-from torchcf.system.console import count  # noqa: E402
+from torchcf.system.console import count, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 MODELS = ["ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc"]
@@ -262,4 +262,4 @@ def markdown(payload: dict) -> str:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

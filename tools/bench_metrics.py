@@ -63,7 +63,7 @@ from torchcf.evaluation.metrics import (
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import cpu_model, git_sha, write_report  # noqa: E402
 
-from torchcf.system.console import count, natural, open_fraction, positive  # noqa: E402
+from torchcf.system.console import count, natural, open_fraction, positive, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 DEFAULT_SIZES = ["225x18", "525x45", "5000x1000"]
@@ -546,4 +546,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

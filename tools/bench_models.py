@@ -44,7 +44,7 @@ from peer_numpy import quiet_stdout, simulate_one  # noqa: E402
 
 import torchcf  # noqa: E402
 from torchcf import MODELS, simulate  # noqa: E402
-from torchcf.system.console import count  # noqa: E402
+from torchcf.system.console import count, run_main  # noqa: E402
 from torchcf.system.process import tune_malloc  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
@@ -241,4 +241,4 @@ def markdown(meta: dict, rows: list[dict], threads: int) -> str:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

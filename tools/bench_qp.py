@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import cpu_model, git_sha, write_report  # noqa: E402
 from peer_numpy import quiet_stdout  # noqa: E402
 
-from torchcf.system.console import count  # noqa: E402
+from torchcf.system.console import count, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 
@@ -147,13 +147,20 @@ def _osqp_sequence(H, G, amin, amax, z0) -> float:
     return (time.perf_counter() - start) / (z0.shape[0] - 1)
 
 
+def _horizons(text: str) -> list[int]:
+    """``"5,20"``: the horizons K, whole numbers >= 1."""
+    return [count(k) for k in text.split(",")]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=count, default=1e5)
     parser.add_argument("--steps", type=count, default=20)
     parser.add_argument("--osqp-problems", type=count, default=200)
     parser.add_argument("--mpc-particles", type=count, default=1e6)
-    parser.add_argument("--horizons", default="5,20", help="comma-separated K")
+    parser.add_argument(
+        "--horizons", default="5,20", type=_horizons, help="comma-separated K"
+    )
     parser.add_argument("--threads", type=count, default=2)
     parser.add_argument("--repeats", type=count, default=1)
     parser.add_argument("--data-root", default=None)
@@ -164,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     batch = int(args.batch)
 
     rows = []
-    for horizon in (int(k) for k in args.horizons.split(",")):
+    for horizon in args.horizons:
         for dtype in (torch.float32, torch.float64):
             H, G, amin, amax, z0 = mpc_problems(batch, horizon, args.steps, 0, dtype)
             osqp_s = time_osqp(H, G, amin, amax, z0, args.osqp_problems)
@@ -221,7 +228,8 @@ def main(argv: list[str] | None = None) -> int:
         "",
         f"`python tools/bench_qp.py --batch {args.batch:.0e} --steps {args.steps} "
         f"--osqp-problems {args.osqp_problems} --mpc-particles "
-        f"{args.mpc_particles:.0e} --horizons {args.horizons} --threads "
+        f"{args.mpc_particles:.0e} --horizons "
+        f"{','.join(map(str, args.horizons))} --threads "
         f"{args.threads} --repeats {args.repeats}`",
         "",
         *(f"- {key}: {value}" for key, value in meta.items()),
@@ -262,4 +270,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

@@ -54,7 +54,7 @@ from bench_sim import bench_meta, write_report  # noqa: E402
 from torchcf.data import PairSet  # noqa: E402
 from torchcf.models import get_model  # noqa: E402
 from torchcf.sim.synthetic import Gipps, synthetic_pairs  # noqa: E402
-from torchcf.system.console import count, natural  # noqa: E402
+from torchcf.system.console import count, natural, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
 MODELS = ("ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc")
@@ -423,4 +423,4 @@ def markdown(payload: dict) -> str:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

@@ -29,7 +29,7 @@ import torch
 
 import torchcf
 from torchcf import MODELS, simulate
-from torchcf.system.console import count
+from torchcf.system.console import count, run_main
 from torchcf.system.process import tune_malloc
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
@@ -235,4 +235,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

@@ -68,7 +68,7 @@ from torchcf.config import (
 from torchcf.data import load_pairs  # noqa: E402
 from torchcf.models import get_model  # noqa: E402
 from torchcf.posterior import Posterior  # noqa: E402
-from torchcf.system.console import count, natural  # noqa: E402
+from torchcf.system.console import count, natural, run_main  # noqa: E402
 from torchcf.system.process import tune_malloc  # noqa: E402
 from torchcf.train import train  # noqa: E402
 
@@ -589,4 +589,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

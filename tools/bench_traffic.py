@@ -37,7 +37,7 @@ from torchcf.traffic.scenarios import ring_initial_state, ring_road
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
-from torchcf.system.console import count, natural  # noqa: E402
+from torchcf.system.console import count, natural, run_main  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_POSTERIORS = [
@@ -241,4 +241,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

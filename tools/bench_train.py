@@ -28,7 +28,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
-from torchcf.system.console import count  # noqa: E402
+from torchcf.system.console import count, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
 
@@ -60,8 +60,10 @@ def _run(args, stem: str, env: dict[str, str]) -> dict | None:
     pid = subprocess.Popen(command, env={**os.environ, **env}).pid
     _, status, usage = os.wait4(pid, 0)
     wall = time.perf_counter() - start
-    if os.waitstatus_to_exitcode(status) != 0:
-        print(f"training failed: {os.waitstatus_to_exitcode(status)}", file=sys.stderr)
+    code = os.waitstatus_to_exitcode(status)
+    if code != 0:
+        if code != 2:  # 2: the command said why, on one line
+            print(f"training failed: exit code {code}", file=sys.stderr)
         return None
     summary = json.loads((run_dir / "run" / "summary.json").read_text())
     shutil.rmtree(run_dir, ignore_errors=True)
@@ -87,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", dest="overrides", action="append", default=[])
     parser.add_argument("--out", type=Path, default=None, help="report path stem")
     args = parser.parse_args(argv)
+    if not args.config.is_file():
+        parser.error(f"no config file {args.config}")
     stem = args.config.stem
     suffix = f"_x{args.nproc}" if args.nproc > 1 else ""
     report = args.out or REPORTS / f"train_{stem}{suffix}"
@@ -99,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     for label in ("warm",) if args.no_cold else ("cold", "warm"):
         run = _run(args, stem, env)
         if run is None:
-            return 1
+            return 2
         runs[label] = run
     shutil.rmtree(cache, ignore_errors=True)
     if "cold" not in runs:
@@ -195,4 +199,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

@@ -24,6 +24,8 @@ from torchcf.evaluation.report import (
     differences_table,
     intervals_table,
 )
+from torchcf.runs.directory import RunDir
+from torchcf.system.console import run_main
 from torchcf.system.files import from_json_safe, json_safe
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "uncertainty"
@@ -82,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         ],
     )
     for run in args.runs:
-        metrics = from_json_safe(json.loads((run / "metrics.json").read_text()))
+        metrics = from_json_safe(RunDir(run).read_metrics())
         payload[str(run)] = {
             s: {k: metrics[s].get(k) for k in metrics[s] if k.startswith("coverage")}
             for s in SETS
@@ -99,4 +101,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

@@ -70,7 +70,7 @@ from torchcf.runs.directory import RunDir  # noqa: E402
 from torchcf.sim.rollout import simulate  # noqa: E402
 from torchcf.sim.synthetic import Gipps, synthetic_pairs  # noqa: E402
 from torchcf.study.pipeline import close_loop, train_and_evaluate  # noqa: E402
-from torchcf.system.console import count  # noqa: E402
+from torchcf.system.console import count, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 IDM = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
@@ -580,4 +580,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

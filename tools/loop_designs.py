@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_loop import clear_loop, config, measured_data  # noqa: E402
 from bench_sim import bench_meta, write_report  # noqa: E402
 
-from torchcf.system.console import count, finite  # noqa: E402
+from torchcf.system.console import count, finite, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 DESIGNS = ("refit", "pairs", "time")
@@ -130,4 +130,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

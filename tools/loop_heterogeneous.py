@@ -66,7 +66,7 @@ from torchcf.diagnose.significance import (  # noqa: E402
 from torchcf.models.effects import parse_effect  # noqa: E402
 from torchcf.sim.synthetic import heterogeneous_pairs  # noqa: E402
 from torchcf.study.pipeline import close_loop, train_and_evaluate  # noqa: E402
-from torchcf.system.console import count, natural  # noqa: E402
+from torchcf.system.console import count, natural, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 #: The pool calibrated on every case (two of them drive the data; LLCTG and HL
@@ -665,4 +665,4 @@ def _earlier(out: Path, diagnose: dict) -> dict:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

@@ -43,7 +43,7 @@ from sbc_study import DT, NOISE, TOP_N, calibrate, join, prior_pairs  # noqa: E4
 from torchcf.abc.hybrid import rank_per_pair  # noqa: E402
 from torchcf.evaluation import sbc  # noqa: E402
 from torchcf.posterior.tables import pair_slots  # noqa: E402
-from torchcf.system.console import count  # noqa: E402
+from torchcf.system.console import count, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "uncertainty"
 MODELS = ("ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc")
@@ -432,4 +432,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

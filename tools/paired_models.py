@@ -33,7 +33,7 @@ from torchcf.config import load_split  # noqa: E402
 from torchcf.diagnose.significance import sign_flip_test  # noqa: E402
 from torchcf.evaluation.evaluate import cost_matrices  # noqa: E402
 from torchcf.runs.directory import RunDir  # noqa: E402
-from torchcf.system.console import count  # noqa: E402
+from torchcf.system.console import count, run_main  # noqa: E402
 
 
 def minimum_distances(run: Path) -> tuple[dict[str, np.ndarray], int]:
@@ -104,10 +104,20 @@ def markdown(payload: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _comparison(text: str) -> tuple[str, str]:
+    """``A:B``, two variants of the run to compare."""
+    a, _, b = text.partition(":")
+    if not a or not b:
+        raise argparse.ArgumentTypeError(f"expected A:B, got {text[:40]!r}")
+    return a, b
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path)
-    parser.add_argument("--compare", nargs="+", required=True, metavar="A:B")
+    parser.add_argument(
+        "--compare", nargs="+", required=True, metavar="A:B", type=_comparison
+    )
     parser.add_argument("--permutations", type=count, default=20_000)
     parser.add_argument("--threads", type=count, default=2)
     parser.add_argument("--out", type=Path, required=True)
@@ -118,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    pairs = [tuple(item.split(":", 1)) for item in args.compare]
+    pairs = args.compare
     best, n_test = minimum_distances(args.run)
     missing = sorted({m for pair in pairs for m in pair} - set(best))
     if missing:
@@ -136,4 +146,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

@@ -18,6 +18,8 @@ import shutil
 from pathlib import Path
 
 from torchcf.evaluation.report import metrics_table, relative_difference
+from torchcf.runs.directory import RunDir
+from torchcf.system.console import run_main
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 FOOT = 0.3048  # [m]
@@ -104,9 +106,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     out = args.out or REPORTS / args.dataset
+    raw = RunDir(args.run_dir).read_metrics()  # one-line error, nothing written
     out.mkdir(parents=True, exist_ok=True)
-
-    raw = json.loads((args.run_dir / "metrics.json").read_text())
     ours = {
         entry: {
             k: _number(v) for k, v in raw[entry].items() if k in (*KEYS, "sinkhorn")
@@ -161,4 +162,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

@@ -37,7 +37,7 @@ from torchcf.config import (
 from torchcf.posterior import Posterior  # noqa: E402
 from torchcf.runs.directory import RunDir  # noqa: E402
 from torchcf.study.pipeline import train_and_evaluate  # noqa: E402
-from torchcf.system.console import count  # noqa: E402
+from torchcf.system.console import count, run_main  # noqa: E402
 from torchcf.system.files import from_json_safe  # noqa: E402
 from torchcf.traffic import HybridSampler  # noqa: E402
 from torchcf.traffic.battery import plausibility_by_model  # noqa: E402
@@ -220,4 +220,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

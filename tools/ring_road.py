@@ -46,7 +46,7 @@ from matplotlib.collections import LineCollection  # noqa: E402
 from torchcf import HybridSampler  # noqa: E402
 from torchcf.data import DataError, load_pairs  # noqa: E402
 from torchcf.posterior import Posterior  # noqa: E402
-from torchcf.system.console import count, natural, positive  # noqa: E402
+from torchcf.system.console import count, natural, positive, run_main  # noqa: E402
 from torchcf.system.files import json_safe  # noqa: E402
 from torchcf.traffic import (  # noqa: E402
     DEFAULT_SAFETY,
@@ -540,4 +540,4 @@ def _ring_json(r: dict) -> dict:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

@@ -42,7 +42,7 @@ from torchcf.data import PairSet  # noqa: E402
 from torchcf.evaluation import sbc  # noqa: E402
 from torchcf.models import get_model  # noqa: E402
 from torchcf.sim.synthetic import synthetic_pairs  # noqa: E402
-from torchcf.system.console import count  # noqa: E402
+from torchcf.system.console import count, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "uncertainty"
 MODELS = ("ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc")
@@ -493,4 +493,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

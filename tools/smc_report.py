@@ -18,6 +18,8 @@ import math
 import shutil
 from pathlib import Path
 
+from torchcf.system.console import run_main
+
 #: data set -> the folder in reports/ that holds its rejection run (authors' split)
 REJECTION = {
     "carII": "reports/carII",
@@ -89,6 +91,12 @@ def main() -> int:
     parser.add_argument("runs", type=Path, help="folder with one SMC run per data set")
     parser.add_argument("--out", type=Path, default=Path("reports/smc"))
     args = parser.parse_args()
+    found = [n for n in REJECTION if (args.runs / n / "metrics.json").is_file()]
+    if not found:
+        parser.error(
+            f"{args.runs} holds no evaluated SMC run ({', '.join(REJECTION)}/"
+            "metrics.json)"
+        )
     args.out.mkdir(parents=True, exist_ok=True)
     settings = _smc_settings(args.runs)
     lines = [
@@ -125,4 +133,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

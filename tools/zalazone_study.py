@@ -53,7 +53,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import cpu_model, git_sha  # noqa: E402
 
-from torchcf.system.console import count, natural  # noqa: E402
+from torchcf.system.console import count, natural, run_main  # noqa: E402
 
 CONFIG = "configs/zalazone.json"
 #: The campaign folder as the commands in the report name it.
@@ -977,4 +977,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main(main))

@@ -21,7 +21,13 @@ from pathlib import Path
 
 from ..config import ConfigError, load_config
 from ..study.crossval import crossval
-from ..system.console import DefaultsHelpFormatter, add_overrides, run_main
+from ..system.console import (
+    DefaultsHelpFormatter,
+    add_overrides,
+    count,
+    folder,
+    run_main,
+)
 from ..system.files import no_empty_folder_left
 
 
@@ -34,8 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
         "averaged over folds.",
     )
     parser.add_argument("config")
-    parser.add_argument("--folds", type=int, default=None, help="default data.folds")
-    parser.add_argument("--out", default=None)
+    parser.add_argument("--folds", type=count, default=None, help="default data.folds")
+    parser.add_argument("--out", type=folder, default=None)
     add_overrides(parser, "KEY=VALUE", "abc.n_particles=200000")
     parser.add_argument("--resume", action="store_true")
     return parser

@@ -43,7 +43,15 @@ from torchcf.data.formats.pairs import LENGTH_TOLERANCE, PAIR_COLUMNS
 from torchcf.data.importer import extract_source
 from torchcf.data.trajectory import COLUMNS
 from torchcf.data.writer import write_extraction
-from torchcf.system.console import DefaultsHelpFormatter, run_main
+from torchcf.system.console import (
+    DefaultsHelpFormatter,
+    folder,
+    natural,
+    nonnegative,
+    open_fraction,
+    positive,
+    run_main,
+)
 
 #: RawSource fields set by the reader options of the command line, and their
 #: defaults there (those of the readers).
@@ -77,16 +85,26 @@ def _optional_float(text: str) -> float | None:
         raise argparse.ArgumentTypeError(f"not a number or 'none': {text!r}") from None
 
 
+#: The longest window a pair may span [s]: a day of driving (a longer one is a
+#: mistyped unit, and its step count would not fit in memory).
+LONGEST_WINDOW = 86_400.0
+
+
 def _window(text: str) -> float | str:
     """A window length [s], or "auto"."""
     if text.strip().lower() == "auto":
         return "auto"
     try:
-        return float(text)
+        seconds = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(
             f"not a number of seconds or 'auto': {text[:40]!r}"
         ) from None
+    if not 0.0 < seconds <= LONGEST_WINDOW:
+        raise argparse.ArgumentTypeError(
+            f"a window of 0-{LONGEST_WINDOW:g} s or 'auto', got {text[:40]!r}"
+        )
+    return seconds
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -111,7 +129,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--format", required=True, choices=sorted(FORMATS), help="the raw format"
     )
-    p.add_argument("--out", required=True, help="folder to write (must not exist)")
+    p.add_argument(
+        "--out", type=folder, required=True, help="folder to write (must not exist)"
+    )
     p.add_argument(
         "--overwrite", action="store_true", help="replace an earlier extraction"
     )
@@ -119,7 +139,10 @@ def _parser() -> argparse.ArgumentParser:
     _add_highd_options(p)
     _add_gps_options(p)
     p.add_argument(
-        "--vehicle-length", type=float, default=5.0, help="openacc: vehicle length [m]"
+        "--vehicle-length",
+        type=positive,
+        default=5.0,
+        help="openacc: vehicle length [m]",
     )
     p.add_argument(
         "--lap-frame",
@@ -139,16 +162,19 @@ def _parser() -> argparse.ArgumentParser:
         "spans, rounded down to 0.5 s, at most 40 s",
     )
     cut.add_argument(
-        "--stride", type=float, default=None, help="[s] between windows (None: window)"
+        "--stride",
+        type=positive,
+        default=None,
+        help="[s] between windows (None: window)",
     )
     cut.add_argument(
         "--leader-length",
-        type=float,
+        type=positive,
         default=None,
         help="[m] leader length of the pair set (None: the median)",
     )
     cut.add_argument(
-        "--default-length", type=float, default=5.0, help="[m] where none is known"
+        "--default-length", type=positive, default=5.0, help="[m] where none is known"
     )
     cut.add_argument(
         "--split-by",
@@ -157,9 +183,12 @@ def _parser() -> argparse.ArgumentParser:
         help="the group kept whole in one split",
     )
     cut.add_argument(
-        "--test-fraction", type=float, default=0.3, help="share of groups for test"
+        "--test-fraction",
+        type=open_fraction,
+        default=0.3,
+        help="share of groups for test",
     )
-    cut.add_argument("--seed", type=int, default=0, help="seed of the split")
+    cut.add_argument("--seed", type=natural, default=0, help="seed of the split")
     quality = p.add_argument_group("quality filters ('none' switches one off)")
     quality.add_argument("--jump", type=_optional_float, default=1.0, help="[m]")
     quality.add_argument(
@@ -172,7 +201,9 @@ def _parser() -> argparse.ArgumentParser:
         "--max-acceleration", type=_optional_float, default=8.0, help="[m/s^2]"
     )
     quality.add_argument("--gap-drift", type=_optional_float, default=2.0, help="[m]")
-    quality.add_argument("--gap-drift-rate", type=float, default=0.2, help="[m/s]")
+    quality.add_argument(
+        "--gap-drift-rate", type=nonnegative, default=0.2, help="[m/s]"
+    )
     quality.add_argument(
         "--standstill-speed", type=_optional_float, default=0.5, help="[m/s]"
     )
@@ -218,7 +249,7 @@ def _add_reader_options(p: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--frame-rate",
-        type=float,
+        type=positive,
         default=_READER_ARGS["frame_rate"],
         help="frames per second [Hz] of --time-unit frame (required with it)",
     )
@@ -230,7 +261,7 @@ def _add_reader_options(p: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--length-tolerance",
-        type=float,
+        type=nonnegative,
         default=_READER_ARGS["length_tolerance"],
         help=(
             "pairs, punzo: largest spread [m] of a pair's leader length, "

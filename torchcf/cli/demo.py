@@ -19,7 +19,7 @@ import torch
 
 from ..data import load_pairs
 from ..study.demo import prior_rollouts
-from ..system.console import DefaultsHelpFormatter, run_main
+from ..system.console import DefaultsHelpFormatter, count, natural, run_main
 from ..system.process import tune_malloc
 
 
@@ -31,11 +31,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="A simulation demo: each model's prior particles on CAR MODEL "
         "II training pairs.",
     )
-    parser.add_argument("--particles", type=int, default=200_000)
+    parser.add_argument("--particles", type=count, default=200_000)
     parser.add_argument("--dataset", default="car-model-2")
     parser.add_argument("--data-root", default=None)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--seed", type=natural, default=0)
+    parser.add_argument("--threads", type=count, default=None)
     return parser
 
 

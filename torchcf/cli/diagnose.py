@@ -22,7 +22,13 @@ import torch
 from ..diagnose.report import fmt
 from ..runs.directory import RunDir
 from ..study.pipeline import close_loop
-from ..system.console import DefaultsHelpFormatter, add_overrides, print_error, run_main
+from ..system.console import (
+    DefaultsHelpFormatter,
+    add_overrides,
+    count,
+    print_error,
+    run_main,
+)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -34,7 +40,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("run_dir", help="a trained and evaluated run directory")
     add_overrides(parser, "diagnose.KEY=VALUE", "diagnose.n_particles=100000")
-    parser.add_argument("--threads", type=int, default=None, help="CPU threads")
+    parser.add_argument("--threads", type=count, default=None, help="CPU threads")
     return parser
 
 

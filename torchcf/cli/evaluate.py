@@ -22,7 +22,7 @@ from typing import Any
 
 from ..evaluation.evaluate import evaluate_run
 from ..runs.directory import RunDir
-from ..system.console import DefaultsHelpFormatter, run_main
+from ..system.console import DefaultsHelpFormatter, folder, natural, run_main
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -33,8 +33,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Evaluate a trained run on its test pairs (SPEC section 6).",
     )
     parser.add_argument("run_dir", type=Path)
-    parser.add_argument("--report", type=Path, default=None, help="report folder")
-    parser.add_argument("--pair", type=int, default=None, help="test pair of Fig. 4")
+    parser.add_argument("--report", type=folder, default=None, help="report folder")
+    parser.add_argument(
+        "--pair", type=natural, default=None, help="test pair of Fig. 4"
+    )
     return parser
 
 

@@ -56,7 +56,7 @@ from ..posterior.tables import (
     write_parameter_tables,
 )
 from ..runs.directory import RunDir
-from ..system.console import DefaultsHelpFormatter, run_main
+from ..system.console import DefaultsHelpFormatter, natural, open_fraction, run_main
 from ..system.files import atomic_write_text, ensure_directory
 
 #: ``--csv`` without a path: the run's report folder.
@@ -104,16 +104,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument(
         "--bootstrap",
-        type=int,
+        type=natural,
         default=N_BOOTSTRAP,
         metavar="B",
         help="bootstrap resamples per group (0: no interval)",
     )
     parser.add_argument(
-        "--level", type=float, default=LEVEL, help="coverage of the interval"
+        "--level", type=open_fraction, default=LEVEL, help="coverage of the interval"
     )
     parser.add_argument(
-        "--seed", type=int, default=0, help="seed of the bootstrap (default: 0)"
+        "--seed", type=natural, default=0, help="seed of the bootstrap (default: 0)"
     )
     parser.add_argument(
         "--data",
@@ -196,8 +196,10 @@ def _grouped(
             )
         source = f"{args.groups} joined to {source}"
     clusters, unit = None, "pair"
-    if args.cluster:
+    if args.cluster is not None:
         columns = [c.strip() for c in args.cluster.split(",") if c.strip()]
+        if not columns:
+            raise GroupError(f"--cluster {args.cluster!r} names no column")
         keys = [groups_by_column(table, c, source) for c in columns]
         clusters = ["\x1f".join(k) for k in zip(*keys, strict=True)]
         unit = ",".join(columns)

@@ -25,7 +25,14 @@ from collections.abc import Sequence
 
 from ..runs.directory import RunDir
 from ..sumo.export import EMERGENCY_DECEL, export_hybrid, run_constants, write_export
-from ..system.console import DefaultsHelpFormatter, print_error, run_main
+from ..system.console import (
+    DefaultsHelpFormatter,
+    count,
+    folder,
+    positive,
+    print_error,
+    run_main,
+)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -43,16 +50,16 @@ def _parser() -> argparse.ArgumentParser:
         "a vTypeDistribution: OUT/hybrid.vtypes.add.xml and OUT/export.json.",
     )
     export.add_argument("run_dir", help="a trained run directory")
-    export.add_argument("--out", required=True, help="output folder")
+    export.add_argument("--out", type=folder, required=True, help="output folder")
     export.add_argument(
         "--length",
-        type=float,
+        type=positive,
         default=None,
         help="vehicle length [m] (default: the data's leader length)",
     )
     export.add_argument(
         "--emergency-decel",
-        type=float,
+        type=positive,
         default=EMERGENCY_DECEL,
         help="SUMO's emergencyDecel [m/s^2] (at least each particle's b)",
     )
@@ -65,10 +72,12 @@ def _parser() -> argparse.ArgumentParser:
         "OUT/verify.json and verify.md.",
     )
     verify.add_argument("run_dir", help="a trained run directory")
-    verify.add_argument("--out", default=None, help="output folder (default RUN/sumo)")
+    verify.add_argument(
+        "--out", type=folder, default=None, help="output folder (default RUN/sumo)"
+    )
     verify.add_argument(
         "--max-particles",
-        type=int,
+        type=count,
         default=None,
         help="each model's first N hybrid particles only (default: all)",
     )

@@ -35,7 +35,13 @@ from ..config import TrainConfig, load_config
 from ..posterior.tables import piled_at_bounds
 from ..runs.directory import RunDir
 from ..study.pipeline import run_study
-from ..system.console import DefaultsHelpFormatter, add_overrides, one_line, run_main
+from ..system.console import (
+    DefaultsHelpFormatter,
+    add_overrides,
+    folder,
+    one_line,
+    run_main,
+)
 
 #: A command's work on a loaded config: (cfg, out, resume, group) -> the summary.
 Step = Callable[[TrainConfig, Path, bool, Group], Mapping[str, Any]]
@@ -58,7 +64,7 @@ def run_parser(prog: str, description: str, epilog: str) -> argparse.ArgumentPar
         action="store_true",
         help="print the JSON schema of a config (every field) and exit",
     )
-    parser.add_argument("--out", default=None, help="output directory")
+    parser.add_argument("--out", type=folder, default=None, help="output directory")
     add_overrides(parser, "KEY=JSON", "abc.n_particles=200000")
     parser.add_argument(
         "--resume", action="store_true", help="continue the run in the output directory"

@@ -55,6 +55,14 @@ def write_six_csv(pairs: PairSet, folder: str | os.PathLike[str]) -> None:
         (folder / file_name).write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
+#: What an extraction folder holds (module docstring): all that ``--overwrite``
+#: may remove.
+EXTRACTION_NAMES = frozenset(
+    [*FILES.values(), "Trajectory", "Testing", "meta.json", "index.csv", "dropped.csv"]
+    + ["extract.json"]
+)
+
+
 def write_extraction(
     extraction: Extraction,
     out: str | os.PathLike[str],
@@ -75,7 +83,7 @@ def write_extraction(
 
     Raises:
         DataError: ``out`` exists and is not an earlier extraction, or is one
-            and ``overwrite`` is False.
+            and ``overwrite`` is False, or holds other files beside one.
         RunFileError: the folder cannot be written.
     """
     out = Path(out)
@@ -89,6 +97,18 @@ def write_extraction(
             raise DataError(
                 f"'{out}' holds an earlier extraction: pass --overwrite to replace it"
             )
+        else:
+            others = sorted(
+                p.name
+                for p in out.iterdir()
+                if p.name not in EXTRACTION_NAMES and not p.name.startswith(".")
+            )
+            if others:
+                raise DataError(
+                    f"'{out}' holds an extraction and other files "
+                    f"({', '.join(others[:3])}{', ...' if len(others) > 3 else ''}): "
+                    "--overwrite replaces an extraction alone; choose a new --out"
+                )
     parent = ensure_directory(out.parent, "output directory")
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=parent))
     try:

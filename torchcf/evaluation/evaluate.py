@@ -481,6 +481,11 @@ def _evaluate_held(
     run.probe()
     ensure_directory(report, "report directory", keep=False)
     test = load_split(cfg.data)[1] if pairs is None else pairs[1]
+    if figure_pair is not None and not 0 <= figure_pair < test.n_pairs:
+        raise EvaluationError(
+            f"--pair {figure_pair}: the test split has {test.n_pairs} pairs "
+            f"(positions 0-{test.n_pairs - 1})"
+        )
     # A stale metrics.json of an earlier evaluation must not outlive a failure of
     # this one and pass for its result.
     run.discard_metrics()

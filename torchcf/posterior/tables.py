@@ -43,6 +43,8 @@ import numpy as np
 import pandas as pd
 import torch
 
+from ..data import DataError
+from ..data.formats.generic import require_header_line
 from ..models import get_model
 from ..system.errors import TorchcfError, did_you_mean
 from ..system.files import atomic_write_text
@@ -324,6 +326,10 @@ def read_index(path: str | Path) -> pd.DataFrame:
         GroupError: it cannot be read, or is not a table with a header.
     """
     try:
+        require_header_line(Path(path))
+    except DataError as error:
+        raise GroupError(str(error)) from None
+    try:
         frame = pd.read_csv(path, dtype=str, keep_default_na=False)
     except (OSError, UnicodeDecodeError, pd.errors.ParserError) as error:
         reason = " ".join(str(error).split())
@@ -419,8 +425,9 @@ def groups_from_file(
     its own, compared as text; a pair no row names is :data:`NO_GROUP`.
 
     Raises:
-        GroupError: no ``group`` or key column, a key ``table`` lacks, two
-            rows giving one key different groups, or no row naming any pair
+        GroupError: no ``group`` or key column, an empty ``group`` cell, a key
+            ``table`` lacks, two rows giving one key different groups, or no
+            row naming any pair
             (a file of other pairs' keys is a mistake, not a grouping).
     """
     mapping = read_index(path)
@@ -432,6 +439,12 @@ def groups_from_file(
     keys = [c for c in mapping.columns if c != GROUP_COLUMN]
     if not keys:
         raise GroupError(f"'{path}': no key column beside '{GROUP_COLUMN}'")
+    empty = mapping.index[mapping[GROUP_COLUMN] == ""]
+    if len(empty):
+        raise GroupError(
+            f"'{path}': row {int(empty[0]) + 2} has an empty '{GROUP_COLUMN}' cell "
+            f"({len(empty)} such rows; line numbers count the header as 1)"
+        )
     _require_columns(table, keys, source, prefix=f"'{path}': key ")
     mapping = mapping.drop_duplicates()
     twice = mapping.duplicated(keys, keep=False)

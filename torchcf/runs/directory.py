@@ -233,7 +233,8 @@ class RunDir:
         file holds the owner's process id. Re-entrant within a process. A
         directory created here for the lock is removed again if the block
         leaves nothing else in it (a command that fails before writing leaves
-        no empty run directory behind).
+        no empty run directory behind); in a directory that was there, a lock
+        file made here goes again if no run started (no ``config.json``).
 
         Raises:
             RunFileError: another process holds it (naming its process id), or
@@ -255,6 +256,7 @@ class RunDir:
         ensure_directory(self._path, "output directory", keep=False)
         self._path.mkdir(parents=True, exist_ok=True)
         lock = self._path / LOCK_NAME
+        lock_existed = lock.exists()
         try:
             try:
                 handle = open(lock, "a+")  # noqa: SIM115 - held across the block
@@ -280,10 +282,25 @@ class RunDir:
             if created and [p.name for p in self._path.iterdir()] in ([], [LOCK_NAME]):
                 lock.unlink(missing_ok=True)
                 self._path.rmdir()
+            elif not lock_existed and not self.config_json.exists():
+                # a folder that was there and took no run keeps nothing of ours
+                lock.unlink(missing_ok=True)
 
     def holds_run(self) -> bool:
         """Whether a run started here (a checkpoint) or finished (a summary)."""
         return self.checkpoint.exists() or self.summary_json.exists()
+
+    def foreign_entries(self) -> list[str]:
+        """The names in the directory when it is someone else's: it exists,
+        holds entries (hidden ones aside) and no run ever started here (no
+        ``config.json``, the first file a run writes); else ``[]``. A pair
+        extraction, a project folder or the home directory is not a place to
+        write a run into."""
+        if not self._path.is_dir() or self.config_json.exists():
+            return []
+        return sorted(
+            p.name for p in self._path.iterdir() if not p.name.startswith(".")
+        )
 
     def has_checkpoint(self) -> bool:
         return self.checkpoint.exists()

@@ -21,7 +21,7 @@ from typing import Any
 from ..config import TrainConfig
 from ..evaluation.report import metrics_table
 from ..runs.directory import RunDir
-from ..system.files import atomic_write_text, ensure_directory
+from ..system.files import RunFileError, atomic_write_text, ensure_directory
 from .pipeline import run_study
 
 METRIC_KEYS = ("e_p", "e_v", "e_a", "min", "beta_ws", "ws", "sinkhorn")
@@ -65,6 +65,35 @@ def _number(value: Any) -> float:
     return float(value)
 
 
+def _check_folder(out: RunDir, resume: bool) -> None:
+    """A cross-validation's folder: new, empty, or an earlier one's (``fold<i>/``,
+    its report and metrics); never a run's or someone else's.
+
+    Raises:
+        RunFileError: ``out`` holds a run, other files, or (with ``resume``)
+            nothing to resume.
+    """
+    path = out.path
+    if resume and not any(path.glob("fold*")):
+        raise RunFileError(f"{path}: no cross-validation to resume (no fold<i>/)")
+    if out.config_json.exists() or out.holds_run():
+        raise RunFileError(
+            f"{path} holds a run, not a cross-validation: choose another --out"
+        )
+    if path.is_dir():
+        own = {"report", "metrics.json"}
+        others = sorted(
+            p.name
+            for p in path.iterdir()
+            if not (p.name.startswith((".", "fold")) or p.name in own)
+        )
+        if others:
+            raise RunFileError(
+                f"{path} holds files that are not a cross-validation's "
+                f"({', '.join(others[:3])}): choose an empty or a new --out"
+            )
+
+
 def crossval(
     cfg: TrainConfig, out: str | Path | RunDir, *, folds: int, resume: bool = False
 ) -> dict[str, Any]:
@@ -76,6 +105,7 @@ def crossval(
         ConfigError, DataError, ...: as the training of a fold raises them.
     """
     out = RunDir(out)
+    _check_folder(out, resume)
     out.probe()  # a full disk or a missing permission fails before any fold
     out.discard_metrics()  # an earlier mean must not pass for this one's
     fold_metrics = []

@@ -47,9 +47,22 @@ class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action) or ""
 
 
+#: The longest error line printed [characters]: a message that quotes a
+#: user's input (a 100 000-character key, a header of 25 000 names) keeps its
+#: head and its tail (the hint) and says how much was left out.
+LONGEST_ERROR = 400
+
+
 def one_line(error: BaseException) -> str:
-    """The error's message on one line (its class name when it has none)."""
-    return " ".join(str(error).split()) or type(error).__name__
+    """The error's message on one line (its class name when it has none), at
+    most :data:`LONGEST_ERROR` characters: a longer one keeps its first and last
+    part around ``[... N characters ...]``."""
+    text = " ".join(str(error).split()) or type(error).__name__
+    if len(text) <= LONGEST_ERROR:
+        return text
+    head, tail = LONGEST_ERROR * 2 // 3, LONGEST_ERROR // 4
+    cut = len(text) - head - tail
+    return f"{text[:head]} [... {cut} characters ...] {text[-tail:]}"
 
 
 def print_error(message: str) -> None:
@@ -119,6 +132,14 @@ positive = _checked(float, lambda x: math.isfinite(x) and x > 0.0, "a number > 0
 nonnegative = _checked(float, lambda x: math.isfinite(x) and x >= 0.0, "a number >= 0")
 finite = _checked(float, math.isfinite, "a finite number")
 open_fraction = _checked(float, lambda x: 0.0 < x < 1.0, "a number between 0 and 1")
+
+
+def folder(text: str) -> str:
+    """An argparse ``type=`` of an output folder: a non-empty name (``--out ''``
+    would write into the working directory)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an output folder, got an empty name")
+    return text
 
 
 def run_main(

@@ -89,7 +89,9 @@ def open_run(cfg: TrainConfig, out: Path, resume: bool) -> RunState:
 
     Raises:
         RunError: a run is there and ``resume`` is not asked, or ``resume`` is
-            asked and no (matching, readable) checkpoint is there.
+            asked and no (matching, readable) checkpoint is there, or the
+            directory holds files of something else
+            (:meth:`~torchcf.runs.directory.RunDir.foreign_entries`).
         RunFileError: the directory cannot be created or written.
     """
     run = RunDir(out)
@@ -105,8 +107,20 @@ def open_run(cfg: TrainConfig, out: Path, resume: bool) -> RunState:
             f"{out} already holds a run; pass --resume to continue it, or --out "
             "for a new directory"
         )
+    foreign = run.foreign_entries()
+    if foreign:
+        raise RunError(
+            f"{out} holds files that are not a run's ({_names(foreign)}): "
+            "choose an empty or a new --out"
+        )
     run.probe()
     return RunState(digest)
+
+
+def _names(names: list[str], shown: int = 3) -> str:
+    """The first ``shown`` of ``names``, and how many more."""
+    more = f", ... {len(names) - shown} more" if len(names) > shown else ""
+    return ", ".join(names[:shown]) + more
 
 
 def resume_note(state: RunState, models: list[str], n_particles: int) -> str:

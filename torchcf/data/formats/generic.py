@@ -411,6 +411,11 @@ def _short(text: str) -> str:
     return text if len(text) <= _SHOWN_NAME else text[: _SHOWN_NAME - 3] + "..."
 
 
+#: The longest header line of a long-format table [bytes] (a real one names a
+#: few dozen columns).
+LONGEST_HEADER = 64 * 1024
+
+
 def require_text(path: Path) -> None:
     """Refuse a binary file before a CSV parser reads it whole as one 'header'.
 
@@ -426,13 +431,35 @@ def require_text(path: Path) -> None:
         raise DataError(f"'{path}' is not text (NUL bytes)")
 
 
+def require_header_line(path: Path) -> None:
+    """Refuse a table whose first line (its header) is longer than
+    :data:`LONGEST_HEADER` bytes: a one-line file of megabytes is no table with a
+    header, and a parser would spend minutes naming its 'columns'.
+
+    Raises:
+        DataError: no line break within the first :data:`LONGEST_HEADER` bytes.
+    """
+    try:
+        with path.open("rb") as fh:
+            start = fh.read(LONGEST_HEADER + 1)
+    except OSError as err:
+        raise DataError(f"cannot read '{path}': {err.strerror}") from None
+    if len(start) > LONGEST_HEADER and b"\n" not in start:
+        raise DataError(
+            f"'{path}' has no line break in its first {LONGEST_HEADER // 1024} KiB: "
+            "not a table with a header line"
+        )
+
+
 def read_header(path: Path, sep: str) -> list[str]:
     """The column names of a CSV file.
 
     Raises:
-        DataError: the file is binary, empty or does not parse.
+        DataError: the file is binary, empty, has a header line too long to be
+            one, or does not parse.
     """
     require_text(path)
+    require_header_line(path)
     try:
         return [
             str(c)
