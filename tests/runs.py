@@ -110,3 +110,12 @@ def tool_module(name: str) -> Iterator[ModuleType]:
     spec.loader.exec_module(module)
     yield module
     sys.modules.pop(spec.name, None)
+
+
+def exit_code(main, argv: list[str]) -> int:
+    """A command's exit code for ``argv``: returned by ``main``, or raised by
+    its parser (a usage error is ``SystemExit(2)``, one line on stderr)."""
+    try:
+        return int(main(argv))
+    except SystemExit as stop:
+        return int(stop.code)

@@ -463,7 +463,7 @@ def test_evaluate_and_crossval_on_a_full_disk(small_fs, tmp_path, cfg):
     """The commands end with one line and exit code 2, before any work."""
     run = finished_run(small_fs / "run", cfg)
     fill(small_fs)
-    result = run_module("torchcf.evaluation.evaluate", str(run))
+    result = run_module("torchcf", "evaluate", str(run))
     one_error_line(result, f"output directory {run.path}", "No space left on device")
     assert not run.is_evaluated()
     no_temporary_files(small_fs)
@@ -471,7 +471,7 @@ def test_evaluate_and_crossval_on_a_full_disk(small_fs, tmp_path, cfg):
     config = tmp_path / "cfg.json"
     config.write_text(json.dumps(resolved_json(cfg)))
     out = small_fs / "cv"
-    result = run_module("torchcf.study.crossval", str(config), "--out", str(out))
+    result = run_module("torchcf", "crossval", str(config), "--out", str(out))
     one_error_line(result, "cannot", str(out), "No space left on device")
     no_temporary_files(small_fs)
 
@@ -482,7 +482,7 @@ def test_evaluate_a_run_with_a_truncated_summary(tmp_path, cfg):
     run = finished_run(tmp_path / "run", cfg)
     text = run.summary_json.read_text()
     run.summary_json.write_text(text[: len(text) // 2])
-    result = run_module("torchcf.evaluation.evaluate", str(run))
+    result = run_module("torchcf", "evaluate", str(run))
     one_error_line(result, str(run.summary_json), "is corrupted")
     assert not run.is_evaluated()
 
@@ -497,7 +497,7 @@ def test_crossval_with_a_truncated_fold_metrics(tmp_path, cfg):
     damaged = out.fold(1).metrics_json
     damaged.write_text(damaged.read_text()[:20])
     result = run_module(
-        "torchcf.study.crossval", str(config), "--folds", "2", "--out", str(out)
+        "torchcf", "crossval", str(config), "--folds", "2", "--out", str(out)
     )
     one_error_line(result, str(damaged), "is corrupted")
     assert not out.is_evaluated()

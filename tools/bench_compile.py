@@ -24,7 +24,6 @@ not depend on the block length; eager ones differ by rounding.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -35,7 +34,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
-from torchcf.system.console import count, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
 PARTICLES = 1 << 18
@@ -137,7 +136,7 @@ def markdown(payload: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", nargs="+", default=["idm", "hl", "llctg"])
     parser.add_argument("--blocks", nargs="+", type=count, default=[16, 8, 4, 1])
     parser.add_argument("--threads", type=count, default=2)

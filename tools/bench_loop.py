@@ -31,7 +31,6 @@ Writes ``reports/bench/loop.{json,md}``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -51,7 +50,7 @@ from loop_cases import planted  # noqa: E402
 from torchcf.data import load_pairs  # noqa: E402
 from torchcf.data.writer import write_six_csv  # noqa: E402
 from torchcf.sim.synthetic import synthetic_pairs  # noqa: E402
-from torchcf.system.console import count, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 MODELS = ["ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc"]
@@ -148,7 +147,7 @@ def time_loop(run: Path, threads: int, repeats: int) -> tuple[list[float], dict]
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=count, default=2)
     parser.add_argument("--repeats", type=count, default=1)
     parser.add_argument("--particles", type=count, default=2e5)

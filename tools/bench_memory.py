@@ -34,7 +34,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
-from torchcf.system.console import count, natural, positive, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, natural, positive, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
 
@@ -78,7 +78,7 @@ def child(n_particles: int, args: argparse.Namespace) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=count, nargs="+", default=[1e5, 1e7])
     parser.add_argument("--threads", type=count, default=2)
     parser.add_argument("--compile", choices=("on", "off"), default="on")

@@ -63,7 +63,14 @@ from torchcf.evaluation.metrics import (
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import cpu_model, git_sha, write_report  # noqa: E402
 
-from torchcf.system.console import count, natural, open_fraction, positive, run_main  # noqa: E402
+from torchcf.system.console import (  # noqa: E402
+    OneLineParser,
+    count,
+    natural,
+    open_fraction,
+    positive,
+    run_main,
+)
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 DEFAULT_SIZES = ["225x18", "525x45", "5000x1000"]
@@ -453,7 +460,7 @@ def markdown(rows, meta, command, args) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--sizes", nargs="+", type=parse_size, default=DEFAULT_SIZES, help="PxN"
     )

@@ -28,7 +28,6 @@ the data: ``$TORCHCF_DATA`` or ``--data-root``.
 
 from __future__ import annotations
 
-import argparse
 import math
 import statistics
 import sys
@@ -44,7 +43,7 @@ from peer_numpy import quiet_stdout, simulate_one  # noqa: E402
 
 import torchcf  # noqa: E402
 from torchcf import MODELS, simulate  # noqa: E402
-from torchcf.system.console import count, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 from torchcf.system.process import tune_malloc  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
@@ -114,7 +113,7 @@ def check_scores(name, theta, pairs, index, baseline: np.ndarray) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("--particles", type=count, default=1e6)
     parser.add_argument("--baseline-particles", type=count, default=40)
     parser.add_argument("--models", nargs="+", default=list(MODELS))

@@ -16,7 +16,6 @@ Writes ``reports/bench_qp.json`` and ``reports/bench_qp.md``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
 import sys
@@ -35,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import cpu_model, git_sha, write_report  # noqa: E402
 from peer_numpy import quiet_stdout  # noqa: E402
 
-from torchcf.system.console import count, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 
@@ -153,7 +152,7 @@ def _horizons(text: str) -> list[int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=count, default=1e5)
     parser.add_argument("--steps", type=count, default=20)
     parser.add_argument("--osqp-problems", type=count, default=200)

@@ -54,7 +54,7 @@ from bench_sim import bench_meta, write_report  # noqa: E402
 from torchcf.data import PairSet  # noqa: E402
 from torchcf.models import get_model  # noqa: E402
 from torchcf.sim.synthetic import Gipps, synthetic_pairs  # noqa: E402
-from torchcf.system.console import count, natural, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, natural, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
 MODELS = ("ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc")
@@ -242,7 +242,7 @@ def run_size(n: int, args: argparse.Namespace) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=count, nargs="+", default=[150, 1000, 10000])
     parser.add_argument(
         "--per-pair",

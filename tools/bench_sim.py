@@ -15,7 +15,6 @@ threads, CPU model, git SHA). Needs the data: ``$TORCHCF_DATA`` or ``--data-root
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -29,7 +28,7 @@ import torch
 
 import torchcf
 from torchcf import MODELS, simulate
-from torchcf.system.console import count, run_main
+from torchcf.system.console import OneLineParser, count, run_main
 from torchcf.system.process import tune_malloc
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
@@ -122,7 +121,7 @@ def time_run(model_name, theta, pairs, pair_index, compile_mode, repeats):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("--particles", type=count, default=1e6)
     parser.add_argument(
         "--eager-particles",

@@ -39,7 +39,6 @@ SMC's short ones not).
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -68,7 +67,7 @@ from torchcf.config import (
 from torchcf.data import load_pairs  # noqa: E402
 from torchcf.models import get_model  # noqa: E402
 from torchcf.posterior import Posterior  # noqa: E402
-from torchcf.system.console import count, natural, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, natural, run_main  # noqa: E402
 from torchcf.system.process import tune_malloc  # noqa: E402
 from torchcf.train import train  # noqa: E402
 
@@ -542,7 +541,7 @@ def pyabc_markdown(payload: dict, args) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parts = parser.add_subparsers(dest="part", required=True)
     data = parts.add_parser("datasets", help="rejection vs SMC on the data sets")
     data.add_argument("--configs", nargs="+", default=list(CONFIGS))

@@ -20,7 +20,6 @@ a one-line error (exit 2).
 
 from __future__ import annotations
 
-import argparse
 import os
 import shlex
 import statistics
@@ -37,7 +36,7 @@ from torchcf.traffic.scenarios import ring_initial_state, ring_road
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
-from torchcf.system.console import count, natural, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, natural, run_main  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_POSTERIORS = [
@@ -92,7 +91,7 @@ def time_case(sampler, length, initial, steps, repeats, warmup, use_compile, dev
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--posteriors", nargs="+", type=Path, default=DEFAULT_POSTERIORS
     )

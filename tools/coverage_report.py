@@ -14,7 +14,6 @@ Writes ``reports/uncertainty/coverage.{md,json}`` (``--out`` to change).
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 from pathlib import Path
@@ -25,7 +24,7 @@ from torchcf.evaluation.report import (
     intervals_table,
 )
 from torchcf.runs.directory import RunDir
-from torchcf.system.console import run_main
+from torchcf.system.console import OneLineParser, run_main
 from torchcf.system.files import from_json_safe, json_safe
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "uncertainty"
@@ -47,7 +46,7 @@ def run_table(name: str, metrics: dict) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", type=Path)
     parser.add_argument("--out", type=Path, default=REPORTS)
     args = parser.parse_args(argv)

@@ -42,7 +42,6 @@ still counts as a miss).
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
@@ -70,7 +69,7 @@ from torchcf.runs.directory import RunDir  # noqa: E402
 from torchcf.sim.rollout import simulate  # noqa: E402
 from torchcf.sim.synthetic import Gipps, synthetic_pairs  # noqa: E402
 from torchcf.study.pipeline import close_loop, train_and_evaluate  # noqa: E402
-from torchcf.system.console import count, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 IDM = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
@@ -535,7 +534,7 @@ def _fmt(value) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     synthetic = [name for name in CASES if name not in MEASURED]
     parser.add_argument("--group", choices=("synthetic", "measured"), default=None)
     parser.add_argument("--cases", nargs="+", default=None, choices=CASES)

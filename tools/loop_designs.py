@@ -17,7 +17,6 @@ whose loop is there already is read back, not run again). Writes
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -30,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_loop import clear_loop, config, measured_data  # noqa: E402
 from bench_sim import bench_meta, write_report  # noqa: E402
 
-from torchcf.system.console import count, finite, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, finite, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 DESIGNS = ("refit", "pairs", "time")
@@ -87,7 +86,7 @@ def markdown(payload: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("--work", required=True)
     parser.add_argument("--shift", type=finite, default=0.8)
     parser.add_argument("--designs", nargs="+", default=list(DESIGNS))

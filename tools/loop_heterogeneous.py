@@ -40,7 +40,6 @@ the ``power`` mode needs one per effect, size and seed.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
@@ -66,7 +65,7 @@ from torchcf.diagnose.significance import (  # noqa: E402
 from torchcf.models.effects import parse_effect  # noqa: E402
 from torchcf.sim.synthetic import heterogeneous_pairs  # noqa: E402
 from torchcf.study.pipeline import close_loop, train_and_evaluate  # noqa: E402
-from torchcf.system.console import count, natural, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, natural, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 #: The pool calibrated on every case (two of them drive the data; LLCTG and HL
@@ -560,7 +559,7 @@ def _fmt(value) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "what", nargs="?", choices=("cases", "power", "detectable", "report"),
         default="cases",

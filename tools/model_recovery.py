@@ -43,7 +43,7 @@ from sbc_study import DT, NOISE, TOP_N, calibrate, join, prior_pairs  # noqa: E4
 from torchcf.abc.hybrid import rank_per_pair  # noqa: E402
 from torchcf.evaluation import sbc  # noqa: E402
 from torchcf.posterior.tables import pair_slots  # noqa: E402
-from torchcf.system.console import count, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "uncertainty"
 MODELS = ("ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc")
@@ -401,7 +401,7 @@ def render(payload: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=count, default=24)
     parser.add_argument("--steps", type=count, default=300)
     parser.add_argument("--methods", nargs="+", default=["rejection", "smc"])

@@ -33,7 +33,7 @@ from torchcf.config import load_split  # noqa: E402
 from torchcf.diagnose.significance import sign_flip_test  # noqa: E402
 from torchcf.evaluation.evaluate import cost_matrices  # noqa: E402
 from torchcf.runs.directory import RunDir  # noqa: E402
-from torchcf.system.console import count, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 
 
 def minimum_distances(run: Path) -> tuple[dict[str, np.ndarray], int]:
@@ -113,7 +113,7 @@ def _comparison(text: str) -> tuple[str, str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path)
     parser.add_argument(
         "--compare", nargs="+", required=True, metavar="A:B", type=_comparison

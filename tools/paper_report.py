@@ -12,14 +12,13 @@ copied. The discussion of agreement and difference lives in the hand-written
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 from pathlib import Path
 
 from torchcf.evaluation.report import metrics_table, relative_difference
 from torchcf.runs.directory import RunDir
-from torchcf.system.console import run_main
+from torchcf.system.console import OneLineParser, run_main
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 FOOT = 0.3048  # [m]
@@ -99,7 +98,7 @@ def _comparison(ours, paper, order, label: str) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path)
     parser.add_argument("--dataset", choices=sorted(PAPER), required=True)
     parser.add_argument("--crossval", action="store_true", help="a crossval folder")

@@ -19,7 +19,6 @@ Writes ``reports/plausibility/plausibility.{md,json}``.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import tempfile
 import time
@@ -37,7 +36,7 @@ from torchcf.config import (
 from torchcf.posterior import Posterior  # noqa: E402
 from torchcf.runs.directory import RunDir  # noqa: E402
 from torchcf.study.pipeline import train_and_evaluate  # noqa: E402
-from torchcf.system.console import count, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 from torchcf.system.files import from_json_safe  # noqa: E402
 from torchcf.traffic import HybridSampler  # noqa: E402
 from torchcf.traffic.battery import plausibility_by_model  # noqa: E402
@@ -180,7 +179,7 @@ def _f(value) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sets", nargs="+", default=list(SETS), choices=SETS)
     parser.add_argument("--n-particles", type=count, default=200_000)
     parser.add_argument("--threads", type=count, default=2)

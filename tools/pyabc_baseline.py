@@ -59,7 +59,6 @@ Writes ``--out`` (default ``reports/bench/pyabc_carII_idm.json``).
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import math
@@ -82,7 +81,7 @@ REPO = TOOLS.parent
 sys.path.insert(0, str(TOOLS))
 from peer_numpy import simulate_one  # noqa: E402  (NumPy only, no torch)
 
-from torchcf.system.console import count, natural, positive  # noqa: E402
+from torchcf.system.console import OneLineParser, count, natural, positive  # noqa: E402
 
 #: torchcf/data/registry.py: DATASETS["car-model-2"].
 FOLDER = "AV/CAR MODEL II"
@@ -307,7 +306,7 @@ def _finite(x: float) -> float | None:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     which = parser.add_mutually_exclusive_group()
     which.add_argument(
         "--pair-position",

@@ -29,7 +29,6 @@ Writes ``reports/traffic/ring_time_space.png``, ``ring_waves.png``,
 
 from __future__ import annotations
 
-import argparse
 import json
 import shlex
 import sys
@@ -46,7 +45,7 @@ from matplotlib.collections import LineCollection  # noqa: E402
 from torchcf import HybridSampler  # noqa: E402
 from torchcf.data import DataError, load_pairs  # noqa: E402
 from torchcf.posterior import Posterior  # noqa: E402
-from torchcf.system.console import count, natural, positive, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, natural, positive, run_main  # noqa: E402
 from torchcf.system.files import json_safe  # noqa: E402
 from torchcf.traffic import (  # noqa: E402
     DEFAULT_SAFETY,
@@ -412,7 +411,7 @@ def _shown(path: Path) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--ngsim", type=Path, default=ROOT / "runs/paper/ngsim/posterior.pt"
     )

@@ -42,7 +42,7 @@ from torchcf.data import PairSet  # noqa: E402
 from torchcf.evaluation import sbc  # noqa: E402
 from torchcf.models import get_model  # noqa: E402
 from torchcf.sim.synthetic import synthetic_pairs  # noqa: E402
-from torchcf.system.console import count, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "uncertainty"
 MODELS = ("ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc")
@@ -456,7 +456,7 @@ def render(payload: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", nargs="+", default=list(MODELS))
     parser.add_argument("--methods", nargs="+", default=["rejection", "smc"])
     parser.add_argument("--pairs", type=count, default=60)

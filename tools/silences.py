@@ -19,7 +19,6 @@ main job's run. Results in ``reports/bench/silences.{json,md}``.
 
 from __future__ import annotations
 
-import argparse
 import os
 import subprocess
 import sys
@@ -30,7 +29,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
-from torchcf.system.console import positive, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, positive, run_main  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 REPORTS = ROOT / "reports" / "bench"
@@ -129,7 +128,7 @@ def markdown(payload: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--only", nargs="+", default=None, metavar="NAME",
         help="some of: main job, smoke, sumo export, sumo verify",

@@ -12,13 +12,12 @@ SMC runs' ``summary.json`` and ``metrics.json`` beside the report.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import shutil
 from pathlib import Path
 
-from torchcf.system.console import run_main
+from torchcf.system.console import OneLineParser, run_main
 
 #: data set -> the folder in reports/ that holds its rejection run (authors' split)
 REJECTION = {
@@ -87,7 +86,7 @@ def _smc_settings(runs: Path) -> str:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", type=Path, help="folder with one SMC run per data set")
     parser.add_argument("--out", type=Path, default=Path("reports/smc"))
     args = parser.parse_args()

@@ -67,7 +67,8 @@ from torchcf.sumo.export import (  # noqa: E402
     run_constants,
 )
 from torchcf.sumo.network import highway, ring  # noqa: E402
-from torchcf.system.console import (  # noqa: E402
+from torchcf.system.console import (
+    OneLineParser,  # noqa: E402
     count,
     natural,
     nonnegative,
@@ -563,7 +564,7 @@ def _markdown(report: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = OneLineParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
         "runs", nargs="*", metavar="RUN[:FRACTION]",
         help="classes of the fleet, as --fleet (given, they replace its default)",

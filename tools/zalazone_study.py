@@ -53,7 +53,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import cpu_model, git_sha  # noqa: E402
 
-from torchcf.system.console import count, natural, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, natural, run_main  # noqa: E402
 
 CONFIG = "configs/zalazone.json"
 #: The campaign folder as the commands in the report name it.
@@ -174,7 +174,7 @@ def study(args: argparse.Namespace) -> dict:
             [*py, "torchcf.train", CONFIG, "--out", RUN, "--no-eval"],
             run / "summary.json",
         ),
-        ("evaluate", [*py, "torchcf.evaluation.evaluate", RUN], run / "metrics.json"),
+        ("evaluate", [*py, "torchcf", "evaluate", RUN], run / "metrics.json"),
         (
             "loop",
             [*py, "torchcf.diagnose", RUN,
@@ -940,7 +940,7 @@ def readme(
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--raw",
         default=str(

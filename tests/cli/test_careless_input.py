@@ -78,7 +78,7 @@ def test_a_bad_number_is_a_usage_error(capsys, main, argv, needle):
         ("--window", "1e99"),
         ("--window", "nan"),
         ("--window", "0"),
-        ("--test-fraction", "0"),
+        ("--test-fraction", "1"),
         ("--stride", "-2"),
     ],
 )

@@ -16,6 +16,7 @@ import pytest
 
 from tests.cli.test_bad_input import one_error_line
 from tests.data.test_extract import couple_rows
+from tests.runs import exit_code
 from torchcf.config import ConfigError, load_split, validate_config
 from torchcf.data import load_pairs
 from torchcf.data.__main__ import main as data_main
@@ -96,7 +97,7 @@ def test_extract_writes_a_loadable_folder(tmp_path, capsys) -> None:
         (["--speed-unit", "knots"], ["speed_unit", "knots"]),
         (["--window", "90"], ["lasts one window", "--window"]),
         (["--max-acceleration", "0.1"], ["no window", "acceleration"]),
-        (["--test-fraction", "1.5"], ["test_fraction"]),
+        (["--test-fraction", "1.5"], ["--test-fraction", ">= 0 and < 1"]),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, change, needles) -> None:
@@ -107,7 +108,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, change, needles) -> 
         args[args.index(flag) + 1] = change[1]
     else:
         args += change
-    assert data_main(args) == 2
+    assert exit_code(data_main, args) == 2
     one_error_line(capsys.readouterr().err, *needles)
     assert not (tmp_path / "pairs").exists()
 

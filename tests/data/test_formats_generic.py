@@ -11,6 +11,7 @@ import pytest
 
 from tests.cli.test_bad_input import one_error_line
 from tests.data.test_data_cli import extract_args, write_log
+from tests.runs import exit_code
 from torchcf.data.__main__ import main as data_main
 from torchcf.data.formats import read_trajectories
 from torchcf.data.formats.generic import (
@@ -193,13 +194,13 @@ def test_cli_frame_time(tmp_path, capsys) -> None:
     [
         (["--time-unit", "frame"], ["time_unit", "needs a frame rate"]),
         (["--frame-rate", "10"], ["frame rate is only used with time unit"]),
-        (["--time-unit", "frame", "--frame-rate", "-5"], ["frame_rate", "> 0"]),
+        (["--time-unit", "frame", "--frame-rate", "-5"], ["--frame-rate", "> 0"]),
     ],
 )
 def test_cli_frame_errors_are_one_line(tmp_path, capsys, more, needles) -> None:
     log = frame_log(tmp_path / "log.csv")
     out = tmp_path / "pairs"
-    assert data_main([*extract_args(log, out), *more]) == 2
+    assert exit_code(data_main, [*extract_args(log, out), *more]) == 2
     one_error_line(capsys.readouterr().err, *needles)
     assert not out.exists()
 

@@ -17,6 +17,7 @@ import pytest
 
 from tests.cli.test_bad_input import one_error_line
 from tests.data.test_extract import leader_motion
+from tests.runs import exit_code
 from torchcf.config import load_split, validate_config
 from torchcf.config.raw import RawSource
 from torchcf.data.__main__ import main as data_main
@@ -334,12 +335,12 @@ def test_cli_extracts_pairs(tmp_path, capsys) -> None:
         (["--time-unit", "frame"], ["time unit 'frame' needs a frame rate"]),
         (["--frame-rate", "25"], ["frame rate is only used with time unit 'frame'"]),
         (["--vehicle-length", "4"], ["vehicle_length", "format='openacc'"]),
-        (["--length-tolerance", "-1"], ["length_tolerance", "> 0"]),
+        (["--length-tolerance", "-1"], ["--length-tolerance", ">= 0"]),
     ],
 )
 def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, capsys, more, needles):
     path = ultra_av(tmp_path / "u.csv", n_pairs=2)
     args = ["extract", str(path), "--format", "pairs", "--out", str(tmp_path / "o")]
-    assert data_main([*args, *more]) == 2
+    assert exit_code(data_main, [*args, *more]) == 2
     one_error_line(capsys.readouterr().err, *needles)
     assert not (tmp_path / "o").exists()

@@ -15,6 +15,7 @@ import pytest
 
 from tests.cli.test_bad_input import one_error_line
 from tests.data.test_extract import leader_motion
+from tests.runs import exit_code
 from torchcf.data.__main__ import main as data_main
 from torchcf.data.extract import ExtractOptions, extract_pairs
 from torchcf.data.formats import read_trajectories
@@ -208,7 +209,7 @@ def test_cli_reads_a_folder(tmp_path, capsys) -> None:
         ([], ["has 5 columns", "six"]),
         (["--columns", "time=t"], ["columns: only used with format='csv'"]),
         (["--time-unit", "frame"], ["needs a frame rate"]),
-        (["--time-unit", "frame", "--frame-rate", "0"], ["frame_rate", "> 0"]),
+        (["--time-unit", "frame", "--frame-rate", "0"], ["--frame-rate", "> 0"]),
         (["--time-unit", "hours"], ["unknown time unit 'hours'", "frame"]),
     ],
 )
@@ -216,6 +217,6 @@ def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, capsys, more, needles):
     path = tmp_path / "five.txt"
     path.write_text("0 1 2 3 4\n0.1 1 2 3 4\n")
     args = ["extract", str(path), "--format", "punzo", "--out", str(tmp_path / "o")]
-    assert data_main([*args, *more]) == 2
+    assert exit_code(data_main, [*args, *more]) == 2
     one_error_line(capsys.readouterr().err, *needles)
     assert not (tmp_path / "o").exists()

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from tests.data.test_extract import T, couple_rows, table_of
+from tests.runs import exit_code
 from torchcf.config import TrainConfig
 from torchcf.data import load_pairs
 from torchcf.data.extract import ExtractOptions, extract_pairs
@@ -361,14 +362,17 @@ def test_command_line_groups_from_a_mapping_file(extracted_run, tmp_path, capsys
         (["--by", "colour"], "no column 'colour' in"),
         (["--groups", "missing.csv"], "missing.csv"),
         (["--by", "mode", "--cluster", "nope"], "no column 'nope' in"),
-        (["--by", "mode", "--level", "2"], "level must be in (0, 1)"),
+        (
+            ["--by", "mode", "--level", "2"],
+            "--level: expected a number between 0 and 1",
+        ),
     ],
 )
 def test_bad_grouping_is_one_line_and_exit_code_2(
     extracted_run, capsys, args, message
 ) -> None:
     _, run = extracted_run
-    assert main([str(run.path), *args]) == 2
+    assert exit_code(main, [str(run.path), *args]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and err.count("\n") == 1 and message in err
 

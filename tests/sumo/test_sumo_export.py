@@ -131,10 +131,13 @@ def test_export_command(tiny_run, tmp_path):
     [
         (
             ["export", "{run}", "--out", "{tmp}", "--length", "-1"],
-            "--length must be > 0",
+            "--length: expected a number > 0",
         ),
         (["export", "{tmp}/nothing", "--out", "{tmp}"], "holds no finished run"),
-        (["verify", "{run}", "--max-particles", "0"], "--max-particles must be >= 1"),
+        (
+            ["verify", "{run}", "--max-particles", "0"],
+            "--max-particles: expected a whole",
+        ),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(tiny_run, tmp_path, args, message):

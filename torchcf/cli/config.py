@@ -11,13 +11,17 @@ stderr) or bad arguments.
 
 from __future__ import annotations
 
-import argparse
 import json
 from collections.abc import Sequence
 
 from ..config.loading import config_hash, load_config, resolved_json
 from ..config.schema import TrainConfig
-from ..system.console import DefaultsHelpFormatter, add_overrides, run_main
+from ..system.console import (
+    DefaultsHelpFormatter,
+    OneLineParser,
+    add_overrides,
+    run_main,
+)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -26,7 +30,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     Returns:
         0 on success, 2 on a bad configuration (``error: <one line>`` on stderr).
     """
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         formatter_class=DefaultsHelpFormatter,
         prog="python -m torchcf.config",
         description=(

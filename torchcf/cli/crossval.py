@@ -23,6 +23,7 @@ from ..config import ConfigError, load_config
 from ..study.crossval import crossval
 from ..system.console import (
     DefaultsHelpFormatter,
+    OneLineParser,
     add_overrides,
     count,
     folder,
@@ -33,7 +34,7 @@ from ..system.files import no_empty_folder_left
 
 def build_parser() -> argparse.ArgumentParser:
     """``torchcf crossval``'s parser."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         formatter_class=DefaultsHelpFormatter,
         prog="torchcf crossval",
         description="k-fold cross-validation: one training run per fold, metrics "

@@ -45,12 +45,13 @@ from torchcf.data.trajectory import COLUMNS
 from torchcf.data.writer import write_extraction
 from torchcf.system.console import (
     DefaultsHelpFormatter,
+    OneLineParser,
     folder,
     natural,
     nonnegative,
-    open_fraction,
     positive,
     run_main,
+    share,
 )
 
 #: RawSource fields set by the reader options of the command line, and their
@@ -108,7 +109,7 @@ def _window(text: str) -> float | str:
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="python -m torchcf.data",
         description="Raw trajectory data to torchcf's pair layout.",
         formatter_class=DefaultsHelpFormatter,
@@ -184,7 +185,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     cut.add_argument(
         "--test-fraction",
-        type=open_fraction,
+        type=share,
         default=0.3,
         help="share of groups for test",
     )

@@ -19,13 +19,19 @@ import torch
 
 from ..data import load_pairs
 from ..study.demo import prior_rollouts
-from ..system.console import DefaultsHelpFormatter, count, natural, run_main
+from ..system.console import (
+    DefaultsHelpFormatter,
+    OneLineParser,
+    count,
+    natural,
+    run_main,
+)
 from ..system.process import tune_malloc
 
 
 def build_parser() -> argparse.ArgumentParser:
     """``torchcf demo``'s parser."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         formatter_class=DefaultsHelpFormatter,
         prog="torchcf demo",
         description="A simulation demo: each model's prior particles on CAR MODEL "

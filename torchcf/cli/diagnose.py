@@ -24,15 +24,15 @@ from ..runs.directory import RunDir
 from ..study.pipeline import close_loop
 from ..system.console import (
     DefaultsHelpFormatter,
+    OneLineParser,
     add_overrides,
     count,
-    print_error,
     run_main,
 )
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         formatter_class=DefaultsHelpFormatter,
         prog="python -m torchcf.diagnose",
         description="Close the loop on a finished run: residual diagnosis, effect "
@@ -52,10 +52,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         interrupted.
     """
     args = _parser().parse_args(argv)
-    if args.threads is not None:
-        if args.threads < 1:
-            print_error("--threads must be >= 1")
-            return 2
+    if args.threads is not None:  # >= 1 by its type
         torch.set_num_threads(args.threads)
 
     def body() -> int:

@@ -22,12 +22,18 @@ from typing import Any
 
 from ..evaluation.evaluate import evaluate_run
 from ..runs.directory import RunDir
-from ..system.console import DefaultsHelpFormatter, folder, natural, run_main
+from ..system.console import (
+    DefaultsHelpFormatter,
+    OneLineParser,
+    folder,
+    natural,
+    run_main,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """``torchcf evaluate``'s parser."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         formatter_class=DefaultsHelpFormatter,
         prog="torchcf evaluate",
         description="Evaluate a trained run on its test pairs (SPEC section 6).",

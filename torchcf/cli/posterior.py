@@ -56,7 +56,13 @@ from ..posterior.tables import (
     write_parameter_tables,
 )
 from ..runs.directory import RunDir
-from ..system.console import DefaultsHelpFormatter, natural, open_fraction, run_main
+from ..system.console import (
+    DefaultsHelpFormatter,
+    OneLineParser,
+    natural,
+    open_fraction,
+    run_main,
+)
 from ..system.files import atomic_write_text, ensure_directory
 
 #: ``--csv`` without a path: the run's report folder.
@@ -64,7 +70,7 @@ DEFAULT = "report"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="python -m torchcf.posterior",
         description="The calibrated parameters of a trained run: a Markdown table "
         "per model (median and 5-95% range), or one CSV row per accepted particle; "

@@ -19,7 +19,6 @@ corrupted file, bad arguments, SUMO not installed (the message names the extra
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from collections.abc import Sequence
 
@@ -27,16 +26,16 @@ from ..runs.directory import RunDir
 from ..sumo.export import EMERGENCY_DECEL, export_hybrid, run_constants, write_export
 from ..system.console import (
     DefaultsHelpFormatter,
+    OneLineParser,
     count,
     folder,
     positive,
-    print_error,
     run_main,
 )
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         formatter_class=DefaultsHelpFormatter,
         prog="python -m torchcf.sumo",
         description="The learned hybrid in Eclipse SUMO.",
@@ -97,17 +96,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         0 done; 2 an error of the user's making or of the machine; 130
         interrupted.
     """
-    args = _parser().parse_args(argv)
+    args = _parser().parse_args(argv)  # numbers checked by their types
     if args.command == "export":
-        for name in ("length", "emergency_decel"):
-            value = getattr(args, name)
-            if value is not None and not (math.isfinite(value) and value > 0):
-                print_error(f"--{name.replace('_', '-')} must be > 0, got {value}")
-                return 2
         return run_main(lambda: _export(args))
-    if args.max_particles is not None and args.max_particles < 1:
-        print_error(f"--max-particles must be >= 1, got {args.max_particles}")
-        return 2
     return run_main(lambda: _verify(args), interrupted="interrupted: run it again")
 
 

@@ -37,6 +37,7 @@ from ..runs.directory import RunDir
 from ..study.pipeline import run_study
 from ..system.console import (
     DefaultsHelpFormatter,
+    OneLineParser,
     add_overrides,
     folder,
     one_line,
@@ -50,7 +51,7 @@ Step = Callable[[TrainConfig, Path, bool, Group], Mapping[str, Any]]
 def run_parser(prog: str, description: str, epilog: str) -> argparse.ArgumentParser:
     """The command's options but ``--no-eval``: CONFIG, --schema, --out, --set,
     --resume."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog=prog,
         formatter_class=DefaultsHelpFormatter,
         description=description,

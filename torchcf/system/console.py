@@ -26,6 +26,7 @@ import math
 import signal
 import sys
 from collections.abc import Callable
+from typing import NoReturn
 
 from .errors import TorchcfError
 from .signals import Stopped, terminate_as_interrupt
@@ -45,6 +46,15 @@ class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
         if action.required or action.default in (None, False, argparse.SUPPRESS):
             return action.help or ""
         return super()._get_help_string(action) or ""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """``argparse.ArgumentParser`` whose usage errors are one line: ``error:
+    <what>`` and where the usage is (``PROG --help``), exit code 2, like every
+    other error of the commands (the whole usage block is ``--help``'s)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USER_ERROR, f"error: {message} (usage: {self.prog} --help)\n")
 
 
 #: The longest error line printed [characters]: a message that quotes a
@@ -132,6 +142,7 @@ positive = _checked(float, lambda x: math.isfinite(x) and x > 0.0, "a number > 0
 nonnegative = _checked(float, lambda x: math.isfinite(x) and x >= 0.0, "a number >= 0")
 finite = _checked(float, math.isfinite, "a finite number")
 open_fraction = _checked(float, lambda x: 0.0 < x < 1.0, "a number between 0 and 1")
+share = _checked(float, lambda x: 0.0 <= x < 1.0, "a number >= 0 and < 1")
 
 
 def folder(text: str) -> str:
@@ -195,6 +206,8 @@ __all__ = [
     "natural",
     "nonnegative",
     "open_fraction",
+    "OneLineParser",
+    "share",
     "positive",
     "one_line",
     "print_error",
