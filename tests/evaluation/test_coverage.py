@@ -213,7 +213,7 @@ def _check_metrics_json(result: dict, models: list[str]) -> None:
 def evaluated(tmp_path_factory):
     """A small run on synthetic pairs (no data needed), evaluated."""
     from tests.conftest import synthetic_pairs
-    from tests.test_evaluate import small_config
+    from tests.evaluation.test_evaluate import small_config
     from torchcf.evaluation.evaluate import evaluate_run
     from torchcf.train import train
 

@@ -9,7 +9,7 @@ import torch
 from tests.conftest import prior_draws, synthetic_pairs
 from tests.models.contract import CFModelContract, command_of, perception
 from tests.reference import mpc_qp
-from tests.test_sim import reference as pair_reference
+from tests.sim.test_rollout import reference as pair_reference
 from torchcf import simulate
 from torchcf.models import MODELS
 from torchcf.models.mpc import MPC, mpc_qp_matrices
