@@ -27,6 +27,7 @@ from typing import Any
 from torchcf.data.extract import Extraction
 from torchcf.data.pairset import DataError, PairSet
 from torchcf.data.reader import FILES
+from torchcf.system.errors import first_names
 from torchcf.system.files import ensure_directory, write_json
 
 __all__ = ["write_extraction", "write_record", "write_six_csv"]
@@ -106,7 +107,7 @@ def write_extraction(
             if others:
                 raise DataError(
                     f"'{out}' holds an extraction and other files "
-                    f"({', '.join(others[:3])}{', ...' if len(others) > 3 else ''}): "
+                    f"({first_names(others)}): "
                     "--overwrite replaces an extraction alone; choose a new --out"
                 )
     parent = ensure_directory(out.parent, "output directory")

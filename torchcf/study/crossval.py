@@ -21,6 +21,7 @@ from typing import Any
 from ..config import TrainConfig
 from ..evaluation.report import metrics_table
 from ..runs.directory import RunDir
+from ..system.errors import first_names
 from ..system.files import RunFileError, atomic_write_text, ensure_directory
 from .pipeline import run_study
 
@@ -90,7 +91,7 @@ def _check_folder(out: RunDir, resume: bool) -> None:
         if others:
             raise RunFileError(
                 f"{path} holds files that are not a cross-validation's "
-                f"({', '.join(others[:3])}): choose an empty or a new --out"
+                f"({first_names(others)}): choose an empty or a new --out"
             )
 
 

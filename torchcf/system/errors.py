@@ -11,7 +11,7 @@ from that builtin too: :class:`torchcf.config.ConfigError` is also a
 """
 
 import difflib
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 
 
 class TorchcfError(Exception):
@@ -26,4 +26,11 @@ def did_you_mean(word: str, choices: Iterable[str]) -> str:
     return f" (did you mean {close[0]!r}?)" if close else ""
 
 
-__all__ = ["TorchcfError", "did_you_mean"]
+def first_names(names: Sequence[str], shown: int = 3) -> str:
+    """``"a, b, c, ... 4 more"``: the first ``shown`` of ``names`` for a one-line
+    message, and how many more."""
+    more = f", ... {len(names) - shown} more" if len(names) > shown else ""
+    return ", ".join(names[:shown]) + more
+
+
+__all__ = ["TorchcfError", "did_you_mean", "first_names"]

@@ -39,7 +39,7 @@ from ..abc.topn import TopN
 from ..config import TrainConfig, config_hash
 from ..runs.directory import RunDir
 from ..system.console import one_line
-from ..system.errors import TorchcfError
+from ..system.errors import TorchcfError, first_names
 from ..system.files import RunFileError
 from ..system.signals import StopRequest
 
@@ -110,17 +110,11 @@ def open_run(cfg: TrainConfig, out: Path, resume: bool) -> RunState:
     foreign = run.foreign_entries()
     if foreign:
         raise RunError(
-            f"{out} holds files that are not a run's ({_names(foreign)}): "
+            f"{out} holds files that are not a run's ({first_names(foreign)}): "
             "choose an empty or a new --out"
         )
     run.probe()
     return RunState(digest)
-
-
-def _names(names: list[str], shown: int = 3) -> str:
-    """The first ``shown`` of ``names``, and how many more."""
-    more = f", ... {len(names) - shown} more" if len(names) > shown else ""
-    return ", ".join(names[:shown]) + more
 
 
 def resume_note(state: RunState, models: list[str], n_particles: int) -> str:
