@@ -140,7 +140,7 @@ def test_training_evaluation_and_diagnosis_on_cuda(tmp_path):
         cpu = simulate(name, particles.theta, train_pairs, positions)
         torch.testing.assert_close(cpu.score, particles.score, rtol=2e-3, atol=1e-5)
     result = close_loop(out, pairs=(train_pairs, test_pairs), progress=False)
-    assert (out / "loop.json").exists() and "effects_ranked" in result
+    assert (out / "loop.json").exists() and "effects_ranked" in result.to_json()
 
 
 def test_recalibration_by_training_on_cuda_keeps_the_cpu_particles(tmp_path):

@@ -286,18 +286,19 @@ def run_case(name: str, cache: Path, diagnose: dict | None = None) -> dict:
         trained = time.perf_counter()
         result = close_loop(out, pairs=(train, test), progress=False)
         looped = time.perf_counter() - trained
-        chosen = [e.split("(")[0] for e in result["chosen"]]
+        chosen = [effect.name for effect in result.chosen]
+        loop = result.to_json()  # the record this table keeps
         oracle = None
         if model == "zalazone" and "grade" in name and "grade" not in chosen:
             oracle = truth_seeded_arm(out, train, theta[0])
     recovered = {
         param: stats["median"]
-        for summary in result["posterior"].values()
+        for summary in loop["posterior"].values()
         for param, stats in summary["params"].items()
         if stats.get("n")
     }
-    rows = {row["name"]: row for row in result["steps"][0]} if result["steps"] else {}
-    best = max(result["steps"][0], key=lambda r: r["gain"]) if rows else {}
+    rows = {row["name"]: row for row in loop["steps"][0]} if loop["steps"] else {}
+    best = max(loop["steps"][0], key=lambda r: r["gain"]) if rows else {}
     recovery = recovery_of(name, rows, recovered)
     right = sorted(chosen) == sorted(expected)
     if recovery is not None and not right and not chosen:
@@ -312,7 +313,7 @@ def run_case(name: str, cache: Path, diagnose: dict | None = None) -> dict:
         "recovered": {k: recovered.get(k) for k in truth},
         "recovery": recovery,
         "profile_correlation": profile_correlation(
-            model, theta, result["chosen"], recovered, train
+            model, theta, loop["chosen"], recovered, train
         ),
         "best_first_step": {
             "effect": best.get("effect"),
@@ -322,18 +323,18 @@ def run_case(name: str, cache: Path, diagnose: dict | None = None) -> dict:
             "order": best.get("order"),
         },
         "found_signatures": [
-            m["signature"] for m in (result["signatures"] or [[]])[0] if m["found"]
+            m["signature"] for m in (loop["signatures"] or [[]])[0] if m["found"]
         ],
-        "n_effects": len(result["effects_ranked"]),
+        "n_effects": len(loop["effects_ranked"]),
         "n_train": train.n_pairs,
         "n_test": test.n_pairs,
-        "ws": [result["before"].get("ws"), result["after"].get("ws")],
-        "min": [result["before"].get("min"), result["after"].get("min")],
+        "ws": [loop["before"].get("ws"), loop["after"].get("ws")],
+        "min": [loop["before"].get("min"), loop["after"].get("min")],
         "same_search": [
-            (result["before_same_search"] or result["before"]).get(key)
+            (loop["before_same_search"] or loop["before"]).get(key)
             for key in ("ws", "min")
         ],
-        "identifiability": result["identifiability"],
+        "identifiability": loop["identifiability"],
         "truth_seeded": oracle,
         "loop_seconds": looped,
         "seconds": time.perf_counter() - began,
@@ -372,23 +373,24 @@ def truth_seeded_arm(run_dir: Path, train: PairSet, grade: float) -> dict:
     trace and knot spacing."""
     cfg, posterior, _ = RunDir(run_dir).load_run()
     token, values = road_profile(train, grade, seed=0)
+    profile = parse_effect(token)
     selection = attribute_effects(
         cfg,
         active_models(cfg, posterior),
-        [token],
+        [profile],
         train,
-        road_seeds={token: values},
-        road_profile=parse_effect(token),
+        road_seeds={profile: values},
+        road_profile=profile,
         progress=False,
     )
     row = selection.steps[0][0]
     return {
         "effect": token,
-        "fit_gain": row["fit_gain"],
-        "gain": row["gain"],
-        "p_value": row["p_value"],
-        "level": row["level"],
-        "significant": bool(row["significant"]),
+        "fit_gain": row.fit_gain,
+        "gain": row.gain,
+        "p_value": row.p_value,
+        "level": row.level,
+        "significant": bool(row.significant),
     }
 
 
@@ -416,7 +418,7 @@ def profile_correlation(
     )
     if true_effect is None:
         return None
-    token = next((c for c in chosen if c.split("(")[0] == true_effect.name), None)
+    token = next((c for c in chosen if parse_effect(c).name == true_effect.name), None)
     if token is None:
         return None
     # every 10th recorded follower position: the road weighted by how much of

@@ -100,7 +100,7 @@ class Case:
 
     @property
     def expected(self) -> list[str]:
-        return [self.effect.split("(")[0]] if self.effect else []
+        return [parse_effect(self.effect).name] if self.effect else []
 
     def plant(self, size: float, seed: int) -> list[float]:
         """The planted values at ``size``: the value itself, or a grade's
@@ -186,8 +186,9 @@ def run_case(
         train_and_evaluate(config(settings), out, pairs=(train, test))
         trained = time.perf_counter()
         result = close_loop(out, pairs=(train, test), progress=False)
-    chosen = [e.split("(")[0] for e in result["chosen"]]
-    first = result["steps"][0] if result["steps"] else []
+    chosen = [effect.name for effect in result.chosen]
+    loop = result.to_json()  # the record this table keeps
+    first = loop["steps"][0] if loop["steps"] else []
     planted = next((r for r in first if r["name"] in case.expected), None)
     return {
         "case": name,
@@ -198,15 +199,14 @@ def run_case(
         "chosen": chosen,
         "hit": bool(case.expected) and chosen[:1] == case.expected,
         "false": bool(chosen) and chosen[:1] != case.expected,
-        "estimate": _estimate(result, case),
+        "estimate": _estimate(loop, case),
         "planted_test": _test_of(planted),
         "first_step": [_test_of(r) for r in first],
-        "validation": result.get("validation"),
-        "ws": [result["before"].get("ws"), result["after"].get("ws")],
-        "min": [result["before"].get("min"), result["after"].get("min")],
+        "validation": loop.get("validation"),
+        "ws": [loop["before"].get("ws"), loop["after"].get("ws")],
+        "min": [loop["before"].get("min"), loop["after"].get("min")],
         "same_search": [
-            (result["before_same_search"] or result["before"]).get(k)
-            for k in ("ws", "min")
+            (loop["before_same_search"] or loop["before"]).get(k) for k in ("ws", "min")
         ],
         "loop_seconds": time.perf_counter() - trained,
         "seconds": time.perf_counter() - began,
@@ -342,7 +342,7 @@ def detectable_markdown(
                     continue
                 case = next(
                     (c for n, c in CASES.items()
-                     if c.mixture == mixture and c.effect.split("(")[0] == name
+                     if c.mixture == mixture and parse_effect(c.effect).name == name
                      and (c.size >= 0) == (side == "above")),
                     None,
                 )  # fmt: skip

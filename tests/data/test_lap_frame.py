@@ -199,7 +199,7 @@ def test_extract_writes_the_period_and_the_loop_reads_it(campaign, tmp_path, cap
     assert meta["road_period"] == pytest.approx(2 * math.pi * RADIUS, abs=0.05)
     pairs = load_pairs(out, "train")
     assert pairs.road_period == meta["road_period"]
-    token = resolve_effect("grade", pairs)
+    token = resolve_effect("grade", pairs).token
     assert token == f"grade(period={meta['road_period']:g})"
     assert data_main([*argv[:3], "csv", "--lap-frame", "--out", str(tmp_path)]) == 2
     assert "lap_frame: only used with format='openacc'" in capsys.readouterr().err

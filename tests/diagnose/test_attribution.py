@@ -62,6 +62,10 @@ from torchcf.posterior import Posterior
 from torchcf.sim.synthetic import synthetic_pairs
 from torchcf.train import train
 
+from .rows import row_of
+
+DELAY, OFFSET, ASYMMETRY = map(parse_effect, ("delay", "offset", "asymmetry"))
+
 IDM = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
 LLCS = [15.0, 0.5, 1.0]
 #: Road effects with their section (every effect of the library is tried).
@@ -219,7 +223,7 @@ def test_an_effect_never_loses_in_sample(start, token, seed):
     arena, arm = start
     arena = dataclasses.replace(arena, seed=seed)
     base = base_arm(arena, arm, 1, lambda: None)
-    result = effect_arm(arena, arm, base, token, 1, lambda: None)
+    result = effect_arm(arena, arm, base, parse_effect(token), 1, lambda: None)
     assert bool((result.population.score <= base.score).all())
     assert bool((_fit_statistic(result.population, 5) <= _fit_statistic(base, 5)).all())
 
@@ -232,7 +236,7 @@ def test_an_effect_at_its_neutral_value_is_the_same_rollout(start, token):
     rollout = attribution_rollout(_config(dtype="float64"), arena.fit.pairs)
     population = rescore(arm.population, rollout)
     neutral = torch.tensor(parse_effect(token).neutral, dtype=torch.float64)
-    lifted, lifted_from = lift(population, token, neutral, rollout)
+    lifted, lifted_from = lift(population, parse_effect(token), neutral, rollout)
     assert set(lifted_from.values()) <= {"idm", "llcs"}
     np.testing.assert_allclose(lifted.score, population.score, rtol=1e-9, atol=1e-12)
 
@@ -251,11 +255,11 @@ def test_a_pinned_neutral_effect_searches_as_its_base_step_for_step(start):
         rounds=3, copies=4,
     )  # fmt: skip
     zero = torch.zeros(1, dtype=torch.float64)
-    lifted, lifted_from = lift(arm.population, "offset", zero)
+    lifted, lifted_from = lift(arm.population, parse_effect("offset"), zero)
     pinned = {"offset": zero}
     bounds = {m: model_bounds(m, arena.priors, pinned) for m in lifted.models}
     nested = local_search(
-        lifted, arena.fit, bounds, Noise(key, current, "offset"),
+        lifted, arena.fit, bounds, Noise(key, current, parse_effect("offset")),
         parents | lifted_from, rounds=3, copies=4,
     )  # fmt: skip
     assert torch.equal(nested.score, alone.score)
@@ -267,9 +271,9 @@ def test_a_pinned_neutral_effect_searches_as_its_base_step_for_step(start):
 
 
 def test_the_first_step_from_the_neutral_value_is_halved():
-    delay = first_steps_halved("delay", profile_values("delay", 5))
+    delay = first_steps_halved(DELAY, profile_values(DELAY, 5))
     assert delay[:, 0].tolist() == [0.0, 0.375, 0.75, 1.5, 2.25, 3.0]
-    offset = first_steps_halved("offset", profile_values("offset"))
+    offset = first_steps_halved(OFFSET, profile_values(OFFSET))
     assert offset[:, 0].tolist() == [-6, -4, -2, -1, 0, 1, 2, 4, 6]
 
 
@@ -425,14 +429,14 @@ def test_an_offset_is_absorbed_by_the_standstill_gap():
     arm = Arm((), merge([rescore(pool, arena.fit)], 5), {})
     base = base_arm(arena, arm, 1, lambda: None)
     placebo = placebo_arm(arena, arm, base, 1, lambda: None)
-    result = effect_arm(arena, arm, base, "offset", 1, lambda: None)
+    result = effect_arm(arena, arm, base, OFFSET, 1, lambda: None)
     judge = arena.validation.judge(placebo, 5, 1)
-    row = attribution.effect_row(arena, "offset", result, base, placebo, judge)
-    found = row["absorbed_by"]
+    row = attribution.effect_row(arena, OFFSET, result, base, placebo, judge)
+    found = row.absorbed_by
     assert found["parameter"] == "s0" and found["absorbed"]
     assert found["correlation"] > 0.9
     assert found["slope"] == pytest.approx(1.0, abs=0.25)
-    assert len(found["profile"]["values"]) >= len(profile_values("offset"))
+    assert len(found["profile"]["values"]) >= len(profile_values(OFFSET))
 
 
 def test_an_invalid_side_counts_as_a_large_loss_not_a_dropped_pair():
@@ -467,7 +471,7 @@ def test_a_shared_value_is_refined_between_the_values_tried():
 def test_an_interrupted_attribution_resumes_to_the_same_result(tmp_path, monkeypatch):
     pairs = synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=4, noise=0.05)
     cfg = _config(max_effects=2)
-    effects = ["delay", "offset", "lag"]
+    effects = [DELAY, OFFSET, parse_effect("lag")]
     whole = attribute_effects(
         cfg, ["idm"], effects, pairs, ledger=tmp_path / "a.pt", progress=False
     )
@@ -548,7 +552,7 @@ def test_the_effect_arms_are_the_same_in_worker_processes():
     """Arms searched side by side in two worker processes give the selection
     one process gives (every arm draws from its own seeded streams)."""
     pairs = synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=4, noise=0.05)
-    effects = ["delay", "offset", "lag"]
+    effects = [DELAY, OFFSET, parse_effect("lag")]
     alone, side_by_side = (
         attribute_effects(
             _config(max_effects=1, workers=w), ["idm"], effects, pairs, progress=False
@@ -566,7 +570,7 @@ def test_the_recalibration_holds_the_reference_which_holds_the_run(tmp_path):
     cfg = _config()
     train(cfg, tmp_path / "run", pairs=(pairs, pairs))
     posterior = Posterior.load(tmp_path / "run" / "posterior.pt")
-    reference, after = recalibrate(cfg, posterior, ["delay"], {}, ["idm"], pairs)
+    reference, after = recalibrate(cfg, posterior, [DELAY], {}, ["idm"], pairs)
     run = posterior.buffers["idm"]["score"][:, : reference.size]
     assert bool((reference.score <= run).all())
     assert bool((after.score <= reference.score).all())
@@ -614,7 +618,9 @@ def test_the_recalibration_config_lists_the_variants_with_their_boxes():
 
 
 def _verdict(effect, gain, scope, significant=True):
-    return {"effect": effect, "gain": gain, "scope": scope, "significant": significant}
+    row = row_of(effect, gain=gain, significant=significant)
+    assert row.scope == scope
+    return row
 
 
 def test_a_recording_effect_needs_a_clear_margin_over_a_behavioural_one():
@@ -622,19 +628,20 @@ def test_a_recording_effect_needs_a_clear_margin_over_a_behavioural_one():
     sync = _verdict("sync", 0.27, "recording")
     assert attribution.choose([sync, delay], 0.05) is delay  # 3 % is no margin
     assert (
-        attribution.choose([_verdict("sync", 0.40, "recording"), delay], 0.05)["effect"]
+        attribution.choose([_verdict("sync", 0.40, "recording"), delay], 0.05).token
         == "sync"
     )
     assert attribution.choose([sync], 0.05) is sync  # alone, it is chosen
-    assert attribution.choose([{**delay, "significant": False}], 0.05) is None
+    not_significant = dataclasses.replace(delay, significant=False)
+    assert attribution.choose([not_significant], 0.05) is None
 
 
 def test_an_effect_at_its_neutral_value_is_no_effect():
-    assert not attribution.active("resistance", {"c_drag": 1.3e-5})
-    assert attribution.active("delay", {"t_delay": 0.5})
-    assert not attribution.active("asymmetry", {"g_close": 1.02, "g_open": 0.99})
-    assert attribution.active("asymmetry", {"g_close": 1.02, "g_open": 1.3})
-    assert not attribution.active("offset", {"d_offset": 0.0})
+    assert not attribution.active(parse_effect("resistance"), {"c_drag": 1.3e-5})
+    assert attribution.active(DELAY, {"t_delay": 0.5})
+    assert not attribution.active(ASYMMETRY, {"g_close": 1.02, "g_open": 0.99})
+    assert attribution.active(ASYMMETRY, {"g_close": 1.02, "g_open": 1.3})
+    assert not attribution.active(OFFSET, {"d_offset": 0.0})
 
 
 def test_the_forward_selection_has_one_name():
@@ -659,3 +666,17 @@ def test_a_time_gap_changing_with_speed_points_to_timegap(c_gap):
     mark = _one_step_marks("idm+timegap", IDM + [c_gap], noise=0.05)["gap vs speed"]
     assert mark.found, (mark.mean, mark.p_value)
     assert mark.points_to == ("timegap",)
+
+
+def test_an_effect_seeds_the_random_numbers_as_its_token_did():
+    """Random draws are keyed by labels: an effect object stands for its token,
+    wherever it sits in the labels, so a search's numbers do not depend on
+    whether the effect travels as an object or as its name."""
+    from torchcf.diagnose.search import derive_seed
+
+    grade = parse_effect("grade(start=0,end=900,knots=4)")
+    assert derive_seed(1, "step", DELAY, 3) == derive_seed(1, "step", "delay", 3)
+    assert derive_seed((7, [grade]), OFFSET) == derive_seed(
+        (7, [grade.token]), "offset"
+    )
+    assert derive_seed(1, DELAY) != derive_seed(1, OFFSET)

@@ -150,32 +150,34 @@ def loops(tmp_path_factory):
 def test_the_undeclared_effects_are_found_and_help(loops, case):
     out, result = loops(case)
     _, _, expected, truths = CASES[case]
-    first = result["steps"][0]
-    chosen = next(r for r in first if r.get("chosen"))
-    assert chosen["name"] in expected and chosen["significant"]
-    assert chosen["p_value"] <= chosen["level"] and chosen["active"]
-    assert sorted(e.split("(")[0] for e in result["chosen"]) == sorted(expected)
+    first = result.selection.steps[0]
+    chosen = next(r for r in first if r.chosen)
+    assert chosen.name in expected and chosen.significant
+    assert chosen.p_value <= chosen.level and chosen.active
+    assert sorted(e.name for e in result.chosen) == sorted(expected)
     # against the reference (the run with as many more draws, without the
     # effects): the effects' share of the improvement; and against the run
     # itself. Trained by the run's sampler (the default re-calibration) the
     # variants keep the prior draws' spread: the minimum distance falls by
     # 40-65 % here (tools/loop_cases.py: reports/loop_cases_train.md), WS by
     # 10-35 % (the Gipps follower, outside the pool, the least).
-    for before in (result["before_same_search"], result["before"]):
+    recalibrated = result.recalibrated
+    for before in (recalibrated.before_same_search, result.before):
         assert before["ws"] > 0
-        assert result["after"]["ws"] <= 0.93 * before["ws"]
-        assert result["after"]["min"] <= 0.85 * before["min"]
-    for paired in result["test_pairs"].values():  # pair by pair, significantly
+        assert result.after["ws"] <= 0.93 * before["ws"]
+        assert result.after["min"] <= 0.85 * before["min"]
+    for paired in recalibrated.test_pairs.values():  # pair by pair, significantly
         assert paired["change"] < 0 and paired["p_value"] <= 0.05
     medians = {
         name: stats["median"]
-        for summary in result["posterior"].values()
+        for summary in recalibrated.posterior.values()
         for name, stats in summary["params"].items()
         if stats.get("n")
     }
     for name, (truth, tolerance) in truths.items():
         if name == "d_offset":  # recovered, or absorbed by a named parameter
-            found = result["absorption"]["offset"] or {}
+            row = next(r for r in first if r.token == "offset")
+            found = row.absorbed_by or {}
             assert abs(medians[name] - truth) <= tolerance or found["absorbed"], (
                 medians[name],
                 found,
@@ -187,11 +189,11 @@ def test_the_undeclared_effects_are_found_and_help(loops, case):
         train_pairs, _ = _pairs(model, theta)
         truth = dict(zip(get_model(model).param_names, theta, strict=True))
         where = train_pairs.x_follow[train_pairs.mask][::10]
-        (chosen,) = result["chosen"]
+        (chosen,) = result.chosen
         token = split_name(model)[1]
-        assert profile_agreement(token, truth, chosen, medians, where) >= 0.8
+        assert profile_agreement(token, truth, chosen.token, medians, where) >= 0.8
     on_disk = json.loads((out / "loop.json").read_text())
-    assert on_disk["chosen"] == result["chosen"]
+    assert on_disk["chosen"] == result.to_json()["chosen"]
     for key in (
         "signatures",
         "effects_ranked",
@@ -226,10 +228,11 @@ def test_held_out_pairs_find_the_delay_and_carry_it_to_the_test_split(loops, tmp
     result = close_loop(
         out, ['diagnose.validation="pairs"'], pairs=pairs, progress=False
     )
-    assert (result["validation"], result["validation_units"]) == ("pairs", 10)
-    assert result["fit_pairs"] == 14
-    assert [e.split("(")[0] for e in result["chosen"]] == ["delay"]
-    assert result["after"]["min"] <= 0.85 * result["before_same_search"]["min"]
+    validation = result.selection.validation
+    assert (validation.kind, validation.units) == ("pairs", 10)
+    assert validation.fit_pairs == 14
+    assert [e.name for e in result.chosen] == ["delay"]
+    assert result.after["min"] <= 0.85 * result.recalibrated.before_same_search["min"]
     assert "held-out pairs" in (out / "loop.md").read_text()
 
 
@@ -237,15 +240,16 @@ def test_held_out_pairs_find_the_delay_and_carry_it_to_the_test_split(loops, tmp
 @pytest.mark.parametrize("case", ["control", "control, LLCTG"])
 def test_control_set_yields_no_effect(loops, case):
     out, result = loops(case)
-    assert result["chosen"] == []
-    assert result["after"] == result["before"]
+    assert result.chosen == [] and result.recalibrated is None
+    assert result.after == result.before
     text = (out / "loop.md").read_text()
     assert "No effect chosen" in text
     # what these data could have shown, per effect with a one-number size
     assert "What these data could have shown" in text
-    sized = [r for r in result["steps"][-1] if r["name"] in ("delay", "lag", "sync")]
-    assert sized and all(r["detectable"] for r in sized)
-    delay = next(r for r in sized if r["name"] == "delay")["detectable"]
+    last = result.selection.steps[-1]
+    sized = [r for r in last if r.name in ("delay", "lag", "sync")]
+    assert sized and all(r.detectable for r in sized)
+    delay = next(r for r in sized if r.name == "delay").detectable
     assert delay["if_first"]["above"] is not None  # 24 pairs can show a delay
 
 
@@ -332,13 +336,13 @@ def test_split_in_time_keeps_pairs_aligned():
 
 def test_bare_grade_spans_the_road_section():
     pairs = synthetic_pairs("idm", IDM_TRUTH, 2, 100, seed=3, start=(100.0, 200.0))
-    token = resolve_effect("grade", pairs)
+    token = resolve_effect("grade", pairs).token
     x = pairs.x_follow
     assert token == (
         f"grade(start={math.floor(float(x.min()))},end={math.ceil(float(x.max()))})"
     )
-    assert resolve_effect("grade(knots=2)", pairs).startswith("grade(")
-    assert resolve_effect("delay", pairs) == "delay"
+    assert resolve_effect("grade(knots=2)", pairs).token.startswith("grade(")
+    assert resolve_effect("delay", pairs).token == "delay"
 
 
 # ------------------------------------------------------------- attribution parts
@@ -448,8 +452,9 @@ def test_shared_value_finds_a_constant_grade():
     joint search over pairs returns a grade near 4 %."""
     from torchcf.diagnose.search import effect_prior, shared_value
 
-    effect = "grade(start=0,end=1000,knots=1)"
-    pairs = synthetic_pairs(f"llctg+{effect}", LLCTG_TRUTH + [0.04], 6, 300, seed=4)
+    effect = parse_effect("grade(start=0,end=1000,knots=1)")
+    model = f"llctg+{effect.token}"
+    pairs = synthetic_pairs(model, LLCTG_TRUTH + [0.04], 6, 300, seed=4)
     cfg = _config(local_copies=4)
     members = Population.from_particles(
         [_candidates("llctg", [LLCTG_TRUTH] * 6, range(6), [1.0] * 6)], 6, 2

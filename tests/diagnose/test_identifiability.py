@@ -17,6 +17,7 @@ from torchcf.diagnose.identifiability import (
     within_pair_correlation,
 )
 from torchcf.models import get_model
+from torchcf.models.effects import parse_effect
 from torchcf.sim.synthetic import synthetic_pairs
 
 
@@ -61,7 +62,7 @@ def test_an_offset_against_a_standstill_gap_is_reported_traded_off():
             name: {"theta": buffer.theta, "score": buffer.score, "index": buffer.index}
         }
     )
-    report = effect_identifiability(posterior, ["offset"])
+    report = effect_identifiability(posterior, [parse_effect("offset")])
     row = report["offset"][name]["d_offset"]
     assert row["partner"] == "s0"
     assert row["r"] >= 0.7 and row["traded_off"]

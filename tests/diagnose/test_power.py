@@ -12,6 +12,10 @@ import torch
 from torchcf.diagnose.power import LADDER, Ladder, detectable_sizes, size_path
 from torchcf.models.effects import parse_effect
 
+from .rows import row_of
+
+DELAY = parse_effect("delay")
+
 UNITS = 40
 
 
@@ -29,30 +33,30 @@ class CostlyJudge:
         self.calls += 1
         if pin is None:
             return np.ones(UNITS)
-        spec = parse_effect(pin.effect)
+        spec = pin.effect
         off = float((pin.value - torch.tensor(spec.neutral)).abs().max())
         return 1 + self.slope * off * self.spread
 
 
 def test_the_sizes_run_from_the_neutral_value_to_each_end_of_the_prior():
-    sides = dict(size_path("delay"))
+    sides = dict(size_path(parse_effect("delay")))
     (param,) = parse_effect("delay").param_specs
     assert list(sides) == ["above"]  # a delay's neutral value is its lower end
     sizes = [size for size, _ in sides["above"]]
     assert sizes == pytest.approx([f * param.upper for f in LADDER])
-    offset = dict(size_path("offset"))
+    offset = dict(size_path(parse_effect("offset")))
     assert set(offset) == {"below", "above"}
     assert offset["below"][-1][0] == parse_effect("offset").param_specs[0].lower
     # a grade: knots alternating in sign at the amplitude; an effect of two
     # parameters with meanings of their own has no one-number size
-    ((side, rungs),) = size_path("grade(start=0,end=400,knots=5)")
+    ((side, rungs),) = size_path(parse_effect("grade(start=0,end=400,knots=5)"))
     assert side == "above"
     amplitude, value = rungs[-1]
     assert (
         amplitude == parse_effect("grade(start=0,end=400,knots=5)").param_specs[0].upper
     )
     assert value.tolist() == pytest.approx([amplitude, -amplitude] * 2 + [amplitude])
-    assert size_path("asymmetry") is None
+    assert size_path(parse_effect("asymmetry")) is None
 
 
 def test_the_ladder_finds_the_smallest_size_that_passes_by_bisection():
@@ -60,28 +64,28 @@ def test_the_ladder_finds_the_smallest_size_that_passes_by_bisection():
     slope of 1 per second, a delay is detectable from s >= 0.0526 s: the
     smallest rung at or above it."""
     judge = CostlyJudge(slope=1.0)
-    ladder = Ladder(judge, "delay", judge.profile(None), permutations=2000)
+    ladder = Ladder(judge, DELAY, judge.profile(None), permutations=2000)
     smallest = ladder.smallest("above", level=0.01, min_gain=0.05)
-    sizes = [size for size, _ in dict(size_path("delay"))["above"]]
+    sizes = [size for size, _ in dict(size_path(parse_effect("delay")))["above"]]
     want = min(s for s in sizes if s / (1 + s) >= 0.05)
     assert smallest == pytest.approx(want)
     # bisection: far fewer refits than rungs
     assert judge.calls - 1 <= 1 + int(np.ceil(np.log2(len(sizes)))) + 1
     # an effect the data could not show even at the end of its prior
     flat = CostlyJudge(slope=1e-4)
-    ladder = Ladder(flat, "delay", flat.profile(None), permutations=2000)
+    ladder = Ladder(flat, parse_effect("delay"), flat.profile(None), permutations=2000)
     assert ladder.smallest("above", level=0.01, min_gain=0.05) is None
 
 
 def test_every_row_with_a_size_gets_its_detectable_sizes():
     judge = CostlyJudge(slope=1.0)
     rows = [
-        {"effect": "delay", "level": 0.0125},
-        {"effect": "asymmetry", "level": 0.00625},
-        {"effect": "offset", "level": 0.003},
+        row_of("delay", level=0.0125),
+        row_of("asymmetry", level=0.00625),
+        row_of("offset", level=0.003),
     ]
     detectable_sizes(judge, rows, first_level=0.0125, min_gain=0.05, permutations=2000)
-    delay, asymmetry, offset = (row["detectable"] for row in rows)
+    delay, asymmetry, offset = (row.detectable for row in rows)
     assert asymmetry is None
     assert delay["unit"] == "s" and delay["at_level"]["above"] is not None
     assert set(offset["if_first"]) == {"below", "above"}
@@ -103,7 +107,7 @@ def test_a_size_that_makes_every_rollout_collide_counts_as_a_loss():
     (an invalid side counts INVALID_RATIO times the valid one), not a unit
     left out: such a size is detectable."""
     judge = CollidingJudge(slope=1e-4)  # no gain anywhere before the collisions
-    ladder = Ladder(judge, "delay", judge.profile(None), permutations=2000)
+    ladder = Ladder(judge, DELAY, judge.profile(None), permutations=2000)
     assert ladder.smallest("above", level=0.01, min_gain=0.05) == pytest.approx(3.0)
     top = ladder.rung("above", len(LADDER) - 1)
     assert top.gain == pytest.approx(0.9) and top.p_value < 0.01

@@ -24,6 +24,7 @@ from torchcf.diagnose.refit import (
 )
 from torchcf.diagnose.validation import design
 from torchcf.models import get_model
+from torchcf.models.effects import parse_effect
 from torchcf.sim.synthetic import heterogeneous_pairs, synthetic_pairs
 
 IDM = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
@@ -50,12 +51,14 @@ def test_candidates_drop_the_effect_and_lifting_pins_it():
     found = candidates(arm, 1, {"idm+delay": "idm"}, seed=0)
     assert list(found) == ["idm"]
     torch.testing.assert_close(found["idm"], torch.tensor([IDM], dtype=torch.float64))
-    pinned = lifted(found, Pin("delay", torch.tensor([0.4], dtype=torch.float64)))
+    pinned = lifted(
+        found, Pin(parse_effect("delay"), torch.tensor([0.4], dtype=torch.float64))
+    )
     assert list(pinned) == ["idm+delay"]
     assert pinned["idm+delay"][:, -1].tolist() == [0.4]
     # an effect that cannot wrap a model leaves it as it is (HL has its own lag)
     hl = {"hl": get_model("hl").prior_bounds(torch.float64).mean(1)[None]}
-    assert list(lifted(hl, Pin("lag", torch.tensor([0.5])))) == ["hl"]
+    assert list(lifted(hl, Pin(parse_effect("lag"), torch.tensor([0.5])))) == ["hl"]
 
 
 def test_candidates_stay_within_their_cap_from_the_same_fit_pairs():
@@ -80,7 +83,7 @@ def test_the_effect_pinned_at_its_neutral_value_refits_as_without_it():
     members = {"idm": box[:, 0] + u * (box[:, 1] - box[:, 0])}
     key = ("test", 1)
     without = refit_scores(members, rollout, BUDGET, PRIORS, {}, key)
-    neutral = Pin("delay", torch.tensor([0.0], dtype=torch.float64))
+    neutral = Pin(parse_effect("delay"), torch.tensor([0.0], dtype=torch.float64))
     with_neutral = refit_scores(members, rollout, BUDGET, PRIORS, {}, key, neutral)
     torch.testing.assert_close(with_neutral, without)
     assert bool(torch.isfinite(without).all())
@@ -98,10 +101,10 @@ def test_a_true_effect_pinned_at_its_value_fits_new_drivers_better():
     budget = RefitBudget(slots=3, copies=8, rounds=3)
     key = ("test", 2)
     without = refit_scores(members, rollout, budget, PRIORS, {}, key)
-    truth = Pin("delay", torch.tensor([0.8], dtype=torch.float64))
+    truth = Pin(parse_effect("delay"), torch.tensor([0.8], dtype=torch.float64))
     with_truth = refit_scores(members, rollout, budget, PRIORS, {}, key, truth)
     assert bool((with_truth < without).all())
-    wrong = Pin("delay", torch.tensor([3.0], dtype=torch.float64))
+    wrong = Pin(parse_effect("delay"), torch.tensor([3.0], dtype=torch.float64))
     with_wrong = refit_scores(members, rollout, budget, PRIORS, {}, key, wrong)
     assert float(with_wrong.sum()) > float(with_truth.sum())
 
@@ -111,7 +114,7 @@ def test_the_refit_never_moves_the_pinned_effect():
     rollout = Rollout(pairs, True, torch.float64)
     members = lifted(
         {"idm": torch.tensor([IDM], dtype=torch.float64)},
-        Pin("offset", torch.tensor([-2.0], dtype=torch.float64)),
+        Pin(parse_effect("offset"), torch.tensor([-2.0], dtype=torch.float64)),
     )
     population = start(members, rollout, slots=1)
     assert population.models == ("idm+offset",)
@@ -140,7 +143,7 @@ def test_the_refit_design_judges_an_arm_against_the_placebo():
     placebo = _population(theta, arena.fit.pairs.n_pairs)
     judge = validation.judge(placebo, 2, step=1)
     assert judge.before.shape == (validation.n_units,)
-    before, after = judge(placebo, {}, Pin("offset", torch.tensor([0.0])))
+    before, after = judge(placebo, {}, Pin(parse_effect("offset"), torch.tensor([0.0])))
     np.testing.assert_allclose(before, judge.before)
     np.testing.assert_allclose(after, before)  # neutral, same picks: the same
     assert all(math.isfinite(v) for v in before)

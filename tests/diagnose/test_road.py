@@ -28,7 +28,7 @@ from torchcf.diagnose.road import (
     shares_road_frame,
 )
 from torchcf.diagnose.signatures import road_share
-from torchcf.models.effects import GRAVITY, parse_effect
+from torchcf.models.effects import GRAVITY, Grade, parse_effect
 from torchcf.sim.synthetic import synthetic_pairs
 
 IDM_TRUTH = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
@@ -52,17 +52,17 @@ def _series(grade, n_pairs=30, noise=0.05, seed=0):
 
 
 def test_fine_structure_gets_fine_knots_and_smooth_gets_coarse():
-    wavy = choose_spacing("grade", 0.0, 1200.0, _series(lambda x: _wavy_grade(x, 200)))
+    wavy = choose_spacing(Grade, 0.0, 1200.0, _series(lambda x: _wavy_grade(x, 200)))
     assert wavy.spacing <= 50.0, wavy.errors
-    smooth = choose_spacing("grade", 0.0, 1200.0, _series(lambda x: 0.02 + 0 * x))
+    smooth = choose_spacing(Grade, 0.0, 1200.0, _series(lambda x: 0.02 + 0 * x))
     assert smooth.spacing == max(ROAD_SPACINGS), smooth.errors
     # at a measured residual's noise (0.3 m/s^2; the ZalaZONE pairs' is 0.5) a
     # smooth wave gets a middle spacing; with almost none, finer knots pay
     medium = choose_spacing(
-        "grade", 0.0, 1200.0, _series(lambda x: _wavy_grade(x, 800), noise=0.3)
+        Grade, 0.0, 1200.0, _series(lambda x: _wavy_grade(x, 800), noise=0.3)
     )
     assert 100.0 <= medium.spacing <= 200.0, medium.errors
-    assert parse_effect(wavy.token).knots == round(1200 / wavy.spacing) + 1
+    assert wavy.effect.knots == round(1200 / wavy.spacing) + 1
 
 
 def test_a_tilted_circle_gets_a_profile_round_the_lap():
@@ -80,9 +80,9 @@ def test_a_tilted_circle_gets_a_profile_round_the_lap():
         grade = slope * np.sin(xi / radius)
         residual.append(-GRAVITY * grade + 0.3 * rng.standard_normal(xi.size))
     choice = choose_spacing(
-        "grade", 0.0, 0.0, {"x": x, "acceleration": residual}, period=lap
+        Grade, 0.0, 0.0, {"x": x, "acceleration": residual}, period=lap
     )
-    effect = parse_effect(choice.token)
+    effect = choice.effect
     assert effect.period == lap and effect.knots >= MIN_LAP_KNOTS
     assert effect.knots == max(MIN_LAP_KNOTS, round(lap / choice.spacing))
     s = torch.linspace(0, lap, 200, dtype=torch.float64)
@@ -106,16 +106,16 @@ def test_a_residual_the_model_cannot_give_is_left_out_of_the_choice():
         ]
         for k, v in series.items()
     }
-    got = choose_spacing("grade", 0.0, 1200.0, spoiled)
-    expected = choose_spacing("grade", 0.0, 1200.0, without)
-    assert got.token == expected.token and got.errors == expected.errors
+    got = choose_spacing(Grade, 0.0, 1200.0, spoiled)
+    expected = choose_spacing(Grade, 0.0, 1200.0, without)
+    assert got.effect == expected.effect and got.errors == expected.errors
     assert torch.equal(got.seed, expected.seed)
 
 
 def test_the_grade_seed_is_the_profile_in_the_residual():
     series = _series(lambda x: _wavy_grade(x, 600), noise=0.2)
-    choice = choose_spacing("grade", 0.0, 1200.0, series)
-    effect = parse_effect(choice.token)
+    choice = choose_spacing(Grade, 0.0, 1200.0, series)
+    effect = choice.effect
     truth = _wavy_grade(np.array(effect.knot_positions), 600)
     seed = grade_seed(effect, series["x"], series["acceleration"]).numpy()
     assert np.corrcoef(seed, truth)[0, 1] >= 0.95
@@ -156,10 +156,10 @@ def test_one_wild_pair_does_not_hide_the_profile():
     weighted by its own scale."""
     series = _series(lambda x: _wavy_grade(x, 600), noise=0.2)
     wild = _with_a_wild_pair(series)
-    clean = choose_spacing("grade", 0.0, 1200.0, series)
-    choice = choose_spacing("grade", 0.0, 1200.0, wild)
+    clean = choose_spacing(Grade, 0.0, 1200.0, series)
+    choice = choose_spacing(Grade, 0.0, 1200.0, wild)
     assert choice.spacing == clean.spacing, (choice.errors, clean.errors)
-    effect = parse_effect(choice.token)
+    effect = choice.effect
     truth = _wavy_grade(np.array(effect.knot_positions), 600)
     seed = choice.seed.numpy()
     assert np.corrcoef(seed, truth)[0, 1] >= 0.95
@@ -201,10 +201,13 @@ def test_road_effects_are_not_offered_without_one_road():
     )
     series = _series(lambda x: 0 * x, n_pairs=6)
     apart = candidate_effects(cfg, dataclasses.replace(pairs, road_frame=False), series)
-    assert apart.effects == ["delay", "offset"] and apart.profile is None
-    assert apart.road["frame"] is False and apart.road["skipped"] == ["grade", "bend"]
+    tokens = [effect.token for effect in apart.effects]
+    assert tokens == ["delay", "offset"] and apart.profile is None
+    skipped = [effect.token for effect in apart.road.skipped]
+    assert apart.road.frame is False and skipped == ["grade", "bend"]
     shared = candidate_effects(cfg, pairs, series)
-    effects, road, seeds = shared.effects, shared.road, shared.seeds
+    effects = [effect.token for effect in shared.effects]
+    road, seeds = shared.road, [effect.token for effect in shared.seeds]
     assert shared.profile is not None and shared.profile.token == effects[1]
     assert [parse_effect(e).name for e in effects] == [
         "delay",
@@ -212,7 +215,7 @@ def test_road_effects_are_not_offered_without_one_road():
         "bend",
         "offset",
     ]
-    assert [p["effect"] for p in road["profiles"]] == [effects[1], effects[2]]
+    assert [p.effect.token for p in road.profiles] == [effects[1], effects[2]]
     assert list(seeds) == [effects[1]]  # the grade's, from the regression
 
 

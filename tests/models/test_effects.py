@@ -938,10 +938,30 @@ def test_sync_differs_from_a_delay(road):
 def test_a_name_splits_at_the_plus_signs_outside_parentheses():
     """An option written with an exponent (``end=1e+06``) keeps its '+'; the
     effect kinds drop the options."""
-    from torchcf.models import effect_kinds, split_name
+    from torchcf.models import split_name
 
     name = "idm+grade(end=1e+06,knots=4)+lag"
     assert split_name(name) == ["idm", "grade(end=1e+06,knots=4)", "lag"]
-    assert effect_kinds(name) == ["grade", "lag"]
-    assert effect_kinds("idm") == []
+    assert get_model(name).effect_kinds == ("lag", "grade")  # canonical order
+    assert get_model("idm").effect_kinds == ()
     assert {"t_lag", "grade_3"} <= set(get_model(name).param_names)  # parsed whole
+
+
+def test_a_variant_is_built_from_objects_not_names():
+    """``augment`` wraps a model by effect objects: the registry's one instance
+    of the variant, the same as its name parsed; effects are equal by token."""
+    from torchcf.models import UnknownModelError, augment
+
+    idm, delay = get_model("idm"), parse_effect("delay")
+    variant = augment(idm, delay)
+    assert variant is get_model("idm+delay") and augment(idm) is idm
+    assert augment(variant, parse_effect("lag")) is get_model("idm+lag+delay")
+    assert variant.pool_model is idm and idm.pool_model is idm
+    assert variant.effect_kinds == ("delay",) and idm.effect_kinds == ()
+    same = parse_effect("grade(end=600.0)")
+    assert same == parse_effect("grade(end=600)") and hash(same) == hash(
+        parse_effect("grade(end=600)")
+    )
+    assert delay != parse_effect("lag") and delay != "delay"
+    with pytest.raises(UnknownModelError, match="actuation lag"):
+        augment(get_model("hl"), parse_effect("lag"))

@@ -19,6 +19,7 @@ from collections.abc import Sequence
 
 import torch
 
+from ..diagnose.outcome import LoopResult
 from ..diagnose.report import fmt
 from ..runs.directory import RunDir
 from ..study.pipeline import close_loop
@@ -62,8 +63,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_main(body, interrupted="interrupted: run it again to resume")
 
 
-def _print_result(result: dict, run_dir: str) -> None:
-    found = [m for m in (result["signatures"] or [[]])[0] if m["found"]]
+def _print_result(result: LoopResult, run_dir: str) -> None:
+    selection = result.selection
+    found = [m for m in (selection.signatures or [[]])[0] if m["found"]]
     if found:
         print("residual signatures (fit windows):")
         for mark in found:
@@ -72,27 +74,27 @@ def _print_result(result: dict, run_dir: str) -> None:
                 f"  {mark['signature']:<20} {fmt(mark['mean'])} {mark['unit']:<6} "
                 f"p {mark['p_value']:.2g}  -> {to}"
             )
-    print(f"forward selection ({result['dataset']}; alpha {result['alpha']}):")
-    for step, rows in enumerate(result["steps"], start=1):
-        before = result["chosen"][: step - 1]
-        level = result["levels"][step - 1]
+    print(f"forward selection ({result.dataset}; alpha {result.settings.alpha}):")
+    for step, rows in enumerate(selection.steps, start=1):
+        before = [effect.token for effect in result.chosen[: step - 1]]
+        level = selection.levels[step - 1]
         print(
             f" step {step}"
             + (f" (with {' + '.join(before)})" if before else "")
             + f", level {level:.3g}"
         )
         for row in rows:
-            mark = "  <- chosen" if row.get("chosen") else ""
+            mark = "  <- chosen" if row.chosen else ""
             print(
-                f"  {row['order']:>2}. {row['effect']:<28} gain {row['gain']:+7.1%}"
-                f"  p {row['p_value']:.4f} (level {row['level']:.2g}){mark}"
+                f"  {row.order:>2}. {row.token:<28} gain {row.gain:+7.1%}"
+                f"  p {row.p_value:.4f} (level {row.level:.2g}){mark}"
             )
-    reference = result.get("before_same_search")
+    done = result.recalibrated
     for key, label in (("ws", "WS"), ("min", "minimum distance")):
-        line = f"test {label}: the run {fmt(result['before'].get(key))}"
-        if reference:
-            line += f", searched as after {fmt(reference.get(key))}"
-        print(f"{line}, after {fmt(result['after'].get(key))}")
+        line = f"test {label}: the run {fmt(result.before.get(key))}"
+        if done is not None:
+            line += f", searched as after {fmt(done.before_same_search.get(key))}"
+        print(f"{line}, after {fmt(result.after.get(key))}")
     print(f"wrote {RunDir(run_dir).loop_json} and loop.md")
 
 

@@ -12,17 +12,19 @@ run through the loop (:func:`torchcf.study.pipeline.close_loop`). Its concerns:
 - :mod:`.population`: an arm's particles, per pair S slots;
 - :mod:`.search`: local search with common random numbers, nested starts, a
   shared effect's one value;
-- :mod:`.testing`: the sign-flip test, the fallback procedure and the paired
-  comparison of two runs on the test pairs;
+- :mod:`.significance`: the sign-flip test, the fallback procedure and the
+  paired comparison of two runs on the test pairs;
 - :mod:`.absorption`: which of a model's own parameters takes an effect up;
 - :mod:`.arms`: the base, placebo and effect arms of a step;
 - :mod:`.attribution`: forward selection of nested arms;
+- :mod:`.tested`: one effect's test at one step (a row of the selection);
 - :mod:`.retrain`: the chosen effects on the whole training windows, trained by
   the run's own sampler (``diagnose.recalibration = "train"``);
 - :mod:`.recalibrate`: the same by local search (``"search"``), and the run
   directories of a re-calibration;
 - :mod:`.loop`: the loop's steps (:func:`plan_loop`, :func:`run_recalibration`,
   :func:`finish_loop`);
+- :mod:`.outcome`: the loop's result (:class:`LoopResult`, ``loop.json``);
 - :mod:`.road`: road effects at the data's resolution (frame, knot spacing);
 - :mod:`.validation`: how an arm is judged out of sample (in time, or on
   held-out pairs);
@@ -46,6 +48,7 @@ from .loop import (
     reusable,
     run_recalibration,
 )
+from .outcome import LoopResult, Recalibrated
 from .population import Population, merge
 from .report import loop_markdown
 from .series import (
@@ -56,14 +59,18 @@ from .series import (
     residual_tests,
 )
 from .significance import fallback_levels, paired_change, sign_flip_test, step_levels
+from .tested import EffectTest
 from .validation import split_by_pair, split_in_time
 
 __all__ = [
     "Candidates",
     "DiagnoseError",
+    "EffectTest",
     "LoopPlan",
+    "LoopResult",
     "Population",
     "EffectSelection",
+    "Recalibrated",
     "active_models",
     "attribute_effects",
     "augmented_variants",

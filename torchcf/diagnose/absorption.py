@@ -40,7 +40,7 @@ import torch
 from torch import Tensor
 
 from ..models import get_model
-from ..models.effects import parse_effect
+from ..models.effects import Effect
 from ..models.steady import equilibrium_spacing, time_gap
 from .identifiability import RIDGE_CORRELATION, within_pair_correlation
 from .population import Population
@@ -49,13 +49,13 @@ from .population import Population
 PROFILE_VALUES = 7
 
 
-def _effect_columns(model: str, effect: str) -> list[int]:
-    names = [p.name for p in parse_effect(effect).param_specs]
+def _effect_columns(model: str, effect: Effect) -> list[int]:
+    names = [p.name for p in effect.param_specs]
     return [get_model(model).param_names.index(n) for n in names]
 
 
-def _base_names(model: str, effect: str) -> list[str]:
-    own = {p.name for p in parse_effect(effect).param_specs}
+def _base_names(model: str, effect: Effect) -> list[str]:
+    own = {p.name for p in effect.param_specs}
     return [n for n in get_model(model).param_names if n not in own]
 
 
@@ -86,7 +86,7 @@ def _shift(
 
 
 def absorbed_by(
-    effect: str,
+    effect: Effect,
     final: Population,
     base: Population,
     lifted_from: dict[str, str],
@@ -153,11 +153,11 @@ def _ridge_slope(effect: Tensor, partner: Tensor, score: Tensor) -> float | None
     return float((centred_e * centred_p).sum()) / variance
 
 
-def profile_values(effect: str, points: int = PROFILE_VALUES) -> Tensor:
+def profile_values(effect: Effect, points: int = PROFILE_VALUES) -> Tensor:
     """(G, K_E) the values an effect is profiled at: ``points`` evenly over its
     prior (every parameter together)."""
     box = torch.tensor(
-        [[p.lower, p.upper] for p in parse_effect(effect).param_specs],
+        [[p.lower, p.upper] for p in effect.param_specs],
         dtype=torch.float64,
     )
     u = torch.linspace(0.0, 1.0, points, dtype=torch.float64)[:, None]
@@ -165,7 +165,7 @@ def profile_values(effect: str, points: int = PROFILE_VALUES) -> Tensor:
 
 
 def profile_absorption(
-    effect: str,
+    effect: Effect,
     values: Tensor,
     fits: list[Population],
     lifted_from: dict[str, str],
@@ -243,13 +243,11 @@ def profile_absorption(
                     if estimate is None
                     else int(torch.argmin((values[:, 0] - float(estimate[0])).abs()))
                 )
-                neutral = int(
-                    torch.argmin((values[:, 0] - parse_effect(effect).neutral[0]).abs())
-                )
+                neutral = int(torch.argmin((values[:, 0] - effect.neutral[0]).abs()))
                 best = {
                     "parameter": name,
                     "model": parent,
-                    "effect_parameter": parse_effect(effect).param_specs[0].name,
+                    "effect_parameter": effect.param_specs[0].name,
                     "correlation": r,
                     "slope": slope,
                     "shift": float((y[:, at] - y[:, neutral]).median()),

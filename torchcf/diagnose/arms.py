@@ -50,8 +50,8 @@ from ..abc.rejection import Rollout
 from ..abc.smc import SMCSettings
 from ..config import DiagnoseConfig, TrainConfig
 from ..data import PairSet
-from ..models import effect_kinds, get_model
-from ..models.effects import RoadProfile, parse_effect
+from ..models import get_model
+from ..models.effects import Effect, RoadProfile, parse_effect
 from .absorption import PROFILE_VALUES, profile_values
 from .candidates import attribution_seed, prior_particles
 from .population import (
@@ -96,20 +96,26 @@ class Checkpoints(Protocol):
         CHECKPOINT_SECONDS`)."""
 
 
-def resolve_effect(token: str, pairs: PairSet) -> str:
-    """The effect's name token; a bare road effect (``grade``, ``bend``) spans
-    the pairs' road section (its knots: see :mod:`torchcf.diagnose.road`), or
-    the whole lap, periodic, when the pairs' road is a closed track
-    (``pairs.road_period``)."""
+def resolve_effect(token: str, pairs: PairSet) -> Effect:
+    """The effect of a configured token (where effects enter the loop); a bare
+    road effect (``grade``, ``bend``) spans the pairs' road section (its knots:
+    see :mod:`torchcf.diagnose.road`), or the whole lap, periodic, when the
+    pairs' road is a closed track (``pairs.road_period``)."""
     effect = parse_effect(token)
     if isinstance(effect, RoadProfile) and "(" not in token:
-        if pairs.road_period:
-            # A closed track: the lap from its reference point, periodic.
-            return type(effect)(period=pairs.road_period, knots=effect.knots).token
-        x = pairs.x_follow[pairs.mask]
-        start, end = math.floor(float(x.min())), math.ceil(float(x.max()))
-        effect = type(effect)(start=start, end=max(end, start + 1), knots=effect.knots)
-    return effect.token
+        return spanning(effect, pairs)
+    return effect
+
+
+def spanning(effect: RoadProfile, pairs: PairSet) -> RoadProfile:
+    """The road profile of ``effect``'s kind and knots over the pairs' road
+    section, or over the whole lap, periodic, on a closed track."""
+    if pairs.road_period:
+        # A closed track: the lap from its reference point, periodic.
+        return type(effect)(period=pairs.road_period, knots=effect.knots)
+    x = pairs.x_follow[pairs.mask]
+    start, end = math.floor(float(x.min())), math.ceil(float(x.max()))
+    return type(effect)(start=start, end=max(end, start + 1), knots=effect.knots)
 
 
 # ------------------------------------------------------------------ the arena
@@ -128,7 +134,7 @@ class Arena:
         top_n: N, the particles per pair an arm is judged by.
         smc: the small ABC's refinement when ``diagnose.method = "smc"``, else
             None (rejection).
-        road_seeds: per road effect token, a first candidate of its value.
+        road_seeds: per road effect, a first candidate of its value.
         road_profile: the road profile whose signature is tested (None: the
             pairs have a frame each).
     """
@@ -140,7 +146,7 @@ class Arena:
     priors: dict[str, Tensor]
     top_n: int
     smc: SMCSettings | None = None
-    road_seeds: dict[str, Tensor] = dataclasses.field(default_factory=dict)
+    road_seeds: dict[Effect, Tensor] = dataclasses.field(default_factory=dict)
     road_profile: RoadProfile | None = None
 
     @classmethod
@@ -256,12 +262,12 @@ class Arm:
     with the effects chosen so far.
 
     Attributes:
-        effects: the chosen effect tokens, in the order chosen.
+        effects: the chosen effects, in the order chosen.
         population: its particles (S per pair).
         shared: per chosen shared effect name, its one value (K_E,).
     """
 
-    effects: tuple[str, ...]
+    effects: tuple[Effect, ...]
     population: Population
     shared: dict[str, Tensor]
 
@@ -312,7 +318,7 @@ def pool_units(arena: Arena, pool: list[str]) -> int:
     return len(pool) + arena.settings.max_rounds
 
 
-def arm_units(arena: Arena, effect: str | None) -> int:
+def arm_units(arena: Arena, effect: Effect | None) -> int:
     """An arm's search rounds, the units of its progress (at most: a shared
     value's refinements may skip a value outside the prior): the base arm
     (``effect`` None), or an effect arm's design points (and a one-parameter
@@ -320,13 +326,12 @@ def arm_units(arena: Arena, effect: str | None) -> int:
     rounds = max(1, arena.settings.rounds)
     if effect is None:
         return rounds
-    spec = parse_effect(effect)
-    if len(spec.param_specs) == 1:
-        points = PROFILE_VALUES if spec.shared else DESIGN_POINTS
+    if len(effect.param_specs) == 1:
+        points = PROFILE_VALUES if effect.shared else DESIGN_POINTS
         design = first_steps_halved(effect, profile_values(effect, points)).shape[0]
-        refine = LOCAL_POINTS if spec.shared else 0
+        refine = LOCAL_POINTS if effect.shared else 0
         return design + refine + rounds
-    return (0 if spec.shared else DESIGN_POINTS) + rounds
+    return (0 if effect.shared else DESIGN_POINTS) + rounds
 
 
 def placebo_units(arena: Arena) -> int:
@@ -344,7 +349,7 @@ def base_arm(arena: Arena, arm: Arm, step: int, tick: Callable[[], None]) -> Pop
     return arena.search(population, noise, parents, arm.shared, tick)
 
 
-def extra_noise(arena: Arena, arm: Arm, step: int, effect: str | None) -> Noise:
+def extra_noise(arena: Arena, arm: Arm, step: int, effect: Effect | None) -> Noise:
     """The random numbers of a step's search after the design points: the
     placebo's, and every effect arm's (the same common columns, the effect's
     own besides)."""
@@ -353,7 +358,7 @@ def extra_noise(arena: Arena, arm: Arm, step: int, effect: str | None) -> Noise:
 
 
 def design_noise(
-    arena: Arena, arm: Arm, step: int, g: int, effect: str | None
+    arena: Arena, arm: Arm, step: int, g: int, effect: Effect | None
 ) -> Noise:
     """The random numbers of design point ``g``'s refit (the placebo's g-th
     refit draws the same common columns)."""
@@ -361,13 +366,12 @@ def design_noise(
     return Noise(key, _current(arm.population), effect)
 
 
-def design_values(effect: str, key: tuple, points: int = DESIGN_POINTS) -> Tensor:
+def design_values(effect: Effect, key: tuple, points: int = DESIGN_POINTS) -> Tensor:
     """(G, K_E) the design points of an effect: a one-parameter effect's profile
     values (:func:`~torchcf.diagnose.absorption.profile_values`, evenly over its
     prior), or, for several parameters, the neutral point and ``points - 1``
     points of a Latin hypercube over the prior."""
-    spec = parse_effect(effect)
-    if len(spec.param_specs) == 1:
+    if len(effect.param_specs) == 1:
         return first_steps_halved(effect, profile_values(effect, points))
     box = effect_prior(effect)
     k_e = box.shape[0]
@@ -377,16 +381,16 @@ def design_values(effect: str, key: tuple, points: int = DESIGN_POINTS) -> Tenso
         points - 1
     )
     spread = box[:, 0] + u.T * (box[:, 1] - box[:, 0])  # (G - 1, K_E)
-    return torch.cat((torch.tensor([spec.neutral], dtype=torch.float64), spread))
+    return torch.cat((torch.tensor([effect.neutral], dtype=torch.float64), spread))
 
 
-def first_steps_halved(effect: str, values: Tensor) -> Tensor:
+def first_steps_halved(effect: Effect, values: Tensor) -> Tensor:
     """(G', 1) one-parameter design points ``values`` (G, 1, ascending) with a
     point added halfway between the neutral value and each neighbour: the
     continuation's first step from the neutral fit is the one without a
     predictor (:func:`predicted`), so it is kept short, and from the second on
     the secant carries the parameters that take the effect up."""
-    neutral = parse_effect(effect).neutral[0]
+    neutral = effect.neutral[0]
     centre = int(torch.argmin((values[:, 0] - neutral).abs()))
     halves = [
         (values[centre, 0] + values[g, 0]) / 2
@@ -413,7 +417,7 @@ def _refit(
 def design_fits(
     arena: Arena,
     arm: Arm,
-    effect: str,
+    effect: Effect,
     step: int,
     tick: Callable[[], None],
     values: Tensor,
@@ -430,17 +434,16 @@ def design_fits(
     Returns:
         per point, its population, and per variant the model lifted from.
     """
-    spec = parse_effect(effect)
     start = arm.population
-    neutral = torch.tensor(spec.neutral, dtype=torch.float64)
+    neutral = torch.tensor(effect.neutral, dtype=torch.float64)
     lifted, lifted_from = lift(
-        start, effect, neutral, None if spec.exactly_neutral else arena.fit
+        start, effect, neutral, None if effect.exactly_neutral else arena.fit
     )
     parents = {m: m for m in start.models} | lifted_from
     fits: list[Population | None] = [None] * values.shape[0]
 
     def fit(g: int, origin: Population, before: int | None = None) -> None:
-        shared = dict(arm.shared) | {spec.name: values[g]}
+        shared = dict(arm.shared) | {effect.name: values[g]}
         starts = [repin(origin, effect, values[g], arena.fit)]
         if before is not None and values.shape[1] == 1:  # points on one line
             bounds = arena.bounds(origin.models, shared)
@@ -560,26 +563,25 @@ def effect_arm(
     arena: Arena,
     arm: Arm,
     base: Population,
-    effect: str,
+    effect: Effect,
     step: int,
     tick: Callable[[], None],
 ) -> EffectArm:
     """The current model with E (module docstring), merged with the base arm."""
     start = arm.population
-    spec = parse_effect(effect)
     key = (arena.seed, "step", step)
     noise = extra_noise(arena, arm, step, effect)
     shared = dict(arm.shared)
     value = box = design = None
     interval = None
-    if spec.shared and len(spec.param_specs) == 1:
+    if effect.shared and len(effect.param_specs) == 1:
         value, values, fits, lifted_from, interval = profile_search(
             arena, arm, effect, step, tick
         )
         design, box = (values, fits), _box_around(values, value)
-        shared[spec.name] = value
+        shared[effect.name] = value
         begin = fits[int(torch.argmin((values[:, 0] - value[0]).abs()))]
-    elif spec.shared:
+    elif effect.shared:
         value, box, _ = shared_value(
             effect,
             start,
@@ -589,13 +591,13 @@ def effect_arm(
             (*key, effect),
             start=[arena.road_seeds[effect]] if effect in arena.road_seeds else [],
         )
-        shared[spec.name] = value
+        shared[effect.name] = value
         lifted, lifted_from = lift(start, effect, value, arena.fit)
         begin = merge([lifted], arena.size)
     else:
         values = design_values(effect, key)
         fits, lifted_from = design_fits(arena, arm, effect, step, tick, values)
-        if len(spec.param_specs) == 1:
+        if len(effect.param_specs) == 1:
             design = (values, fits)
         begin = merge(fits, arena.size)
     parents = {m: m for m in start.models} | lifted_from
@@ -605,7 +607,7 @@ def effect_arm(
 
 
 def profile_search(
-    arena: Arena, arm: Arm, effect: str, step: int, tick: Callable[[], None]
+    arena: Arena, arm: Arm, effect: Effect, step: int, tick: Callable[[], None]
 ) -> tuple[Tensor, Tensor, list[Population], dict[str, str], Tensor]:
     """A one-parameter shared effect's profile over its prior, and its value.
 
@@ -625,7 +627,6 @@ def profile_search(
         the value (1,), every value fitted (G, 1) ascending, their latest fits,
         per variant the model lifted from, and the value's 90 % interval (2,).
     """
-    spec = parse_effect(effect)
     start = arm.population
     reference = start.score[:, 0]
     usable = torch.isfinite(reference) & (reference > 0)
@@ -644,7 +645,7 @@ def profile_search(
     }
     best = min(fitted, key=lambda v: float(fitted[v][1].mean()))
     half = float(values[-1, 0] - values[0, 0]) / (PROFILE_VALUES - 1) / 2
-    low, high = spec.param_specs[0].lower, spec.param_specs[0].upper
+    low, high = effect.param_specs[0].lower, effect.param_specs[0].upper
     reach = (LOCAL_POINTS - 1) // 2
     local = {}
     origin = fitted[best][0]
@@ -657,7 +658,7 @@ def profile_search(
         noise = Noise(
             (arena.seed, "step", step, "local", effect, k), _current(start), effect
         )
-        shared = dict(arm.shared) | {spec.name: at}
+        shared = dict(arm.shared) | {effect.name: at}
         refit = _refit(arena, arm, begin, noise, parents, shared)
         local[value] = (refit, ratios(refit))
         tick()
@@ -728,19 +729,19 @@ def profile_interval(x: Tensor, ratios: Tensor, best: float, key: tuple) -> Tens
 
 
 def repin(
-    population: Population, effect: str, value: Tensor, rollout: Rollout
+    population: Population, effect: Effect, value: Tensor, rollout: Rollout
 ) -> Population:
     """The population with the effect's parameters of every slot that carries
     it set to ``value`` (K_E,), re-scored on the rollout's pairs (slot order
     unchanged)."""
-    names = [p.name for p in parse_effect(effect).param_specs]
-    token = effect.split("(")[0]
+    names = [p.name for p in effect.param_specs]
     theta = population.theta.clone()
     for m, name in enumerate(population.models):
-        if token not in effect_kinds(name):
+        model = get_model(name)
+        if effect.name not in model.effect_kinds:
             continue
         held = population.model == m
-        columns = [get_model(name).param_names.index(n) for n in names]
+        columns = [model.param_names.index(n) for n in names]
         rows = theta[held]
         rows[:, columns] = value.to(torch.float64)
         theta[held] = rows
@@ -786,4 +787,5 @@ __all__ = [
     "profile_search",
     "repin",
     "resolve_effect",
+    "spanning",
 ]

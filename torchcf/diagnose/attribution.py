@@ -50,12 +50,11 @@ Shapes: N pairs, S slots per pair, K parameters (:mod:`torchcf.typing`).
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import math
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -67,8 +66,8 @@ from tqdm import tqdm
 
 from ..config import DiagnoseConfig, TrainConfig, config_hash
 from ..data import PairSet
-from ..models import effect_kinds, get_model
-from ..models.effects import RoadProfile, parse_effect
+from ..models import get_model
+from ..models.effects import Effect, RoadProfile
 from ..system.files import RunFileError, atomic_torch_save, read_torch
 from .absorption import Steady, absorbed_by, profile_absorption
 from .arms import (
@@ -98,6 +97,7 @@ from .significance import (
     sign_flip_test,
     step_levels,
 )
+from .tested import EffectTest
 from .validation import Judge
 from .workers import ArmPool, worker_count
 from .workers import tick as worker_tick
@@ -131,18 +131,18 @@ def _relative_drop(before: np.ndarray, after: np.ndarray) -> tuple[float, np.nda
     return gain, np.log(before[usable] / after[usable])
 
 
-def estimate(population: Population, effect: str, n: int) -> dict[str, float]:
+def estimate(population: Population, effect: Effect, n: int) -> dict[str, float]:
     """Median of the effect's parameters over the ``n`` best per pair that carry
     it."""
-    names = [p.name for p in parse_effect(effect).param_specs]
-    token = effect.split("(")[0]
+    names = [p.name for p in effect.param_specs]
     picks = population.best(n)
     values = []
     for name in picks.models:
-        if token not in effect_kinds(name):
+        model = get_model(name)
+        if effect.name not in model.effect_kinds:
             continue
         pair, slot = picks.model_slots(name)
-        columns = [get_model(name).param_names.index(p) for p in names]
+        columns = [model.param_names.index(p) for p in names]
         values.append(picks.theta[pair, slot][:, columns])
     if not values or not sum(v.shape[0] for v in values):
         return {}
@@ -150,32 +150,30 @@ def estimate(population: Population, effect: str, n: int) -> dict[str, float]:
     return dict(zip(names, median.tolist(), strict=True))
 
 
-def pinned(effect: str, result: EffectArm, estimate: dict[str, float]) -> Pin:
+def pinned(effect: Effect, result: EffectArm, estimate: dict[str, float]) -> Pin:
     """The value an effect is held at on the held-out pairs (validation
     ``"refit"``): a shared effect's one value, a driver effect's estimate (the
     median over the arm's picks that carry it; neutral where none does)."""
     if result.value is not None:
         return Pin(effect, result.value.to(torch.float64))
-    spec = parse_effect(effect)
     value = [
         estimate.get(p.name, neutral)
-        for p, neutral in zip(spec.param_specs, spec.neutral, strict=True)
+        for p, neutral in zip(effect.param_specs, effect.neutral, strict=True)
     ]
     return Pin(effect, torch.tensor(value, dtype=torch.float64))
 
 
 def effect_row(
     arena: Arena,
-    effect: str,
+    effect: Effect,
     result: EffectArm,
     base: Population,
     placebo: Population,
     judge: Judge,
-) -> dict[str, Any]:
-    """The effect's report row, against the placebo: in-sample and validation
-    gain, sign-flip test, scores, estimate, absorption (the order and the
-    verdict come later). ``base_fit_gain`` is the in-sample gain against the
-    base arm, which the effect arm holds (never negative)."""
+) -> EffectTest:
+    """The effect's test against the placebo: in-sample and validation gain,
+    sign-flip test, scores, estimate, absorption (the order and the verdict come
+    later, :func:`_judge`)."""
     n = arena.top_n
     mine = _fit_statistic(result.population, n).numpy()
     fit_gain, _ = _relative_drop(_fit_statistic(placebo, n).numpy(), mine)
@@ -188,37 +186,30 @@ def effect_row(
     usable, placebo_validation, after = comparable(
         placebo_validation, after, INVALID_RATIO
     )
-    spec = parse_effect(effect)
-    row: dict[str, Any] = {
-        "name": spec.name,
-        "effect": effect,
-        "scope": spec.scope,
-        "fit_gain": fit_gain,
-        "base_fit_gain": base_fit_gain,
-        "gain": gain,
-        "statistic": statistic,
-        "p_value": p_value,
-        "score_before": float(placebo_validation[usable].mean())
-        if usable.any()
-        else None,
-        "score_after": float(after[usable].mean()) if usable.any() else None,
-        "n_pairs": int(usable.sum()),
-        "pairs_changed": int(np.count_nonzero(drops)),
-        "pinned": dict(
-            zip([p.name for p in spec.param_specs], pin.value.tolist(), strict=True)
-        )
+    names = [p.name for p in effect.param_specs]
+    row = EffectTest(
+        effect=effect,
+        fit_gain=fit_gain,
+        base_fit_gain=base_fit_gain,
+        gain=gain,
+        statistic=statistic,
+        p_value=p_value,
+        score_before=float(placebo_validation[usable].mean()) if usable.any() else None,
+        score_after=float(after[usable].mean()) if usable.any() else None,
+        n_pairs=int(usable.sum()),
+        pairs_changed=int(np.count_nonzero(drops)),
+        pinned=dict(zip(names, pin.value.tolist(), strict=True))
         if judge.validation.kind == "refit"
         else None,
-        "variants": sorted(result.lifted_from),
-        "estimate": found,
-        "per_pair": {
+        variants=sorted(result.lifted_from),
+        estimate=found,
+        per_pair={
             "before": [_finite_or_none(v) for v in placebo_validation.tolist()],
             "after": [_finite_or_none(v) for v in after.tolist()],
         },
-    }
+    )
     if result.value is not None:
-        names = [p.name for p in spec.param_specs]
-        row["shared"] = {
+        row.shared = {
             "value": dict(zip(names, result.value.tolist(), strict=True)),
             "prior": {
                 k: tuple(b)
@@ -228,22 +219,20 @@ def effect_row(
             if result.interval is None
             else {names[0]: result.interval.tolist()},
         }
-        row["estimate"] = row["shared"]["value"]
-    row["active"] = active(effect, row["estimate"])
+        row.estimate = row.shared["value"]
+    row.active = active(effect, row.estimate)
     if result.design is not None:
         values, fits = result.design
         found = result.value
-        if found is None and row["estimate"]:  # a driver effect: the picks' median
-            found = torch.tensor(list(row["estimate"].values()), dtype=torch.float64)
-        row["absorbed_by"] = profile_absorption(
+        if found is None and row.estimate:  # a driver effect: the picks' median
+            found = torch.tensor(list(row.estimate.values()), dtype=torch.float64)
+        row.absorbed_by = profile_absorption(
             effect, values, fits, result.lifted_from, base, found, _steady(arena)
         )
-    elif not spec.shared:
-        row["absorbed_by"] = absorbed_by(
+    elif not effect.shared:
+        row.absorbed_by = absorbed_by(
             effect, result.population, base, result.lifted_from
         )
-    else:
-        row["absorbed_by"] = None
     return row
 
 
@@ -260,14 +249,14 @@ def _finite_or_none(value: float) -> float | None:
 
 
 def test_order(
-    rows: list[dict[str, Any]], pointed: dict[str, list[str]]
-) -> list[dict[str, Any]]:
+    rows: list[EffectTest], pointed: dict[str, list[str]]
+) -> list[EffectTest]:
     """The order of a step's tests, fixed by the fit windows: the effects a
     found signature points to first, then the others; within each, the larger
-    in-sample gain first (then the name)."""
+    in-sample gain first (then the token)."""
     return sorted(
         rows,
-        key=lambda r: (r["name"] not in pointed, -r["fit_gain"], r["effect"]),
+        key=lambda r: (r.name not in pointed, -r.fit_gain, r.token),
     )
 
 
@@ -384,75 +373,94 @@ class _Prefixed:
         self.ledger.keep(f"{self.prefix}/{name}", value, now=now)
 
 
-def ledger_key(cfg: TrainConfig, pool: list[str], effects: list[str]) -> str:
-    """What the attribution's result depends on (its ledger's key): the run, the
-    diagnose settings, the pool and the candidate effects."""
+def ledger_key(
+    cfg: TrainConfig, pool: list[str], tested: Sequence[Effect] | Sequence[str]
+) -> str:
+    """What a ledger's content depends on (its key): the run, the diagnose
+    settings, the pool and what is tested, by name (the attribution's candidate
+    effects, or the models a re-calibration trains)."""
     settings = cfg.diagnose.model_dump(
         mode="json", exclude={"run_after_training", "recalibration"}
     )
     text = json.dumps(settings, sort_keys=True)
-    return f"{config_hash(cfg)}|{text}|{','.join(pool)}|{','.join(effects)}"
+    names = ",".join(map(str, tested))  # an effect's str is its token
+    return f"{config_hash(cfg)}|{text}|{','.join(pool)}|{names}"
 
 
 # ------------------------------------------------------------- the selection
+@dataclass(frozen=True)
+class JudgedOn:
+    """How the arms of a selection were judged out of sample.
+
+    Attributes:
+        kind: ``"time"``, ``"pairs"`` or ``"refit"``
+            (:mod:`torchcf.diagnose.validation`).
+        units: the validation units (pair windows or held-out pairs).
+        fit_pairs: the pairs the arms were fitted on.
+    """
+
+    kind: str
+    units: int
+    fit_pairs: int
+
+
 @dataclass(frozen=True)
 class EffectSelection:
     """The forward selection's result (:func:`attribute_effects`); not
     :class:`torchcf.abc.hybrid.Selection`, the hybrid's members.
 
     Attributes:
-        steps: per step, the rows of the effects tested, in the order tested,
-            each with its ``order``, ``level`` and ``significant``.
+        steps: per step, the effects tested, in the order tested, each with
+            its verdict.
         signatures: per step, the residual signatures of the current model
             (the first: the pool's; one more after the last step: the final
             model's).
-        chosen: the chosen effect tokens, in the order chosen.
+        chosen: the chosen effects, in the order chosen.
         models: the final model: the pool and the variants of the chosen
             effects.
         shared: per chosen shared effect name, its one value.
         steps_at_most: the selection's steps at most, ``min(max_effects, E)``.
         levels: the level of each step (they sum to ``alpha``).
-        validation: how the arms were judged, ``"time"`` or ``"pairs"``
-            (:mod:`torchcf.diagnose.validation`), and over how many units.
+        validation: how the arms were judged.
     """
 
-    steps: list[list[dict[str, Any]]]
+    steps: list[list[EffectTest]]
     signatures: list[list[dict[str, Any]]]
-    chosen: list[str]
+    chosen: list[Effect]
     models: list[str]
     shared: dict[str, list[float]]
     steps_at_most: int
     levels: list[float]
-    validation: dict[str, Any] = dataclasses.field(default_factory=dict)
+    validation: JudgedOn
 
     @property
     def shared_priors(self) -> dict[str, dict[str, tuple[float, float]]]:
-        """Per chosen shared effect, its box of the last search round."""
+        """Per chosen shared effect's token, its box of the last search round."""
         return {
-            row["effect"]: row["shared"]["prior"]
+            row.token: row.shared["prior"]
             for rows in self.steps
             for row in rows
-            if row["effect"] in self.chosen and "shared" in row
+            if row.effect in self.chosen and row.shared is not None
         }
 
     @property
     def estimates(self) -> dict[str, dict[str, float]]:
-        """Per chosen effect, its estimate at the step it was chosen."""
+        """Per chosen effect's token, its estimate at the step it was chosen."""
         return {
-            row["effect"]: row["estimate"]
+            row.token: row.estimate
             for rows in self.steps
             for row in rows
-            if row["effect"] in self.chosen and row.get("chosen")
+            if row.effect in self.chosen and row.chosen
         }
 
 
 def attribute_effects(
     cfg: TrainConfig,
     pool: list[str],
-    effects: list[str],
+    effects: list[Effect],
     train_pairs: PairSet,
     *,
-    road_seeds: dict[str, Tensor] | None = None,
+    road_seeds: dict[Effect, Tensor] | None = None,
     road_profile: RoadProfile | None = None,
     ledger: Path | None = None,
     progress: bool = True,
@@ -462,9 +470,10 @@ def attribute_effects(
     Args:
         cfg: the run's config (its ``diagnose`` section sets the budgets).
         pool: the pool models that get the effects.
-        effects: effect tokens (options resolved, see :func:`resolve_effect`).
+        effects: the candidate effects (options resolved, see
+            :func:`~torchcf.diagnose.arms.resolve_effect`).
         train_pairs: the run's training pairs.
-        road_seeds: per road effect token, a first candidate of its value.
+        road_seeds: per road effect, a first candidate of its value.
         road_profile: the road profile of the road signature (None: none).
         ledger: where finished arms are kept (None: nowhere, no resume).
         progress: show a progress bar (it moves every search round).
@@ -527,7 +536,7 @@ def attribute_effects(
         book.within("pool"),
     )
     arm = Arm((), population_of(raw), {})
-    steps: list[list[dict[str, Any]]] = []
+    steps: list[list[EffectTest]] = []
     found: list[list[dict[str, Any]]] = []
     remaining = list(effects)
     processes: ArmPool | None = None  # worker processes, where they pay
@@ -581,7 +590,7 @@ def attribute_effects(
             for effect in remaining:
                 entry = cached(
                     f"{step}/{effect}",
-                    f"step {step}: {effect.split('(')[0]}",
+                    f"step {step}: {effect.name}",
                     units[effect],
                     _arm_entry,
                     arena,
@@ -593,7 +602,7 @@ def attribute_effects(
                     step,
                     tick,
                 )
-                rows.append(dict(entry["row"]))
+                rows.append(EffectTest.from_json(entry["row"]))
                 arms[effect] = entry
             rows = _judge(test_order(rows, pointed), pointed, level, settings)
             steps.append(rows)
@@ -606,27 +615,28 @@ def attribute_effects(
                     detectable_sizes(
                         judge,
                         rows,
-                        rows[0]["level"] if rows else level,
+                        rows[0].level if rows else level,
                         settings.min_gain,
                         settings.permutations,
                         lambda label: bar.set_postfix_str(
                             f"step 1: detectable sizes, {label}", refresh=True
                         ),
                     )
-                    sizes = {row["effect"]: row["detectable"] for row in rows}
+                    sizes = {row.token: row.detectable for row in rows}
                     book.put(f"{step}/detectable", sizes)
                 for row in rows:
-                    row["detectable"] = sizes.get(row["effect"])
+                    row.detectable = sizes.get(row.token)
             if best is None:
                 break
-            best["chosen"] = True
-            entry = arms[best["effect"]]
+            best.chosen = True
+            chosen = best.effect
+            entry = arms[chosen]
             shared = dict(arm.shared)
             if entry["value"] is not None:
-                shared[parse_effect(best["effect"]).name] = entry["value"]
+                shared[chosen.name] = entry["value"]
             raw = cached(
                 f"{step}/converged",
-                f"step {step}: {best['name']} converges",
+                f"step {step}: {best.name} converges",
                 settings.max_rounds,
                 _converged_entry,
                 arena,
@@ -636,8 +646,8 @@ def attribute_effects(
                 tick,
                 book.within(f"{step}/converged"),
             )
-            arm = Arm((*arm.effects, best["effect"]), population_of(raw), shared)
-            remaining.remove(best["effect"])
+            arm = Arm((*arm.effects, chosen), population_of(raw), shared)
+            remaining.remove(chosen)
             if not remaining:
                 break
     if arm.effects:  # the final model's signatures: what the effects left
@@ -653,11 +663,9 @@ def attribute_effects(
         shared={k: v.tolist() for k, v in arm.shared.items()},
         steps_at_most=steps_at_most,
         levels=levels,
-        validation={
-            "kind": arena.validation.kind,
-            "units": arena.validation.n_units,
-            "fit_pairs": arena.fit.pairs.n_pairs,
-        },
+        validation=JudgedOn(
+            arena.validation.kind, arena.validation.n_units, arena.fit.pairs.n_pairs
+        ),
     )
 
 
@@ -715,7 +723,7 @@ def _arm_entry(
     base: Population,
     placebo: Population,
     judge: Judge,
-    effect: str,
+    effect: Effect,
     step: int,
     tick: Callable[[], None],
 ) -> dict[str, Any]:
@@ -723,7 +731,7 @@ def _arm_entry(
     result = effect_arm(arena, arm, base, effect, step, tick)
     row = effect_row(arena, effect, result, base, placebo, judge)
     return {
-        "row": row,
+        "row": row.to_json(),
         "population": population_dict(result.population),
         "value": result.value,
     }
@@ -734,22 +742,21 @@ def _arm_entry(
 ACTIVE = 0.05
 
 
-def active(effect: str, estimate: dict[str, float]) -> bool:
+def active(effect: Effect, estimate: dict[str, float]) -> bool:
     """Whether an effect's estimate (its parameters' median over the arm's picks
     that carry it, or a shared effect's one value) lies at least
     :data:`ACTIVE` of its prior's width from the neutral value in some
     parameter. An effect arm whose best particles keep the effect neutral owes
     its gain to the search (a changed landscape that led it elsewhere), not to
     the effect."""
-    spec = parse_effect(effect)
-    for p, neutral in zip(spec.param_specs, spec.neutral, strict=True):
+    for p, neutral in zip(effect.param_specs, effect.neutral, strict=True):
         value = estimate.get(p.name)
         if value is not None and abs(value - neutral) >= ACTIVE * (p.upper - p.lower):
             return True
     return False
 
 
-def choose(rows: list[dict[str, Any]], margin: float) -> dict[str, Any] | None:
+def choose(rows: list[EffectTest], margin: float) -> EffectTest | None:
     """The effect a step chooses among its significant ones: the largest gain,
     except that a recording effect (a claim that the data are faulty: a sensor
     or clock offset) is chosen over a significant driver or road effect only
@@ -759,39 +766,39 @@ def choose(rows: list[dict[str, Any]], margin: float) -> dict[str, Any] | None:
     explain much the same residual; where the validation cannot tell them
     apart, the behaviour is the explanation, and the recording one must earn
     its place by a clear gain."""
-    significant = [r for r in rows if r["significant"]]
+    significant = [r for r in rows if r.significant]
     if not significant:
         return None
-    best = max(significant, key=lambda r: r["gain"])
-    behaviour = [r for r in significant if r["scope"] != "recording"]
-    if best["scope"] == "recording" and behaviour:
-        other = max(behaviour, key=lambda r: r["gain"])
-        if best["gain"] - other["gain"] <= margin:
+    best = max(significant, key=lambda r: r.gain)
+    behaviour = [r for r in significant if r.scope != "recording"]
+    if best.scope == "recording" and behaviour:
+        other = max(behaviour, key=lambda r: r.gain)
+        if best.gain - other.gain <= margin:
             return other
     return best
 
 
 def _judge(
-    rows: list[dict[str, Any]],
+    rows: list[EffectTest],
     pointed: dict[str, list[str]],
     level: float,
     settings: DiagnoseConfig,
-) -> list[dict[str, Any]]:
+) -> list[EffectTest]:
     """The fallback procedure over the rows in their order: each row's
     ``order``, ``pointed_by``, ``level`` and ``significant``."""
-    weights = level_weights([r["name"] in pointed for r in rows], settings.levels)
+    weights = level_weights([r.name in pointed for r in rows], settings.levels)
     levels, significant = fallback_levels(
-        [r["p_value"] for r in rows],
-        [r["gain"] >= settings.min_gain and r["active"] for r in rows],
+        [r.p_value for r in rows],
+        [r.gain >= settings.min_gain and r.active for r in rows],
         level,
         weights,
     )
     for i, (row, at, yes) in enumerate(zip(rows, levels, significant, strict=True)):
-        row["order"] = i + 1
-        row["pointed_by"] = pointed.get(row["name"], [])
-        row["level"] = at
-        row["significant"] = yes
-        row["chosen"] = False
+        row.order = i + 1
+        row.pointed_by = pointed.get(row.name, [])
+        row.level = at
+        row.significant = yes
+        row.chosen = False
     return rows
 
 
@@ -801,6 +808,7 @@ __all__ = [
     "Ledger",
     "active",
     "EffectSelection",
+    "JudgedOn",
     "arm_signatures",
     "attribute_effects",
     "choose",

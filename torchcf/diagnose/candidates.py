@@ -22,7 +22,8 @@ from ..abc.smc import SMCSettings, new_state, parameter_buffer, run_smc, smc_bud
 from ..abc.topn import TopN
 from ..config import ConfigError, TrainConfig
 from ..data import PairSet
-from ..models import CFModel, UnknownModelError, get_model
+from ..models import CFModel, UnknownModelError, augment, get_model
+from ..models.effects import Effect
 
 
 def attribution_rollout(cfg: TrainConfig, pairs: PairSet) -> Rollout:
@@ -43,15 +44,16 @@ def attribution_seed(cfg: TrainConfig) -> int:
     return cfg.abc.seed if cfg.diagnose.seed is None else cfg.diagnose.seed
 
 
-def augmented_variants(pool: Sequence[str], effect: str) -> list[str]:
-    """Canonical names of ``m+effect`` for the pool models the effect can wrap.
+def augmented_variants(pool: Sequence[str], effect: Effect) -> list[str]:
+    """Canonical names of ``m`` wrapped by ``effect`` for the pool models the
+    effect can wrap.
 
     (``lag`` cannot wrap HL, which has its own actuation lag.)
     """
     names = []
     for model in pool:
         try:
-            names.append(get_model(f"{model}+{effect}").name)
+            names.append(augment(get_model(model), effect).name)
         except UnknownModelError:
             continue
     return names

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from ..models import get_model
-from ..models.effects import parse_effect
+from ..models.effects import Effect
 from ..posterior import Posterior
 
 #: |Pearson r| from which an effect parameter is reported as traded off against
@@ -61,24 +61,24 @@ def within_pair_correlation(theta: Tensor, score: Tensor) -> tuple[Tensor, int]:
     return correlation, int(usable.sum())
 
 
-def effect_identifiability(posterior: Posterior, chosen: list[str]) -> dict[str, Any]:
+def effect_identifiability(
+    posterior: Posterior, chosen: list[Effect]
+) -> dict[str, Any]:
     """Per chosen effect and per augmented model carrying it, each effect
     parameter's strongest partner among the model's parameters.
 
     Returns:
-        ``{effect: {model: {param: {"partner", "r", "traded_off", "n_pairs"}}}}``.
+        ``{token: {model: {param: {"partner", "r", "traded_off", "n_pairs"}}}}``.
     """
     report: dict[str, Any] = {}
     for effect in chosen:
-        token = effect.split("(")[0]
-        names = [p.name for p in parse_effect(effect).param_specs]
+        names = [p.name for p in effect.param_specs]
         per_model: dict[str, Any] = {}
         for model_name, buffer in posterior.buffers.items():
             model = get_model(model_name)
-            tokens = [e.name for e in getattr(model, "effects", ())]
-            if token not in tokens:
+            if effect.name not in model.effect_kinds:
                 continue
-            base = list(model.base.param_names)
+            base = list(model.pool_model.param_names)
             columns = list(model.param_names)
             theta = buffer["theta"][..., : len(columns)]
             correlation, n_pairs = within_pair_correlation(theta, buffer["score"])
@@ -102,7 +102,7 @@ def effect_identifiability(posterior: Posterior, chosen: list[str]) -> dict[str,
                 }
             if rows:
                 per_model[model_name] = rows
-        report[effect] = per_model
+        report[effect.token] = per_model
     return report
 
 

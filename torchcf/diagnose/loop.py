@@ -45,14 +45,15 @@ from ..config import (
     validate_config,
 )
 from ..data import PairSet
-from ..models import effect_kinds
-from ..models.effects import RoadProfile, parse_effect
+from ..models import get_model
+from ..models.effects import Effect, RoadProfile, parse_effect
 from ..posterior import Posterior
 from ..runs.directory import RunDir
-from .arms import resolve_effect
+from .arms import spanning
 from .attribution import EffectSelection, attribute_effects
 from .candidates import attribution_seed
 from .identifiability import effect_identifiability
+from .outcome import LoopResult, Recalibrated
 from .population import Population
 from .recalibrate import (
     model_buffers,
@@ -62,13 +63,11 @@ from .recalibrate import (
 )
 from .report import write_report
 from .retrain import Buffers, buffers_in_order, retrain, variants_of, wrapped
-from .road import choose_spacing, one_step_residual, shares_road_frame
+from .road import RoadOffer, choose_spacing, one_step_residual, shares_road_frame
 from .series import DiagnoseError, best_particles, diagnose_residuals
 from .signatures import family_of
 from .significance import paired_change
 from .validation import fit_part
-
-FORMAT = "torchcf.loop/2"
 
 Series = dict[str, list[np.ndarray]]
 
@@ -113,16 +112,16 @@ def reusable(directory: Path, cfg: TrainConfig | None) -> bool:
     return False
 
 
-def effect_posterior(posterior: Posterior, chosen: list[str]) -> dict[str, Any]:
+def effect_posterior(posterior: Posterior, chosen: list[Effect]) -> dict[str, Any]:
     """Summary of each chosen effect's parameters over the hybrid's particles:
-    ``{effect: {"share", "params": {name: {n, median, q05, q95, mean}}}}``."""
+    ``{token: {"share", "params": {name: {n, median, q05, q95, mean}}}}``."""
     result: dict[str, Any] = {}
     for effect in chosen:
-        names = [p.name for p in parse_effect(effect).param_specs]
+        names = [p.name for p in effect.param_specs]
         columns: dict[str, list[Tensor]] = {n: [] for n in names}
         share = 0.0
         for model, particles in posterior.hybrid.items():
-            if effect.split("(")[0] not in effect_kinds(model):
+            if effect.name not in get_model(model).effect_kinds:
                 continue
             share += posterior.shares.get(model, 0.0)
             for n in names:
@@ -131,7 +130,7 @@ def effect_posterior(posterior: Posterior, chosen: list[str]) -> dict[str, Any]:
             n: _quantiles(torch.cat(parts) if parts else torch.empty(0))
             for n, parts in columns.items()
         }
-        result[effect] = {"share": share, "params": params}
+        result[effect.token] = {"share": share, "params": params}
     return result
 
 
@@ -154,17 +153,17 @@ class Candidates:
     """The effects the attribution tries, resolved on the training pairs.
 
     Attributes:
-        effects: the effect tokens.
-        road: how road effects were offered (``frame``, ``reason``, ``skipped``,
-            ``profiles``: the knot spacing chosen and the error of each).
-        seeds: per road token, a first candidate of its value.
+        effects: the candidate effects, parsed from ``diagnose.effects`` (where
+            they enter the loop) and resolved on the pairs.
+        road: how road effects were offered.
+        seeds: per road effect, a first candidate of its value.
         profile: the road profile whose residual signature is tested (None: the
             pairs have a frame each, or no road effect is a candidate).
     """
 
-    effects: list[str]
-    road: dict[str, Any]
-    seeds: dict[str, Tensor]
+    effects: list[Effect]
+    road: RoadOffer
+    seeds: dict[Effect, Tensor]
     profile: RoadProfile | None
 
 
@@ -189,31 +188,30 @@ def candidate_effects(
     effects, skipped, profiles, seeds = [], [], [], {}
     profile = None
     for token in cfg.diagnose.effects:
-        effect = parse_effect(token)
+        effect = parse_effect(token)  # where the configured effects enter
         if effect.scope == "road" and not frame:
-            skipped.append(effect.token)
+            skipped.append(effect)
             continue
         if isinstance(effect, RoadProfile) and "(" not in token:
-            section = parse_effect(resolve_effect(token, train_pairs))
+            section = spanning(effect, train_pairs)
             choice = choose_spacing(
-                effect.name,
+                type(effect),
                 section.start,
                 section.end,
                 fit_series,
                 period=section.period,
             )
-            effects.append(choice.token)
-            profiles.append(choice.report())
+            effects.append(choice.effect)
+            profiles.append(choice)
             if choice.seed is not None:
-                seeds[choice.token] = choice.seed
+                seeds[choice.effect] = choice.seed
             if profile is None:
-                profile = parse_effect(choice.token)
+                profile = choice.effect
             continue
-        resolved = resolve_effect(token, train_pairs)
-        effects.append(resolved)
+        effects.append(effect)
         if profile is None and isinstance(effect, RoadProfile):
-            profile = parse_effect(resolved)
-    road = {"frame": frame, "reason": reason, "skipped": skipped, "profiles": profiles}
+            profile = effect
+    road = RoadOffer(frame, reason, skipped, profiles)
     return Candidates(effects, road, seeds, profile)
 
 
@@ -249,7 +247,7 @@ class LoopPlan:
     train_pairs: PairSet
     test_pairs: PairSet
     pool: list[str]
-    road: dict[str, Any]
+    road: RoadOffer
     selection: EffectSelection
     residuals_before: list[dict]
     series_before: Series
@@ -258,8 +256,8 @@ class LoopPlan:
     began: float
 
     @property
-    def chosen(self) -> list[str]:
-        """The chosen effect tokens, in the order chosen."""
+    def chosen(self) -> list[Effect]:
+        """The chosen effects, in the order chosen."""
         return self.selection.chosen
 
     @property
@@ -452,48 +450,30 @@ def _searched_populations(
         )
 
 
-def finish_loop(plan: LoopPlan) -> dict[str, Any]:
+def finish_loop(plan: LoopPlan) -> LoopResult:
     """Step 4 of the loop, after the re-calibration was written and evaluated in
     :attr:`LoopPlan.recalibration_dir` and :attr:`LoopPlan.reference_dir` (or
     nothing was chosen): the residuals after, the chosen effects' posterior,
     ``loop.md`` with its figures, the TensorBoard text and, last, ``loop.json``.
 
     Returns:
-        the loop result (also in ``RUN_DIR/loop.json``).
+        the loop result (:meth:`~torchcf.diagnose.outcome.LoopResult.to_json`
+        is ``RUN_DIR/loop.json``).
 
     Raises:
         RunFileError: the re-calibration left no posterior or metrics.
     """
-    selection = plan.selection
     settings = plan.cfg.diagnose
-    result: dict[str, Any] = {
-        "format": FORMAT,
-        "run": str(plan.run),
-        "dataset": plan.before.get("dataset"),
-        "pool": plan.pool,
-        "road": plan.road,
-        "signatures": selection.signatures,
-        "effects_ranked": selection.steps[0] if selection.steps else [],
-        "steps": selection.steps,
-        "absorption": {
-            row["effect"]: row.get("absorbed_by")
-            for row in (selection.steps[0] if selection.steps else [])
-        },
-        "unexplained": unexplained(selection),
-        "chosen": plan.chosen,
-        "shared": selection.shared,
-        "models_after": selection.models,
-        "steps_at_most": selection.steps_at_most,
-        "levels": selection.levels,
-        "alpha": settings.alpha,
-        "fit_fraction": settings.fit_fraction,
-        "validation": selection.validation.get("kind", "time"),
-        "validation_asked": settings.validation,
-        "validation_units": selection.validation.get("units"),
-        "fit_pairs": selection.validation.get("fit_pairs"),
-        "min_gain": settings.min_gain,
-        "recalibration": settings.recalibration,
-        "search": {
+    recalibrated, series_after = _recalibrated(plan)
+    result = LoopResult(
+        run=plan.run.path,
+        dataset=plan.before.get("dataset"),
+        pool=plan.pool,
+        road=plan.road,
+        selection=plan.selection,
+        unexplained=unexplained(plan.selection),
+        settings=settings,
+        search={
             "population": max(settings.population, plan.cfg.abc.top_n),
             "local_copies": settings.local_copies,
             "rounds": settings.rounds,
@@ -503,14 +483,18 @@ def finish_loop(plan: LoopPlan) -> dict[str, Any]:
             "run_particles": plan.cfg.abc.n_particles,
             "n_train": plan.train_pairs.n_pairs,
         },
-        "before": plan.before["hybrid"],
-        "residuals_before": plan.residuals_before,
-    }
-    after, series_after = _after(plan)
-    result |= after
-    result["seconds"] = time.perf_counter() - plan.began
+        before=plan.before["hybrid"],
+        shares_before=plan.posterior.shares,
+        residuals_before=plan.residuals_before,
+        recalibrated=recalibrated,
+        seconds=time.perf_counter() - plan.began,
+    )
     write_report(
-        plan.run, result, plan.series_before, series_after, plan.train_pairs.dt
+        plan.run,
+        result.to_json(),
+        plan.series_before,
+        series_after,
+        plan.train_pairs.dt,
     )
     return result
 
@@ -522,8 +506,8 @@ def unexplained(selection: EffectSelection) -> list[dict[str, Any]]:
     chosen."""
     if not selection.signatures:
         return []
-    tested = {row["name"] for rows in selection.steps for row in rows}
-    chosen = {e.split("(")[0] for e in selection.chosen}
+    tested = {row.name for rows in selection.steps for row in rows}
+    chosen = {effect.name for effect in selection.chosen}
     out = []
     for mark in selection.signatures[-1]:
         if not mark["found"]:
@@ -544,37 +528,27 @@ def unexplained(selection: EffectSelection) -> list[dict[str, Any]]:
     return out
 
 
-def _after(plan: LoopPlan) -> tuple[dict[str, Any], Series | None]:
-    """The result's "after" entries and the residual series after (None: nothing
-    was re-calibrated, "after" is "before")."""
+def _recalibrated(plan: LoopPlan) -> tuple[Recalibrated | None, Series | None]:
+    """The re-calibration's results and the residual series after (None, None:
+    nothing was chosen, "after" is "before")."""
     if plan.recalibration is None:
-        return {
-            "after": plan.before["hybrid"],
-            "after_run": None,
-            "shares_after": plan.posterior.shares,
-            "before_same_search": None,
-            "test_pairs": None,
-            "reference_run": None,
-            "posterior": {},
-            "identifiability": {},
-            "residuals_after": plan.residuals_before,
-        }, None
+        return None, None
     after = RunDir(plan.recalibration_dir)
     posterior = after.load_posterior()
     metrics = after.read_metrics()
     residuals, series = diagnose_residuals(posterior, plan.train_pairs)
     reference = RunDir(plan.reference_dir).read_metrics()
-    return {
-        "after": metrics["hybrid"],
-        "after_run": str(after),
-        "before_same_search": reference["hybrid"],
-        "test_pairs": _paired_on_test(plan, reference, metrics),
-        "reference_run": str(plan.reference_dir),
-        "shares_after": posterior.shares,
-        "posterior": effect_posterior(posterior, plan.chosen),
-        "identifiability": effect_identifiability(posterior, plan.chosen),
-        "residuals_after": residuals,
-    }, series
+    return Recalibrated(
+        after_run=after.path,
+        reference_run=plan.reference_dir,
+        after=metrics["hybrid"],
+        shares=posterior.shares,
+        before_same_search=reference["hybrid"],
+        test_pairs=_paired_on_test(plan, reference, metrics),
+        posterior=effect_posterior(posterior, plan.chosen),
+        identifiability=effect_identifiability(posterior, plan.chosen),
+        residuals_after=residuals,
+    ), series
 
 
 def _paired_on_test(
@@ -598,7 +572,6 @@ def _paired_on_test(
 
 
 __all__ = [
-    "FORMAT",
     "Candidates",
     "LoopPlan",
     "active_models",

@@ -36,16 +36,16 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from ..models.effects import Grade, parse_effect
+from ..models.effects import Effect, Grade
 from .refit import Pin
 from .search import INVALID_RATIO
 from .significance import comparable, sign_flip_test
+from .tested import EffectTest
 from .validation import Judge
 
 #: The sizes tried, as shares of the way from the neutral value to each end of
@@ -53,7 +53,7 @@ from .validation import Judge
 LADDER = (1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0)
 
 
-def size_path(effect: str) -> list[tuple[str, list[tuple[float, Tensor]]]] | None:
+def size_path(effect: Effect) -> list[tuple[str, list[tuple[float, Tensor]]]] | None:
     """The sizes an effect is tried at: per side (``"below"``, ``"above"`` the
     neutral value), ``(size, value (K_E,))`` pairs, smallest first; None for an
     effect with no one-number size (several parameters of their own meaning:
@@ -63,16 +63,15 @@ def size_path(effect: str) -> list[tuple[str, list[tuple[float, Tensor]]]] | Non
     profile whose knots alternate in sign (+s, -s, ...), the rolling road of a
     test track, on the side ``"above"`` only (its sign is the profile's phase).
     """
-    spec = parse_effect(effect)
-    if isinstance(spec, Grade):
-        bound = spec.param_specs[0].upper
+    if isinstance(effect, Grade):
+        bound = effect.param_specs[0].upper
         signs = torch.tensor(
-            [(-1.0) ** k for k in range(len(spec.param_specs))], dtype=torch.float64
+            [(-1.0) ** k for k in range(len(effect.param_specs))], dtype=torch.float64
         )
         return [("above", [(f * bound, f * bound * signs) for f in LADDER])]
-    if len(spec.param_specs) != 1:
+    if len(effect.param_specs) != 1:
         return None
-    (param,), (neutral,) = spec.param_specs, spec.neutral
+    (param,), (neutral,) = effect.param_specs, effect.neutral
     sides = []
     for side, end in (("below", param.lower), ("above", param.upper)):
         reach = end - neutral
@@ -110,7 +109,7 @@ class Ladder:
     first asked for (a refit per size)."""
 
     def __init__(
-        self, judge: Judge, effect: str, before: np.ndarray, permutations: int
+        self, judge: Judge, effect: Effect, before: np.ndarray, permutations: int
     ) -> None:
         self.judge, self.effect, self.before = judge, effect, before
         self.permutations = permutations
@@ -162,7 +161,7 @@ def _rung(size: float, before: np.ndarray, after: np.ndarray, perms: int) -> Run
 
 def detectable_sizes(
     judge: Judge,
-    rows: list[dict[str, Any]],
+    rows: list[EffectTest],
     first_level: float,
     min_gain: float,
     permutations: int,
@@ -175,29 +174,28 @@ def detectable_sizes(
     told each effect's name as its sizes are tried."""
     before = None
     for row in rows:
-        if size_path(row["effect"]) is None:
-            row["detectable"] = None
+        if size_path(row.effect) is None:
+            row.detectable = None
             continue
-        progress(row["effect"].split("(")[0])
+        progress(row.name)
         if before is None:
             before = judge.profile(None)
-        found = Ladder(judge, row["effect"], before, permutations)
+        found = Ladder(judge, row.effect, before, permutations)
         sides = list(found.path)
-        row["detectable"] = {
-            "unit": _unit(row["effect"]),
-            "level": row["level"],
-            "at_level": {s: found.smallest(s, row["level"], min_gain) for s in sides},
+        row.detectable = {
+            "unit": _unit(row.effect),
+            "level": row.level,
+            "at_level": {s: found.smallest(s, row.level, min_gain) for s in sides},
             "first_level": first_level,
             "if_first": {s: found.smallest(s, first_level, min_gain) for s in sides},
             "tried": found.tried_rungs(),
         }
 
 
-def _unit(effect: str) -> str:
-    spec = parse_effect(effect)
-    if isinstance(spec, Grade):
+def _unit(effect: Effect) -> str:
+    if isinstance(effect, Grade):
         return "1 (grade amplitude)"
-    return spec.param_specs[0].unit
+    return effect.param_specs[0].unit
 
 
 __all__ = ["LADDER", "Ladder", "Rung", "detectable_sizes", "size_path"]

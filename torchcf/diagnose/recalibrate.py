@@ -42,7 +42,7 @@ from ..abc.topn import TopN
 from ..config import TrainConfig, validate_config
 from ..data import PairSet
 from ..models import get_model
-from ..models.effects import parse_effect
+from ..models.effects import Effect
 from ..posterior import Posterior
 from ..runs.directory import RunDir
 from .arms import Arena, Arm, design_fits, design_values
@@ -75,7 +75,7 @@ def run_population(posterior: Posterior, size: int) -> Population:
 def recalibrate(
     cfg: TrainConfig,
     posterior: Posterior,
-    chosen: Sequence[str],
+    chosen: Sequence[Effect],
     shared: dict[str, list[float]],
     pool: Sequence[str],
     train_pairs: PairSet,
@@ -85,7 +85,7 @@ def recalibrate(
     """The reference and after (module docstring) on the training pairs.
 
     Args:
-        chosen: the chosen effect tokens, in the order chosen.
+        chosen: the chosen effects, in the order chosen.
         shared: per chosen shared effect name, its value.
         pool: the pool models the effects were tested on (only their particles
             get the effects).
@@ -122,11 +122,10 @@ def recalibrate(
     after = reference
     growing = set(pool)
     for effect in chosen:
-        spec = parse_effect(effect)
         base = _only(after, growing)
         current = {m: get_model(m).param_names for m in base.models}
-        if spec.shared:
-            lifted, lifted_from = lift(base, effect, values[spec.name], rollout)
+        if effect.shared:
+            lifted, lifted_from = lift(base, effect, values[effect.name], rollout)
             begin = merge([lifted], size)
         else:  # the attribution's design points, on the whole windows
             arena = Arena(settings, rollout, rollout, seed, priors, cfg.abc.top_n)

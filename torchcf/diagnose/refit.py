@@ -47,7 +47,7 @@ from torch import Tensor
 from ..abc.particles import Particles
 from ..abc.rejection import Rollout
 from ..models import get_model
-from ..models.effects import parse_effect
+from ..models.effects import Effect
 from .population import Population, merge, rescore
 from .search import Noise, generator, lift, local_search, model_bounds, variant_of
 
@@ -78,11 +78,11 @@ class Pin:
     """An effect held at one value on the held-out pairs.
 
     Attributes:
-        effect: the effect's token.
+        effect: the effect.
         value: (K_E,) float64 its parameters, in the effect's order.
     """
 
-    effect: str
+    effect: Effect
     value: Tensor
 
 
@@ -134,7 +134,7 @@ def candidates(
 def lifted(candidates: Mapping[str, Tensor], pin: Pin) -> dict[str, Tensor]:
     """Every candidate as ``m+E`` with E at ``pin.value`` (K_E,); a model the
     effect cannot wrap (``lag`` on HL) stays as it is."""
-    names = [p.name for p in parse_effect(pin.effect).param_specs]
+    names = [p.name for p in pin.effect.param_specs]
     out = {}
     for name, theta in candidates.items():
         variant = variant_of(name, pin.effect)
@@ -249,7 +249,7 @@ def _searched(
     ``pin`` held at their values (``+inf``: no valid particle)."""
     pinned = dict(shared)
     if pin is not None:
-        pinned[parse_effect(pin.effect).name] = pin.value
+        pinned[pin.effect.name] = pin.value
     bounds = {m: model_bounds(m, dict(priors), pinned) for m in population.models}
     noise = Noise(key, current, pin.effect if pin is not None else None)
     if budget.rounds > 0:

@@ -309,8 +309,8 @@ class RoadChoice:
     """A bare road effect resolved at the data's resolution.
 
     Attributes:
-        token: the effect with its section and knots, e.g.
-            ``"grade(start=12,end=1700,knots=35)"``.
+        effect: the effect with its section and knots, e.g.
+            ``grade(start=12,end=1700,knots=35)``.
         spacing: the chosen knot spacing [m].
         errors: held-out squared error per spacing tried.
         standard_errors: per spacing, the standard error of its error's
@@ -320,7 +320,7 @@ class RoadChoice:
             or None.
     """
 
-    token: str
+    effect: RoadProfile
     spacing: float
     errors: dict[float, float]
     standard_errors: dict[float, float]
@@ -328,14 +328,40 @@ class RoadChoice:
 
     def report(self) -> dict[str, Any]:
         return {
-            "effect": self.token,
+            "effect": self.effect.token,
             "spacing": self.spacing,
             "cv_error": {f"{k:g}": v for k, v in self.errors.items()},
         }
 
 
+@dataclass(frozen=True)
+class RoadOffer:
+    """How road effects were offered to the attribution.
+
+    Attributes:
+        frame: the pairs share one road frame (road effects offered).
+        reason: why (:func:`shares_road_frame`).
+        skipped: the configured road effects left out (no shared frame).
+        profiles: per bare road effect, its knot spacing chosen on the data.
+    """
+
+    frame: bool
+    reason: str
+    skipped: list[RoadProfile]
+    profiles: list[RoadChoice]
+
+    def to_json(self) -> dict[str, Any]:
+        """As ``loop.json``'s ``road``."""
+        return {
+            "frame": self.frame,
+            "reason": self.reason,
+            "skipped": [effect.token for effect in self.skipped],
+            "profiles": [choice.report() for choice in self.profiles],
+        }
+
+
 def choose_spacing(
-    name: str,
+    kind: type[RoadProfile],
     start: float,
     end: float,
     series: dict[str, list[np.ndarray]],
@@ -354,7 +380,6 @@ def choose_spacing(
     profiles: dict[float, RoadProfile] = {}
     folds: dict[float, np.ndarray] = {}
     weights = pair_weights(residual)
-    kind = type(parse_effect(name))
     for spacing in ROAD_SPACINGS:
         if period:
             knots = max(MIN_LAP_KNOTS, round(period / spacing))
@@ -379,7 +404,7 @@ def choose_spacing(
         seed = grade_seed(effect, x, residual, weights)
     elif isinstance(effect, Bend) and "v" in series:
         seed = bend_seed(effect, x, series["v"])
-    return RoadChoice(effect.token, best, errors, standard, seed)
+    return RoadChoice(effect, best, errors, standard, seed)
 
 
 def finite_samples(series: dict[str, list[np.ndarray]]) -> dict[str, list[np.ndarray]]:
@@ -484,6 +509,7 @@ __all__ = [
     "SAME_START",
     "RoadChoice",
     "bend_seed",
+    "RoadOffer",
     "choose_spacing",
     "cross_validated_error",
     "finite_samples",

@@ -44,8 +44,8 @@ import torch
 from torch import Tensor
 
 from ..abc.rejection import Rollout
-from ..models import UnknownModelError, get_model
-from ..models.effects import parse_effect
+from ..models import UnknownModelError, augment, get_model
+from ..models.effects import Effect
 from .population import Population, merge, rescore, score_on
 
 #: Standard deviations of the local search's steps, as fractions of each
@@ -65,9 +65,19 @@ def derive_seed(*labels: object) -> int:
     """A 63-bit seed that is a pure function of ``labels`` (stable across runs and
     machines): every random draw of the loop has its own, so an arm's result
     does not depend on which arms ran before it (or were read from a
-    checkpoint)."""
-    digest = hashlib.sha256(repr(labels).encode()).digest()
+    checkpoint). An effect stands for its token (the same seed as its name)."""
+    digest = hashlib.sha256(repr(_as_text(labels)).encode()).digest()
     return int.from_bytes(digest[:8], "little") >> 1
+
+
+def _as_text(label: object) -> object:
+    """``label`` with every effect in it (nested in tuples and lists) replaced
+    by its token."""
+    if isinstance(label, Effect):
+        return label.token
+    if isinstance(label, tuple | list):
+        return type(label)(_as_text(item) for item in label)
+    return label
 
 
 def generator(*labels: object) -> torch.Generator:
@@ -76,11 +86,11 @@ def generator(*labels: object) -> torch.Generator:
 
 
 # ------------------------------------------------------------------ variants
-def variant_of(model: str, effect: str) -> str | None:
-    """``model+effect``'s canonical name; None where the effect cannot wrap it
-    (``lag`` on HL, which has its own actuation lag)."""
+def variant_of(model: str, effect: Effect) -> str | None:
+    """``model`` wrapped by ``effect``: the variant's canonical name; None where
+    the effect cannot wrap it (``lag`` on HL, which has its own actuation lag)."""
     try:
-        return get_model(f"{model}+{effect}").name
+        return augment(get_model(model), effect).name
     except UnknownModelError:
         return None
 
@@ -94,10 +104,10 @@ def model_bounds(
     (K_E,)) pinned at its value (a zero-width row: the search never moves it)."""
     model = get_model(name)
     bounds = model.prior_bounds(torch.float64)
-    base = model.base.name if hasattr(model, "base") else model.name
+    base = model.pool_model.name
     if base in priors:
         bounds[: priors[base].shape[0]] = priors[base]
-    for effect in getattr(model, "effects", ()):
+    for effect in model.effects:
         if shared and effect.name in shared:
             columns = [model.param_names.index(p.name) for p in effect.param_specs]
             value = shared[effect.name].to(torch.float64)
@@ -119,7 +129,7 @@ class Noise:
 
     key: tuple
     current: dict[str, tuple[str, ...]]
-    effect: str | None = None
+    effect: Effect | None = None
 
     @property
     def width(self) -> int:
@@ -134,7 +144,7 @@ class Noise:
         )  # fmt: skip
         if self.effect is None:
             return common
-        k_e = len(parse_effect(self.effect).param_specs)
+        k_e = len(self.effect.param_specs)
         own = torch.randn(
             *shape, k_e, generator=generator(*self.key, round_, self.effect),
             dtype=torch.float64,
@@ -146,11 +156,7 @@ class Noise:
         descends from the current model ``parent`` (by name; the effect's own
         parameters after the common columns)."""
         names = self.current[parent]
-        own = (
-            [p.name for p in parse_effect(self.effect).param_specs]
-            if self.effect
-            else []
-        )
+        own = [p.name for p in self.effect.param_specs] if self.effect else []
         out = []
         for name in get_model(model).param_names:
             if name in names:
@@ -337,7 +343,7 @@ def _summed_best(population: Population) -> float:
 # --------------------------------------------------------------- nested starts
 def lift(
     population: Population,
-    effect: str,
+    effect: Effect,
     values: Tensor,
     rollout: Rollout | None = None,
 ) -> tuple[Population, dict[str, str]]:
@@ -353,7 +359,7 @@ def lift(
         the lifted population (slot order unchanged) and, per variant, the model
         it was lifted from.
     """
-    names = [p.name for p in parse_effect(effect).param_specs]
+    names = [p.name for p in effect.param_specs]
     n, size = population.score.shape
     values = values.to(torch.float64).expand(n, size, len(names))
     models = list(population.models)
@@ -400,7 +406,7 @@ def lift(
 
 # ------------------------------------------------------------ a shared value
 def shared_value(
-    effect: str,
+    effect: Effect,
     population: Population,
     rollout: Rollout,
     bounds: dict[str, Tensor],
@@ -469,7 +475,7 @@ def shared_value(
 
 
 def _value_scores(
-    effect: str,
+    effect: Effect,
     values: Tensor,
     members: Population,
     rollout: Rollout,
@@ -526,11 +532,10 @@ def _around(value: Tensor, half: Tensor, prior: Tensor) -> Tensor:
     )
 
 
-def effect_prior(effect: str) -> Tensor:
+def effect_prior(effect: Effect) -> Tensor:
     """The effect's default prior box (K_E, 2) float64."""
-    spec = parse_effect(effect)
     return torch.tensor(
-        [[p.lower, p.upper] for p in spec.param_specs], dtype=torch.float64
+        [[p.lower, p.upper] for p in effect.param_specs], dtype=torch.float64
     )
 
 

@@ -61,13 +61,30 @@ def get_model(name_or_model: str | CFModel) -> CFModel:
     if not tokens:
         raise UnknownModelError(f"unknown model {name_or_model!r}")
     try:
-        model = AugmentedModel(MODELS[base_name], [parse_effect(t) for t in tokens])
+        effects = [parse_effect(t) for t in tokens]
+    except ValueError as error:
+        raise UnknownModelError(str(error)) from None
+    model = augment(MODELS[base_name], *effects)
+    _AUGMENTED[key] = model
+    return model
+
+
+def augment(model: CFModel, *effects: Effect) -> CFModel:
+    """``model`` wrapped by ``effects`` besides its own: the one instance of that
+    variant (``augment(IDM, Delay())`` is ``get_model("idm+delay")``).
+
+    Raises:
+        UnknownModelError: an effect cannot wrap the model (``lag`` on HL, which
+            has its own actuation lag) or is listed twice.
+    """
+    if not effects:
+        return model
+    try:
+        variant = AugmentedModel(model.pool_model, [*model.effects, *effects])
     except ValueError as error:
         raise UnknownModelError(str(error)) from None
     # One instance per canonical name (compiled graphs are cached per instance).
-    model = _AUGMENTED.setdefault(model.name, model)
-    _AUGMENTED[key] = model
-    return model
+    return _AUGMENTED.setdefault(variant.name, variant)
 
 
 def split_name(key: str) -> list[str]:
@@ -85,12 +102,6 @@ def split_name(key: str) -> list[str]:
     return [part.strip() for part in parts + [current]]
 
 
-def effect_kinds(name: str) -> list[str]:
-    """The effects' names in a model's name, options dropped:
-    ``"idm+grade(end=1e+06)+lag"`` -> ``["grade", "lag"]``."""
-    return [token.split("(")[0] for token in split_name(name)[1:]]
-
-
 __all__ = [
     "EFFECTS",
     "MODELS",
@@ -101,7 +112,7 @@ __all__ = [
     "ParamSpec",
     "Perception",
     "UnknownModelError",
-    "effect_kinds",
+    "augment",
     "first_order_lag_advance",
     "get_model",
     "point_mass_advance",

@@ -68,6 +68,11 @@ class AugmentedModel(CFModel):
         self._slices = tuple(bounds)
 
     @property
+    def pool_model(self) -> CFModel:
+        """The wrapped pool model."""
+        return self.base
+
+    @property
     def realises_as_point_mass(self) -> bool:
         """The base's realisation, unless an effect realises the command itself."""
         return self._realiser is None and self.base.realises_as_point_mass

@@ -160,6 +160,22 @@ class CFModel:
     #: knows the model's prepared parameters and memory.
     prunable: ClassVar[bool] = True
 
+    #: The effects wrapping the pool model (:class:`~torchcf.models.augmented.
+    #: AugmentedModel`); none for a pool model.
+    effects: tuple[Any, ...] = ()
+
+    @property
+    def pool_model(self) -> CFModel:
+        """The pool model under any effects (a pool model is its own)."""
+        return self
+
+    @property
+    def effect_kinds(self) -> tuple[str, ...]:
+        """The kinds (:attr:`Effect.name`) of the effects wrapping the model, in
+        their canonical order (road effects last): ``idm+lag+grade(end=600)`` ->
+        ``("lag", "grade")``."""
+        return tuple(effect.name for effect in self.effects)
+
     @property
     def param_names(self) -> tuple[str, ...]:
         return tuple(spec.name for spec in self.param_specs)

@@ -158,6 +158,16 @@ class Effect:
     def __repr__(self) -> str:
         return self.token
 
+    def __eq__(self, other: object) -> bool:
+        """Effects are equal when they are one kind with the same options (one
+        token): the identity an effect travels with."""
+        if not isinstance(other, Effect):
+            return NotImplemented
+        return type(self) is type(other) and self.token == other.token
+
+    def __hash__(self) -> int:
+        return hash((type(self).__name__, self.token))
+
 
 def _number(value: float) -> str:
     """The shortest of ``%g``-style forms that reads back as ``value`` exactly.

@@ -32,6 +32,7 @@ from ..config import TrainConfig, load_split
 from ..data import PairSet
 from ..data.registry import notes_deferred
 from ..diagnose.loop import finish_loop, plan_loop, run_recalibration
+from ..diagnose.outcome import LoopResult
 from ..evaluation.evaluate import evaluate_run
 from ..runs.directory import RunDir
 from ..train import RunSummary, check_budget, open_run, run_device, train
@@ -59,7 +60,7 @@ class StudyResult(Mapping[str, Any]):
     run: Path
     summary: RunSummary
     evaluated: bool = False
-    loop: dict[str, Any] | None = None
+    loop: LoopResult | None = None
 
     def __getitem__(self, key: str) -> Any:
         """The training summary's JSON value of ``key``."""
@@ -185,7 +186,7 @@ def close_loop(
     *,
     pairs: tuple[PairSet, PairSet] | None = None,
     progress: bool = True,
-) -> dict[str, Any]:
+) -> LoopResult:
     """Close the loop on a finished, evaluated run (:mod:`torchcf.diagnose`).
 
     Diagnose and attribute (:func:`~torchcf.diagnose.loop.plan_loop`); if effects
