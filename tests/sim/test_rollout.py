@@ -11,7 +11,7 @@ import torch
 import torchcf
 from tests.conftest import prior_draws, synthetic_pairs
 from tests.reference import simulate_pair
-from torchcf import MODELS, PairSet, simulate
+from torchcf import MODELS, Execution, PairSet, simulate
 
 NAMES = list(MODELS)
 
@@ -138,9 +138,10 @@ def test_result_independent_of_chunk_size(chunk_size, pairs):
     theta = prior_draws(MODELS["idm"], 40, seed=1, dtype=torch.float32)
     index = torch.randint(0, pairs.n_pairs, (40,))
     reference_out = simulate("idm", theta, pairs, index)
-    chunked = simulate("idm", theta, pairs, index, chunk_size=chunk_size)
+    chunks = Execution(chunk_size=chunk_size)
+    chunked = simulate("idm", theta, pairs, index, execution=chunks)
     assert torch.equal(chunked.score, reference_out.score)
-    full = simulate("idm", theta, pairs, chunk_size=chunk_size)
+    full = simulate("idm", theta, pairs, execution=chunks)
     assert torch.equal(full.score, simulate("idm", theta, pairs).score)
 
 
@@ -305,8 +306,8 @@ def test_compiled_equals_eager(name):
     pairs = synthetic_pairs(n_pairs=5, n_steps=120)
     theta = prior_draws(MODELS[name], 256, seed=3, dtype=torch.float32)
     index = torch.randint(0, 5, (256,))
-    eager = simulate(name, theta, pairs, index, compile=False)
-    compiled = simulate(name, theta, pairs, index, compile=True)
+    eager = simulate(name, theta, pairs, index, execution=Execution(compile=False))
+    compiled = simulate(name, theta, pairs, index, execution=Execution(compile=True))
     assert torch.equal(eager.valid, compiled.valid)
     torch.testing.assert_close(compiled.score, eager.score, rtol=1e-5, atol=1e-5)
 
@@ -332,8 +333,12 @@ def test_a_correcting_model_compiles_around_its_correction(name, paired):
     theta = prior_draws(model, 192, seed=6, dtype=torch.float64)
     theta[::2, 4:6] = torch.tensor([-0.3, 0.3], dtype=torch.float64)  # box active
     index = torch.randint(0, 4, (192,)) if paired else None
-    eager = simulate(model, theta, pairs, index, compile=False, return_traj=True)
-    fused = simulate(model, theta, pairs, index, compile=True, return_traj=True)
+    eager, fused = (
+        simulate(
+            model, theta, pairs, index, return_traj=True, execution=Execution(compile=c)
+        )
+        for c in (False, True)
+    )
     assert bool(eager.valid.any())
     assert torch.equal(eager.valid, fused.valid)
     torch.testing.assert_close(fused.score, eager.score, rtol=1e-9, atol=1e-9)
@@ -375,7 +380,13 @@ def test_compiled_result_independent_of_chunk_size(name):
     theta = prior_draws(MODELS[name], 300, seed=4, dtype=torch.float32)
     index = torch.randint(0, 5, (300,))
     outs = [
-        simulate(name, theta, pairs, index, compile=True, chunk_size=size)
+        simulate(
+            name,
+            theta,
+            pairs,
+            index,
+            execution=Execution(chunk_size=size, compile=True),
+        )
         for size in (100, 300)
     ]
     assert torch.equal(outs[0].score, outs[1].score)
@@ -392,7 +403,9 @@ def test_a_padded_last_chunk_reuses_the_compiled_graph(name, graphs):
     pairs = synthetic_pairs(n_pairs=5, n_steps=32)
     theta = prior_draws(MODELS[name], 300, seed=5, dtype=torch.float32)
     index = torch.arange(300) % 5
-    simulate(name, theta, pairs, index, compile=True, chunk_size=128)
+    simulate(
+        name, theta, pairs, index, execution=Execution(chunk_size=128, compile=True)
+    )
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
 
 

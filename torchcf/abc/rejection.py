@@ -43,6 +43,7 @@ from ..sim.rollout import (
     COMPILE_CHUNK_MULTIPLE,
     CUDA_CHUNK_CELLS,
     DEFAULT_WEIGHTS,
+    Execution,
     SimOutput,
     cell_budget,
     resolve_compile,
@@ -129,7 +130,8 @@ class Rollout:
         Args:
             pair: (P,) pair of each particle (paired layout), None for the full one.
             chunk: particles per simulate call (default: :meth:`chunk`).
-            ceiling: early rejection (:func:`torchcf.sim.rollout.simulate`): the score's
+            ceiling: early rejection
+                (:attr:`torchcf.sim.rollout.Execution.ceiling`): the score's
                 shape; a particle stopped above it scores ``+inf`` and is valid.
 
         Returns:
@@ -173,11 +175,8 @@ class Rollout:
             pairs,
             pair,
             dtype=self.dtype,
-            device=self.device,
             weights=self.weights,
-            chunk_size=chunk,
-            compile=compiled,
-            ceiling=ceiling,
+            execution=Execution(self.device, chunk, compiled, ceiling),
         )
 
 

@@ -56,7 +56,7 @@ from ..data import PairSet
 from ..posterior import Posterior
 from ..runs.directory import RunDir
 from ..runs.tensorboard import RunLogger
-from ..sim.rollout import simulate
+from ..sim.rollout import Execution, simulate
 from ..system.console import bar_interval
 from ..system.errors import TorchcfError
 from ..system.files import atomic_write_text, ensure_directory, writing
@@ -185,9 +185,9 @@ def cost_matrices(
                 theta[start:stop].to(dtype),
                 test,
                 dtype=dtype,
-                device=device,
                 return_traj=bool(predictive),
                 weights=weights,
+                execution=Execution(device=device),
             )
             if predictive:
                 draws = predicted(test.x_lead.to(out.x), out.x, out.v)  # (T, P, N)
@@ -410,9 +410,9 @@ def position_errors(
                 theta.to(dtype),
                 one,
                 dtype=dtype,
-                device=cfg.device,
                 return_traj=True,
                 weights=cfg.abc.weights,
+                execution=Execution(device=cfg.device),
             )
         x = out.x[:, :, 0].double().cpu()  # (T, P)
         err = (x - one.x_follow[:, :1]).T.numpy()  # (P, T)
