@@ -23,6 +23,7 @@ import pytest
 import torch
 
 from torchcf.abc.particles import Particles, best_per_pair
+from torchcf.abc.rejection import prior_stream
 from torchcf.config import ConfigError, resolved_json, validate_config
 from torchcf.diagnose import (
     DiagnoseError,
@@ -399,10 +400,8 @@ def test_local_search_spends_its_budget_and_never_loses_a_fit(monkeypatch):
     rollout = attribution_rollout(cfg, pairs)
     bounds = {m: model_bounds(m, {}) for m in ("idm", "llctg")}
     seed = attribution_seed(cfg)
-    sets = [
-        prior_particles(m, rollout, (200,), 3, bounds[m], seed)[0]
-        for m in ("idm", "llctg")
-    ]
+    streams = [prior_stream(m, bounds[m], seed, rollout) for m in ("idm", "llctg")]
+    sets = [prior_particles(stream, rollout, (200,), 3)[0] for stream in streams]
     start = Population.from_particles(sets, 4, 3)
     simulated = []
     scores = search.score_on
@@ -431,9 +430,8 @@ def test_diagnose_seed_replaces_the_runs_seed_in_the_attribution():
     def drawn(**diagnose):
         cfg = _config(**diagnose)
         rollout = attribution_rollout(cfg, pairs)
-        (particles,) = prior_particles(
-            "idm", rollout, (50,), 2, bounds, attribution_seed(cfg)
-        )
+        stream = prior_stream("idm", bounds, attribution_seed(cfg), rollout)
+        (particles,) = prior_particles(stream, rollout, (50,), 2)
         return particles
 
     default, same, other = drawn(), drawn(seed=0), drawn(seed=1)

@@ -46,7 +46,7 @@ import torch
 from torch import Tensor
 
 from ..abc.particles import Particles
-from ..abc.rejection import Rollout
+from ..abc.rejection import Rollout, prior_stream
 from ..abc.smc import SMCSettings
 from ..config import DiagnoseConfig, TrainConfig
 from ..data import PairSet
@@ -287,13 +287,12 @@ def fit_pool(
         kept = checkpoints.get(key) if checkpoints is not None else None
         if kept is None:
             box = model_bounds(name, arena.priors)
+            stream = prior_stream(get_model(name).name, box, arena.seed, arena.fit)
             (particles,) = prior_particles(
-                name,
+                stream,
                 arena.fit,
                 (arena.settings.n_particles,),
                 arena.size,
-                box,
-                arena.seed,
                 smc=arena.smc,
                 progress=tick,
             )

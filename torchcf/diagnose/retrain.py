@@ -54,6 +54,7 @@ from torch import Tensor
 
 from ..abc.configured import rollout_of, smc_settings
 from ..abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
+from ..abc.rounds import RoundHooks
 from ..abc.screen import PlausibilityScreen
 from ..abc.smc import new_state, run_smc
 from ..abc.topn import TopN
@@ -195,8 +196,7 @@ def _more_of(
         2 * n_particles,
         progress,
         plan_particles=n_particles,
-        after_round=_ticker(tick, start=n_particles),
-        screen=screen,
+        hooks=RoundHooks(screen=screen, after_round=_ticker(tick, start=n_particles)),
     )
     return _cpu(buffer.state_dict())
 
@@ -217,40 +217,26 @@ def _trained(
     n_pairs, capacity = rollout.pairs.n_pairs, cfg.abc.buffer_size
     k = bounds.shape[0]
     progress = ModelProgress()
-    after_round = _ticker(tick, start=0)
+    stream = prior_stream(name, bounds, seed, rollout, fixed)
+    hooks = RoundHooks(screen=screen, after_round=_ticker(tick, start=0))
     if cfg.abc.method == "smc":
         settings = smc_settings(cfg)
         buffer = TopN(n_pairs, capacity, k + 1)  # SMC keeps log r beside theta
         run_smc(
-            name,
-            bounds,
-            seed,
+            stream,
             buffer,
             rollout,
             cfg.abc.n_particles,
             settings,
             progress,
             new_state(n_pairs, settings, k),
-            model=name,
-            fixed=fixed,
-            after_round=after_round,
-            screen=screen,
+            hooks=hooks,
         )
         state = _cpu(buffer.state_dict())
         state["theta"] = state["theta"][..., :k].contiguous()
         return _with_fixed(state, fixed)
     buffer = TopN(n_pairs, capacity, get_model(name).n_params)  # fixed ones too
-    run_rejection(
-        prior_stream(name, bounds, seed, rollout),
-        buffer,
-        rollout,
-        cfg.abc.n_particles,
-        progress,
-        model=name,
-        fixed=fixed,
-        after_round=after_round,
-        screen=screen,
-    )
+    run_rejection(stream, buffer, rollout, cfg.abc.n_particles, progress, hooks=hooks)
     return _cpu(buffer.state_dict())
 
 
