@@ -197,6 +197,7 @@ class Arena:
                 tick()
 
         def keep(state: Converging) -> None:
+            tick()
             if checkpoints is not None:
                 entry = {
                     "population": population_dict(state.population),
@@ -211,9 +212,7 @@ class Arena:
             self.bounds(population.models, shared),
             Noise((self.seed, "converge", *label), _current(population)),
             {m: m for m in population.models},
-            copies=self.settings.local_copies,
-            max_rounds=self.settings.max_rounds,
-            progress=tick,
+            self.settings,
             resume=resume,
             after_round=keep,
         )
