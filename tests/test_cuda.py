@@ -156,7 +156,7 @@ def test_recalibration_by_training_on_cuda_keeps_the_cpu_particles(tmp_path):
     """The loop's re-calibration by the run's sampler (float64): the reference
     (the run's streams continued) and after (a variant trained) keep the
     particles the CPU keeps."""
-    from torchcf.diagnose.retrain import retrain
+    from torchcf.diagnose.retrain import FinalModel, retrain
 
     pairs = synthetic_pairs(n_pairs=6, n_steps=200, seed=1)
     results = []
@@ -165,7 +165,8 @@ def test_recalibration_by_training_on_cuda_keeps_the_cpu_particles(tmp_path):
         train(cfg, tmp_path / f"run{i}", pairs=(pairs, pairs))
         posterior = Posterior.load(tmp_path / f"run{i}" / "posterior.pt")
         models = ["idm", "hl", "idm+delay"]
-        results.append(retrain(cfg, posterior, models, {}, {}, ["idm"], pairs))
+        final = FinalModel(models)
+        results.append(retrain(cfg, posterior, final, ["idm"], pairs))
     for on_cpu, on_gpu in zip(*results, strict=True):
         for name, cpu in on_cpu.items():
             gpu = on_gpu[name]
