@@ -94,12 +94,7 @@ def make_pairs() -> PairSet:
     mask = np.ones((n_steps, 3), dtype=bool)
     mask[100:, 2] = False
     return PairSet.from_arrays(
-        x_lead,
-        v_lead,
-        a_lead,
-        x_follow,
-        v_follow,
-        a_follow,
+        (x_lead, v_lead, a_lead, x_follow, v_follow, a_follow),
         dt=DT,
         mask=mask,
         leader_length=LEADER_LENGTH,

@@ -168,12 +168,7 @@ def test_perfect_model_scores_zero():
     theta = torch.tensor([[1.2, 2.0, 30.0, 1.4, 2.0, 4.0]], dtype=torch.float64)
     sim = simulate("idm", theta, base, dtype=torch.float64, return_traj=True)
     observed = PairSet.from_arrays(
-        base.x_lead,
-        base.v_lead,
-        base.a_lead,
-        sim.x[:, 0],
-        sim.v[:, 0],
-        sim.a[:, 0],
+        (base.x_lead, base.v_lead, base.a_lead, sim.x[:, 0], sim.v[:, 0], sim.a[:, 0]),
         dt=base.dt,
     )
     again = simulate("idm", theta, observed, dtype=torch.float64)
@@ -226,7 +221,7 @@ class TestInvalid:
         first_bad = int(torch.nonzero(spacing <= 0)[0])
         mask = torch.zeros(200, 1, dtype=torch.bool)
         mask[:first_bad] = True
-        prefix = PairSet.from_arrays(*full.series().values(), dt=full.dt, mask=mask)
+        prefix = PairSet.from_arrays(full.series(), dt=full.dt, mask=mask)
         masked = simulate("llcs", theta, prefix, dtype=torch.float64)
         assert bool(masked.valid[0, 0])
 
@@ -235,12 +230,12 @@ def test_ragged_pair_equals_truncated_pair():
     pairs = synthetic_pairs(n_pairs=2, n_steps=150, seed=3)
     lengths = [150, 97]
     mask = torch.arange(150)[:, None] < torch.tensor(lengths)[None, :]
-    ragged = PairSet.from_arrays(*pairs.series().values(), dt=pairs.dt, mask=mask)
+    ragged = PairSet.from_arrays(pairs.series(), dt=pairs.dt, mask=mask)
     theta = prior_draws(MODELS["hl"], 5)
     out = simulate("hl", theta, ragged, dtype=torch.float64)
     short = pairs.subset([1])
     truncated = PairSet.from_arrays(
-        *(s[:97] for s in short.series().values()), dt=pairs.dt
+        [s[:97] for s in short.series().values()], dt=pairs.dt
     )
     alone = simulate("hl", theta, truncated, dtype=torch.float64)
     torch.testing.assert_close(out.score[:, 1], alone.score[:, 0])

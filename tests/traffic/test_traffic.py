@@ -80,12 +80,14 @@ def test_followers_follow_each_other_as_the_rollout_does():
     for j in (1, 2):
         # The previous follower's trajectory as the leader; follower j's start.
         ahead = PairSet.from_arrays(
-            out.x[:, :, j - 1],
-            out.v[:, :, j - 1],
-            out.a[:, :, j - 1],
-            out.x[:, :, j],
-            out.v[:, :, j],
-            out.a[:, :, j],
+            (
+                out.x[:, :, j - 1],
+                out.v[:, :, j - 1],
+                out.a[:, :, j - 1],
+                out.x[:, :, j],
+                out.v[:, :, j],
+                out.a[:, :, j],
+            ),
             dt=0.1,
         )
         for s in range(2):

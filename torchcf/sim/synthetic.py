@@ -180,12 +180,14 @@ def synthetic_pairs(
     x_follow0 = x_lead[0] - gap * v_lead[0] - 8.0
     # A leader-only placeholder set: the follower's first row is its start state.
     seed_set = PairSet.from_arrays(
-        x_lead,
-        v_lead,
-        a_lead,
-        x_follow0[None].expand(n_steps, -1),
-        v_lead[0][None].expand(n_steps, -1),
-        torch.zeros(n_steps, n_pairs, dtype=torch.float64),
+        (
+            x_lead,
+            v_lead,
+            a_lead,
+            x_follow0[None].expand(n_steps, -1),
+            v_lead[0][None].expand(n_steps, -1),
+            torch.zeros(n_steps, n_pairs, dtype=torch.float64),
+        ),
         dt=dt,
     )
     out = simulate(
@@ -206,12 +208,7 @@ def synthetic_pairs(
         v = v + 0.1 * noise / dt * torch.randn(x.shape, generator=g, dtype=x.dtype)
         a = a + 0.01 * noise / dt**2 * torch.randn(x.shape, generator=g, dtype=x.dtype)
     return PairSet.from_arrays(
-        x_lead,
-        v_lead,
-        a_lead,
-        x,
-        v,
-        a,
+        (x_lead, v_lead, a_lead, x, v, a),
         dt=dt,
         name=name,
         notes=(f"followers: {cf_model.name} theta={theta[0].tolist()}",),
@@ -334,7 +331,7 @@ def heterogeneous_pairs(
     drivers = Drivers(tuple(names[r[0]] for r in chosen), theta)
     mix = ", ".join(dict.fromkeys(drivers.model))
     pairs = PairSet.from_arrays(
-        x_lead, v_lead, a_lead, x, v, a, dt=dt, mask=mask, name=name,
+        (x_lead, v_lead, a_lead, x, v, a), dt=dt, mask=mask, name=name,
         notes=(f"followers: {mix}, one driver per pair",),
     )  # fmt: skip
     return pairs, drivers
@@ -361,9 +358,10 @@ def _plausible_batch(
     gap = 1.0 + torch.rand(batch, generator=g, dtype=torch.float64)
     x0 = x_lead[0] - gap * v_lead[0] - 8.0
     first = PairSet.from_arrays(
-        x_lead, v_lead, a_lead, x0[None].expand(n_steps, -1),
-        v_lead[0][None].expand(n_steps, -1),
-        torch.zeros(n_steps, batch, dtype=torch.float64), dt=dt,
+        (x_lead, v_lead, a_lead, x0[None].expand(n_steps, -1),
+         v_lead[0][None].expand(n_steps, -1),
+         torch.zeros(n_steps, batch, dtype=torch.float64)),
+        dt=dt,
     )  # fmt: skip
     which = torch.arange(batch) % len(models)
     kept = []
