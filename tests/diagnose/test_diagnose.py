@@ -44,7 +44,7 @@ from torchcf.diagnose.road import profile_agreement
 from torchcf.diagnose.search import Noise, model_bounds
 from torchcf.models import AugmentedModel, get_model, parse_effect, split_name
 from torchcf.posterior import Posterior
-from torchcf.sim.synthetic import Gipps, synthetic_pairs
+from torchcf.sim.synthetic import Gipps, Scene, synthetic_pairs
 from torchcf.study.pipeline import close_loop, train_and_evaluate
 from torchcf.train import train
 
@@ -332,7 +332,8 @@ def test_split_in_time_keeps_pairs_aligned():
 
 
 def test_bare_grade_spans_the_road_section():
-    pairs = synthetic_pairs("idm", IDM_TRUTH, 2, 100, seed=3, start=(100.0, 200.0))
+    road = Scene(start=(100.0, 200.0))
+    pairs = synthetic_pairs("idm", IDM_TRUTH, 2, 100, seed=3, scene=road)
     token = resolve_effect("grade", pairs)
     x = pairs.x_follow
     assert token == (
