@@ -494,19 +494,8 @@ def _evaluate_held(
         posterior, test, cfg, progress=progress, predictive=predictive
     )
     entries = [*[m for m in posterior.models if m in metrics], "hybrid"]
-    honest = uncertainty(
-        costs,
-        metrics,
-        predictive,
-        posterior,
-        beta=cfg.eval.beta,
-        n_bootstrap=cfg.eval.bootstrap,
-        n_transport=cfg.eval.bootstrap_transport,
-        level=cfg.eval.level,
-        seed=cfg.abc.seed if cfg.eval.seed is None else cfg.eval.seed,
-        coverage_levels=cfg.eval.coverage_levels,
-        coverage_curve=cfg.eval.coverage_curve,
-    )
+    seed = cfg.abc.seed if cfg.eval.seed is None else cfg.eval.seed
+    honest = uncertainty(costs, metrics, predictive, posterior, cfg.eval, seed)
     for entry in entries:
         metrics[entry].update(honest["per_set"][entry])
     best = costs["hybrid"]["score"].min(axis=0)  # (n_test,) the hybrid's per pair
