@@ -134,7 +134,10 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     tune_malloc()
     pairs = torchcf.load_pairs(
-        "car-model-2", split="train", data_root=args.data_root, drop_duplicates=False
+        "car-model-2",
+        split="train",
+        data_root=args.data_root,
+        cleaning=torchcf.data.Cleaning(drop_duplicates=False),
     )
     n_particles, steps = int(args.particles), pairs.n_steps
     rows = []
