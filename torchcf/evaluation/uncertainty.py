@@ -31,7 +31,7 @@ import numpy as np
 
 from ..config import EvalConfig
 from ..posterior import Posterior
-from ..posterior.tables import ALL, grouped_shares
+from ..posterior.tables import ALL, Bootstrap, grouped_shares
 from .bootstrap import (
     METRICS,
     TRANSPORT,
@@ -175,9 +175,7 @@ def _shares(
         posterior,
         [ALL] * n_train,
         by=ALL,
-        n_bootstrap=n_bootstrap,
-        level=level,
-        seed=seed,
+        bootstrap=Bootstrap(n_bootstrap, level, seed),
     )
     row = result.rows[0]  # every training pair
     return {
