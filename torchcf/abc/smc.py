@@ -302,8 +302,8 @@ def run_smc(
         raise ValueError("SMC refines per pair: it needs the paired layout")
     if stream.n_pairs != rollout.pairs.n_pairs:
         raise ValueError(
-            f"the stream draws pairs of {stream.n_pairs}, the rollout has "
-            f"{rollout.pairs.n_pairs}: make it with prior_stream(..., rollout)"
+            f"the stream's particles go to {stream.n_pairs} pairs, the rollout "
+            f"has {rollout.pairs.n_pairs}: make it with prior_stream(..., rollout)"
         )
     model = get_model(stream.model)
     budget = smc_budget(n_particles, rollout.pairs.n_pairs, settings)
