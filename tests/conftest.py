@@ -43,7 +43,7 @@ def synthetic_pairs(
     v_follow = np.gradient(x_follow, dt, axis=0)
     a_follow = np.gradient(v_follow, dt, axis=0)
     return PairSet.from_arrays(
-        x_lead, v_lead, a_lead, x_follow, v_follow, a_follow, dt=dt, name="synthetic"
+        (x_lead, v_lead, a_lead, x_follow, v_follow, a_follow), dt=dt, name="synthetic"
     )
 
 

@@ -10,13 +10,14 @@ two GPUs or more, torchrun with nccl must equal one process.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import pytest
 import torch
 
 from tests.conftest import prior_draws, synthetic_pairs
 from tests.runs import run_module, torchrun_train, write_config, write_data
-from torchcf import MODELS, simulate
+from torchcf import MODELS, Execution, simulate
 from torchcf.config import validate_config
 from torchcf.posterior import Posterior
 from torchcf.study.pipeline import run_study
@@ -25,6 +26,8 @@ from torchcf.train import train
 pytestmark = pytest.mark.skipif(
     not torch.cuda.is_available(), reason="needs a CUDA GPU"
 )
+#: A rollout on the GPU (:class:`torchcf.Execution`).
+ON_CUDA = Execution(device="cuda")
 
 
 def _config(**top):
@@ -47,7 +50,9 @@ def test_simulate_on_cuda_equals_cpu(name, layout):
     index = torch.arange(300) % pairs.n_pairs if layout == "paired" else None
     for dtype, rtol in ((torch.float64, 1e-9), (torch.float32, 2e-3)):
         cpu = simulate(name, theta.to(dtype), pairs, index, dtype=dtype)
-        gpu = simulate(name, theta.to(dtype), pairs, index, dtype=dtype, device="cuda")
+        gpu = simulate(
+            name, theta.to(dtype), pairs, index, dtype=dtype, execution=ON_CUDA
+        )
         assert gpu.score.device.type == "cuda" and gpu.score.dtype == dtype
         both = cpu.valid & gpu.valid.cpu()
         # float32 rollouts at the edge of validity may tip either way; nearly all
@@ -74,7 +79,7 @@ def test_road_profiles_on_cuda_equal_cpu(name):
     model = get_model(name)
     theta = prior_draws(model, 300, seed=1).double()
     cpu = simulate(name, theta, pairs, dtype=torch.float64)
-    gpu = simulate(name, theta, pairs, dtype=torch.float64, device="cuda")
+    gpu = simulate(name, theta, pairs, dtype=torch.float64, execution=ON_CUDA)
     both = cpu.valid & gpu.valid.cpu()
     assert bool(both.any()) and bool((cpu.valid == gpu.valid.cpu()).all())
     torch.testing.assert_close(
@@ -93,8 +98,12 @@ def test_compiled_rollout_on_cuda(name):
     pairs = synthetic_pairs(n_pairs=5, n_steps=100, seed=3)
     theta = prior_draws(MODELS[name], 4096, seed=2, dtype=torch.float32)
     index = torch.arange(4096) % pairs.n_pairs
-    eager = simulate(name, theta, pairs, index, device="cuda", compile=False)
-    fused = simulate(name, theta, pairs, index, device="cuda", compile=True)
+    eager = simulate(
+        name, theta, pairs, index, execution=replace(ON_CUDA, compile=False)
+    )
+    fused = simulate(
+        name, theta, pairs, index, execution=replace(ON_CUDA, compile=True)
+    )
     assert float(eager.valid.float().mean()) > 0.2, "the test needs valid rollouts"
     assert float((eager.valid != fused.valid).float().mean()) <= 0.01
     # float32: the fused kernel rounds differently (FMAs), and a few rollouts of
@@ -147,7 +156,7 @@ def test_recalibration_by_training_on_cuda_keeps_the_cpu_particles(tmp_path):
     """The loop's re-calibration by the run's sampler (float64): the reference
     (the run's streams continued) and after (a variant trained) keep the
     particles the CPU keeps."""
-    from torchcf.diagnose.retrain import retrain
+    from torchcf.diagnose.retrain import FinalModel, retrain
 
     pairs = synthetic_pairs(n_pairs=6, n_steps=200, seed=1)
     results = []
@@ -156,7 +165,8 @@ def test_recalibration_by_training_on_cuda_keeps_the_cpu_particles(tmp_path):
         train(cfg, tmp_path / f"run{i}", pairs=(pairs, pairs))
         posterior = Posterior.load(tmp_path / f"run{i}" / "posterior.pt")
         models = ["idm", "hl", "idm+delay"]
-        results.append(retrain(cfg, posterior, models, {}, {}, ["idm"], pairs))
+        final = FinalModel(models)
+        results.append(retrain(cfg, posterior, final, ["idm"], pairs))
     for on_cpu, on_gpu in zip(*results, strict=True):
         for name, cpu in on_cpu.items():
             gpu = on_gpu[name]
@@ -227,13 +237,15 @@ def test_a_ceiling_on_cuda_stops_only_cells_above_it(name, compile):
     pairs = synthetic_pairs(n_pairs=6, n_steps=200, seed=1)
     theta = prior_draws(MODELS[name], 3000, seed=5)
     pair = torch.arange(3000) % 6
-    run = {"device": "cuda", "chunk_size": 4096, "compile": compile}
-    plain = _on_cpu(simulate(name, theta, pairs, pair, **run))
+    run = Execution(device="cuda", chunk_size=4096, compile=compile)
+    plain = _on_cpu(simulate(name, theta, pairs, pair, execution=run))
     per_pair = torch.stack(
         [plain.score.double()[pair == j].sort().values[20] for j in range(6)]
     )
     ceiling = per_pair[pair]
-    cut = _on_cpu(simulate(name, theta, pairs, pair, ceiling=ceiling, **run))
+    cut = _on_cpu(
+        simulate(name, theta, pairs, pair, execution=replace(run, ceiling=ceiling))
+    )
     stopped = cut.pruned
     assert int(stopped.sum()) > 0
     assert bool((plain.score.double()[stopped] > ceiling[stopped]).all())

@@ -1,4 +1,5 @@
-"""The house's layout: no import cycles, imports point down the pipeline.
+"""The house's layout: no import cycles, imports point down the pipeline, and
+no public signature wider than a reader can hold.
 
 Read from the source (every ``import`` statement, at any depth, so a
 function-level import that dodges a cycle counts too), not by importing.
@@ -237,3 +238,56 @@ def test_every_tool_runs_under_the_one_policy():
         and "return run_main(" not in path.read_text()
     ]
     assert not missing, f"tools not under run_main: {missing}"
+
+
+#: The most parameters a public function or method may take (``self`` and
+#: ``cls`` aside): beyond it, the ones that travel together belong in a
+#: settings object (a frozen dataclass, or the config section they come from).
+MAX_PARAMETERS = 8
+
+
+def _parameter_count(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    """Positional-only, positional and keyword-only parameters, ``self`` or
+    ``cls`` aside (``*args`` and ``**kwargs`` are not counted)."""
+    args = node.args
+    names = [a.arg for a in args.posonlyargs + args.args + args.kwonlyargs]
+    return len(names) - (1 if names and names[0] in ("self", "cls") else 0)
+
+
+def _wide_signatures(tree: ast.AST) -> list[tuple[int, str, int]]:
+    """``(line, name, parameters)`` of every public function or method of
+    ``tree`` (its name without a leading ``_``, or ``__init__``) that takes
+    more than :data:`MAX_PARAMETERS`."""
+    return [
+        (node.lineno, node.name, _parameter_count(node))
+        for node in ast.walk(tree)
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+        and (not node.name.startswith("_") or node.name == "__init__")
+        and _parameter_count(node) > MAX_PARAMETERS
+    ]
+
+
+def test_no_public_signature_is_wider_than_eight_parameters():
+    """A reader holds eight parameters; a public function or method with more
+    groups those that travel together (units, bootstrap settings, what runs
+    between rounds...) into one object."""
+    wide = [
+        f"{path.relative_to(ROOT.parent)}:{line} {name} ({count})"
+        for path in sorted(ROOT.rglob("*.py"))
+        for line, name, count in _wide_signatures(ast.parse(path.read_text()))
+    ]
+    assert not wide, f"more than {MAX_PARAMETERS} parameters:\n" + "\n".join(wide)
+
+
+def test_the_signature_check_counts_what_it_should():
+    """The check above can fail: nine parameters count, ``self`` and a private
+    helper's do not, ``__init__``'s do."""
+    source = (
+        "def wide(a, b, /, c, d, e, f, g, *, h, i): ...\n"
+        "def _private(a, b, c, d, e, f, g, h, i): ...\n"
+        "class C:\n"
+        "    def method(self, a, b, c, d, e, f, g, h): ...\n"
+        "    def __init__(self, a, b, c, d, e, f, g, h, i, *args, **kw): ...\n"
+    )
+    found = [(name, count) for _, name, count in _wide_signatures(ast.parse(source))]
+    assert found == [("wide", 9), ("__init__", 9)]

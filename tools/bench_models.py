@@ -42,7 +42,7 @@ from bench_sim import bench_meta, setup, write_report  # noqa: E402
 from peer_numpy import quiet_stdout, simulate_one  # noqa: E402
 
 import torchcf  # noqa: E402
-from torchcf import MODELS, simulate  # noqa: E402
+from torchcf import MODELS, Execution, simulate  # noqa: E402
 from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 from torchcf.system.process import tune_malloc  # noqa: E402
 
@@ -59,11 +59,12 @@ def time_torchcf(name, theta, pairs, index, device, compile_mode, repeats):
     warm-up's excess (compilation) and the invalid fraction."""
     device = torch.device(device)
     theta, index = theta.to(device), index.to(device)
+    run = Execution(compile=compile_mode)
 
     def call():
         _sync(device)
         start = time.perf_counter()
-        out = simulate(name, theta, pairs, index, compile=compile_mode)
+        out = simulate(name, theta, pairs, index, execution=run)
         _sync(device)
         return time.perf_counter() - start, out
 
@@ -133,7 +134,10 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     tune_malloc()
     pairs = torchcf.load_pairs(
-        "car-model-2", split="train", data_root=args.data_root, drop_duplicates=False
+        "car-model-2",
+        split="train",
+        data_root=args.data_root,
+        cleaning=torchcf.data.Cleaning(drop_duplicates=False),
     )
     n_particles, steps = int(args.particles), pairs.n_steps
     rows = []

@@ -194,7 +194,10 @@ def main(argv: list[str] | None = None) -> int:
                 print(json.dumps(row), flush=True)
 
     pairs = torchcf.load_pairs(
-        "car-model-2", split="train", data_root=args.data_root, drop_duplicates=False
+        "car-model-2",
+        split="train",
+        data_root=args.data_root,
+        cleaning=torchcf.data.Cleaning(drop_duplicates=False),
     )
     n_mpc = int(args.mpc_particles)
     generator = torch.Generator().manual_seed(1)

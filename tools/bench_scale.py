@@ -107,7 +107,7 @@ def scale_pairs(n_pairs: int, seed: int = 0) -> PairSet:
         key: torch.cat([getattr(p, key) for p in blocks], dim=1)[:, :n_pairs]
         for key in ("x_lead", "v_lead", "a_lead", "x_follow", "v_follow", "a_follow")
     }
-    return PairSet.from_arrays(**series, dt=DT, name="synthetic-scale")
+    return PairSet.from_arrays(series, dt=DT, name="synthetic-scale")
 
 
 # ------------------------------------------------------------ one size (child)

@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 
 import torchcf
-from torchcf import MODELS, simulate
+from torchcf import MODELS, Execution, simulate
 from torchcf.system.console import OneLineParser, count, run_main
 from torchcf.system.process import tune_malloc
 
@@ -113,9 +113,10 @@ def setup(model_name: str, n_particles: int, n_pairs: int, seed: int = 0):
 def time_run(model_name, theta, pairs, pair_index, compile_mode, repeats):
     """Median wall time of ``repeats`` timed runs, and the invalid fraction."""
     times = []
+    run = Execution(compile=compile_mode)
     for _ in range(repeats):
         start = time.perf_counter()
-        out = simulate(model_name, theta, pairs, pair_index, compile=compile_mode)
+        out = simulate(model_name, theta, pairs, pair_index, execution=run)
         times.append(time.perf_counter() - start)
     return statistics.median(times), times, float((~out.valid).float().mean())
 
@@ -141,7 +142,10 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     tune_malloc()
     pairs = torchcf.load_pairs(
-        "car-model-2", split="train", data_root=args.data_root, drop_duplicates=False
+        "car-model-2",
+        split="train",
+        data_root=args.data_root,
+        cleaning=torchcf.data.Cleaning(drop_duplicates=False),
     )
     n_particles, n_eager = int(args.particles), int(args.eager_particles)
     rows = []
@@ -150,13 +154,14 @@ def main(argv: list[str] | None = None) -> int:
         # Warm-up: the first full-size call compiles; its excess over the median
         # of the timed runs is the compilation cost.
         start = time.perf_counter()
-        simulate(name, theta, pairs, index, compile=True)
+        simulate(name, theta, pairs, index, execution=Execution(compile=True))
         first_s = time.perf_counter() - start
         fused_s, fused_all, invalid = time_run(
             name, theta, pairs, index, True, args.repeats
         )
         compile_s = max(first_s - fused_s, 0.0)
-        simulate(name, theta[:n_eager], pairs, index[:n_eager], compile=False)
+        eager = Execution(compile=False)
+        simulate(name, theta[:n_eager], pairs, index[:n_eager], execution=eager)
         eager_s, eager_all, _ = time_run(
             name, theta[:n_eager], pairs, index[:n_eager], False, args.repeats
         )

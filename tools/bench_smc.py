@@ -288,27 +288,17 @@ def engine_quality(
     model = get_model(name)
     bounds = model.prior_bounds(torch.float64)
     rollout = Rollout(pairs, dtype=dtype, compile="off")
+    stream = prior_stream(name, bounds, seed, rollout)
     began = time.perf_counter()
     outside = 0.0
     if method == "smc":
         buffer = TopN(pairs.n_pairs, n, model.n_params + 1)
         state = new_state(pairs.n_pairs, settings, model.n_params)
         with _Outside() as tally:
-            run_smc(
-                name,
-                bounds,
-                seed,
-                buffer,
-                rollout,
-                budget,
-                settings,
-                ModelProgress(),
-                state,
-            )
+            run_smc(stream, buffer, rollout, budget, settings, ModelProgress(), state)
         outside = tally.fraction
     else:
         buffer = TopN(pairs.n_pairs, n, model.n_params)
-        stream = prior_stream(name, bounds, seed, rollout)
         run_rejection(stream, buffer, rollout, budget, ModelProgress())
     return model_quality(buffer, n), time.perf_counter() - began, outside
 
@@ -450,16 +440,14 @@ def engine_best(
     model = get_model(name)
     bounds = model.prior_bounds(torch.float64)
     rollout = Rollout(pair, dtype=dtype, compile="off")
+    stream = prior_stream(name, bounds, 0, rollout)
     began = time.perf_counter()
     if method == "smc":
         buffer = TopN(1, 1, model.n_params + 1)
         state = new_state(1, settings, model.n_params)
-        run_smc(
-            name, bounds, 0, buffer, rollout, budget, settings, ModelProgress(), state
-        )
+        run_smc(stream, buffer, rollout, budget, settings, ModelProgress(), state)
     else:
         buffer = TopN(1, 1, model.n_params)
-        stream = prior_stream(name, bounds, 0, rollout)
         run_rejection(stream, buffer, rollout, budget, ModelProgress())
     return float(buffer.score[0, 0]), time.perf_counter() - began
 

@@ -63,7 +63,11 @@ from torchcf.diagnose.significance import (  # noqa: E402
     level_weights,
 )
 from torchcf.models.effects import parse_effect  # noqa: E402
-from torchcf.sim.synthetic import heterogeneous_pairs  # noqa: E402
+from torchcf.sim.synthetic import (  # noqa: E402
+    DriverMixture,
+    Scene,
+    heterogeneous_pairs,
+)
 from torchcf.study.pipeline import close_loop, train_and_evaluate  # noqa: E402
 from torchcf.system.console import OneLineParser, count, natural, run_main  # noqa: E402
 
@@ -146,18 +150,17 @@ def case_pairs(
 ) -> tuple[PairSet, PairSet]:
     """The case's training and test pairs at ``size`` (seeded)."""
     grade = case.effect.startswith("grade")
-    plant = {
-        "effect": case.effect,
-        "effect_values": case.plant(size, seed),
+    mixture = DriverMixture(case.mixture, case.effect, case.plant(size, seed))
+    recorded = {
         "noise": NOISE,
         "lengths": LENGTHS,
-        "start": GRADE_START if grade else (0.0, 0.0),
+        "scene": Scene(start=GRADE_START if grade else (0.0, 0.0)),
     }
     train, _ = heterogeneous_pairs(
-        case.mixture, n_train, N_STEPS, seed=1000 * seed + 1, **plant
+        mixture, n_train, N_STEPS, seed=1000 * seed + 1, **recorded
     )
     test, _ = heterogeneous_pairs(
-        case.mixture, n_test, N_STEPS, seed=1000 * seed + 2, **plant
+        mixture, n_test, N_STEPS, seed=1000 * seed + 2, **recorded
     )
     # a planted grade puts the pairs on one road; the others have a frame each
     train, test = (dataclasses.replace(p, road_frame=grade) for p in (train, test))

@@ -92,7 +92,7 @@ def join(sets: list[PairSet], name: str = "synthetic-prior") -> PairSet:
         key: torch.cat([getattr(p, key) for p in sets], dim=1)
         for key in ("x_lead", "v_lead", "a_lead", "x_follow", "v_follow", "a_follow")
     }
-    return PairSet.from_arrays(**series, dt=DT, name=name)
+    return PairSet.from_arrays(series, dt=DT, name=name)
 
 
 def calibrate(

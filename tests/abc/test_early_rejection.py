@@ -11,6 +11,7 @@ resumed or not) are those of a run without early rejection.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -22,7 +23,13 @@ from torchcf.abc.topn import TopN
 from torchcf.config import TrainConfig
 from torchcf.models import MODELS, get_model
 from torchcf.posterior import Posterior
-from torchcf.sim.rollout import _Accumulators, resolve_compile, score_so_far, simulate
+from torchcf.sim.rollout import (
+    Execution,
+    _Accumulators,
+    resolve_compile,
+    score_so_far,
+    simulate,
+)
 from torchcf.sim.synthetic import synthetic_pairs
 from torchcf.train import train
 
@@ -98,9 +105,11 @@ def test_a_ceiling_stops_only_cells_above_it_and_leaves_the_rest_exact(
     # the MPC's solver rounds by batch size (batch_size_invariant): one chunk
     invariant = get_model(name).batch_size_invariant
     chunk = (100 if paired else 8) if invariant else 256
-    plain = simulate(name, theta, pairs, pair, chunk_size=chunk)
+    plain = simulate(name, theta, pairs, pair, execution=Execution(chunk_size=chunk))
     ceiling = _ceiling_of(plain.score, pair)
-    cut = simulate(name, theta, pairs, pair, chunk_size=256, ceiling=ceiling)
+    cut = simulate(
+        name, theta, pairs, pair, execution=Execution(chunk_size=256, ceiling=ceiling)
+    )
     stopped = cut.pruned
     assert stopped is not None and stopped.shape == plain.score.shape
     assert int(stopped.sum()) > 0
@@ -130,12 +139,13 @@ def test_compiled_blocks_stop_exactly_with_one_graph(pairs, name, paired, graphs
     count = 1200 if paired else 160
     theta = _prior_draws(name, count, seed=6)
     pair = torch.arange(count) % N_PAIRS if paired else None
-    plain = simulate(name, theta, pairs, pair, chunk_size=256, compile=True)
+    compiled = Execution(chunk_size=256, compile=True)
+    plain = simulate(name, theta, pairs, pair, execution=compiled)
     ceiling = _ceiling_of(plain.score, pair)
     torch._dynamo.reset()
     torch._dynamo.utils.counters.clear()
     cut = simulate(
-        name, theta, pairs, pair, chunk_size=256, ceiling=ceiling, compile=True
+        name, theta, pairs, pair, execution=replace(compiled, ceiling=ceiling)
     )
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
     stopped = cut.pruned
@@ -152,7 +162,14 @@ def test_float64(pairs):
     pair = torch.arange(500) % N_PAIRS
     plain = simulate("hl", theta, pairs, pair, dtype=torch.float64)
     ceiling = _ceiling_of(plain.score, pair)
-    cut = simulate("hl", theta, pairs, pair, dtype=torch.float64, ceiling=ceiling)
+    cut = simulate(
+        "hl",
+        theta,
+        pairs,
+        pair,
+        dtype=torch.float64,
+        execution=Execution(ceiling=ceiling),
+    )
     assert int(cut.pruned.sum()) > 0
     assert torch.equal(cut.score[~cut.pruned], plain.score[~cut.pruned])
 
@@ -179,9 +196,11 @@ def test_models_with_effects_stop_exactly_too(pairs, name, paired):
     u = torch.rand(count, model.n_params, generator=torch.Generator().manual_seed(8))
     theta = box[:, 0] + u.double() * (box[:, 1] - box[:, 0])
     pair = torch.arange(count) % N_PAIRS if paired else None
-    plain = simulate(model, theta, pairs, pair, chunk_size=128)
+    plain = simulate(model, theta, pairs, pair, execution=Execution(chunk_size=128))
     ceiling = _ceiling_of(plain.score, pair)
-    cut = simulate(model, theta, pairs, pair, chunk_size=128, ceiling=ceiling)
+    cut = simulate(
+        model, theta, pairs, pair, execution=Execution(chunk_size=128, ceiling=ceiling)
+    )
     assert int(cut.pruned.sum()) > 0
     kept = ~cut.pruned
     assert torch.equal(cut.score[kept], plain.score[kept])
@@ -197,7 +216,7 @@ def test_a_ceiling_of_the_wrong_shape_is_refused(pairs):
             theta,
             pairs,
             torch.zeros(10, dtype=torch.long),
-            ceiling=torch.zeros(3),
+            execution=Execution(ceiling=torch.zeros(3)),
         )
 
 

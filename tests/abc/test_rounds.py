@@ -11,8 +11,16 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from torchcf.abc.distributed import Group
-from torchcf.abc.rounds import Chunk, ModelProgress, Plan, Sink, run_rounds
+from torchcf.abc.distributed import SINGLE, Group
+from torchcf.abc.rounds import (
+    Chunk,
+    ModelProgress,
+    Plan,
+    RoundHooks,
+    Sink,
+    Stretch,
+    run_rounds,
+)
 from torchcf.abc.screen import PlausibilityScreen
 from torchcf.abc.topn import TopN
 
@@ -74,7 +82,14 @@ def _plan(chunk: int, invariant: bool = True, scorer=None) -> Plan:
     return Plan(scorer or Scorer(), model, chunk, compiled=False)
 
 
-def _run(chunk: int, stop: int = 10, start: int = 0, **kwargs):
+def _run(
+    chunk: int,
+    stop: int = 10,
+    start: int = 0,
+    offset: int = 0,
+    group: Group = SINGLE,
+    **kwargs,
+):
     source, buffer, progress = Source(), TopN(N_PAIRS, 2, 2), ModelProgress()
     plan = _plan(chunk, kwargs.pop("invariant", True))
     seen = []
@@ -88,10 +103,10 @@ def _run(chunk: int, stop: int = 10, start: int = 0, **kwargs):
         [Sink(buffer)],
         plan,
         progress,
-        start,
-        stop,
-        checkpoint_due=lambda: next(dues),
-        after_round=after_round,
+        Stretch(start, stop, offset),
+        hooks=RoundHooks(
+            group, checkpoint_due=lambda: next(dues), after_round=after_round
+        ),
         **kwargs,
     )
     return source, buffer, progress, seen, plan
@@ -173,8 +188,7 @@ def test_sinks_are_offered_in_turn_below_their_ceilings():
         [Sink(first), Sink(second, ceiling)],
         _plan(5),
         ModelProgress(),
-        0,
-        15,
+        Stretch(0, 15),
     )
     assert order == ["buffer", "accepted"] * 3
     theta = _theta(0, 15)
@@ -204,9 +218,8 @@ def test_a_screened_proposal_is_out_of_every_sink_and_counted_once():
         [Sink(accepted, ceiling), Sink(buffer)],
         _plan(10),
         progress,
-        0,
-        10,
-        screen=PlausibilityScreen(implausible),
+        Stretch(0, 10),
+        hooks=RoundHooks(screen=PlausibilityScreen(implausible)),
     )
     for held in (buffer, accepted):
         kept = held.index[held.index >= 0]
@@ -229,9 +242,8 @@ def test_an_empty_chunk_simulates_nothing():
         [Sink(TopN(N_PAIRS, 2, 2))],
         _plan(4, scorer=scorer),
         ModelProgress(),
-        0,
-        8,
-        after_round=lambda state, due: seen.append(state.next),
+        Stretch(0, 8),
+        hooks=RoundHooks(after_round=lambda state, due: seen.append(state.next)),
     )
     assert scorer.rows == [] and seen == [4, 8]
 
@@ -247,7 +259,9 @@ def test_the_full_layout_pushes_every_cell():
         return Chunk(_theta(start, stop), None, torch.arange(start, stop))
 
     buffer = TopN(N_PAIRS, 2, 2)
-    run_rounds(full, [Sink(buffer)], _plan(3, scorer=Full()), ModelProgress(), 0, 9)
+    run_rounds(
+        full, [Sink(buffer)], _plan(3, scorer=Full()), ModelProgress(), Stretch(0, 9)
+    )
     best = torch.argsort(_theta(0, 9)[:, 0], stable=True)[:2]
     for p in range(N_PAIRS):
         assert buffer.index[p].tolist() == best.tolist()
@@ -261,8 +275,7 @@ def test_checkpoint_due_is_asked_once_per_round(chunk):
         [Sink(TopN(N_PAIRS, 2, 2))],
         _plan(chunk),
         ModelProgress(),
-        0,
-        10,
-        checkpoint_due=lambda: asked.append(1) or False,
+        Stretch(0, 10),
+        hooks=RoundHooks(checkpoint_due=lambda: asked.append(1) or False),
     )
     assert len(asked) == math.ceil(10 / chunk)

@@ -88,12 +88,11 @@ def test_the_refinement_state_does_not_grow_with_rounds(many, monkeypatch, round
     monkeypatch.setattr(smc, "_next_population", record)
     state = new_state(pairs.n_pairs, settings, 6)
     assert state.accepted is None  # built when the refinement runs
+    rollout = Rollout(pairs, dtype=torch.float64, compile="off")
     run_smc(
-        "idm",
-        get_model("idm").prior_bounds(torch.float64),
-        0,
+        prior_stream("idm", get_model("idm").prior_bounds(torch.float64), 0, rollout),
         TopN(pairs.n_pairs, 3, 7),
-        Rollout(pairs, dtype=torch.float64, compile="off"),
+        rollout,
         40 * pairs.n_pairs,
         settings,
         ModelProgress(),

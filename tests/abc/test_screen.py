@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from torchcf.abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
+from torchcf.abc.rounds import RoundHooks
 from torchcf.abc.screen import PlausibilityScreen
 from torchcf.abc.topn import TopN
 from torchcf.config import validate_config
@@ -45,7 +46,7 @@ def _buffers(paired: bool, chunk: int, screen, n: int = 1500):
         rollout,
         n,
         progress,
-        screen=screen,
+        hooks=RoundHooks(screen=screen),
     )
     return buffer, progress, rollout, bounds
 

@@ -20,6 +20,7 @@ from tests.train.test_train import config as train_config
 from tests.train.test_train import mixture_pairs
 from torchcf.abc.kernel import SMCKernel
 from torchcf.abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
+from torchcf.abc.rounds import RoundHooks
 from torchcf.abc.smc import (
     SMCSettings,
     evidence_shares,
@@ -290,16 +291,14 @@ def _recorded_rounds(mixture, n_particles, settings):
         last[state.round] = {k: v.clone() for k, v in held.items()}
 
     run_smc(
-        "idm",
-        bounds,
-        1,
+        prior_stream("idm", bounds, 1, rollout),
         TopN(mixture.n_pairs, 5, 7),
         rollout,
         n_particles,
         settings,
         ModelProgress(),
         state,
-        after_round=after_round,
+        hooks=RoundHooks(after_round=after_round),
     )
     accepted = [last[t] for t in sorted(last)]
     populations = [{"score": a["score"], "index": a["index"]} for a in accepted]
@@ -457,17 +456,17 @@ def test_the_attribution_can_draw_its_arms_with_smc(mixture):
     bounds = get_model("idm").prior_bounds(torch.float64)
     # (at 2000 a population is the best 20 of ~60 prior draws per pair, too
     # broad to gain yet: refinement pays from a few thousand on)
-    plain = prior_particles("idm", rollout, (4000, 8000), 5, bounds, 1)
-    refined = prior_particles(
-        "idm", rollout, (4000, 8000), 5, bounds, 1, None, settings
-    )
+    idm = prior_stream("idm", bounds, 1, rollout)
+    plain = prior_particles(idm, rollout, (4000, 8000), 5)
+    refined = prior_particles(idm, rollout, (4000, 8000), 5, settings)
     for a, b in zip(plain, refined, strict=True):
         assert a.theta.shape == b.theta.shape and b.model == "idm"
         on_idm = a.pair < 6
         assert float(b.score[on_idm].mean()) < float(a.score[on_idm].mean())
     name = get_model("idm+offset").name
     fixed = torch.tensor([1.5], dtype=torch.float64)
-    (variant,) = prior_particles(name, rollout, (2000,), 5, bounds, 1, fixed, settings)
+    offset = prior_stream(name, bounds, 1, rollout, fixed)
+    (variant,) = prior_particles(offset, rollout, (2000,), 5, settings)
     assert variant.theta.shape[1] == 7 and bool((variant.theta[:, -1] == 1.5).all())
     with pytest.raises(ConfigError, match="no proposal per pair"):
-        prior_particles("idm", rollout, (20,), 5, bounds, 1, None, settings)
+        prior_particles(idm, rollout, (20,), 5, settings)

@@ -20,6 +20,7 @@ from torchcf.data.formats.generic import (
     LENGTH_UNITS,
     SPEED_UNITS,
     TIME_UNITS,
+    TableUnits,
     columns_text,
     parse_column_map,
     read_csv_table,
@@ -77,7 +78,9 @@ def test_parse_column_map_rejects(text: str, match: str) -> None:
 # --------------------------------------------------------------- reading
 def test_read_with_map_and_km_per_hour(tmp_path: Path) -> None:
     path = write(tmp_path / "cars.csv", two_cars())
-    table = read_csv_table(path, columns=MAP + ",leader=ahead", speed_unit="km/h")
+    table = read_csv_table(
+        path, columns=MAP + ",leader=ahead", units=TableUnits(speed_unit="km/h")
+    )
     frame = table.frame
     assert table.format == "csv" and table.road_frame is None
     assert frame["run"].unique().tolist() == ["cars"]
@@ -111,7 +114,9 @@ def test_feet_default_speed_and_acceleration_units(tmp_path: Path) -> None:
             "gap": [50.0, 51.0],
         }
     )
-    table = read_csv_table(write(tmp_path / "f.csv", frame), length_unit="ft")
+    table = read_csv_table(
+        write(tmp_path / "f.csv", frame), units=TableUnits(length_unit="ft")
+    )
     out = table.frame
     assert out["position"].tolist() == [100.0 * 0.3048, 130.0 * 0.3048]
     assert (out["speed"] == 30.0 * 0.3048).all()  # ft/s by default
@@ -124,7 +129,9 @@ def test_km_lengths_default_to_km_per_hour(tmp_path: Path) -> None:
     frame = pd.DataFrame(
         {"vehicle": [1], "time": [0.0], "position": [1.5], "speed": [90.0]}
     )
-    table = read_csv_table(write(tmp_path / "k.csv", frame), length_unit="km")
+    table = read_csv_table(
+        write(tmp_path / "k.csv", frame), units=TableUnits(length_unit="km")
+    )
     assert table.frame["position"].iloc[0] == pytest.approx(1500.0)
     assert table.frame["speed"].iloc[0] == pytest.approx(25.0)
 
@@ -132,7 +139,9 @@ def test_km_lengths_default_to_km_per_hour(tmp_path: Path) -> None:
 @pytest.mark.parametrize(("unit", "seconds"), [("s", 12.0), ("ms", 0.012), ("ds", 1.2)])
 def test_time_units(tmp_path: Path, unit: str, seconds: float) -> None:
     frame = pd.DataFrame({"vehicle": ["a"], "time": [12]})
-    table = read_csv_table(write(tmp_path / "t.csv", frame), time_unit=unit)
+    table = read_csv_table(
+        write(tmp_path / "t.csv", frame), units=TableUnits(time_unit=unit)
+    )
     assert table.frame["time"].iloc[0] == pytest.approx(seconds)
 
 
@@ -141,13 +150,13 @@ def test_frame_numbers_at_25_hz(tmp_path: Path) -> None:
     frame = pd.DataFrame({"vehicle": ["a"] * 4, "frame": [0, 1, 25, 50]})
     path = write(tmp_path / "video.csv", frame)
     table = read_csv_table(
-        path, columns="time=frame", time_unit="frame", frame_rate=25.0
+        path, columns="time=frame", units=TableUnits(time_unit="frame", frame_rate=25.0)
     )
     assert table.frame["time"].tolist() == pytest.approx([0.0, 0.04, 1.0, 2.0])
     assert time_factor(FRAME_UNIT, 30.0) == pytest.approx(1.0 / 30.0)
     assert unit_factors(time_unit="frame", frame_rate=10.0)["time"] == 0.1
     # ds is the frame unit at 10 Hz
-    ds = read_csv_table(path, columns="time=frame", time_unit="ds")
+    ds = read_csv_table(path, columns="time=frame", units=TableUnits(time_unit="ds"))
     assert ds.frame["time"].tolist() == pytest.approx([0.0, 0.1, 2.5, 5.0])
 
 
@@ -164,7 +173,9 @@ def test_frame_numbers_at_25_hz(tmp_path: Path) -> None:
 def test_frame_rate_goes_with_the_frame_unit(tmp_path, unit, rate, match) -> None:
     path = write(tmp_path / "cars.csv", two_cars())
     with pytest.raises(DataError, match=match):
-        read_csv_table(path, columns=MAP, time_unit=unit, frame_rate=rate)
+        read_csv_table(
+            path, columns=MAP, units=TableUnits(time_unit=unit, frame_rate=rate)
+        )
 
 
 def frame_log(path: Path) -> Path:
@@ -223,7 +234,7 @@ def test_unit_tables_are_consistent() -> None:
 def test_unknown_units_raise(tmp_path: Path, options: dict, match: str) -> None:
     path = write(tmp_path / "cars.csv", two_cars())
     with pytest.raises(DataError, match=match):
-        read_csv_table(path, columns=MAP, **options)
+        read_csv_table(path, columns=MAP, units=TableUnits(**options))
 
 
 def test_missing_mapped_column_names_it(tmp_path: Path) -> None:

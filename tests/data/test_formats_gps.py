@@ -19,7 +19,7 @@ import pytest
 
 from torchcf.data.extract import ExtractOptions, extract_pairs
 from torchcf.data.formats import read_trajectories
-from torchcf.data.formats.gps import fuse_with_speed, parse_times, read_gps
+from torchcf.data.formats.gps import GpsUnits, fuse_with_speed, parse_times, read_gps
 from torchcf.data.pairset import DataError
 
 pyproj = pytest.importorskip("pyproj")
@@ -264,7 +264,7 @@ def test_pairs_cut_from_gps_logs_carry_the_spacing(tmp_path):
         ({"platoon": "A,X"}, "platoon vehicle(s) X not in the logs"),
         ({"leader_rule": "platoon"}, "needs the platoon's order"),
         ({"leader_rule": "ahead"}, "unknown leader rule 'ahead'"),
-        ({"time_format": "julian"}, "unknown time format"),
+        ({"units": GpsUnits(time_format="julian")}, "unknown time format"),
         ({"columns": "lat=Latitude"}, "column 'Latitude' (mapped to lat) not in"),
     ],
 )

@@ -432,7 +432,7 @@ def small_pairs(dtype: torch.dtype = torch.float64) -> PairSet:
     series = [
         s.to(dtype) for s in (x_lead, v_lead, a_lead, x_follow, v_follow, a_follow)
     ]
-    return PairSet.from_arrays(*series, dt=0.1, mask=mask, leader_length=4.5)
+    return PairSet.from_arrays(series, dt=0.1, mask=mask, leader_length=4.5)
 
 
 def assert_same_as_pairs(table, pairs: PairSet, rtol: float = 1e-9) -> None:
@@ -474,7 +474,7 @@ def test_write_read_round_trip(tmp_path: Path, dtype: torch.dtype) -> None:
 
 def test_write_needs_frames_of_a_tenth_of_a_second(tmp_path: Path) -> None:
     pairs = small_pairs()
-    slow = PairSet.from_arrays(*pairs.series().values(), dt=0.5, mask=pairs.mask)
+    slow = PairSet.from_arrays(pairs.series(), dt=0.5, mask=pairs.mask)
     with pytest.raises(DataError, match="NGSIM frames are 0.1 s.*dt = 0.5"):
         write_ngsim(slow, tmp_path / "x.txt")
 

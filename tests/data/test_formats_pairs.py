@@ -23,6 +23,7 @@ from torchcf.config.raw import RawSource
 from torchcf.data.__main__ import main as data_main
 from torchcf.data.extract import ExtractOptions, extract_pairs
 from torchcf.data.formats import read_trajectories, reader_options
+from torchcf.data.formats.generic import TableUnits
 from torchcf.data.formats.pairs import PAIR_COLUMNS, ULTRA_AV, read_pairs
 from torchcf.data.pairset import DataError
 
@@ -258,14 +259,16 @@ def test_feet_and_frame_numbers(tmp_path) -> None:
         Acc_LV=lambda f: f["Acc_LV"] / foot,
         Acc_FAV=lambda f: f["Acc_FAV"] / foot,
     )
-    table = read_pairs(path, length_unit="ft", time_unit="frame", frame_rate=10.0)
+    table = read_pairs(
+        path, units=TableUnits(length_unit="ft", time_unit="frame", frame_rate=10.0)
+    )
     reference = read_pairs(ultra_av(tmp_path / "ref.csv", n_pairs=1))
     for column in ("time", "position", "speed", "acceleration", "gap", "length"):
         np.testing.assert_allclose(
             table.frame[column], reference.frame[column], rtol=1e-12, atol=1e-9
         )
     with pytest.raises(DataError, match="time unit 'frame' needs a frame rate"):
-        read_pairs(path, time_unit="frame")
+        read_pairs(path, units=TableUnits(time_unit="frame"))
 
 
 # ------------------------------------------------------------------ errors

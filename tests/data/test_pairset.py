@@ -14,7 +14,7 @@ from torchcf.data.pairset import SERIES, edge_pad
 
 @pytest.fixture
 def pairs(make_arrays) -> PairSet:
-    return PairSet.from_arrays(**make_arrays(n_steps=6, n_pairs=4), dt=0.1)
+    return PairSet.from_arrays(make_arrays(n_steps=6, n_pairs=4), dt=0.1)
 
 
 def test_from_arrays_defaults(pairs: PairSet) -> None:
@@ -34,10 +34,10 @@ def test_from_arrays_defaults(pairs: PairSet) -> None:
 
 def test_from_arrays_accepts_lists_and_keeps_tensor_dtype(make_arrays) -> None:
     arrays = make_arrays()
-    from_lists = PairSet.from_arrays(**{k: v.tolist() for k, v in arrays.items()}, dt=1)
+    from_lists = PairSet.from_arrays({k: v.tolist() for k, v in arrays.items()}, dt=1)
     assert from_lists.dtype == torch.float64 and from_lists.dt == 1.0
     tensors = {k: torch.from_numpy(v).float() for k, v in arrays.items()}
-    assert PairSet.from_arrays(**tensors, dt=0.1).dtype == torch.float32
+    assert PairSet.from_arrays(tensors, dt=0.1).dtype == torch.float32
 
 
 def test_ragged_input_is_edge_padded(make_arrays) -> None:
@@ -46,7 +46,7 @@ def test_ragged_input_is_edge_padded(make_arrays) -> None:
     mask[3:, 1] = False
     for values in arrays.values():
         values[3:, 1] = np.nan  # padding in the input may be anything
-    pairs = PairSet.from_arrays(**arrays, dt=0.1, mask=mask)
+    pairs = PairSet.from_arrays(arrays, dt=0.1, mask=mask)
     assert pairs.lengths.tolist() == [5, 3]
     for f in SERIES:
         column = getattr(pairs, f)[:, 1]
@@ -105,7 +105,7 @@ def test_non_positive_spacing_message(make_arrays) -> None:
     arrays = make_arrays(n_steps=15, n_pairs=8)
     arrays["x_follow"][11, 6] = arrays["x_lead"][11, 6] + 0.3
     with pytest.raises(DataError) as err:
-        PairSet.from_arrays(**arrays, dt=0.1)
+        PairSet.from_arrays(arrays, dt=0.1)
     assert str(err.value) == (
         "non-positive spacing x_lead - x_follow = -0.3 m at row 12, column 7 "
         "(pair id 6)"
@@ -118,10 +118,10 @@ def test_masked_spacing_and_count(make_arrays) -> None:
     mask = np.ones((6, 2), dtype=bool)
     mask[4:, 1] = False
     # Padding is overwritten, so masked bad steps do not matter ...
-    PairSet.from_arrays(**arrays, dt=0.1, mask=mask)
+    PairSet.from_arrays(arrays, dt=0.1, mask=mask)
     # ... but valid ones do, and the message counts them.
     with pytest.raises(DataError, match=r"= 0 m at row 5, column 2 .*2 such steps"):
-        PairSet.from_arrays(**arrays, dt=0.1)
+        PairSet.from_arrays(arrays, dt=0.1)
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
@@ -129,7 +129,7 @@ def test_non_finite_value(make_arrays, bad: float) -> None:
     arrays = make_arrays()
     arrays["v_follow"][2, 1] = bad
     with pytest.raises(DataError, match=r"non-finite v_follow = .* row 3, column 2"):
-        PairSet.from_arrays(**arrays, dt=0.1)
+        PairSet.from_arrays(arrays, dt=0.1)
 
 
 def test_non_finite_padding_rejected_by_constructor(pairs: PairSet) -> None:
@@ -145,9 +145,9 @@ def test_shapes_disagree(make_arrays) -> None:
     arrays = make_arrays()
     arrays["a_follow"] = arrays["a_follow"][:-1]
     with pytest.raises(DataError, match=r"one \(T, N\) shape.*a_follow=\(4, 3\)"):
-        PairSet.from_arrays(**arrays, dt=0.1)
+        PairSet.from_arrays(arrays, dt=0.1)
     with pytest.raises(DataError, match="mask has shape"):
-        PairSet.from_arrays(**make_arrays(), dt=0.1, mask=np.ones((5, 2), bool))
+        PairSet.from_arrays(make_arrays(), dt=0.1, mask=np.ones((5, 2), bool))
 
 
 @pytest.mark.parametrize(
@@ -162,13 +162,13 @@ def test_shapes_disagree(make_arrays) -> None:
 )
 def test_bad_dt(make_arrays, dt, match: str) -> None:
     with pytest.raises(DataError, match=match):
-        PairSet.from_arrays(**make_arrays(), dt=dt)
+        PairSet.from_arrays(make_arrays(), dt=dt)
 
 
 @pytest.mark.parametrize("length", [0.0, -5.0, float("inf")])
 def test_bad_leader_length(make_arrays, length: float) -> None:
     with pytest.raises(DataError, match="leader_length must be finite and > 0"):
-        PairSet.from_arrays(**make_arrays(), dt=0.1, leader_length=length)
+        PairSet.from_arrays(make_arrays(), dt=0.1, leader_length=length)
 
 
 def test_mask_not_prefix(make_arrays) -> None:
@@ -178,14 +178,14 @@ def test_mask_not_prefix(make_arrays) -> None:
         DataError,
         match=r"not a prefix: False at row 3, column 2 .* True again at row 4",
     ):
-        PairSet.from_arrays(**make_arrays(), dt=0.1, mask=mask)
+        PairSet.from_arrays(make_arrays(), dt=0.1, mask=mask)
 
 
 def test_pair_without_valid_step(make_arrays) -> None:
     mask = np.ones((5, 3), dtype=bool)
     mask[:, 2] = False
     with pytest.raises(DataError, match="column 3 .* masked everywhere"):
-        PairSet.from_arrays(**make_arrays(), dt=0.1, mask=mask)
+        PairSet.from_arrays(make_arrays(), dt=0.1, mask=mask)
 
 
 def test_constructor_checks_types(pairs: PairSet) -> None:

@@ -16,6 +16,7 @@ import torch
 
 from torchcf.data import (
     DATASETS,
+    Cleaning,
     DataError,
     PairSet,
     load_pairs,
@@ -52,7 +53,7 @@ REAL_SHAPES = {
 @pytest.mark.parametrize("name", list(REAL_SHAPES))
 def test_real_shapes_and_pair_ids(real_data: Path, name: str) -> None:
     n_steps, n_full, n_train, n_test = REAL_SHAPES[name]
-    load = dict(download=False, drop_duplicates=False)
+    load = dict(download=False, cleaning=Cleaning(drop_duplicates=False))
     full = load_pairs(name, **load)
     assert (full.n_steps, full.n_pairs) == (n_steps, n_full)
     assert full.pair_ids == tuple(range(n_full))
@@ -88,7 +89,7 @@ def test_real_ngsim_short_spacing(real_data: Path, caplog, monkeypatch) -> None:
     assert note.startswith("9 pairs with a minimum front-to-front spacing under 4.572")
     assert ", ".join(map(str, short)) in note
     assert short_note(note) in caplog.text and "docs/data.md" in caplog.text
-    kept = load_pairs("ngsim-i80", download=False, min_spacing=4.572)
+    kept = load_pairs("ngsim-i80", download=False, cleaning=Cleaning(min_spacing=4.572))
     assert kept.n_pairs == 141 and not set(short) & set(kept.pair_ids)
     assert "dropped 9 pairs with a minimum spacing under 4.572 m" in kept.notes[1]
     assert float((kept.x_lead - kept.x_follow).min()) >= 4.572
@@ -108,7 +109,9 @@ def test_real_car_model_2_duplicates_and_leak(real_data: Path) -> None:
     assert any("pair ids 6 & 16, 7 & 17" in n for n in full.notes)
 
     test = load_pairs("car-model-2", "test", download=False)
-    kept = load_pairs("car-model-2", "test", download=False, drop_duplicates=False)
+    kept = load_pairs(
+        "car-model-2", "test", download=False, cleaning=Cleaning(drop_duplicates=False)
+    )
     assert (test.n_pairs, kept.n_pairs) == (17, 18)
     assert 16 in kept.pair_ids and 16 not in test.pair_ids
     assert any(n.startswith("Testing/ pair id 16") for n in test.notes)
@@ -295,7 +298,9 @@ def test_synthetic_quirks(tree: Path) -> None:
         "leak); dropped "
         "from the test split, 1 of 2 pairs kept (drop_duplicates=True)",
     )
-    kept = load_pairs("car-model-2", "test", data_root=tree, drop_duplicates=False)
+    kept = load_pairs(
+        "car-model-2", "test", data_root=tree, cleaning=Cleaning(drop_duplicates=False)
+    )
     assert kept.pair_ids == (3, 2)
 
 
@@ -360,7 +365,7 @@ def test_folder_split_and_duplicates(write_six, make_arrays) -> None:
     test = load_pairs(folder, "test", dt=0.1)
     assert (test.split, test.pair_ids) == ("test", (0, 1))
     assert "pair ids 0 & 2" in test.notes[0]
-    kept = load_pairs(folder, "test", dt=0.1, drop_duplicates=False)
+    kept = load_pairs(folder, "test", dt=0.1, cleaning=Cleaning(drop_duplicates=False))
     assert kept.pair_ids == (0, 1, 2) and "all kept" in kept.notes[0]
     with pytest.raises(DataError, match=r"not a folder: '.*Trajectory'"):
         load_pairs(folder, "train", dt=0.1)
@@ -372,16 +377,16 @@ def test_min_spacing_and_short_spacing_note(
     monkeypatch.setattr("torchcf.data.registry._ANNOUNCED", set())  # logged once
     arrays = make_arrays()  # spacings 20, 23 and 26 m
     folder = write_six(arrays=arrays)
-    pairs = load_pairs(folder, dt=0.1, min_spacing=21.0)
+    pairs = load_pairs(folder, dt=0.1, cleaning=Cleaning(min_spacing=21.0))
     assert pairs.pair_ids == (1, 2)
     assert pairs.notes == (
         "dropped 1 pair with a minimum spacing under 21.0 m (min_spacing): pair id 0; "
         "2 of 3 pairs kept",
     )
     with pytest.raises(DataError, match="drops all 3 pairs"):
-        load_pairs(folder, dt=0.1, min_spacing=30.0)
+        load_pairs(folder, dt=0.1, cleaning=Cleaning(min_spacing=30.0))
     with pytest.raises(DataError, match="min_spacing must be finite and >= 0"):
-        load_pairs(folder, dt=0.1, min_spacing=-1.0)
+        load_pairs(folder, dt=0.1, cleaning=Cleaning(min_spacing=-1.0))
 
     arrays["x_follow"][2, 1] = arrays["x_lead"][2, 1] - 3.0
     with caplog.at_level(logging.WARNING, logger="torchcf.data"):

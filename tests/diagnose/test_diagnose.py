@@ -23,6 +23,7 @@ import pytest
 import torch
 
 from torchcf.abc.particles import Particles, best_per_pair
+from torchcf.abc.rejection import prior_stream
 from torchcf.config import ConfigError, resolved_json, validate_config
 from torchcf.diagnose import (
     DiagnoseError,
@@ -43,7 +44,7 @@ from torchcf.diagnose.road import profile_agreement
 from torchcf.diagnose.search import Noise, model_bounds
 from torchcf.models import AugmentedModel, get_model, parse_effect, split_name
 from torchcf.posterior import Posterior
-from torchcf.sim.synthetic import Gipps, synthetic_pairs
+from torchcf.sim.synthetic import Gipps, Scene, synthetic_pairs
 from torchcf.study.pipeline import close_loop, train_and_evaluate
 from torchcf.train import train
 
@@ -335,7 +336,8 @@ def test_split_in_time_keeps_pairs_aligned():
 
 
 def test_bare_grade_spans_the_road_section():
-    pairs = synthetic_pairs("idm", IDM_TRUTH, 2, 100, seed=3, start=(100.0, 200.0))
+    road = Scene(start=(100.0, 200.0))
+    pairs = synthetic_pairs("idm", IDM_TRUTH, 2, 100, seed=3, scene=road)
     token = resolve_effect("grade", pairs).token
     x = pairs.x_follow
     assert token == (
@@ -403,10 +405,8 @@ def test_local_search_spends_its_budget_and_never_loses_a_fit(monkeypatch):
     rollout = attribution_rollout(cfg, pairs)
     bounds = {m: model_bounds(m, {}) for m in ("idm", "llctg")}
     seed = attribution_seed(cfg)
-    sets = [
-        prior_particles(m, rollout, (200,), 3, bounds[m], seed)[0]
-        for m in ("idm", "llctg")
-    ]
+    streams = [prior_stream(m, bounds[m], seed, rollout) for m in ("idm", "llctg")]
+    sets = [prior_particles(stream, rollout, (200,), 3)[0] for stream in streams]
     start = Population.from_particles(sets, 4, 3)
     simulated = []
     scores = search.score_on
@@ -435,9 +435,8 @@ def test_diagnose_seed_replaces_the_runs_seed_in_the_attribution():
     def drawn(**diagnose):
         cfg = _config(**diagnose)
         rollout = attribution_rollout(cfg, pairs)
-        (particles,) = prior_particles(
-            "idm", rollout, (50,), 2, bounds, attribution_seed(cfg)
-        )
+        stream = prior_stream("idm", bounds, attribution_seed(cfg), rollout)
+        (particles,) = prior_particles(stream, rollout, (50,), 2)
         return particles
 
     default, same, other = drawn(), drawn(seed=0), drawn(seed=1)

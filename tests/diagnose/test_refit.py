@@ -25,7 +25,7 @@ from torchcf.diagnose.refit import (
 from torchcf.diagnose.validation import design
 from torchcf.models import get_model
 from torchcf.models.effects import parse_effect
-from torchcf.sim.synthetic import heterogeneous_pairs, synthetic_pairs
+from torchcf.sim.synthetic import DriverMixture, heterogeneous_pairs, synthetic_pairs
 
 IDM = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
 PRIORS = {"idm": get_model("idm").prior_bounds(torch.float64)}
@@ -93,9 +93,8 @@ def test_a_true_effect_pinned_at_its_value_fits_new_drivers_better():
     """Drivers who differ, all 0.8 s late: refitted from the same starts, the
     model with the delay pinned at 0.8 s fits every held-out driver better than
     the model without it; pinned where it is not (3 s), worse."""
-    pairs, drivers = heterogeneous_pairs(
-        ["idm"], 6, 200, effect="delay", effect_values=[0.8], seed=2, noise=0.02
-    )
+    late = DriverMixture(["idm"], "delay", [0.8])
+    pairs, drivers = heterogeneous_pairs(late, 6, 200, seed=2, noise=0.02)
     rollout = Rollout(pairs, True, torch.float64)
     members = {"idm": drivers.theta[:, :6]}  # each driver's own parameters
     budget = RefitBudget(slots=3, copies=8, rounds=3)
@@ -124,7 +123,7 @@ def test_the_refit_never_moves_the_pinned_effect():
 def test_the_refit_design_judges_an_arm_against_the_placebo():
     """validation "refit": the step's judge refits the held-out pairs from the
     placebo's picks once, and from each effect arm's picks with its pin."""
-    pairs, _ = heterogeneous_pairs(["idm"], 12, 100, seed=4, noise=0.05)
+    pairs, _ = heterogeneous_pairs(DriverMixture(["idm"]), 12, 100, seed=4, noise=0.05)
     cfg = validate_config(
         {
             "data": {"path": "synthetic"},

@@ -10,6 +10,7 @@ import torch
 import torchcf.diagnose.retrain as retrain_module
 from torchcf.config import validate_config
 from torchcf.diagnose.retrain import (
+    FinalModel,
     buffers_in_order,
     retrain,
     searched_box,
@@ -61,7 +62,7 @@ def test_after_is_the_run_beside_variants_trained_the_runs_way(tmp_path, pairs, 
     cfg = _config(method=method)
     run = _trained(tmp_path, "run", cfg, pairs)
     reference, after = retrain(  # llctg: a pool model no variant wraps
-        cfg, run, ["idm", "llctg", "idm+delay"], {}, {}, ["idm", "llctg"], pairs
+        cfg, run, FinalModel(["idm", "llctg", "idm+delay"]), ["idm", "llctg"], pairs
     )
     alone = _trained(tmp_path, "variant", _config(["idm+delay"], method=method), pairs)
     _assert_same(after["idm+delay"], alone.buffers["idm+delay"])
@@ -80,7 +81,7 @@ def test_the_plausibility_filter_screens_the_variants_as_it_screened_the_run(
     cfg = _config(["idm"], **screened)
     run = _trained(tmp_path, "run", cfg, pairs)
     screen = plausibility_screen(cfg, pairs)
-    args = (cfg, run, ["idm", "idm+delay"], {}, {}, ["idm"], pairs)
+    args = (cfg, run, FinalModel(["idm", "idm+delay"]), ["idm"], pairs)
     _, after = retrain(*args, screen=screen)
     alone = _trained(tmp_path, "variant", _config(["idm+delay"], **screened), pairs)
     _assert_same(after["idm+delay"], alone.buffers["idm+delay"])
@@ -90,7 +91,7 @@ def test_the_reference_of_rejection_is_the_run_with_twice_the_draws(tmp_path, pa
     cfg = _config()
     run = _trained(tmp_path, "run", cfg, pairs)
     models = ["idm", "llctg", "idm+delay"]
-    reference, _ = retrain(cfg, run, models, {}, {}, ["idm"], pairs)
+    reference, _ = retrain(cfg, run, FinalModel(models), ["idm"], pairs)
     double = _trained(tmp_path, "double", _config(["idm"], 2 * N), pairs)
     _assert_same(reference["idm"], double.buffers["idm"])
 
@@ -99,15 +100,12 @@ def test_the_reference_of_rejection_is_the_run_with_twice_the_draws(tmp_path, pa
 def test_a_shared_effect_is_held_at_its_value(tmp_path, pairs, method):
     cfg = _config(["idm"], method=method)
     run = _trained(tmp_path, "run", cfg, pairs)
-    _, after = retrain(
-        cfg,
-        run,
+    final = FinalModel(
         ["idm", "idm+offset"],
         {"offset": [-2.5]},
         {"offset": {"d_offset": (-3.0, -2.0)}},
-        ["idm"],
-        pairs,
     )
+    _, after = retrain(cfg, run, final, ["idm"], pairs)
     theta = after["idm+offset"]["theta"]
     kept = torch.isfinite(after["idm+offset"]["score"])
     assert bool(kept.any())
@@ -140,7 +138,7 @@ def test_an_interrupted_recalibration_resumes_at_its_model(
 ):
     cfg = _config(["idm"])
     run = _trained(tmp_path, "run", cfg, pairs)
-    args = (cfg, run, ["idm", "idm+delay"], {}, {}, ["idm"], pairs)
+    args = (cfg, run, FinalModel(["idm", "idm+delay"]), ["idm"], pairs)
     whole = retrain(*args)
     real, calls = retrain_module._trained, []
 

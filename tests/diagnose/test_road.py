@@ -29,7 +29,7 @@ from torchcf.diagnose.road import (
 )
 from torchcf.diagnose.signatures import road_share
 from torchcf.models.effects import GRAVITY, Grade, parse_effect
-from torchcf.sim.synthetic import synthetic_pairs
+from torchcf.sim.synthetic import Scene, synthetic_pairs
 
 IDM_TRUTH = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
 
@@ -293,8 +293,9 @@ def test_a_grade_under_an_actuation_lag_is_whole_in_the_one_step_residual(lag):
     truth = np.array([0.02, -0.03, 0.03, -0.01, 0.025, -0.02, 0.01])
     hl = [1.0, lag, 0.8, 1.2, -0.5, 5.0]  # tau, TT, ks, kv, ka, l
     theta = torch.tensor(hl + truth.tolist(), dtype=torch.float64)
+    road = Scene(start=(0, 700))
     pairs = synthetic_pairs(
-        f"hl+{effect.token}", theta, n_pairs=12, n_steps=400, seed=3, start=(0, 700)
+        f"hl+{effect.token}", theta, n_pairs=12, n_steps=400, seed=3, scene=road
     )
     best = {"hl": (torch.tensor([hl] * 12, dtype=torch.float64), torch.arange(12))}
     series = one_step_residual(best, pairs)

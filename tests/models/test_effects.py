@@ -17,7 +17,7 @@ import pytest
 import torch
 
 from tests.conftest import prior_draws
-from torchcf import PairSet, simulate
+from torchcf import Execution, PairSet, simulate
 from torchcf.config import ConfigError, load_config, validate_config
 from torchcf.models import (
     MODELS,
@@ -94,12 +94,7 @@ def make_pairs() -> PairSet:
     mask = np.ones((n_steps, 3), dtype=bool)
     mask[100:, 2] = False
     return PairSet.from_arrays(
-        x_lead,
-        v_lead,
-        a_lead,
-        x_follow,
-        v_follow,
-        a_follow,
+        (x_lead, v_lead, a_lead, x_follow, v_follow, a_follow),
         dt=DT,
         mask=mask,
         leader_length=LEADER_LENGTH,
@@ -653,7 +648,7 @@ def test_chunk_size_invariance(paired, road):
             index,
             dtype=torch.float64,
             return_traj=True,
-            chunk_size=chunk,
+            execution=Execution(chunk_size=chunk),
         )
         for key in ("score", "valid", "x", "v", "a"):
             torch.testing.assert_close(
@@ -675,10 +670,14 @@ def test_compiled_equals_eager(road):
     theta = prior_draws(get_model(name), 6, seed=6)
     index = torch.arange(6) % road.n_pairs
     kwargs = {"dtype": torch.float64, "return_traj": True}
-    eager = simulate(name, theta, road, index, compile=False, **kwargs)
+    eager = simulate(
+        name, theta, road, index, execution=Execution(compile=False), **kwargs
+    )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        compiled = simulate(name, theta, road, index, compile=True, **kwargs)
+        compiled = simulate(
+            name, theta, road, index, execution=Execution(compile=True), **kwargs
+        )
     fallbacks = [str(w.message) for w in caught if "compile failed" in str(w.message)]
     assert not fallbacks, fallbacks  # it really ran compiled
     for key in ("score", "e_p", "e_v", "e_a", "valid", "x", "v", "a"):

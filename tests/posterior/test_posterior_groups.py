@@ -23,6 +23,7 @@ from torchcf.posterior.tables import (
     ALL,
     NO_GROUP,
     SHARES_COLUMNS,
+    Bootstrap,
     GroupError,
     grouped_shares,
     groups_by_column,
@@ -98,7 +99,9 @@ def test_pair_slots_count_each_models_slots_per_pair() -> None:
 
 def test_grouped_shares_are_the_slots_of_each_groups_pairs() -> None:
     posterior = _posterior(SLOTS)
-    result = grouped_shares(posterior, _groups(posterior), by="g", seed=3)
+    result = grouped_shares(
+        posterior, _groups(posterior), by="g", bootstrap=Bootstrap(seed=3)
+    )
     rows = _rows(result)
     assert [row.group for row in result.rows] == [ALL, "A", "B"]
     assert rows["A"].n_pairs == 3 and rows["B"].n_pairs == 3
@@ -112,19 +115,23 @@ def test_grouped_shares_are_the_slots_of_each_groups_pairs() -> None:
 
 def test_intervals_hold_the_share_and_are_reproducible() -> None:
     posterior = _posterior(SLOTS)
-    result = grouped_shares(posterior, _groups(posterior), by="g", seed=3)
+    result = grouped_shares(
+        posterior, _groups(posterior), by="g", bootstrap=Bootstrap(seed=3)
+    )
     for row in result.rows:
         for share, low, high in zip(row.share, row.low, row.high, strict=True):
             assert low <= share + 1e-12 and share <= high + 1e-12
             assert 0.0 <= low and high <= 1.0
     # a model no pair of the group chose has no interval to speak of
     assert _rows(result)["A"].high[2] == 0.0
-    again = grouped_shares(posterior, _groups(posterior), by="g", seed=3)
+    again = grouped_shares(
+        posterior, _groups(posterior), by="g", bootstrap=Bootstrap(seed=3)
+    )
     assert again == result
     # a group's draws depend on its name and the seed, not on the other groups
-    alone = grouped_shares(posterior, ["A"] * 3 + [NO_GROUP] * 3, by="g", seed=3).rows[
-        1
-    ]
+    alone = grouped_shares(
+        posterior, ["A"] * 3 + [NO_GROUP] * 3, by="g", bootstrap=Bootstrap(seed=3)
+    ).rows[1]
     assert alone == _rows(result)["A"]
 
 
@@ -150,18 +157,24 @@ def test_a_group_that_agrees_has_a_point_interval_and_one_cluster_none() -> None
 
 def test_no_bootstrap_and_bad_settings() -> None:
     posterior = _posterior(SLOTS)
-    result = grouped_shares(posterior, _groups(posterior), by="g", n_bootstrap=0)
+    result = grouped_shares(
+        posterior, _groups(posterior), by="g", bootstrap=Bootstrap(n_bootstrap=0)
+    )
     assert all(np.isnan(row.low).all() for row in result.rows)
     assert "66.7 |" in shares_markdown(result)
     with pytest.raises(GroupError, match="level"):
-        grouped_shares(posterior, _groups(posterior), by="g", level=1.0)
+        grouped_shares(
+            posterior, _groups(posterior), by="g", bootstrap=Bootstrap(level=1.0)
+        )
     with pytest.raises(GroupError, match="for each of 6 pairs"):
         grouped_shares(posterior, ["A"], by="g")
 
 
 def test_csv_and_markdown_tables() -> None:
     posterior = _posterior(SLOTS)
-    result = grouped_shares(posterior, _groups(posterior), by="setting", seed=1)
+    result = grouped_shares(
+        posterior, _groups(posterior), by="setting", bootstrap=Bootstrap(seed=1)
+    )
     rows = list(csv.DictReader(io.StringIO(shares_csv(result))))
     assert tuple(rows[0]) == SHARES_COLUMNS
     assert len(rows) == 3 * len(MODELS)

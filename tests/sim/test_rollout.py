@@ -11,7 +11,7 @@ import torch
 import torchcf
 from tests.conftest import prior_draws, synthetic_pairs
 from tests.reference import simulate_pair
-from torchcf import MODELS, PairSet, simulate
+from torchcf import MODELS, Execution, PairSet, simulate
 
 NAMES = list(MODELS)
 
@@ -138,9 +138,10 @@ def test_result_independent_of_chunk_size(chunk_size, pairs):
     theta = prior_draws(MODELS["idm"], 40, seed=1, dtype=torch.float32)
     index = torch.randint(0, pairs.n_pairs, (40,))
     reference_out = simulate("idm", theta, pairs, index)
-    chunked = simulate("idm", theta, pairs, index, chunk_size=chunk_size)
+    chunks = Execution(chunk_size=chunk_size)
+    chunked = simulate("idm", theta, pairs, index, execution=chunks)
     assert torch.equal(chunked.score, reference_out.score)
-    full = simulate("idm", theta, pairs, chunk_size=chunk_size)
+    full = simulate("idm", theta, pairs, execution=chunks)
     assert torch.equal(full.score, simulate("idm", theta, pairs).score)
 
 
@@ -167,12 +168,7 @@ def test_perfect_model_scores_zero():
     theta = torch.tensor([[1.2, 2.0, 30.0, 1.4, 2.0, 4.0]], dtype=torch.float64)
     sim = simulate("idm", theta, base, dtype=torch.float64, return_traj=True)
     observed = PairSet.from_arrays(
-        base.x_lead,
-        base.v_lead,
-        base.a_lead,
-        sim.x[:, 0],
-        sim.v[:, 0],
-        sim.a[:, 0],
+        (base.x_lead, base.v_lead, base.a_lead, sim.x[:, 0], sim.v[:, 0], sim.a[:, 0]),
         dt=base.dt,
     )
     again = simulate("idm", theta, observed, dtype=torch.float64)
@@ -225,7 +221,7 @@ class TestInvalid:
         first_bad = int(torch.nonzero(spacing <= 0)[0])
         mask = torch.zeros(200, 1, dtype=torch.bool)
         mask[:first_bad] = True
-        prefix = PairSet.from_arrays(*full.series().values(), dt=full.dt, mask=mask)
+        prefix = PairSet.from_arrays(full.series(), dt=full.dt, mask=mask)
         masked = simulate("llcs", theta, prefix, dtype=torch.float64)
         assert bool(masked.valid[0, 0])
 
@@ -234,12 +230,12 @@ def test_ragged_pair_equals_truncated_pair():
     pairs = synthetic_pairs(n_pairs=2, n_steps=150, seed=3)
     lengths = [150, 97]
     mask = torch.arange(150)[:, None] < torch.tensor(lengths)[None, :]
-    ragged = PairSet.from_arrays(*pairs.series().values(), dt=pairs.dt, mask=mask)
+    ragged = PairSet.from_arrays(pairs.series(), dt=pairs.dt, mask=mask)
     theta = prior_draws(MODELS["hl"], 5)
     out = simulate("hl", theta, ragged, dtype=torch.float64)
     short = pairs.subset([1])
     truncated = PairSet.from_arrays(
-        *(s[:97] for s in short.series().values()), dt=pairs.dt
+        [s[:97] for s in short.series().values()], dt=pairs.dt
     )
     alone = simulate("hl", theta, truncated, dtype=torch.float64)
     torch.testing.assert_close(out.score[:, 1], alone.score[:, 0])
@@ -305,8 +301,8 @@ def test_compiled_equals_eager(name):
     pairs = synthetic_pairs(n_pairs=5, n_steps=120)
     theta = prior_draws(MODELS[name], 256, seed=3, dtype=torch.float32)
     index = torch.randint(0, 5, (256,))
-    eager = simulate(name, theta, pairs, index, compile=False)
-    compiled = simulate(name, theta, pairs, index, compile=True)
+    eager = simulate(name, theta, pairs, index, execution=Execution(compile=False))
+    compiled = simulate(name, theta, pairs, index, execution=Execution(compile=True))
     assert torch.equal(eager.valid, compiled.valid)
     torch.testing.assert_close(compiled.score, eager.score, rtol=1e-5, atol=1e-5)
 
@@ -332,8 +328,12 @@ def test_a_correcting_model_compiles_around_its_correction(name, paired):
     theta = prior_draws(model, 192, seed=6, dtype=torch.float64)
     theta[::2, 4:6] = torch.tensor([-0.3, 0.3], dtype=torch.float64)  # box active
     index = torch.randint(0, 4, (192,)) if paired else None
-    eager = simulate(model, theta, pairs, index, compile=False, return_traj=True)
-    fused = simulate(model, theta, pairs, index, compile=True, return_traj=True)
+    eager, fused = (
+        simulate(
+            model, theta, pairs, index, return_traj=True, execution=Execution(compile=c)
+        )
+        for c in (False, True)
+    )
     assert bool(eager.valid.any())
     assert torch.equal(eager.valid, fused.valid)
     torch.testing.assert_close(fused.score, eager.score, rtol=1e-9, atol=1e-9)
@@ -375,7 +375,13 @@ def test_compiled_result_independent_of_chunk_size(name):
     theta = prior_draws(MODELS[name], 300, seed=4, dtype=torch.float32)
     index = torch.randint(0, 5, (300,))
     outs = [
-        simulate(name, theta, pairs, index, compile=True, chunk_size=size)
+        simulate(
+            name,
+            theta,
+            pairs,
+            index,
+            execution=Execution(chunk_size=size, compile=True),
+        )
         for size in (100, 300)
     ]
     assert torch.equal(outs[0].score, outs[1].score)
@@ -392,7 +398,9 @@ def test_a_padded_last_chunk_reuses_the_compiled_graph(name, graphs):
     pairs = synthetic_pairs(n_pairs=5, n_steps=32)
     theta = prior_draws(MODELS[name], 300, seed=5, dtype=torch.float32)
     index = torch.arange(300) % 5
-    simulate(name, theta, pairs, index, compile=True, chunk_size=128)
+    simulate(
+        name, theta, pairs, index, execution=Execution(chunk_size=128, compile=True)
+    )
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
 
 

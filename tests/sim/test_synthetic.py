@@ -90,13 +90,12 @@ def test_every_heterogeneous_pair_has_its_own_plausible_driver():
     from torchcf.sim.rollout import simulate
     from torchcf.sim.synthetic import (
         PLAUSIBLE_MIN_GAP,
+        DriverMixture,
         heterogeneous_pairs,
     )
 
-    pairs, drivers = heterogeneous_pairs(
-        ["idm", "gfm"], 8, 200, effect="delay", effect_values=[0.5], seed=3,
-        lengths=(0.6, 1.0),
-    )  # fmt: skip
+    mixture = DriverMixture(["idm", "gfm"], "delay", [0.5])
+    pairs, drivers = heterogeneous_pairs(mixture, 8, 200, seed=3, lengths=(0.6, 1.0))
     assert drivers.model == ("idm+delay", "gfm+delay") * 4
     idm = drivers.theta[::2, :7]
     assert len({tuple(row) for row in idm.tolist()}) == 4  # all differ
@@ -118,18 +117,15 @@ def test_every_heterogeneous_pair_has_its_own_plausible_driver():
     )  # fmt: skip
     gap = pairs.x_lead - pairs.x_follow - pairs.leader_length
     assert float(gap[pairs.mask].min()) >= PLAUSIBLE_MIN_GAP
-    again, _ = heterogeneous_pairs(
-        ["idm", "gfm"], 8, 200, effect="delay", effect_values=[0.5], seed=3,
-        lengths=(0.6, 1.0),
-    )  # fmt: skip
+    again, _ = heterogeneous_pairs(mixture, 8, 200, seed=3, lengths=(0.6, 1.0))
     torch.testing.assert_close(again.x_follow, pairs.x_follow)
 
 
 def test_heterogeneous_pairs_refuse_a_box_without_plausible_drivers():
-    from torchcf.sim.synthetic import heterogeneous_pairs
+    from torchcf.sim.synthetic import DriverMixture, heterogeneous_pairs
 
     # IDM with a desired time gap of 10 s: no plausible follower (time gap <= 4 s)
     box = get_model("idm").prior_bounds(torch.float64).clone()
     box[3] = torch.tensor([9.9, 10.0])
     with pytest.raises(ValueError, match="too few plausible drivers of idm"):
-        heterogeneous_pairs(["idm"], 4, 200, boxes={"idm": box}, seed=0)
+        heterogeneous_pairs(DriverMixture(["idm"], boxes={"idm": box}), 4, 200, seed=0)

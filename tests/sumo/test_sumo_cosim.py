@@ -74,8 +74,9 @@ def test_cosimulation_with_the_safety_layer_is_the_platoon(tmp_path):
     a_lead = torch.zeros_like(t)
     zeros = torch.zeros_like(t)
     pairs = PairSet.from_arrays(
-        x_lead[:, None], v_lead[:, None], a_lead[:, None],
-        (x_lead - 25.0)[:, None], (zeros + 20.0)[:, None], zeros[:, None], dt=dt,
+        (x_lead[:, None], v_lead[:, None], a_lead[:, None],
+         (x_lead - 25.0)[:, None], (zeros + 20.0)[:, None], zeros[:, None]),
+        dt=dt,
     )  # fmt: skip
     # Slow-reacting point masses: the bound must brake for them.
     posterior = make_posterior({"llcs": 2, "idm": 2, "hl": 2}, seed=5)

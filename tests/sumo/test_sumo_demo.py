@@ -40,7 +40,7 @@ def test_pair_headways_known_gaps_and_speeds(demo):
     mask = torch.tensor([[True, True], [True, True], [True, False]])
     zeros = torch.zeros(3, 2, dtype=torch.float64)
     pairs = PairSet.from_arrays(
-        x_follow + spacing, zeros + 10.0, zeros, x_follow, v_follow, zeros,
+        (x_follow + spacing, zeros + 10.0, zeros, x_follow, v_follow, zeros),
         dt=0.1, mask=mask, leader_length=4.0,
     )  # fmt: skip
     h = np.sort(demo.pair_headways(pairs, min_speed=1.0))

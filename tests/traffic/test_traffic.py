@@ -11,6 +11,7 @@ from torchcf import HybridSampler, PairSet, simulate
 from torchcf.models import FollowerState
 from torchcf.sim.synthetic import leader_profiles
 from torchcf.traffic.scenarios import (
+    RingStart,
     RingState,
     pair_leader,
     platoon,
@@ -80,12 +81,14 @@ def test_followers_follow_each_other_as_the_rollout_does():
     for j in (1, 2):
         # The previous follower's trajectory as the leader; follower j's start.
         ahead = PairSet.from_arrays(
-            out.x[:, :, j - 1],
-            out.v[:, :, j - 1],
-            out.a[:, :, j - 1],
-            out.x[:, :, j],
-            out.v[:, :, j],
-            out.a[:, :, j],
+            (
+                out.x[:, :, j - 1],
+                out.v[:, :, j - 1],
+                out.a[:, :, j - 1],
+                out.x[:, :, j],
+                out.v[:, :, j],
+                out.a[:, :, j],
+            ),
             dt=0.1,
         )
         for s in range(2):
@@ -188,7 +191,13 @@ def llctg_ring(stable: bool, n: int = 20, spacing: float = 20.0, steps: int = 15
     assert (ks * tau**2 + 2 * kv * tau - 2 >= 0) == stable
     sampler = sampler_of({"llctg": [theta]})
     sampler.assign(torch.zeros(1, n, dtype=torch.long))
-    return ring_road(sampler, n * spacing, steps, perturbation=1.0, record_every=10)
+    return ring_road(
+        sampler,
+        n * spacing,
+        steps,
+        initial=RingStart(perturbation=1.0),
+        record_every=10,
+    )
 
 
 def test_ring_string_stability_matches_linear_theory():
@@ -208,7 +217,9 @@ def test_ring_conserves_its_length_and_wraps():
     sampler.double()
     sampler.sample((3, 15), torch.Generator().manual_seed(0))
     length = torch.tensor([300.0, 400.0, 500.0])
-    out = ring_road(sampler, length, 300, v_init=8.0, record_every=25)
+    out = ring_road(
+        sampler, length, 300, initial=RingStart(v_init=8.0), record_every=25
+    )
     torch.testing.assert_close(
         out.spacing.sum(-1), length[None].expand(out.spacing.shape[0], -1).double()
     )
@@ -231,7 +242,9 @@ def test_mixed_ring_starts_at_its_equilibrium_and_stays_there():
         }
     )
     sampler.assign(torch.tensor([[0, 1, 2] * 4, [1, 1, 2] * 4]))  # (2, 12)
-    out = ring_road(sampler, torch.tensor([300.0, 400.0]), 300, perturbation=0.0)
+    out = ring_road(
+        sampler, torch.tensor([300.0, 400.0]), 300, initial=RingStart(perturbation=0.0)
+    )
     v_star = out.v[0, :, 0]  # (S,)
     assert bool((out.v[0] == v_star[:, None]).all())
     # Ring 1 is LLCTG only: sum_i (l_i + v tau_i) = L in closed form.
@@ -271,7 +284,7 @@ def test_a_ring_too_short_for_its_vehicles_is_refused():
     sampler = sampler_of({"llctg": [[1.2, 0.5, 1.5, 5.0]]})
     sampler.assign(torch.zeros(1, 10, dtype=torch.long))
     with pytest.raises(ValueError, match="too short"):
-        ring_road(sampler, 40.0, 10, v_init=5.0, perturbation=4.5)
+        ring_road(sampler, 40.0, 10, initial=RingStart(v_init=5.0, perturbation=4.5))
     # At standstill LLCTG keeps l = 5 m: 10 vehicles in 40 m are jammed (v* = 0)
     # but every spacing stays positive.
     jam = ring_initial_state(sampler, 40.0, perturbation=0.0)
@@ -285,11 +298,11 @@ def test_ring_scenarios_are_independent():
     together = HybridSampler.from_posterior(posterior, dt=0.1, dtype=torch.float64)
     together.sample((3, 12), torch.Generator().manual_seed(6))
     particles = together.vehicle_particle.reshape(3, 12).clone()
-    out = ring_road(together, 360.0, 80, v_init=8.0)
+    out = ring_road(together, 360.0, 80, initial=RingStart(v_init=8.0))
     alone = HybridSampler.from_posterior(posterior, dt=0.1, dtype=torch.float64)
     for s in range(3):
         alone.assign(particles[s : s + 1])
-        one = ring_road(alone, 360.0, 80, v_init=8.0)
+        one = ring_road(alone, 360.0, 80, initial=RingStart(v_init=8.0))
         torch.testing.assert_close(one.v[:, 0], out.v[:, s], rtol=1e-9, atol=1e-9)
         torch.testing.assert_close(
             one.spacing[:, 0], out.spacing[:, s], rtol=1e-9, atol=1e-9
@@ -302,7 +315,9 @@ def test_ring_continues_from_its_final_state_and_redraws():
     )
     sampler.sample((2, 10), torch.Generator().manual_seed(3), resample_every=5.0)
     first = sampler.vehicle_particle.clone()
-    part = ring_road(sampler, 300.0, 40, v_init=10.0, record_every=None)
+    part = ring_road(
+        sampler, 300.0, 40, initial=RingStart(v_init=10.0), record_every=None
+    )
     assert part.x is None and part.final.v.shape == (2, 10)
     assert torch.equal(first, sampler.vehicle_particle)
     more = ring_road(sampler, 300.0, 20, initial=part.final)
@@ -333,7 +348,11 @@ def test_compiled_ring_equals_eager():
     for use_compile in (False, True):
         sampler = HybridSampler.from_posterior(posterior, dt=0.1, dtype=torch.float64)
         sampler.sample((2, 16), torch.Generator().manual_seed(1))
-        runs.append(ring_road(sampler, 400.0, 30, v_init=10.0, compile=use_compile))
+        runs.append(
+            ring_road(
+                sampler, 400.0, 30, initial=RingStart(v_init=10.0), compile=use_compile
+            )
+        )
     torch.testing.assert_close(runs[1].v, runs[0].v, rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(runs[1].spacing, runs[0].spacing, rtol=1e-9, atol=1e-9)
 
@@ -352,7 +371,7 @@ def test_bad_inputs_are_one_line():
     with pytest.raises(ValueError, match=r"\(S,\) = \(2,\)"):
         ring_road(sampler, torch.tensor([100.0, 200.0, 300.0]), 10)
     with pytest.raises(ValueError, match="perturbation"):
-        ring_road(sampler, 100.0, 10, perturbation=-1.0)
+        ring_road(sampler, 100.0, 10, initial=RingStart(perturbation=-1.0))
     with pytest.raises(ValueError, match="record_every"):
         ring_road(sampler, 100.0, 10, record_every=0)
     with pytest.raises(ValueError, match="n_steps"):

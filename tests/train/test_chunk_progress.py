@@ -24,7 +24,7 @@ from torchcf.abc.rejection import (
     prior_stream,
     run_rejection,
 )
-from torchcf.abc.rounds import PILOT_ROUND
+from torchcf.abc.rounds import PILOT_ROUND, RoundHooks
 from torchcf.abc.topn import TopN
 from torchcf.config import TrainConfig
 from torchcf.models import MODELS, get_model
@@ -70,7 +70,7 @@ def _mpc_stream(
             rollout,
             n,
             progress,
-            after_round=after_round,
+            hooks=RoundHooks(after_round=after_round),
         )
 
     try:

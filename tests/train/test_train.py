@@ -42,7 +42,7 @@ def mixture_pairs() -> PairSet:
         assert bool(out.valid.all()), name
         x[:, rows], v[:, rows], a[:, rows] = out.x, out.v, out.a
     return PairSet.from_arrays(
-        base.x_lead, base.v_lead, base.a_lead, x, v, a, dt=base.dt, name="mixture"
+        (base.x_lead, base.v_lead, base.a_lead, x, v, a), dt=base.dt, name="mixture"
     )
 
 

@@ -42,6 +42,7 @@ from .rejection import (
     CUDA_CHUNK_CELLS,
     ModelProgress,
     Rollout,
+    RoundHooks,
     prior_stream,
     run_rejection,
 )
@@ -56,6 +57,7 @@ __all__ = [
     "ModelProgress",
     "ParticleStream",
     "Particles",
+    "RoundHooks",
     "Rollout",
     "Selection",
     "TopN",

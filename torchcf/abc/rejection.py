@@ -18,7 +18,8 @@ and the diagnosis loop's attribution (:mod:`torchcf.diagnose.attribution`):
 
 The engine knows nothing of checkpoints, progress bars or run directories: a
 caller passes :class:`~torchcf.abc.rounds.ModelProgress` (where to continue, what
-was counted) and callbacks that run between rounds. A round is the unit of
+was counted) and :class:`~torchcf.abc.rounds.RoundHooks` (the processes, the
+screen, and callbacks that run between rounds). A round is the unit of
 progress and of checkpoints (nothing is reported or saved inside one), which is
 why a model's cell budget (:attr:`CFModel.chunk_cells`) is a few seconds of
 simulation, not a whole stream: a million MPC particles are 16 rounds on the CPU.
@@ -30,7 +31,6 @@ Shapes: P particles, N pairs, K parameters (:mod:`torchcf.typing`).
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -43,14 +43,23 @@ from ..sim.rollout import (
     COMPILE_CHUNK_MULTIPLE,
     CUDA_CHUNK_CELLS,
     DEFAULT_WEIGHTS,
+    Execution,
     SimOutput,
     cell_budget,
     resolve_compile,
     simulate,
 )
-from .distributed import SINGLE, Group
-from .rounds import Chunk, ModelProgress, Plan, Propose, Sink, run_rounds
-from .screen import PlausibilityScreen
+from .rounds import (
+    NO_HOOKS,
+    Chunk,
+    ModelProgress,
+    Plan,
+    Propose,
+    RoundHooks,
+    Sink,
+    Stretch,
+    run_rounds,
+)
 from .streams import ParticleStream
 from .topn import TopN
 
@@ -129,7 +138,8 @@ class Rollout:
         Args:
             pair: (P,) pair of each particle (paired layout), None for the full one.
             chunk: particles per simulate call (default: :meth:`chunk`).
-            ceiling: early rejection (:func:`torchcf.sim.rollout.simulate`): the score's
+            ceiling: early rejection
+                (:attr:`torchcf.sim.rollout.Execution.ceiling`): the score's
                 shape; a particle stopped above it scores ``+inf`` and is valid.
 
         Returns:
@@ -173,21 +183,23 @@ class Rollout:
             pairs,
             pair,
             dtype=self.dtype,
-            device=self.device,
             weights=self.weights,
-            chunk_size=chunk,
-            compile=compiled,
-            ceiling=ceiling,
+            execution=Execution(self.device, chunk, compiled, ceiling),
         )
 
 
 def prior_stream(
-    name: str, bounds: Tensor, seed: int, rollout: Rollout
+    name: str,
+    bounds: Tensor,
+    seed: int,
+    rollout: Rollout,
+    fixed: Tensor | None = None,
 ) -> ParticleStream:
     """The model's prior stream for the rollout's layout (a pair per particle when
-    paired)."""
+    paired); ``fixed``: the values of its last parameters where they are held
+    (:class:`~torchcf.abc.streams.ParticleStream`)."""
     n_pairs = rollout.pairs.n_pairs if rollout.paired else None
-    return ParticleStream(name, bounds, seed, n_pairs)
+    return ParticleStream(name, bounds, seed, n_pairs, fixed)
 
 
 def run_rejection(
@@ -197,54 +209,40 @@ def run_rejection(
     n_particles: int,
     progress: ModelProgress,
     *,
-    model: str | CFModel | None = None,
-    fixed: Tensor | None = None,
-    group: Group = SINGLE,
     plan_particles: int | None = None,
-    checkpoint_due: Callable[[], bool] | None = None,
-    after_round: Callable[[ModelProgress, bool], None] | None = None,
-    screen: PlausibilityScreen | None = None,
+    hooks: RoundHooks = NO_HOOKS,
 ) -> None:
     """Stream particles ``progress.next .. n_particles - 1`` through ``buffer``.
 
     Args:
-        stream: the model's prior stream (:func:`prior_stream`); draws the first
-            ``K_drawn`` parameters.
+        stream: the model's prior stream (:func:`prior_stream`): the simulated
+            model's name, the box of the ``K_drawn`` parameters it draws and the
+            values of the others where they are held (``stream.fixed``,
+            appended to every drawn particle: a shared effect's one value for
+            all pairs).
         buffer: the model's per-pair buffer (every rank holds a replica; merged
             after every round).
         rollout: how particles are simulated.
         n_particles: where the stream stops.
         progress: where to start; updated after every round.
-        model: the simulated model (default: the stream's name). A variant whose
-            last parameters are ``fixed`` draws only the others.
-        fixed: ``(K - K_drawn,)`` values appended to every drawn particle (a shared
-            effect's one value for all pairs).
-        group: the processes sharing the stream.
         plan_particles: the stream length that sets the chunk and the compile
             choice (default ``n_particles``; a caller that stops a stream at
             several budgets passes one of them, the same at every call: the
             smallest wastes no simulation at the earlier stops).
-        checkpoint_due: asked on rank 0's clock after every round (every rank
-            learns rank 0's answer).
-        after_round: called after every round with the progress and whether a
-            checkpoint is due.
-        screen: the plausibility filter (:mod:`torchcf.abc.screen`), or None.
+        hooks: the processes sharing the stream, the plausibility filter and
+            what runs between rounds (:class:`~torchcf.abc.rounds.RoundHooks`).
     """
-    simulated = get_model(model if model is not None else stream.model)
+    simulated = get_model(stream.model)
     planned = plan_particles if plan_particles is not None else n_particles
     compiled = rollout.compiled(simulated, planned)
     chunk = rollout.chunk(simulated, planned, compiled)
     run_rounds(
         prior_proposals(stream),
         [Sink(buffer)],
-        Plan(rollout, simulated, chunk, compiled, fixed),
+        Plan(rollout, simulated, chunk, compiled, stream.fixed),
         progress,
-        progress.next,
-        n_particles,
-        group=group,
-        screen=screen,
-        checkpoint_due=checkpoint_due,
-        after_round=after_round,
+        Stretch(progress.next, n_particles),
+        hooks=hooks,
     )
 
 
@@ -264,6 +262,7 @@ def prior_proposals(stream: ParticleStream) -> Propose:
 __all__ = [
     "CUDA_CHUNK_CELLS",
     "ModelProgress",
+    "RoundHooks",
     "Rollout",
     "prior_proposals",
     "prior_stream",

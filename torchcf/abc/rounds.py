@@ -20,7 +20,7 @@ the batching and the distance, and its methods only propose), run over one
 5. **end the round**: the ranks' buffers merged and their counts summed
    (:meth:`Group.end_round <torchcf.abc.distributed.Group.end_round>`), the
    progress advanced, the caller's ``after_round`` called (its progress bar and
-   checkpoints; rank 0's clock says whether one is due).
+   checkpoints; rank 0's clock says whether one is due: :class:`RoundHooks`).
 
 A round is the unit of progress and of checkpoints: nothing is reported or saved
 inside one. The chunk is set by the plan, never by the clock, so the rounds, like
@@ -178,6 +178,49 @@ class Sink:
     ceiling: Tensor | None = None
 
 
+@dataclass(frozen=True)
+class RoundHooks:
+    """What a caller adds to the round loop: the processes that share the
+    rounds, the plausibility screen before a push, and what runs between
+    rounds (a progress bar, checkpoints).
+
+    Attributes:
+        group: the processes sharing the stretch (:data:`SINGLE`: this one).
+        screen: the plausibility filter (:mod:`torchcf.abc.screen`), or None.
+        checkpoint_due: asked on rank 0's clock after every round (every rank
+            learns rank 0's answer); None: never due.
+        after_round: called after every round with the progress and whether a
+            checkpoint is due; None: nothing.
+    """
+
+    group: Group = SINGLE
+    screen: PlausibilityScreen | None = None
+    checkpoint_due: Callable[[], bool] | None = None
+    after_round: Callable[[ModelProgress, bool], None] | None = None
+
+
+#: No hooks: one process, no screen, nothing between rounds.
+NO_HOOKS = RoundHooks()
+
+
+@dataclass(frozen=True)
+class Stretch:
+    """The proposals a round loop offers: ``start .. stop - 1`` of a stretch
+    (a rejection stream, an SMC round).
+
+    Attributes:
+        start: where the stretch continues (0, or a checkpoint's place).
+        stop: the stretch's length.
+        offset: the model's particles before the stretch (an SMC round's first
+            particle index): the progress counts ``offset +`` the proposals
+            offered.
+    """
+
+    start: int
+    stop: int
+    offset: int = 0
+
+
 #: With early rejection, a stretch that starts from nothing begins with a pilot
 #: round of ``1 / PILOT_ROUND`` of a round: its buffers' thresholds then stop
 #: the rollouts of the first full round early, which would otherwise run whole.
@@ -208,15 +251,10 @@ def run_rounds(
     sinks: Sequence[Sink],
     plan: Plan,
     progress: ModelProgress,
-    start: int,
-    stop: int,
+    stretch: Stretch,
     *,
-    offset: int = 0,
     reached: Callable[[int], None] | None = None,
-    group: Group = SINGLE,
-    screen: PlausibilityScreen | None = None,
-    checkpoint_due: Callable[[], bool] | None = None,
-    after_round: Callable[[ModelProgress, bool], None] | None = None,
+    hooks: RoundHooks = NO_HOOKS,
 ) -> None:
     """Offer a stretch's proposals ``start .. stop - 1`` to ``sinks``, round by
     round (module docstring).
@@ -227,20 +265,16 @@ def run_rounds(
         plan: how chunks are simulated.
         progress: updated after every round: counts, time, and ``next = offset +``
             the proposals of the stretch offered so far.
-        start: where the stretch continues (0, or a checkpoint's place).
-        stop: the stretch's length.
-        offset: the model's particles before the stretch (an SMC round's first
-            index).
+        stretch: the proposals to offer, and the particles before them.
         reached: told after every round how far into the stretch it went,
-            before ``after_round`` (SMC keeps it in its state).
-        group: the processes sharing the stretch.
-        screen: the plausibility filter, or None.
-        checkpoint_due: asked on rank 0's clock after every round (every rank
-            learns rank 0's answer).
-        after_round: called after every round with the progress and whether a
-            checkpoint is due.
+            before ``hooks.after_round`` (SMC keeps it in its state).
+        hooks: the processes sharing the stretch, the screen, and what runs
+            between rounds (:class:`RoundHooks`).
     """
+    group, screen = hooks.group, hooks.screen
+    checkpoint_due, after_round = hooks.checkpoint_due, hooks.after_round
     buffers = [sink.buffer for sink in sinks]
+    start, stop = stretch.start, stretch.stop
     for first, end, chunk_size in round_bounds(plan, start, stop, group.world_size):
         began = time.perf_counter()
         lo, hi = group.shard(first, end, chunk_size)
@@ -261,7 +295,7 @@ def run_rounds(
         progress.invalid += invalid
         progress.implausible += implausible
         progress.stopped += stopped
-        progress.next = offset + done
+        progress.next = stretch.offset + done
         progress.seconds += time.perf_counter() - began
         if after_round is not None:
             after_round(progress, due)
@@ -365,11 +399,14 @@ def offer_chunk(
 __all__ = [
     "Chunk",
     "ModelProgress",
+    "NO_HOOKS",
     "Offered",
     "Plan",
     "Propose",
+    "RoundHooks",
     "Scorer",
     "Sink",
+    "Stretch",
     "offer_chunk",
     "run_rounds",
 ]

@@ -92,7 +92,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -101,11 +101,19 @@ from torch import Tensor
 
 from ..models import CFModel, get_model
 from ..sim.rollout import COMPILE_CHUNK_MULTIPLE
-from .distributed import SINGLE, Group
 from .kernel import KERNEL_FLOOR, SMCKernel
 from .rejection import Rollout
-from .rounds import Chunk, ModelProgress, Plan, Propose, Sink, run_rounds
-from .screen import PlausibilityScreen
+from .rounds import (
+    NO_HOOKS,
+    Chunk,
+    ModelProgress,
+    Plan,
+    Propose,
+    RoundHooks,
+    Sink,
+    Stretch,
+    run_rounds,
+)
 from .streams import ParticleStream, uniforms
 from .topn import TopN
 
@@ -258,9 +266,7 @@ def parameter_buffer(buffer: TopN) -> TopN:
 
 # -------------------------------------------------------------- the rounds
 def run_smc(
-    name: str,
-    bounds: Tensor,
-    seed: int,
+    stream: ParticleStream,
     buffer: TopN,
     rollout: Rollout,
     n_particles: int,
@@ -268,19 +274,19 @@ def run_smc(
     progress: ModelProgress,
     state: SMCState,
     *,
-    model: str | CFModel | None = None,
-    fixed: Tensor | None = None,
-    group: Group = SINGLE,
-    checkpoint_due: Callable[[], bool] | None = None,
-    after_round: Callable[[ModelProgress, bool], None] | None = None,
-    screen: PlausibilityScreen | None = None,
+    hooks: RoundHooks = NO_HOOKS,
 ) -> None:
     """Run one model's refinement to its end (module docstring).
 
     Args:
-        name: the model's registry name (keys its streams).
-        bounds: (K_drawn, 2) float64 prior box of the searched parameters.
-        seed: the run's seed.
+        stream: the model's prior stream on the rollout's pairs
+            (:func:`~torchcf.abc.rejection.prior_stream`): the simulated
+            model's name (it keys the refinement's streams too), the seed, the
+            (K_drawn, 2) float64 prior box of the searched parameters and, for
+            a variant searched in its first parameters only, the ``(K -
+            K_drawn,)`` values of the others, appended to every particle
+            before it is simulated (a shared effect's one value for all pairs;
+            the buffers hold the searched parameters only).
         buffer: the model's per-pair top-N buffer, ``theta`` (N, capacity,
             K_drawn + 1).
         rollout: how particles are simulated (paired layout).
@@ -288,18 +294,18 @@ def run_smc(
         settings: the refinement's settings.
         progress: proposals offered so far (updated after every chunk round).
         state: where the refinement stands (updated; a checkpoint saves it).
-        model: the simulated model (default: ``name``). A variant whose last
-            parameters are ``fixed`` is searched in the others only.
-        fixed: ``(K - K_drawn,)`` values appended to every particle before it is
-            simulated (a shared effect's one value for all pairs); the buffers
-            hold the searched parameters only.
-        group: the processes sharing the work.
-        checkpoint_due, after_round, screen: as in
-            :func:`~torchcf.abc.run_rejection`.
+        hooks: the processes sharing the work, the plausibility filter and
+            what runs between rounds (:class:`~torchcf.abc.rounds.RoundHooks`),
+            as in :func:`~torchcf.abc.run_rejection`.
     """
     if not rollout.paired:
         raise ValueError("SMC refines per pair: it needs the paired layout")
-    model = get_model(model if model is not None else name)
+    if stream.n_pairs != rollout.pairs.n_pairs:
+        raise ValueError(
+            f"the stream's particles go to {stream.n_pairs} pairs, the rollout "
+            f"has {rollout.pairs.n_pairs}: make it with prior_stream(..., rollout)"
+        )
+    model = get_model(stream.model)
     budget = smc_budget(n_particles, rollout.pairs.n_pairs, settings)
     if budget.per_pair < 1:
         raise ValueError(
@@ -308,8 +314,8 @@ def run_smc(
         )
     compiled = rollout.compiled(model, n_particles)
     chunk = _round_chunk(rollout, model, budget.per_round, compiled)
-    plan = Plan(rollout, model, chunk, compiled, fixed)
-    stream = ParticleStream(name, bounds, seed, rollout.pairs.n_pairs)
+    plan = Plan(rollout, model, chunk, compiled, stream.fixed)
+    bounds = stream.bounds
     if state.accepted is None and state.round <= budget.rounds:
         state.accepted = TopN(*state.shape)
 
@@ -329,14 +335,13 @@ def run_smc(
             _round_sinks(buffer, state, settings),
             plan,
             progress,
-            state.next,
-            budget.round_size(state.round),
-            offset=budget.first_index(state.round),
+            Stretch(
+                state.next,
+                budget.round_size(state.round),
+                budget.first_index(state.round),
+            ),
             reached=reached,
-            group=group,
-            screen=screen,
-            checkpoint_due=checkpoint_due,
-            after_round=after_round,
+            hooks=hooks,
         )
         began = time.perf_counter()
         if kernel is not None:

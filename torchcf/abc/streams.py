@@ -71,15 +71,28 @@ def uniforms(seed: int, model: str, start: int, stop: int, width: int) -> Tensor
 class ParticleStream:
     """The particles of one model: uniform prior box, and a pair per particle.
 
+    The stream draws the model's first ``K_drawn`` parameters; a variant whose
+    last ones are held (a shared effect's one value for every pair) carries
+    their values in ``fixed``, appended to every drawn particle before it is
+    simulated (:class:`torchcf.abc.rounds.Plan`).
+
     Args:
-        model: the model's registry name (enters the stream).
-        bounds: (K, 2) float64 ``[low, high]`` per parameter.
+        model: the model's registry name (enters the stream); the simulated
+            model.
+        bounds: (K_drawn, 2) float64 ``[low, high]`` per drawn parameter.
         seed: the run's seed.
         n_pairs: training pairs for the paired layout, or None (full layout).
+        fixed: (K - K_drawn,) float64 values of the model's last parameters,
+            the same for every particle; None: every parameter is drawn.
     """
 
     def __init__(
-        self, model: str, bounds: Tensor, seed: int, n_pairs: int | None = None
+        self,
+        model: str,
+        bounds: Tensor,
+        seed: int,
+        n_pairs: int | None = None,
+        fixed: Tensor | None = None,
     ) -> None:
         bounds = torch.as_tensor(bounds, dtype=torch.float64)
         if bounds.ndim != 2 or bounds.shape[1] != 2:
@@ -92,6 +105,7 @@ class ParticleStream:
         self.bounds = bounds
         self.seed = int(seed)
         self.n_pairs = n_pairs
+        self.fixed = fixed
 
     def draw(self, start: int, stop: int) -> tuple[Tensor, Tensor | None]:
         """Particles ``start .. stop-1``.

@@ -40,6 +40,7 @@ from ..posterior.tables import (
     LEVEL,
     N_BOOTSTRAP,
     NO_GROUP,
+    Bootstrap,
     GroupedShares,
     GroupError,
     grouped_shares,
@@ -216,9 +217,7 @@ def _grouped(
         source=source,
         clusters=clusters,
         unit=unit,
-        n_bootstrap=args.bootstrap,
-        level=args.level,
-        seed=args.seed,
+        bootstrap=Bootstrap(args.bootstrap, args.level, args.seed),
     )
 
 

@@ -7,7 +7,7 @@ arguments (which is why it lives here, above both).
 
 from __future__ import annotations
 
-from torchcf.data import DataError, PairSet
+from torchcf.data import Cleaning, DataError, PairSet
 from torchcf.data.importer import extract_source
 from torchcf.data.splits import split_pairs
 
@@ -59,6 +59,5 @@ def load_split(data: DataConfig, *, download: bool = True) -> tuple[PairSet, Pai
         leader_length=data.leader_length,
         data_root=data.root,
         download=download,
-        drop_duplicates=data.drop_duplicates,
-        min_spacing=data.min_spacing,
+        cleaning=Cleaning(data.drop_duplicates, data.min_spacing),
     )

@@ -5,7 +5,8 @@ the named data sets of the ABC paper.
   mask, validated on construction; :class:`DataError` for every data problem.
 * :mod:`torchcf.data.reader`: :func:`read_six_csv`, the six-file CSV layout and
   unit conversion.
-* :mod:`torchcf.data.registry`: :data:`DATASETS` and :func:`load_pairs`, where the
+* :mod:`torchcf.data.registry`: :data:`DATASETS`, :func:`load_pairs` and
+  :class:`Cleaning` (the duplicates and short spacings it drops), where the
   files come from (path, ``TORCHCF_DATA``, cache, checked download), the splits
   and the quirks of each data set.
 * :mod:`torchcf.data.splits`: :func:`split_pairs` and :func:`kfold_split`, the
@@ -17,6 +18,7 @@ from torchcf.data.pairset import DataError, PairSet
 from torchcf.data.reader import read_six_csv
 from torchcf.data.registry import (
     DATASETS,
+    Cleaning,
     DatasetSpec,
     load_pairs,
     resolve_data_root,
@@ -25,6 +27,7 @@ from torchcf.data.splits import kfold_split, split_pairs
 
 __all__ = [
     "DATASETS",
+    "Cleaning",
     "DataError",
     "DatasetSpec",
     "PairSet",

@@ -618,7 +618,7 @@ def _pair_set(
         w.a_follow[:, kept],
     ]
     return PairSet.from_arrays(
-        *(torch.from_numpy(np.ascontiguousarray(s)) for s in series),
+        [torch.from_numpy(np.ascontiguousarray(s)) for s in series],
         dt=dt,
         leader_length=leader_length,
         name=name,

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -135,12 +135,7 @@ class PairSet:
     @classmethod
     def from_arrays(
         cls,
-        x_lead: Any,
-        v_lead: Any,
-        a_lead: Any,
-        x_follow: Any,
-        v_follow: Any,
-        a_follow: Any,
+        series: Mapping[str, Any] | Sequence[Any],
         *,
         dt: float | None,
         mask: Any = None,
@@ -158,12 +153,9 @@ class PairSet:
         their column, so padding is finite whatever the input held there.
 
         Args:
-            x_lead: (T, N) leader position [m].
-            v_lead: (T, N) leader speed [m/s].
-            a_lead: (T, N) leader acceleration [m/s^2].
-            x_follow: (T, N) follower position [m].
-            v_follow: (T, N) follower speed [m/s].
-            a_follow: (T, N) follower acceleration [m/s^2].
+            series: the six (T, N) series, in :data:`SERIES` order (leader
+                position [m], speed [m/s], acceleration [m/s^2], then the
+                follower's), or by those names (:meth:`series` gives them so).
             dt: sampling interval [s].
             mask: (T, N) bool prefix mask of valid steps; None means all valid.
             leader_length: leader vehicle length [m].
@@ -180,7 +172,7 @@ class PairSet:
         """
         if dt is None:
             raise DataError("dt missing: pass the sampling interval dt [s]")
-        raw = (x_lead, v_lead, a_lead, x_follow, v_follow, a_follow)
+        raw = _six_series(series)
         series = [_as_float_tensor(a, f) for a, f in zip(raw, SERIES, strict=True)]
         shapes = {tuple(s.shape) for s in series}
         if len(shapes) > 1 or series[0].ndim != 2:
@@ -427,6 +419,27 @@ def _numpy(tensor: Tensor) -> np.ndarray:
     if host.dtype in (torch.bfloat16, torch.float8_e4m3fn, torch.float8_e5m2):
         host = host.to(torch.float32)  # NumPy has no such dtype; checks only
     return host.numpy()
+
+
+def _six_series(series: Mapping[str, Any] | Sequence[Any]) -> tuple[Any, ...]:
+    """The six series in :data:`SERIES` order, from a mapping by those names
+    or a sequence of six (DataError otherwise)."""
+    if isinstance(series, Mapping):
+        names = set(series)
+        if names != set(SERIES):
+            missing, extra = set(SERIES) - names, names - set(SERIES)
+            raise DataError(
+                "series must name the six series "
+                f"({', '.join(SERIES)}); missing {sorted(missing)}, "
+                f"unknown {sorted(map(str, extra))}"
+            )
+        return tuple(series[f] for f in SERIES)
+    if isinstance(series, Tensor | np.ndarray) or len(series) != 6:
+        raise DataError(
+            f"series must be the six series ({', '.join(SERIES)}), "
+            "as a sequence of six or by name"
+        )
+    return tuple(series)
 
 
 def _as_float_tensor(array: Any, field: str) -> Tensor:

@@ -117,7 +117,7 @@ def read_six_csv(
     series = [torch.from_numpy(tables[f].values * factor) for f in FILES]
     try:
         return PairSet.from_arrays(
-            *series,
+            series,
             dt=dt,
             mask=torch.from_numpy(mask),
             leader_length=leader_length,

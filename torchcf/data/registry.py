@@ -43,15 +43,17 @@ repeated) and where the quirks are explained (:data:`EXPLAINED`):
   are identical; ``Trajectory/`` holds both copies of 7/17, and one copy of 6/16
   is in ``Trajectory/`` and the other in ``Testing/``, a train-to-test leak). Two
   pairs are duplicates when all six series are exactly equal. With
-  ``drop_duplicates=True`` (default) a loaded set keeps the first copy only, and
+  ``drop_duplicates=True`` (default, :class:`Cleaning`) a loaded set keeps the
+  first copy only, and
   the test split also drops the pairs that duplicate a training pair; with
   ``False`` everything is kept and the duplicates are still reported.
 * Full-set columns in neither split (CAR MODEL I: column 44), reported when a
   split is loaded.
 * Implausibly short spacing: pairs whose minimum front-to-front spacing is under
   :data:`SUSPECT_SPACING` (15 ft = 4.572 m, a car length plus a minimal gap) are
-  always reported (NGSIM I-80: 9 pairs, position errors). ``min_spacing=`` [m]
-  drops the pairs whose minimum spacing is under it, for any data set.
+  always reported (NGSIM I-80: 9 pairs, position errors). ``min_spacing``
+  [m] (:class:`Cleaning`) drops the pairs whose minimum spacing is under it,
+  for any data set.
 
 Any other folder in the six-CSV layout loads by path: units default to "m", and
 ``dt`` comes from the argument or from a ``meta.json`` beside the files
@@ -91,6 +93,7 @@ __all__ = [
     "DATASETS",
     "SPLITS",
     "SUSPECT_SPACING",
+    "Cleaning",
     "DatasetSpec",
     "cache_dir",
     "load_pairs",
@@ -137,6 +140,23 @@ class DatasetSpec:
     road_frame: bool | None = None
 
 
+@dataclass(frozen=True)
+class Cleaning:
+    """Which pairs a load drops (module docstring: the quirks).
+
+    Attributes:
+        drop_duplicates: keep only the first copy of identical pairs in the set
+            loaded; for a named test split, also drop the pairs that duplicate a
+            training pair. False keeps everything (still reported in ``notes``).
+        min_spacing: drop pairs whose minimum front-to-front spacing
+            ``x_lead - x_follow`` over valid steps is under this value [m];
+            None drops none for it.
+    """
+
+    drop_duplicates: bool = True
+    min_spacing: float | None = None
+
+
 DATASETS: dict[str, DatasetSpec] = {
     "ngsim-i80": DatasetSpec(
         folder="HDV/NGSIM I_80",
@@ -171,8 +191,7 @@ def load_pairs(
     leader_length: float | None = None,
     data_root: str | os.PathLike[str] | None = None,
     download: bool = True,
-    drop_duplicates: bool = True,
-    min_spacing: float | None = None,
+    cleaning: Cleaning = Cleaning(),
 ) -> PairSet:
     """Load a named data set or a six-CSV folder as a PairSet in SI units.
 
@@ -187,11 +206,8 @@ def load_pairs(
             ``meta.json``'s, else 5.0.
         data_root: folder holding ``HDV/`` and ``AV/`` (names only).
         download: allow fetching missing files of a named set into the cache.
-        drop_duplicates: keep only the first copy of identical pairs in the set
-            loaded; for a named test split, also drop the pairs that duplicate a
-            training pair. False keeps everything (still reported in ``notes``).
-        min_spacing: drop pairs whose minimum front-to-front spacing
-            ``x_lead - x_follow`` over valid steps is under this value [m].
+        cleaning: which pairs are dropped (:class:`Cleaning`: duplicates,
+            by default, and pairs of too short a spacing).
 
     Returns:
         (T, N) float64 PairSet; ``pair_ids`` are 0-based full-set columns for a
@@ -205,6 +221,7 @@ def load_pairs(
         raise DataError(f"split must be None, 'train' or 'test', got {split!r}")
     if units is not None:
         unit_factor(units)
+    drop_duplicates, min_spacing = cleaning.drop_duplicates, cleaning.min_spacing
     if min_spacing is not None and not (
         math.isfinite(min_spacing) and min_spacing >= 0
     ):

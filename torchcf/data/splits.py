@@ -95,8 +95,7 @@ def split_pairs(
         fold: the test fold, in ``[0, folds)``; ignored for ``"dataset"``.
         seed: the k-fold permutation's seed; ignored for ``"dataset"``.
         **load_options: passed to :func:`load_pairs` (``units``, ``dt``,
-            ``leader_length``, ``data_root``, ``download``, ``drop_duplicates``,
-            ``min_spacing``).
+            ``leader_length``, ``data_root``, ``download``, ``cleaning``).
 
     Returns:
         ``(train, test)`` PairSets in SI units (float64, as loaded).

@@ -46,7 +46,7 @@ import torch
 from torch import Tensor
 
 from ..abc.particles import Particles
-from ..abc.rejection import Rollout
+from ..abc.rejection import Rollout, prior_stream
 from ..abc.smc import SMCSettings
 from ..config import DiagnoseConfig, TrainConfig
 from ..data import PairSet
@@ -203,6 +203,7 @@ class Arena:
                 tick()
 
         def keep(state: Converging) -> None:
+            tick()
             if checkpoints is not None:
                 entry = {
                     "population": population_dict(state.population),
@@ -217,9 +218,7 @@ class Arena:
             self.bounds(population.models, shared),
             Noise((self.seed, "converge", *label), _current(population)),
             {m: m for m in population.models},
-            copies=self.settings.local_copies,
-            max_rounds=self.settings.max_rounds,
-            progress=tick,
+            self.settings,
             resume=resume,
             after_round=keep,
         )
@@ -293,13 +292,12 @@ def fit_pool(
         kept = checkpoints.get(key) if checkpoints is not None else None
         if kept is None:
             box = model_bounds(name, arena.priors)
+            stream = prior_stream(get_model(name).name, box, arena.seed, arena.fit)
             (particles,) = prior_particles(
-                name,
+                stream,
                 arena.fit,
                 (arena.settings.n_particles,),
                 arena.size,
-                box,
-                arena.seed,
                 smc=arena.smc,
                 progress=tick,
             )

@@ -14,15 +14,16 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 import torch
-from torch import Tensor
 
 from ..abc.particles import Particles
-from ..abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
+from ..abc.rejection import ModelProgress, Rollout, run_rejection
+from ..abc.rounds import RoundHooks
 from ..abc.smc import SMCSettings, new_state, parameter_buffer, run_smc, smc_budget
+from ..abc.streams import ParticleStream
 from ..abc.topn import TopN
 from ..config import ConfigError, TrainConfig
 from ..data import PairSet
-from ..models import CFModel, UnknownModelError, augment, get_model
+from ..models import UnknownModelError, augment, get_model
 from ..models.effects import Effect
 
 
@@ -60,13 +61,10 @@ def augmented_variants(pool: Sequence[str], effect: Effect) -> list[str]:
 
 
 def prior_particles(
-    name: str,
+    stream: ParticleStream,
     rollout: Rollout,
     budgets: Sequence[int],
     keep: int,
-    bounds: Tensor,
-    seed: int,
-    fixed: Tensor | None = None,
     smc: SMCSettings | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> list[Particles]:
@@ -74,14 +72,16 @@ def prior_particles(
     with ``smc`` the sequential refinement at each budget.
 
     Args:
+        stream: the model's prior stream on the rollout's pairs
+            (:func:`~torchcf.abc.rejection.prior_stream` of its canonical name,
+            the prior box of the drawn parameters (K_drawn, 2), the seed
+            :func:`attribution_seed`, and the values (K - K_drawn,) of the last
+            parameters where they are held, the same for every particle: a
+            shared effect's value).
         budgets: increasing particle counts; result ``i`` holds the ``keep`` best
             per pair of the first ``budgets[i]`` prior draws of the model's stream
             (streamed through a top-N buffer, nothing else stored; empty slots
             scored ``+inf``), pair-major.
-        bounds: the prior box of the drawn parameters (K_drawn, 2).
-        seed: the stream's seed (:func:`attribution_seed`).
-        fixed: values (K - K_drawn,) of the last parameters, the same for every
-            particle (a shared effect's value).
         smc: the refinement's settings; result ``i`` is then the ``keep`` best per
             pair of an SMC run of ``budgets[i]`` proposals (its own run: an SMC
             run of a larger budget is not a continuation of a smaller one).
@@ -89,16 +89,14 @@ def prior_particles(
             rejection simulated (the shares sum to 1); SMC calls it once, at
             the end.
     """
-    model = get_model(name)
+    model = get_model(stream.model)
     if smc is not None:
         sets = [
-            _refined_particles(model, rollout, budget, keep, bounds, seed, fixed, smc)
-            for budget in budgets
+            _refined_particles(stream, rollout, budget, keep, smc) for budget in budgets
         ]
         if progress is not None:
             progress(1.0)
         return sets
-    stream = prior_stream(model.name, bounds, seed, rollout)
     buffer = TopN(rollout.pairs.n_pairs, keep, model.n_params)
     streamed = ModelProgress()
     total, reported = max(budgets), [0]
@@ -116,27 +114,23 @@ def prior_particles(
             rollout,
             budget,
             streamed,
-            model=model,
-            fixed=fixed,
             plan_particles=min(budgets),
-            after_round=after_round,
+            hooks=RoundHooks(after_round=after_round),
         )
         sets.append(Particles.from_buffer(model.name, buffer, keep))
     return sets
 
 
 def _refined_particles(
-    model: CFModel,
+    stream: ParticleStream,
     rollout: Rollout,
     budget: int,
     keep: int,
-    bounds: Tensor,
-    seed: int,
-    fixed: Tensor | None,
     smc: SMCSettings,
 ) -> Particles:
     """The ``keep`` best per pair of one SMC run of ``budget`` proposals."""
-    n_pairs, k_drawn = rollout.pairs.n_pairs, bounds.shape[0]
+    model, fixed = get_model(stream.model), stream.fixed
+    n_pairs, k_drawn = rollout.pairs.n_pairs, stream.bounds.shape[0]
     buffer = TopN(n_pairs, keep, k_drawn + 1)
     state = new_state(n_pairs, smc, k_drawn)
     if smc_budget(budget, n_pairs, smc).per_pair < 1:
@@ -145,19 +139,7 @@ def _refined_particles(
             f"particles, no proposal per pair and round ({n_pairs} pairs, "
             f"abc.smc.rounds = {smc.rounds}); raise it or lower the rounds"
         )
-    run_smc(
-        model.name,
-        bounds,
-        seed,
-        buffer,
-        rollout,
-        budget,
-        smc,
-        ModelProgress(),
-        state,
-        model=model,
-        fixed=fixed,
-    )
+    run_smc(stream, buffer, rollout, budget, smc, ModelProgress(), state)
     particles = Particles.from_buffer(model.name, parameter_buffer(buffer), keep)
     if fixed is None:
         return particles

@@ -62,7 +62,14 @@ from .recalibrate import (
     write_run,
 )
 from .report import write_report
-from .retrain import Buffers, buffers_in_order, retrain, variants_of, wrapped
+from .retrain import (
+    Buffers,
+    FinalModel,
+    buffers_in_order,
+    retrain,
+    variants_of,
+    wrapped,
+)
 from .road import RoadOffer, choose_spacing, one_step_residual, shares_road_frame
 from .series import DiagnoseError, best_particles, diagnose_residuals
 from .signatures import family_of
@@ -416,9 +423,7 @@ def _trained_buffers(
         return retrain(
             plan.cfg,
             plan.posterior,
-            plan.selection.models,
-            plan.selection.shared,
-            plan.selection.shared_priors,
+            FinalModel.of(plan.selection),
             plan.pool,
             plan.train_pairs,
             screen=screen,

@@ -48,7 +48,7 @@ from ..runs.directory import RunDir
 from .arms import Arena, Arm, design_fits, design_values
 from .candidates import attribution_rollout, attribution_seed
 from .population import Population, merge
-from .search import Noise, converge, lift, model_bounds
+from .search import Converging, Noise, converge, lift, model_bounds
 
 
 def run_population(posterior: Posterior, size: int) -> Population:
@@ -102,17 +102,14 @@ def recalibrate(
     values = {k: torch.tensor(v, dtype=torch.float64) for k, v in shared.items()}
     start = run_population(posterior, size)
 
+    def ticked(_: Converging) -> None:
+        if tick is not None:
+            tick()
+
     def search(begin: Population, noise: Noise, parents: dict[str, str]) -> Population:
         bounds = {m: model_bounds(m, priors, values) for m in begin.models}
         searched, _ = converge(
-            begin,
-            rollout,
-            bounds,
-            noise,
-            parents,
-            copies=settings.local_copies,
-            max_rounds=settings.max_rounds,
-            progress=tick,
+            begin, rollout, bounds, noise, parents, settings, after_round=ticked
         )
         return searched
 

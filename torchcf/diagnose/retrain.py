@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +55,7 @@ from torch import Tensor
 
 from ..abc.configured import rollout_of, smc_settings
 from ..abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
+from ..abc.rounds import RoundHooks
 from ..abc.screen import PlausibilityScreen
 from ..abc.smc import new_state, run_smc
 from ..abc.topn import TopN
@@ -61,7 +63,7 @@ from ..config import TrainConfig
 from ..data import PairSet
 from ..models import get_model
 from ..posterior import Posterior
-from .attribution import Ledger, ledger_key
+from .attribution import EffectSelection, Ledger, ledger_key
 from .recalibrate import best_entries
 from .search import derive_seed, model_bounds
 
@@ -75,12 +77,34 @@ def variants_of(models_after: Sequence[str], run_models: Sequence[str]) -> list[
     return [m for m in models_after if m not in run_models]
 
 
+@dataclass(frozen=True)
+class FinalModel:
+    """The selection's final model, as the re-calibration trains it.
+
+    Attributes:
+        models: the pool and the variants of the chosen effects.
+        shared: per chosen shared effect name, its value (K_E,).
+        shared_priors: per chosen shared effect token, the box it was found
+            in: per parameter name, ``(low, high)``.
+    """
+
+    models: Sequence[str]
+    shared: dict[str, list[float]] = field(default_factory=dict)
+    shared_priors: dict[str, dict[str, tuple[float, float]]] = field(
+        default_factory=dict
+    )
+
+    @classmethod
+    def of(cls, selection: EffectSelection) -> FinalModel:
+        """The final model of a forward selection (:func:`attribute_effects
+        <torchcf.diagnose.attribution.attribute_effects>`)."""
+        return cls(selection.models, selection.shared, selection.shared_priors)
+
+
 def retrain(
     cfg: TrainConfig,
     posterior: Posterior,
-    models_after: Sequence[str],
-    shared: dict[str, list[float]],
-    shared_priors: dict[str, dict[str, tuple[float, float]]],
+    final: FinalModel,
     pool: Sequence[str],
     train_pairs: PairSet,
     *,
@@ -91,10 +115,8 @@ def retrain(
     """The reference's and after's buffers (module docstring).
 
     Args:
-        models_after: the final model of the selection: the pool and the
-            variants of the chosen effects.
-        shared: per chosen shared effect name, its value.
-        shared_priors: per chosen shared effect token, the box it was found in.
+        final: the final model of the selection (its models, and its shared
+            effects' values and boxes).
         pool: the pool models; those a variant wraps get ``N`` more particles
             in the reference (:func:`wrapped`).
         screen: the run's plausibility filter (``plausibility.filter``), built
@@ -109,11 +131,12 @@ def retrain(
         a model is not searched again).
     """
     run_models = list(posterior.models)
-    variants = variants_of(models_after, run_models)
+    variants = variants_of(final.models, run_models)
     rollout = rollout_of(cfg, train_pairs, torch.device(cfg.device))
     priors = {spec.name: spec.bounds(torch.float64) for spec in cfg.models}
+    shared = final.shared
     values = {k: torch.tensor(v, dtype=torch.float64) for k, v in shared.items()}
-    key = ledger_key(cfg, list(pool), list(models_after))
+    key = ledger_key(cfg, list(pool), list(final.models))
     book = Ledger(ledger, f"retrain|{key}|{json.dumps(shared, sort_keys=True)}")
     run_buffers = {m: _run_buffer(posterior, m) for m in run_models}
 
@@ -137,7 +160,7 @@ def retrain(
     after = dict(run_buffers)
     for name in variants:
         bounds, fixed = searched_box(
-            name, model_bounds(name, priors, values), shared_priors
+            name, model_bounds(name, priors, values), final.shared_priors
         )
         after[name] = kept(
             f"after:{name}",
@@ -195,8 +218,7 @@ def _more_of(
         2 * n_particles,
         progress,
         plan_particles=n_particles,
-        after_round=_ticker(tick, start=n_particles),
-        screen=screen,
+        hooks=RoundHooks(screen=screen, after_round=_ticker(tick, start=n_particles)),
     )
     return _cpu(buffer.state_dict())
 
@@ -217,40 +239,26 @@ def _trained(
     n_pairs, capacity = rollout.pairs.n_pairs, cfg.abc.buffer_size
     k = bounds.shape[0]
     progress = ModelProgress()
-    after_round = _ticker(tick, start=0)
+    stream = prior_stream(name, bounds, seed, rollout, fixed)
+    hooks = RoundHooks(screen=screen, after_round=_ticker(tick, start=0))
     if cfg.abc.method == "smc":
         settings = smc_settings(cfg)
         buffer = TopN(n_pairs, capacity, k + 1)  # SMC keeps log r beside theta
         run_smc(
-            name,
-            bounds,
-            seed,
+            stream,
             buffer,
             rollout,
             cfg.abc.n_particles,
             settings,
             progress,
             new_state(n_pairs, settings, k),
-            model=name,
-            fixed=fixed,
-            after_round=after_round,
-            screen=screen,
+            hooks=hooks,
         )
         state = _cpu(buffer.state_dict())
         state["theta"] = state["theta"][..., :k].contiguous()
         return _with_fixed(state, fixed)
     buffer = TopN(n_pairs, capacity, get_model(name).n_params)  # fixed ones too
-    run_rejection(
-        prior_stream(name, bounds, seed, rollout),
-        buffer,
-        rollout,
-        cfg.abc.n_particles,
-        progress,
-        model=name,
-        fixed=fixed,
-        after_round=after_round,
-        screen=screen,
-    )
+    run_rejection(stream, buffer, rollout, cfg.abc.n_particles, progress, hooks=hooks)
     return _cpu(buffer.state_dict())
 
 
@@ -330,6 +338,7 @@ def buffers_in_order(buffers: Buffers, models: Sequence[str]) -> list[TopN]:
 
 __all__ = [
     "Buffers",
+    "FinalModel",
     "buffers_in_order",
     "retrain",
     "searched_box",

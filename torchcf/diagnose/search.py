@@ -44,6 +44,7 @@ import torch
 from torch import Tensor
 
 from ..abc.rejection import Rollout
+from ..config import DiagnoseConfig
 from ..models import UnknownModelError, augment, get_model
 from ..models.effects import Effect
 from .population import Population, merge, rescore, score_on
@@ -285,29 +286,31 @@ def converge(
     bounds: dict[str, Tensor],
     noise: Noise,
     parents: dict[str, str],
+    settings: DiagnoseConfig,
     *,
-    copies: int,
-    max_rounds: int,
-    progress: Callable[[], None] | None = None,
     resume: Converging | None = None,
     after_round: Callable[[Converging], None] | None = None,
 ) -> tuple[Population, int]:
     """Local search until it converges: rounds of :func:`local_search` until two
     rounds in a row lower the pairs' summed best score by less than
-    :data:`CONVERGED` (relative), or ``max_rounds`` rounds.
+    :data:`CONVERGED` (relative), or ``settings.max_rounds`` rounds.
 
     A comparison starts from a converged model: an arm that starts short of its
     optimum gains from any change of its search (a redundant parameter moves
     it faster), which would pass for the effect.
 
     Args:
+        settings: the ``diagnose`` section: ``local_copies`` copies of every
+            member a round, at most ``max_rounds`` rounds.
         resume: continue from this state (a round's random numbers are those
             of its number, so the result is the uninterrupted search's).
-        after_round: called with the state after every round (a checkpoint).
+        after_round: called with the state after every round (a progress bar,
+            a checkpoint).
 
     Returns:
         the population and the rounds it took.
     """
+    copies, max_rounds = settings.local_copies, settings.max_rounds
     shape = (population.n_pairs, population.size, copies)
     calm, rounds = 0, 0
     if resume is not None:
@@ -328,8 +331,6 @@ def converge(
         after = _summed_best(population)
         rounds += 1
         calm = calm + 1 if before - after < CONVERGED * before else 0
-        if progress is not None:
-            progress()
         if after_round is not None:
             after_round(Converging(population, rounds, calm))
     return population, rounds

@@ -56,7 +56,7 @@ from ..data import PairSet
 from ..posterior import Posterior
 from ..runs.directory import RunDir
 from ..runs.tensorboard import RunLogger
-from ..sim.rollout import simulate
+from ..sim.rollout import Execution, simulate
 from ..system.console import bar_interval
 from ..system.errors import TorchcfError
 from ..system.files import atomic_write_text, ensure_directory, writing
@@ -185,9 +185,9 @@ def cost_matrices(
                 theta[start:stop].to(dtype),
                 test,
                 dtype=dtype,
-                device=device,
                 return_traj=bool(predictive),
                 weights=weights,
+                execution=Execution(device=device),
             )
             if predictive:
                 draws = predicted(test.x_lead.to(out.x), out.x, out.v)  # (T, P, N)
@@ -410,9 +410,9 @@ def position_errors(
                 theta.to(dtype),
                 one,
                 dtype=dtype,
-                device=cfg.device,
                 return_traj=True,
                 weights=cfg.abc.weights,
+                execution=Execution(device=cfg.device),
             )
         x = out.x[:, :, 0].double().cpu()  # (T, P)
         err = (x - one.x_follow[:, :1]).T.numpy()  # (P, T)
@@ -494,19 +494,8 @@ def _evaluate_held(
         posterior, test, cfg, progress=progress, predictive=predictive
     )
     entries = [*[m for m in posterior.models if m in metrics], "hybrid"]
-    honest = uncertainty(
-        costs,
-        metrics,
-        predictive,
-        posterior,
-        beta=cfg.eval.beta,
-        n_bootstrap=cfg.eval.bootstrap,
-        n_transport=cfg.eval.bootstrap_transport,
-        level=cfg.eval.level,
-        seed=cfg.abc.seed if cfg.eval.seed is None else cfg.eval.seed,
-        coverage_levels=cfg.eval.coverage_levels,
-        coverage_curve=cfg.eval.coverage_curve,
-    )
+    seed = cfg.abc.seed if cfg.eval.seed is None else cfg.eval.seed
+    honest = uncertainty(costs, metrics, predictive, posterior, cfg.eval, seed)
     for entry in entries:
         metrics[entry].update(honest["per_set"][entry])
     best = costs["hybrid"]["score"].min(axis=0)  # (n_test,) the hybrid's per pair

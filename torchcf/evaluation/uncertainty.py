@@ -29,8 +29,9 @@ from typing import Any
 
 import numpy as np
 
+from ..config import EvalConfig
 from ..posterior import Posterior
-from ..posterior.tables import ALL, grouped_shares
+from ..posterior.tables import ALL, Bootstrap, grouped_shares
 from .bootstrap import (
     METRICS,
     TRANSPORT,
@@ -58,14 +59,8 @@ def uncertainty(
     metrics: Mapping[str, Mapping[str, Any]],
     predictive: Mapping[str, PredictiveCDF],
     posterior: Posterior,
-    *,
-    beta: float,
-    n_bootstrap: int,
-    n_transport: int,
-    level: float,
+    settings: EvalConfig,
     seed: int,
-    coverage_levels: Sequence[float],
-    coverage_curve: Sequence[float],
 ) -> dict[str, Any]:
     """The coverage and bootstrap numbers of an evaluation (module docstring).
 
@@ -74,15 +69,19 @@ def uncertainty(
         metrics: per set, :func:`~torchcf.evaluation.metrics.evaluate_costs`.
         predictive: per set, its CDF at the observations.
         posterior: the learned set (its shares over training pairs).
-        beta: beta of beta-WS.
-        n_bootstrap, n_transport: resamples (all; those for WS and beta-WS).
-        level: the intervals' coverage.
-        seed: the bootstrap's seed.
-        coverage_levels: the headline levels; coverage_curve: the curve's.
+        settings: the run's ``eval`` section: ``beta`` of beta-WS, the
+            resamples (``bootstrap``: all; ``bootstrap_transport``: those for
+            WS and beta-WS), the intervals' coverage ``level``, the headline
+            ``coverage_levels`` and the ``coverage_curve``'s levels.
+        seed: the bootstrap's seed (``eval.seed``, or the run's ``abc.seed``
+            when it is not set).
 
     Returns:
         ``{"per_set": {set: flat keys}, "hybrid_minus", "shares", "bootstrap"}``.
     """
+    beta, n_bootstrap, level = settings.beta, settings.bootstrap, settings.level
+    n_transport = settings.bootstrap_transport
+    coverage_levels, coverage_curve = settings.coverage_levels, settings.coverage_curve
     names = list(costs)
     n_test = next(iter(costs.values()))["score"].shape[1]
     counts = resample_counts(n_test, n_bootstrap, seed, TEST_STREAM)  # (n_bootstrap, N)
@@ -176,9 +175,7 @@ def _shares(
         posterior,
         [ALL] * n_train,
         by=ALL,
-        n_bootstrap=n_bootstrap,
-        level=level,
-        seed=seed,
+        bootstrap=Bootstrap(n_bootstrap, level, seed),
     )
     row = result.rows[0]  # every training pair
     return {

@@ -528,6 +528,22 @@ def pair_slots(posterior: Posterior) -> np.ndarray:
     return counts
 
 
+@dataclass(frozen=True)
+class Bootstrap:
+    """How a share's interval is drawn: the percentile bootstrap over a
+    group's units (:func:`grouped_shares`).
+
+    Attributes:
+        n_bootstrap: resamples (0: no interval).
+        level: the interval's coverage, in (0, 1).
+        seed: the bootstrap's seed.
+    """
+
+    n_bootstrap: int = N_BOOTSTRAP
+    level: float = LEVEL
+    seed: int = 0
+
+
 def grouped_shares(
     posterior: Posterior,
     groups: Sequence[str],
@@ -536,9 +552,7 @@ def grouped_shares(
     source: str = "",
     clusters: Sequence[str] | None = None,
     unit: str = "pair",
-    n_bootstrap: int = N_BOOTSTRAP,
-    level: float = LEVEL,
-    seed: int = 0,
+    bootstrap: Bootstrap = Bootstrap(),
 ) -> GroupedShares:
     """Each model's share of the hybrid's slots on the training pairs of each group.
 
@@ -558,14 +572,13 @@ def grouped_shares(
         source: where they come from, for the table.
         clusters: (N,) the cluster of each pair (None: each pair is a unit).
         unit: what a unit is, for the table.
-        n_bootstrap: resamples (0: no interval).
-        level: the interval's coverage, in (0, 1).
-        seed: the bootstrap's seed.
+        bootstrap: the intervals' resamples, level and seed (:class:`Bootstrap`).
 
     Raises:
         GroupError: ``groups`` or ``clusters`` of the wrong length, or bad
             ``n_bootstrap`` or ``level``.
     """
+    n_bootstrap, level, seed = bootstrap.n_bootstrap, bootstrap.level, bootstrap.seed
     counts = pair_slots(posterior)  # (N, M)
     n_pairs = counts.shape[0]
     if len(groups) != n_pairs or (clusters is not None and len(clusters) != n_pairs):
@@ -850,6 +863,7 @@ __all__ = [
     "N_BOOTSTRAP",
     "RANGE",
     "SHARES_COLUMNS",
+    "Bootstrap",
     "GroupError",
     "GroupRow",
     "GroupedShares",

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import torch
@@ -105,9 +106,9 @@ class SimOutput(NamedTuple):
         v: same shape, speed [m/s].
         a: same shape, recorded acceleration [m/s^2] (HL: the realised state).
         pruned: bool, the score's shape: True where early rejection stopped the
-            rollout, its score sure to exceed the ``ceiling`` given to
-            :func:`simulate` (score and errors ``+inf``; ``valid`` as far as it
-            ran); None without a ceiling.
+            rollout, its score sure to exceed the ceiling given to
+            :func:`simulate` (:attr:`Execution.ceiling`; score and errors
+            ``+inf``; ``valid`` as far as it ran); None without a ceiling.
     """
 
     score: Tensor
@@ -122,7 +123,7 @@ class SimOutput(NamedTuple):
 
 
 class _Prune(NamedTuple):
-    """Early rejection of one chunk (:func:`simulate`'s ``ceiling``).
+    """Early rejection of one chunk (:attr:`Execution.ceiling`).
 
     Attributes:
         ceiling: float64, the state's shape: a cell whose score is sure to exceed
@@ -158,15 +159,61 @@ def score_so_far(
     )
 
 
-def _rollout_chunk(
-    block_fn: Callable[..., Any],
+class _Course(NamedTuple):
+    """What every chunk of one rollout runs over.
+
+    Attributes:
+        model: the simulated model.
+        block_fn: runs one block of steps (:class:`_BlockRunner`).
+        blocks: ``(BLOCK_STEPS, 6, N)`` observation blocks covering the padded
+            time axis (:func:`_observation_table`).
+        origin: ``(N,)`` road position of each pair's relative frame [m].
+        n_valid: ``(N,)`` valid steps of each pair.
+        dt: time step [s].
+        leader_length: the leader's length [m].
+    """
+
+    model: CFModel
+    block_fn: Callable[..., Any]
+    blocks: list[Tensor]
+    origin: Tensor
+    n_valid: Tensor
+    dt: float
+    leader_length: float
+
+
+def _course(
     model: CFModel,
+    pairs: PairSet,
+    dtype: torch.dtype,
+    device: torch.device,
+    record: bool,
+    chunking: _Chunking,
+) -> _Course:
+    """The observation blocks of ``pairs`` (:func:`_observation_table`) and the
+    block function that runs a chunk over them, recording the trajectory or
+    not."""
+    table, origin, n_valid = _observation_table(pairs, dtype, device)
+    # Contiguous blocks: a compiled block then sees the same layout at every call.
+    blocks = [block.clone() for block in table.split(BLOCK_STEPS)]
+    block_fn = _BlockRunner(
+        model,
+        chunking.paired,
+        pairs.dt,
+        pairs.leader_length,
+        record,
+        chunking.compiled,
+        dynamic=chunking.prunes,
+    )
+    return _Course(
+        model, block_fn, blocks, origin, n_valid, pairs.dt, pairs.leader_length
+    )
+
+
+def _rollout_chunk(
+    course: _Course,
     theta: Tensor,
     pair_index: Tensor | None,
-    blocks: list[Tensor],
-    origin: Tensor,
-    dt: float,
-    leader_length: float,
     prune: _Prune | None = None,
 ) -> tuple[_Accumulators, Tensor | None, Tensor | None]:
     """Run one chunk of particles over every block; returns sums and trajectory.
@@ -174,9 +221,6 @@ def _rollout_chunk(
     Args:
         theta: ``(P, K)`` chunk of parameters.
         pair_index: ``(P,)`` (paired layout) or None (full layout).
-        blocks: ``(BLOCK_STEPS, 6, N)`` observation blocks covering the padded time
-            axis.
-        origin: ``(N,)`` road position of each pair's relative frame [m].
         prune: stop the particles whose score is sure to exceed their ceiling
             (:func:`_run_pruned`); None runs every particle to the end.
 
@@ -185,9 +229,38 @@ def _rollout_chunk(
         if recording the ``(T_pad, 3, *state)`` trajectory, and with ``prune``
         the state-shaped bool of the cells stopped by it.
     """
-    first = blocks[0][0]  # (6, N)
+    params, state, memory, cell_origin = _chunk_start(course, theta, pair_index)
+    zeros = torch.zeros_like(state.x)
+    acc = _Accumulators(
+        zeros, zeros.clone(), zeros.clone(), torch.zeros_like(zeros, dtype=torch.bool)
+    )
+    if prune is not None:
+        rollout = _Live(params, state, acc, memory, pair_index, cell_origin, prune)
+        sums, pruned = _run_pruned(
+            course.block_fn, course.model, rollout, course.blocks
+        )
+        return sums, None, pruned
+    recorded = []
+    for block in course.blocks:
+        state, acc, memory, block_traj = course.block_fn(
+            params, state, acc, memory, block, pair_index, cell_origin
+        )
+        if block_traj is not None:
+            recorded.append(block_traj)
+    return acc, torch.cat(recorded) if recorded else None, None
+
+
+def _chunk_start(
+    course: _Course, theta: Tensor, pair_index: Tensor | None
+) -> tuple[Any, FollowerState, Any, Tensor | None]:
+    """A chunk at its first step: the model's parameters prepared for the
+    step, the followers' observed state, the model's initial memory and, for a
+    model that reads the position, each cell's road origin [m] (else None)."""
+    model = course.model
+    first = course.blocks[0][0]  # (6, N)
     cell_origin = None
     if model.uses_position:
+        origin = course.origin
         cell_origin = origin[pair_index] if pair_index is not None else origin[None]
     if pair_index is not None:
         params = model.unpack(theta, state_ndim=1)  # fields (P,)
@@ -201,33 +274,18 @@ def _rollout_chunk(
         v=initial[_V_FOLLOW].clone(),
         a=initial[_A_FOLLOW].clone(),
     )
-    params = model.prepare(params, dt, tuple(state.x.shape))
+    params = model.prepare(params, course.dt, tuple(state.x.shape))
     x_lead, v_lead = initial[_X_LEAD], initial[_V_LEAD]
     first_perception = Perception(
         spacing=x_lead - state.x,
         v=state.v,
         v_lead=v_lead.contiguous(),
         a=state.a,
-        leader_length=leader_length,
+        leader_length=course.leader_length,
         position=state.x + cell_origin if cell_origin is not None else None,
     )
     memory = model.initial_memory(params, first_perception)
-    zeros = torch.zeros_like(state.x)
-    acc = _Accumulators(
-        zeros, zeros.clone(), zeros.clone(), torch.zeros_like(zeros, dtype=torch.bool)
-    )
-    if prune is not None:
-        rollout = _Live(params, state, acc, memory, pair_index, cell_origin, prune)
-        sums, pruned = _run_pruned(block_fn, model, rollout, blocks)
-        return sums, None, pruned
-    recorded = []
-    for block in blocks:
-        state, acc, memory, block_traj = block_fn(
-            params, state, acc, memory, block, pair_index, cell_origin
-        )
-        if block_traj is not None:
-            recorded.append(block_traj)
-    return acc, torch.cat(recorded) if recorded else None, None
+    return params, state, memory, cell_origin
 
 
 class _Live(NamedTuple):
@@ -377,19 +435,49 @@ def check_theta(model: CFModel, theta: Tensor, what: str = "theta") -> None:
         raise ValueError(f"{what} for {model.name} holds non-finite values")
 
 
+@dataclass(frozen=True, eq=False)
+class Execution:
+    """How a rollout runs: where, in chunks of how many particles, compiled or
+    not, and whether it may stop a hopeless cell early. None of these changes
+    the result of a cell that runs to the end: ``chunk_size`` and ``ceiling``
+    exactly, ``device`` and ``compile`` to floating-point rounding.
+
+    Attributes:
+        device: where the rollout runs; None: theta's device.
+        chunk_size: particles per chunk; None: :func:`cell_budget` simulated
+            cells (``2**18``, MPC ``2**16``; at least :data:`CUDA_CHUNK_CELLS` on
+            CUDA).
+        compile: fuse the time step with ``torch.compile``: True, False,
+            ``"on"``, ``"off"`` or ``"auto"`` (only for long CPU runs with a C++
+            compiler, or CUDA). Falls back to eager with a warning if
+            compilation fails.
+        ceiling: early rejection: a tensor of the score's shape, a cell is of no
+            use above it (a buffer's threshold). Every :data:`PRUNE_EVERY` blocks
+            a cell whose score so far (:func:`score_so_far`, a lower bound of its
+            final score) exceeds its ceiling is stopped, ``pruned`` in the output
+            with score ``+inf``; the other cells' results are exactly those of a
+            run without it. Applied on the eager path of a model that can select
+            its particles (:attr:`CFModel.prunable`), without ``return_traj``;
+            elsewhere every cell runs to the end (``pruned`` all False). None:
+            no early rejection (``pruned`` None).
+    """
+
+    device: torch.device | str | None = None
+    chunk_size: int | None = None
+    compile: CompileMode = "auto"
+    ceiling: Tensor | None = None
+
+
 def simulate(
     model: str | CFModel,
     theta: Tensor,
     pairs: PairSet,
     pair_index: Tensor | Sequence[int] | None = None,
-    dtype: torch.dtype | None = None,
-    device: torch.device | str | None = None,
-    return_traj: bool = False,
     *,
+    dtype: torch.dtype | None = None,
+    return_traj: bool = False,
     weights: Sequence[float] = DEFAULT_WEIGHTS,
-    chunk_size: int | None = None,
-    compile: CompileMode = "auto",
-    ceiling: Tensor | None = None,
+    execution: Execution = Execution(),
 ) -> SimOutput:
     """Simulate particles of one model on leader-follower pairs and score them.
 
@@ -400,6 +488,11 @@ def simulate(
     ``w_p e_p + w_v e_v + w_a e_a`` of the RMSE of position, speed and acceleration over
     the valid steps.
 
+    The steps: check the inputs, plan the chunks (:func:`_chunking`), build the
+    observation blocks (:class:`_Course`), run every chunk of particles through
+    them (:func:`_run_chunks`) into the outputs, then score them
+    (:meth:`_Filled.result`).
+
     Args:
         model: registry name (``"idm"``...) or a model instance.
         theta: ``(P, K)`` parameters in the model's order (``model.param_names``).
@@ -407,102 +500,48 @@ def simulate(
         pair_index: ``(P,)`` pair of each particle (paired layout); None simulates
             every particle on every pair (full layout).
         dtype: float32 or float64; default: theta's float dtype, else float32.
-        device: default: theta's device.
         return_traj: also return the simulated ``x, v, a``, time-first.
         weights: score weights of (position, speed, acceleration).
-        chunk_size: particles per chunk; default :func:`cell_budget` simulated
-            cells (``2**18``, MPC ``2**16``; at least :data:`CUDA_CHUNK_CELLS` on
-            CUDA). The result does not depend on it.
-        compile: fuse the time step with ``torch.compile``: True, False or "auto"
-            (only for long CPU runs with a C++ compiler, or CUDA). Falls back to
-            eager with a warning if compilation fails.
-        ceiling: early rejection: the score's shape, a cell is of no use above
-            it (a buffer's threshold). Every :data:`PRUNE_EVERY` blocks a cell
-            whose score so far (:func:`score_so_far`, a lower bound of its final
-            score) exceeds its ceiling is stopped, ``pruned`` in the output with
-            score ``+inf``; the other cells' results are exactly those of a run
-            without it. Applied on the eager path of a model that can select
-            its particles (:attr:`CFModel.prunable`), without ``return_traj``;
-            elsewhere every cell runs to the end (``pruned`` all False).
+        execution: where and how it runs (:class:`Execution`: device, chunk
+            size, compilation, early rejection); its choices do not change the
+            result of a cell that runs to the end.
 
     Returns:
         :class:`SimOutput` with ``(P, N)`` (full) or ``(P,)`` (paired) fields.
     """
     model = get_model(model)
-    theta = torch.as_tensor(theta)
-    if dtype is None:
-        dtype = theta.dtype if theta.is_floating_point() else torch.float32
-    if dtype not in (torch.float32, torch.float64):
-        raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
-    device = torch.device(device) if device is not None else theta.device
-    check_theta(model, theta)
+    theta, dtype, device = _checked_theta(model, theta, dtype, execution.device)
     if len(weights) != 3:
         raise ValueError(f"weights must be 3 numbers (p, v, a), got {weights!r}")
     theta = theta.to(device=device, dtype=dtype)
     n_particles = theta.shape[0]
-
+    pair_index = _checked_pair_index(pair_index, n_particles, pairs.n_pairs, device)
     paired = pair_index is not None
-    if paired:
-        pair_index = torch.as_tensor(pair_index, device=device).long()
-        if pair_index.shape != (n_particles,):
-            raise ValueError(
-                f"pair_index must have shape ({n_particles},), "
-                f"got {tuple(pair_index.shape)}"
-            )
-        if n_particles and (
-            int(pair_index.min()) < 0 or int(pair_index.max()) >= pairs.n_pairs
-        ):
-            raise ValueError(f"pair_index out of range [0, {pairs.n_pairs})")
-    cells_per_particle = 1 if paired else pairs.n_pairs
-    if chunk_size is None:
-        chunk_size = max(1, cell_budget(model, device) // cells_per_particle)
-    if chunk_size <= 0:
-        raise ValueError(f"chunk_size must be positive, got {chunk_size}")
-    chunk_size = min(chunk_size, max(n_particles, 1))
-    use_compile = resolve_compile(
-        model, compile, device, n_particles * cells_per_particle * pairs.n_steps
+    chunking = _chunking(
+        model, execution, device, n_particles, pairs, paired, return_traj
     )
-    prunes = ceiling is not None and not return_traj and model.prunable
-    if use_compile or prunes:
-        chunk_size = -(-chunk_size // COMPILE_CHUNK_MULTIPLE) * COMPILE_CHUNK_MULTIPLE
+    course = _course(model, pairs, dtype, device, return_traj, chunking)
+    shape = (n_particles,) if paired else (n_particles, pairs.n_pairs)
+    ceiling = _checked_ceiling(execution.ceiling, shape, device)
+    filled = _Filled.empty(shape, pairs.n_steps, dtype, device, return_traj, ceiling)
+    _run_chunks(course, theta, pair_index, chunking, ceiling, weights, filled)
+    shift = None
+    if return_traj:  # back from per-pair relative positions to road positions
+        shift = course.origin[pair_index] if paired else course.origin[None, :]
+    return filled.result(weights, shift)
 
-    table, origin, n_valid = _observation_table(pairs, dtype, device)
-    # Contiguous blocks: a compiled block then sees the same layout at every call.
-    blocks = [block.clone() for block in table.split(BLOCK_STEPS)]
-    block_fn = _BlockRunner(
-        model,
-        paired,
-        pairs.dt,
-        pairs.leader_length,
-        return_traj,
-        use_compile,
-        dynamic=prunes,
-    )
 
-    state_shape = (n_particles,) if paired else (n_particles, pairs.n_pairs)
-    if ceiling is not None:
-        ceiling = torch.as_tensor(ceiling, device=device).to(torch.float64)
-        if ceiling.shape != state_shape:
-            raise ValueError(
-                f"ceiling must have the score's shape {state_shape}, "
-                f"got {tuple(ceiling.shape)}"
-            )
-    pruned = (
-        torch.zeros(state_shape, dtype=torch.bool, device=device)
-        if ceiling is not None
-        else None
-    )
-    outputs = {
-        name: torch.empty(state_shape, dtype=dtype, device=device)
-        for name in ("e_p", "e_v", "e_a")
-    }
-    invalid = torch.empty(state_shape, dtype=torch.bool, device=device)
-    traj = (
-        torch.empty((pairs.n_steps, 3, *state_shape), dtype=dtype, device=device)
-        if return_traj
-        else None
-    )
-
+def _run_chunks(
+    course: _Course,
+    theta: Tensor,
+    pair_index: Tensor | None,
+    chunking: _Chunking,
+    ceiling: Tensor | None,
+    weights: Sequence[float],
+    filled: _Filled,
+) -> None:
+    """Every chunk of particles through the blocks, its results into
+    ``filled``."""
     # Inference mode: no autograd bookkeeping per op (about 11 % of an eager
     # rollout of a few thousand cells); the outputs were made outside it and
     # stay ordinary tensors.
@@ -511,67 +550,259 @@ def simulate(
         # here): a compiled block guards on the kind, and would otherwise trace
         # a second graph for the last chunk.
         theta = theta.clone()
-        if paired:
+        if chunking.paired:
             pair_index = pair_index.clone()
-        for start in range(0, n_particles, chunk_size):
-            stop = min(start + chunk_size, n_particles)
-            chunk_theta = theta[start:stop]
-            chunk_index = pair_index[start:stop] if paired else None
-            n_fill = chunk_size - (stop - start)
-            if n_fill:
-                # Pad to the chunk size with copies of the first particle (one shape
-                # for the compiled block); the padding is dropped below.
-                chunk_theta = torch.cat(
-                    (chunk_theta, chunk_theta[:1].expand(n_fill, -1))
-                )
-                if paired:
-                    chunk_index = torch.cat(
-                        (chunk_index, chunk_index[:1].expand(n_fill))
-                    )
-            counts = (n_valid[chunk_index] if paired else n_valid[None, :]).clamp(min=1)
+        n_particles = theta.shape[0]
+        for start in range(0, n_particles, chunking.size):
+            stop = min(start + chunking.size, n_particles)
+            chunk = _Chunk.of(theta, pair_index, start, stop, chunking.size)
+            n_valid = course.n_valid
+            counts = (
+                n_valid[chunk.pair_index]
+                if pair_index is not None
+                else n_valid[None, :]
+            ).clamp(min=1)
             prune = None
-            if prunes:
-                # the padding is stopped at the first look (ceiling -inf)
-                chunk_ceiling = torch.cat(
-                    (
-                        ceiling[start:stop],
-                        ceiling.new_full((n_fill, *state_shape[1:]), -math.inf),
-                    )
-                )
-                prune = _Prune(chunk_ceiling, counts, tuple(weights))
-            sums, chunk_traj, chunk_pruned = _rollout_chunk(
-                block_fn,
-                model,
-                chunk_theta,
-                chunk_index,
-                blocks,
-                origin,
-                pairs.dt,
-                pairs.leader_length,
-                prune,
+            if chunking.prunes:
+                prune = _Prune(chunk.ceiling(ceiling), counts, tuple(weights))
+            sums, traj, pruned = _rollout_chunk(
+                course, chunk.theta, chunk.pair_index, prune
             )
-            keep = slice(0, stop - start)
-            outputs["e_p"][start:stop] = torch.sqrt(sums.sq_x / counts)[keep]
-            outputs["e_v"][start:stop] = torch.sqrt(sums.sq_v / counts)[keep]
-            outputs["e_a"][start:stop] = torch.sqrt(sums.sq_a / counts)[keep]
-            if chunk_pruned is not None:
-                pruned[start:stop] = chunk_pruned[keep]
-            invalid[start:stop] = sums.invalid[keep]
-            if traj is not None:
-                traj[:, :, start:stop] = chunk_traj[: pairs.n_steps, :, keep]
+            filled.store(chunk, sums, counts, traj, pruned)
 
-    inf = torch.tensor(math.inf, dtype=dtype, device=device)
-    unscored = invalid if pruned is None else invalid | pruned
-    e_p, e_v, e_a = (
-        torch.where(unscored, inf, outputs[k]) for k in ("e_p", "e_v", "e_a")
+
+def _checked_theta(
+    model: CFModel,
+    theta: Tensor,
+    dtype: torch.dtype | None,
+    device: torch.device | str | None,
+) -> tuple[Tensor, torch.dtype, torch.device]:
+    """``theta`` as a tensor, checked (:func:`check_theta`); the rollout's dtype
+    (default: theta's float dtype, else float32) and device (default:
+    theta's)."""
+    theta = torch.as_tensor(theta)
+    if dtype is None:
+        dtype = theta.dtype if theta.is_floating_point() else torch.float32
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+    device = torch.device(device) if device is not None else theta.device
+    check_theta(model, theta)
+    return theta, dtype, device
+
+
+def _checked_pair_index(
+    pair_index: Tensor | Sequence[int] | None,
+    n_particles: int,
+    n_pairs: int,
+    device: torch.device,
+) -> Tensor | None:
+    """The ``(P,)`` int64 pair of each particle on ``device`` (ValueError unless
+    each is a pair, ``0 <= pair < N``); None for the full layout."""
+    if pair_index is None:
+        return None
+    pair_index = torch.as_tensor(pair_index, device=device).long()
+    if pair_index.shape != (n_particles,):
+        raise ValueError(
+            f"pair_index must have shape ({n_particles},), "
+            f"got {tuple(pair_index.shape)}"
+        )
+    if n_particles and (int(pair_index.min()) < 0 or int(pair_index.max()) >= n_pairs):
+        raise ValueError(f"pair_index out of range [0, {n_pairs})")
+    return pair_index
+
+
+class _Chunking(NamedTuple):
+    """How a rollout's particles are cut (:func:`_chunking`).
+
+    Attributes:
+        paired: the paired layout (a pair per particle), else the full one.
+        size: particles per chunk (the last one padded to it).
+        compiled: the blocks run compiled.
+        prunes: early rejection applies (a ceiling, no trajectory, a model
+            that can select its particles).
+    """
+
+    paired: bool
+    size: int
+    compiled: bool
+    prunes: bool
+
+
+def _chunking(
+    model: CFModel,
+    execution: Execution,
+    device: torch.device,
+    n_particles: int,
+    pairs: PairSet,
+    paired: bool,
+    return_traj: bool,
+) -> _Chunking:
+    """The chunk size, whether the blocks run compiled and whether early
+    rejection applies. Compiled or pruned, the chunk is a multiple of
+    :data:`COMPILE_CHUNK_MULTIPLE` (whole vector lanes)."""
+    cells_per_particle = 1 if paired else pairs.n_pairs
+    chunk_size = execution.chunk_size
+    if chunk_size is None:
+        chunk_size = max(1, cell_budget(model, device) // cells_per_particle)
+    if chunk_size <= 0:
+        raise ValueError(f"chunk_size must be positive, got {chunk_size}")
+    chunk_size = min(chunk_size, max(n_particles, 1))
+    use_compile = resolve_compile(
+        model,
+        execution.compile,
+        device,
+        n_particles * cells_per_particle * pairs.n_steps,
     )
-    w_p, w_v, w_a = (float(w) for w in weights)
-    score = torch.where(unscored, inf, w_p * e_p + w_v * e_v + w_a * e_a)
-    result = SimOutput(
-        score=score, e_p=e_p, e_v=e_v, e_a=e_a, valid=~invalid, pruned=pruned
-    )
-    if traj is None:
-        return result
-    # Back from per-pair relative positions to road positions.
-    shift = origin[pair_index] if paired else origin[None, :]
-    return result._replace(x=traj[:, 0] + shift, v=traj[:, 1], a=traj[:, 2])
+    prunes = execution.ceiling is not None and not return_traj and model.prunable
+    if use_compile or prunes:
+        chunk_size = -(-chunk_size // COMPILE_CHUNK_MULTIPLE) * COMPILE_CHUNK_MULTIPLE
+    return _Chunking(paired, chunk_size, use_compile, prunes)
+
+
+def _checked_ceiling(
+    ceiling: Tensor | None, shape: tuple[int, ...], device: torch.device
+) -> Tensor | None:
+    """The float64 ceiling on ``device`` (ValueError unless it has the score's
+    ``shape``), or None."""
+    if ceiling is None:
+        return None
+    ceiling = torch.as_tensor(ceiling, device=device).to(torch.float64)
+    if ceiling.shape != shape:
+        raise ValueError(
+            f"ceiling must have the score's shape {shape}, got {tuple(ceiling.shape)}"
+        )
+    return ceiling
+
+
+class _Chunk(NamedTuple):
+    """Particles ``start .. stop - 1`` of a rollout, padded to the chunk size
+    with copies of the first (one shape for a compiled block; the padding's
+    results are dropped).
+
+    Attributes:
+        start, stop: the real particles.
+        theta: ``(size, K)`` their parameters, then the padding.
+        pair_index: ``(size,)`` their pairs (paired layout), or None.
+        n_fill: rows of padding.
+    """
+
+    start: int
+    stop: int
+    theta: Tensor
+    pair_index: Tensor | None
+    n_fill: int
+
+    @classmethod
+    def of(
+        cls, theta: Tensor, pair_index: Tensor | None, start: int, stop: int, size: int
+    ) -> _Chunk:
+        chunk_theta = theta[start:stop]
+        chunk_index = pair_index[start:stop] if pair_index is not None else None
+        n_fill = size - (stop - start)
+        if n_fill:
+            chunk_theta = torch.cat((chunk_theta, chunk_theta[:1].expand(n_fill, -1)))
+            if chunk_index is not None:
+                chunk_index = torch.cat((chunk_index, chunk_index[:1].expand(n_fill)))
+        return cls(start, stop, chunk_theta, chunk_index, n_fill)
+
+    def ceiling(self, ceiling: Tensor) -> Tensor:
+        """The chunk's rows of ``ceiling``; the padding's ``-inf``, so that it
+        is stopped at the first look."""
+        fill = ceiling.new_full((self.n_fill, *ceiling.shape[1:]), -math.inf)
+        return torch.cat((ceiling[self.start : self.stop], fill))
+
+
+@dataclass(frozen=True, eq=False)
+class _Filled:
+    """A rollout's outputs, filled chunk by chunk (:meth:`store`), then scored
+    (:meth:`result`).
+
+    Attributes:
+        errors: ``e_p, e_v, e_a`` by name, the score's shape, the RMSE of each
+            channel over the valid steps.
+        invalid: bool, the score's shape.
+        pruned: bool, the score's shape, the cells early rejection stopped;
+            None without a ceiling.
+        traj: ``(T, 3, *shape)`` the trajectory relative to each pair's start,
+            if recorded.
+    """
+
+    errors: dict[str, Tensor]
+    invalid: Tensor
+    pruned: Tensor | None
+    traj: Tensor | None
+
+    @classmethod
+    def empty(
+        cls,
+        shape: tuple[int, ...],
+        n_steps: int,
+        dtype: torch.dtype,
+        device: torch.device,
+        return_traj: bool,
+        ceiling: Tensor | None,
+    ) -> _Filled:
+        """Outputs of the score's ``shape``, made outside inference mode."""
+        return cls(
+            errors={
+                name: torch.empty(shape, dtype=dtype, device=device)
+                for name in ("e_p", "e_v", "e_a")
+            },
+            invalid=torch.empty(shape, dtype=torch.bool, device=device),
+            pruned=(
+                torch.zeros(shape, dtype=torch.bool, device=device)
+                if ceiling is not None
+                else None
+            ),
+            traj=(
+                torch.empty((n_steps, 3, *shape), dtype=dtype, device=device)
+                if return_traj
+                else None
+            ),
+        )
+
+    def store(
+        self,
+        chunk: _Chunk,
+        sums: _Accumulators,
+        counts: Tensor,
+        traj: Tensor | None,
+        pruned: Tensor | None,
+    ) -> None:
+        """A chunk's RMSEs (its sums over ``counts`` valid steps), validity,
+        stopped cells and trajectory, its padding dropped."""
+        start, stop = chunk.start, chunk.stop
+        keep = slice(0, stop - start)
+        self.errors["e_p"][start:stop] = torch.sqrt(sums.sq_x / counts)[keep]
+        self.errors["e_v"][start:stop] = torch.sqrt(sums.sq_v / counts)[keep]
+        self.errors["e_a"][start:stop] = torch.sqrt(sums.sq_a / counts)[keep]
+        if pruned is not None:
+            self.pruned[start:stop] = pruned[keep]
+        self.invalid[start:stop] = sums.invalid[keep]
+        if self.traj is not None:
+            self.traj[:, :, start:stop] = traj[: self.traj.shape[0], :, keep]
+
+    def result(self, weights: Sequence[float], shift: Tensor | None) -> SimOutput:
+        """The scores ``w_p e_p + w_v e_v + w_a e_a``, ``+inf`` (and the errors
+        too) where a cell is invalid or was stopped; with a trajectory, its
+        positions shifted by ``shift`` back to the road's."""
+        e = self.errors
+        inf = torch.tensor(math.inf, dtype=e["e_p"].dtype, device=e["e_p"].device)
+        unscored = self.invalid if self.pruned is None else self.invalid | self.pruned
+        e_p, e_v, e_a = (
+            torch.where(unscored, inf, e[k]) for k in ("e_p", "e_v", "e_a")
+        )
+        w_p, w_v, w_a = (float(w) for w in weights)
+        score = torch.where(unscored, inf, w_p * e_p + w_v * e_v + w_a * e_a)
+        result = SimOutput(
+            score=score,
+            e_p=e_p,
+            e_v=e_v,
+            e_a=e_a,
+            valid=~self.invalid,
+            pruned=self.pruned,
+        )
+        if self.traj is None:
+            return result
+        traj = self.traj
+        return result._replace(x=traj[:, 0] + shift, v=traj[:, 1], a=traj[:, 2])

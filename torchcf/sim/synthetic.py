@@ -11,7 +11,8 @@ data it drives test the loop where no candidate model is the truth, as with a
 user's data.
 
 :func:`heterogeneous_pairs` makes data that look like measured data: every pair
-its own driver, drawn from a mixture of models with parameters drawn over a box
+its own driver, drawn from a mixture of models (:class:`DriverMixture`) with
+parameters drawn over a box
 (the model's prior by default) and kept where it follows plausibly, pairs of
 ragged length, measurement noise; one effect, planted in every driver, is what
 the loop should find.
@@ -20,7 +21,8 @@ the loop should find.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
@@ -135,6 +137,24 @@ def leader_profiles(
     return position, speed, acceleration
 
 
+@dataclass(frozen=True)
+class Scene:
+    """Where synthetic pairs start, and what their set is called.
+
+    Attributes:
+        start: range of the leaders' initial road positions [m] (a spread
+            puts the pairs on one road, as a road effect needs).
+        initial_gap: range of the followers' initial time gap [s]: a follower
+            starts at its leader's speed, ``gap * v + 8`` m behind it.
+        name: the PairSet's name; None: the generator's own
+            (``"synthetic"``, ``"heterogeneous"``).
+    """
+
+    start: tuple[float, float] = (0.0, 0.0)
+    initial_gap: tuple[float, float] = (1.0, 2.0)
+    name: str | None = None
+
+
 def synthetic_pairs(
     model: str | CFModel,
     theta: Tensor | Sequence[float],
@@ -143,10 +163,8 @@ def synthetic_pairs(
     dt: float = 0.1,
     *,
     seed: int = 0,
-    initial_gap: tuple[float, float] = (1.0, 2.0),
     noise: float = 0.0,
-    start: tuple[float, float] = (0.0, 0.0),
-    name: str = "synthetic",
+    scene: Scene = Scene(),
 ) -> PairSet:
     """Pairs whose followers are driven by ``model`` with parameters ``theta``.
 
@@ -156,36 +174,35 @@ def synthetic_pairs(
             ``AugmentedModel(Gipps(), [parse_effect("delay")])``).
         theta: ``(K,)`` one particle for every pair, or ``(N, K)`` (N = ``n_pairs``),
             one per pair.
-        initial_gap: range of the initial time gap [s]; the follower starts at
-            the leader's speed, ``gap * v + 8`` m behind it.
         noise: standard deviation of white noise added to the recorded follower
             position [m] (speed and acceleration get ``noise / dt`` and
             ``noise / dt^2`` scaled by 0.1 and 0.01: measurement-like, small).
-        start: range of the leaders' initial road positions [m].
+        scene: where the leaders and followers start, and the set's name
+            (default ``"synthetic"``).
 
     Returns:
-        A PairSet named ``name``; ``notes`` record the generating model.
+        A PairSet; ``notes`` record the generating model.
     """
     cf_model = get_model(model)
     theta = torch.as_tensor(theta, dtype=torch.float64)
     if theta.ndim == 1:
         theta = theta[None].expand(n_pairs, -1)
     x_lead, v_lead, a_lead = leader_profiles(
-        n_pairs, n_steps, dt, seed=seed, start=start
+        n_pairs, n_steps, dt, seed=seed, start=scene.start
     )
     g = torch.Generator().manual_seed(seed + 1)
-    gap = initial_gap[0] + (initial_gap[1] - initial_gap[0]) * torch.rand(
-        n_pairs, generator=g, dtype=torch.float64
-    )
+    gap = _initial_gaps(scene, n_pairs, g)
     x_follow0 = x_lead[0] - gap * v_lead[0] - 8.0
     # A leader-only placeholder set: the follower's first row is its start state.
     seed_set = PairSet.from_arrays(
-        x_lead,
-        v_lead,
-        a_lead,
-        x_follow0[None].expand(n_steps, -1),
-        v_lead[0][None].expand(n_steps, -1),
-        torch.zeros(n_steps, n_pairs, dtype=torch.float64),
+        (
+            x_lead,
+            v_lead,
+            a_lead,
+            x_follow0[None].expand(n_steps, -1),
+            v_lead[0][None].expand(n_steps, -1),
+            torch.zeros(n_steps, n_pairs, dtype=torch.float64),
+        ),
         dt=dt,
     )
     out = simulate(
@@ -206,16 +223,17 @@ def synthetic_pairs(
         v = v + 0.1 * noise / dt * torch.randn(x.shape, generator=g, dtype=x.dtype)
         a = a + 0.01 * noise / dt**2 * torch.randn(x.shape, generator=g, dtype=x.dtype)
     return PairSet.from_arrays(
-        x_lead,
-        v_lead,
-        a_lead,
-        x,
-        v,
-        a,
+        (x_lead, v_lead, a_lead, x, v, a),
         dt=dt,
-        name=name,
+        name=scene.name if scene.name is not None else "synthetic",
         notes=(f"followers: {cf_model.name} theta={theta[0].tolist()}",),
     )
+
+
+def _initial_gaps(scene: Scene, n: int, g: torch.Generator) -> Tensor:
+    """(n,) followers' initial time gaps [s], uniform over the scene's range."""
+    low, high = scene.initial_gap
+    return low + (high - low) * torch.rand(n, generator=g, dtype=torch.float64)
 
 
 # ------------------------------------------------------- drivers who differ
@@ -243,42 +261,67 @@ class Drivers(NamedTuple):
     theta: Tensor
 
 
+@dataclass(frozen=True)
+class DriverMixture:
+    """Who may drive the pairs of :func:`heterogeneous_pairs`: a mixture of
+    models in equal shares, each driver's parameters drawn over its model's
+    box, and an effect planted in every driver.
+
+    Attributes:
+        models: the mixture's pool models (pair j: ``models[j % len(models)]``).
+        effect: the planted effect's token (``"delay"``, ``"sync"``,
+            ``"grade(start=0,end=1200,knots=7)"``); "": none.
+        effect_values: (K_E,) the effect's values, the same in every driver.
+        boxes: per model, the (K, 2) box its parameters are drawn over; a
+            model not in it (or None): its prior.
+    """
+
+    models: Sequence[str]
+    effect: str = ""
+    effect_values: Sequence[float] = ()
+    boxes: Mapping[str, Tensor] | None = None
+
+    @property
+    def names(self) -> list[str]:
+        """Each model's name with the effect (``"idm+delay"``)."""
+        effect = self.effect
+        return [f"{m}+{effect}" if effect else m for m in self.models]
+
+
 def heterogeneous_pairs(
-    models: Sequence[str],
+    mixture: DriverMixture,
     n_pairs: int,
     n_steps: int = 500,
     dt: float = 0.1,
     *,
-    effect: str = "",
-    effect_values: Sequence[float] = (),
-    boxes: dict[str, Tensor] | None = None,
     seed: int = 0,
     noise: float = 0.0,
     lengths: tuple[float, float] = (1.0, 1.0),
-    start: tuple[float, float] = (0.0, 0.0),
-    name: str = "heterogeneous",
+    scene: Scene = Scene(),
 ) -> tuple[PairSet, Drivers]:
     """Pairs whose followers differ from one another, as measured drivers do.
 
-    Pair j is driven by ``models[j % len(models)]`` (equal shares of a mixture),
-    with its own parameters drawn uniformly over the model's box (``boxes``, by
-    default its prior) and, when ``effect`` is given (``"delay"``, ``"sync"``,
-    ``"grade(start=0,end=1200,knots=7)"``), that effect at ``effect_values``
-    (K_E,) in every driver: a behavioural effect of every driver, or a
-    recording effect of the whole data set. A draw is kept only where it
-    follows plausibly with the effect (a valid rollout, a mean time gap in
-    :data:`PLAUSIBLE_TIME_GAP`, a gap of at least :data:`PLAUSIBLE_MIN_GAP`, an
-    acceleration within :data:`PLAUSIBLE_ACCELERATION`); otherwise the pair's
-    driver and leader are drawn again (so the drivers are the box's plausible
-    part, not the whole box). Leaders as in :func:`leader_profiles`.
+    Pair j is driven by ``mixture.models[j % len(models)]`` (equal shares of a
+    mixture), with its own parameters drawn uniformly over the model's box
+    (``mixture.boxes``, by default its prior) and, when ``mixture.effect`` is
+    given, that effect at ``mixture.effect_values`` (K_E,) in every driver: a
+    behavioural effect of every driver, or a recording effect of the whole
+    data set. A draw is kept only where it follows plausibly with the effect
+    (a valid rollout, a mean time gap in :data:`PLAUSIBLE_TIME_GAP`, a gap of
+    at least :data:`PLAUSIBLE_MIN_GAP`, an acceleration within
+    :data:`PLAUSIBLE_ACCELERATION`); otherwise the pair's driver and leader
+    are drawn again (so the drivers are the box's plausible part, not the
+    whole box). Leaders as in :func:`leader_profiles`.
 
     Args:
+        mixture: the drivers' models, boxes and planted effect.
         n_steps: T, steps of the longest pair.
         lengths: range of each pair's valid share of ``n_steps`` (ragged pairs,
             a prefix mask), drawn uniformly.
         noise: measurement noise as in :func:`synthetic_pairs` [m].
-        start: range of the leaders' initial road positions [m] (a spread
-            puts the pairs on one road, as a road effect needs).
+        scene: where the leaders and followers start (a spread of leader
+            positions puts the pairs on one road, as a road effect needs),
+            and the set's name (default ``"heterogeneous"``).
 
     Returns:
         the pairs, and who drives them (:class:`Drivers`).
@@ -287,10 +330,11 @@ def heterogeneous_pairs(
         ValueError: no plausible driver in many draws (the box or the effect
             leaves none).
     """
+    models = mixture.models
     if not models:
         raise ValueError("heterogeneous_pairs: give at least one model")
     g = torch.Generator().manual_seed(seed)
-    names = [f"{m}+{effect}" if effect else m for m in models]
+    names = mixture.names
     width = max(get_model(n).n_params for n in names)
     want = [len(range(i, n_pairs, len(models))) for i in range(len(models))]
     found: list[list[tuple[Tensor, Tensor]]] = [[] for _ in models]
@@ -299,9 +343,7 @@ def heterogeneous_pairs(
         if not short:
             break
         batch = max(16, 2 * max(want[i] - len(found[i]) for i in short))
-        drawn = _plausible_batch(
-            models, names, effect_values, boxes, batch, n_steps, dt, g, start
-        )
+        drawn = _plausible_batch(mixture, scene, batch, n_steps, dt, g)
         for i, theta, series in drawn:
             found[i].append((theta, series))
     short = [names[i] for i in range(len(models)) if len(found[i]) < want[i]]
@@ -333,41 +375,41 @@ def heterogeneous_pairs(
     mask = torch.arange(n_steps)[:, None] < valid[None, :]
     drivers = Drivers(tuple(names[r[0]] for r in chosen), theta)
     mix = ", ".join(dict.fromkeys(drivers.model))
+    name = scene.name if scene.name is not None else "heterogeneous"
     pairs = PairSet.from_arrays(
-        x_lead, v_lead, a_lead, x, v, a, dt=dt, mask=mask, name=name,
+        (x_lead, v_lead, a_lead, x, v, a), dt=dt, mask=mask, name=name,
         notes=(f"followers: {mix}, one driver per pair",),
     )  # fmt: skip
     return pairs, drivers
 
 
 def _plausible_batch(
-    models: Sequence[str],
-    names: Sequence[str],
-    effect_values: Sequence[float],
-    boxes: dict[str, Tensor] | None,
+    mixture: DriverMixture,
+    scene: Scene,
     batch: int,
     n_steps: int,
     dt: float,
     g: torch.Generator,
-    start: tuple[float, float],
 ) -> list[tuple[int, Tensor, Tensor]]:
     """One batch of candidate drivers (each model's share of ``batch``) and
     their leaders; the plausible ones, in the order drawn, as ``(model
     position, theta, series (6, T): leader x, v, a, follower x, v, a)``."""
+    models, names, boxes = mixture.models, mixture.names, mixture.boxes
     leader_seed = int(torch.randint(0, 2**62, (1,), generator=g))
     x_lead, v_lead, a_lead = leader_profiles(
-        batch, n_steps, dt, seed=leader_seed, start=start
+        batch, n_steps, dt, seed=leader_seed, start=scene.start
     )
-    gap = 1.0 + torch.rand(batch, generator=g, dtype=torch.float64)
+    gap = _initial_gaps(scene, batch, g)
     x0 = x_lead[0] - gap * v_lead[0] - 8.0
     first = PairSet.from_arrays(
-        x_lead, v_lead, a_lead, x0[None].expand(n_steps, -1),
-        v_lead[0][None].expand(n_steps, -1),
-        torch.zeros(n_steps, batch, dtype=torch.float64), dt=dt,
+        (x_lead, v_lead, a_lead, x0[None].expand(n_steps, -1),
+         v_lead[0][None].expand(n_steps, -1),
+         torch.zeros(n_steps, batch, dtype=torch.float64)),
+        dt=dt,
     )  # fmt: skip
     which = torch.arange(batch) % len(models)
     kept = []
-    plant = torch.as_tensor(list(effect_values), dtype=torch.float64)
+    plant = torch.as_tensor(list(mixture.effect_values), dtype=torch.float64)
     for i, (model, name) in enumerate(zip(models, names, strict=True)):
         index = (which == i).nonzero().squeeze(1)
         box = (boxes or {}).get(model)

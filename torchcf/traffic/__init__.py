@@ -17,6 +17,7 @@ from .battery import Battery, Plausibility, battery_speed, check_plausibility
 from .safety import DEFAULT_SAFETY, SafetyLayer, interventions_per_model
 from .sampler import HybridSampler
 from .scenarios import (
+    RingStart,
     RingState,
     TrafficOutput,
     pair_leader,
@@ -30,6 +31,7 @@ __all__ = [
     "Battery",
     "HybridSampler",
     "Plausibility",
+    "RingStart",
     "RingState",
     "SafetyLayer",
     "TrafficOutput",

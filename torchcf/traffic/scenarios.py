@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import torch
@@ -78,6 +79,22 @@ class RingState(NamedTuple):
     v: Tensor
     a: Tensor
     position: Tensor
+
+
+@dataclass(frozen=True, eq=False)
+class RingStart:
+    """A ring's start at equilibrium, plus one small disturbance
+    (:func:`ring_initial_state`).
+
+    Attributes:
+        v_init: None: the mixed ring's own equilibrium (every vehicle at the
+            common speed with its own steady spacing); a speed [m/s], a number
+            or ``(S,)``: equal spacings ``L / n`` at that speed.
+        perturbation: vehicle 0 moved this far back [m].
+    """
+
+    v_init: float | Tensor | None = None
+    perturbation: float = 1.0
 
 
 class TrafficOutput(NamedTuple):
@@ -532,9 +549,7 @@ def ring_road(
     length: float | Tensor,
     n_steps: int,
     *,
-    initial: RingState | None = None,
-    v_init: float | Tensor | None = None,
-    perturbation: float = 1.0,
+    initial: RingState | RingStart = RingStart(),
     record_every: int | None = 1,
     compile: bool = False,
     safety: SafetyLayer | None = DEFAULT_SAFETY,
@@ -551,10 +566,10 @@ def ring_road(
         sampler: drawn with ``vehicle_shape == (S, n)``.
         length: ring length ``L`` [m], a number or ``(S,)`` (several densities).
         n_steps: steps of ``sampler.dt``.
-        initial: start from this state (e.g. a previous run's ``final``);
-            default :func:`ring_initial_state` with ``v_init`` and
-            ``perturbation`` (the mixed ring's equilibrium, vehicle 0 moved 1 m
-            back).
+        initial: start from this state (e.g. a previous run's ``final``), or
+            from :func:`ring_initial_state` with a :class:`RingStart`'s
+            ``v_init`` and ``perturbation``; default ``RingStart()``: the mixed
+            ring's equilibrium, vehicle 0 moved 1 m back.
         record_every: keep every this many steps' states (None: keep none).
         compile: fuse the step with ``torch.compile``.
         safety: the collision-avoidance bound on every vehicle's step
@@ -571,13 +586,14 @@ def ring_road(
         raise ValueError(f"n_steps must be an int >= 0, got {n_steps!r}")
     dtype, device = sampler.dtype, sampler.device
     ring = _ring_length(length, n_scenarios, dtype, device)  # (S, 1)
-    if initial is None:
+    if isinstance(initial, RingStart):
         state = ring_initial_state(
-            sampler, length, v_init=v_init, perturbation=perturbation
+            sampler,
+            length,
+            v_init=initial.v_init,
+            perturbation=initial.perturbation,
         )
     else:
-        if v_init is not None:
-            raise ValueError("give initial or v_init, not both")
         state = RingState(*(t.to(device=device, dtype=dtype) for t in initial))
         if any(tuple(t.shape) != (n_scenarios, n_vehicles) for t in state):
             raise ValueError(f"initial must hold ({n_scenarios}, {n_vehicles}) fields")
@@ -602,6 +618,7 @@ def ring_road(
 
 __all__ = [
     "MOVING_SPEED",
+    "RingStart",
     "RingState",
     "TrafficOutput",
     "pair_leader",

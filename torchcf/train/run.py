@@ -51,6 +51,7 @@ from tqdm import tqdm
 
 from ..abc.distributed import SINGLE, Group
 from ..abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
+from ..abc.rounds import RoundHooks
 from ..abc.smc import run_smc
 from ..config import TrainConfig, load_split, resolved_json
 from ..data import PairSet
@@ -134,36 +135,22 @@ def _stream_model(
         if due:
             checkpointer.save()
 
-    bounds = spec.bounds(torch.float64)
+    stream = prior_stream(name, spec.bounds(torch.float64), cfg.abc.seed, rollout)
+    hooks = RoundHooks(group, screen, checkpointer.due, after_round)
     with bar:
         if cfg.abc.method == "smc":
             run_smc(
-                name,
-                bounds,
-                cfg.abc.seed,
+                stream,
                 buffer,
                 rollout,
                 n_total,
                 smc_settings(cfg),
                 progress,
                 state.smc[name],
-                group=group,
-                checkpoint_due=checkpointer.due,
-                after_round=after_round,
-                screen=screen,
+                hooks=hooks,
             )
         else:
-            run_rejection(
-                prior_stream(name, bounds, cfg.abc.seed, rollout),
-                buffer,
-                rollout,
-                n_total,
-                progress,
-                group=group,
-                checkpoint_due=checkpointer.due,
-                after_round=after_round,
-                screen=screen,
-            )
+            run_rejection(stream, buffer, rollout, n_total, progress, hooks=hooks)
     progress.done = True
     checkpointer.save()
 

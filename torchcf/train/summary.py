@@ -420,17 +420,33 @@ def model_result(
     )
 
 
+@dataclass(frozen=True, eq=False)
+class SelectionResults:
+    """What the hybrid's selection read from the run's buffers
+    (:func:`read_results`).
+
+    Attributes:
+        posterior: the hybrid.
+        table: ``(M, M)`` the pairwise table (:func:`torchcf.abc.hybrid.
+            pairwise_table`).
+        sensitivity: N -> the shares of the top-N of that N.
+        smc: the refinement's record (``abc.method = "smc"``), else None.
+    """
+
+    posterior: Posterior
+    table: torch.Tensor
+    sensitivity: Mapping[int, dict[str, float]]
+    smc: SMCResult | None = None
+
+
 def summarize(
     cfg: TrainConfig,
     train: PairSet,
     test: PairSet,
     state: RunState,
-    posterior: Posterior,
-    table: torch.Tensor,
-    sensitivity: Mapping[int, dict[str, float]],
+    selected: SelectionResults,
     wall: float,
     processes: int = 1,
-    smc: SMCResult | None = None,
 ) -> RunSummary:
     """The run's summary.
 
@@ -438,14 +454,12 @@ def summarize(
         cfg: the run's config.
         train, test: the training and test pairs.
         state: the run state after the streams (buffers and progress).
-        posterior: the hybrid.
-        table: ``(M, M)`` the pairwise table (:func:`torchcf.abc.hybrid.
-            pairwise_table`).
-        sensitivity: N -> shares of the top-N of that N.
+        selected: the hybrid, the pairwise table, the shares at other N and
+            the refinement's record.
         wall: this process's wall time so far (s).
         processes: the run's processes.
-        smc: the refinement's record (``abc.method = "smc"``).
     """
+    posterior, table = selected.posterior, selected.table
     names = list(posterior.models)
     cells = 1 if cfg.abc.layout == "paired" else train.n_pairs
     return RunSummary(
@@ -465,7 +479,7 @@ def summarize(
             models=tuple(names),
             table=tuple(tuple(round(float(v), 6) for v in row) for row in table),
         ),
-        sensitivity=dict(sensitivity),
+        sensitivity=dict(selected.sensitivity),
         per_model={
             name: model_result(
                 state.buffers[name], state.progress[name], cfg.abc.top_n, cells
@@ -478,7 +492,7 @@ def summarize(
         config_hash=config_hash(cfg),
         versions=Versions.current(),
         method=cfg.abc.method,
-        smc=smc,
+        smc=selected.smc,
     )
 
 
@@ -553,18 +567,8 @@ def read_results(
     smc = None
     if cfg.abc.method == "smc":
         smc = smc_result(cfg, train_pairs, state, selection)
-    summary = summarize(
-        cfg,
-        train_pairs,
-        test_pairs,
-        state,
-        posterior,
-        table,
-        sensitivity,
-        wall,
-        processes,
-        smc,
-    )
+    selected = SelectionResults(posterior, table, sensitivity, smc)
+    summary = summarize(cfg, train_pairs, test_pairs, state, selected, wall, processes)
     return posterior, summary
 
 
@@ -574,6 +578,7 @@ __all__ = [
     "RunSummary",
     "SMCBudgetResult",
     "SMCResult",
+    "SelectionResults",
     "Versions",
     "dataset_label",
     "model_result",

@@ -28,11 +28,18 @@ gps        GPS logs: time, latitude, longitude (and     :mod:`.gps`
 
 :func:`read_trajectories` dispatches on the format name; :func:`reader_options`
 names the keyword options a format's reader takes (its signature's keyword-only
-parameters), so a new reader is one line in :data:`FORMATS`.
+parameters), so a new reader is one line in :data:`FORMATS`. A reader may group
+options that travel together in a settings object (``units``, a
+:class:`~torchcf.data.formats.generic.TableUnits`): a keyword-only parameter
+whose default is a dataclass. Its fields are the options then, by their own
+names, as ``data.raw`` and ``python -m torchcf.data extract`` spell them
+(``length_unit``, ``time_unit``...); :func:`read_trajectories` puts them back
+into the object.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import os
 from collections.abc import Callable
@@ -70,23 +77,55 @@ def read_trajectories(
     Args:
         source: a file or folder in that format.
         format: one of :data:`FORMATS`.
-        **options: the reader's own keyword arguments (e.g. the column mapping
-            and units of the ``csv`` format).
+        **options: the reader's options (:func:`reader_options`: e.g. the
+            column mapping and the units of the ``csv`` format, ``columns``,
+            ``length_unit``...); a grouped option's object may be given whole
+            too (``units=TableUnits(...)``).
 
     Raises:
         DataError: unknown format, or what the reader raises.
     """
-    return _reader(format)(source, **options)
+    reader = _reader(format)
+    return reader(source, **_grouped(reader, options))
 
 
 def reader_options(format: str) -> tuple[str, ...]:
-    """The keyword options of the reader of ``format``, in signature order.
+    """The keyword options of the reader of ``format``, in signature order: its
+    keyword-only parameters, a grouped one's by its fields (module docstring).
 
     Raises:
         DataError: unknown format.
     """
-    parameters = inspect.signature(_reader(format)).parameters.values()
-    return tuple(p.name for p in parameters if p.kind is p.KEYWORD_ONLY)
+    names: list[str] = []
+    for parameter in _keyword_only(_reader(format)):
+        if dataclasses.is_dataclass(parameter.default):
+            names += [field.name for field in dataclasses.fields(parameter.default)]
+        else:
+            names.append(parameter.name)
+    return tuple(names)
+
+
+def _keyword_only(reader: Callable[..., TrajectoryTable]) -> list[inspect.Parameter]:
+    parameters = inspect.signature(reader).parameters.values()
+    return [p for p in parameters if p.kind is p.KEYWORD_ONLY]
+
+
+def _grouped(
+    reader: Callable[..., TrajectoryTable], options: dict[str, Any]
+) -> dict[str, Any]:
+    """``options`` with the fields of each of the reader's grouped options put
+    into its object (over the object given, else over its default)."""
+    options = dict(options)
+    for parameter in _keyword_only(reader):
+        default = parameter.default
+        if not dataclasses.is_dataclass(default):
+            continue
+        names = [field.name for field in dataclasses.fields(default)]
+        fields = {name: options.pop(name) for name in names if name in options}
+        if fields:
+            base = options.get(parameter.name, default)
+            options[parameter.name] = dataclasses.replace(base, **fields)
+    return options
 
 
 def _reader(format: str) -> Callable[..., TrajectoryTable]:

@@ -40,6 +40,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
@@ -51,8 +52,10 @@ __all__ = [
     "ACCELERATION_UNITS",
     "FRAME_UNIT",
     "LENGTH_UNITS",
+    "SI_UNITS",
     "SPEED_UNITS",
     "TIME_UNITS",
+    "TableUnits",
     "check_canonical",
     "column_map",
     "columns_text",
@@ -138,15 +141,54 @@ def parse_column_map(text: str, known: Iterable[str] = COLUMNS) -> dict[str, str
     return mapping
 
 
+@dataclass(frozen=True)
+class TableUnits:
+    """The units of a table's columns (the module docstring's table). The
+    fields are named as the options of ``data.raw`` and ``python -m
+    torchcf.data extract`` (:func:`torchcf.data.formats.reader_options`).
+
+    Attributes:
+        length_unit: unit of position, length and gap, a key of
+            :data:`LENGTH_UNITS`.
+        speed_unit: a key of :data:`SPEED_UNITS`; None: from ``length_unit``.
+        acceleration_unit: a key of :data:`ACCELERATION_UNITS`; None: from
+            ``length_unit``.
+        time_unit: a key of :data:`TIME_UNITS`, or :data:`FRAME_UNIT`.
+        frame_rate: frames per second [Hz] of ``time_unit="frame"``; None
+            with every other unit.
+    """
+
+    length_unit: str = "m"
+    speed_unit: str | None = None
+    acceleration_unit: str | None = None
+    time_unit: str = "s"
+    frame_rate: float | None = None
+
+    def factors(self) -> dict[str, float]:
+        """The factor to SI of each quantity (:func:`unit_factors`).
+
+        Raises:
+            DataError: an unknown unit, or a frame unit without its rate.
+        """
+        return unit_factors(
+            self.length_unit,
+            self.speed_unit,
+            self.acceleration_unit,
+            self.time_unit,
+            self.frame_rate,
+        )
+
+
+#: Metres and seconds, speed in m/s and acceleration in m/s^2: SI, the readers'
+#: default.
+SI_UNITS = TableUnits()
+
+
 def read_csv_table(
     source: str | os.PathLike[str],
     *,
     columns: dict[str, str] | str | None = None,
-    length_unit: str = "m",
-    speed_unit: str | None = None,
-    acceleration_unit: str | None = None,
-    time_unit: str = "s",
-    frame_rate: float | None = None,
+    units: TableUnits = SI_UNITS,
     sep: str = ",",
     road_frame: bool | None = None,
 ) -> TrajectoryTable:
@@ -156,14 +198,7 @@ def read_csv_table(
         source: a CSV file, or a folder whose ``*.csv`` files are all read.
         columns: ``{canonical: source column}`` or its text form (see
             :func:`parse_column_map`); None reads the canonical names.
-        length_unit: unit of position, length and gap, a key of
-            :data:`LENGTH_UNITS`.
-        speed_unit: a key of :data:`SPEED_UNITS`; None: from ``length_unit``.
-        acceleration_unit: a key of :data:`ACCELERATION_UNITS`; None: from
-            ``length_unit``.
-        time_unit: a key of :data:`TIME_UNITS`, or :data:`FRAME_UNIT`.
-        frame_rate: frames per second [Hz] of ``time_unit="frame"``; None
-            with every other unit.
+        units: the units of the columns (:class:`TableUnits`; default SI).
         sep: field separator, passed to :func:`pandas.read_csv`.
         road_frame: whether the positions of one run lie on one road (None:
             unknown); stored on the table.
@@ -179,10 +214,8 @@ def read_csv_table(
             parse, or a text cell in a numeric column.
     """
     given = column_map(columns, COLUMNS)
-    units = unit_factors(
-        length_unit, speed_unit, acceleration_unit, time_unit, frame_rate
-    )
-    factors = {column: units[q] for column, q in _QUANTITY.items()}
+    to_si = units.factors()
+    factors = {column: to_si[q] for column, q in _QUANTITY.items()}
     paths = source_files(source, (".csv",), "csv")
     in_folder = Path(source).is_dir()
     frames = [

@@ -80,6 +80,7 @@ from torchcf.data.trajectory import TrajectoryTable
 __all__ = [
     "GPS_COLUMNS",
     "LEADER_RULES",
+    "GpsUnits",
     "LocalFrame",
     "ReferencePath",
     "fuse_with_speed",
@@ -176,13 +177,30 @@ class ReferencePath:
         return float(along[k]), float(distance[k])
 
 
+@dataclass(frozen=True)
+class GpsUnits:
+    """How a GPS log's times and speeds read. The fields are named as the
+    options of ``data.raw`` and ``python -m torchcf.data extract``
+    (:func:`torchcf.data.formats.reader_options`).
+
+    Attributes:
+        time_unit: unit of numeric times (a key of ``TIME_UNITS``).
+        time_format: ``"seconds"``, ``"gps-week"``, ``"timestamp"`` or
+            ``"auto"`` (numbers: seconds, week rollovers undone; text: stamps).
+        speed_unit: unit of a speed column (a key of ``SPEED_UNITS``; None:
+            m/s).
+    """
+
+    time_unit: str = "s"
+    time_format: str = "auto"
+    speed_unit: str | None = None
+
+
 def read_gps(
     source: str | os.PathLike[str],
     *,
     columns: dict[str, str] | str | None = None,
-    time_unit: str = "s",
-    time_format: str = "auto",
-    speed_unit: str | None = None,
+    units: GpsUnits = GpsUnits(),
     leader_rule: str | None = None,
     platoon: str | None = None,
     path_file: str | os.PathLike[str] | None = None,
@@ -195,11 +213,8 @@ def read_gps(
             (one per vehicle, or long tables).
         columns: ``{canonical: source}`` over :data:`GPS_COLUMNS`, or its text
             form; None reads the canonical names.
-        time_unit: unit of numeric times (a key of ``TIME_UNITS``).
-        time_format: ``"seconds"``, ``"gps-week"``, ``"timestamp"`` or
-            ``"auto"`` (numbers: seconds, week rollovers undone; text: stamps).
-        speed_unit: unit of a speed column (a key of ``SPEED_UNITS``; None:
-            m/s).
+        units: how the times and speeds read (:class:`GpsUnits`: seconds,
+            their format found, m/s).
         leader_rule: one of :data:`LEADER_RULES`; None: the module
             docstring's default.
         platoon: the vehicles in driving order, ``"A,B,C"`` (A leads).
@@ -217,7 +232,8 @@ def read_gps(
             fix left.
     """
     given = column_map(columns, GPS_COLUMNS)
-    speed_unit = speed_unit or "m/s"
+    time_unit, time_format = units.time_unit, units.time_format
+    speed_unit = units.speed_unit or "m/s"
     _known(time_unit, TIME_UNITS, "time unit")
     _known(time_format, TIME_FORMATS, "time format")
     _known(speed_unit, SPEED_UNITS, "speed unit")

@@ -85,12 +85,13 @@ import numpy as np
 import pandas as pd
 
 from torchcf.data.formats.generic import (
+    SI_UNITS,
+    TableUnits,
     column_map,
     read_header,
     read_selected,
     resolve_columns,
     source_files,
-    unit_factors,
 )
 from torchcf.data.pairset import DataError, positive_float
 from torchcf.data.trajectory import TrajectoryTable
@@ -154,11 +155,7 @@ def read_pairs(
     source: str | os.PathLike[str],
     *,
     columns: dict[str, str] | str | None = None,
-    length_unit: str = "m",
-    speed_unit: str | None = None,
-    acceleration_unit: str | None = None,
-    time_unit: str = "s",
-    frame_rate: float | None = None,
+    units: TableUnits = SI_UNITS,
     length_tolerance: float = LENGTH_TOLERANCE,
     sep: str = ",",
     road_frame: bool | None = None,
@@ -170,8 +167,9 @@ def read_pairs(
         columns: ``{canonical: source column}`` or its text form, over the
             defaults of :data:`ULTRA_AV`; canonical names of
             :data:`PAIR_COLUMNS`.
-        length_unit, speed_unit, acceleration_unit, time_unit, frame_rate:
-            units, as for :func:`torchcf.data.formats.generic.read_csv_table`.
+        units: the units of the columns
+            (:class:`~torchcf.data.formats.generic.TableUnits`; default SI), as
+            for :func:`torchcf.data.formats.generic.read_csv_table`.
         length_tolerance: largest spread [m] of a pair's leader length (module
             docstring), > 0.
         sep: field separator.
@@ -187,15 +185,13 @@ def read_pairs(
             and ``leader_length`` do not agree on (module docstring).
     """
     given = column_map(columns, PAIR_COLUMNS)
-    units = unit_factors(
-        length_unit, speed_unit, acceleration_unit, time_unit, frame_rate
-    )
+    factors = units.factors()
     tolerance = positive_float(length_tolerance, "length_tolerance", "m")
     paths = source_files(source, (".csv",), "pairs")
     in_folder = Path(source).is_dir()
     frames, notes = [], []
     for path in paths:
-        pairs = _read_one(path, given, units, sep)
+        pairs = _read_one(path, given, factors, sep)
         long, note = pairs_to_long(
             pairs,
             source=str(path),
