@@ -29,6 +29,10 @@ import torch
 from .errors import TorchcfError
 
 StrPath = str | os.PathLike[str]
+#: A JSON object as a file holds it: what :func:`read_json_object` reads and
+#: :func:`write_json` writes (results travel as typed records and become this
+#: only at the file's edge, by their ``to_json``).
+JSON = dict[str, Any]
 
 
 class RunFileError(TorchcfError, ValueError):
@@ -210,7 +214,7 @@ def _discard(path: Path) -> None:
 
 
 # ------------------------------------------------------------------ reading
-def read_json_object(path: StrPath) -> dict[str, Any]:
+def read_json_object(path: StrPath) -> JSON:
     """The JSON object in ``path``.
 
     Raises:
@@ -307,6 +311,7 @@ def _one_line(error: BaseException) -> str:
 
 
 __all__ = [
+    "JSON",
     "RunFileError",
     "atomic_torch_save",
     "atomic_write_text",
