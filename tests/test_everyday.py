@@ -269,7 +269,7 @@ def test_a_config_edited_after_training_is_refused(study, tmp_path):
     raw["data"]["name"] = "car-model-2"
     raw["eval"]["beta"] = 0.3  # evaluation settings may change
     copy.config_json.write_text(json.dumps(raw))
-    assert evaluate_run(copy, pairs=pairs)["beta"] == 0.3
+    assert evaluate_run(copy, pairs=pairs).beta == 0.3
 
 
 # ------------------------------------------------------------------ signals

@@ -291,7 +291,7 @@ def _metrics(costs: dict[str, Tensor], n_test: int, beta: float) -> dict[str, An
     shaped = [
         costs[k].reshape(-1, n_test).numpy() for k in ("score", "e_p", "e_v", "e_a")
     ]
-    return evaluate_costs(*shaped, beta=beta)
+    return evaluate_costs(*shaped, beta=beta).to_json()
 
 
 def _max_difference(x: Tensor, reference: Tensor, mask: Tensor) -> float:
