@@ -240,10 +240,11 @@ def test_aggregate_is_the_mean_over_folds_and_keeps_inf():
         {"hybrid": {"ws": 3.0, "min": "inf"}, "n_test": 3},
     ]
     result = aggregate(folds)
-    assert result["folds"] == 2
-    assert result["hybrid"]["ws"] == 2.0 and result["hybrid"]["ws_folds_finite"] == 2
-    assert math.isinf(result["hybrid"]["min"])
-    assert result["hybrid"]["min_folds_finite"] == 1
+    assert result.folds == 2
+    hybrid = result.entries["hybrid"]
+    assert hybrid.ws == 2.0 and hybrid.ws_folds_finite == 2
+    assert math.isinf(hybrid.min)
+    assert hybrid.min_folds_finite == 1
 
 
 def test_aggregate_skips_the_blocks_that_are_no_learned_set():
@@ -253,7 +254,7 @@ def test_aggregate_skips_the_blocks_that_are_no_learned_set():
         "hybrid_minus": {"idm": {"ws": {"value": -0.1}}},
         "shares": {"idm": {"share": 1.0}},
     }
-    assert set(aggregate([fold, fold])) == {"folds", "hybrid"}
+    assert set(aggregate([fold, fold]).to_json()) == {"folds", "hybrid"}
 
 
 def test_fold_config():
@@ -265,12 +266,12 @@ def test_fold_config():
 def test_crossval_runs_every_fold_on_real_data(data_root, tmp_path):
     cfg = small_config(n_particles=600, chunk_size=600)
     result = crossval(cfg, tmp_path / "cv", folds=2)
-    assert result["folds"] == 2
+    assert result.folds == 2
     for fold in range(2):
         metrics = json.loads(
             (tmp_path / "cv" / f"fold{fold}" / "metrics.json").read_text()
         )
         assert "hybrid" in metrics
     on_disk = json.loads((tmp_path / "cv" / "metrics.json").read_text())
-    assert on_disk["hybrid"]["ws"] == pytest.approx(result["hybrid"]["ws"])
+    assert on_disk["hybrid"]["ws"] == pytest.approx(result.entries["hybrid"].ws)
     assert (tmp_path / "cv" / "report" / "table.md").exists()
