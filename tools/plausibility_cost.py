@@ -69,7 +69,7 @@ def run_set(
     battery = plausibility_battery(cfg, load_split(cfg.data)[0])
     particles = {name: sampler.particles(name) for name in sampler.model_names}
     collided = {
-        name: row["collided"]
+        name: row.collided
         for name, row in plausibility_by_model(particles, battery).items()
     }
     return {

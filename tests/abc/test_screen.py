@@ -119,8 +119,8 @@ def test_training_with_the_filter_reports_it(tmp_path):
     assert summary.per_model[MODEL].implausible > 0
     assert plain.per_model[MODEL].implausible == 0
     # the battery on the learned hybrid, per model: none collides when filtered
-    assert summary.plausibility[MODEL]["collided"] == 0.0
-    assert plain.plausibility[MODEL]["n_particles"] > 0
+    assert summary.plausibility[MODEL].collided == 0.0
+    assert plain.plausibility[MODEL].n_particles > 0
     quiet = {**base, "plausibility": {"report": False}}
     assert (
         "plausibility"

@@ -17,6 +17,7 @@ from torchcf.abc.topn import TopN
 from torchcf.config import TrainConfig, config_hash
 from torchcf.runs.directory import RunDir
 from torchcf.study.pipeline import StudyResult, train_and_evaluate
+from torchcf.traffic import PlausibilitySettings, PlausibilitySummary
 from torchcf.train import ModelResult, RunError, RunState, RunSummary, open_run
 from torchcf.train.checkpoint import CHECKPOINT_FORMAT, resume_note
 from torchcf.train.engine import build_buffers
@@ -86,6 +87,23 @@ def _summary(**changes) -> RunSummary:
     return replace(summary, **changes)
 
 
+def _plausibility() -> PlausibilitySummary:
+    return PlausibilitySummary(
+        n_particles=6,
+        collided=0.0,
+        per_scenario={"brake_4": 0.0},
+        string_unstable=0.5,
+        string_untested=0.0,
+        no_equilibrium=0.0,
+        not_started=0.0,
+        min_ttc_median=None,
+        string_ratio_median=1.25,
+        settings=PlausibilitySettings(
+            speed=20.0, decelerations=(4.0,), collision_spacing=0.0, platoon_size=8
+        ),
+    )
+
+
 # ------------------------------------------------------------------ RunSummary
 
 
@@ -101,7 +119,7 @@ def test_a_summary_round_trips_through_json_with_every_optional_part():
         ),
         evidence_shares={"idm": 0.6, "hl": 0.4},
     )
-    plausibility = {"idm": {"collided": 0.0, "settings": {"decelerations": [4.0]}}}
+    plausibility = {"idm": _plausibility()}
     for summary in (
         _summary(),
         _summary(method="smc", smc=smc),
@@ -119,7 +137,7 @@ def test_a_summary_round_trips_through_json_with_every_optional_part():
 
 
 def test_the_json_keys_and_their_order_are_summary_json_s():
-    raw = _summary(plausibility={"idm": {"collided": 0.0}}).to_json()
+    raw = _summary(plausibility={"idm": _plausibility()}).to_json()
     assert list(raw) == [
         "dataset",
         "layout",

@@ -46,6 +46,7 @@ from ..data import PairSet
 from ..posterior import Posterior
 from ..system.files import JSON
 from ..system.records import Record, copy_json, to_json_value
+from ..traffic.battery import PlausibilitySummary
 from .checkpoint import RunState
 from .engine import smc_settings
 
@@ -220,7 +221,7 @@ class RunSummary(Record):
     versions: Versions
     method: str | None = None
     smc: SMCResult | None = None
-    plausibility: dict[str, dict[str, Any]] | None = None
+    plausibility: dict[str, PlausibilitySummary] | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     #: fields written only when set (absent from the file when None)
@@ -283,7 +284,12 @@ class RunSummary(Record):
                 versions=Versions.from_json(raw["versions"]),
                 method=raw.get("method"),
                 smc=None if smc is None else SMCResult.from_json(smc),
-                plausibility=None if plausibility is None else copy_json(plausibility),
+                plausibility=None
+                if plausibility is None
+                else {
+                    name: PlausibilitySummary.from_json(record)
+                    for name, record in plausibility.items()
+                },
                 extra={k: copy_json(v) for k, v in raw.items() if k not in names},
             )
         except (KeyError, TypeError, ValueError, AttributeError) as error:
@@ -291,7 +297,9 @@ class RunSummary(Record):
                 f"not a run summary ({type(error).__name__}: {error})"
             ) from None
 
-    def with_plausibility(self, plausibility: dict[str, dict[str, Any]]) -> RunSummary:
+    def with_plausibility(
+        self, plausibility: dict[str, PlausibilitySummary]
+    ) -> RunSummary:
         """This summary with the hybrid's plausibility report."""
         return replace(self, plausibility=plausibility)
 
