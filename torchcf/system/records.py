@@ -22,9 +22,10 @@ from .files import JSON
 
 
 def to_json_value(value: Any) -> Any:
-    """``value`` as JSON content: records by their ``to_json``, tuples as lists,
-    mapping keys as strings; a fresh copy of every container."""
-    if isinstance(value, Record):
+    """``value`` as JSON content: records (anything with a ``to_json``) by their
+    ``to_json``, tuples as lists, mapping keys as strings; a fresh copy of every
+    container."""
+    if isinstance(value, Record) or callable(getattr(value, "to_json", None)):
         return value.to_json()
     if isinstance(value, list | tuple):
         return [to_json_value(v) for v in value]
