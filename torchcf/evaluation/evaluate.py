@@ -44,7 +44,7 @@ from collections.abc import Sequence
 from contextlib import nullcontext
 from pathlib import Path
 from time import perf_counter
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 import torch
@@ -93,6 +93,14 @@ from .uncertainty import tensorboard_scalars, uncertainty
 #: Bytes of trajectories one rollout may hold for the predictive coverage
 #: (:func:`cost_matrices` slices the particles to stay below).
 TRAJECTORY_BYTES = 2**28
+
+
+class RolloutOptions(TypedDict):
+    """The run's rollout settings :func:`cost_matrices` takes as keywords."""
+
+    dtype: torch.dtype
+    device: torch.device | str
+    weights: Sequence[float]
 
 
 class EvaluationError(TorchcfError, RuntimeError):
@@ -214,7 +222,7 @@ def _hybrid_costs(
     rows: np.ndarray,
     costs: dict[str, dict[str, np.ndarray]],
     test: PairSet,
-    kwargs: dict[str, Any],
+    kwargs: RolloutOptions,
     predictive: PredictiveCDF | None = None,
 ) -> dict[str, np.ndarray]:
     """The (h, n_test) cost matrices of a model's hybrid particles ``theta``:
@@ -290,7 +298,7 @@ def evaluate_posterior(
         EvaluationError: the hybrid particle set is empty.
     """
     dtype = getattr(torch, cfg.dtype)
-    kwargs = {"dtype": dtype, "device": cfg.device, "weights": cfg.abc.weights}
+    kwargs = RolloutOptions(dtype=dtype, device=cfg.device, weights=cfg.abc.weights)
     singles = {
         name: single_model_particles(posterior, name) for name in posterior.models
     }

@@ -33,6 +33,9 @@ StrPath = str | os.PathLike[str]
 #: :func:`write_json` writes (results travel as typed records and become this
 #: only at the file's edge, by their ``to_json``).
 JSON = dict[str, Any]
+#: A dict as :func:`atomic_torch_save` writes it and :func:`read_torch` reads it
+#: back (tensors and plain data: a checkpoint, a posterior file, a state dict).
+TorchPayload = dict[str, Any]
 
 
 class RunFileError(TorchcfError, ValueError):
@@ -313,6 +316,7 @@ def _one_line(error: BaseException) -> str:
 __all__ = [
     "JSON",
     "RunFileError",
+    "TorchPayload",
     "atomic_torch_save",
     "atomic_write_text",
     "ensure_directory",

@@ -145,7 +145,7 @@ class SMCResult(Record):
     SMCSettings` fields), budget and evidence shares (model -> share in [0, 1],
     with the prior's Occam factor: :func:`torchcf.abc.smc.evidence_shares`)."""
 
-    settings: dict[str, Any]
+    settings: JSON
     budget: SMCBudgetResult
     evidence_shares: dict[str, float]
     meaning: str = SMC_MEANING
@@ -222,7 +222,7 @@ class RunSummary(Record):
     method: str | None = None
     smc: SMCResult | None = None
     plausibility: dict[str, PlausibilitySummary] | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
+    extra: JSON = field(default_factory=dict)
 
     #: fields written only when set (absent from the file when None)
     OPTIONAL: ClassVar[tuple[str, ...]] = ("method", "smc", "plausibility")
