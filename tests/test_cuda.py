@@ -136,8 +136,8 @@ def test_training_evaluation_and_diagnosis_on_cuda(tmp_path):
     test_pairs = synthetic_pairs(n_pairs=4, n_steps=200, seed=2)
     cfg = _config(diagnose={"n_particles": 3000, "effects": ["delay", "lag"]})
     out = tmp_path / "run"
-    summary = run_study(cfg, out, pairs=(train_pairs, test_pairs))
-    assert sum(summary["shares"].values()) == pytest.approx(1.0)
+    summary = run_study(cfg, out, pairs=(train_pairs, test_pairs)).summary
+    assert sum(summary.shares.values()) == pytest.approx(1.0)
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["n_test"] == 4 and metrics["hybrid"]["ws"] != "inf"
     # The GPU's float32 scores of the kept particles, re-scored on the CPU.
@@ -269,8 +269,8 @@ def test_early_rejection_on_cuda_keeps_the_same_particles(tmp_path, dtype):
                         pairs=(pairs, pairs))  # fmt: skip
         runs.append((summary, Posterior.load(tmp_path / f"run{on}" / "posterior.pt")))
     (plain, a), (fast, b) = runs
-    assert fast["shares"] == plain["shares"]
+    assert fast.shares == plain.shares
     for name in a.models:
         for key in ("index", "score"):
             assert torch.equal(a.buffers[name][key], b.buffers[name][key]), (name, key)
-    assert fast["per_model"]["idm"]["stopped"] > 0
+    assert fast.per_model["idm"].stopped > 0

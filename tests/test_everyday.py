@@ -241,8 +241,8 @@ def _stamps(run: RunDir) -> dict[str, int]:
 def test_a_finished_run_resumed_does_nothing(study):
     run, pairs = study
     before = _stamps(run)
-    summary = run_study(_config(), run.path, resume=True, pairs=pairs)
-    assert summary == run.read_summary()
+    result = run_study(_config(), run.path, resume=True, pairs=pairs)
+    assert result.summary.to_json() == run.read_summary()
     assert _stamps(run) == before  # nothing retrained, re-evaluated or logged
 
 
@@ -269,7 +269,7 @@ def test_a_config_edited_after_training_is_refused(study, tmp_path):
     raw["data"]["name"] = "car-model-2"
     raw["eval"]["beta"] = 0.3  # evaluation settings may change
     copy.config_json.write_text(json.dumps(raw))
-    assert evaluate_run(copy, pairs=pairs)["beta"] == 0.3
+    assert evaluate_run(copy, pairs=pairs).beta == 0.3
 
 
 # ------------------------------------------------------------------ signals

@@ -68,7 +68,7 @@ def child(n_particles: int, args: argparse.Namespace) -> dict:
         "particles": n_particles,
         "peak_rss_mib": peak_kib / 1024,
         "seconds": seconds,
-        "particles_per_s": summary["per_model"]["idm"]["particles_per_s"],
+        "particles_per_s": summary.per_model["idm"].particles_per_s,
     }
     if args.device.startswith("cuda"):
         import torch

@@ -159,8 +159,8 @@ def child(args: argparse.Namespace) -> int:
         sizes = {p.name: p.stat().st_size for p in out.iterdir() if p.is_file()}
     peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     nth = hybrid_nth(posterior, args.n)
-    per_model = summary["per_model"]
-    simulated = sum(per_model[m]["particles"] for m in args.models)
+    per_model = summary.per_model
+    simulated = sum(per_model[m].particles for m in args.models)
     result = {
         "pairs": args.n,
         "seconds": seconds,
@@ -169,15 +169,15 @@ def child(args: argparse.Namespace) -> int:
         "sims_per_pair": simulated / len(args.models) / args.n
         if args.layout == "paired"
         else simulated / len(args.models),
-        "per_model_seconds": {m: per_model[m]["seconds"] for m in args.models},
+        "per_model_seconds": {m: per_model[m].seconds for m in args.models},
         "hybrid_nth": nth.tolist(),
         "model_nth": {
-            m: [math.inf if v is None else v for v in per_model[m]["thresholds"]]
+            m: [math.inf if v is None else v for v in per_model[m].thresholds]
             for m in args.models
         },
-        "shares": summary["shares"],
+        "shares": summary.shares,
         "files_bytes": sizes,
-        "smc_budget": summary.get("smc", {}).get("budget"),
+        "smc_budget": None if summary.smc is None else summary.smc.budget.to_json(),
     }
     Path(args.result).write_text(json.dumps(result))
     return 0

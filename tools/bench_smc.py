@@ -104,14 +104,10 @@ def one_run(cfg, pairs, method: str, budget: int, overrides: dict) -> dict:
         "seconds": seconds,
         "quality": sum(finite) / len(finite) if finite else math.inf,
         "per_pair": per_pair,
-        "shares": summary["shares"],
-        "per_model_seconds": {
-            m: summary["per_model"][m]["seconds"] for m in summary["per_model"]
-        },
-        "evidence_shares": summary.get("smc", {}).get("evidence_shares"),
-        "model_thresholds": {
-            m: summary["per_model"][m]["threshold"] for m in summary["shares"]
-        },
+        "shares": summary.shares,
+        "per_model_seconds": {m: r.seconds for m, r in summary.per_model.items()},
+        "evidence_shares": None if summary.smc is None else summary.smc.evidence_shares,
+        "model_thresholds": {m: summary.per_model[m].threshold for m in summary.shares},
     }
 
 

@@ -23,6 +23,7 @@ from torchcf.evaluation.report import (
     differences_table,
     intervals_table,
 )
+from torchcf.evaluation.results import BootstrapSettings, Difference
 from torchcf.runs.directory import RunDir
 from torchcf.system.console import OneLineParser, run_main
 from torchcf.system.files import from_json_safe, json_safe
@@ -40,8 +41,15 @@ def run_table(name: str, metrics: dict) -> list[str]:
         "test pairs)",
         "",
         coverage_table(metrics, order, metrics.get("coverage_levels", (0.5, 0.9))),
-        intervals_table(metrics, order, metrics["bootstrap"]),
-        differences_table(metrics.get("hybrid_minus", {})),
+        intervals_table(
+            metrics, order, BootstrapSettings.from_json(metrics["bootstrap"])
+        ),
+        differences_table(
+            {
+                model: {key: Difference.from_json(d) for key, d in row.items()}
+                for model, row in metrics.get("hybrid_minus", {}).items()
+            }
+        ),
     ]
 
 

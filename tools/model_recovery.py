@@ -120,10 +120,8 @@ def run(args: argparse.Namespace) -> dict:
         block = {
             "per_pair": per_pair,
             "seconds": seconds,
-            "per_model_seconds": {
-                m: summary["per_model"][m]["seconds"] for m in MODELS
-            },
-            "shares_run": summary["shares"],
+            "per_model_seconds": {m: summary.per_model[m].seconds for m in MODELS},
+            "shares_run": summary.shares,
             "pair_shares": shares.tolist(),
             "all": summarise(shares, label, list(MODELS)),
             "held_out": {},

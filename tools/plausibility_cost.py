@@ -61,7 +61,7 @@ def run_set(
         if keep is not None:
             out = keep / f"{name}-{'on' if filtered else 'off'}"
         began = time.perf_counter()
-        summary = train_and_evaluate(cfg, out)
+        summary = train_and_evaluate(cfg, out).summary
         seconds = time.perf_counter() - began
         metrics = from_json_safe(RunDir(out).read_metrics())
         posterior = Posterior.load(out / "posterior.pt")
@@ -69,15 +69,13 @@ def run_set(
     battery = plausibility_battery(cfg, load_split(cfg.data)[0])
     particles = {name: sampler.particles(name) for name in sampler.model_names}
     collided = {
-        name: row["collided"]
+        name: row.collided
         for name, row in plausibility_by_model(particles, battery).items()
     }
     return {
         "seconds": seconds,
-        "shares": summary["shares"],
-        "implausible": {
-            m: row.get("implausible", 0) for m, row in summary["per_model"].items()
-        },
+        "shares": summary.shares,
+        "implausible": {m: row.implausible for m, row in summary.per_model.items()},
         "metrics": {
             key: {
                 k: metrics[key].get(k)
@@ -90,7 +88,7 @@ def run_set(
                     "particles_never_valid",
                 )
             }
-            for key in [*summary["models"], "hybrid"]
+            for key in [*summary.models, "hybrid"]
             if key in metrics
         },  # fmt: skip
         "hybrid_collided": collided,

@@ -132,7 +132,7 @@ def calibrate(
         start = time.perf_counter()
         summary = train_and_evaluate(
             cfg, out, pairs=(pairs, pairs.subset(torch.arange(1))), evaluate=False
-        )
+        ).summary
         seconds = time.perf_counter() - start
         posterior = Posterior.load(out / "posterior.pt")
     return posterior, summary, seconds
@@ -221,7 +221,8 @@ def run(args: argparse.Namespace) -> dict:
                 params=list(get_model(model).param_names),
                 seconds=seconds,
                 seconds_pairs=made,
-                invalid_fraction=summary["per_model"][model].get("invalid_fraction"),
+                # the summary has no such key (its rate is invalid_rate): as before
+                invalid_fraction=None,
             )
             block["models"][model] = entry
             cov = entry["coverage"]

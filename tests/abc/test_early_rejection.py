@@ -328,10 +328,10 @@ def test_a_trained_run_is_the_same_with_early_rejection(pairs, tmp_path, method)
         summary = train(_config(method, early_rejection=on), out, pairs=(pairs, test))
         runs[on] = (summary, Posterior.load(out / "posterior.pt"))
     (plain, a), (fast, b) = runs[False], runs[True]
-    assert fast["shares"] == plain["shares"]
+    assert fast.shares == plain.shares
     same_buffers(a, b)
-    assert fast["per_model"]["idm"]["stopped"] > 0
-    assert plain["per_model"]["idm"]["stopped"] == 0
+    assert fast.per_model["idm"].stopped > 0
+    assert plain.per_model["idm"].stopped == 0
 
 
 def test_an_interrupted_run_with_early_rejection_resumes_identical(pairs, tmp_path):
@@ -343,7 +343,7 @@ def test_an_interrupted_run_with_early_rejection_resumes_identical(pairs, tmp_pa
     out = tmp_path / "cut"
     interrupt_after(3, lambda: train(cfg, out, pairs=(pairs, test)))
     resumed = train(cfg, out, resume=True, pairs=(pairs, test))
-    assert resumed["shares"] == reference["shares"]
+    assert resumed.shares == reference.shares
     same_buffers(
         Posterior.load(tmp_path / "ref" / "posterior.pt"),
         Posterior.load(out / "posterior.pt"),

@@ -223,8 +223,8 @@ def test_smc_over_hundreds_of_pairs_resumes_identical(many, tmp_path):
     saved = torch.load(out / "checkpoint.pt", weights_only=True)
     assert saved["smc"]["idm"]["round"] == 1 and saved["smc"]["idm"]["next"] > 0
     resumed = train(cfg, out, resume=True, pairs=(many, test))
-    assert resumed["shares"] == reference["shares"]
-    assert resumed["smc"] == reference["smc"]
+    assert resumed.shares == reference.shares
+    assert resumed.smc == reference.smc
     _same_buffers(
         Posterior.load(tmp_path / "ref" / "posterior.pt"),
         Posterior.load(out / "posterior.pt"),

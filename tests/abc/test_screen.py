@@ -117,16 +117,19 @@ def test_training_with_the_filter_reports_it(tmp_path):
     on = {**base, "plausibility": {"filter": True, "speed": 20.0, "decelerations": [6]}}
     summary = train(validate_config(on), tmp_path / "on", pairs=(pairs, test))
     plain = train(validate_config(base), tmp_path / "off", pairs=(pairs, test))
-    assert summary["per_model"][MODEL]["implausible"] > 0
-    assert plain["per_model"][MODEL]["implausible"] == 0
+    assert summary.per_model[MODEL].implausible > 0
+    assert plain.per_model[MODEL].implausible == 0
     # the battery on the learned hybrid, per model: none collides when filtered
-    assert summary["plausibility"][MODEL]["collided"] == 0.0
-    assert plain["plausibility"][MODEL]["n_particles"] > 0
+    assert summary.plausibility[MODEL].collided == 0.0
+    assert plain.plausibility[MODEL].n_particles > 0
     quiet = {**base, "plausibility": {"report": False}}
-    assert "plausibility" not in train(
-        validate_config(quiet), tmp_path / "quiet", pairs=(pairs, test)
+    assert (
+        "plausibility"
+        not in train(
+            validate_config(quiet), tmp_path / "quiet", pairs=(pairs, test)
+        ).to_json()
     )
-    assert summary["config_hash"] != plain["config_hash"]
+    assert summary.config_hash != plain.config_hash
     with pytest.raises(ValueError):
         validate_config({**base, "plausibility": {"decelerations": [-1]}})
 
@@ -143,6 +146,6 @@ def test_smc_with_the_filter_keeps_implausible_particles_out(tmp_path):
         "plausibility": {"filter": True, "speed": 20.0, "decelerations": [6]},
     }
     summary = train(validate_config(config), tmp_path / "run", pairs=(pairs, test))
-    assert summary["per_model"][MODEL]["implausible"] > 0
+    assert summary.per_model[MODEL].implausible > 0
     kept = Posterior.load(tmp_path / "run" / "posterior.pt").hybrid[MODEL].theta
     assert not bool(check_plausibility(MODEL, kept, BATTERY).collided.any())

@@ -366,18 +366,18 @@ def test_smc_fits_better_than_rejection_at_equal_budget(mixture, tmp_path):
         runs[method] = summary
     for name, rows in (("idm", range(0, 6)), ("hl", range(6, 10))):
         # on the pairs the model drove (elsewhere no parameter fits well)
-        rej = [runs["rejection"]["per_model"][name]["thresholds"][r] for r in rows]
-        ref = [runs["smc"]["per_model"][name]["thresholds"][r] for r in rows]
+        rej = [runs["rejection"].per_model[name].thresholds[r] for r in rows]
+        ref = [runs["smc"].per_model[name].thresholds[r] for r in rows]
         assert sum(ref) < 0.7 * sum(rej), (name, rej, ref)
     posterior = Posterior.load(tmp_path / "smc" / "posterior.pt")
     pair_of = {int(p): i for i, p in enumerate(mixture.pair_ids)}
     for name, rows in (("idm", range(0, 6)), ("hl", range(6, 10))):
         kept = [pair_of[int(p)] for p in posterior.hybrid[name].pair_ids]
         assert sum(r in rows for r in kept) >= 0.8 * len(kept), name
-    smc_summary = runs["smc"]["smc"]
-    assert smc_summary["budget"]["proposals"] <= 6000
-    assert runs["smc"]["method"] == "smc" and runs["rejection"]["method"] == "rejection"
-    evidence = smc_summary["evidence_shares"]
+    smc_summary = runs["smc"].smc
+    assert smc_summary.budget.proposals <= 6000
+    assert runs["smc"].method == "smc" and runs["rejection"].method == "rejection"
+    evidence = smc_summary.evidence_shares
     assert sum(evidence.values()) == pytest.approx(1.0)
     assert evidence["idm"] > 0.4 and evidence["hl"] > 0.2
 
@@ -406,8 +406,8 @@ def test_smc_resumed_mid_round_equals_an_uninterrupted_run(mixture, tmp_path):
     saved = torch.load(out / "checkpoint.pt", weights_only=True)
     assert saved["smc"]["idm"]["round"] >= 1 and saved["smc"]["idm"]["next"] > 0
     resumed = train(cfg, out, resume=True, pairs=(mixture, mixture))
-    assert resumed["shares"] == reference["shares"]
-    assert resumed["smc"] == reference["smc"]
+    assert resumed.shares == reference.shares
+    assert resumed.smc == reference.smc
     a = Posterior.load(tmp_path / "ref" / "posterior.pt")
     b = Posterior.load(out / "posterior.pt")
     same_buffers(a, b, ("idm", "hl"))

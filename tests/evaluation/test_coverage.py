@@ -230,7 +230,7 @@ def test_metrics_json_report_and_tensorboard_carry_the_new_numbers(evaluated):
     import json
 
     _, out, _, result = evaluated
-    _check_metrics_json(result, ["idm", "llctg"])
+    _check_metrics_json(result.to_json(), ["idm", "llctg"])
     assert json.loads((out / "metrics.json").read_text())["bootstrap"]["seed"] == 0
     table = (out / "report" / "table.md").read_text()
     assert "## Predictive coverage" in table and "Hybrid minus" in table
@@ -287,7 +287,8 @@ def test_hybrid_coverage_equals_its_own_rollout_and_bands(evaluated):
                 inside += int(ok.sum())
             fraction = inside / int(steps.sum())
             key = f"coverage_{variable}_{round(100 * q)}"
-            assert result["hybrid"][key] == pytest.approx(fraction, abs=1e-12), key
+            band = result.sets["hybrid"].uncertainty.coverage[key]
+            assert band.value == pytest.approx(fraction, abs=1e-12), key
 
 
 @pytest.mark.slow  # the smoke study end to end

@@ -20,8 +20,10 @@ from torchcf.evaluation.evaluate import (
     single_model_particles,
 )
 from torchcf.evaluation.metrics import evaluate_costs, sinkhorn
+from torchcf.evaluation.results import Evaluation
 from torchcf.posterior import Posterior
 from torchcf.study.crossval import aggregate, crossval, fold_config
+from torchcf.system.files import json_safe
 from torchcf.train import train
 
 
@@ -152,10 +154,11 @@ def test_metrics_equal_a_direct_computation(trained):
     expect = evaluate_costs(
         stacked["score"], stacked["e_p"], stacked["e_v"], stacked["e_a"], beta=0.15
     )
+    hybrid = result.sets["hybrid"].metrics
     for key in ("e_p", "min", "beta_ws", "ws", "sinkhorn"):
-        assert result["hybrid"][key] == pytest.approx(expect[key], rel=1e-12)
+        assert getattr(hybrid, key) == pytest.approx(getattr(expect, key), rel=1e-12)
     # the batched Sinkhorn of all sets = one solve per set
-    assert result["hybrid"]["sinkhorn_iterations"] == expect["sinkhorn_iterations"]
+    assert hybrid.sinkhorn_iterations == expect.sinkhorn_iterations
     on_disk = json.loads((out / "metrics.json").read_text())
     assert set(on_disk) >= {"hybrid", "idm", "llctg", "n_test", "test_pair_ids"}
     assert on_disk["n_test"] == 4
@@ -165,6 +168,27 @@ def test_metrics_equal_a_direct_computation(trained):
     table = (out / "report" / "table.md").read_text()
     assert "WS" in table and "IDM" in table
     assert "What the columns are" in table  # every metric defined where shown
+
+
+def test_metrics_json_is_the_evaluation_and_reads_back(trained):
+    """evaluate_run returns the typed record of metrics.json: its to_json is the
+    file (key order included), and from_json reads the file back to it."""
+    _, out, train_pairs, test_pairs = trained
+    result = evaluate_run(
+        out, pairs=(train_pairs, test_pairs), tensorboard=False, progress=False
+    )
+    assert isinstance(result, Evaluation)
+    text = (out / "metrics.json").read_text()
+    assert json.dumps(json_safe(result.to_json()), indent=2) + "\n" == text
+    back = Evaluation.from_json(json.loads(text))
+    assert json.dumps(json_safe(back.to_json()), indent=2) + "\n" == text
+    assert list(back.sets) == ["idm", "llctg", "hybrid"]
+    assert back.hybrid.metrics == result.hybrid.metrics
+    assert back.shares == result.shares and back.bootstrap == result.bootstrap
+    with pytest.raises(ValueError, match="not an evaluation"):
+        Evaluation.from_json(
+            {k: v for k, v in json.loads(text).items() if k != "n_test"}
+        )
 
 
 def test_metrics_json_records_the_sinkhorn_solve(trained, capsys):
@@ -195,13 +219,13 @@ def test_sinkhorn_iteration_cap_comes_from_the_config(trained, capsys):
     err = capsys.readouterr().err
     assert "evaluate: simulate" in err and "evaluate: metrics" in err
     for entry, m in metrics.items():
-        assert m["sinkhorn_iterations"] == 3 and not m["sinkhorn_converged"], entry
+        assert m.sinkhorn_iterations == 3 and not m.sinkhorn_converged, entry
         cost = costs[entry]
         valid = np.isfinite(np.stack([cost[k] for k in ("e_p", "e_v", "e_a")]))
         score = np.where(valid.all(axis=0), cost["score"], np.inf)
         alone = sinkhorn(score, cfg.eval.sinkhorn_reg, max_iter=3)
-        assert m["sinkhorn"] == pytest.approx(alone.value, rel=1e-12)
-        assert m["sinkhorn_marginal_error"] == pytest.approx(alone.marginal_error)
+        assert m.sinkhorn == pytest.approx(alone.value, rel=1e-12)
+        assert m.sinkhorn_marginal_error == pytest.approx(alone.marginal_error)
 
 
 def test_evaluate_cli_refuses_an_unfinished_run(tmp_path, capsys):
@@ -216,10 +240,11 @@ def test_aggregate_is_the_mean_over_folds_and_keeps_inf():
         {"hybrid": {"ws": 3.0, "min": "inf"}, "n_test": 3},
     ]
     result = aggregate(folds)
-    assert result["folds"] == 2
-    assert result["hybrid"]["ws"] == 2.0 and result["hybrid"]["ws_folds_finite"] == 2
-    assert math.isinf(result["hybrid"]["min"])
-    assert result["hybrid"]["min_folds_finite"] == 1
+    assert result.folds == 2
+    hybrid = result.entries["hybrid"]
+    assert hybrid.ws == 2.0 and hybrid.ws_folds_finite == 2
+    assert math.isinf(hybrid.min)
+    assert hybrid.min_folds_finite == 1
 
 
 def test_aggregate_skips_the_blocks_that_are_no_learned_set():
@@ -229,7 +254,7 @@ def test_aggregate_skips_the_blocks_that_are_no_learned_set():
         "hybrid_minus": {"idm": {"ws": {"value": -0.1}}},
         "shares": {"idm": {"share": 1.0}},
     }
-    assert set(aggregate([fold, fold])) == {"folds", "hybrid"}
+    assert set(aggregate([fold, fold]).to_json()) == {"folds", "hybrid"}
 
 
 def test_fold_config():
@@ -241,12 +266,12 @@ def test_fold_config():
 def test_crossval_runs_every_fold_on_real_data(data_root, tmp_path):
     cfg = small_config(n_particles=600, chunk_size=600)
     result = crossval(cfg, tmp_path / "cv", folds=2)
-    assert result["folds"] == 2
+    assert result.folds == 2
     for fold in range(2):
         metrics = json.loads(
             (tmp_path / "cv" / f"fold{fold}" / "metrics.json").read_text()
         )
         assert "hybrid" in metrics
     on_disk = json.loads((tmp_path / "cv" / "metrics.json").read_text())
-    assert on_disk["hybrid"]["ws"] == pytest.approx(result["hybrid"]["ws"])
+    assert on_disk["hybrid"]["ws"] == pytest.approx(result.entries["hybrid"].ws)
     assert (tmp_path / "cv" / "report" / "table.md").exists()

@@ -480,26 +480,26 @@ def test_evaluate_costs_keys_and_consistency():
     score[3, 1] = np.inf  # invalid through the score only
     e_a[5, 2] = np.nan  # invalid through an error only
     out = evaluate_costs(score, e_p, e_v, e_a)
-    assert set(out) == {
+    assert set(out.to_json()) == {
         "e_p", "e_v", "e_a", "min", "beta_ws", "ws", "sinkhorn", "sinkhorn_gap",
         "sinkhorn_iterations", "sinkhorn_converged", "sinkhorn_marginal_error",
         "valid_cells", "invalid_cells", "n_particles", "n_test", "ws_valid",
         "beta_ws_valid", "particles_never_valid",
     }  # fmt: skip
-    assert out["invalid_cells"] == 2 and out["valid_cells"] == 52
-    assert (out["n_particles"], out["n_test"]) == (9, 6)
+    assert out.invalid_cells == 2 and out.valid_cells == 52
+    assert (out.n_particles, out.n_test) == (9, 6)
     masked = score.copy()
     masked[5, 2] = np.inf
-    assert out["ws"] == wasserstein(masked).value
-    assert out["beta_ws"] == beta_wasserstein(masked, 0.15).value
-    assert out["min"] == min_distance(masked)
-    assert out["sinkhorn_gap"] == pytest.approx(out["sinkhorn"] - out["ws"], abs=0)
-    assert out["min"] <= out["beta_ws"] <= out["ws"] <= out["sinkhorn"]
-    assert (out["ws_valid"], out["beta_ws_valid"]) == (out["ws"], out["beta_ws"])
-    assert out["particles_never_valid"] == 0
-    assert out["sinkhorn_converged"] and out["sinkhorn_iterations"] > 0
-    assert out["sinkhorn_marginal_error"] < 1e-9
-    for key, value in out.items():
+    assert out.ws == wasserstein(masked).value
+    assert out.beta_ws == beta_wasserstein(masked, 0.15).value
+    assert out.min == min_distance(masked)
+    assert out.sinkhorn_gap == pytest.approx(out.sinkhorn - out.ws, abs=0)
+    assert out.min <= out.beta_ws <= out.ws <= out.sinkhorn
+    assert (out.ws_valid, out.beta_ws_valid) == (out.ws, out.beta_ws)
+    assert out.particles_never_valid == 0
+    assert out.sinkhorn_converged and out.sinkhorn_iterations > 0
+    assert out.sinkhorn_marginal_error < 1e-9
+    for key, value in out.to_json().items():
         expected = int if key in ("valid_cells", "invalid_cells") else None
         expected = int if key == "particles_never_valid" else expected
         expected = int if key.startswith("n_") else expected
@@ -521,11 +521,13 @@ def test_evaluate_cost_sets_equals_evaluate_costs_per_set():
     )
     for one, out in zip(sets, together, strict=True):
         alone = evaluate_costs(*one, sinkhorn_max_iter=500)
-        assert list(out) == list(alone)
-        for key, value in alone.items():
-            assert out[key] == pytest.approx(value, rel=1e-13, nan_ok=True), key
-    assert together[2]["sinkhorn_iterations"] == 0
-    assert not together[2]["sinkhorn_converged"]
+        assert list(out.to_json()) == list(alone.to_json())
+        for key, value in alone.to_json().items():
+            assert getattr(out, key) == pytest.approx(value, rel=1e-13, nan_ok=True), (
+                key
+            )
+    assert together[2].sinkhorn_iterations == 0
+    assert not together[2].sinkhorn_converged
     assert steps[:3] == [("exact", 1, 3), ("exact", 2, 3), ("exact", 3, 3)]
     assert steps[-1][0] == "sinkhorn" and steps[-1][2] == 3
 
@@ -539,15 +541,15 @@ def test_ws_over_the_particles_valid_somewhere():
     score[4] = np.inf  # every rollout of particle 4 failed
     score[1, 3] = np.inf  # particle 1 failed on one pair only: kept
     out = evaluate_costs(score, e_p, e_v, e_a)
-    assert out["ws"] == math.inf and out["beta_ws"] == math.inf
+    assert out.ws == math.inf and out.beta_ws == math.inf
     kept = np.delete(score, 4, axis=0)
-    assert out["ws_valid"] == pytest.approx(lp_reference(kept, 1.0), abs=TOL)
-    assert out["beta_ws_valid"] == pytest.approx(lp_reference(kept, 0.15), abs=TOL)
-    assert out["particles_never_valid"] == 1
-    assert out["min"] == min_distance(score)  # unchanged: it never needed row 4
+    assert out.ws_valid == pytest.approx(lp_reference(kept, 1.0), abs=TOL)
+    assert out.beta_ws_valid == pytest.approx(lp_reference(kept, 0.15), abs=TOL)
+    assert out.particles_never_valid == 1
+    assert out.min == min_distance(score)  # unchanged: it never needed row 4
     # every particle invalid: nothing left to measure
     none = evaluate_costs(np.full((2, 3), np.inf), *(np.ones((2, 3)),) * 3)
-    assert none["ws_valid"] == math.inf and none["particles_never_valid"] == 2
+    assert none.ws_valid == math.inf and none.particles_never_valid == 2
 
 
 # ---------------------------------------------------------------------------

@@ -3,6 +3,7 @@ checked by hand and against SUMO's own IDM step."""
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 import xml.etree.ElementTree as ET
@@ -20,6 +21,7 @@ from torchcf.sumo.export import (
     MANIFEST_FILE,
     NOT_IN_SUMO,
     VTYPES_FILE,
+    ExportManifest,
     export_hybrid,
     idm_vtype,
     write_export,
@@ -58,15 +60,18 @@ def test_export_lists_what_it_leaves_out(tmp_path):
     posterior = make_posterior({"idm": 3, "hl": 2, "ovm": 1, "mpc": 0})
     export = export_hybrid(posterior, dt=0.1, length=5.0)
     manifest = export.manifest
-    assert manifest["exported"] == {"idm": 3}
-    assert manifest["share"] == pytest.approx(0.5)
-    assert set(manifest["not_exported"]) == {"hl", "ovm"}  # mpc holds no particle
-    assert manifest["not_exported"]["hl"]["particles"] == 2
-    assert manifest["not_exported"]["hl"]["reason"] == NOT_IN_SUMO["hl"]
-    assert manifest["not_exported"]["ovm"]["share"] == pytest.approx(1 / 6)
+    assert manifest.exported == {"idm": 3}
+    assert manifest.share == pytest.approx(0.5)
+    assert set(manifest.not_exported) == {"hl", "ovm"}  # mpc holds no particle
+    assert manifest.not_exported["hl"].particles == 2
+    assert manifest.not_exported["hl"].reason == NOT_IN_SUMO["hl"]
+    assert manifest.not_exported["ovm"].share == pytest.approx(1 / 6)
 
     xml_path, manifest_path = write_export(export, tmp_path)
     assert (xml_path.name, manifest_path.name) == (VTYPES_FILE, MANIFEST_FILE)
+    on_disk = json.loads(manifest_path.read_text())
+    assert on_disk == manifest.to_json() and list(on_disk) == list(manifest.to_json())
+    assert ExportManifest.from_json(on_disk) == manifest
     text = xml_path.read_text()
     assert "NOT exported: hl, 2 particles" in text and "share of 0.500000" in text
     root = ET.parse(xml_path).getroot()

@@ -56,7 +56,7 @@ def test_a_sluggish_follower_collides_and_a_tuned_one_does_not():
     assert float(result.min_spacing[1]) <= 0.0 < float(result.min_spacing[0])
     assert result.started.tolist() == [True, True]
     summary = result.summary()
-    assert summary["collided"] == 0.5 and summary["n_particles"] == 2
+    assert summary.collided == 0.5 and summary.n_particles == 2
 
 
 def test_the_string_ratio_matches_linear_theory():

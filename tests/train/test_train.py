@@ -67,7 +67,7 @@ def mixture() -> PairSet:
 def test_recovers_a_known_mixture(mixture, tmp_path):
     cfg = config(n_particles=30000, chunk_size=8192)
     summary = train(cfg, tmp_path / "run", pairs=(mixture, mixture))
-    shares = summary["shares"]
+    shares = summary.shares
     assert shares["idm"] == pytest.approx(0.6, abs=0.1)
     assert shares["hl"] == pytest.approx(0.4, abs=0.1)
     posterior = Posterior.load(tmp_path / "run" / "posterior.pt")
@@ -115,7 +115,7 @@ def test_result_does_not_depend_on_the_chunk_size(mixture, tmp_path, layout):
         cfg = config(n_particles=1500, chunk_size=chunk, layout=layout)
         out = tmp_path / f"{layout}-{chunk}"
         summary = train(cfg, out, pairs=(mixture, mixture))
-        results.append((summary["shares"], Posterior.load(out / "posterior.pt")))
+        results.append((summary.shares, Posterior.load(out / "posterior.pt")))
     (shares_a, post_a), (shares_b, post_b) = results
     assert shares_a == shares_b
     for name in ("idm", "hl"):
@@ -151,7 +151,7 @@ def test_outputs_and_event_tags(mixture, tmp_path):
 
     cfg = config(n_particles=2000, chunk_size=500, sensitivity_n=[5, 10])
     out = tmp_path / "run"
-    summary = run_study(cfg, out, pairs=(mixture, mixture))
+    result = run_study(cfg, out, pairs=(mixture, mixture))
     on_disk = json.loads((out / "summary.json").read_text())
     metrics = json.loads((out / "metrics.json").read_text())
     for entry in ("idm", "hl", "hybrid"):
@@ -159,7 +159,7 @@ def test_outputs_and_event_tags(mixture, tmp_path):
     for name in ("table.md", "shares.png", "pairwise.png", "radar.png"):
         assert (out / "report" / name).stat().st_size > 0
     assert (out / "report" / "error_evolution.png").exists()
-    assert on_disk["shares"] == summary["shares"]
+    assert on_disk["shares"] == result.summary.shares
     assert set(on_disk["per_model"]["idm"]) >= {
         "best_score",
         "threshold",
@@ -193,7 +193,7 @@ def test_existing_run_is_refused_and_resume_of_a_finished_run_is_idempotent(
     with pytest.raises(RunError, match="already holds a run"):
         train(cfg, out, pairs=(mixture, mixture))
     again = train(cfg, out, resume=True, pairs=(mixture, mixture))
-    assert again["shares"] == first["shares"]
+    assert again.shares == first.shares
     other = config(n_particles=1000, chunk_size=500, seed=2)
     with pytest.raises(RunError, match="different config"):
         train(other, out, resume=True, pairs=(mixture, mixture))

@@ -1,6 +1,6 @@
 """The trainer's typed results and its checkpoint module: RunSummary's JSON round
 trip (``summary.json`` written by a run reads back, key order included), the
-dict-compatible reads callers rely on, and the refusal of a corrupted or
+attribute reads callers rely on, and the refusal of a corrupted or
 mismatched checkpoint."""
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from torchcf.abc.topn import TopN
 from torchcf.config import TrainConfig, config_hash
 from torchcf.runs.directory import RunDir
 from torchcf.study.pipeline import StudyResult, train_and_evaluate
+from torchcf.traffic import PlausibilitySettings, PlausibilitySummary
 from torchcf.train import ModelResult, RunError, RunState, RunSummary, open_run
 from torchcf.train.checkpoint import CHECKPOINT_FORMAT, resume_note
 from torchcf.train.engine import build_buffers
@@ -86,6 +87,23 @@ def _summary(**changes) -> RunSummary:
     return replace(summary, **changes)
 
 
+def _plausibility() -> PlausibilitySummary:
+    return PlausibilitySummary(
+        n_particles=6,
+        collided=0.0,
+        per_scenario={"brake_4": 0.0},
+        string_unstable=0.5,
+        string_untested=0.0,
+        no_equilibrium=0.0,
+        not_started=0.0,
+        min_ttc_median=None,
+        string_ratio_median=1.25,
+        settings=PlausibilitySettings(
+            speed=20.0, decelerations=(4.0,), collision_spacing=0.0, platoon_size=8
+        ),
+    )
+
+
 # ------------------------------------------------------------------ RunSummary
 
 
@@ -101,7 +119,7 @@ def test_a_summary_round_trips_through_json_with_every_optional_part():
         ),
         evidence_shares={"idm": 0.6, "hl": 0.4},
     )
-    plausibility = {"idm": {"collided": 0.0, "settings": {"decelerations": [4.0]}}}
+    plausibility = {"idm": _plausibility()}
     for summary in (
         _summary(),
         _summary(method="smc", smc=smc),
@@ -119,7 +137,7 @@ def test_a_summary_round_trips_through_json_with_every_optional_part():
 
 
 def test_the_json_keys_and_their_order_are_summary_json_s():
-    raw = _summary(plausibility={"idm": {"collided": 0.0}}).to_json()
+    raw = _summary(plausibility={"idm": _plausibility()}).to_json()
     assert list(raw) == [
         "dataset",
         "layout",
@@ -150,23 +168,27 @@ def test_the_json_keys_and_their_order_are_summary_json_s():
     assert "smc" not in raw  # absent, as a rejection run's summary.json has it
 
 
-def test_a_summary_reads_as_its_json_dict():
-    """The compatibility path: callers that read the dict train() returned."""
+def test_a_summary_reads_through_its_attributes():
+    """Callers read the record's attributes; its JSON object is the file's
+    content alone, a fresh copy each time (no mapping behaviour)."""
     summary = _summary()
     raw = summary.to_json()
-    assert summary["shares"] == {"idm": 0.75, "hl": 0.25}
-    assert summary["per_model"]["hl"]["seconds"] == 0.125
-    assert "smc" not in summary and "per_model" in summary
-    assert summary.get("smc") is None and summary.get("top_n") == 3
-    assert list(summary) == list(raw) and dict(summary) == raw
-    assert summary == raw and raw == summary
-    assert summary.as_dict() == raw
+    assert summary.shares == {"idm": 0.75, "hl": 0.25}
+    assert summary.per_model["hl"].seconds == 0.125
+    assert "smc" not in raw and "per_model" in raw
+    assert summary.smc is None and summary.top_n == 3
+    assert list(summary.to_json()) == list(raw) and summary.to_json() == raw
+    assert RunSummary.from_json(raw) == summary
     with pytest.raises(KeyError):
-        summary["smc"]
-    # reads are copies: the record does not change through them
-    summary["shares"]["idm"] = 0.0
-    summary["per_model"]["hl"]["thresholds"].append(9.0)
-    assert summary == raw
+        raw["smc"]
+    with pytest.raises(TypeError):
+        summary["shares"]  # no mapping: the attributes are the way in
+    assert summary != raw
+    # the JSON is a copy: the record does not change through it
+    copy = summary.to_json()
+    copy["shares"]["idm"] = 0.0
+    copy["per_model"]["hl"]["thresholds"].append(9.0)
+    assert summary.to_json() == raw
 
 
 def test_what_is_not_a_summary_is_refused():
@@ -204,9 +226,10 @@ def test_the_summary_json_of_a_run_reads_back(trained):
     assert back == summary and back.per_model == summary.per_model
     assert isinstance(back.per_model["idm"], ModelResult)
     assert back.per_model["idm"].particles == 800
-    # the study result reads as the summary's dict, as run_study's did
-    assert result == on_disk and result["shares"] == summary.shares
-    assert result["per_model"]["hl"]["seconds"] == summary.per_model["hl"].seconds
+    # the study result's summary is the file's content
+    assert result.summary.to_json() == on_disk
+    assert on_disk["shares"] == summary.shares
+    assert on_disk["per_model"]["hl"]["seconds"] == summary.per_model["hl"].seconds
 
 
 def test_a_finished_run_resumed_returns_its_summary(trained):

@@ -65,10 +65,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         out = Path(args.out) if args.out is not None else Path(f"{cfg.output}-cv")
         with no_empty_folder_left(out):
             result = crossval(cfg, out, folds=folds, resume=args.resume)
-        hybrid = result["hybrid"]
+        hybrid = result.entries["hybrid"]
         print(
-            f"{folds}-fold mean, hybrid: WS {hybrid['ws']:.3f}, 0.15-WS "
-            f"{hybrid['beta_ws']:.3f}, min {hybrid['min']:.3f}"
+            f"{folds}-fold mean, hybrid: WS {hybrid.ws:.3f}, 0.15-WS "
+            f"{hybrid.beta_ws:.3f}, min {hybrid.min:.3f}"
         )
         print(f"wrote {out}")
         return 0

@@ -18,9 +18,9 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from ..evaluation.evaluate import evaluate_run
+from ..evaluation.results import Evaluation
 from ..runs.directory import RunDir
 from ..system.console import (
     DefaultsHelpFormatter,
@@ -66,12 +66,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_main(body)
 
 
-def print_metrics(result: dict[str, Any]) -> None:
+def print_metrics(result: Evaluation) -> None:
     """One row per learned set: e_p, minimum distance, 0.15-WS, WS."""
     print(f"{'':8} {'e_p':>8} {'min':>8} {'0.15-WS':>8} {'WS':>8}")
-    for entry, m in result.items():
-        if isinstance(m, dict) and "ws" in m:
-            print(
-                f"{entry:8} {m['e_p']:8.3f} {m['min']:8.3f} "
-                f"{m['beta_ws']:8.3f} {m['ws']:8.3f}"
-            )
+    for entry, s in result.sets.items():
+        m = s.metrics
+        print(f"{entry:8} {m.e_p:8.3f} {m.min:8.3f} {m.beta_ws:8.3f} {m.ws:8.3f}")

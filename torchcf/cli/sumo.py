@@ -112,12 +112,12 @@ def _export(args: argparse.Namespace) -> int:
     xml_path, manifest_path = write_export(export, args.out)
     manifest = export.manifest
     print(
-        f"exported {sum(manifest['exported'].values())} of {manifest['particles']} "
-        f"particles (share {manifest['share']:.4f}): "
-        + ", ".join(f"{k} {v}" for k, v in manifest["exported"].items())
+        f"exported {sum(manifest.exported.values())} of {manifest.particles} "
+        f"particles (share {manifest.share:.4f}): "
+        + ", ".join(f"{k} {v}" for k, v in manifest.exported.items())
     )
-    for name, skipped in manifest["not_exported"].items():
-        print(f"  not exported: {name} {skipped['particles']} ({skipped['reason']})")
+    for name, skipped in manifest.not_exported.items():
+        print(f"  not exported: {name} {skipped.particles} ({skipped.reason})")
     print(f"wrote {xml_path} and {manifest_path.name}")
     print(
         f"run SUMO with --step-length {dt!r} --step-method.ballistic true "
@@ -140,14 +140,16 @@ def _verify(args: argparse.Namespace) -> int:
         workdir=args.keep,
         progress=True,
     )
-    for key, label in (("vtypes", "exported vTypes"), ("cosim", "co-simulation")):
-        part = report.get(key)
+    for part, label in (
+        (report.vtypes, "exported vTypes"),
+        (report.cosim, "co-simulation"),
+    ):
         if part is None:
             continue
         print(
-            f"{label} ({'+'.join(part['models'])}): WS SUMO {part['sumo']['ws']:.6g}"
-            f", torchcf {part['torchcf']['ws']:.6g}; max |x - torchcf| "
-            f"{part['max_position_difference_m']:.3g} m"
+            f"{label} ({'+'.join(part.models)}): WS SUMO {part.sumo.ws:.6g}"
+            f", torchcf {part.torchcf.ws:.6g}; max |x - torchcf| "
+            f"{part.max_position_difference_m:.3g} m"
         )
     out = args.out if args.out is not None else f"{args.run_dir}/sumo"
     print(f"wrote {out}/verify.json and verify.md")

@@ -26,7 +26,7 @@ import argparse
 import json
 import os
 import sys
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +34,7 @@ from ..abc.distributed import SINGLE, Group, init_from_env
 from ..config import TrainConfig, load_config
 from ..posterior.tables import piled_at_bounds
 from ..runs.directory import RunDir
-from ..study.pipeline import run_study
+from ..study.pipeline import StudyResult, run_study
 from ..system.console import (
     DefaultsHelpFormatter,
     OneLineParser,
@@ -43,9 +43,10 @@ from ..system.console import (
     one_line,
     run_main,
 )
+from ..train import RunSummary
 
-#: A command's work on a loaded config: (cfg, out, resume, group) -> the summary.
-Step = Callable[[TrainConfig, Path, bool, Group], Mapping[str, Any]]
+#: A command's work on a loaded config: (cfg, out, resume, group) -> its result.
+Step = Callable[[TrainConfig, Path, bool, Group], StudyResult]
 
 
 def run_parser(prog: str, description: str, epilog: str) -> argparse.ArgumentParser:
@@ -116,9 +117,7 @@ def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
     args = parser.parse_args(argv)
     evaluate = not args.no_eval
 
-    def study(
-        cfg: TrainConfig, out: Path, resume: bool, group: Group
-    ) -> Mapping[str, Any]:
+    def study(cfg: TrainConfig, out: Path, resume: bool, group: Group) -> StudyResult:
         return run_study(cfg, out, resume=resume, evaluate=evaluate, group=group)
 
     if evaluate:
@@ -176,11 +175,13 @@ def run_config(
         out = Path(args.out) if args.out is not None else Path(cfg.output)
         group = init_from_env(cfg.device)
         done = args.resume and group.is_main and finished(RunDir(out))
-        summary = step(cfg, out, args.resume, group)
+        result = step(cfg, out, args.resume, group)
         if group.is_main:
             if done:
                 print(f"{out} is " + finished_note.format(out=out))
-            print_result(summary, RunDir(out), evaluated=evaluated, wrote=not done)
+            print_result(
+                result.summary, RunDir(out), evaluated=evaluated, wrote=not done
+            )
         return 0
 
     try:
@@ -196,19 +197,19 @@ def run_config(
 
 
 def print_result(
-    summary: Mapping[str, Any], run: RunDir, evaluated: bool, wrote: bool = True
+    summary: RunSummary, run: RunDir, evaluated: bool, wrote: bool = True
 ) -> None:
     """The shares, and the hybrid's test metrics when the run was evaluated;
     ``wrote``: this command wrote the run (not so for a finished run resumed)."""
-    width = max(len(name) for name in summary["shares"])
-    print(f"hybrid shares ({summary['dataset']}, N = {summary['top_n']}):")
-    for name, share in summary["shares"].items():
+    width = max(len(name) for name in summary.shares)
+    print(f"hybrid shares ({summary.dataset}, N = {summary.top_n}):")
+    for name, share in summary.shares.items():
         print(f"  {name:<{width}}  {share:6.1%}   ({_counts(summary, name)})")
     if run.posterior_pt.is_file():
         for piled in piled_at_bounds(run.load_posterior()):
             print(f"  at a prior bound: {piled.sentence()} (see parameters.md)")
-    if "smc" in summary:
-        evidence = summary["smc"]["evidence_shares"]
+    if summary.smc is not None:
+        evidence = summary.smc.evidence_shares
         shown = ", ".join(f"{m} {v:.1%}" for m, v in evidence.items() if v >= 0.0005)
         print(f"evidence shares (prior mass within the hybrid's thresholds): {shown}")
     if evaluated and run.is_evaluated():
@@ -223,17 +224,15 @@ def print_result(
         print(f"wrote {run.path}")
 
 
-def _counts(summary: Mapping[str, Any], name: str) -> str:
+def _counts(summary: RunSummary, name: str) -> str:
     """A model's time and its rollouts' fates (SPEC section 2): invalid, and
     rejected early (stopped once they could not enter a buffer), each as a
     share of the rollouts run (cells, in the full layout)."""
-    model = summary["per_model"][name]
-    cells = model["particles"] * (
-        1 if summary["layout"] == "paired" else summary["n_train"]
-    )
-    text = f"{model['seconds']:.1f} s, invalid {model['invalid_rate']:.1%}"
-    if model.get("stopped"):
-        text += f", rejected early {model['stopped'] / max(cells, 1):.0%}"
+    model = summary.per_model[name]
+    cells = model.particles * (1 if summary.layout == "paired" else summary.n_train)
+    text = f"{model.seconds:.1f} s, invalid {model.invalid_rate:.1%}"
+    if model.stopped:
+        text += f", rejected early {model.stopped / max(cells, 1):.0%}"
     return text
 
 

@@ -13,10 +13,10 @@ import hashlib
 import json
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from pydantic import ValidationError
 
+from ..system.files import JSON
 from .messages import ConfigError, describe
 from .overrides import apply_overrides
 from .schema import TrainConfig
@@ -58,7 +58,7 @@ def load_config(path: str | Path, overrides: Sequence[str] = ()) -> TrainConfig:
     return validate_config(raw)
 
 
-def validate_config(raw: dict[str, Any]) -> TrainConfig:
+def validate_config(raw: JSON) -> TrainConfig:
     """Validate a configuration object, every error as one :class:`ConfigError`."""
     try:
         return TrainConfig.model_validate(raw)
@@ -68,7 +68,7 @@ def validate_config(raw: dict[str, Any]) -> TrainConfig:
 
 # Settings that change how a run is executed or reported but not what it learns:
 # left out of the hash so that a run can resume with them changed.
-_NOT_HASHED: dict[str, Any] = {
+_NOT_HASHED: dict[str, bool | set[str]] = {
     "output": True,
     "threads": True,
     "eval": True,
@@ -100,7 +100,7 @@ def config_hash(cfg: TrainConfig) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 
 
-def resolved_json(cfg: TrainConfig) -> dict[str, Any]:
+def resolved_json(cfg: TrainConfig) -> JSON:
     """The configuration as plain JSON data (models as objects), every default
     filled in; :func:`load_config` of it gives ``cfg`` back."""
     return cfg.model_dump(mode="json")

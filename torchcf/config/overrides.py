@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from torchcf.config.messages import ConfigError
+from torchcf.system.files import JSON
 
 __all__ = ["DATA_SOURCES", "apply_overrides"]
 
@@ -16,7 +17,7 @@ __all__ = ["DATA_SOURCES", "apply_overrides"]
 DATA_SOURCES = ("name", "path", "raw")
 
 
-def apply_overrides(raw: dict[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
+def apply_overrides(raw: JSON, overrides: Sequence[str]) -> JSON:
     """Set ``dotted.key=VALUE`` items in a copy of a configuration object.
 
     VALUE is parsed as JSON (``200000``, ``[1, 0, 0]``, ``true``, ``null``), and
@@ -49,7 +50,7 @@ def apply_overrides(raw: dict[str, Any], overrides: Sequence[str]) -> dict[str, 
             value = json.loads(text)
         except json.JSONDecodeError:
             value = text
-        node: dict[str, Any] | list[Any] = out
+        node: JSON | list[Any] = out
         for depth, part in enumerate(parts[:-1]):
             node = _child(node, part, item, ".".join(parts[: depth + 1]))
         if isinstance(node, dict):
@@ -69,8 +70,8 @@ def _is_data_source(parts: list[str]) -> bool:
 
 
 def _child(
-    node: dict[str, Any] | list[Any], part: str, item: str, where: str
-) -> dict[str, Any] | list[Any]:
+    node: JSON | list[Any], part: str, item: str, where: str
+) -> JSON | list[Any]:
     """``node[part]`` for an override, created as ``{}`` when missing."""
     if isinstance(node, dict):
         if node.get(part) is None:

@@ -45,6 +45,7 @@ from torchcf.data.reader import UNITS, unit_factor
 from torchcf.data.registry import DATASETS
 from torchcf.models import EFFECTS, MODELS, CFModel, UnknownModelError, get_model
 from torchcf.models.effects import parse_effect
+from torchcf.system.files import JSON
 
 __all__ = [
     "ABCConfig",
@@ -836,7 +837,7 @@ class DiagnoseConfig(BaseModel):
         return self
 
 
-def _models_schema(schema: dict[str, Any]) -> None:
+def _models_schema(schema: JSON) -> None:
     """JSON schema of ``models``: items are a name or a ModelSpec object."""
     schema["items"] = {
         "anyOf": [

@@ -44,7 +44,7 @@ from collections.abc import Sequence
 from contextlib import nullcontext
 from pathlib import Path
 from time import perf_counter
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 import torch
@@ -68,7 +68,7 @@ from .coverage import (
     scored_steps,
 )
 from .entropic import limit_threads
-from .metrics import evaluate_cost_sets
+from .metrics import SetMetrics, evaluate_cost_sets
 from .plots import (
     calibration_figure,
     error_evolution_figure,
@@ -87,11 +87,20 @@ from .report import (
     plausibility_table,
     shares_interval_table,
 )
+from .results import Evaluation, SetEvaluation
 from .uncertainty import tensorboard_scalars, uncertainty
 
 #: Bytes of trajectories one rollout may hold for the predictive coverage
 #: (:func:`cost_matrices` slices the particles to stay below).
 TRAJECTORY_BYTES = 2**28
+
+
+class RolloutOptions(TypedDict):
+    """The run's rollout settings :func:`cost_matrices` takes as keywords."""
+
+    dtype: torch.dtype
+    device: torch.device | str
+    weights: Sequence[float]
 
 
 class EvaluationError(TorchcfError, RuntimeError):
@@ -213,7 +222,7 @@ def _hybrid_costs(
     rows: np.ndarray,
     costs: dict[str, dict[str, np.ndarray]],
     test: PairSet,
-    kwargs: dict[str, Any],
+    kwargs: RolloutOptions,
     predictive: PredictiveCDF | None = None,
 ) -> dict[str, np.ndarray]:
     """The (h, n_test) cost matrices of a model's hybrid particles ``theta``:
@@ -264,7 +273,7 @@ def evaluate_posterior(
     *,
     progress: bool = True,
     predictive: dict[str, PredictiveCDF] | None = None,
-) -> tuple[dict[str, dict[str, Any]], dict[str, dict[str, np.ndarray]]]:
+) -> tuple[dict[str, SetMetrics], dict[str, dict[str, np.ndarray]]]:
     """Metrics of the hybrid and of every single model on ``test``.
 
     Two stages, each with a progress bar: simulating every set's particles on
@@ -289,7 +298,7 @@ def evaluate_posterior(
         EvaluationError: the hybrid particle set is empty.
     """
     dtype = getattr(torch, cfg.dtype)
-    kwargs = {"dtype": dtype, "device": cfg.device, "weights": cfg.abc.weights}
+    kwargs = RolloutOptions(dtype=dtype, device=cfg.device, weights=cfg.abc.weights)
     singles = {
         name: single_model_particles(posterior, name) for name in posterior.models
     }
@@ -347,7 +356,7 @@ def simulated_metrics(
     cfg: TrainConfig,
     *,
     progress: bool = True,
-) -> dict[str, dict[str, Any]]:
+) -> dict[str, SetMetrics]:
     """:func:`~torchcf.evaluation.metrics.evaluate_costs` of every set, with
     ``cfg.eval``'s beta, Sinkhorn regularisation and iteration cap; all sets'
     Sinkhorn problems are solved in one batched call (they share ``reg``).
@@ -432,7 +441,7 @@ def evaluate_run(
     figure_pair: int | None = None,
     tensorboard: bool = True,
     progress: bool = True,
-) -> dict[str, Any]:
+) -> Evaluation:
     """Evaluate the finished run in ``run_dir``; write metrics.json and the report.
 
     Args:
@@ -445,8 +454,8 @@ def evaluate_run(
         progress: show progress bars on stderr (simulation, metrics, report).
 
     Returns:
-        The metrics (also in ``run_dir/metrics.json``, written last: a run
-        directory with ``metrics.json`` holds its whole report).
+        The evaluation (its ``to_json`` is ``run_dir/metrics.json``, written
+        last: a run directory with ``metrics.json`` holds its whole report).
 
     Raises:
         RunFileError: an unfinished or corrupted run, or an output that cannot be
@@ -471,7 +480,7 @@ def _evaluate_held(
     figure_pair: int | None,
     tensorboard: bool,
     progress: bool,
-) -> dict[str, Any]:
+) -> Evaluation:
     """:func:`evaluate_run` with the run directory held."""
     started = perf_counter()
     cfg, posterior, summary = run.load_run()
@@ -496,23 +505,12 @@ def _evaluate_held(
     entries = [*[m for m in posterior.models if m in metrics], "hybrid"]
     seed = cfg.abc.seed if cfg.eval.seed is None else cfg.eval.seed
     honest = uncertainty(costs, metrics, predictive, posterior, cfg.eval, seed)
-    for entry in entries:
-        metrics[entry].update(honest["per_set"][entry])
-    best = costs["hybrid"]["score"].min(axis=0)  # (n_test,) the hybrid's per pair
-    result = {
-        "dataset": summary["dataset"],
-        "n_test": test.n_pairs,
-        "test_pair_ids": [int(i) for i in test.pair_ids],
-        "beta": cfg.eval.beta,
-        "sinkhorn_reg": cfg.eval.sinkhorn_reg,
-        "sinkhorn_max_iter": cfg.eval.sinkhorn_max_iter,
-        "bootstrap": honest["bootstrap"],
-        "coverage_levels": list(cfg.eval.coverage_levels),
-        **{entry: metrics[entry] for entry in entries},
-        "hybrid_minus": honest["hybrid_minus"],
-        "shares": honest["shares"],
-        "hybrid_min_by_pair": _by_pair(best),
+    sets = {
+        entry: SetEvaluation(metrics[entry], honest.per_set[entry]) for entry in entries
     }
+    # each set's metrics.json keys, the rows of the report's tables and figures
+    rows = {entry: sets[entry].to_json() for entry in entries}
+    best = costs["hybrid"]["score"].min(axis=0)  # (n_test,) the hybrid's per pair
 
     ensure_directory(report, "report directory")
     atomic_write_text(
@@ -521,16 +519,16 @@ def _evaluate_held(
         f"{test.n_pairs} test pairs; single models: each model's own "
         f"{posterior.top_n} best particles per training pair; hybrid: "
         f"{sum(len(p) for p in posterior.hybrid.values())} particles.\n\n"
-        + metrics_table(metrics, entries)
+        + metrics_table(rows, entries)
         + f"\n{METRIC_NOTES}\n"
         + "\n## Uncertainty\n\n"
-        + intervals_table(metrics, entries, honest["bootstrap"])
+        + intervals_table(rows, entries, honest.bootstrap)
         + "\n"
-        + differences_table(honest["hybrid_minus"])
+        + differences_table(honest.hybrid_minus)
         + "\n"
-        + shares_interval_table(honest["shares"], cfg.eval.level)
+        + shares_interval_table(honest.shares, cfg.eval.level)
         + "\n## Predictive coverage\n\n"
-        + coverage_table(metrics, entries, cfg.eval.coverage_levels)
+        + coverage_table(rows, entries, cfg.eval.coverage_levels)
         + "\nCalibration curves: `calibration.png`.\n\n"
         + plausibility_table(summary.get("plausibility", {}))
         + "\nThe calibrated parameters per model: `parameters.md` (one row per "
@@ -550,9 +548,9 @@ def _evaluate_held(
             scores,
             title=f"Hybrid, test pair {pair_id}: position error",
         ),
-        "radar": radar_figure({entry: metrics[entry] for entry in entries}),
+        "radar": radar_figure(rows),
         "calibration": calibration_figure(
-            {entry: metrics[entry]["coverage_curve"] for entry in entries}
+            {entry: rows[entry]["coverage_curve"] for entry in entries}
         ),
     }
     # Training wrote the shares and pairwise PNGs into its report folder; another
@@ -582,19 +580,33 @@ def _evaluate_held(
             ):
                 logger.evaluation(
                     {k: images[k] for k in ("error_evolution", "radar", "calibration")},
-                    {e: metrics[e] for e in entries},
+                    rows,
                 )
                 logger.evaluation({}, tensorboard_scalars(honest))
             bar.update()
-    # the evaluation's own wall time (loading its data included), beside the
-    # training's per-model seconds in summary.json
-    result["seconds"] = round(perf_counter() - started, 3)
-    run.write_metrics(result)
+    result = Evaluation(
+        dataset=summary["dataset"],
+        n_test=test.n_pairs,
+        test_pair_ids=tuple(int(i) for i in test.pair_ids),
+        beta=cfg.eval.beta,
+        sinkhorn_reg=cfg.eval.sinkhorn_reg,
+        sinkhorn_max_iter=cfg.eval.sinkhorn_max_iter,
+        bootstrap=honest.bootstrap,
+        coverage_levels=tuple(cfg.eval.coverage_levels),
+        sets=sets,
+        hybrid_minus=honest.hybrid_minus,
+        shares=honest.shares,
+        hybrid_min_by_pair=_by_pair(best),
+        # the evaluation's own wall time (loading its data included), beside the
+        # training's per-model seconds in summary.json
+        seconds=round(perf_counter() - started, 3),
+    )
+    run.write_metrics(result.to_json())
     return result
 
 
-def _by_pair(best: np.ndarray) -> list[float | None]:
+def _by_pair(best: np.ndarray) -> tuple[float | None, ...]:
     """Per test pair, the hybrid's minimum distance (the best score of its
     particles on that pair; None where none is valid), for paired comparisons
     of two runs on the same test pairs (:mod:`torchcf.diagnose.loop`)."""
-    return [float(v) if math.isfinite(v) else None for v in best.tolist()]
+    return tuple(float(v) if math.isfinite(v) else None for v in best.tolist())

@@ -13,7 +13,7 @@ torch, see :mod:`torchcf.evaluation.entropic`).
 - :func:`min_distance`: ``beta = 0``, the mean over pairs of the best particle's cost;
 - :func:`sinkhorn`: the entropic approximation of WS, with its gap to the exact value
   (:func:`sinkhorn_many`: several cost matrices in one batched solve);
-- :func:`evaluate_costs`: all of the above as one dict of plain numbers
+- :func:`evaluate_costs`: all of the above as one :class:`SetMetrics` record
   (:func:`evaluate_cost_sets`: several learned sets, their Sinkhorn batched).
 
 **Invalid cells.** An invalid rollout scores ``+inf`` (NaN is read the same way). No
@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, fields
 from typing import NamedTuple
 
 import numpy as np
@@ -40,6 +41,7 @@ import ot
 import torch
 from torch import Tensor
 
+from ..system.records import Record
 from .entropic import sinkhorn_log
 
 #: Mass on a forbidden cell above this proves infeasibility (below it is rounding).
@@ -99,6 +101,53 @@ class SinkhornResult(NamedTuple):
     reg: float
     plan: np.ndarray | None
     invalid_cells: int
+
+
+@dataclass(frozen=True)
+class SetMetrics(Record):
+    """Every SPEC section 6 metric of one learned set on one test split
+    (:func:`evaluate_costs`); its JSON object is the set's first keys in
+    ``metrics.json``, in this order.
+
+    Attributes:
+        e_p: mean position RMSE over the valid cells [m] (NaN: none valid).
+        e_v: mean speed RMSE [m/s]; e_a: mean acceleration RMSE [m/s^2].
+        valid_cells: (particle, test pair) cells whose rollout is valid.
+        invalid_cells: the others (excluded from the means, forbidden in the
+            transport metrics).
+        min: the minimum distance.
+        beta_ws: the beta-WS (``inf``: infeasible).
+        ws: the exact WS (``inf``: infeasible).
+        sinkhorn: the entropic plan's transport cost.
+        sinkhorn_gap: ``sinkhorn - ws`` (NaN when infeasible).
+        sinkhorn_iterations: iterations of the Sinkhorn solve (0: WS infeasible).
+        sinkhorn_converged: whether its pair marginals met the tolerance.
+        sinkhorn_marginal_error: the L2 error of its pair marginals.
+        n_particles: particles P; n_test: test pairs N.
+        ws_valid: WS over the particles valid on some test pair.
+        beta_ws_valid: beta-WS over them.
+        particles_never_valid: particles invalid on every test pair (dropped
+            from ``ws_valid`` and ``beta_ws_valid``).
+    """
+
+    e_p: float
+    e_v: float
+    e_a: float
+    valid_cells: int
+    invalid_cells: int
+    min: float
+    beta_ws: float
+    ws: float
+    sinkhorn: float
+    sinkhorn_gap: float
+    sinkhorn_iterations: int
+    sinkhorn_converged: bool
+    sinkhorn_marginal_error: float
+    n_particles: int
+    n_test: int
+    ws_valid: float
+    beta_ws_valid: float
+    particles_never_valid: int
 
 
 # ---------------------------------------------------------------------------
@@ -548,7 +597,7 @@ def evaluate_costs(
     beta: float = 0.15,
     sinkhorn_reg: float = 0.05,
     sinkhorn_max_iter: int = 10_000,
-) -> dict:
+) -> SetMetrics:
     """Every SPEC section 6 metric of one learned set on one test split.
 
     A cell is invalid when its score or any of its errors is not finite (an invalid
@@ -562,17 +611,18 @@ def evaluate_costs(
         sinkhorn_max_iter: Sinkhorn iteration cap (config ``eval.sinkhorn_max_iter``).
 
     Returns:
-        ``{e_p, e_v, e_a, min, beta_ws, ws, sinkhorn, sinkhorn_gap}`` (float;
-        ``inf`` when infeasible, NaN for an undefined mean or gap);
-        ``{valid_cells, invalid_cells, n_particles, n_test}`` (int); the Sinkhorn
-        solve's ``sinkhorn_iterations`` (int, 0 when WS is infeasible),
-        ``sinkhorn_converged`` (bool) and ``sinkhorn_marginal_error`` (float, the
-        L2 error of its pair marginals); and, because one particle invalid on
-        every test pair makes SPEC's WS and beta-WS infinite whatever the rest of
-        the set does, the same two over the particles valid on some test pair,
-        ``ws_valid`` and ``beta_ws_valid`` (equal to ``ws`` and ``beta_ws`` when
-        no particle is dropped; ``inf`` still where a test pair has no valid
-        particle), with ``particles_never_valid`` (int) the number dropped.
+        :class:`SetMetrics`: ``e_p, e_v, e_a, min, beta_ws, ws, sinkhorn,
+        sinkhorn_gap`` (float; ``inf`` when infeasible, NaN for an undefined
+        mean or gap); ``valid_cells, invalid_cells, n_particles, n_test`` (int);
+        the Sinkhorn solve's ``sinkhorn_iterations`` (int, 0 when WS is
+        infeasible), ``sinkhorn_converged`` (bool) and
+        ``sinkhorn_marginal_error`` (float, the L2 error of its pair marginals);
+        and, because one particle invalid on every test pair makes SPEC's WS and
+        beta-WS infinite whatever the rest of the set does, the same two over
+        the particles valid on some test pair, ``ws_valid`` and
+        ``beta_ws_valid`` (equal to ``ws`` and ``beta_ws`` when no particle is
+        dropped; ``inf`` still where a test pair has no valid particle), with
+        ``particles_never_valid`` (int) the number dropped.
     """
     return evaluate_cost_sets(
         [(score, e_p, e_v, e_a)],
@@ -589,7 +639,7 @@ def evaluate_cost_sets(
     sinkhorn_max_iter: int = 10_000,
     *,
     callback: Callable[[str, int, int], None] | None = None,
-) -> list[dict]:
+) -> list[SetMetrics]:
     """:func:`evaluate_costs` of several learned sets (``(score, e_p, e_v, e_a)``
     each, any shapes), their Sinkhorn solved in one batched call.
 
@@ -603,7 +653,7 @@ def evaluate_cost_sets(
             done)`` at every Sinkhorn stopping test.
 
     Returns:
-        one :func:`evaluate_costs` dict per set, in order.
+        one :func:`evaluate_costs` record per set, in order.
     """
     beta = _check_beta(beta)
     sinkhorn_reg = _check_reg(sinkhorn_reg)
@@ -631,16 +681,8 @@ def evaluate_cost_sets(
         )
         if out["particles_never_valid"] == 0:
             out["ws_valid"] = out["ws"]
-    return [{key: out[key] for key in _METRIC_KEYS} for out in outs]
-
-
-#: The keys of :func:`evaluate_costs`, in the order metrics.json lists them.
-_METRIC_KEYS = (
-    "e_p", "e_v", "e_a", "valid_cells", "invalid_cells", "min", "beta_ws", "ws",
-    "sinkhorn", "sinkhorn_gap", "sinkhorn_iterations", "sinkhorn_converged",
-    "sinkhorn_marginal_error", "n_particles", "n_test", "ws_valid",
-    "beta_ws_valid", "particles_never_valid",
-)  # fmt: skip
+    keys = [f.name for f in fields(SetMetrics)]
+    return [SetMetrics(**{key: out[key] for key in keys}) for out in outs]
 
 
 def _exact_metrics(
@@ -687,6 +729,7 @@ def _exact_metrics(
 __all__ = [
     "EMD_MAX_ITER",
     "FORBIDDEN_MASS_TOL",
+    "SetMetrics",
     "SinkhornResult",
     "TransportResult",
     "average_errors",

@@ -10,6 +10,8 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 
+from .results import BootstrapSettings, Difference, ShareInterval
+
 __all__ = [
     "INTERVAL_COLUMNS",
     "METRIC_COLUMNS",
@@ -324,16 +326,16 @@ def _interval_rows(
 def intervals_table(
     metrics: Mapping[str, Mapping[str, float]],
     order: Sequence[str],
-    bootstrap: Mapping[str, object],
+    bootstrap: BootstrapSettings,
     *,
     digits: int = 3,
 ) -> str:
     """Markdown table of the distances with their bootstrap interval over test
     pairs (``<key>_low``, ``<key>_high`` of each entry), one row per entry."""
     lines = [
-        f"Each cell: value [{float(bootstrap['level']):.0%} percentile bootstrap "
-        f"interval over test pairs; {bootstrap['resamples']} resamples, WS and "
-        f"0.15-WS {bootstrap['resamples_transport']}, seed {bootstrap['seed']}].",
+        f"Each cell: value [{float(bootstrap.level):.0%} percentile bootstrap "
+        f"interval over test pairs; {bootstrap.resamples} resamples, WS and "
+        f"0.15-WS {bootstrap.resamples_transport}, seed {bootstrap.seed}].",
         "",
         "| Model | " + " | ".join(label for _, label in INTERVAL_COLUMNS) + " |",
         "|---" * (len(INTERVAL_COLUMNS) + 1) + "|",
@@ -342,7 +344,7 @@ def intervals_table(
 
 
 def differences_table(
-    hybrid_minus: Mapping[str, Mapping[str, Mapping[str, object]]],
+    hybrid_minus: Mapping[str, Mapping[str, Difference]],
     *,
     digits: int = 3,
 ) -> str:
@@ -363,8 +365,8 @@ def differences_table(
             if d is None:
                 cells.append(_MISSING)
                 continue
-            cell = _interval_cell(d["value"], d["low"], d["high"], digits)
-            cells.append(cell + (" †" if d["excludes_zero"] else ""))
+            cell = _interval_cell(d.value, d.low, d.high, digits)
+            cells.append(cell + (" †" if d.excludes_zero else ""))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -397,7 +399,7 @@ def coverage_table(
 
 
 def shares_interval_table(
-    shares: Mapping[str, Mapping[str, float]], level: float, *, digits: int = 3
+    shares: Mapping[str, ShareInterval], level: float, *, digits: int = 3
 ) -> str:
     """Markdown table of the hybrid's shares with their bootstrap interval over
     training pairs."""
@@ -411,6 +413,6 @@ def shares_interval_table(
     for model, s in shares.items():
         lines.append(
             f"| {_display_name(model)} | "
-            f"{_interval_cell(s['share'], s['low'], s['high'], digits)} |"
+            f"{_interval_cell(s.share, s.low, s.high, digits)} |"
         )
     return "\n".join(lines) + "\n"

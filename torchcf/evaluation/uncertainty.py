@@ -2,7 +2,8 @@
 
 Assembles, from what :func:`torchcf.evaluation.evaluate.evaluate_posterior` already
 simulated (no second rollout), the numbers metrics.json, the report and
-TensorBoard carry:
+TensorBoard carry (an :class:`~torchcf.evaluation.results.Uncertainty`; here by
+their keys in metrics.json):
 
 - per learned set (a model or ``"hybrid"``), flat keys added to its metrics:
   ``<metric>_low, <metric>_high`` for ``min, beta_ws, ws``: the percentile
@@ -25,7 +26,6 @@ TensorBoard carry:
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
 
 import numpy as np
 
@@ -35,6 +35,7 @@ from ..posterior.tables import ALL, Bootstrap, grouped_shares
 from .bootstrap import (
     METRICS,
     TRANSPORT,
+    Interval,
     cost_with_invalid,
     intervals,
     metric_draws,
@@ -43,6 +44,15 @@ from .bootstrap import (
     resample_counts,
 )
 from .coverage import VARIABLES, PredictiveCDF, coverage_fractions
+from .metrics import SetMetrics
+from .results import (
+    BootstrapSettings,
+    CoverageCurve,
+    Difference,
+    SetUncertainty,
+    ShareInterval,
+    Uncertainty,
+)
 
 #: Streams of the run's seed, one per kind of resample.
 TEST_STREAM, TRAIN_STREAM = "test pairs", "training pairs"
@@ -56,12 +66,12 @@ def level_key(variable: str, level: float) -> str:
 
 def uncertainty(
     costs: Mapping[str, Mapping[str, np.ndarray]],
-    metrics: Mapping[str, Mapping[str, Any]],
+    metrics: Mapping[str, SetMetrics],
     predictive: Mapping[str, PredictiveCDF],
     posterior: Posterior,
     settings: EvalConfig,
     seed: int,
-) -> dict[str, Any]:
+) -> Uncertainty:
     """The coverage and bootstrap numbers of an evaluation (module docstring).
 
     Args:
@@ -77,7 +87,8 @@ def uncertainty(
             when it is not set).
 
     Returns:
-        ``{"per_set": {set: flat keys}, "hybrid_minus", "shares", "bootstrap"}``.
+        per set its intervals and coverage, the hybrid minus each model, the
+        shares with their intervals, and the bootstrap's settings.
     """
     beta, n_bootstrap, level = settings.beta, settings.bootstrap, settings.level
     n_transport = settings.bootstrap_transport
@@ -87,63 +98,67 @@ def uncertainty(
     counts = resample_counts(n_test, n_bootstrap, seed, TEST_STREAM)  # (n_bootstrap, N)
     n_transport = min(n_transport, n_bootstrap)
     all_levels = sorted({*coverage_levels, *coverage_curve})
+    values = {name: {k: getattr(metrics[name], k) for k in METRICS} for name in names}
     draws: dict[str, dict[str, np.ndarray]] = {}
-    per_set: dict[str, dict[str, Any]] = {}
+    per_set: dict[str, SetUncertainty] = {}
     for name in names:
         c = costs[name]
         cost = cost_with_invalid(c["score"], c["e_p"], c["e_v"], c["e_a"])
         draws[name] = metric_draws(cost, counts, beta, n_transport)
-        row: dict[str, Any] = {}
-        for key, interval in intervals(
-            {k: metrics[name][k] for k in METRICS}, draws[name], level
-        ).items():
-            row[f"{key}_low"], row[f"{key}_high"] = interval.low, interval.high
-        if name in predictive:
-            row.update(_coverage_keys(predictive[name], all_levels, coverage_levels,
-                                      coverage_curve, counts, level))  # fmt: skip
-        per_set[name] = row
+        bounds = intervals(values[name], draws[name], level)
+        per_set[name] = (
+            _with_coverage(
+                bounds,
+                predictive[name],
+                all_levels,
+                coverage_levels,
+                coverage_curve,
+                counts,
+                level,
+            )  # fmt: skip
+            if name in predictive
+            else SetUncertainty(bounds)
+        )
     others = [n for n in names if n != HYBRID]
     differences = (
-        paired_differences(metrics, draws, HYBRID, others, level)
+        paired_differences(values, draws, HYBRID, others, level)
         if HYBRID in names
         else {}
     )
     hybrid_minus = {
-        other: {
-            key: {**interval._asdict(), "excludes_zero": interval.excludes_zero()}
-            for key, interval in row.items()
-        }
+        other: {key: Difference.of(interval) for key, interval in row.items()}
         for other, row in differences.items()
     }
-    return {
-        "per_set": per_set,
-        "hybrid_minus": hybrid_minus,
-        "shares": _shares(posterior, n_bootstrap, level, seed),
-        "bootstrap": {
-            "unit": "test pair",
-            "resamples": int(n_bootstrap),
-            "resamples_transport": int(n_transport),
-            "transport_metrics": list(TRANSPORT),
-            "level": float(level),
-            "seed": int(seed),
-            "method": "percentile",
-        },
-    }
+    return Uncertainty(
+        per_set=per_set,
+        hybrid_minus=hybrid_minus,
+        shares=_shares(posterior, n_bootstrap, level, seed),
+        bootstrap=BootstrapSettings(
+            unit="test pair",
+            resamples=int(n_bootstrap),
+            resamples_transport=int(n_transport),
+            transport_metrics=TRANSPORT,
+            level=float(level),
+            seed=int(seed),
+            method="percentile",
+        ),
+    )
 
 
-def _coverage_keys(
+def _with_coverage(
+    bounds: dict[str, Interval],
     cdf: PredictiveCDF,
     all_levels: Sequence[float],
     headline: Sequence[float],
     curve: Sequence[float],
     counts: np.ndarray,
     level: float,
-) -> dict[str, Any]:
-    """One set's coverage keys (module docstring)."""
+) -> SetUncertainty:
+    """One set's intervals ``bounds`` with its coverage (module docstring)."""
     cov = cdf.counts(all_levels)
     fractions = cov.fractions()  # (2, levels)
     column = {q: k for k, q in enumerate(cov.levels.tolist())}
-    out: dict[str, Any] = {}
+    bands: dict[str, Interval] = {}
     heads = [column[q] for q in headline]
     resampled = coverage_fractions(
         cov.inside[:, heads], cov.points, counts
@@ -151,24 +166,27 @@ def _coverage_keys(
     low, high = percentile_interval(resampled, level)  # (2, headline)
     for v, variable in enumerate(VARIABLES):
         for h, q in enumerate(headline):
-            key = level_key(variable, q)
-            out[key] = float(fractions[v, column[q]])
-            out[f"{key}_low"], out[f"{key}_high"] = float(low[v, h]), float(high[v, h])
-    out["coverage_points"] = int(cov.points.sum())
-    out["coverage_pairs_without_draws"] = cov.pairs_without_draws
-    out["coverage_curve"] = {
-        "levels": [float(q) for q in curve],
-        **{
-            variable: [float(fractions[v, column[q]]) for q in curve]
-            for v, variable in enumerate(VARIABLES)
-        },
-    }
-    return out
+            bands[level_key(variable, q)] = Interval(
+                float(fractions[v, column[q]]), float(low[v, h]), float(high[v, h])
+            )
+    return SetUncertainty(
+        intervals=bounds,
+        coverage=bands,
+        coverage_points=int(cov.points.sum()),
+        coverage_pairs_without_draws=cov.pairs_without_draws,
+        coverage_curve=CoverageCurve(
+            levels=tuple(float(q) for q in curve),
+            **{
+                variable: tuple(float(fractions[v, column[q]]) for q in curve)
+                for v, variable in enumerate(VARIABLES)
+            },
+        ),
+    )
 
 
 def _shares(
     posterior: Posterior, n_bootstrap: int, level: float, seed: int
-) -> dict[str, dict[str, float]]:
+) -> dict[str, ShareInterval]:
     """The hybrid's shares with their bootstrap interval over training pairs."""
     n_train = len(posterior.train_pair_ids)
     result = grouped_shares(
@@ -179,29 +197,27 @@ def _shares(
     )
     row = result.rows[0]  # every training pair
     return {
-        model: {"share": row.share[m], "low": row.low[m], "high": row.high[m]}
+        model: ShareInterval(share=row.share[m], low=row.low[m], high=row.high[m])
         for m, model in enumerate(result.models)
     }
 
 
-def tensorboard_scalars(result: Mapping[str, Any]) -> dict[str, dict[str, float]]:
+def tensorboard_scalars(result: Uncertainty) -> dict[str, dict[str, float]]:
     """``{model: {key: value}}`` for
     :meth:`torchcf.runs.tensorboard.RunLogger.evaluation` (tags
     ``eval/<key>/<model>``): the hybrid's differences as
     ``hybrid_minus_<metric>[_low|_high]`` and the shares as ``share[_low|_high]``;
     the per-set keys travel with the set's metrics."""
     out: dict[str, dict[str, float]] = {}
-    for model, row in result["hybrid_minus"].items():
+    for model, row in result.hybrid_minus.items():
         for key, d in row.items():
             entry = out.setdefault(model, {})
-            entry[f"hybrid_minus_{key}"] = d["value"]
-            entry[f"hybrid_minus_{key}_low"] = d["low"]
-            entry[f"hybrid_minus_{key}_high"] = d["high"]
-    for model, s in result["shares"].items():
+            entry[f"hybrid_minus_{key}"] = d.value
+            entry[f"hybrid_minus_{key}_low"] = d.low
+            entry[f"hybrid_minus_{key}_high"] = d.high
+    for model, s in result.shares.items():
         entry = out.setdefault(model, {})
-        entry["share"], entry["share_low"], entry["share_high"] = (
-            s["share"], s["low"], s["high"],
-        )  # fmt: skip
+        entry["share"], entry["share_low"], entry["share_high"] = s.share, s.low, s.high
     return out
 
 

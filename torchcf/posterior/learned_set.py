@@ -26,11 +26,15 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import Any
 
 from torch import Tensor
 
-from ..system.files import RunFileError, atomic_torch_save, read_torch
+from ..system.files import (
+    RunFileError,
+    TorchPayload,
+    atomic_torch_save,
+    read_torch,
+)
 
 FORMAT = "torchcf.posterior/1"
 
@@ -60,9 +64,10 @@ class Posterior:
     shares: dict[str, float]
     train_pair_ids: Tensor
     hybrid: dict[str, ModelParticles]
-    buffers: dict[str, dict[str, Any]]
+    buffers: dict[str, dict[str, Tensor]]
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> TorchPayload:
+        """The content of ``posterior.pt``."""
         return {
             "format": FORMAT,
             "dataset": self.dataset,
@@ -114,7 +119,7 @@ class Posterior:
             ) from None
 
     @classmethod
-    def _from_dict(cls, raw: dict[str, Any]) -> Posterior:
+    def _from_dict(cls, raw: TorchPayload) -> Posterior:
         hybrid = {}
         for name, p in raw["hybrid"].items():
             particles = ModelParticles(

@@ -56,7 +56,9 @@ from ..config import (
 )
 from ..posterior import Posterior
 from ..system.files import (
+    JSON,
     RunFileError,
+    TorchPayload,
     atomic_torch_save,
     atomic_write_text,
     ensure_directory,
@@ -95,7 +97,7 @@ SUMMARY_KEYS = ("dataset", "pairwise")
 RETIRED_KEYS = {"diagnose": ("recalibrate_particles", "recalibrate_method")}
 
 
-def _without_retired(raw: dict[str, Any]) -> dict[str, Any]:
+def _without_retired(raw: JSON) -> JSON:
     """A run's ``config.json`` object without :data:`RETIRED_KEYS`."""
     out = dict(raw)
     for section, keys in RETIRED_KEYS.items():
@@ -318,7 +320,7 @@ class RunDir:
         return self.loop_json.exists()
 
     # ----------------------------------------------------------------- config
-    def write_config(self, cfg: TrainConfig | dict[str, Any]) -> None:
+    def write_config(self, cfg: TrainConfig | JSON) -> None:
         """``config.json``: the resolved configuration (a TrainConfig, or its
         :func:`~torchcf.config.resolved_json` object)."""
         raw = resolved_json(cfg) if isinstance(cfg, TrainConfig) else cfg
@@ -337,7 +339,7 @@ class RunDir:
         except ConfigError as error:
             raise ConfigError(f"{self.config_json}: {error}") from None
 
-    def read_config_json(self) -> dict[str, Any]:
+    def read_config_json(self) -> JSON:
         """``config.json`` as a JSON object, not validated.
 
         Raises:
@@ -347,11 +349,11 @@ class RunDir:
         return read_json_object(self.config_json)
 
     # ------------------------------------------------------------- checkpoint
-    def save_checkpoint(self, obj: dict[str, Any]) -> None:
+    def save_checkpoint(self, obj: TorchPayload) -> None:
         """``checkpoint.pt`` (a full disk keeps the previous one intact)."""
         atomic_torch_save(obj, self.checkpoint)
 
-    def load_checkpoint(self) -> dict[str, Any]:
+    def load_checkpoint(self) -> TorchPayload:
         """The checkpoint as saved (its format is the trainer's to check).
 
         Raises:
@@ -382,12 +384,13 @@ class RunDir:
         return Posterior.load(self.posterior_pt)
 
     # ---------------------------------------------------------------- summary
-    def write_summary(self, summary: dict[str, Any]) -> None:
-        """``summary.json``, the last file of training."""
+    def write_summary(self, summary: JSON) -> None:
+        """``summary.json``, the last file of training (a summary's ``to_json``)."""
         write_json(self.summary_json, summary)
 
-    def read_summary(self) -> dict[str, Any]:
-        """The training summary.
+    def read_summary(self) -> JSON:
+        """The training summary, as the file holds it (a training's
+        :class:`~torchcf.train.summary.RunSummary`, or a re-calibration's).
 
         Raises:
             RunFileError: missing (the run is not trained), unreadable,
@@ -402,12 +405,14 @@ class RunDir:
         return summary
 
     # ---------------------------------------------------------------- metrics
-    def write_metrics(self, metrics: dict[str, Any]) -> None:
-        """``metrics.json``, the last file of the evaluation."""
+    def write_metrics(self, metrics: JSON) -> None:
+        """``metrics.json``, the last file of the evaluation (an evaluation's
+        ``to_json``, or a cross-validation's)."""
         write_json(self.metrics_json, metrics)
 
-    def read_metrics(self) -> dict[str, Any]:
-        """The evaluation's metrics.
+    def read_metrics(self) -> JSON:
+        """The evaluation's metrics, as the file holds them
+        (:meth:`torchcf.evaluation.results.Evaluation.from_json` reads them).
 
         Raises:
             RunFileError: missing (not evaluated), unreadable, truncated, not an
@@ -433,13 +438,13 @@ class RunDir:
         remove_file(self.metrics_json)
 
     # ------------------------------------------------------------------- loop
-    def write_loop(self, result: dict[str, Any], markdown: str) -> None:
+    def write_loop(self, result: JSON, markdown: str) -> None:
         """``loop.md``, then ``loop.json`` last: its presence says the loop
         finished."""
         atomic_write_text(self.loop_md, markdown)
         write_json(self.loop_json, result)
 
-    def read_loop(self) -> dict[str, Any]:
+    def read_loop(self) -> JSON:
         """The diagnosis loop's result.
 
         Raises:
@@ -452,7 +457,7 @@ class RunDir:
         return read_json_object(self.loop_json)
 
     # --------------------------------------------------------------- the run
-    def load_run(self) -> tuple[TrainConfig, Posterior, dict[str, Any]]:
+    def load_run(self) -> tuple[TrainConfig, Posterior, JSON]:
         """The configuration, posterior and summary of a finished run.
 
         ``config.json`` must be the configuration the run was trained with:

@@ -38,7 +38,7 @@ import threading
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from torch import Tensor
@@ -51,6 +51,16 @@ if TYPE_CHECKING:
 __all__ = ["RunLogger", "markdown_summary"]
 
 HParamValue = float | int | str | bool
+
+
+class BatteryShares(Protocol):
+    """What :meth:`RunLogger.plausibility` reads of one model's battery record
+    (:class:`torchcf.traffic.battery.PlausibilitySummary`): shares in [0, 1]."""
+
+    collided: float
+    string_unstable: float
+    no_equilibrium: float
+    not_started: float
 
 
 def _quiet_writer_threads() -> None:
@@ -247,7 +257,7 @@ class RunLogger:
                     self._writer.add_scalar(f"eval/{key}/{entry}", float(value))
 
     @_reports_write_errors
-    def plausibility(self, per_model: Mapping[str, Mapping[str, Any]]) -> None:
+    def plausibility(self, per_model: Mapping[str, BatteryShares]) -> None:
         """The hybrid's plausibility battery: per model, the shares of particles
         that collided, are string-unstable and have no equilibrium, as scalars
         ``plausibility/<share>/<model>``."""
@@ -255,7 +265,8 @@ class RunLogger:
             return
         for model, row in per_model.items():
             for key in ("collided", "string_unstable", "no_equilibrium", "not_started"):
-                self._writer.add_scalar(f"plausibility/{key}/{model}", float(row[key]))
+                value = float(getattr(row, key))
+                self._writer.add_scalar(f"plausibility/{key}/{model}", value)
 
     @_reports_write_errors
     def text(self, tag: str, markdown: str) -> None:

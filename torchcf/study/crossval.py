@@ -14,7 +14,8 @@ checkpoint). The layout is :mod:`torchcf.runs.directory`'s.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -22,10 +23,72 @@ from ..config import TrainConfig
 from ..evaluation.report import metrics_table
 from ..runs.directory import RunDir
 from ..system.errors import first_names
-from ..system.files import RunFileError, atomic_write_text, ensure_directory
+from ..system.files import JSON, RunFileError, atomic_write_text, ensure_directory
+from ..system.records import Record
 from .pipeline import run_study
 
 METRIC_KEYS = ("e_p", "e_v", "e_a", "min", "beta_ws", "ws", "sinkhorn")
+
+
+@dataclass(frozen=True)
+class FoldMeans(Record):
+    """One learned set's metrics averaged over the folds (an entry of the
+    cross-validation's ``metrics.json``): per metric of :data:`METRIC_KEYS`
+    its mean (non-finite if any fold's is, or the entry is missing from a fold)
+    and ``<metric>_folds_finite``, the folds whose value was finite."""
+
+    e_p: float
+    e_p_folds_finite: int
+    e_v: float
+    e_v_folds_finite: int
+    e_a: float
+    e_a_folds_finite: int
+    min: float
+    min_folds_finite: int
+    beta_ws: float
+    beta_ws_folds_finite: int
+    ws: float
+    ws_folds_finite: int
+    sinkhorn: float
+    sinkhorn_folds_finite: int
+
+
+@dataclass(frozen=True)
+class CrossvalResult:
+    """A cross-validation's result: the content of ``OUT/metrics.json``.
+
+    Attributes:
+        folds: the folds averaged.
+        entries: learned set (the models, then ``"hybrid"``) -> its means
+            (each a top-level key of the file, after ``folds``).
+    """
+
+    folds: int
+    entries: dict[str, FoldMeans]
+
+    def to_json(self) -> JSON:
+        """The content of ``OUT/metrics.json``, key order included."""
+        return {
+            "folds": self.folds,
+            **{name: means.to_json() for name, means in self.entries.items()},
+        }
+
+    @classmethod
+    def from_json(cls, raw: Mapping[str, Any]) -> CrossvalResult:
+        """The result of ``OUT/metrics.json``'s content (as written: non-finite
+        means as floats).
+
+        Raises:
+            KeyError, ValueError: a key is missing or unknown.
+        """
+        return cls(
+            folds=raw["folds"],
+            entries={
+                name: FoldMeans.from_json(value)
+                for name, value in raw.items()
+                if name != "folds"
+            },
+        )
 
 
 def fold_config(cfg: TrainConfig, folds: int, fold: int) -> TrainConfig:
@@ -34,8 +97,11 @@ def fold_config(cfg: TrainConfig, folds: int, fold: int) -> TrainConfig:
     return cfg.model_copy(update={"data": data})
 
 
-def aggregate(fold_metrics: Sequence[dict[str, Any]]) -> dict[str, Any]:
+def aggregate(fold_metrics: Sequence[JSON]) -> CrossvalResult:
     """Mean over folds of every metric of every entry (models and "hybrid").
+
+    Args:
+        fold_metrics: each fold's ``metrics.json`` content, as read.
 
     An entry missing from a fold, or a non-finite value in any fold, makes that
     mean non-finite (reported, never dropped); ``folds_finite`` counts the folds
@@ -46,16 +112,16 @@ def aggregate(fold_metrics: Sequence[dict[str, Any]]) -> dict[str, Any]:
     entries = [
         k for k, v in fold_metrics[0].items() if isinstance(v, dict) and "ws" in v
     ]
-    result: dict[str, Any] = {"folds": len(fold_metrics)}
+    result = {}
     for entry in entries:
-        means: dict[str, Any] = {}
+        means: dict[str, float | int] = {}
         for key in METRIC_KEYS:
             values = [_number(m.get(entry, {}).get(key)) for m in fold_metrics]
             finite = [v for v in values if math.isfinite(v)]
             means[key] = sum(values) / len(values)
             means[f"{key}_folds_finite"] = len(finite)
-        result[entry] = means
-    return result
+        result[entry] = FoldMeans(**means)
+    return CrossvalResult(folds=len(fold_metrics), entries=result)
 
 
 def _number(value: Any) -> float:
@@ -97,8 +163,9 @@ def _check_folder(out: RunDir, resume: bool) -> None:
 
 def crossval(
     cfg: TrainConfig, out: str | Path | RunDir, *, folds: int, resume: bool = False
-) -> dict[str, Any]:
-    """Run every fold and aggregate; returns the aggregated metrics.
+) -> CrossvalResult:
+    """Run every fold and aggregate; returns the aggregated metrics (also in
+    ``OUT/metrics.json``).
 
     Raises:
         RunFileError: a fold's files cannot be read (a corrupted metrics.json),
@@ -119,13 +186,14 @@ def crossval(
             )
         fold_metrics.append(fold_dir.read_metrics())
     result = aggregate(fold_metrics)
-    entries = [k for k, v in result.items() if isinstance(v, dict)]
+    rows = {name: means.to_json() for name, means in result.entries.items()}
     report = ensure_directory(out.report_dir, "report directory")
     atomic_write_text(
         report / "table.md",
         f"# {folds}-fold cross-validation (mean over folds)\n\n"
-        + metrics_table({e: result[e] for e in entries}, entries)
+        + metrics_table(rows, list(rows))
         + "\n",
     )
-    out.write_metrics(result)  # last: its presence says the cross-validation ended
+    # last: its presence says the cross-validation ended
+    out.write_metrics(result.to_json())
     return result

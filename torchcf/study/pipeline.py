@@ -13,15 +13,13 @@ checked) and handed to every stage.
 
 :func:`train_and_evaluate` and :func:`run_study` return a :class:`StudyResult`:
 the training summary (:class:`~torchcf.train.summary.RunSummary`) and what the
-call did (evaluated, closed the loop). Compatibility: a :class:`StudyResult` also
-reads as the training summary's dict, which these functions returned before
-(``result["shares"]``, ``"smc" in result``, ``result == run.read_summary()``);
-new code reads ``result.summary.shares``.
+call did (evaluated, closed the loop); callers read its attributes
+(``result.summary.shares``, ``result.summary.smc``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -39,8 +37,8 @@ from ..train import RunSummary, check_budget, open_run, run_device, train
 from ..train.engine import plausibility_screen
 
 
-@dataclass(frozen=True, eq=False)
-class StudyResult(Mapping[str, Any]):
+@dataclass(frozen=True)
+class StudyResult:
     """What a study of a config left in its run directory.
 
     Attributes:
@@ -50,43 +48,12 @@ class StudyResult(Mapping[str, Any]):
             finished run resumed is not evaluated again).
         loop: the loop's result (``loop.json``) when this call closed the loop
             (rank 0, ``diagnose.run_after_training``), else None.
-
-    As a :class:`~collections.abc.Mapping` it is the training summary's JSON
-    content (``result["shares"]``, ``result.get("smc")``), and it equals a
-    mapping of that content: the compatibility path for callers of the dict
-    these functions returned before.
     """
 
     run: Path
     summary: RunSummary
     evaluated: bool = False
     loop: LoopResult | None = None
-
-    def __getitem__(self, key: str) -> Any:
-        """The training summary's JSON value of ``key``."""
-        return self.summary[key]
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self.summary)
-
-    def __len__(self) -> int:
-        return len(self.summary)
-
-    def __eq__(self, other: object) -> bool:
-        """Equal to a result of the same fields, or to a mapping equal to the
-        training summary."""
-        if isinstance(other, StudyResult):
-            return (self.run, self.summary, self.evaluated, self.loop) == (
-                other.run,
-                other.summary,
-                other.evaluated,
-                other.loop,
-            )
-        if isinstance(other, Mapping):
-            return self.summary == other
-        return NotImplemented
-
-    __hash__ = None  # type: ignore[assignment]  (holds dicts)
 
 
 def _checked_pairs(
@@ -133,8 +100,7 @@ def train_and_evaluate(
 
     Returns:
         the training summary (``summary.json``) and whether this call evaluated
-        the run, on every rank (:class:`StudyResult`, which also reads as the
-        summary's dict).
+        the run, on every rank (:class:`StudyResult`).
     """
     out = Path(out)
     with _held(out, group):
@@ -163,8 +129,7 @@ def run_study(
 
     Returns:
         the training summary, whether this call evaluated the run and the loop's
-        result if it closed the loop (:class:`StudyResult`, which also reads as
-        the summary's dict), on every rank.
+        result if it closed the loop (:class:`StudyResult`), on every rank.
     """
     out = Path(out)
     with _held(out, group):

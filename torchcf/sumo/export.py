@@ -73,6 +73,8 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
 from xml.sax.saxutils import quoteattr
@@ -84,6 +86,7 @@ from ..data import DATASETS
 from ..models import get_model
 from ..posterior import Posterior
 from ..system.files import atomic_write_text, ensure_directory, write_json
+from ..system.records import Record
 from .backend import SumoError
 
 #: The ``vTypeDistribution`` id of an export.
@@ -144,19 +147,89 @@ def idm_vtype(
 MAPPINGS = {"idm": idm_vtype}
 
 
+@dataclass(frozen=True)
+class NotExported(Record):
+    """A model of the hybrid SUMO does not have: its particles, their share of
+    the hybrid and why (``export.json``'s ``not_exported[model]``)."""
+
+    particles: int
+    share: float
+    reason: str
+
+
+@dataclass(frozen=True)
+class VTypeOrigin(Record):
+    """Where a vType comes from: the model, its row among the model's hybrid
+    particles and the training pair it was kept for (``vtypes[id]``)."""
+
+    model: str
+    row: int
+    pair_id: int
+
+
+@dataclass(frozen=True)
+class ExportManifest(Record):
+    """What an export carries: the content of ``export.json``.
+
+    Attributes:
+        format: ``"torchcf.sumo.export/1"``.
+        dataset: the run's data set.
+        distribution: the ``vTypeDistribution``'s id.
+        file: the additional file's name.
+        particles: the hybrid's particles, all models.
+        exported: model -> its particles exported.
+        not_exported: model -> its particles left out, and why.
+        share: the fraction of the hybrid's particles exported.
+        step_length: SUMO's ``--step-length`` [s] (the data's dt).
+        step_method: ``"ballistic"``.
+        length: the vehicles' length [m].
+        emergency_decel: SUMO's hardest braking [m/s^2].
+        vtypes: vType id -> where it comes from.
+    """
+
+    format: str
+    dataset: str
+    distribution: str
+    file: str
+    particles: int
+    exported: dict[str, int]
+    not_exported: dict[str, NotExported]
+    share: float
+    step_length: float
+    step_method: str
+    length: float
+    emergency_decel: float
+    vtypes: dict[str, VTypeOrigin]
+
+    @classmethod
+    def from_json(cls, raw: Mapping[str, Any]) -> ExportManifest:
+        """The manifest of ``export.json``'s content."""
+        return cls(
+            **{
+                **raw,
+                "exported": dict(raw["exported"]),
+                "not_exported": {
+                    name: NotExported.from_json(s)
+                    for name, s in raw["not_exported"].items()
+                },
+                "vtypes": {
+                    key: VTypeOrigin.from_json(v) for key, v in raw["vtypes"].items()
+                },
+            }
+        )
+
+
 class Export(NamedTuple):
     """An export: the additional file's text and its manifest.
 
     Attributes:
         xml: the SUMO additional file (a ``vTypeDistribution``).
-        manifest: what it carries (``export.json``): ``exported`` (model ->
-            particles), ``not_exported`` (model -> particles, reason), ``share``
-            (the fraction of the hybrid's particles exported), ``vtypes``
-            (vType id -> model, row, pair id), the settings.
+        manifest: what it carries (``export.json``): the models exported and
+            left out, the share exported, each vType's origin, the settings.
     """
 
     xml: str
-    manifest: dict[str, Any]
+    manifest: ExportManifest
 
 
 def _value(value: float | str) -> str:
@@ -193,8 +266,8 @@ def export_hybrid(
     if total == 0:
         raise SumoError("the hybrid holds no particle")
     exported: dict[str, int] = {}
-    skipped: dict[str, dict[str, Any]] = {}
-    vtypes: dict[str, dict[str, Any]] = {}
+    skipped: dict[str, NotExported] = {}
+    vtypes: dict[str, VTypeOrigin] = {}
     lines = []
     for name in posterior.models:
         particles = posterior.hybrid[name]
@@ -202,11 +275,11 @@ def export_hybrid(
             continue
         mapping = MAPPINGS.get(get_model(name).name)
         if mapping is None:
-            skipped[name] = {
-                "particles": len(particles),
-                "share": len(particles) / total,
-                "reason": NOT_IN_SUMO.get(name, "no SUMO car-following model"),
-            }
+            skipped[name] = NotExported(
+                particles=len(particles),
+                share=len(particles) / total,
+                reason=NOT_IN_SUMO.get(name, "no SUMO car-following model"),
+            )
             continue
         exported[name] = len(particles)
         for row in range(len(particles)):
@@ -222,7 +295,7 @@ def export_hybrid(
                 "probability": 1.0 / total,
             }
             pair_id = int(particles.pair_ids[row])
-            vtypes[vtype_id] = {"model": name, "row": row, "pair_id": pair_id}
+            vtypes[vtype_id] = VTypeOrigin(model=name, row=row, pair_id=pair_id)
             body = " ".join(
                 f"{k}={quoteattr(_value(v))}" for k, v in attributes.items()
             )
@@ -233,7 +306,7 @@ def export_hybrid(
             )
             lines.append("        </vType>")
     if not exported:
-        listed = ", ".join(f"{n} ({s['particles']})" for n, s in skipped.items())
+        listed = ", ".join(f"{n} ({s.particles})" for n, s in skipped.items())
         raise SumoError(
             f"no particle of a model SUMO has (IDM) in the hybrid; it holds {listed}"
         )
@@ -248,8 +321,8 @@ def export_hybrid(
             for name, count in exported.items()
         ),
         *(
-            f"     NOT exported: {name}, {s['particles']} particles "
-            f"(share {s['share']:.6f}): {s['reason']}"
+            f"     NOT exported: {name}, {s.particles} particles "
+            f"(share {s.share:.6f}): {s.reason}"
             for name, s in skipped.items()
         ),
         "     Each vType's probability is its mass 1/P in the whole hybrid; SUMO",
@@ -262,21 +335,21 @@ def export_hybrid(
         f'    <vTypeDistribution id="{DISTRIBUTION_ID}">',
     ]
     xml = "\n".join([*header, *lines, "    </vTypeDistribution>", "</additional>", ""])
-    manifest = {
-        "format": "torchcf.sumo.export/1",
-        "dataset": posterior.dataset,
-        "distribution": DISTRIBUTION_ID,
-        "file": VTYPES_FILE,
-        "particles": total,
-        "exported": exported,
-        "not_exported": skipped,
-        "share": share,
-        "step_length": float(dt),
-        "step_method": "ballistic",
-        "length": float(length),
-        "emergency_decel": float(emergency_decel),
-        "vtypes": vtypes,
-    }
+    manifest = ExportManifest(
+        format="torchcf.sumo.export/1",
+        dataset=posterior.dataset,
+        distribution=DISTRIBUTION_ID,
+        file=VTYPES_FILE,
+        particles=total,
+        exported=exported,
+        not_exported=skipped,
+        share=share,
+        step_length=float(dt),
+        step_method="ballistic",
+        length=float(length),
+        emergency_decel=float(emergency_decel),
+        vtypes=vtypes,
+    )
     return Export(xml, manifest)
 
 
@@ -303,7 +376,7 @@ def write_export(export: Export, out_dir: str | os.PathLike[str]) -> tuple[Path,
     ensure_directory(out, "export directory")
     xml_path, manifest_path = out / VTYPES_FILE, out / MANIFEST_FILE
     atomic_write_text(xml_path, export.xml)
-    write_json(manifest_path, export.manifest)
+    write_json(manifest_path, export.manifest.to_json())
     return xml_path, manifest_path
 
 
@@ -316,6 +389,9 @@ __all__ = [
     "TOP_SPEED",
     "VTYPES_FILE",
     "Export",
+    "ExportManifest",
+    "NotExported",
+    "VTypeOrigin",
     "export_hybrid",
     "idm_vtype",
     "run_constants",

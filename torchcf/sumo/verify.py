@@ -32,7 +32,8 @@ The test split's pairs are replayed in SUMO and scored with torchcf's own metric
 SUMO runs with ``--step-method.ballistic true`` at the data's ``dt``. Scores follow
 SPEC section 4 (RMSE over the valid steps; a non-finite value or a spacing
 ``x_l - x <= 0`` makes the cell invalid), the set's metrics SPEC section 6
-(:func:`torchcf.evaluation.metrics.evaluate_costs`).
+(:func:`torchcf.evaluation.metrics.evaluate_costs`). :func:`verify_run` returns a
+:class:`VerifyReport` (its ``to_json`` is ``verify.json``).
 """
 
 from __future__ import annotations
@@ -42,8 +43,9 @@ import sys
 import tempfile
 from collections.abc import Sequence
 from contextlib import nullcontext
+from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -51,17 +53,19 @@ from tqdm import tqdm
 
 from ..config import load_split
 from ..data import PairSet
-from ..evaluation.metrics import evaluate_costs
+from ..evaluation.metrics import SetMetrics, evaluate_costs
 from ..models import get_model
 from ..runs.directory import RunDir
-from ..sim.rollout import DEFAULT_WEIGHTS, simulate
+from ..sim.rollout import DEFAULT_WEIGHTS, SimOutput, simulate
 from ..system.console import bar_interval
 from ..system.files import (
+    JSON,
     atomic_write_text,
     ensure_directory,
     read_json_object,
     write_json,
 )
+from ..system.records import to_json_value
 from ..traffic import HybridSampler, SafetyLayer
 from . import backend
 from .backend import SumoError
@@ -287,7 +291,117 @@ def score_cells(
     return out
 
 
-def _metrics(costs: dict[str, Tensor], n_test: int, beta: float) -> dict[str, Any]:
+@dataclass(frozen=True)
+class CosimCheck:
+    """(b) Every model co-simulated in SUMO against torchcf's rollout of the same
+    particles (``verify.json``'s ``cosim``).
+
+    Attributes:
+        models: the models co-simulated.
+        max_position_difference_m: the largest |x - torchcf| over the valid
+            steps [m].
+        max_speed_difference_m_s: the same of the speeds [m/s].
+        sumo: SUMO's trajectories' metrics; torchcf: torchcf's.
+        collisions: SUMO's colliding vehicles, summed over the steps.
+        emergency_stops: SUMO's emergency-braking vehicles, summed.
+    """
+
+    models: tuple[str, ...]
+    max_position_difference_m: float
+    max_speed_difference_m_s: float
+    sumo: SetMetrics
+    torchcf: SetMetrics
+    collisions: int
+    emergency_stops: int
+
+    def to_json(self) -> JSON:
+        """The ``cosim`` object, in the file's order."""
+        return _fields_json(self)
+
+
+#: The JSON key of :attr:`VTypesCheck.cells_within_tolerance`.
+_WITHIN = "cells_within_1e-6_m"
+
+
+@dataclass(frozen=True)
+class VTypesCheck:
+    """(a) The exported vTypes replayed in SUMO against torchcf's rollout
+    (``verify.json``'s ``vtypes``).
+
+    Attributes:
+        models: the models exported (those SUMO has).
+        max_position_difference_m: the largest |x - torchcf| [m].
+        cells: the (particle, test pair) cells replayed.
+        cells_within_tolerance: cells within 1e-6 m of torchcf's rollout
+            (``cells_within_1e-6_m`` in the file).
+        cells_above_v0: cells whose follower drives above its ``v0``, where
+            SUMO brakes at ``decel`` towards it.
+        max_position_difference_at_or_below_v0_m: the largest difference over
+            the other cells [m] (NaN: none).
+        sumo: SUMO's trajectories' metrics; torchcf: torchcf's.
+        collisions: SUMO's colliding vehicles, summed over the steps.
+        emergency_stops: SUMO's emergency-braking vehicles, summed.
+    """
+
+    models: tuple[str, ...]
+    max_position_difference_m: float
+    cells: int
+    cells_within_tolerance: int
+    cells_above_v0: int
+    max_position_difference_at_or_below_v0_m: float
+    sumo: SetMetrics
+    torchcf: SetMetrics
+    collisions: int
+    emergency_stops: int
+
+    def to_json(self) -> JSON:
+        """The ``vtypes`` object, in the file's order and keys."""
+        return {
+            (_WITHIN if key == "cells_within_tolerance" else key): value
+            for key, value in _fields_json(self).items()
+        }
+
+
+@dataclass(frozen=True)
+class VerifyReport:
+    """A SUMO verification of a run: the content of ``verify.json``.
+
+    Attributes:
+        run: the run directory.
+        dataset: its data set.
+        n_test: test pairs replayed; dt: their step [s].
+        particles: model -> its hybrid particles replayed.
+        torchcf_metrics_json: the hybrid's ``ws, min, e_p, e_v, e_a`` of the
+            run's own evaluation (its ``metrics.json`` as read; None: not
+            evaluated).
+        vtypes: the exported vTypes' check (None: no model SUMO has; absent
+            from the file then).
+        cosim: the co-simulation's check.
+    """
+
+    run: str
+    dataset: str
+    n_test: int
+    dt: float
+    particles: dict[str, int]
+    torchcf_metrics_json: JSON | None
+    vtypes: VTypesCheck | None
+    cosim: CosimCheck
+
+    def to_json(self) -> JSON:
+        """The content of ``verify.json``, key order included."""
+        out = _fields_json(self)
+        if self.vtypes is None:
+            del out["vtypes"]
+        return out
+
+
+def _fields_json(record: object) -> JSON:
+    """A dataclass's fields as JSON, in order."""
+    return {f.name: to_json_value(getattr(record, f.name)) for f in fields(record)}
+
+
+def _metrics(costs: dict[str, Tensor], n_test: int, beta: float) -> SetMetrics:
     shaped = [
         costs[k].reshape(-1, n_test).numpy() for k in ("score", "e_p", "e_v", "e_a")
     ]
@@ -310,7 +424,7 @@ def verify_run(
     test: PairSet | None = None,
     workdir: str | Path | None = None,
     progress: bool = False,
-) -> dict[str, Any]:
+) -> VerifyReport:
     """Replay a trained run's test split in SUMO and score it beside torchcf.
 
     Args:
@@ -324,7 +438,7 @@ def verify_run(
         progress: say each stage on stderr and show a bar over SUMO's steps.
 
     Returns:
-        the report (also in ``verify.json``).
+        the report (its ``to_json`` is ``verify.json``).
 
     Raises:
         RunFileError, ConfigError, DataError: the run or its data.
@@ -345,7 +459,7 @@ def _verify_held(
     test: PairSet | None,
     workdir: str | Path | None,
     progress: bool,
-) -> dict[str, Any]:
+) -> VerifyReport:
     """:func:`verify_run` with the run directory held."""
 
     def say(text: str) -> None:
@@ -380,14 +494,8 @@ def _verify_held(
         )
         for n in names
     }
-    report: dict[str, Any] = {
-        "run": str(run.path),
-        "dataset": posterior.dataset,
-        "n_test": n_test,
-        "dt": test.dt,
-        "particles": {n: int(theta[n].shape[0]) for n in names},
-        "torchcf_metrics_json": _recorded_ws(run),
-    }
+    recorded = _recorded_ws(run)
+    vtypes = None
     scratch = (
         tempfile.TemporaryDirectory(prefix="torchcf-sumo-") if workdir is None else None
     )
@@ -426,22 +534,22 @@ def _verify_held(
                 [_above_desired(own[n], theta[n], mask_all) for n in exported]
             )  # (C,)
             differences = _cell_differences(run_a.x, reference, mask)  # (C,)
-            report["vtypes"] = {
-                "models": exported,
-                "max_position_difference_m": _max_difference(run_a.x, reference, mask),
-                "cells": len(pairs_a),
-                "cells_within_1e-6_m": int((differences <= 1e-6).sum()),
-                "cells_above_v0": int(above.sum()),
-                "max_position_difference_at_or_below_v0_m": float(
+            vtypes = VTypesCheck(
+                models=tuple(exported),
+                max_position_difference_m=_max_difference(run_a.x, reference, mask),
+                cells=len(pairs_a),
+                cells_within_tolerance=int((differences <= 1e-6).sum()),
+                cells_above_v0=int(above.sum()),
+                max_position_difference_at_or_below_v0_m=float(
                     differences[~above].max()
                 )
                 if bool((~above).any())
                 else math.nan,
-                "sumo": _metrics(scored, n_test, beta),
-                "torchcf": _metrics(ref_costs, n_test, beta),
-                "collisions": run_a.collisions,
-                "emergency_stops": run_a.emergency_stops,
-            }
+                sumo=_metrics(scored, n_test, beta),
+                torchcf=_metrics(ref_costs, n_test, beta),
+                collisions=run_a.collisions,
+                emergency_stops=run_a.emergency_stops,
+            )
         # (b) co-simulation of every model.
         folder = base / "cosim"
         folder.mkdir(parents=True, exist_ok=True)
@@ -467,23 +575,33 @@ def _verify_held(
         scored = score_cells(run_b.x, run_b.v, run_b.a, test, pairs_b, weights)
         reference = torch.cat([own[n].x.reshape(test.n_steps, -1) for n in names], 1)
         mask = mask_all[:, torch.tensor(pairs_b)]
-        report["cosim"] = {
-            "models": names,
-            "max_position_difference_m": _max_difference(run_b.x, reference, mask),
-            "max_speed_difference_m_s": _max_difference(
+        cosim = CosimCheck(
+            models=tuple(names),
+            max_position_difference_m=_max_difference(run_b.x, reference, mask),
+            max_speed_difference_m_s=_max_difference(
                 run_b.v,
                 torch.cat([own[n].v.reshape(test.n_steps, -1) for n in names], 1),
                 mask,
             ),
-            "sumo": _metrics(scored, n_test, beta),
-            "torchcf": _metrics(_own_costs(own, names), n_test, beta),
-            "collisions": run_b.collisions,
-            "emergency_stops": run_b.emergency_stops,
-        }
+            sumo=_metrics(scored, n_test, beta),
+            torchcf=_metrics(_own_costs(own, names), n_test, beta),
+            collisions=run_b.collisions,
+            emergency_stops=run_b.emergency_stops,
+        )
     finally:
         if scratch is not None:
             scratch.cleanup()
-    write_json(out / "verify.json", report)
+    report = VerifyReport(
+        run=str(run.path),
+        dataset=posterior.dataset,
+        n_test=n_test,
+        dt=test.dt,
+        particles={n: int(theta[n].shape[0]) for n in names},
+        torchcf_metrics_json=recorded,
+        vtypes=vtypes,
+        cosim=cosim,
+    )
+    write_json(out / "verify.json", report.to_json())
     atomic_write_text(out / "verify.md", report_markdown(report))
     return report
 
@@ -495,7 +613,7 @@ def _cell_differences(x: Tensor, reference: Tensor, mask: Tensor) -> Tensor:
     return torch.where(torch.isnan(gap), math.inf, gap).amax(0)
 
 
-def _above_desired(sim: Any, theta: Tensor, mask: Tensor) -> Tensor:
+def _above_desired(sim: SimOutput, theta: Tensor, mask: Tensor) -> Tensor:
     """``(P n_test,)`` cells whose rollout (``(T, P, N)``) drives above the
     IDM particle's desired speed ``v0`` at a valid step."""
     v0 = theta[:, get_model("idm").param_names.index("v0")]  # (P,)
@@ -503,7 +621,7 @@ def _above_desired(sim: Any, theta: Tensor, mask: Tensor) -> Tensor:
     return above.any(0).reshape(-1)
 
 
-def _own_costs(own: dict[str, Any], names: Sequence[str]) -> dict[str, Tensor]:
+def _own_costs(own: dict[str, SimOutput], names: Sequence[str]) -> dict[str, Tensor]:
     """torchcf's (P, n_test) costs of these models, stacked, flattened like the
     cells (particle-major)."""
     return {
@@ -512,8 +630,9 @@ def _own_costs(own: dict[str, Any], names: Sequence[str]) -> dict[str, Tensor]:
     }
 
 
-def _recorded_ws(run: RunDir) -> dict[str, Any] | None:
-    """The hybrid's WS of the run's own evaluation (``metrics.json``), if any."""
+def _recorded_ws(run: RunDir) -> JSON | None:
+    """The hybrid's WS of the run's own evaluation (``metrics.json``, read as
+    JSON: any release's), if any."""
     path = run.path / "metrics.json"
     if not path.is_file():
         return None
@@ -521,7 +640,7 @@ def _recorded_ws(run: RunDir) -> dict[str, Any] | None:
     return {k: hybrid.get(k) for k in ("ws", "min", "e_p", "e_v", "e_a")}
 
 
-def _fmt(value: Any) -> str:
+def _fmt(value: object) -> str:
     if value is None:
         return "-"
     if isinstance(value, float):
@@ -531,50 +650,51 @@ def _fmt(value: Any) -> str:
     return str(value)
 
 
-def report_markdown(report: dict[str, Any]) -> str:
+def report_markdown(report: VerifyReport) -> str:
     """``verify.md``: SUMO's figures beside torchcf's on the same particles."""
     lines = [
-        f"# SUMO verification: {report['dataset']}",
+        f"# SUMO verification: {report.dataset}",
         "",
-        f"Run `{report['run']}`; {report['n_test']} test pairs, dt {report['dt']} s; "
+        f"Run `{report.run}`; {report.n_test} test pairs, dt {report.dt} s; "
         "particles per model: "
-        + ", ".join(f"{k} {v}" for k, v in report["particles"].items())
+        + ", ".join(f"{k} {v}" for k, v in report.particles.items())
         + ".",
         "",
         "| particles | simulator | WS | min | e_p [m] | e_v [m/s] | e_a [m/s^2] "
         "| invalid cells | max \\|x - torchcf\\| [m] | collisions | emergency stops |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for key, label in (("vtypes", "exported vTypes"), ("cosim", "co-simulation")):
-        part = report.get(key)
+    checks: tuple[tuple[VTypesCheck | CosimCheck | None, str], ...] = (
+        (report.vtypes, "exported vTypes"),
+        (report.cosim, "co-simulation"),
+    )
+    for part, label in checks:
         if part is None:
             continue
-        who = "+".join(part["models"])
+        who = "+".join(part.models)
         for side, name in (("torchcf", "torchcf rollout"), ("sumo", f"SUMO {label}")):
-            m = part[side]
-            diff = part["max_position_difference_m"] if side == "sumo" else None
+            m = part.sumo if side == "sumo" else part.torchcf
+            diff = part.max_position_difference_m if side == "sumo" else None
             counters = (
-                (part["collisions"], part["emergency_stops"])
-                if side == "sumo"
-                else ("", "")
+                (part.collisions, part.emergency_stops) if side == "sumo" else ("", "")
             )
             lines.append(
-                f"| {who} | {name} | {_fmt(m['ws'])} | {_fmt(m['min'])} | "
-                f"{_fmt(m['e_p'])} | {_fmt(m['e_v'])} | {_fmt(m['e_a'])} | "
-                f"{m['invalid_cells']} | {_fmt(diff)} | {counters[0]} | {counters[1]} |"
+                f"| {who} | {name} | {_fmt(m.ws)} | {_fmt(m.min)} | "
+                f"{_fmt(m.e_p)} | {_fmt(m.e_v)} | {_fmt(m.e_a)} | "
+                f"{m.invalid_cells} | {_fmt(diff)} | {counters[0]} | {counters[1]} |"
             )
-    vtypes = report.get("vtypes")
+    vtypes = report.vtypes
     if vtypes is not None:
         lines += [
             "",
-            f"Exported vTypes: {vtypes['cells_within_1e-6_m']} of {vtypes['cells']} "
+            f"Exported vTypes: {vtypes.cells_within_tolerance} of {vtypes.cells} "
             "cells within 1e-6 m of torchcf's rollout; the largest difference over "
             "the cells whose follower stays at or below its v0 is "
-            f"{_fmt(vtypes['max_position_difference_at_or_below_v0_m'])} m; "
-            f"{vtypes['cells_above_v0']} cells drive above v0, where SUMO brakes at "
+            f"{_fmt(vtypes.max_position_difference_at_or_below_v0_m)} m; "
+            f"{vtypes.cells_above_v0} cells drive above v0, where SUMO brakes at "
             "decel towards it (`torchcf/sumo/export.py`).",
         ]
-    recorded = report.get("torchcf_metrics_json")
+    recorded = report.torchcf_metrics_json
     if recorded:
         lines += [
             "",
@@ -596,7 +716,10 @@ def report_markdown(report: dict[str, Any]) -> str:
 __all__ = [
     "COSIM_TYPE",
     "LEADER_TYPE",
+    "CosimCheck",
     "Replay",
+    "VTypesCheck",
+    "VerifyReport",
     "replay",
     "report_markdown",
     "score_cells",

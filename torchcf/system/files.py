@@ -29,6 +29,13 @@ import torch
 from .errors import TorchcfError
 
 StrPath = str | os.PathLike[str]
+#: A JSON object as a file holds it: what :func:`read_json_object` reads and
+#: :func:`write_json` writes (results travel as typed records and become this
+#: only at the file's edge, by their ``to_json``).
+JSON = dict[str, Any]
+#: A dict as :func:`atomic_torch_save` writes it and :func:`read_torch` reads it
+#: back (tensors and plain data: a checkpoint, a posterior file, a state dict).
+TorchPayload = dict[str, Any]
 
 
 class RunFileError(TorchcfError, ValueError):
@@ -210,7 +217,7 @@ def _discard(path: Path) -> None:
 
 
 # ------------------------------------------------------------------ reading
-def read_json_object(path: StrPath) -> dict[str, Any]:
+def read_json_object(path: StrPath) -> JSON:
     """The JSON object in ``path``.
 
     Raises:
@@ -307,7 +314,9 @@ def _one_line(error: BaseException) -> str:
 
 
 __all__ = [
+    "JSON",
     "RunFileError",
+    "TorchPayload",
     "atomic_torch_save",
     "atomic_write_text",
     "ensure_directory",

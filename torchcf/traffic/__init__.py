@@ -13,7 +13,14 @@
 Re-exports only.
 """
 
-from .battery import Battery, Plausibility, battery_speed, check_plausibility
+from .battery import (
+    Battery,
+    Plausibility,
+    PlausibilitySettings,
+    PlausibilitySummary,
+    battery_speed,
+    check_plausibility,
+)
 from .safety import DEFAULT_SAFETY, SafetyLayer, interventions_per_model
 from .sampler import HybridSampler
 from .scenarios import (
@@ -31,6 +38,8 @@ __all__ = [
     "Battery",
     "HybridSampler",
     "Plausibility",
+    "PlausibilitySettings",
+    "PlausibilitySummary",
     "RingStart",
     "RingState",
     "SafetyLayer",

@@ -50,13 +50,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
 from ..models import CFModel, FollowerState, get_model
+from ..system.records import Record
 from .sampler import HybridSampler
 from .scenarios import platoon
 
@@ -131,6 +132,73 @@ class Battery:
         return [*brakes, "stop_and_go", "cut_in", "standstill"]
 
 
+@dataclass(frozen=True)
+class PlausibilitySettings(Record):
+    """The battery's settings a summary records (``settings``): cruise speed
+    [m/s], the braking leader's decelerations [m/s^2], the collision spacing
+    [m] and the platoon's vehicles."""
+
+    speed: float
+    decelerations: tuple[float, ...]
+    collision_spacing: float
+    platoon_size: int
+
+
+@dataclass(frozen=True)
+class PlausibilitySummary(Record):
+    """A model's particles through the battery, as shares over them
+    (:meth:`Plausibility.summary`; ``summary.json``'s ``plausibility[model]``).
+
+    Attributes:
+        n_particles: the particles P.
+        collided: share that collided in some scenario (``string`` excluded).
+        per_scenario: scenario name -> share that collided there.
+        string_unstable: share whose platoon amplifies a disturbance.
+        string_untested: share without a string-stability ratio.
+        no_equilibrium: share without an equilibrium at some speed of the grid.
+        not_started: share that did not pull away from standstill.
+        min_ttc_median: median least time to collision [s] over the particles
+            that closed in (None: none did).
+        string_ratio_median: median string-stability ratio (None: none).
+        settings: the battery's settings.
+    """
+
+    n_particles: int
+    collided: float
+    per_scenario: dict[str, float]
+    string_unstable: float
+    string_untested: float
+    no_equilibrium: float
+    not_started: float
+    min_ttc_median: float | None
+    string_ratio_median: float | None
+    settings: PlausibilitySettings
+
+    @classmethod
+    def from_json(cls, raw: Mapping[str, Any]) -> PlausibilitySummary:
+        """The record of a ``plausibility[model]`` object.
+
+        Raises:
+            KeyError: a key is missing.
+            ValueError: an unknown key.
+        """
+        unknown = [key for key in raw if key not in {f.name for f in fields(cls)}]
+        if unknown:
+            raise ValueError(f"PlausibilitySummary: unknown key(s) {unknown}")
+        return cls(
+            n_particles=raw["n_particles"],
+            collided=raw["collided"],
+            per_scenario=dict(raw["per_scenario"]),
+            string_unstable=raw["string_unstable"],
+            string_untested=raw["string_untested"],
+            no_equilibrium=raw["no_equilibrium"],
+            not_started=raw["not_started"],
+            min_ttc_median=raw["min_ttc_median"],
+            string_ratio_median=raw["string_ratio_median"],
+            settings=PlausibilitySettings.from_json(raw["settings"]),
+        )
+
+
 @dataclass
 class Plausibility:
     """A model's particles through the battery; every tensor is ``(P,)``.
@@ -169,8 +237,8 @@ class Plausibility:
         platoon from, or the platoon collided)."""
         return torch.isnan(self.string_ratio)
 
-    def summary(self) -> dict[str, Any]:
-        """JSON-able shares over the particles (fractions in [0, 1])."""
+    def summary(self) -> PlausibilitySummary:
+        """The shares over the particles (fractions in [0, 1])."""
         n = max(self.n_particles, 1)
 
         def share(flags: Tensor) -> float:
@@ -178,25 +246,23 @@ class Plausibility:
 
         finite_ttc = self.min_ttc[torch.isfinite(self.min_ttc)]
         ratio = self.string_ratio[torch.isfinite(self.string_ratio)]
-        return {
-            "n_particles": self.n_particles,
-            "collided": share(self.collided),
-            "per_scenario": {k: share(v) for k, v in self.scenario_collided.items()},
-            "string_unstable": share(self.string_unstable()),
-            "string_untested": share(self.string_untested()),
-            "no_equilibrium": share(~self.equilibrium),
-            "not_started": share(~self.started),
-            "min_ttc_median": float(finite_ttc.median())
-            if finite_ttc.numel()
-            else None,
-            "string_ratio_median": float(ratio.median()) if ratio.numel() else None,
-            "settings": {
-                "speed": self.settings.speed,
-                "decelerations": list(self.settings.decelerations),
-                "collision_spacing": self.settings.collision_spacing,
-                "platoon_size": self.settings.platoon_size,
-            },
-        }
+        return PlausibilitySummary(
+            n_particles=self.n_particles,
+            collided=share(self.collided),
+            per_scenario={k: share(v) for k, v in self.scenario_collided.items()},
+            string_unstable=share(self.string_unstable()),
+            string_untested=share(self.string_untested()),
+            no_equilibrium=share(~self.equilibrium),
+            not_started=share(~self.started),
+            min_ttc_median=float(finite_ttc.median()) if finite_ttc.numel() else None,
+            string_ratio_median=float(ratio.median()) if ratio.numel() else None,
+            settings=PlausibilitySettings(
+                speed=self.settings.speed,
+                decelerations=tuple(self.settings.decelerations),
+                collision_spacing=self.settings.collision_spacing,
+                platoon_size=self.settings.platoon_size,
+            ),
+        )
 
 
 def battery_speed(v_lead: Tensor, mask: Tensor | None = None) -> float:
@@ -297,15 +363,16 @@ def check_plausibility(
             battery,
         )
     return Plausibility(
-        collided=torch.cat([p["collided"] for p in parts]),
+        collided=torch.cat([p.collided for p in parts]),
         scenario_collided={
-            k: torch.cat([p["scenario"][k] for p in parts]) for k in battery.scenarios
+            k: torch.cat([p.scenario_collided[k] for p in parts])
+            for k in battery.scenarios
         },
-        min_ttc=torch.cat([p["min_ttc"] for p in parts]),
-        min_spacing=torch.cat([p["min_spacing"] for p in parts]),
-        string_ratio=torch.cat([p["string_ratio"] for p in parts]),
-        equilibrium=torch.cat([p["equilibrium"] for p in parts]),
-        started=torch.cat([p["started"] for p in parts]),
+        min_ttc=torch.cat([p.min_ttc for p in parts]),
+        min_spacing=torch.cat([p.min_spacing for p in parts]),
+        string_ratio=torch.cat([p.string_ratio for p in parts]),
+        equilibrium=torch.cat([p.equilibrium for p in parts]),
+        started=torch.cat([p.started for p in parts]),
         settings=battery,
     )
 
@@ -459,7 +526,8 @@ def _collides_chunk(model: CFModel, theta: Tensor, battery: Battery) -> Tensor:
     return collided.cpu()
 
 
-def _chunk(model: CFModel, theta: Tensor, battery: Battery) -> dict[str, Any]:
+def _chunk(model: CFModel, theta: Tensor, battery: Battery) -> Plausibility:
+    """One chunk of particles through the battery."""
     speed = battery.speed
     single = _sampler(model, theta, battery, 1)
     gap, has_gap = equilibrium_gap(single, speed)
@@ -479,15 +547,16 @@ def _chunk(model: CFModel, theta: Tensor, battery: Battery) -> dict[str, Any]:
         equilibrium &= equilibrium_gap(single, v_eq)[1]
 
     collided = torch.stack(list(scenario.values())).any(0)
-    return {
-        "collided": collided,
-        "scenario": scenario,
-        "min_ttc": torch.stack(ttc).min(0).values.double().cpu(),
-        "min_spacing": torch.stack(least).min(0).values.double().cpu(),
-        "string_ratio": _string_ratio(model, theta, battery, gap, has_gap),
-        "equilibrium": equilibrium.cpu(),
-        "started": started,
-    }
+    return Plausibility(
+        collided=collided,
+        scenario_collided=scenario,
+        min_ttc=torch.stack(ttc).min(0).values.double().cpu(),
+        min_spacing=torch.stack(least).min(0).values.double().cpu(),
+        string_ratio=_string_ratio(model, theta, battery, gap, has_gap),
+        equilibrium=equilibrium.cpu(),
+        started=started,
+        settings=battery,
+    )
 
 
 def _string_unstable(
@@ -528,7 +597,7 @@ def _string_ratio(
 
 def plausibility_by_model(
     particles: Mapping[str, Tensor], battery: Battery
-) -> dict[str, dict[str, Any]]:
+) -> dict[str, PlausibilitySummary]:
     """:meth:`Plausibility.summary` per model of a learned set (model ->
     ``(P_m, K_m)`` particles; models without particles left out)."""
     return {
@@ -556,6 +625,8 @@ def rejects(battery: Battery, reject_string_unstable: bool = False):
 __all__ = [
     "Battery",
     "Plausibility",
+    "PlausibilitySettings",
+    "PlausibilitySummary",
     "battery_speed",
     "braking_leader",
     "check_plausibility",

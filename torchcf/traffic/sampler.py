@@ -51,7 +51,7 @@ from ..models import CFModel, FollowerState, Perception, get_model
 from ..posterior import Posterior
 from ..runs.directory import RunDir
 from ..sim.rollout import check_theta, realise
-from ..system.files import RunFileError
+from ..system.files import RunFileError, TorchPayload
 
 #: The base class realises a command as a point mass (it ignores its parameters):
 #: :meth:`HybridSampler.advance` moves every vehicle with it at once, then
@@ -697,7 +697,7 @@ class HybridSampler(nn.Module):
             )
         return self
 
-    def get_extra_state(self) -> dict[str, Any]:
+    def get_extra_state(self) -> TorchPayload:
         return {
             "models": list(self.model_names),
             "dt": self.dt,
@@ -706,7 +706,7 @@ class HybridSampler(nn.Module):
             "resample_every": self.resample_every,
         }
 
-    def set_extra_state(self, state: dict[str, Any]) -> None:
+    def set_extra_state(self, state: TorchPayload) -> None:
         mine = self.get_extra_state()
         for key in ("models", "dt", "leader_length"):
             if state[key] != mine[key]:

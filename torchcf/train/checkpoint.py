@@ -40,7 +40,7 @@ from ..config import TrainConfig, config_hash
 from ..runs.directory import RunDir
 from ..system.console import one_line
 from ..system.errors import TorchcfError, first_names
-from ..system.files import RunFileError
+from ..system.files import RunFileError, TorchPayload
 from ..system.signals import StopRequest
 
 CHECKPOINT_FORMAT = "torchcf.checkpoint/1"
@@ -63,10 +63,10 @@ class RunState:
     smc: dict[str, SMCState] = field(default_factory=dict)
     #: buffer and refinement state dicts read from a checkpoint, until the
     #: buffers are built
-    saved_buffers: dict[str, dict[str, Any]] = field(default_factory=dict)
-    saved_smc: dict[str, dict[str, Any]] = field(default_factory=dict)
+    saved_buffers: dict[str, TorchPayload] = field(default_factory=dict)
+    saved_smc: dict[str, TorchPayload] = field(default_factory=dict)
 
-    def as_checkpoint(self) -> dict[str, Any]:
+    def as_checkpoint(self) -> TorchPayload:
         """The checkpoint's content (the module docstring's format)."""
         checkpoint = {
             "format": CHECKPOINT_FORMAT,

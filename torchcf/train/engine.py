@@ -26,7 +26,6 @@ import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import torch
 from tqdm import tqdm
@@ -42,7 +41,13 @@ from ..data import PairSet
 from ..models import get_model
 from ..posterior import Posterior
 from ..system.console import bar_interval
-from ..traffic.battery import Battery, battery_speed, check_plausibility, rejects
+from ..traffic.battery import (
+    Battery,
+    PlausibilitySummary,
+    battery_speed,
+    check_plausibility,
+    rejects,
+)
 from .checkpoint import RunError, RunState
 
 #: Particles per battery call on the hybrid after training. The battery holds
@@ -188,7 +193,7 @@ def plausibility_battery(cfg: TrainConfig, pairs: PairSet) -> Battery:
 
 def hybrid_plausibility(
     cfg: TrainConfig, pairs: PairSet, posterior: Posterior, progress: bool = False
-) -> dict[str, dict[str, Any]]:
+) -> dict[str, PlausibilitySummary]:
     """The battery's shares per model over the hybrid's particles, on the
     CPU in float64 (:meth:`torchcf.traffic.Plausibility.summary`), in chunks
     of :data:`BATTERY_CHUNK` particles; ``progress``: a bar over the models on

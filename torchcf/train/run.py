@@ -202,8 +202,8 @@ def train(
 
     Returns:
         The summary (also written to ``out/summary.json``), on every rank: a
-        :class:`~torchcf.train.summary.RunSummary`, which also reads as the
-        dict of ``summary.json`` (``summary["shares"]``: its compatibility path).
+        :class:`~torchcf.train.summary.RunSummary` (``summary.shares``;
+        ``summary.to_json()`` is the file's content).
 
     Raises:
         ConfigError, DataError, RunError: bad config, data, output directory or

@@ -8,14 +8,9 @@ typed sub-records (:class:`ModelResult` per model, :class:`Pairwise`,
 file's content, key order included, and :meth:`RunSummary.from_json` reads it
 back (``from_json(s.to_json()) == s``).
 
-Compatibility: a :class:`RunSummary` is also a read-only
-:class:`~collections.abc.Mapping` from the JSON keys to the JSON values
-(``summary["shares"]``, ``summary["per_model"]["idm"]["seconds"]``,
-``"smc" in summary``, ``summary.get(...)``, ``dict(summary)``), and equals a
-mapping holding the same JSON content (``summary == run.read_summary()``): what
-callers read when :func:`torchcf.train.train` returned the summary as a dict.
-New code reads the attributes (``summary.shares``,
-``summary.per_model["idm"].seconds``).
+Callers read the attributes (``summary.shares``,
+``summary.per_model["idm"].seconds``, ``summary.smc is None``); the JSON object
+is the file's edge alone (``summary.to_json() == run.read_summary()``).
 
 Units: seconds (s) for times, rounded to the millisecond where stored;
 particles counted per model; scores and thresholds are the run's score
@@ -27,9 +22,9 @@ from __future__ import annotations
 
 import math
 import platform
-from collections.abc import Iterator, Mapping
-from dataclasses import MISSING, dataclass, field, fields, replace
-from typing import Any, ClassVar, Self
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields, replace
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -49,6 +44,9 @@ from ..config import TrainConfig, config_hash
 from ..config.schema import DataConfig
 from ..data import PairSet
 from ..posterior import Posterior
+from ..system.files import JSON
+from ..system.records import Record, copy_json, to_json_value
+from ..traffic.battery import PlausibilitySummary
 from .checkpoint import RunState
 from .engine import smc_settings
 
@@ -63,62 +61,8 @@ SMC_MEANING = (
 )
 
 
-def _json(value: Any) -> Any:
-    """``value`` as JSON content: records by their ``to_json``, tuples as lists,
-    mapping keys as strings; a fresh copy of every container."""
-    if isinstance(value, _Record):
-        return value.to_json()
-    if isinstance(value, list | tuple):
-        return [_json(v) for v in value]
-    if isinstance(value, Mapping):
-        return {str(k): _json(v) for k, v in value.items()}
-    return value
-
-
-def _frozen(value: Any) -> Any:
-    """JSON content with its lists as tuples (a record's sequences)."""
-    if isinstance(value, list | tuple):
-        return tuple(_frozen(v) for v in value)
-    return value
-
-
-def _copy(value: Any) -> Any:
-    """A deep copy of JSON content (its containers, not its scalars)."""
-    if isinstance(value, Mapping):
-        return {k: _copy(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_copy(v) for v in value]
-    return value
-
-
-class _Record:
-    """A frozen record whose JSON object is its fields, in order."""
-
-    def to_json(self) -> dict[str, Any]:
-        """The JSON object: every field, in the declared order."""
-        return {f.name: _json(getattr(self, f.name)) for f in fields(self)}
-
-    @classmethod
-    def from_json(cls, raw: Mapping[str, Any]) -> Self:
-        """The record of a JSON object holding exactly its fields (sequences as
-        tuples). Raises KeyError (a field missing) or ValueError (an unknown key)."""
-        names = [f.name for f in fields(cls)]
-        unknown = [key for key in raw if key not in names]
-        if unknown:
-            raise ValueError(f"{cls.__name__}: unknown key(s) {unknown}")
-        # a field with a default may be missing (a summary written before it)
-        defaulted = {f.name for f in fields(cls) if f.default is not MISSING}
-        return cls(
-            **{
-                name: _frozen(raw[name])
-                for name in names
-                if name in raw or name not in defaulted
-            }
-        )
-
-
 @dataclass(frozen=True)
-class ModelResult(_Record):
+class ModelResult(Record):
     """One model's stream and buffer (``summary.json``'s ``per_model[model]``).
 
     Attributes:
@@ -154,7 +98,7 @@ class ModelResult(_Record):
 
 
 @dataclass(frozen=True)
-class Pairwise(_Record):
+class Pairwise(Record):
     """The pairwise table: ``table[i][j]`` is the share of ``models[i]`` in the
     hybrid of models ``i`` and ``j`` alone (6 decimals; 1 on the diagonal)."""
 
@@ -164,7 +108,7 @@ class Pairwise(_Record):
 
 
 @dataclass(frozen=True)
-class Versions(_Record):
+class Versions(Record):
     """The versions the run was made with."""
 
     torchcf: str
@@ -184,7 +128,7 @@ class Versions(_Record):
 
 
 @dataclass(frozen=True)
-class SMCBudgetResult(_Record):
+class SMCBudgetResult(Record):
     """How each model's ``n_particles`` were spent by the refinement
     (:class:`torchcf.abc.smc.Budget`): particles per model."""
 
@@ -196,12 +140,12 @@ class SMCBudgetResult(_Record):
 
 
 @dataclass(frozen=True)
-class SMCResult(_Record):
+class SMCResult(Record):
     """The refinement's settings (``abc.smc``, as :class:`~torchcf.abc.smc.
     SMCSettings` fields), budget and evidence shares (model -> share in [0, 1],
     with the prior's Occam factor: :func:`torchcf.abc.smc.evidence_shares`)."""
 
-    settings: dict[str, Any]
+    settings: JSON
     budget: SMCBudgetResult
     evidence_shares: dict[str, float]
     meaning: str = SMC_MEANING
@@ -212,15 +156,15 @@ class SMCResult(_Record):
         if set(raw) - {f.name for f in fields(cls)}:
             raise ValueError(f"SMCResult: unknown key(s) in {list(raw)}")
         return cls(
-            settings=_copy(raw["settings"]),
+            settings=copy_json(raw["settings"]),
             budget=SMCBudgetResult.from_json(raw["budget"]),
             evidence_shares=dict(raw["evidence_shares"]),
             meaning=raw["meaning"],
         )
 
 
-@dataclass(frozen=True, eq=False)
-class RunSummary(_Record, Mapping[str, Any]):
+@dataclass(frozen=True)
+class RunSummary(Record):
     """A finished run's summary: the content of ``summary.json``.
 
     Attributes (in the file's order):
@@ -277,17 +221,13 @@ class RunSummary(_Record, Mapping[str, Any]):
     versions: Versions
     method: str | None = None
     smc: SMCResult | None = None
-    plausibility: dict[str, dict[str, Any]] | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
+    plausibility: dict[str, PlausibilitySummary] | None = None
+    extra: JSON = field(default_factory=dict)
 
     #: fields written only when set (absent from the file when None)
     OPTIONAL: ClassVar[tuple[str, ...]] = ("method", "smc", "plausibility")
 
     # ------------------------------------------------------------------ JSON
-
-    def _json_field(self, name: str) -> Any:
-        """The JSON value of field ``name`` (a fresh copy)."""
-        return _json(getattr(self, name))
 
     def _json_keys(self) -> list[str]:
         """The file's keys, in order."""
@@ -299,9 +239,14 @@ class RunSummary(_Record, Mapping[str, Any]):
         ]
         return keys + list(self.extra)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> JSON:
         """The content of ``summary.json``, key order included (a fresh copy)."""
-        return {key: self[key] for key in self._json_keys()}
+        return {
+            key: copy_json(self.extra[key])
+            if key in self.extra
+            else to_json_value(getattr(self, key))
+            for key in self._json_keys()
+        }
 
     @classmethod
     def from_json(cls, raw: Mapping[str, Any]) -> RunSummary:
@@ -339,45 +284,22 @@ class RunSummary(_Record, Mapping[str, Any]):
                 versions=Versions.from_json(raw["versions"]),
                 method=raw.get("method"),
                 smc=None if smc is None else SMCResult.from_json(smc),
-                plausibility=None if plausibility is None else _copy(plausibility),
-                extra={k: _copy(v) for k, v in raw.items() if k not in names},
+                plausibility=None
+                if plausibility is None
+                else {
+                    name: PlausibilitySummary.from_json(record)
+                    for name, record in plausibility.items()
+                },
+                extra={k: copy_json(v) for k, v in raw.items() if k not in names},
             )
         except (KeyError, TypeError, ValueError, AttributeError) as error:
             raise ValueError(
                 f"not a run summary ({type(error).__name__}: {error})"
             ) from None
 
-    # ------------------------------------------- Mapping: the compatibility path
-
-    def __getitem__(self, key: str) -> Any:
-        """The JSON value of ``key`` (as ``summary.json`` holds it)."""
-        if key in self.extra:
-            return _copy(self.extra[key])
-        if key not in self._json_keys():
-            raise KeyError(key)
-        return self._json_field(key)
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self._json_keys())
-
-    def __len__(self) -> int:
-        return len(self._json_keys())
-
-    def __eq__(self, other: object) -> bool:
-        """Equal to a summary, or a mapping, of the same JSON content."""
-        if isinstance(other, RunSummary):
-            return self.to_json() == other.to_json()
-        if isinstance(other, Mapping):
-            return self.to_json() == dict(other)
-        return NotImplemented
-
-    __hash__ = None  # type: ignore[assignment]  (holds dicts)
-
-    def as_dict(self) -> dict[str, Any]:
-        """:meth:`to_json` (the summary as the dict callers received before)."""
-        return self.to_json()
-
-    def with_plausibility(self, plausibility: dict[str, dict[str, Any]]) -> RunSummary:
+    def with_plausibility(
+        self, plausibility: dict[str, PlausibilitySummary]
+    ) -> RunSummary:
         """This summary with the hybrid's plausibility report."""
         return replace(self, plausibility=plausibility)
 
