@@ -16,6 +16,7 @@ from typing import Any
 
 from ..config import DiagnoseConfig
 from ..models.effects import Effect
+from ..system.files import JSON
 from .attribution import EffectSelection
 from .road import RoadOffer
 
@@ -45,9 +46,9 @@ class Recalibrated:
 
     after_run: Path
     reference_run: Path
-    after: dict[str, Any]
+    after: JSON
     shares: dict[str, float]
-    before_same_search: dict[str, Any]
+    before_same_search: JSON
     test_pairs: dict[str, Any]
     posterior: dict[str, Any]
     identifiability: dict[str, Any]
@@ -84,7 +85,7 @@ class LoopResult:
     unexplained: list[dict[str, Any]]
     settings: DiagnoseConfig
     search: dict[str, Any]
-    before: dict[str, Any]
+    before: JSON
     shares_before: dict[str, float]
     residuals_before: list[dict[str, Any]]
     recalibrated: Recalibrated | None
@@ -96,7 +97,7 @@ class LoopResult:
         return self.selection.chosen
 
     @property
-    def after(self) -> dict[str, Any]:
+    def after(self) -> JSON:
         """The test metrics after: the re-calibration's, or the run's when
         nothing was chosen."""
         return self.before if self.recalibrated is None else self.recalibrated.after
@@ -108,11 +109,11 @@ class LoopResult:
             return self.shares_before
         return self.recalibrated.shares
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> JSON:
         """``loop.json``'s content."""
         selection = self.selection
         first = selection.steps[0] if selection.steps else []
-        out: dict[str, Any] = {
+        out: JSON = {
             "format": FORMAT,
             "run": str(self.run),
             "dataset": self.dataset,

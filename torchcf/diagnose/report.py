@@ -20,14 +20,14 @@ from ..evaluation.report import METRIC_COLUMNS
 from ..models.effects import parse_effect
 from ..runs.directory import RunDir
 from ..runs.tensorboard import RunLogger
-from ..system.files import ensure_directory
+from ..system.files import JSON, ensure_directory
 
 Series = dict[str, list[np.ndarray]]
 
 
 def write_report(
     run: RunDir,
-    result: dict[str, Any],
+    result: JSON,
     series_before: Series,
     series_after: Series | None,
     dt: float,
@@ -45,7 +45,7 @@ def write_report(
 
 
 # ------------------------------------------------------------------- loop.md
-def loop_markdown(result: dict[str, Any], figures: dict[str, str]) -> str:
+def loop_markdown(result: JSON, figures: dict[str, str]) -> str:
     """``loop.md``: the trace from the residual to the effects, the tests, the
     absorption, the chosen effects and the error before and after.
 
@@ -75,7 +75,7 @@ def loop_markdown(result: dict[str, Any], figures: dict[str, str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _method(result: dict[str, Any]) -> list[str]:
+def _method(result: JSON) -> list[str]:
     """How an effect is compared with its base, and why the p-value is valid."""
     search = result.get("search", {})
     levels = ", ".join(f"{level:.3g}" for level in result.get("levels", []))
@@ -197,7 +197,7 @@ def _method(result: dict[str, Any]) -> list[str]:
     ]
 
 
-def _road(road: dict[str, Any] | None) -> list[str]:
+def _road(road: JSON | None) -> list[str]:
     """How road effects were offered: the frame decision and each profile's
     knot spacing with its cross-validated error."""
     if not road:
@@ -224,7 +224,7 @@ def _road(road: dict[str, Any] | None) -> list[str]:
     return [*lines, ""]
 
 
-def _signatures(result: dict[str, Any]) -> list[str]:
+def _signatures(result: JSON) -> list[str]:
     """The residual signatures of the pool (and after the chosen effects), and
     the trace from each found one to the effects it points to and their tests."""
     marks = result.get("signatures") or []
@@ -287,7 +287,7 @@ def _ordinal(n: int) -> str:
     return f"{n}{'st' if n == 1 else 'nd' if n == 2 else 'rd' if n == 3 else 'th'}"
 
 
-def _steps(result: dict[str, Any], figure: str) -> list[str]:
+def _steps(result: JSON, figure: str) -> list[str]:
     """The table of every step of the selection, in the order tested."""
     lines = []
     for step, rows in enumerate(result["steps"], start=1):
@@ -326,7 +326,7 @@ def _steps(result: dict[str, Any], figure: str) -> list[str]:
     return [*lines, f"![effects, step 1]({figure})", ""]
 
 
-def _absorption(result: dict[str, Any]) -> list[str]:
+def _absorption(result: JSON) -> list[str]:
     """Which of the pool's own parameters takes each effect up (step 1)."""
     rows = []
     for effect, found in (result.get("absorption") or {}).items():
@@ -391,14 +391,14 @@ RECORDING_READINGS = {
 }
 
 
-def _verdict(row: dict[str, Any]) -> str:
+def _verdict(row: JSON) -> str:
     """A tested effect's verdict in words."""
     if row.get("chosen"):
         return "**chosen**"
     return "significant" if row["significant"] else "not significant"
 
 
-def _recording(result: dict[str, Any]) -> list[str]:
+def _recording(result: JSON) -> list[str]:
     """Each recording effect of step 1: its estimate, its interval, and, where
     the pool takes it up, the behavioural reading with the sizes of both and
     what would separate them."""
@@ -457,7 +457,7 @@ def _signed(value: Any) -> str:
     return "—" if value is None else f"{value:+.2f}"
 
 
-def _unexplained(result: dict[str, Any]) -> list[str]:
+def _unexplained(result: JSON) -> list[str]:
     """Structure still in the residual that no chosen effect explains."""
     items = result.get("unexplained") or []
     if not items:
@@ -477,7 +477,7 @@ def _unexplained(result: dict[str, Any]) -> list[str]:
     return [*lines, ""]
 
 
-def _effort(result: dict[str, Any]) -> list[str]:
+def _effort(result: JSON) -> list[str]:
     search = result.get("search") or {}
     lines = []
     if search:
@@ -492,7 +492,7 @@ def _effort(result: dict[str, Any]) -> list[str]:
     return [*lines, f"Loop time: {result['seconds']:.0f} s."]
 
 
-def _recalibration_effort(result: dict[str, Any], run_particles: int) -> str:
+def _recalibration_effort(result: JSON, run_particles: int) -> str:
     """How the re-calibration searched, in one sentence."""
     if result.get("recalibration", "search") == "train":
         return (
@@ -507,7 +507,7 @@ def _recalibration_effort(result: dict[str, Any], run_particles: int) -> str:
     )
 
 
-def _chosen(result: dict[str, Any]) -> list[str]:
+def _chosen(result: JSON) -> list[str]:
     """The chosen effects' learned parameters and the shares after."""
     lines = ["## Chosen effects and their learned parameters", ""]
     for effect, summary in result["posterior"].items():
@@ -530,7 +530,7 @@ def _chosen(result: dict[str, Any]) -> list[str]:
     return [*lines, f"Shares after: {shares}.", "", *_identifiability(result)]
 
 
-def _identifiability(result: dict[str, Any]) -> list[str]:
+def _identifiability(result: JSON) -> list[str]:
     """Each chosen effect parameter's strongest partner among the model's."""
     report = result.get("identifiability") or {}
     rows = [
@@ -560,7 +560,7 @@ def _identifiability(result: dict[str, Any]) -> list[str]:
     ]
 
 
-def _detectable(result: dict[str, Any]) -> list[str]:
+def _detectable(result: JSON) -> list[str]:
     """Per tested effect of the last step, the smallest size its test would
     have found in these data (:mod:`torchcf.diagnose.power`)."""
     steps = result.get("steps") or []
@@ -605,7 +605,7 @@ def _detectable(result: dict[str, Any]) -> list[str]:
     return [*lines, ""]
 
 
-def _neutral_text(row: dict[str, Any]) -> str:
+def _neutral_text(row: JSON) -> str:
     spec = parse_effect(row["effect"])
     if len(spec.neutral) == 1:
         return fmt(float(spec.neutral[0]))
@@ -634,7 +634,7 @@ def _none_chosen() -> list[str]:
     ]
 
 
-def _before_after(result: dict[str, Any], figure: str) -> list[str]:
+def _before_after(result: JSON, figure: str) -> list[str]:
     """The hybrid's test-split metrics before and after, and their change
     (against the pool searched as the re-calibration, where it was)."""
     rows = [("before (the run)", result["before"])]
@@ -697,7 +697,7 @@ def _before_after(result: dict[str, Any], figure: str) -> list[str]:
     return [*lines, *_per_test_pair(result), "", f"![before and after]({figure})", ""]
 
 
-def _per_test_pair(result: dict[str, Any]) -> list[str]:
+def _per_test_pair(result: JSON) -> list[str]:
     """After against the run and the reference, test pair by test pair."""
     paired = result.get("test_pairs") or {}
     parts = [
@@ -719,7 +719,7 @@ def _per_test_pair(result: dict[str, Any]) -> list[str]:
     ]
 
 
-def _residuals(result: dict[str, Any], figure: str) -> list[str]:
+def _residuals(result: JSON, figure: str) -> list[str]:
     """The residual tests before and after, side by side."""
     lines = [
         "## Residual diagnostics (training pairs, best hybrid particle per pair)",

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..models.effects import Effect, Scope, parse_effect
+from ..system.files import JSON
 
 #: ``detectable`` of a row whose sizes were not asked for (a step that chose):
 #: written as no key at all, where ``None`` is an effect without a size.
@@ -96,9 +97,9 @@ class EffectTest:
     def scope(self) -> Scope:
         return self.effect.scope
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> JSON:
         """The row as ``loop.json`` and the attribution's ledger keep it."""
-        out: dict[str, Any] = {"name": self.name, "effect": self.token}
+        out: JSON = {"name": self.name, "effect": self.token}
         out["scope"] = self.scope
         for field in dataclasses.fields(self)[1:]:
             value = getattr(self, field.name)
@@ -110,7 +111,7 @@ class EffectTest:
         return out
 
     @classmethod
-    def from_json(cls, raw: dict[str, Any]) -> EffectTest:
+    def from_json(cls, raw: JSON) -> EffectTest:
         """A row read back from :meth:`to_json`'s dict (the effect parsed from
         its token: where a row re-enters from a file)."""
         names = [f.name for f in dataclasses.fields(cls)[1:]]
