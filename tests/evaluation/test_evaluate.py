@@ -22,7 +22,7 @@ from torchcf.evaluation.evaluate import (
 from torchcf.evaluation.metrics import evaluate_costs, sinkhorn
 from torchcf.evaluation.results import Evaluation
 from torchcf.posterior import Posterior
-from torchcf.study.crossval import aggregate, crossval, fold_config
+from torchcf.study.crossval import CrossvalResult, aggregate, crossval, fold_config
 from torchcf.system.files import json_safe
 from torchcf.train import train
 
@@ -245,6 +245,10 @@ def test_aggregate_is_the_mean_over_folds_and_keeps_inf():
     assert hybrid.ws == 2.0 and hybrid.ws_folds_finite == 2
     assert math.isinf(hybrid.min)
     assert hybrid.min_folds_finite == 1
+    # its JSON is OUT/metrics.json's, read back as written ("inf", "nan")
+    on_disk = json.loads(json.dumps(json_safe(result.to_json())))
+    assert list(on_disk) == ["folds", "hybrid"]
+    assert json_safe(CrossvalResult.from_json(on_disk).to_json()) == on_disk
 
 
 def test_aggregate_skips_the_blocks_that_are_no_learned_set():

@@ -23,7 +23,13 @@ from ..config import TrainConfig
 from ..evaluation.report import metrics_table
 from ..runs.directory import RunDir
 from ..system.errors import first_names
-from ..system.files import JSON, RunFileError, atomic_write_text, ensure_directory
+from ..system.files import (
+    JSON,
+    RunFileError,
+    atomic_write_text,
+    ensure_directory,
+    from_json_safe,
+)
 from ..system.records import Record
 from .pipeline import run_study
 
@@ -75,12 +81,13 @@ class CrossvalResult:
 
     @classmethod
     def from_json(cls, raw: Mapping[str, Any]) -> CrossvalResult:
-        """The result of ``OUT/metrics.json``'s content (as written: non-finite
-        means as floats).
+        """The result of ``OUT/metrics.json``'s content (as read: the strings
+        ``"inf"`` and ``"nan"`` the file holds are numbers again).
 
         Raises:
             KeyError, ValueError: a key is missing or unknown.
         """
+        raw = from_json_safe(dict(raw))
         return cls(
             folds=raw["folds"],
             entries={
