@@ -43,7 +43,7 @@ import sys
 import tempfile
 from collections.abc import Sequence
 from contextlib import nullcontext
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -65,7 +65,7 @@ from ..system.files import (
     read_json_object,
     write_json,
 )
-from ..system.records import to_json_value
+from ..system.records import Record
 from ..traffic import HybridSampler, SafetyLayer
 from . import backend
 from .backend import SumoError
@@ -292,7 +292,7 @@ def score_cells(
 
 
 @dataclass(frozen=True)
-class CosimCheck:
+class CosimCheck(Record):
     """(b) Every model co-simulated in SUMO against torchcf's rollout of the same
     particles (``verify.json``'s ``cosim``).
 
@@ -314,17 +314,13 @@ class CosimCheck:
     collisions: int
     emergency_stops: int
 
-    def to_json(self) -> JSON:
-        """The ``cosim`` object, in the file's order."""
-        return _fields_json(self)
-
 
 #: The JSON key of :attr:`VTypesCheck.cells_within_tolerance`.
 _WITHIN = "cells_within_1e-6_m"
 
 
 @dataclass(frozen=True)
-class VTypesCheck:
+class VTypesCheck(Record):
     """(a) The exported vTypes replayed in SUMO against torchcf's rollout
     (``verify.json``'s ``vtypes``).
 
@@ -358,12 +354,12 @@ class VTypesCheck:
         """The ``vtypes`` object, in the file's order and keys."""
         return {
             (_WITHIN if key == "cells_within_tolerance" else key): value
-            for key, value in _fields_json(self).items()
+            for key, value in super().to_json().items()
         }
 
 
 @dataclass(frozen=True)
-class VerifyReport:
+class VerifyReport(Record):
     """A SUMO verification of a run: the content of ``verify.json``.
 
     Attributes:
@@ -390,15 +386,10 @@ class VerifyReport:
 
     def to_json(self) -> JSON:
         """The content of ``verify.json``, key order included."""
-        out = _fields_json(self)
+        out = super().to_json()
         if self.vtypes is None:
             del out["vtypes"]
         return out
-
-
-def _fields_json(record: object) -> JSON:
-    """A dataclass's fields as JSON, in order."""
-    return {f.name: to_json_value(getattr(record, f.name)) for f in fields(record)}
 
 
 def _metrics(costs: dict[str, Tensor], n_test: int, beta: float) -> SetMetrics:

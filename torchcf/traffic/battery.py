@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
 import torch
@@ -182,21 +182,9 @@ class PlausibilitySummary(Record):
             KeyError: a key is missing.
             ValueError: an unknown key.
         """
-        unknown = [key for key in raw if key not in {f.name for f in fields(cls)}]
-        if unknown:
-            raise ValueError(f"PlausibilitySummary: unknown key(s) {unknown}")
-        return cls(
-            n_particles=raw["n_particles"],
-            collided=raw["collided"],
-            per_scenario=dict(raw["per_scenario"]),
-            string_unstable=raw["string_unstable"],
-            string_untested=raw["string_untested"],
-            no_equilibrium=raw["no_equilibrium"],
-            not_started=raw["not_started"],
-            min_ttc_median=raw["min_ttc_median"],
-            string_ratio_median=raw["string_ratio_median"],
-            settings=PlausibilitySettings.from_json(raw["settings"]),
-        )
+        settings = PlausibilitySettings.from_json(raw["settings"])
+        read = super().from_json({**raw, "per_scenario": dict(raw["per_scenario"])})
+        return replace(read, settings=settings)
 
 
 @dataclass
