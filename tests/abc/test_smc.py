@@ -460,7 +460,7 @@ def test_the_attribution_can_draw_its_arms_with_smc(mixture):
     plain = prior_particles(idm, rollout, (4000, 8000), 5)
     refined = prior_particles(idm, rollout, (4000, 8000), 5, settings)
     for a, b in zip(plain, refined, strict=True):
-        assert a.theta.shape == b.theta.shape and b.model == "idm"
+        assert a.theta.shape == b.theta.shape and b.model.name == "idm"
         on_idm = a.pair < 6
         assert float(b.score[on_idm].mean()) < float(a.score[on_idm].mean())
     name = get_model("idm+offset").name

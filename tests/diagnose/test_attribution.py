@@ -68,6 +68,8 @@ DELAY, OFFSET, ASYMMETRY = map(parse_effect, ("delay", "offset", "asymmetry"))
 
 IDM = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
 LLCS = [15.0, 0.5, 1.0]
+#: The pool of the fitted arms.
+POOL = [get_model("idm"), get_model("llcs")]
 #: Road effects with their section (every effect of the library is tried).
 TOKENS = [
     token if not EFFECTS[token].scope == "road" else f"{token}(start=0,end=1500)"
@@ -114,7 +116,7 @@ def test_a_population_keeps_the_best_per_pair_by_the_tie_rule():
     a = _particles("idm", [[1.0] * 6, [2.0] * 6, [3.0] * 6], [0, 0, 1], [0.5, 0.2, 9])
     b = _particles("llcs", [[5.0] * 3, [6.0] * 3], [0, 1], [0.2, math.inf])
     population = Population.from_particles([a, b], 3, 2)
-    assert population.models == ("idm", "llcs")
+    assert tuple(m.name for m in population.models) == ("idm", "llcs")
     # pair 0: the tie at 0.2 goes to the earlier set (idm)
     assert population.score[0].tolist() == [0.2, 0.2]
     assert population.model[0].tolist() == [0, 1]
@@ -132,7 +134,7 @@ def test_merge_keeps_a_particle_once_and_prefers_the_earlier_population():
         [_particles("llcs", [[5.0] * 3], [0], [0.1], [7])], 1, 3
     )
     merged = merge([a, b], 3)
-    assert merged.models == ("idm", "llcs")
+    assert tuple(m.name for m in merged.models) == ("idm", "llcs")
     assert merged.model[0].tolist() == [0, 1, 0]  # same score and index: a first
     assert merged.score[0].tolist() == [0.1, 0.1, 0.3]
 
@@ -212,7 +214,7 @@ def start():
     pairs = synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=3, noise=0.05)
     cfg = _config(models=("idm", "llcs"))
     arena = Arena.of(cfg, pairs)
-    return arena, fit_pool(arena, ["idm", "llcs"], lambda *_: None)
+    return arena, fit_pool(arena, POOL, lambda *_: None)
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
@@ -237,7 +239,7 @@ def test_an_effect_at_its_neutral_value_is_the_same_rollout(start, token):
     population = rescore(arm.population, rollout)
     neutral = torch.tensor(parse_effect(token).neutral, dtype=torch.float64)
     lifted, lifted_from = lift(population, parse_effect(token), neutral, rollout)
-    assert set(lifted_from.values()) <= {"idm", "llcs"}
+    assert {m.name for m in lifted_from.values()} <= {"idm", "llcs"}
     np.testing.assert_allclose(lifted.score, population.score, rtol=1e-9, atol=1e-12)
 
 
@@ -296,7 +298,10 @@ def test_the_predictor_follows_the_secant_of_the_two_fits_before():
     )
     values = torch.tensor([[-3.0], [-1.0], [0.0]], dtype=torch.float64)
     llcs_box = torch.tensor([[1.0, 19.0], [0.0, 3.0], [0.0, 3.0]], dtype=torch.float64)
-    bounds = {"llcs": llcs_box, "idm": torch.tensor([[0.0, 1e3]] * 6)}
+    bounds = {
+        get_model("llcs"): llcs_box,
+        get_model("idm"): torch.tensor([[0.0, 1e3]] * 6),
+    }
     ahead = predicted(origin, before, values, 0, 2, bounds)
     assert ahead.theta[0, :, 0].tolist() == [LLCS[0] + 3.0] * 2
     assert torch.equal(ahead.theta[0, :, 1:3], origin.theta[0, :, 1:3])
@@ -311,7 +316,8 @@ def test_the_response_lag_points_to_a_delay():
     """IDM data with a 1 s delay, driven by the same IDM without it: the
     follower answers its leader later than the model, by about the delay."""
     pairs = synthetic_pairs("idm+delay", IDM + [1.0], 12, 400, seed=5)
-    best = {"idm": (torch.tensor([IDM] * 12, dtype=torch.float64), torch.arange(12))}
+    idm = get_model("idm")
+    best = {idm: (torch.tensor([IDM] * 12, dtype=torch.float64), torch.arange(12))}
     closed = residual_series(best, pairs)
     lag = response_lag(closed, pairs.dt)
     assert lag.size >= 8 and 0.5 <= float(np.median(lag)) <= 1.5
@@ -321,7 +327,8 @@ def test_the_response_lag_points_to_a_delay():
     assert marks["response lag"].found
     assert "delay" in marks["response lag"].points_to
     # the same data driven by the model that made them: nothing to point to
-    truth = {"idm+delay": (torch.tensor([IDM + [1.0]] * 12), torch.arange(12))}
+    delayed = get_model("idm+delay")
+    truth = {delayed: (torch.tensor([IDM + [1.0]] * 12), torch.arange(12))}
     clean = residual_series(truth, pairs)
     assert np.abs(response_lag(clean, pairs.dt)).max() <= 0.1
 
@@ -362,7 +369,8 @@ def _one_step_marks(model: str, theta: list[float], noise: float, lead_noise=0.0
             for k, v in lead.items()
         }
         pairs = dataclasses.replace(pairs, **noisy)
-    best = {"idm": (torch.tensor([IDM] * 30, dtype=torch.float64), torch.arange(30))}
+    idm = get_model("idm")
+    best = {idm: (torch.tensor([IDM] * 30, dtype=torch.float64), torch.arange(30))}
     closed = residual_series(best, pairs)
     found = signatures(closed, one_step_residual(best, pairs), pairs.dt)
     return {s.name: s for s in found}
@@ -524,20 +532,20 @@ def test_an_interrupted_pool_fit_resumes_from_its_last_state(tmp_path, monkeypat
         return real(*args, **kwargs)
 
     monkeypatch.setattr(search_module, "search_round", counted)
-    whole = fit_pool(arena, ["idm", "llcs"], lambda *_: None).population
+    whole = fit_pool(arena, POOL, lambda *_: None).population
     rounds, calls["n"], calls["stop"] = calls["n"], 0, 3
     assert rounds > 3
     monkeypatch.setattr(attribution, "CHECKPOINT_SECONDS", 0.0)  # keep every round
     book = attribution.Ledger(tmp_path / "a.pt", "key")
     with pytest.raises(KeyboardInterrupt):
-        fit_pool(arena, ["idm", "llcs"], lambda *_: None, book.within("pool"))
+        fit_pool(arena, POOL, lambda *_: None, book.within("pool"))
     reread = attribution.Ledger(tmp_path / "a.pt", "key")
     assert attribution.resuming(reread).endswith("pool midway")
     assert reread.get("pool/abc/idm") is not None
     assert reread.get("pool/abc/llcs") is not None
     assert reread.get("pool/converge/pool")["rounds"] == 2
     calls["n"], calls["stop"] = 0, 0
-    resumed = fit_pool(arena, ["idm", "llcs"], lambda *_: None, reread.within("pool"))
+    resumed = fit_pool(arena, POOL, lambda *_: None, reread.within("pool"))
     assert calls["n"] == rounds - 2  # from the third round on
     for got, want in zip(
         (resumed.population.score, resumed.population.theta),
@@ -574,7 +582,7 @@ def test_the_recalibration_holds_the_reference_which_holds_the_run(tmp_path):
     run = posterior.buffers["idm"]["score"][:, : reference.size]
     assert bool((reference.score <= run).all())
     assert bool((after.score <= reference.score).all())
-    assert any("delay" in m for m in after.models)
+    assert any("delay" in m.name for m in after.models)
     names = [m.name for m in recalibration_config(cfg, after.models, {}).models]
     assert names[0] == "idm" and "idm+delay" in names
 
@@ -596,7 +604,7 @@ def test_road_effects_come_last_in_a_name_and_recording_effects_are_shared():
 
 def test_model_bounds_pin_shared_effects_by_name():
     value = torch.tensor([-2.5], dtype=torch.float64)
-    box = model_bounds("idm+offset+delay", {}, {"offset": value})
+    box = model_bounds(get_model("idm+offset+delay"), {}, {"offset": value})
     names = get_model("idm+offset+delay").param_names
     assert box[names.index("d_offset")].tolist() == [-2.5, -2.5]
     assert box[names.index("t_delay")].tolist() == [0.0, 3.0]

@@ -270,7 +270,7 @@ def test_cli_and_bad_input(loops, tmp_path, capsys):
 # ------------------------------------------------------------------ the pieces
 def test_residuals_vanish_for_the_true_particle():
     pairs = synthetic_pairs("idm", IDM_TRUTH, 3, 200, seed=5)
-    best = {"idm": (torch.tensor([IDM_TRUTH] * 3), torch.arange(3))}
+    best = {get_model("idm"): (torch.tensor([IDM_TRUTH] * 3), torch.arange(3))}
     series = residual_series(best, pairs)
     for channel in ("spacing", "speed", "acceleration"):
         assert len(series[channel]) == 3
@@ -285,8 +285,8 @@ def test_best_particles_picks_the_lowest_score_per_pair(tmp_path):
     best = best_particles(posterior, pairs[0])
     covered = torch.cat([position for _, position in best.values()])
     assert sorted(covered.tolist()) == list(range(pairs[0].n_pairs))
-    for name, (theta, position) in best.items():
-        particles = posterior.hybrid[name]
+    for model, (theta, position) in best.items():
+        particles = posterior.hybrid[model.name]
         for row, j in zip(theta, position.tolist(), strict=True):
             pid = pairs[0].pair_ids[j]
             lowest = min(
@@ -367,7 +367,7 @@ def _per_pair(sets, n_pairs):
     for s in sets:
         rows = zip(s.theta, s.pair.tolist(), s.score.tolist(), strict=True)
         for theta, j, score in rows:
-            picks[j].append((s.model, float(theta[0]), score))
+            picks[j].append((s.model.name, float(theta[0]), score))
     return [sorted(p, key=lambda pick: pick[2]) for p in picks]
 
 
@@ -403,9 +403,10 @@ def test_local_search_spends_its_budget_and_never_loses_a_fit(monkeypatch):
     pairs = synthetic_pairs("idm", IDM_TRUTH, 4, 150, seed=9)
     cfg = _config(population=3, local_copies=5, rounds=2)
     rollout = attribution_rollout(cfg, pairs)
-    bounds = {m: model_bounds(m, {}) for m in ("idm", "llctg")}
+    models = [get_model(m) for m in ("idm", "llctg")]
+    bounds = {m: model_bounds(m, {}) for m in models}
     seed = attribution_seed(cfg)
-    streams = [prior_stream(m, bounds[m], seed, rollout) for m in ("idm", "llctg")]
+    streams = [prior_stream(m.name, bounds[m], seed, rollout) for m in models]
     sets = [prior_particles(stream, rollout, (200,), 3)[0] for stream in streams]
     start = Population.from_particles(sets, 4, 3)
     simulated = []
@@ -430,7 +431,7 @@ def test_diagnose_seed_replaces_the_runs_seed_in_the_attribution():
     """diagnose.seed (None = abc.seed) draws another prior sample: a check that
     the loop's answer is not the luck of one stream."""
     pairs = synthetic_pairs("idm", IDM_TRUTH, 3, 100, seed=9)
-    bounds = model_bounds("idm", {})
+    bounds = model_bounds(get_model("idm"), {})
 
     def drawn(**diagnose):
         cfg = _config(**diagnose)
@@ -458,7 +459,8 @@ def test_shared_value_finds_a_constant_grade():
     members = Population.from_particles(
         [_candidates("llctg", [LLCTG_TRUTH] * 6, range(6), [1.0] * 6)], 6, 2
     )
-    bounds = {"llctg": model_bounds("llctg", {})}
+    llctg = get_model("llctg")
+    bounds = {llctg: model_bounds(llctg, {})}
     rollout = attribution_rollout(cfg, pairs)
     value, box, tried = shared_value(
         effect, members, rollout, bounds, effect_prior(effect), (0,)

@@ -48,17 +48,19 @@ def _population(theta: torch.Tensor, n_pairs: int, name: str = "idm") -> Populat
 def test_candidates_drop_the_effect_and_lifting_pins_it():
     theta = torch.tensor([IDM + [0.7], IDM + [0.9]], dtype=torch.float64)
     arm = _population(theta, 2, "idm+delay")
-    found = candidates(arm, 1, {"idm+delay": "idm"}, seed=0)
-    assert list(found) == ["idm"]
-    torch.testing.assert_close(found["idm"], torch.tensor([IDM], dtype=torch.float64))
+    idm, delayed = get_model("idm"), get_model("idm+delay")
+    found = candidates(arm, 1, {delayed: idm}, seed=0)
+    assert [m.name for m in found] == ["idm"]
+    torch.testing.assert_close(found[idm], torch.tensor([IDM], dtype=torch.float64))
     pinned = lifted(
         found, Pin(parse_effect("delay"), torch.tensor([0.4], dtype=torch.float64))
     )
-    assert list(pinned) == ["idm+delay"]
-    assert pinned["idm+delay"][:, -1].tolist() == [0.4]
+    assert [m.name for m in pinned] == ["idm+delay"]
+    assert pinned[delayed][:, -1].tolist() == [0.4]
     # an effect that cannot wrap a model leaves it as it is (HL has its own lag)
-    hl = {"hl": get_model("hl").prior_bounds(torch.float64).mean(1)[None]}
-    assert list(lifted(hl, Pin(parse_effect("lag"), torch.tensor([0.5])))) == ["hl"]
+    hl = {get_model("hl"): get_model("hl").prior_bounds(torch.float64).mean(1)[None]}
+    unwrapped = lifted(hl, Pin(parse_effect("lag"), torch.tensor([0.5])))
+    assert [m.name for m in unwrapped] == ["hl"]
 
 
 def test_candidates_stay_within_their_cap_from_the_same_fit_pairs():
@@ -68,8 +70,9 @@ def test_candidates_stay_within_their_cap_from_the_same_fit_pairs():
     arm = _population(theta, n_pairs)
     found = candidates(arm, 3, {}, seed=5, cap=25)
     again = candidates(arm, 3, {}, seed=5, cap=25)
-    assert found["idm"].shape[0] == 25
-    torch.testing.assert_close(found["idm"], again["idm"])
+    idm = get_model("idm")
+    assert found[idm].shape[0] == 25
+    torch.testing.assert_close(found[idm], again[idm])
 
 
 def test_the_effect_pinned_at_its_neutral_value_refits_as_without_it():
@@ -80,7 +83,7 @@ def test_the_effect_pinned_at_its_neutral_value_refits_as_without_it():
     box = PRIORS["idm"]
     g = torch.Generator().manual_seed(0)
     u = torch.rand(12, 6, generator=g, dtype=torch.float64)
-    members = {"idm": box[:, 0] + u * (box[:, 1] - box[:, 0])}
+    members = {get_model("idm"): box[:, 0] + u * (box[:, 1] - box[:, 0])}
     key = ("test", 1)
     without = refit_scores(members, rollout, BUDGET, PRIORS, {}, key)
     neutral = Pin(parse_effect("delay"), torch.tensor([0.0], dtype=torch.float64))
@@ -96,7 +99,7 @@ def test_a_true_effect_pinned_at_its_value_fits_new_drivers_better():
     late = DriverMixture(["idm"], "delay", [0.8])
     pairs, drivers = heterogeneous_pairs(late, 6, 200, seed=2, noise=0.02)
     rollout = Rollout(pairs, True, torch.float64)
-    members = {"idm": drivers.theta[:, :6]}  # each driver's own parameters
+    members = {get_model("idm"): drivers.theta[:, :6]}  # each driver's own parameters
     budget = RefitBudget(slots=3, copies=8, rounds=3)
     key = ("test", 2)
     without = refit_scores(members, rollout, budget, PRIORS, {}, key)
@@ -112,11 +115,11 @@ def test_the_refit_never_moves_the_pinned_effect():
     pairs = synthetic_pairs("idm", IDM, 3, 80, seed=3)
     rollout = Rollout(pairs, True, torch.float64)
     members = lifted(
-        {"idm": torch.tensor([IDM], dtype=torch.float64)},
+        {get_model("idm"): torch.tensor([IDM], dtype=torch.float64)},
         Pin(parse_effect("offset"), torch.tensor([-2.0], dtype=torch.float64)),
     )
     population = start(members, rollout, slots=1)
-    assert population.models == ("idm+offset",)
+    assert tuple(m.name for m in population.models) == ("idm+offset",)
     assert bool((population.theta[..., -1] == -2.0).all())
 
 

@@ -17,6 +17,7 @@ from torchcf.diagnose.retrain import (
     wrapped,
 )
 from torchcf.diagnose.search import model_bounds
+from torchcf.models import get_model
 from torchcf.posterior import Posterior
 from torchcf.sim.synthetic import synthetic_pairs
 from torchcf.train import train
@@ -121,7 +122,9 @@ def test_the_reference_spends_draws_only_on_the_pool_models_a_variant_wraps():
 
 def test_a_shared_effect_ahead_of_a_driver_effect_is_drawn_from_its_box():
     bounds = model_bounds(
-        "idm+offset+delay", {}, {"offset": torch.tensor([-2.5], dtype=torch.float64)}
+        get_model("idm+offset+delay"),
+        {},
+        {"offset": torch.tensor([-2.5], dtype=torch.float64)},
     )
     drawn, fixed = searched_box(
         "idm+offset+delay", bounds, {"offset": {"d_offset": (-3.0, -2.0)}}

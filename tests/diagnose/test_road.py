@@ -28,6 +28,7 @@ from torchcf.diagnose.road import (
     shares_road_frame,
 )
 from torchcf.diagnose.signatures import road_share
+from torchcf.models import get_model
 from torchcf.models.effects import GRAVITY, Grade, parse_effect
 from torchcf.sim.synthetic import Scene, synthetic_pairs
 
@@ -297,7 +298,12 @@ def test_a_grade_under_an_actuation_lag_is_whole_in_the_one_step_residual(lag):
     pairs = synthetic_pairs(
         f"hl+{effect.token}", theta, n_pairs=12, n_steps=400, seed=3, scene=road
     )
-    best = {"hl": (torch.tensor([hl] * 12, dtype=torch.float64), torch.arange(12))}
+    best = {
+        get_model("hl"): (
+            torch.tensor([hl] * 12, dtype=torch.float64),
+            torch.arange(12),
+        )
+    }
     series = one_step_residual(best, pairs)
     seed = grade_seed(effect, series["x"], series["acceleration"]).numpy()
     reached = [0.0 <= k <= 1000.0 for k in effect.knot_positions]

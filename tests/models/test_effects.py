@@ -964,3 +964,15 @@ def test_a_variant_is_built_from_objects_not_names():
     assert delay != parse_effect("lag") and delay != "delay"
     with pytest.raises(UnknownModelError, match="actuation lag"):
         augment(get_model("hl"), parse_effect("lag"))
+
+
+def test_a_model_pickles_as_the_registrys_one_instance():
+    """A model sent to a worker process (or copied) comes back as the registry's
+    instance of its name, so it stays the same dict key there."""
+    import copy
+    import pickle
+
+    for name in ("idm", "mpc", "idm+delay", "llctg+lag+grade(end=600,knots=4)"):
+        model = get_model(name)
+        assert pickle.loads(pickle.dumps(model)) is model
+        assert copy.deepcopy({model: 1}) == {model: 1}

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..models import CFModel, get_model
 from .hybrid import rank_per_pair
 from .topn import TopN
 
@@ -27,7 +28,8 @@ class Particles:
     """Particles of one model (or variant), each on one pair.
 
     Attributes:
-        model: registry name.
+        model: the model (the registry's one instance of it; a registry name
+            given here is looked up once, where the set is made).
         theta: (Q, K) float64 parameters.
         pair: (Q,) int64 pair position of each particle.
         score: (Q,) float64 score on its pair (``+inf``: invalid).
@@ -35,11 +37,15 @@ class Particles:
             stream index of a prior draw; a perturbed copy inherits its parent's.
     """
 
-    model: str
+    model: CFModel
     theta: Tensor
     pair: Tensor
     score: Tensor
     index: Tensor
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.model, CFModel):  # a name, where the set enters
+            object.__setattr__(self, "model", get_model(self.model))
 
     def __len__(self) -> int:
         return self.score.shape[0]
@@ -55,7 +61,7 @@ class Particles:
         )
 
     @classmethod
-    def from_buffer(cls, model: str, buffer: TopN, n: int) -> Particles:
+    def from_buffer(cls, model: CFModel, buffer: TopN, n: int) -> Particles:
         """A buffer's ``n`` best per pair (empty slots included, scored ``+inf``),
         pair-major."""
         score, index, theta = buffer.first(n)  # (N, n), (N, n), (N, n, K)
@@ -88,10 +94,10 @@ def best_per_pair(sets: Sequence[Particles], n: int) -> list[Particles]:
     member, order = rank_per_pair(score, index, source, pair, n)
     chosen = order[member[order]]  # (Q',) flat positions, pair-major, best first
 
-    names = [s.model for s in sets]
+    models = [s.model for s in sets]
     # A particle's row in the concatenation of its model's sets (list order).
     offset_in_model = torch.zeros(len(sets), dtype=torch.int64)
-    seen: dict[str, int] = {}
+    seen: dict[CFModel, int] = {}
     for k, s in enumerate(sets):
         offset_in_model[k] = seen.get(s.model, 0)
         seen[s.model] = int(offset_in_model[k]) + len(s)
@@ -101,8 +107,8 @@ def best_per_pair(sets: Sequence[Particles], n: int) -> list[Particles]:
     )
 
     result = []
-    for name in dict.fromkeys(names[k] for k in source[chosen].tolist()):
-        ks = [k for k, s in enumerate(sets) if s.model == name]
+    for model in dict.fromkeys(models[k] for k in source[chosen].tolist()):
+        ks = [k for k, s in enumerate(sets) if s.model is model]
         merged = _concat([sets[k] for k in ks])
         mine = chosen[torch.isin(source[chosen], torch.tensor(ks))]
         result.append(merged.take(model_row[mine]))

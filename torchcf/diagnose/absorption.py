@@ -39,7 +39,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..models import get_model
+from ..models import CFModel
 from ..models.effects import Effect
 from ..models.steady import equilibrium_spacing, time_gap
 from .identifiability import RIDGE_CORRELATION, within_pair_correlation
@@ -49,18 +49,21 @@ from .population import Population
 PROFILE_VALUES = 7
 
 
-def _effect_columns(model: str, effect: Effect) -> list[int]:
+def _effect_columns(model: CFModel, effect: Effect) -> list[int]:
     names = [p.name for p in effect.param_specs]
-    return [get_model(model).param_names.index(n) for n in names]
+    return [model.param_names.index(n) for n in names]
 
 
-def _base_names(model: str, effect: Effect) -> list[str]:
+def _base_names(model: CFModel, effect: Effect) -> list[str]:
     own = {p.name for p in effect.param_specs}
-    return [n for n in get_model(model).param_names if n not in own]
+    return [n for n in model.param_names if n not in own]
 
 
 def _shift(
-    final: Population, base: Population, lifted_from: dict[str, str], partner: str
+    final: Population,
+    base: Population,
+    lifted_from: dict[CFModel, CFModel],
+    partner: str,
 ) -> float | None:
     """Median over pairs of ``partner`` in the best slot with the effect minus in
     the best slot of the base population, where both descend from one model."""
@@ -70,10 +73,10 @@ def _shift(
             continue
         model = final.models[int(final.model[j, 0])]
         start = base.models[int(base.model[j, 0])]
-        if lifted_from.get(model) != start:
+        if lifted_from.get(model) is not start:
             continue
-        after = get_model(model).param_names
-        before = get_model(start).param_names
+        after = model.param_names
+        before = start.param_names
         if partner not in after or partner not in before:
             continue
         shifts.append(
@@ -89,7 +92,7 @@ def absorbed_by(
     effect: Effect,
     final: Population,
     base: Population,
-    lifted_from: dict[str, str],
+    lifted_from: dict[CFModel, CFModel],
 ) -> dict[str, Any] | None:
     """The strongest partner of a driver effect's parameters (module docstring).
 
@@ -108,7 +111,7 @@ def absorbed_by(
         pair, slot = final.model_slots(variant)
         if pair.numel() == 0:
             continue
-        k = get_model(variant).n_params
+        k = variant.n_params
         held = (final.model == final.models.index(variant)) & final.filled
         score = torch.where(held, final.score, math.inf)
         # other models' slots weigh 0: zeros, not their NaN padding
@@ -116,7 +119,7 @@ def absorbed_by(
         correlation, n_pairs = within_pair_correlation(theta, score)
         if n_pairs == 0:
             continue
-        names = get_model(variant).param_names
+        names = variant.param_names
         for column in _effect_columns(variant, effect):
             for partner in _base_names(variant, effect):
                 r = float(correlation[column, names.index(partner)])
@@ -125,7 +128,7 @@ def absorbed_by(
                 if best is None or abs(r) > abs(best["correlation"]):
                     best = {
                         "parameter": partner,
-                        "model": parent,
+                        "model": parent.name,
                         "effect_parameter": names[column],
                         "correlation": r,
                         "slope": _ridge_slope(
@@ -168,7 +171,7 @@ def profile_absorption(
     effect: Effect,
     values: Tensor,
     fits: list[Population],
-    lifted_from: dict[str, str],
+    lifted_from: dict[CFModel, CFModel],
     start: Population,
     estimate: Tensor | None,
     steady: Steady | None = None,
@@ -205,9 +208,9 @@ def profile_absorption(
         if m >= 0
     }
     best = None
-    along: list[tuple[str, Tensor]] = []  # per pool model, its best particles
-    for parent in sorted(m for m in models if m):
-        names = get_model(parent).param_names
+    along: list[tuple[CFModel, Tensor]] = []  # per pool model, its best particles
+    for parent in sorted((m for m in models if m), key=lambda m: m.name):
+        names = parent.param_names
         # (N, G, K): each pair's best particle per value, where it descends
         # from this pool model at every value
         rows = torch.full((start.n_pairs, g, len(names)), math.nan, dtype=torch.float64)
@@ -216,9 +219,9 @@ def profile_absorption(
                 if not bool(fit.filled[j, 0]):
                     continue
                 model = fit.models[int(fit.model[j, 0])]
-                if lifted_from.get(model) != parent:
+                if lifted_from.get(model) is not parent:
                     continue
-                variant = get_model(model).param_names
+                variant = model.param_names
                 rows[j, i] = torch.stack(
                     [fit.theta[j, 0, variant.index(n)] for n in names]
                 )
@@ -246,7 +249,7 @@ def profile_absorption(
                 neutral = int(torch.argmin((values[:, 0] - effect.neutral[0]).abs()))
                 best = {
                     "parameter": name,
-                    "model": parent,
+                    "model": parent.name,
                     "effect_parameter": effect.param_specs[0].name,
                     "correlation": r,
                     "slope": slope,
@@ -277,7 +280,7 @@ class Steady:
 
 
 def steady_shift(
-    values: Tensor, along: list[tuple[str, Tensor]], steady: Steady
+    values: Tensor, along: list[tuple[CFModel, Tensor]], steady: Steady
 ) -> dict[str, Any] | None:
     """How the pool's own behaviour moves as an effect is fixed along its
     profile: each pair's best particle's equilibrium spacing at
@@ -301,8 +304,7 @@ def steady_shift(
         pair has an equilibrium at that speed at every value.
     """
     xs, gaps, time_gaps = [], [], []
-    for name, rows in along:
-        model = get_model(name)
+    for model, rows in along:
         flat = rows.reshape(-1, rows.shape[-1])
         run = {"leader_length": steady.leader_length, "dt": steady.dt}
         gap = equilibrium_spacing(model, flat, steady.speed, **run)

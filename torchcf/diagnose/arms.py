@@ -50,7 +50,7 @@ from ..abc.rejection import Rollout, prior_stream
 from ..abc.smc import SMCSettings
 from ..config import DiagnoseConfig, TrainConfig
 from ..data import PairSet
-from ..models import get_model
+from ..models import CFModel
 from ..models.effects import Effect, RoadProfile, parse_effect
 from .absorption import PROFILE_VALUES, profile_values
 from .candidates import attribution_seed, prior_particles
@@ -174,7 +174,7 @@ class Arena:
         """S, the slots per pair of every arm (at least ``top_n``)."""
         return max(self.settings.population, self.top_n)
 
-    def bounds(self, models: Any, shared: dict[str, Tensor]) -> dict[str, Tensor]:
+    def bounds(self, models: Any, shared: dict[str, Tensor]) -> dict[CFModel, Tensor]:
         """Prior box of each model, shared effects pinned at their values."""
         return {m: model_bounds(m, self.priors, shared) for m in models}
 
@@ -230,7 +230,7 @@ class Arena:
         self,
         start: Population,
         noise: Noise,
-        parents: dict[str, str],
+        parents: dict[CFModel, CFModel],
         shared: dict[str, Tensor],
         tick: Callable[[], None] | None = None,
         depth: int = 1,
@@ -249,9 +249,9 @@ class Arena:
         )
 
 
-def _current(population: Population) -> dict[str, tuple[str, ...]]:
+def _current(population: Population) -> dict[CFModel, tuple[str, ...]]:
     """Every model of a population as a current model (its own step columns)."""
-    return {m: get_model(m).param_names for m in population.models}
+    return {m: m.param_names for m in population.models}
 
 
 # ------------------------------------------------------------------- the arms
@@ -273,7 +273,7 @@ class Arm:
 
 def fit_pool(
     arena: Arena,
-    pool: list[str],
+    pool: list[CFModel],
     tick: Callable[..., None],
     checkpoints: Checkpoints | None = None,
 ) -> Arm:
@@ -287,12 +287,12 @@ def fit_pool(
             kept as they finish (a fit interrupted resumes from them).
     """
     sets = []
-    for name in pool:
-        key = f"abc/{name}"
+    for model in pool:
+        key = f"abc/{model.name}"
         kept = checkpoints.get(key) if checkpoints is not None else None
         if kept is None:
-            box = model_bounds(name, arena.priors)
-            stream = prior_stream(get_model(name).name, box, arena.seed, arena.fit)
+            box = model_bounds(model, arena.priors)
+            stream = prior_stream(model.name, box, arena.seed, arena.fit)
             (particles,) = prior_particles(
                 stream,
                 arena.fit,
@@ -311,7 +311,7 @@ def fit_pool(
     return Arm((), arena.converge(start, {}, ("pool",), tick, checkpoints), {})
 
 
-def pool_units(arena: Arena, pool: list[str]) -> int:
+def pool_units(arena: Arena, pool: list[CFModel]) -> int:
     """The pool's fit in the units of its progress (:func:`fit_pool`)."""
     return len(pool) + arena.settings.max_rounds
 
@@ -404,7 +404,7 @@ def _refit(
     arm: Arm,
     begin: Population,
     noise: Noise,
-    parents: dict[str, str],
+    parents: dict[CFModel, CFModel],
     shared: dict[str, Tensor],
 ) -> Population:
     """A design point's refit: ``rounds / 2`` rounds of ``local_copies / 2``
@@ -419,7 +419,7 @@ def design_fits(
     step: int,
     tick: Callable[[], None],
     values: Tensor,
-) -> tuple[list[Population], dict[str, str]]:
+) -> tuple[list[Population], dict[CFModel, CFModel]]:
     """The start refitted with E fixed at each design point ``values`` (G, K_E).
 
     A chain (a continuation): the first fit starts from the start lifted to
@@ -471,7 +471,7 @@ def predicted(
     values: Tensor,
     g: int,
     b: int,
-    bounds: dict[str, Tensor],
+    bounds: dict[CFModel, Tensor],
     reach: float = 1.0,
 ) -> Population:
     """The continuation's predictor: ``origin`` (the fit at the design point
@@ -491,20 +491,22 @@ def predicted(
     theta = origin.theta.clone()
     best_model = origin.model[:, 0]
     same = (best_model >= 0) & (before.model[:, 0] >= 0)
-    names_before = list(before.models)
-    for m, name in enumerate(origin.models):
-        if name not in names_before:
+    models_before = list(before.models)
+    for m, model in enumerate(origin.models):
+        if model not in models_before:
             continue
         pairs = (
-            same & (best_model == m) & (before.model[:, 0] == names_before.index(name))
+            same
+            & (best_model == m)
+            & (before.model[:, 0] == models_before.index(model))
         )
         if not bool(pairs.any()):
             continue
-        k = get_model(name).n_params
+        k = model.n_params
         change = origin.theta[pairs, 0, :k] - before.theta[pairs, 0, :k]  # (Q, K)
         change = torch.nan_to_num(change) * ratio * reach
         held = (origin.model[pairs] == m)[..., None]  # (Q, S, 1)
-        box = bounds[name]
+        box = bounds[model]
         moved = theta[pairs, :, :k] + held * change[:, None, :]
         moved = torch.maximum(torch.minimum(moved, box[:, 1]), box[:, 0])
         theta[pairs, :, :k] = torch.where(held, moved, theta[pairs, :, :k])
@@ -550,7 +552,7 @@ class EffectArm:
     """
 
     population: Population
-    lifted_from: dict[str, str]
+    lifted_from: dict[CFModel, CFModel]
     value: Tensor | None = None
     shared_prior: Tensor | None = None
     design: tuple[Tensor, list[Population]] | None = None
@@ -606,7 +608,7 @@ def effect_arm(
 
 def profile_search(
     arena: Arena, arm: Arm, effect: Effect, step: int, tick: Callable[[], None]
-) -> tuple[Tensor, Tensor, list[Population], dict[str, str], Tensor]:
+) -> tuple[Tensor, Tensor, list[Population], dict[CFModel, CFModel], Tensor]:
     """A one-parameter shared effect's profile over its prior, and its value.
 
     The effect is fixed at the :data:`~torchcf.diagnose.absorption.
@@ -734,8 +736,7 @@ def repin(
     unchanged)."""
     names = [p.name for p in effect.param_specs]
     theta = population.theta.clone()
-    for m, name in enumerate(population.models):
-        model = get_model(name)
+    for m, model in enumerate(population.models):
         if effect.name not in model.effect_kinds:
             continue
         held = population.model == m

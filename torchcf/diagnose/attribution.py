@@ -66,7 +66,7 @@ from tqdm import tqdm
 
 from ..config import DiagnoseConfig, TrainConfig, config_hash
 from ..data import PairSet
-from ..models import get_model
+from ..models import CFModel, get_model
 from ..models.effects import Effect, RoadProfile
 from ..system.files import RunFileError, atomic_torch_save, read_torch
 from .absorption import Steady, absorbed_by, profile_absorption
@@ -137,11 +137,10 @@ def estimate(population: Population, effect: Effect, n: int) -> dict[str, float]
     names = [p.name for p in effect.param_specs]
     picks = population.best(n)
     values = []
-    for name in picks.models:
-        model = get_model(name)
+    for model in picks.models:
         if effect.name not in model.effect_kinds:
             continue
-        pair, slot = picks.model_slots(name)
+        pair, slot = picks.model_slots(model)
         columns = [model.param_names.index(p) for p in names]
         values.append(picks.theta[pair, slot][:, columns])
     if not values or not sum(v.shape[0] for v in values):
@@ -201,7 +200,7 @@ def effect_row(
         pinned=dict(zip(names, pin.value.tolist(), strict=True))
         if judge.validation.kind == "refit"
         else None,
-        variants=sorted(result.lifted_from),
+        variants=sorted(m.name for m in result.lifted_from),
         estimate=found,
         per_pair={
             "before": [_finite_or_none(v) for v in placebo_validation.tolist()],
@@ -264,12 +263,12 @@ def test_order(
 def best_of(population: Population) -> BestParticles:
     """Each pair's best particle, grouped by model (the residuals' input)."""
     best: BestParticles = {}
-    for m, name in enumerate(population.models):
+    for m, model in enumerate(population.models):
         held = (population.model[:, 0] == m) & population.filled[:, 0]
         position = held.nonzero().squeeze(1)
         if position.numel():
-            k = get_model(name).n_params
-            best[name] = (population.theta[position, 0, :k], position)
+            k = model.n_params
+            best[model] = (population.theta[position, 0, :k], position)
     return best
 
 
@@ -427,7 +426,7 @@ class EffectSelection:
     steps: list[list[EffectTest]]
     signatures: list[list[dict[str, Any]]]
     chosen: list[Effect]
-    models: list[str]
+    models: list[CFModel]
     shared: dict[str, list[float]]
     steps_at_most: int
     levels: list[float]
@@ -469,7 +468,8 @@ def attribute_effects(
 
     Args:
         cfg: the run's config (its ``diagnose`` section sets the budgets).
-        pool: the pool models that get the effects.
+        pool: the pool models that get the effects, by name (looked up here,
+            where the pool enters the attribution).
         effects: the candidate effects (options resolved, see
             :func:`~torchcf.diagnose.arms.resolve_effect`).
         train_pairs: the run's training pairs.
@@ -491,13 +491,14 @@ def attribute_effects(
     steps_at_most = min(settings.max_effects, len(effects))
     levels = step_levels(settings.alpha, steps_at_most)
     book = Ledger(ledger, ledger_key(cfg, pool, effects))
+    models = [get_model(name) for name in pool]
     if progress and book.entries:
         print(resuming(book), file=sys.stderr, flush=True)
     units = {effect: arm_units(arena, effect) for effect in effects}
     per_step = arm_units(arena, None) + placebo_units(arena) + settings.max_rounds
     tested = sum(len(effects) - s for s in range(steps_at_most))  # effect arms
     bar = tqdm(
-        total=pool_units(arena, pool)
+        total=pool_units(arena, models)
         + steps_at_most * per_step
         + round(tested * sum(units.values()) / max(1, len(units))),
         desc="attribution",
@@ -528,10 +529,10 @@ def attribute_effects(
     raw = cached(
         "pool",
         "pool",
-        pool_units(arena, pool),
+        pool_units(arena, models),
         _pool_entry,
         arena,
-        pool,
+        models,
         tick,
         book.within("pool"),
     )
@@ -654,12 +655,11 @@ def attribute_effects(
         found.append([s.report() for s in arm_signatures(arena, arm.population)])
     bar.total = bar.n  # a selection that stops early: done
     bar.close()
-    models = list(dict.fromkeys([*pool, *_variants(arm, pool)]))
     return EffectSelection(
         steps=steps,
         signatures=found,
         chosen=list(arm.effects),
-        models=models,
+        models=list(dict.fromkeys([*models, *_variants(arm, models)])),
         shared={k: v.tolist() for k, v in arm.shared.items()},
         steps_at_most=steps_at_most,
         levels=levels,
@@ -677,7 +677,7 @@ def round_steps(arena: Arena) -> float:
 
 def _pool_entry(
     arena: Arena,
-    pool: list[str],
+    pool: list[CFModel],
     tick: Callable[..., None],
     checkpoints: Checkpoints,
 ) -> dict:
@@ -705,7 +705,7 @@ def _base_entry(
     return population_dict(base_arm(arena, arm, step, tick))
 
 
-def _variants(arm: Arm, pool: list[str]) -> list[str]:
+def _variants(arm: Arm, pool: list[CFModel]) -> list[CFModel]:
     """The variants the final model holds (pool models with chosen effects)."""
     return [m for m in arm.population.models if m not in pool]
 

@@ -117,7 +117,7 @@ def prior_particles(
             plan_particles=min(budgets),
             hooks=RoundHooks(after_round=after_round),
         )
-        sets.append(Particles.from_buffer(model.name, buffer, keep))
+        sets.append(Particles.from_buffer(model, buffer, keep))
     return sets
 
 
@@ -140,13 +140,11 @@ def _refined_particles(
             f"abc.smc.rounds = {smc.rounds}); raise it or lower the rounds"
         )
     run_smc(stream, buffer, rollout, budget, smc, ModelProgress(), state)
-    particles = Particles.from_buffer(model.name, parameter_buffer(buffer), keep)
+    particles = Particles.from_buffer(model, parameter_buffer(buffer), keep)
     if fixed is None:
         return particles
     theta = torch.cat((particles.theta, fixed.expand(len(particles), -1)), dim=1)
-    return Particles(
-        model.name, theta, particles.pair, particles.score, particles.index
-    )
+    return Particles(model, theta, particles.pair, particles.score, particles.index)
 
 
 __all__ = [

@@ -326,7 +326,7 @@ def plan_loop(
     )
     recalibration = None
     if selection.chosen:
-        run_models = [spec.name for spec in cfg.models]
+        run_models = [spec.model for spec in cfg.models]
         variants = [m for m in selection.models if m not in run_models]
         recalibration = recalibration_config(cfg, variants, selection.shared_priors)
     resume = reusable(run.recalibration_dir, recalibration)
@@ -414,7 +414,8 @@ def _trained_buffers(
 ) -> tuple[Buffers, Buffers]:
     """:func:`~torchcf.diagnose.retrain.retrain` with a progress bar in
     particles (the reference's and every variant's)."""
-    variants = variants_of(plan.selection.models, plan.posterior.models)
+    final = FinalModel.of(plan.selection)
+    variants = variants_of(final.models, plan.posterior.models)
     models = len(variants) + len(wrapped(variants, plan.pool))
     total = plan.cfg.abc.n_particles * models
     with tqdm(
@@ -423,7 +424,7 @@ def _trained_buffers(
         return retrain(
             plan.cfg,
             plan.posterior,
-            FinalModel.of(plan.selection),
+            final,
             plan.pool,
             plan.train_pairs,
             screen=screen,

@@ -126,7 +126,7 @@ class LoopResult:
             "unexplained": self.unexplained,
             "chosen": [effect.token for effect in self.chosen],
             "shared": selection.shared,
-            "models_after": selection.models,
+            "models_after": [m.name for m in selection.models],
             "steps_at_most": selection.steps_at_most,
             "levels": selection.levels,
             "alpha": self.settings.alpha,

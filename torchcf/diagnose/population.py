@@ -25,7 +25,7 @@ from torch import Tensor
 
 from ..abc.particles import Particles, best_per_pair
 from ..abc.rejection import Rollout
-from ..models import get_model
+from ..models import CFModel, get_model
 
 
 @dataclass(frozen=True)
@@ -33,7 +33,7 @@ class Population:
     """Per pair, ``S`` slots of particles, best first.
 
     Attributes:
-        models: the registry names the slots refer to.
+        models: the models the slots refer to (pool models and variants).
         model: (N, S) int64 position in :attr:`models` of each slot's model;
             -1 = an empty slot.
         theta: (N, S, K) float64 parameters in each slot's model's order; NaN past
@@ -44,7 +44,7 @@ class Population:
             the prior draw a particle descends from).
     """
 
-    models: tuple[str, ...]
+    models: tuple[CFModel, ...]
     model: Tensor
     theta: Tensor
     score: Tensor
@@ -74,12 +74,12 @@ class Population:
             self.index[:, :n],
         )
 
-    def model_slots(self, name: str) -> tuple[Tensor, Tensor]:
-        """Pair and slot (Q,) int64 each of the filled slots of model ``name``."""
-        if name not in self.models:
+    def model_slots(self, model: CFModel) -> tuple[Tensor, Tensor]:
+        """Pair and slot (Q,) int64 each of the filled slots of ``model``."""
+        if model not in self.models:
             empty = torch.empty(0, dtype=torch.int64)
             return empty, empty
-        held = (self.model == self.models.index(name)) & torch.isfinite(self.score)
+        held = (self.model == self.models.index(model)) & torch.isfinite(self.score)
         pair, slot = held.nonzero(as_tuple=True)
         return pair, slot
 
@@ -87,14 +87,14 @@ class Population:
         """The filled slots as one :class:`Particles` set per model (pair-major,
         best first within a pair), models in :attr:`models` order."""
         sets = []
-        for name in self.models:
-            pair, slot = self.model_slots(name)
+        for model in self.models:
+            pair, slot = self.model_slots(model)
             if pair.numel() == 0:
                 continue
-            k = get_model(name).n_params
+            k = model.n_params
             sets.append(
                 Particles(
-                    name,
+                    model,
                     self.theta[pair, slot, :k],
                     pair,
                     self.score[pair, slot],
@@ -111,7 +111,7 @@ class Population:
         rule, :func:`~torchcf.abc.particles.best_per_pair`)."""
         chosen = best_per_pair(list(sets), size)
         models = tuple(dict.fromkeys(s.model for s in sets))
-        width = max([get_model(m).n_params for m in models], default=0)
+        width = max([m.n_params for m in models], default=0)
         model = torch.full((n_pairs, size), -1, dtype=torch.int64)
         theta = torch.full((n_pairs, size, width), math.nan, dtype=torch.float64)
         score = torch.full((n_pairs, size), math.inf, dtype=torch.float64)
@@ -133,7 +133,7 @@ class Population:
 
 
 def _flatten(
-    sets: Sequence[Particles], models: tuple[str, ...], width: int
+    sets: Sequence[Particles], models: tuple[CFModel, ...], width: int
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None:
     """(Q,) model position, (Q, K) padded theta, pair, score, index of ``sets``."""
     if not sets:
@@ -220,25 +220,25 @@ def rescore(population: Population, rollout: Rollout) -> Population:
     """The population with every filled slot scored on ``rollout``'s pairs (slot
     order unchanged: call :func:`merge` to sort)."""
     score = torch.full_like(population.score, math.inf)
-    for name in population.models:
-        pair, slot = population.model_slots(name)
+    for model in population.models:
+        pair, slot = population.model_slots(model)
         if pair.numel():
-            k = get_model(name).n_params
+            k = model.n_params
             score[pair, slot] = score_on(
-                rollout, name, population.theta[pair, slot, :k], pair
+                rollout, model, population.theta[pair, slot, :k], pair
             )
     return Population(
         population.models, population.model, population.theta, score, population.index
     )
 
 
-def score_on(rollout: Rollout, model: str, theta: Tensor, pair: Tensor) -> Tensor:
+def score_on(rollout: Rollout, model: CFModel, theta: Tensor, pair: Tensor) -> Tensor:
     """Scores (Q,) float64 on the CPU of particles ``theta`` (Q, K) of ``model``,
     each on its own pair ``pair`` (Q,) of the rollout's pairs (``+inf``:
     invalid)."""
     if theta.shape[0] == 0:
         return torch.empty(0, dtype=torch.float64)
-    score, _ = rollout.score(get_model(model), theta, pair)
+    score, _ = rollout.score(model, theta, pair)
     return score.cpu()
 
 
@@ -261,9 +261,10 @@ def pick_scores(population: Population, n: int, rollout: Rollout) -> Tensor:
 
 
 def population_dict(population: Population) -> dict:
-    """A population as a checkpoint keeps it (plain types and tensors)."""
+    """A population as a checkpoint keeps it (plain types and tensors: each
+    model by its name)."""
     return {
-        "models": list(population.models),
+        "models": [m.name for m in population.models],
         "model": population.model,
         "theta": population.theta,
         "score": population.score,
@@ -272,16 +273,17 @@ def population_dict(population: Population) -> dict:
 
 
 def population_of(raw: dict) -> Population:
-    """The population :func:`population_dict` kept."""
-    return Population(
-        tuple(raw["models"]), raw["model"], raw["theta"], raw["score"], raw["index"]
-    )
+    """The population :func:`population_dict` kept (its models looked up by
+    name, where they enter from the file)."""
+    models = tuple(get_model(name) for name in raw["models"])
+    return Population(models, raw["model"], raw["theta"], raw["score"], raw["index"])
 
 
 def particles_dict(particles: Particles) -> dict:
-    """A particle set as a checkpoint keeps it (``Particles(**kept)`` reads it)."""
+    """A particle set as a checkpoint keeps it (its model by name;
+    ``Particles(**kept)`` reads it)."""
     return {
-        "model": particles.model,
+        "model": particles.model.name,
         "theta": particles.theta,
         "pair": particles.pair,
         "score": particles.score,

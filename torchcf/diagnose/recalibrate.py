@@ -41,7 +41,7 @@ from ..abc.particles import Particles
 from ..abc.topn import TopN
 from ..config import TrainConfig, validate_config
 from ..data import PairSet
-from ..models import get_model
+from ..models import CFModel, get_model
 from ..models.effects import Effect
 from ..posterior import Posterior
 from ..runs.directory import RunDir
@@ -88,7 +88,7 @@ def recalibrate(
         chosen: the chosen effects, in the order chosen.
         shared: per chosen shared effect name, its value.
         pool: the pool models the effects were tested on (only their particles
-            get the effects).
+            get the effects), by name (looked up here, where the pool enters).
         tick: called after every search round.
 
     Returns:
@@ -106,21 +106,23 @@ def recalibrate(
         if tick is not None:
             tick()
 
-    def search(begin: Population, noise: Noise, parents: dict[str, str]) -> Population:
+    def search(
+        begin: Population, noise: Noise, parents: dict[CFModel, CFModel]
+    ) -> Population:
         bounds = {m: model_bounds(m, priors, values) for m in begin.models}
         searched, _ = converge(
             begin, rollout, bounds, noise, parents, settings, after_round=ticked
         )
         return searched
 
-    current = {m: get_model(m).param_names for m in start.models}
+    current = {m: m.param_names for m in start.models}
     key = (seed, "recalibration")
     reference = search(start, Noise(key, current), {m: m for m in start.models})
     after = reference
-    growing = set(pool)
+    growing = {get_model(name) for name in pool}
     for effect in chosen:
         base = _only(after, growing)
-        current = {m: get_model(m).param_names for m in base.models}
+        current = {m: m.param_names for m in base.models}
         if effect.shared:
             lifted, lifted_from = lift(base, effect, values[effect.name], rollout)
             begin = merge([lifted], size)
@@ -142,7 +144,7 @@ def _quiet() -> None:
     """No progress to show."""
 
 
-def _only(population: Population, models: set[str]) -> Population:
+def _only(population: Population, models: set[CFModel]) -> Population:
     """The population's slots of ``models`` alone (the others emptied)."""
     keep = torch.tensor([m in models for m in population.models] + [False])
     held = keep[population.model] & (population.model >= 0)
@@ -171,14 +173,15 @@ def model_buffers(
     capacity = next(iter(posterior.buffers.values()))["score"].shape[1]
     out = []
     for name in models:
-        k = get_model(name).n_params
+        model = get_model(name)  # a config name (the run directory's edge)
+        k = model.n_params
         parts = []
         if name in posterior.buffers:
             b = posterior.buffers[name]
             parts.append(
                 (b["score"].double(), b["index"], b["theta"].double()[..., :k])
             )
-        pair, slot = population.model_slots(name)
+        pair, slot = population.model_slots(model)
         score = torch.full((n, population.size), math.inf, dtype=torch.float64)
         index = torch.full((n, population.size), -1, dtype=torch.int64)
         theta = torch.full((n, population.size, k), math.nan, dtype=torch.float64)
@@ -231,10 +234,11 @@ def best_entries(
 
 def recalibration_config(
     cfg: TrainConfig,
-    models: Sequence[str],
+    models: Sequence[str | CFModel],
     shared_priors: dict[str, dict[str, tuple[float, float]]],
 ) -> TrainConfig:
-    """The run's config with ``models`` (the run's, then the variants), each
+    """The run's config with ``models`` (the run's, then the variants; names or
+    models: the config is where they leave as names), each
     variant with its pool model's prior and, for a shared effect, the box its
     value was found in; no loop after it, no output of its own."""
     raw = cfg.model_dump(mode="json")

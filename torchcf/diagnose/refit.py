@@ -46,7 +46,7 @@ from torch import Tensor
 
 from ..abc.particles import Particles
 from ..abc.rejection import Rollout
-from ..models import get_model
+from ..models import CFModel
 from ..models.effects import Effect
 from .population import Population, merge, rescore
 from .search import Noise, generator, lift, local_search, model_bounds, variant_of
@@ -89,10 +89,10 @@ class Pin:
 def candidates(
     population: Population,
     n: int,
-    current: Mapping[str, str],
+    current: Mapping[CFModel, CFModel],
     seed: int,
     cap: int = REFIT_CANDIDATES,
-) -> dict[str, Tensor]:
+) -> dict[CFModel, Tensor]:
     """An arm's picks, each as its current model.
 
     Args:
@@ -114,58 +114,60 @@ def candidates(
     if n_pairs * per_pair > cap:
         order = torch.randperm(n_pairs, generator=generator(seed, "refit-candidates"))
         keep = torch.sort(order[:cap]).values
-    parts: dict[str, list[Tensor]] = {}
+    parts: dict[CFModel, list[Tensor]] = {}
     picks = population.best(per_pair)
-    for name in picks.models:
-        pair, slot = picks.model_slots(name)
+    for model in picks.models:
+        pair, slot = picks.model_slots(model)
         chosen = torch.isin(pair, keep)
         if not bool(chosen.any()):
             continue
-        parent = current.get(name, name)
-        own = get_model(name).param_names
-        columns = [own.index(p) for p in get_model(parent).param_names]
+        parent = current.get(model, model)
+        own = model.param_names
+        columns = [own.index(p) for p in parent.param_names]
         theta = picks.theta[pair[chosen], slot[chosen]][:, columns]
         parts.setdefault(parent, []).append(theta)
     return {
-        name: torch.unique(torch.cat(thetas), dim=0) for name, thetas in parts.items()
+        model: torch.unique(torch.cat(thetas), dim=0) for model, thetas in parts.items()
     }
 
 
-def lifted(candidates: Mapping[str, Tensor], pin: Pin) -> dict[str, Tensor]:
+def lifted(candidates: Mapping[CFModel, Tensor], pin: Pin) -> dict[CFModel, Tensor]:
     """Every candidate as ``m+E`` with E at ``pin.value`` (K_E,); a model the
     effect cannot wrap (``lag`` on HL) stays as it is."""
     names = [p.name for p in pin.effect.param_specs]
     out = {}
-    for name, theta in candidates.items():
-        variant = variant_of(name, pin.effect)
+    for model, theta in candidates.items():
+        variant = variant_of(model, pin.effect)
         if variant is None:
-            out[name] = theta
+            out[model] = theta
             continue
-        own = get_model(name).param_names
+        own = model.param_names
         columns = [
             pin.value[names.index(p)].expand(theta.shape[0]).to(torch.float64)
             if p in names
             else theta[:, own.index(p)]
-            for p in get_model(variant).param_names
+            for p in variant.param_names
         ]
         out[variant] = torch.stack(columns, dim=1)
     return out
 
 
-def start(candidates: Mapping[str, Tensor], rollout: Rollout, slots: int) -> Population:
+def start(
+    candidates: Mapping[CFModel, Tensor], rollout: Rollout, slots: int
+) -> Population:
     """Per held-out pair of ``rollout``, its ``slots`` best candidates (every
     candidate scored on every pair: the rollout's full layout)."""
     every = dataclasses.replace(rollout, paired=False)
     n_held = rollout.pairs.n_pairs
     sets, index = [], 0
-    for name, theta in candidates.items():
+    for model, theta in candidates.items():
         if theta.shape[0] == 0:
             continue
-        score, _ = every.score(get_model(name), theta, None)  # (Q, V)
+        score, _ = every.score(model, theta, None)  # (Q, V)
         q = theta.shape[0]
         sets.append(
             Particles(
-                name,
+                model,
                 theta.repeat_interleave(n_held, dim=0),
                 torch.arange(n_held).repeat(q),
                 score.cpu().double().reshape(-1),
@@ -191,8 +193,8 @@ def refit_paired(
     effect ``pin`` held at its value (None: without); ``+inf`` where none is
     valid. The twin of :func:`refit_scores` for windows in time."""
     members = population.best(budget.slots)
-    current = {name: get_model(name).param_names for name in members.models}
-    parents = {name: name for name in members.models}
+    current = {m: m.param_names for m in members.models}
+    parents = {m: m for m in members.models}
     if pin is not None:
         members, lifted_from = lift(members, pin.effect, pin.value)
         parents |= lifted_from
@@ -203,7 +205,7 @@ def refit_paired(
 
 
 def refit_scores(
-    candidates: Mapping[str, Tensor],
+    candidates: Mapping[CFModel, Tensor],
     rollout: Rollout,
     budget: RefitBudget,
     priors: Mapping[str, Tensor],
@@ -222,9 +224,9 @@ def refit_scores(
         key: the refit's random numbers (the same for both sides).
         pin: the effect and its value (None: the side without it).
     """
-    current = {name: get_model(name).param_names for name in candidates}
+    current = {m: m.param_names for m in candidates}
     members = candidates if pin is None else lifted(candidates, pin)
-    parents = {name: name for name in candidates}
+    parents = {m: m for m in candidates}
     if pin is not None:
         parents |= {variant_of(m, pin.effect) or m: m for m in candidates}
     population = start(members, rollout, budget.slots)
@@ -241,8 +243,8 @@ def _searched(
     shared: Mapping[str, Tensor],
     key: tuple,
     pin: Pin | None,
-    current: dict[str, tuple[str, ...]],
-    parents: dict[str, str],
+    current: dict[CFModel, tuple[str, ...]],
+    parents: dict[CFModel, CFModel],
 ) -> Tensor:
     """(V,) the best score per pair of ``population`` after ``budget.rounds``
     rounds of local search within the priors, the chosen shared effects and

@@ -82,7 +82,8 @@ class FinalModel:
     """The selection's final model, as the re-calibration trains it.
 
     Attributes:
-        models: the pool and the variants of the chosen effects.
+        models: the pool and the variants of the chosen effects, by name (the
+            run's buffers and the samplers' streams are keyed by name).
         shared: per chosen shared effect name, its value (K_E,).
         shared_priors: per chosen shared effect token, the box it was found
             in: per parameter name, ``(low, high)``.
@@ -98,7 +99,8 @@ class FinalModel:
     def of(cls, selection: EffectSelection) -> FinalModel:
         """The final model of a forward selection (:func:`attribute_effects
         <torchcf.diagnose.attribution.attribute_effects>`)."""
-        return cls(selection.models, selection.shared, selection.shared_priors)
+        names = [m.name for m in selection.models]
+        return cls(names, selection.shared, selection.shared_priors)
 
 
 def retrain(
@@ -160,7 +162,7 @@ def retrain(
     after = dict(run_buffers)
     for name in variants:
         bounds, fixed = searched_box(
-            name, model_bounds(name, priors, values), final.shared_priors
+            name, model_bounds(get_model(name), priors, values), final.shared_priors
         )
         after[name] = kept(
             f"after:{name}",

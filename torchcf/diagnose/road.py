@@ -45,7 +45,7 @@ import torch
 from torch import Tensor
 
 from ..data import PairSet
-from ..models import FollowerState, Perception, get_model
+from ..models import FollowerState, Perception
 from ..models.effects import GRAVITY, Bend, Grade, RoadProfile, parse_effect
 from ..sim.rollout import realise
 from .series import BestParticles
@@ -136,8 +136,7 @@ def one_step_residual(best: BestParticles, pairs: PairSet) -> dict[str, list]:
     keys = ("x", "v", "dv", "predicted", "acceleration")
     out: dict[str, list[np.ndarray]] = {key: [] for key in keys}
     rows: dict[int, tuple[np.ndarray, ...]] = {}
-    for name, (theta, position) in best.items():
-        model = get_model(name)
+    for model, (theta, position) in best.items():
         for row, j in enumerate(position.tolist()):
             steps = int(pairs.mask[:, j].sum()) - 1
             if steps < 1:

@@ -45,7 +45,7 @@ from torch import Tensor
 
 from ..abc.rejection import Rollout
 from ..config import DiagnoseConfig
-from ..models import UnknownModelError, augment, get_model
+from ..models import CFModel, UnknownModelError, augment
 from ..models.effects import Effect
 from .population import Population, merge, rescore, score_on
 
@@ -66,16 +66,19 @@ def derive_seed(*labels: object) -> int:
     """A 63-bit seed that is a pure function of ``labels`` (stable across runs and
     machines): every random draw of the loop has its own, so an arm's result
     does not depend on which arms ran before it (or were read from a
-    checkpoint). An effect stands for its token (the same seed as its name)."""
+    checkpoint). An effect stands for its token (the same seed as its name), a
+    model for its name."""
     digest = hashlib.sha256(repr(_as_text(labels)).encode()).digest()
     return int.from_bytes(digest[:8], "little") >> 1
 
 
 def _as_text(label: object) -> object:
     """``label`` with every effect in it (nested in tuples and lists) replaced
-    by its token."""
+    by its token, and every model by its name."""
     if isinstance(label, Effect):
         return label.token
+    if isinstance(label, CFModel):
+        return label.name
     if isinstance(label, tuple | list):
         return type(label)(_as_text(item) for item in label)
     return label
@@ -87,23 +90,23 @@ def generator(*labels: object) -> torch.Generator:
 
 
 # ------------------------------------------------------------------ variants
-def variant_of(model: str, effect: Effect) -> str | None:
-    """``model`` wrapped by ``effect``: the variant's canonical name; None where
-    the effect cannot wrap it (``lag`` on HL, which has its own actuation lag)."""
+def variant_of(model: CFModel, effect: Effect) -> CFModel | None:
+    """``model`` wrapped by ``effect`` (the registry's one instance of the
+    variant); None where the effect cannot wrap it (``lag`` on HL, which has its
+    own actuation lag)."""
     try:
-        return augment(get_model(model), effect).name
+        return augment(model, effect)
     except UnknownModelError:
         return None
 
 
 def model_bounds(
-    name: str, priors: dict[str, Tensor], shared: dict[str, Tensor] | None = None
+    model: CFModel, priors: dict[str, Tensor], shared: dict[str, Tensor] | None = None
 ) -> Tensor:
     """Prior box (K, 2) float64 of a model or variant: the run's prior box of its
     pool model (``priors``: pool model -> (K_m, 2)), each effect's own prior, and
     every shared effect named in ``shared`` (effect name -> its one value
     (K_E,)) pinned at its value (a zero-width row: the search never moves it)."""
-    model = get_model(name)
     bounds = model.prior_bounds(torch.float64)
     base = model.pool_model.name
     if base in priors:
@@ -129,7 +132,7 @@ class Noise:
     """
 
     key: tuple
-    current: dict[str, tuple[str, ...]]
+    current: dict[CFModel, tuple[str, ...]]
     effect: Effect | None = None
 
     @property
@@ -152,20 +155,20 @@ class Noise:
         )  # fmt: skip
         return torch.cat((common, own), dim=-1)
 
-    def columns(self, model: str, parent: str) -> Tensor:
+    def columns(self, model: CFModel, parent: CFModel) -> Tensor:
         """(K,) int64: the step column of each parameter of ``model`` whose slot
         descends from the current model ``parent`` (by name; the effect's own
         parameters after the common columns)."""
         names = self.current[parent]
         own = [p.name for p in self.effect.param_specs] if self.effect else []
         out = []
-        for name in get_model(model).param_names:
+        for name in model.param_names:
             if name in names:
                 out.append(names.index(name))
             elif name in own:
                 out.append(self.width + own.index(name))
             else:
-                raise ValueError(f"{model}: parameter {name} has no step column")
+                raise ValueError(f"{model.name}: parameter {name} has no step column")
         return torch.tensor(out, dtype=torch.int64)
 
 
@@ -186,9 +189,9 @@ def jitter(theta: Tensor, steps: Tensor, bounds: Tensor) -> Tensor:
 def search_round(
     population: Population,
     rollout: Rollout,
-    bounds: dict[str, Tensor],
+    bounds: dict[CFModel, Tensor],
     steps: Tensor,
-    columns: Callable[[str], Tensor],
+    columns: Callable[[CFModel], Tensor],
 ) -> Population:
     """The scored copies of every filled slot (N, S C): slot (j, s), copy c reads
     ``steps[j, s, c]`` (N, S, C, K_c + K_E) at its model's ``columns``."""
@@ -199,18 +202,18 @@ def search_round(
     theta = torch.full((n, size, copies, width), math.nan, dtype=torch.float64)
     score = torch.full((n, size, copies), math.inf, dtype=torch.float64)
     index = population.index[..., None].expand(-1, -1, copies).clone()
-    for m, name in enumerate(population.models):
-        pair, slot = population.model_slots(name)
+    for m, slot_model in enumerate(population.models):
+        pair, slot = population.model_slots(slot_model)
         if pair.numel() == 0:
             continue
-        k = get_model(name).n_params
-        own = steps[pair, slot][..., columns(name)]  # (Q, C, K)
-        moved = jitter(population.theta[pair, slot, :k], own, bounds[name])
+        k = slot_model.n_params
+        own = steps[pair, slot][..., columns(slot_model)]  # (Q, C, K)
+        moved = jitter(population.theta[pair, slot, :k], own, bounds[slot_model])
         model[pair, slot] = m
         theta[pair, slot, :, :k] = moved
         flat_pair = pair.repeat_interleave(copies)
         score[pair, slot] = score_on(
-            rollout, name, moved.reshape(-1, k), flat_pair
+            rollout, slot_model, moved.reshape(-1, k), flat_pair
         ).reshape(-1, copies)
     return Population(
         population.models,
@@ -224,9 +227,9 @@ def search_round(
 def local_search(
     population: Population,
     rollout: Rollout,
-    bounds: dict[str, Tensor],
+    bounds: dict[CFModel, Tensor],
     noise: Noise,
-    parents: dict[str, str],
+    parents: dict[CFModel, CFModel],
     *,
     rounds: int,
     copies: int,
@@ -247,12 +250,12 @@ def local_search(
         the population after the last round.
     """
     shape = (population.n_pairs, population.size, copies)
-    cache: dict[str, Tensor] = {}
+    cache: dict[CFModel, Tensor] = {}
 
-    def columns(name: str) -> Tensor:
-        if name not in cache:
-            cache[name] = noise.columns(name, parents[name])
-        return cache[name]
+    def columns(model: CFModel) -> Tensor:
+        if model not in cache:
+            cache[model] = noise.columns(model, parents[model])
+        return cache[model]
 
     for r in range(rounds):
         copies_ = search_round(
@@ -283,9 +286,9 @@ class Converging:
 def converge(
     population: Population,
     rollout: Rollout,
-    bounds: dict[str, Tensor],
+    bounds: dict[CFModel, Tensor],
     noise: Noise,
-    parents: dict[str, str],
+    parents: dict[CFModel, CFModel],
     settings: DiagnoseConfig,
     *,
     resume: Converging | None = None,
@@ -315,12 +318,12 @@ def converge(
     calm, rounds = 0, 0
     if resume is not None:
         population, rounds, calm = resume.population, resume.rounds, resume.calm
-    cache: dict[str, Tensor] = {}
+    cache: dict[CFModel, Tensor] = {}
 
-    def columns(name: str) -> Tensor:
-        if name not in cache:
-            cache[name] = noise.columns(name, parents[name])
-        return cache[name]
+    def columns(model: CFModel) -> Tensor:
+        if model not in cache:
+            cache[model] = noise.columns(model, parents[model])
+        return cache[model]
 
     while rounds < max_rounds and calm < 2:
         before = _summed_best(population)
@@ -347,7 +350,7 @@ def lift(
     effect: Effect,
     values: Tensor,
     rollout: Rollout | None = None,
-) -> tuple[Population, dict[str, str]]:
+) -> tuple[Population, dict[CFModel, CFModel]]:
     """Every slot whose model the effect can wrap, as the variant ``m+effect`` with
     the effect's parameters at ``values`` ((K_E,), or (N, S, K_E) per slot);
     slots of a model it cannot wrap stay as they are.
@@ -364,29 +367,31 @@ def lift(
     n, size = population.score.shape
     values = values.to(torch.float64).expand(n, size, len(names))
     models = list(population.models)
-    lifted_from: dict[str, str] = {}
+    lifted_from: dict[CFModel, CFModel] = {}
     new_index = population.model.clone()
-    widths = [get_model(m).n_params for m in population.models]
-    for m, name in enumerate(population.models):
-        variant = variant_of(name, effect)
+    widths = [m.n_params for m in population.models]
+    for m, model in enumerate(population.models):
+        variant = variant_of(model, effect)
         if variant is None or not bool((population.model == m).any()):
             continue
         if variant in population.models:
-            raise ValueError(f"{name}: {variant} is in the population already")
-        lifted_from[variant] = name
+            raise ValueError(
+                f"{model.name}: {variant.name} is in the population already"
+            )
+        lifted_from[variant] = model
         if variant not in models:
             models.append(variant)
         new_index[population.model == m] = models.index(variant)
-        widths.append(get_model(variant).n_params)
+        widths.append(variant.n_params)
     width = max(widths)
     theta = torch.full((n, size, width), math.nan, dtype=torch.float64)
-    for m, name in enumerate(models):
+    for m, model in enumerate(models):
         held = new_index == m
         if not bool(held.any()):
             continue
-        target = get_model(name).param_names
-        if name in lifted_from:
-            source = get_model(lifted_from[name]).param_names
+        target = model.param_names
+        if model in lifted_from:
+            source = lifted_from[model].param_names
             old = population.theta[held]
             columns = [
                 old[:, source.index(p)]
@@ -410,7 +415,7 @@ def shared_value(
     effect: Effect,
     population: Population,
     rollout: Rollout,
-    bounds: dict[str, Tensor],
+    bounds: dict[CFModel, Tensor],
     prior: Tensor,
     key: tuple,
     start: Sequence[Tensor] = (),
@@ -480,7 +485,7 @@ def _value_scores(
     values: Tensor,
     members: Population,
     rollout: Rollout,
-    bounds: dict[str, Tensor],
+    bounds: dict[CFModel, Tensor],
     key: tuple,
     round_: int,
 ) -> Tensor:
@@ -491,17 +496,17 @@ def _value_scores(
     n = members.n_pairs
     per_pair = torch.full((n, m), math.inf, dtype=torch.float64)
     g = generator(*key, "shared-steps", effect, round_)
-    for name in members.models:
-        variant = variant_of(name, effect)
-        pair, slot = members.model_slots(name)
+    for model in members.models:
+        variant = variant_of(model, effect)
+        pair, slot = members.model_slots(model)
         if variant is None or pair.numel() == 0:
             continue
-        k = get_model(name).n_params
+        k = model.n_params
         theta = members.theta[pair, slot, :k]  # (Q, K)
         steps = torch.randn(theta.shape[0], m, k, generator=g, dtype=torch.float64)
-        moved = jitter(theta, steps, bounds[name])  # (Q, M, K)
+        moved = jitter(theta, steps, bounds[model])  # (Q, M, K)
         composed = _compose(
-            name, variant, moved, values[None].expand(len(pair), -1, -1)
+            model, variant, moved, values[None].expand(len(pair), -1, -1)
         )
         score = score_on(
             rollout, variant, composed.reshape(-1, composed.shape[-1]),
@@ -513,14 +518,16 @@ def _value_scores(
     return per_pair
 
 
-def _compose(model: str, variant: str, theta: Tensor, effect_values: Tensor) -> Tensor:
+def _compose(
+    model: CFModel, variant: CFModel, theta: Tensor, effect_values: Tensor
+) -> Tensor:
     """Parameters (..., K_variant) of ``variant`` = ``model`` plus one effect, placed
     by name, from ``theta`` (..., K_model) and ``effect_values`` (..., K_E)."""
-    have = get_model(model).param_names
-    added = [n for n in get_model(variant).param_names if n not in have]
+    have = model.param_names
+    added = [n for n in variant.param_names if n not in have]
     columns = [
         theta[..., have.index(n)] if n in have else effect_values[..., added.index(n)]
-        for n in get_model(variant).param_names
+        for n in variant.param_names
     ]
     return torch.stack(columns, dim=-1)
 

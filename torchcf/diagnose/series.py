@@ -22,6 +22,7 @@ from torch import Tensor
 
 from ..abc.particles import Particles, best_per_pair
 from ..data import PairSet
+from ..models import CFModel
 from ..posterior import Posterior
 from ..sim.rollout import simulate
 from ..system.errors import TorchcfError
@@ -29,7 +30,7 @@ from . import residuals as rt
 
 #: A pair's best particle per model: ``{model: (theta (k, K) float64, pair position
 #: (k,) int64)}``.
-BestParticles = dict[str, tuple[Tensor, Tensor]]
+BestParticles = dict[CFModel, tuple[Tensor, Tensor]]
 
 #: The channels tested, residuals ``observed - simulated``.
 CHANNELS = ("spacing", "speed", "acceleration")
@@ -85,9 +86,9 @@ def residual_series(
     """
     sim_x = torch.full((pairs.n_steps, pairs.n_pairs), math.nan, dtype=torch.float64)
     sim_v, sim_a = sim_x.clone(), sim_x.clone()
-    for name, (theta, position) in best.items():
+    for model, (theta, position) in best.items():
         out = simulate(
-            name, theta.to(dtype), pairs, position, dtype=dtype, return_traj=True
+            model, theta.to(dtype), pairs, position, dtype=dtype, return_traj=True
         )
         sim_x[:, position] = out.x.double().cpu()
         sim_v[:, position] = out.v.double().cpu()

@@ -57,7 +57,7 @@ from torch import Tensor
 from ..abc.rejection import Rollout
 from ..config import DiagnoseConfig, TrainConfig
 from ..data import PairSet
-from ..models import get_model
+from ..models import CFModel
 from .candidates import attribution_rollout
 from .population import Population, pick_scores
 from .refit import Pin, RefitBudget, candidates, refit_paired, refit_scores
@@ -238,12 +238,12 @@ def coverage_scores(population: Population, n: int, rollout: Rollout) -> Tensor:
     picks = population.best(n)
     every_pair = dataclasses.replace(rollout, paired=False)
     best = torch.full((rollout.pairs.n_pairs,), math.inf, dtype=torch.float64)
-    for name in picks.models:
-        pair, slot = picks.model_slots(name)
+    for model in picks.models:
+        pair, slot = picks.model_slots(model)
         if pair.numel() == 0:
             continue
-        theta = picks.theta[pair, slot, : get_model(name).n_params]  # (Q, K)
-        score, _ = every_pair.score(get_model(name), theta, None)  # (Q, V)
+        theta = picks.theta[pair, slot, : model.n_params]  # (Q, K)
+        score, _ = every_pair.score(model, theta, None)  # (Q, V)
         best = torch.minimum(best, score.cpu().min(0).values)
     return best
 
@@ -318,7 +318,7 @@ class Validation:
 
     def refit(
         self,
-        members: dict[str, Tensor],
+        members: dict[CFModel, Tensor],
         step: int,
         shared: dict[str, Tensor],
         pin: Pin | None = None,
@@ -371,7 +371,7 @@ class Judge:
     before: np.ndarray
 
     def __call__(
-        self, arm: Population, lifted_from: dict[str, str], pin: Pin | None
+        self, arm: Population, lifted_from: dict[CFModel, CFModel], pin: Pin | None
     ) -> tuple[np.ndarray, np.ndarray]:
         """(U,) float64 each: the scores per unit without and with the effect.
 

@@ -6,6 +6,9 @@ shared by everything.
 
 from __future__ import annotations
 
+import copyreg
+from collections.abc import Callable
+
 from ..system.errors import did_you_mean
 from .augmented import AugmentedModel
 from .base import (
@@ -85,6 +88,17 @@ def augment(model: CFModel, *effects: Effect) -> CFModel:
         raise UnknownModelError(str(error)) from None
     # One instance per canonical name (compiled graphs are cached per instance).
     return _AUGMENTED.setdefault(variant.name, variant)
+
+
+def _by_name(model: CFModel) -> tuple[Callable[[str], CFModel], tuple[str]]:
+    """How a model is pickled (sent to a worker process) or copied: as its name,
+    read back as the registry's one instance, so that on the other side it is
+    still the dict key that compares by identity."""
+    return get_model, (model.name,)
+
+
+for _kind in (*(type(m) for m in MODELS.values()), AugmentedModel):
+    copyreg.pickle(_kind, _by_name)
 
 
 def split_name(key: str) -> list[str]:
