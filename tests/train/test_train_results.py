@@ -343,8 +343,6 @@ def test_the_names_of_the_module_before_its_split_still_import():
         "check_budget",
         "hybrid_plausibility",
         "open_run",
-        "plausibility_battery",
-        "plausibility_screen",
         "rollout_of",
         "run_device",
         "smc_settings",
@@ -353,5 +351,5 @@ def test_the_names_of_the_module_before_its_split_still_import():
     ):
         assert hasattr(run_module, name), name
     assert run_module.RunError is checkpoint.RunError
-    assert run_module.plausibility_battery is engine.plausibility_battery
+    assert run_module.hybrid_plausibility is engine.hybrid_plausibility
     assert run_module.RunSummary is summary.RunSummary

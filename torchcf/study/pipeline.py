@@ -33,8 +33,8 @@ from ..diagnose.loop import finish_loop, plan_loop, run_recalibration
 from ..diagnose.outcome import LoopResult
 from ..evaluation.evaluate import evaluate_run
 from ..runs.directory import RunDir
+from ..traffic.configured import plausibility_screen
 from ..train import RunSummary, check_budget, open_run, run_device, train
-from ..train.engine import plausibility_screen
 
 
 @dataclass(frozen=True)
@@ -173,8 +173,8 @@ def close_loop(
         plan = plan_loop(run_dir, overrides, pairs=pairs, progress=progress)
         if plan.recalibration is not None and not plan.resume_recalibration:
             # the re-calibration trains as the run did: with its plausibility
-            # filter, which the training stage builds (the loop sits below it)
-            screen = plausibility_screen(plan.cfg, plan.train_pairs)
+            # filter, handed down (the loop does not build a battery)
+            screen = plausibility_screen(plan.cfg.plausibility, plan.train_pairs)
             run_recalibration(plan, progress=progress, screen=screen)
             for out in (plan.reference_dir, plan.recalibration_dir):
                 evaluate_run(

@@ -10,9 +10,9 @@
   from the checkpoint (:func:`build_buffers`);
 - how the particles are simulated (:func:`rollout_of`: a
   :class:`~torchcf.abc.rejection.Rollout`; re-exported);
-- the plausibility battery (:mod:`torchcf.traffic.battery`) at the training
-  pairs' settings, as the calibration's screen (:func:`plausibility_screen`) and
-  as the report on the hybrid (:func:`hybrid_plausibility`).
+- the plausibility battery's report on the hybrid (:func:`hybrid_plausibility`;
+  the battery as the config sets it: :mod:`torchcf.traffic.configured`, which
+  also builds the calibration's screen).
 
 Units: SI throughout (m, s, m/s); ``abc.n_particles`` counts particles per
 model; a buffer is ``(N, B)`` scores for ``N`` training pairs and ``B =
@@ -33,7 +33,6 @@ from tqdm import tqdm
 from ..abc.configured import rollout_of, smc_settings
 from ..abc.distributed import Group
 from ..abc.rejection import ModelProgress
-from ..abc.screen import PlausibilityScreen
 from ..abc.smc import SMCSettings, new_state, smc_budget
 from ..abc.topn import TopN
 from ..config import ConfigError, TrainConfig
@@ -41,13 +40,8 @@ from ..data import PairSet
 from ..models import get_model
 from ..posterior import Posterior
 from ..system.console import bar_interval
-from ..traffic.battery import (
-    Battery,
-    PlausibilitySummary,
-    battery_speed,
-    check_plausibility,
-    rejects,
-)
+from ..traffic.battery import PlausibilitySummary, check_plausibility
+from ..traffic.configured import plausibility_battery
 from .checkpoint import RunError, RunState
 
 #: Particles per battery call on the hybrid after training. The battery holds
@@ -177,20 +171,6 @@ def build_buffers(
 # Plausibility
 
 
-def plausibility_battery(cfg: TrainConfig, pairs: PairSet) -> Battery:
-    """The config's battery at the training pairs' dt (s), leader length (m) and
-    (unless ``plausibility.speed`` is set) 95th-percentile leader speed (m/s)."""
-    settings = cfg.plausibility
-    speed = settings.speed or battery_speed(pairs.v_lead, pairs.mask)
-    return Battery(
-        speed=speed,
-        decelerations=tuple(settings.decelerations),
-        collision_spacing=settings.collision_spacing,
-        dt=pairs.dt,
-        leader_length=pairs.leader_length,
-    )
-
-
 def hybrid_plausibility(
     cfg: TrainConfig, pairs: PairSet, posterior: Posterior, progress: bool = False
 ) -> dict[str, PlausibilitySummary]:
@@ -198,7 +178,7 @@ def hybrid_plausibility(
     CPU in float64 (:meth:`torchcf.traffic.Plausibility.summary`), in chunks
     of :data:`BATTERY_CHUNK` particles; ``progress``: a bar over the models on
     stderr."""
-    battery = plausibility_battery(cfg, pairs)
+    battery = plausibility_battery(cfg.plausibility, pairs)
     names = [
         name for name in posterior.models
         if name in posterior.hybrid and len(posterior.hybrid[name])
@@ -216,23 +196,12 @@ def hybrid_plausibility(
     return out
 
 
-def plausibility_screen(cfg: TrainConfig, pairs: PairSet) -> PlausibilityScreen | None:
-    """The calibration's plausibility filter (``plausibility.filter``) on the
-    battery of :func:`plausibility_battery`; None when the filter is off."""
-    if not cfg.plausibility.filter:
-        return None
-    battery = plausibility_battery(cfg, pairs)
-    return PlausibilityScreen(rejects(battery, cfg.plausibility.reject_string_unstable))
-
-
 __all__ = [
     "BATTERY_CHUNK",
     "build_buffers",
     "check_budget",
     "check_smc_budget",
     "hybrid_plausibility",
-    "plausibility_battery",
-    "plausibility_screen",
     "rollout_of",
     "run_device",
     "smc_settings",

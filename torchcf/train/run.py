@@ -17,7 +17,8 @@ every rank holds the merged buffers). Its parts, by concern:
   (``abc.checkpoint_every`` seconds and after each model, so that ``--resume``
   ends identical to an uninterrupted run), the checkpointer;
 - :mod:`torchcf.train.engine`: the config translated for the engine (device,
-  budgets, SMC settings, buffers, the rollout, the plausibility battery);
+  budgets, SMC settings, buffers, the rollout, the plausibility report on the
+  hybrid);
 - :mod:`torchcf.train.summary`: the results and ``summary.json``
   (:class:`~torchcf.train.summary.RunSummary`).
 
@@ -65,6 +66,7 @@ from ..system.console import bar_interval
 from ..system.files import ensure_directory, writing
 from ..system.process import tune_malloc
 from ..system.signals import StopRequest
+from ..traffic.configured import plausibility_screen
 from .checkpoint import (
     CHECKPOINT_FORMAT,
     Checkpointer,
@@ -79,8 +81,6 @@ from .engine import (
     build_buffers,
     check_budget,
     hybrid_plausibility,
-    plausibility_battery,
-    plausibility_screen,
     rollout_of,
     run_device,
     smc_settings,
@@ -113,7 +113,7 @@ def _stream_model(
         return
     n_total = cfg.abc.n_particles
     bar = _progress_bar(name, n_total, progress.next, enabled=group.is_main)
-    screen = plausibility_screen(cfg, rollout.pairs)
+    screen = plausibility_screen(cfg.plausibility, rollout.pairs)
 
     def after_round(progress: ModelProgress, due: bool) -> None:
         bar.update(progress.next - bar.n)
@@ -369,8 +369,6 @@ __all__ = [
     "dataset_label",
     "hybrid_plausibility",
     "open_run",
-    "plausibility_battery",
-    "plausibility_screen",
     "rollout_of",
     "run_device",
     "smc_settings",
