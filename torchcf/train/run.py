@@ -177,7 +177,7 @@ def _progress_bar(name: str, total: int, initial: int, enabled: bool) -> tqdm:
 
 def train(
     cfg: TrainConfig,
-    out: str | Path,
+    out: str | Path | RunDir,
     *,
     resume: bool = False,
     pairs: tuple[PairSet, PairSet] | None = None,
@@ -212,7 +212,6 @@ def train(
             checkpoint is kept intact).
     """
     began = time.perf_counter()
-    out = Path(out)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     tune_malloc()
