@@ -10,9 +10,6 @@
   from the checkpoint (:func:`build_buffers`);
 - how the particles are simulated (:func:`rollout_of`: a
   :class:`~torchcf.abc.rejection.Rollout`; re-exported);
-- the plausibility battery's report on the hybrid (:func:`hybrid_plausibility`;
-  the battery as the config sets it: :mod:`torchcf.traffic.configured`, which
-  also builds the calibration's screen).
 
 Units: SI throughout (m, s, m/s); ``abc.n_particles`` counts particles per
 model; a buffer is ``(N, B)`` scores for ``N`` training pairs and ``B =
@@ -23,12 +20,10 @@ log of the importance weight's ratio, ``log r``).
 from __future__ import annotations
 
 import math
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 import torch
-from tqdm import tqdm
 
 from ..abc.configured import rollout_of, smc_settings
 from ..abc.distributed import Group
@@ -38,19 +33,7 @@ from ..abc.topn import TopN
 from ..config import ConfigError, TrainConfig
 from ..data import PairSet
 from ..models import get_model
-from ..posterior import Posterior
-from ..system.console import bar_interval
-from ..traffic.battery import PlausibilitySummary, check_plausibility
-from ..traffic.configured import plausibility_battery
 from .checkpoint import RunError, RunState
-
-#: Particles per battery call on the hybrid after training. The battery holds
-#: about 350 KiB per particle at its peak (the scenarios' recorded series): its
-#: own default of 16 384 took 5.6 GiB once a model held that many hybrid
-#: particles (10 000 pairs x 5), 2 048 take 0.7 GiB, and run faster (IDM, 8 192
-#: particles: 13 s against 20 s on 1 thread). The result does not depend on it.
-BATTERY_CHUNK = 1 << 11
-
 
 # --------------------------------------------------------------------------------------
 # Device and budget
@@ -167,41 +150,10 @@ def build_buffers(
         state.progress.setdefault(name, ModelProgress())
 
 
-# --------------------------------------------------------------------------------------
-# Plausibility
-
-
-def hybrid_plausibility(
-    cfg: TrainConfig, pairs: PairSet, posterior: Posterior, progress: bool = False
-) -> dict[str, PlausibilitySummary]:
-    """The battery's shares per model over the hybrid's particles, on the
-    CPU in float64 (:meth:`torchcf.traffic.Plausibility.summary`), in chunks
-    of :data:`BATTERY_CHUNK` particles; ``progress``: a bar over the models on
-    stderr."""
-    battery = plausibility_battery(cfg.plausibility, pairs)
-    names = [
-        name for name in posterior.models
-        if name in posterior.hybrid and len(posterior.hybrid[name])
-    ]  # fmt: skip
-    bar = tqdm(
-        names, desc="plausibility battery", unit="model", file=sys.stderr,
-        mininterval=bar_interval(), disable=not progress,
-    )  # fmt: skip
-    out = {}
-    for name in bar:
-        bar.set_postfix_str(f"{name}, {len(posterior.hybrid[name])} particles")
-        out[name] = check_plausibility(
-            name, posterior.hybrid[name].theta, battery, chunk=BATTERY_CHUNK
-        ).summary()
-    return out
-
-
 __all__ = [
-    "BATTERY_CHUNK",
     "build_buffers",
     "check_budget",
     "check_smc_budget",
-    "hybrid_plausibility",
     "rollout_of",
     "run_device",
     "smc_settings",

@@ -17,8 +17,7 @@ every rank holds the merged buffers). Its parts, by concern:
   (``abc.checkpoint_every`` seconds and after each model, so that ``--resume``
   ends identical to an uninterrupted run), the checkpointer;
 - :mod:`torchcf.train.engine`: the config translated for the engine (device,
-  budgets, SMC settings, buffers, the rollout, the plausibility report on the
-  hybrid);
+  budgets, SMC settings, buffers, the rollout);
 - :mod:`torchcf.train.summary`: the results and ``summary.json``
   (:class:`~torchcf.train.summary.RunSummary`).
 
@@ -66,7 +65,7 @@ from ..system.console import bar_interval
 from ..system.files import ensure_directory, writing
 from ..system.process import tune_malloc
 from ..system.signals import StopRequest
-from ..traffic.configured import plausibility_screen
+from ..traffic.configured import hybrid_plausibility, plausibility_screen
 from .checkpoint import (
     CHECKPOINT_FORMAT,
     Checkpointer,
@@ -77,10 +76,8 @@ from .checkpoint import (
     resume_note,
 )
 from .engine import (
-    BATTERY_CHUNK,
     build_buffers,
     check_budget,
-    hybrid_plausibility,
     rollout_of,
     run_device,
     smc_settings,
@@ -266,7 +263,9 @@ def _train_held(
             cfg, train_pairs, test_pairs, state, wall, group.world_size
         )
         if cfg.plausibility.report and group.is_main:
-            report = hybrid_plausibility(cfg, train_pairs, posterior, progress=True)
+            report = hybrid_plausibility(
+                cfg.plausibility, train_pairs, posterior, progress=True
+            )
             summary = summary.with_plausibility(report)
             logger.plausibility(report)
         images = None
@@ -357,7 +356,6 @@ def _log_results(
 
 
 __all__ = [
-    "BATTERY_CHUNK",
     "CHECKPOINT_FORMAT",
     "Checkpointer",
     "RunError",
@@ -366,7 +364,6 @@ __all__ = [
     "check_budget",
     "checkpoint_state",
     "dataset_label",
-    "hybrid_plausibility",
     "open_run",
     "rollout_of",
     "run_device",
