@@ -172,6 +172,21 @@ def test_nothing_imports_a_command_line():
     assert not importers, importers
 
 
+def test_training_is_reached_through_its_package():
+    """The study and the commands call training by ``torchcf.train``'s names
+    only: what the loop's re-calibration shares with training (the rollout, the
+    plausibility screen) sits below both (``torchcf.abc.configured``,
+    ``torchcf.traffic.configured``), not in training's own modules."""
+    reaching = [
+        f"{module} -> {target}"
+        for module, targets in _graph().items()
+        if not module.startswith("torchcf.train")
+        for target in targets
+        if target.startswith("torchcf.train.")
+    ]
+    assert not reaching, reaching
+
+
 def test_the_graph_sees_relative_and_function_level_imports():
     """The checks above can fail: the parser finds what they look for."""
     graph = _graph()

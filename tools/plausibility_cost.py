@@ -40,7 +40,7 @@ from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 from torchcf.system.files import from_json_safe  # noqa: E402
 from torchcf.traffic import HybridSampler  # noqa: E402
 from torchcf.traffic.battery import plausibility_by_model  # noqa: E402
-from torchcf.train.run import plausibility_battery  # noqa: E402
+from torchcf.traffic.configured import plausibility_battery  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SETS = {"carI": "CAR MODEL I", "carII": "CAR MODEL II", "ngsim": "NGSIM I-80"}
@@ -66,7 +66,7 @@ def run_set(
         metrics = from_json_safe(RunDir(out).read_metrics())
         posterior = Posterior.load(out / "posterior.pt")
     sampler = HybridSampler.from_posterior(posterior, dt=0.1)
-    battery = plausibility_battery(cfg, load_split(cfg.data)[0])
+    battery = plausibility_battery(cfg.plausibility, load_split(cfg.data)[0])
     particles = {name: sampler.particles(name) for name in sampler.model_names}
     collided = {
         name: row.collided

@@ -20,8 +20,8 @@ from torchcf.diagnose.search import model_bounds
 from torchcf.models import get_model
 from torchcf.posterior import Posterior
 from torchcf.sim.synthetic import synthetic_pairs
+from torchcf.traffic.configured import plausibility_screen
 from torchcf.train import train
-from torchcf.train.engine import plausibility_screen
 
 IDM = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
 N = 3000
@@ -81,7 +81,7 @@ def test_the_plausibility_filter_screens_the_variants_as_it_screened_the_run(
     screened = {"plausibility": {"filter": True}}
     cfg = _config(["idm"], **screened)
     run = _trained(tmp_path, "run", cfg, pairs)
-    screen = plausibility_screen(cfg, pairs)
+    screen = plausibility_screen(cfg.plausibility, pairs)
     args = (cfg, run, FinalModel(["idm", "idm+delay"]), ["idm"], pairs)
     _, after = retrain(*args, screen=screen)
     alone = _trained(tmp_path, "variant", _config(["idm+delay"], **screened), pairs)

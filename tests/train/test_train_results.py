@@ -336,15 +336,11 @@ def test_the_names_of_the_module_before_its_split_still_import():
     from torchcf.train import checkpoint, engine, summary
 
     for name in (
-        "BATTERY_CHUNK",
         "CHECKPOINT_FORMAT",
         "RunError",
         "RunState",
         "check_budget",
-        "hybrid_plausibility",
         "open_run",
-        "plausibility_battery",
-        "plausibility_screen",
         "rollout_of",
         "run_device",
         "smc_settings",
@@ -353,5 +349,5 @@ def test_the_names_of_the_module_before_its_split_still_import():
     ):
         assert hasattr(run_module, name), name
     assert run_module.RunError is checkpoint.RunError
-    assert run_module.plausibility_battery is engine.plausibility_battery
+    assert run_module.check_budget is engine.check_budget
     assert run_module.RunSummary is summary.RunSummary

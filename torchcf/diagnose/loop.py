@@ -279,7 +279,7 @@ class LoopPlan:
 
 
 def plan_loop(
-    run_dir: str | Path,
+    run_dir: str | Path | RunDir,
     overrides: Sequence[str] = (),
     *,
     pairs: tuple[PairSet, PairSet] | None = None,

@@ -122,7 +122,7 @@ def retrain(
         pool: the pool models; those a variant wraps get ``N`` more particles
             in the reference (:func:`wrapped`).
         screen: the run's plausibility filter (``plausibility.filter``), built
-            by the caller (:func:`torchcf.train.engine.plausibility_screen`);
+            by the caller (:func:`torchcf.traffic.configured.plausibility_screen`);
             None when it is off.
         ledger: where finished models are kept (None: nowhere, no resume).
         tick: called with the particles done after every round of every model.

@@ -189,7 +189,7 @@ def crossval(
         if not fold_dir.is_evaluated():
             started = fold_dir.has_checkpoint()
             run_study(
-                fold_config(cfg, folds, fold), fold_dir.path, resume=resume and started
+                fold_config(cfg, folds, fold), fold_dir, resume=resume and started
             )
         fold_metrics.append(fold_dir.read_metrics())
     result = aggregate(fold_metrics)

@@ -8,8 +8,9 @@ evaluate_run` the test-split metrics, :mod:`torchcf.diagnose.loop` the diagnosis
 chains them; the command lines (``python -m torchcf.train``, ``crossval``,
 ``diagnose``) call it, and nothing below it runs another stage.
 
-The pairs are loaded once (on rank 0, after the output directory has been
-checked) and handed to every stage.
+The run directory (:class:`~torchcf.runs.directory.RunDir`) is held and the
+pairs are loaded once (on rank 0, after the output directory has been checked),
+and both are handed to every stage.
 
 :func:`train_and_evaluate` and :func:`run_study` return a :class:`StudyResult`:
 the training summary (:class:`~torchcf.train.summary.RunSummary`) and what the
@@ -33,8 +34,8 @@ from ..diagnose.loop import finish_loop, plan_loop, run_recalibration
 from ..diagnose.outcome import LoopResult
 from ..evaluation.evaluate import evaluate_run
 from ..runs.directory import RunDir
+from ..traffic.configured import plausibility_screen
 from ..train import RunSummary, check_budget, open_run, run_device, train
-from ..train.engine import plausibility_screen
 
 
 @dataclass(frozen=True)
@@ -57,12 +58,12 @@ class StudyResult:
 
 
 def _checked_pairs(
-    cfg: TrainConfig, out: Path, resume: bool, group: Group
+    cfg: TrainConfig, run: RunDir, resume: bool, group: Group
 ) -> tuple[PairSet, PairSet]:
     """The config's ``(train, test)`` pairs, read on rank 0 once the output
     directory is known to be usable (fail fast: :func:`torchcf.train.open_run`;
     training checks it again, cheaply, as it must when called alone)."""
-    group.on_main(open_run, cfg, out, resume)
+    group.on_main(open_run, cfg, run.path, resume)
     run_device(cfg, group)  # a missing GPU is said before the data are read
     with notes_deferred():  # a budget short for these pairs: the error alone
         pairs = group.on_main(load_split, cfg.data)
@@ -70,16 +71,16 @@ def _checked_pairs(
     return pairs
 
 
-def _held(out: Path, group: Group) -> AbstractContextManager[Any]:
+def _held(run: RunDir, group: Group) -> AbstractContextManager[Any]:
     """The run directory held by rank 0 for the whole stage
     (:meth:`~torchcf.runs.directory.RunDir.locked`): a second study started into it
     meanwhile is refused instead of mixing its files with this one's."""
-    return RunDir(out).locked() if group.is_main else nullcontext()
+    return run.locked() if group.is_main else nullcontext()
 
 
 def train_and_evaluate(
     cfg: TrainConfig,
-    out: str | Path,
+    out: str | Path | RunDir,
     *,
     resume: bool = False,
     pairs: tuple[PairSet, PairSet] | None = None,
@@ -102,21 +103,34 @@ def train_and_evaluate(
         the training summary (``summary.json``) and whether this call evaluated
         the run, on every rank (:class:`StudyResult`).
     """
-    out = Path(out)
-    with _held(out, group):
+    run = RunDir(out)
+    with _held(run, group):
         if pairs is None:
-            pairs = _checked_pairs(cfg, out, resume, group)
-        summary = train(cfg, out, resume=resume, pairs=pairs, group=group)
-        done = resume and RunDir(out).is_evaluated()
-        evaluated = evaluate and group.is_main and not done
-        if evaluated:
-            evaluate_run(out, pairs=pairs)
-    return StudyResult(out, summary, evaluated=evaluated)
+            pairs = _checked_pairs(cfg, run, resume, group)
+        return _train_and_evaluate(cfg, run, resume, pairs, evaluate, group)
+
+
+def _train_and_evaluate(
+    cfg: TrainConfig,
+    run: RunDir,
+    resume: bool,
+    pairs: tuple[PairSet, PairSet],
+    evaluate: bool,
+    group: Group,
+) -> StudyResult:
+    """:func:`train_and_evaluate` with the run directory held and the pairs
+    read."""
+    summary = train(cfg, run, resume=resume, pairs=pairs, group=group)
+    done = resume and run.is_evaluated()
+    evaluated = evaluate and group.is_main and not done
+    if evaluated:
+        evaluate_run(run, pairs=pairs)
+    return StudyResult(run.path, summary, evaluated=evaluated)
 
 
 def run_study(
     cfg: TrainConfig,
-    out: str | Path,
+    out: str | Path | RunDir,
     *,
     resume: bool = False,
     pairs: tuple[PairSet, PairSet] | None = None,
@@ -131,22 +145,20 @@ def run_study(
         the training summary, whether this call evaluated the run and the loop's
         result if it closed the loop (:class:`StudyResult`), on every rank.
     """
-    out = Path(out)
-    with _held(out, group):
+    run = RunDir(out)
+    with _held(run, group):
         if pairs is None:
-            pairs = _checked_pairs(cfg, out, resume, group)
-        result = train_and_evaluate(
-            cfg, out, resume=resume, pairs=pairs, evaluate=evaluate, group=group
-        )
-        looped = resume and RunDir(out).is_looped()  # a finished loop is not rerun
+            pairs = _checked_pairs(cfg, run, resume, group)
+        result = _train_and_evaluate(cfg, run, resume, pairs, evaluate, group)
+        looped = resume and run.is_looped()  # a finished loop is not rerun
         if evaluate and cfg.diagnose.run_after_training and group.is_main:
             if not looped:
-                result = replace(result, loop=close_loop(out, pairs=pairs))
+                result = replace(result, loop=close_loop(run, pairs=pairs))
     return result
 
 
 def close_loop(
-    run_dir: str | Path,
+    run_dir: str | Path | RunDir,
     overrides: Sequence[str] = (),
     *,
     pairs: tuple[PairSet, PairSet] | None = None,
@@ -169,12 +181,13 @@ def close_loop(
     Returns:
         the loop result (also in ``RUN_DIR/loop.json``).
     """
-    with RunDir(run_dir).locked():
-        plan = plan_loop(run_dir, overrides, pairs=pairs, progress=progress)
+    run = RunDir(run_dir)
+    with run.locked():
+        plan = plan_loop(run, overrides, pairs=pairs, progress=progress)
         if plan.recalibration is not None and not plan.resume_recalibration:
             # the re-calibration trains as the run did: with its plausibility
-            # filter, which the training stage builds (the loop sits below it)
-            screen = plausibility_screen(plan.cfg, plan.train_pairs)
+            # filter, handed down (the loop does not build a battery)
+            screen = plausibility_screen(plan.cfg.plausibility, plan.train_pairs)
             run_recalibration(plan, progress=progress, screen=screen)
             for out in (plan.reference_dir, plan.recalibration_dir):
                 evaluate_run(

@@ -5,7 +5,7 @@
 - :mod:`torchcf.train.checkpoint`: the checkpoint's format, resuming, the
   checkpointer;
 - :mod:`torchcf.train.engine`: the config translated for the ABC engine (device,
-  budgets, buffers, the rollout, the plausibility battery);
+  budgets, buffers, the rollout);
 - :mod:`torchcf.train.summary`: the results and ``summary.json``
   (:class:`RunSummary`);
 - :mod:`torchcf.train.__main__`: ``python -m torchcf.train CONFIG``, which runs the

@@ -10,9 +10,6 @@
   from the checkpoint (:func:`build_buffers`);
 - how the particles are simulated (:func:`rollout_of`: a
   :class:`~torchcf.abc.rejection.Rollout`; re-exported);
-- the plausibility battery (:mod:`torchcf.traffic.battery`) at the training
-  pairs' settings, as the calibration's screen (:func:`plausibility_screen`) and
-  as the report on the hybrid (:func:`hybrid_plausibility`).
 
 Units: SI throughout (m, s, m/s); ``abc.n_particles`` counts particles per
 model; a buffer is ``(N, B)`` scores for ``N`` training pairs and ``B =
@@ -23,40 +20,20 @@ log of the importance weight's ratio, ``log r``).
 from __future__ import annotations
 
 import math
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 import torch
-from tqdm import tqdm
 
 from ..abc.configured import rollout_of, smc_settings
 from ..abc.distributed import Group
 from ..abc.rejection import ModelProgress
-from ..abc.screen import PlausibilityScreen
 from ..abc.smc import SMCSettings, new_state, smc_budget
 from ..abc.topn import TopN
 from ..config import ConfigError, TrainConfig
 from ..data import PairSet
 from ..models import get_model
-from ..posterior import Posterior
-from ..system.console import bar_interval
-from ..traffic.battery import (
-    Battery,
-    PlausibilitySummary,
-    battery_speed,
-    check_plausibility,
-    rejects,
-)
 from .checkpoint import RunError, RunState
-
-#: Particles per battery call on the hybrid after training. The battery holds
-#: about 350 KiB per particle at its peak (the scenarios' recorded series): its
-#: own default of 16 384 took 5.6 GiB once a model held that many hybrid
-#: particles (10 000 pairs x 5), 2 048 take 0.7 GiB, and run faster (IDM, 8 192
-#: particles: 13 s against 20 s on 1 thread). The result does not depend on it.
-BATTERY_CHUNK = 1 << 11
-
 
 # --------------------------------------------------------------------------------------
 # Device and budget
@@ -173,66 +150,10 @@ def build_buffers(
         state.progress.setdefault(name, ModelProgress())
 
 
-# --------------------------------------------------------------------------------------
-# Plausibility
-
-
-def plausibility_battery(cfg: TrainConfig, pairs: PairSet) -> Battery:
-    """The config's battery at the training pairs' dt (s), leader length (m) and
-    (unless ``plausibility.speed`` is set) 95th-percentile leader speed (m/s)."""
-    settings = cfg.plausibility
-    speed = settings.speed or battery_speed(pairs.v_lead, pairs.mask)
-    return Battery(
-        speed=speed,
-        decelerations=tuple(settings.decelerations),
-        collision_spacing=settings.collision_spacing,
-        dt=pairs.dt,
-        leader_length=pairs.leader_length,
-    )
-
-
-def hybrid_plausibility(
-    cfg: TrainConfig, pairs: PairSet, posterior: Posterior, progress: bool = False
-) -> dict[str, PlausibilitySummary]:
-    """The battery's shares per model over the hybrid's particles, on the
-    CPU in float64 (:meth:`torchcf.traffic.Plausibility.summary`), in chunks
-    of :data:`BATTERY_CHUNK` particles; ``progress``: a bar over the models on
-    stderr."""
-    battery = plausibility_battery(cfg, pairs)
-    names = [
-        name for name in posterior.models
-        if name in posterior.hybrid and len(posterior.hybrid[name])
-    ]  # fmt: skip
-    bar = tqdm(
-        names, desc="plausibility battery", unit="model", file=sys.stderr,
-        mininterval=bar_interval(), disable=not progress,
-    )  # fmt: skip
-    out = {}
-    for name in bar:
-        bar.set_postfix_str(f"{name}, {len(posterior.hybrid[name])} particles")
-        out[name] = check_plausibility(
-            name, posterior.hybrid[name].theta, battery, chunk=BATTERY_CHUNK
-        ).summary()
-    return out
-
-
-def plausibility_screen(cfg: TrainConfig, pairs: PairSet) -> PlausibilityScreen | None:
-    """The calibration's plausibility filter (``plausibility.filter``) on the
-    battery of :func:`plausibility_battery`; None when the filter is off."""
-    if not cfg.plausibility.filter:
-        return None
-    battery = plausibility_battery(cfg, pairs)
-    return PlausibilityScreen(rejects(battery, cfg.plausibility.reject_string_unstable))
-
-
 __all__ = [
-    "BATTERY_CHUNK",
     "build_buffers",
     "check_budget",
     "check_smc_budget",
-    "hybrid_plausibility",
-    "plausibility_battery",
-    "plausibility_screen",
     "rollout_of",
     "run_device",
     "smc_settings",

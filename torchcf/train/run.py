@@ -17,7 +17,7 @@ every rank holds the merged buffers). Its parts, by concern:
   (``abc.checkpoint_every`` seconds and after each model, so that ``--resume``
   ends identical to an uninterrupted run), the checkpointer;
 - :mod:`torchcf.train.engine`: the config translated for the engine (device,
-  budgets, SMC settings, buffers, the rollout, the plausibility battery);
+  budgets, SMC settings, buffers, the rollout);
 - :mod:`torchcf.train.summary`: the results and ``summary.json``
   (:class:`~torchcf.train.summary.RunSummary`).
 
@@ -65,6 +65,7 @@ from ..system.console import bar_interval
 from ..system.files import ensure_directory, writing
 from ..system.process import tune_malloc
 from ..system.signals import StopRequest
+from ..traffic.configured import hybrid_plausibility, plausibility_screen
 from .checkpoint import (
     CHECKPOINT_FORMAT,
     Checkpointer,
@@ -75,12 +76,8 @@ from .checkpoint import (
     resume_note,
 )
 from .engine import (
-    BATTERY_CHUNK,
     build_buffers,
     check_budget,
-    hybrid_plausibility,
-    plausibility_battery,
-    plausibility_screen,
     rollout_of,
     run_device,
     smc_settings,
@@ -113,7 +110,7 @@ def _stream_model(
         return
     n_total = cfg.abc.n_particles
     bar = _progress_bar(name, n_total, progress.next, enabled=group.is_main)
-    screen = plausibility_screen(cfg, rollout.pairs)
+    screen = plausibility_screen(cfg.plausibility, rollout.pairs)
 
     def after_round(progress: ModelProgress, due: bool) -> None:
         bar.update(progress.next - bar.n)
@@ -177,7 +174,7 @@ def _progress_bar(name: str, total: int, initial: int, enabled: bool) -> tqdm:
 
 def train(
     cfg: TrainConfig,
-    out: str | Path,
+    out: str | Path | RunDir,
     *,
     resume: bool = False,
     pairs: tuple[PairSet, PairSet] | None = None,
@@ -212,7 +209,6 @@ def train(
             checkpoint is kept intact).
     """
     began = time.perf_counter()
-    out = Path(out)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     tune_malloc()
@@ -267,7 +263,9 @@ def _train_held(
             cfg, train_pairs, test_pairs, state, wall, group.world_size
         )
         if cfg.plausibility.report and group.is_main:
-            report = hybrid_plausibility(cfg, train_pairs, posterior, progress=True)
+            report = hybrid_plausibility(
+                cfg.plausibility, train_pairs, posterior, progress=True
+            )
             summary = summary.with_plausibility(report)
             logger.plausibility(report)
         images = None
@@ -358,7 +356,6 @@ def _log_results(
 
 
 __all__ = [
-    "BATTERY_CHUNK",
     "CHECKPOINT_FORMAT",
     "Checkpointer",
     "RunError",
@@ -367,10 +364,7 @@ __all__ = [
     "check_budget",
     "checkpoint_state",
     "dataset_label",
-    "hybrid_plausibility",
     "open_run",
-    "plausibility_battery",
-    "plausibility_screen",
     "rollout_of",
     "run_device",
     "smc_settings",
