@@ -705,11 +705,23 @@ class DiagnoseConfig(BaseModel):
         ),
     )
     refit_rounds: int = Field(
-        6,
+        24,
         ge=0,
         description=(
             "Local-search rounds of a held-out pair's refit (validation "
-            "'refit'), of top_n particles and local_copies / 2 copies each."
+            "'refit'), of top_n particles and local_copies / 2 copies each: "
+            "at most this many with refit_stop 'calm', exactly this many with "
+            "'rounds'."
+        ),
+    )
+    refit_stop: Literal["calm", "rounds"] = Field(
+        "calm",
+        description=(
+            "When a held-out pair's refit stops: 'calm' once two rounds in a "
+            "row lower the held-out pairs' summed best score by less than "
+            "0.2 % (as the fit's search converges; each side of a comparison "
+            "is then refitted until neither would gain from more rounds), "
+            "'rounds' after exactly refit_rounds rounds."
         ),
     )
     validation_warmup: float = Field(

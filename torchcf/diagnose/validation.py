@@ -434,11 +434,12 @@ def design(
 
 def refit_budget(settings: DiagnoseConfig, top_n: int) -> RefitBudget:
     """A held-out pair's refit: ``top_n`` particles, ``local_copies / 2``
-    copies, ``refit_rounds`` rounds."""
+    copies, ``refit_rounds`` rounds (at most, with ``refit_stop`` "calm")."""
     return RefitBudget(
         slots=top_n,
         copies=max(1, settings.local_copies // 2),
         rounds=settings.refit_rounds,
+        until_calm=settings.refit_stop == "calm",
     )
 
 
