@@ -709,9 +709,18 @@ class DiagnoseConfig(BaseModel):
         ge=0,
         description=(
             "Local-search rounds of a held-out pair's refit (validation "
-            "'refit'), of top_n particles and local_copies / 2 copies each: "
+            "'refit'), of refit_slots particles and local_copies / 2 copies each: "
             "at most this many with refit_stop 'calm', exactly this many with "
             "'rounds'."
+        ),
+    )
+    refit_slots: int = Field(
+        5,
+        gt=0,
+        description=(
+            "Particles a held-out pair's refit keeps and searches from "
+            "(validation 'refit'; a pair's own best with 'time'): the refit's "
+            "cost per round is pairs x refit_slots x local_copies / 2 rollouts."
         ),
     )
     refit_stop: Literal["calm", "rounds"] = Field(

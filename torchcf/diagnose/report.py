@@ -228,9 +228,14 @@ def _refit_rounds(search: JSON) -> str:
     """How long a held-out pair's refit ran, as ``loop.json`` records it (a
     record from before ``refit_stop`` ran its rounds in full)."""
     rounds = search.get("refit_rounds", "?")
+    slots = search.get("refit_slots")
+    width = "" if slots is None else f"{slots} particles, "
     if search.get("refit_stop") == "calm":
-        return f"until two rounds in a row gain less than 0.2 %, at most {rounds} rounds"
-    return f"{rounds} rounds"
+        return (
+            f"{width}until two rounds in a row gain less than 0.2 %, "
+            f"at most {rounds} rounds"
+        )
+    return f"{width}{rounds} rounds"
 
 
 def _signatures(result: JSON) -> list[str]:
