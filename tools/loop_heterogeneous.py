@@ -48,6 +48,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 
@@ -345,7 +346,8 @@ def detectable_markdown(
                     continue
                 case = next(
                     (c for n, c in CASES.items()
-                     if c.mixture == mixture and parse_effect(c.effect).name == name
+                     if c.mixture == mixture and c.effect
+                     and parse_effect(c.effect).name == name
                      and (c.size >= 0) == (side == "above")),
                     None,
                 )  # fmt: skip
@@ -396,11 +398,17 @@ def first_choice(run: dict, scheme: str, min_gain: float = 0.05) -> str | None:
         step_level,
         weights,
     )
-    for row, yes in zip(rows, significant, strict=True):
-        row["significant"] = yes
-        row["scope"] = parse_effect(row["name"]).scope
-    best = choose(rows, min_gain)
-    return None if best is None else best["name"]
+    judged = [
+        SimpleNamespace(
+            name=row["name"],
+            gain=row["gain"],
+            significant=yes,
+            scope=parse_effect(row["name"]).scope,
+        )
+        for row, yes in zip(rows, significant, strict=True)
+    ]
+    best = choose(judged, min_gain)  # reads a row's name, gain, significance, scope
+    return None if best is None else best.name
 
 
 def levels_markdown(rows: list[dict]) -> list[str]:

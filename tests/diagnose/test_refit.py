@@ -149,3 +149,28 @@ def test_the_refit_design_judges_an_arm_against_the_placebo():
     np.testing.assert_allclose(before, judge.before)
     np.testing.assert_allclose(after, before)  # neutral, same picks: the same
     assert all(math.isfinite(v) for v in before)
+
+
+def test_a_refit_until_calm_is_the_fixed_refit_cut_where_it_settles():
+    """``until_calm``: every round draws the numbers of its number, so a refit
+    that settles after r rounds gives the fixed refit of r rounds; a search that
+    cannot settle in its rounds runs them all."""
+    pairs = synthetic_pairs("idm", IDM, 4, 120, seed=5, noise=0.05)
+    rollout = Rollout(pairs, True, torch.float64)
+    box = PRIORS["idm"]
+    g = torch.Generator().manual_seed(3)
+    u = torch.rand(12, 6, generator=g, dtype=torch.float64)
+    members = {"idm": box[:, 0] + u * (box[:, 1] - box[:, 0])}
+    key = ("test", 5)
+
+    def refit(rounds: int, calm: bool) -> torch.Tensor:
+        budget = RefitBudget(slots=3, copies=4, rounds=rounds, until_calm=calm)
+        return refit_scores(members, rollout, budget, PRIORS, {}, key)
+
+    summed = [float(refit(r, False).sum()) for r in range(41)]  # after r rounds
+    calm = [(summed[r - 1] - summed[r]) < 0.002 * summed[r - 1] for r in range(1, 41)]
+    settled = next(r + 1 for r in range(1, 40) if calm[r - 1] and calm[r])
+    assert settled < 40, "the search should settle within 40 rounds here"
+    assert settled > 3, "a start this far off should need a few rounds"
+    torch.testing.assert_close(refit(40, True), refit(settled, False))
+    torch.testing.assert_close(refit(2, True), refit(2, False))

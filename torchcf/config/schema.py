@@ -705,11 +705,32 @@ class DiagnoseConfig(BaseModel):
         ),
     )
     refit_rounds: int = Field(
-        6,
+        24,
         ge=0,
         description=(
             "Local-search rounds of a held-out pair's refit (validation "
-            "'refit'), of top_n particles and local_copies / 2 copies each."
+            "'refit'), of refit_slots particles and local_copies / 2 copies each: "
+            "at most this many with refit_stop 'calm', exactly this many with "
+            "'rounds'."
+        ),
+    )
+    refit_slots: int = Field(
+        5,
+        gt=0,
+        description=(
+            "Particles a held-out pair's refit keeps and searches from "
+            "(validation 'refit'; a pair's own best with 'time'): the refit's "
+            "cost per round is pairs x refit_slots x local_copies / 2 rollouts."
+        ),
+    )
+    refit_stop: Literal["calm", "rounds"] = Field(
+        "calm",
+        description=(
+            "When a held-out pair's refit stops: 'calm' once two rounds in a "
+            "row lower the held-out pairs' summed best score by less than "
+            "0.2 % (as the fit's search converges; each side of a comparison "
+            "is then refitted until neither would gain from more rounds), "
+            "'rounds' after exactly refit_rounds rounds."
         ),
     )
     validation_warmup: float = Field(

@@ -65,6 +65,7 @@ from .population import (
 from .search import (
     INVALID_RATIO,
     Converging,
+    Limits,
     Noise,
     converge,
     effect_prior,
@@ -218,7 +219,7 @@ class Arena:
             self.bounds(population.models, shared),
             Noise((self.seed, "converge", *label), _current(population)),
             {m: m for m in population.models},
-            self.settings,
+            Limits.of(self.settings),
             resume=resume,
             after_round=keep,
         )

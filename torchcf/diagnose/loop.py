@@ -484,6 +484,8 @@ def finish_loop(plan: LoopPlan) -> LoopResult:
             "local_copies": settings.local_copies,
             "rounds": settings.rounds,
             "refit_rounds": settings.refit_rounds,
+            "refit_slots": settings.refit_slots,
+            "refit_stop": settings.refit_stop,
             "validation_warmup": settings.validation_warmup,
             "n_particles": settings.n_particles,
             "run_particles": plan.cfg.abc.n_particles,

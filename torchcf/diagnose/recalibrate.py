@@ -48,7 +48,7 @@ from ..runs.directory import RunDir
 from .arms import Arena, Arm, design_fits, design_values
 from .candidates import attribution_rollout, attribution_seed
 from .population import Population, merge
-from .search import Converging, Noise, converge, lift, model_bounds
+from .search import Converging, Limits, Noise, converge, lift, model_bounds
 
 
 def run_population(posterior: Posterior, size: int) -> Population:
@@ -111,7 +111,7 @@ def recalibrate(
     ) -> Population:
         bounds = {m: model_bounds(m, priors, values) for m in begin.models}
         searched, _ = converge(
-            begin, rollout, bounds, noise, parents, settings, after_round=ticked
+            begin, rollout, bounds, noise, parents, Limits.of(settings), after_round=ticked
         )
         return searched
 

@@ -49,7 +49,16 @@ from ..abc.rejection import Rollout
 from ..models import CFModel
 from ..models.effects import Effect
 from .population import Population, merge, rescore
-from .search import Noise, generator, lift, local_search, model_bounds, variant_of
+from .search import (
+    Limits,
+    Noise,
+    converge,
+    generator,
+    lift,
+    local_search,
+    model_bounds,
+    variant_of,
+)
 
 #: Candidates a held-out pair's refit starts from, at most (the placebo's and
 #: the effect arm's picks pooled; subsampled by fit pair beyond it), so that
@@ -65,12 +74,17 @@ class RefitBudget:
     Attributes:
         slots: S, the particles each held-out pair keeps and searches from.
         copies: perturbed copies of each per round.
-        rounds: rounds of the search.
+        rounds: rounds of the search (at most, with ``until_calm``).
+        until_calm: stop once the search has converged
+            (:func:`~torchcf.diagnose.search.converge`'s rule: two rounds in a
+            row lower the pairs' summed best score by less than
+            :data:`~torchcf.diagnose.search.CONVERGED`).
     """
 
     slots: int
     copies: int
     rounds: int
+    until_calm: bool = False
 
 
 @dataclass(frozen=True)
@@ -247,14 +261,23 @@ def _searched(
     parents: dict[CFModel, CFModel],
 ) -> Tensor:
     """(V,) the best score per pair of ``population`` after ``budget.rounds``
-    rounds of local search within the priors, the chosen shared effects and
-    ``pin`` held at their values (``+inf``: no valid particle)."""
+    rounds of local search (or fewer, converged: ``budget.until_calm``) within
+    the priors, the chosen shared effects and ``pin`` held at their values
+    (``+inf``: no valid particle).
+
+    A round's random numbers are those of its number whichever rule stops the
+    search, so a converged refit is the fixed one cut short. Each side of a
+    comparison stops on its own: a side still gaining from more rounds is not
+    compared in mid-descent with one that has settled."""
     pinned = dict(shared)
     if pin is not None:
         pinned[pin.effect.name] = pin.value
     bounds = {m: model_bounds(m, dict(priors), pinned) for m in population.models}
     noise = Noise(key, current, pin.effect if pin is not None else None)
-    if budget.rounds > 0:
+    if budget.rounds > 0 and budget.until_calm:
+        limits = Limits(budget.copies, budget.rounds)
+        population, _ = converge(population, rollout, bounds, noise, parents, limits)
+    elif budget.rounds > 0:
         population = local_search(
             population,
             rollout,

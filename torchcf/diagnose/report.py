@@ -92,7 +92,7 @@ def _method(result: JSON) -> list[str]:
         split = held_out
         judged = (
             "Every held-out pair is then refitted by a short local search of "
-            f"its own ({search.get('refit_rounds', '?')} rounds), once from the "
+            f"its own ({_refit_rounds(search)}), once from the "
             "placebo's best particles without the effect and once from the "
             "effect arm's with the effect pinned at the value the fit pairs "
             "gave it (a driver effect: the median over the arm's picks; a "
@@ -222,6 +222,20 @@ def _road(road: JSON | None) -> list[str]:
             f"{errors})."
         )
     return [*lines, ""]
+
+
+def _refit_rounds(search: JSON) -> str:
+    """How long a held-out pair's refit ran, as ``loop.json`` records it (a
+    record from before ``refit_stop`` ran its rounds in full)."""
+    rounds = search.get("refit_rounds", "?")
+    slots = search.get("refit_slots")
+    width = "" if slots is None else f"{slots} particles, "
+    if search.get("refit_stop") == "calm":
+        return (
+            f"{width}until two rounds in a row gain less than 0.2 %, "
+            f"at most {rounds} rounds"
+        )
+    return f"{width}{rounds} rounds"
 
 
 def _signatures(result: JSON) -> list[str]:

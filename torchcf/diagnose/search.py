@@ -268,6 +268,24 @@ def local_search(
 
 
 @dataclass(frozen=True)
+class Limits:
+    """How long a converging search may run.
+
+    Attributes:
+        copies: perturbed copies of every member a round.
+        max_rounds: rounds at most.
+    """
+
+    copies: int
+    max_rounds: int
+
+    @classmethod
+    def of(cls, settings: DiagnoseConfig) -> Limits:
+        """The ``diagnose`` section's: ``local_copies``, ``max_rounds``."""
+        return cls(settings.local_copies, settings.max_rounds)
+
+
+@dataclass(frozen=True)
 class Converging:
     """Where a converging search stands after a round (what resumes it).
 
@@ -289,22 +307,22 @@ def converge(
     bounds: dict[CFModel, Tensor],
     noise: Noise,
     parents: dict[CFModel, CFModel],
-    settings: DiagnoseConfig,
+    limits: Limits,
     *,
     resume: Converging | None = None,
     after_round: Callable[[Converging], None] | None = None,
 ) -> tuple[Population, int]:
     """Local search until it converges: rounds of :func:`local_search` until two
     rounds in a row lower the pairs' summed best score by less than
-    :data:`CONVERGED` (relative), or ``settings.max_rounds`` rounds.
+    :data:`CONVERGED` (relative), or ``limits.max_rounds`` rounds.
 
     A comparison starts from a converged model: an arm that starts short of its
     optimum gains from any change of its search (a redundant parameter moves
     it faster), which would pass for the effect.
 
     Args:
-        settings: the ``diagnose`` section: ``local_copies`` copies of every
-            member a round, at most ``max_rounds`` rounds.
+        limits: ``copies`` copies of every member a round, at most
+            ``max_rounds`` rounds.
         resume: continue from this state (a round's random numbers are those
             of its number, so the result is the uninterrupted search's).
         after_round: called with the state after every round (a progress bar,
@@ -313,7 +331,7 @@ def converge(
     Returns:
         the population and the rounds it took.
     """
-    copies, max_rounds = settings.local_copies, settings.max_rounds
+    copies, max_rounds = limits.copies, limits.max_rounds
     shape = (population.n_pairs, population.size, copies)
     calm, rounds = 0, 0
     if resume is not None:
@@ -550,6 +568,7 @@ def effect_prior(effect: Effect) -> Tensor:
 __all__ = [
     "CONVERGED",
     "Converging",
+    "Limits",
     "INVALID_RATIO",
     "LOCAL_SCALES",
     "SHARED_ROUNDS",

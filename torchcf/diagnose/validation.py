@@ -418,7 +418,7 @@ def design(
     (``"auto"`` resolved by :func:`resolve_validation`)."""
     settings = cfg.diagnose
     kind = resolve_validation(settings, train_pairs.n_pairs)
-    budget = refit_budget(settings, cfg.abc.top_n)
+    budget = refit_budget(settings)
     priors = {spec.name: spec.bounds(torch.float64) for spec in cfg.models}
     if held_out(kind):
         fit, held = split_by_pair(train_pairs, settings.fit_fraction, seed)
@@ -432,13 +432,14 @@ def design(
     )
 
 
-def refit_budget(settings: DiagnoseConfig, top_n: int) -> RefitBudget:
-    """A held-out pair's refit: ``top_n`` particles, ``local_copies / 2``
-    copies, ``refit_rounds`` rounds."""
+def refit_budget(settings: DiagnoseConfig) -> RefitBudget:
+    """A held-out pair's refit: ``refit_slots`` particles, ``local_copies / 2``
+    copies, ``refit_rounds`` rounds (at most, with ``refit_stop`` "calm")."""
     return RefitBudget(
-        slots=top_n,
+        slots=settings.refit_slots,
         copies=max(1, settings.local_copies // 2),
         rounds=settings.refit_rounds,
+        until_calm=settings.refit_stop == "calm",
     )
 
 
