@@ -31,7 +31,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
 
 import torch
 from torch import Tensor
@@ -261,7 +260,7 @@ def write_run(
     cfg: TrainConfig,
     posterior: Posterior,
     buffers: Sequence[TopN],
-    summary: dict[str, Any],
+    dataset: str,
     how: str,
 ) -> RunDir:
     """A run directory of a re-calibration: ``config.json``, ``posterior.pt``
@@ -272,7 +271,7 @@ def write_run(
         cfg: its config (:func:`recalibration_config`).
         buffers: every model's buffer, in the order of ``cfg.models``
             (:func:`model_buffers` for a searched population).
-        summary: the run's summary (its dataset; the rest is recomputed).
+        dataset: the run's data set label (its summary's).
         how: how the buffers were made, for ``summary.json``.
     """
     run = RunDir(out)
@@ -294,7 +293,7 @@ def write_run(
     run.save_posterior(learned)
     run.write_summary(
         {
-            "dataset": summary.get("dataset", posterior.dataset),
+            "dataset": dataset,
             "shares": learned.shares,
             "hybrid_size": sum(len(p) for p in learned.hybrid.values()),
             "pairwise": {
