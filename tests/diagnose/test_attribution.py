@@ -197,12 +197,12 @@ def test_paired_change_compares_two_runs_pair_by_pair():
     before = [1.0, 2.0, None, 4.0, 1.0]
     after = [0.5, 1.0, 3.0, 2.0, None]  # pairs 2 and 4: one run has no valid particle
     row = paired_change(before, after, 1000)
-    assert row["pairs"] == 3 and row["better"] == 3
-    assert row["change"] == pytest.approx(-0.5)
-    assert row["p_value"] == pytest.approx(1 / 8, abs=0.04)  # 3 pairs: 2^-3 at best
+    assert row.pairs == 3 and row.better == 3
+    assert row.change == pytest.approx(-0.5)
+    assert row.p_value == pytest.approx(1 / 8, abs=0.04)  # 3 pairs: 2^-3 at best
     worse = paired_change(after[:2], before[:2], 1000)
-    assert worse["better"] == 0 and worse["change"] == pytest.approx(1.0)
-    assert worse["p_value"] > 0.7
+    assert worse.better == 0 and worse.change == pytest.approx(1.0)
+    assert worse.p_value > 0.7
     assert paired_change([1.0], [1.0, 2.0], 1000) is None  # other test pairs
     assert paired_change([None], [1.0], 1000) is None
 
@@ -441,10 +441,10 @@ def test_an_offset_is_absorbed_by_the_standstill_gap():
     judge = arena.validation.judge(placebo, 5, 1)
     row = attribution.effect_row(arena, OFFSET, result, base, placebo, judge)
     found = row.absorbed_by
-    assert found["parameter"] == "s0" and found["absorbed"]
-    assert found["correlation"] > 0.9
-    assert found["slope"] == pytest.approx(1.0, abs=0.25)
-    assert len(found["profile"]["values"]) >= len(profile_values(OFFSET))
+    assert found.parameter == "s0" and found.absorbed
+    assert found.correlation > 0.9
+    assert found.slope == pytest.approx(1.0, abs=0.25)
+    assert len(found.profile.values) >= len(profile_values(OFFSET))
 
 
 def test_an_invalid_side_counts_as_a_large_loss_not_a_dropped_pair():

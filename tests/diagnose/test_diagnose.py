@@ -163,23 +163,25 @@ def test_the_undeclared_effects_are_found_and_help(loops, case):
     # 40-65 % here (tools/loop_cases.py: reports/loop_cases_train.md), WS by
     # 10-35 % (the Gipps follower, outside the pool, the least).
     recalibrated = result.recalibrated
-    for before in (recalibrated.before_same_search, result.before):
-        assert before["ws"] > 0
-        assert result.after["ws"] <= 0.93 * before["ws"]
-        assert result.after["min"] <= 0.85 * before["min"]
-    for paired in recalibrated.test_pairs.values():  # pair by pair, significantly
-        assert paired["change"] < 0 and paired["p_value"] <= 0.05
+    after = result.after.metrics
+    for before in (recalibrated.before_same_search.metrics, result.before.metrics):
+        assert before.ws > 0
+        assert after.ws <= 0.93 * before.ws
+        assert after.min <= 0.85 * before.min
+    paired_on_test = recalibrated.test_pairs
+    for paired in (paired_on_test.run, paired_on_test.reference):  # significantly
+        assert paired.change < 0 and paired.p_value <= 0.05
     medians = {
-        name: stats["median"]
+        name: stats.median
         for summary in recalibrated.posterior.values()
-        for name, stats in summary["params"].items()
-        if stats.get("n")
+        for name, stats in summary.params.items()
+        if stats.n
     }
     for name, (truth, tolerance) in truths.items():
         if name == "d_offset":  # recovered, or absorbed by a named parameter
             row = next(r for r in first if r.token == "offset")
-            found = row.absorbed_by or {}
-            assert abs(medians[name] - truth) <= tolerance or found["absorbed"], (
+            found = row.absorbed_by
+            assert abs(medians[name] - truth) <= tolerance or found.absorbed, (
                 medians[name],
                 found,
             )
@@ -233,7 +235,8 @@ def test_held_out_pairs_find_the_delay_and_carry_it_to_the_test_split(loops, tmp
     assert (validation.kind, validation.units) == ("pairs", 10)
     assert validation.fit_pairs == 14
     assert [e.name for e in result.chosen] == ["delay"]
-    assert result.after["min"] <= 0.85 * result.recalibrated.before_same_search["min"]
+    reference = result.recalibrated.before_same_search
+    assert result.after.metrics.min <= 0.85 * reference.metrics.min
     assert "held-out pairs" in (out / "loop.md").read_text()
 
 
@@ -251,7 +254,7 @@ def test_control_set_yields_no_effect(loops, case):
     sized = [r for r in last if r.name in ("delay", "lag", "sync")]
     assert sized and all(r.detectable for r in sized)
     delay = next(r for r in sized if r.name == "delay").detectable
-    assert delay["if_first"]["above"] is not None  # 24 pairs can show a delay
+    assert delay.if_first["above"] is not None  # 24 pairs can show a delay
 
 
 @pytest.mark.slow  # needs the control case's loop

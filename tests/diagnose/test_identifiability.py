@@ -64,6 +64,6 @@ def test_an_offset_against_a_standstill_gap_is_reported_traded_off():
     )
     report = effect_identifiability(posterior, [parse_effect("offset")])
     row = report["offset"][name]["d_offset"]
-    assert row["partner"] == "s0"
-    assert row["r"] >= 0.7 and row["traded_off"]
-    assert row["n_pairs"] == pairs.n_pairs
+    assert row.partner == "s0"
+    assert row.r >= 0.7 and row.traded_off
+    assert row.n_pairs == pairs.n_pairs

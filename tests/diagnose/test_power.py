@@ -87,9 +87,9 @@ def test_every_row_with_a_size_gets_its_detectable_sizes():
     detectable_sizes(judge, rows, first_level=0.0125, min_gain=0.05, permutations=2000)
     delay, asymmetry, offset = (row.detectable for row in rows)
     assert asymmetry is None
-    assert delay["unit"] == "s" and delay["at_level"]["above"] is not None
-    assert set(offset["if_first"]) == {"below", "above"}
-    assert offset["tried"]["below"] and offset["tried"]["above"]
+    assert delay.unit == "s" and delay.at_level["above"] is not None
+    assert set(offset.if_first) == {"below", "above"}
+    assert offset.tried["below"] and offset.tried["above"]
 
 
 class CollidingJudge(CostlyJudge):

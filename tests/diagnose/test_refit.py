@@ -160,7 +160,7 @@ def test_a_refit_until_calm_is_the_fixed_refit_cut_where_it_settles():
     box = PRIORS["idm"]
     g = torch.Generator().manual_seed(3)
     u = torch.rand(12, 6, generator=g, dtype=torch.float64)
-    members = {"idm": box[:, 0] + u * (box[:, 1] - box[:, 0])}
+    members = {get_model("idm"): box[:, 0] + u * (box[:, 1] - box[:, 0])}
     key = ("test", 5)
 
     def refit(rounds: int, calm: bool) -> torch.Tensor:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from operator import attrgetter
 
 import torch
 
@@ -65,14 +66,14 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _print_result(result: LoopResult, run_dir: str) -> None:
     selection = result.selection
-    found = [m for m in (selection.signatures or [[]])[0] if m["found"]]
+    found = [m for m in (selection.signatures or [[]])[0] if m.found]
     if found:
         print("residual signatures (fit windows):")
         for mark in found:
-            to = ", ".join(mark["points_to"]) or f"no effect: {mark['family']}"
+            to = ", ".join(mark.points_to) or f"no effect: {mark.family}"
             print(
-                f"  {mark['signature']:<20} {fmt(mark['mean'])} {mark['unit']:<6} "
-                f"p {mark['p_value']:.2g}  -> {to}"
+                f"  {mark.signature:<20} {fmt(mark.mean)} {mark.unit:<6} "
+                f"p {mark.p_value:.2g}  -> {to}"
             )
     print(f"forward selection ({result.dataset}; alpha {result.settings.alpha}):")
     for step, rows in enumerate(selection.steps, start=1):
@@ -91,10 +92,11 @@ def _print_result(result: LoopResult, run_dir: str) -> None:
             )
     done = result.recalibrated
     for key, label in (("ws", "WS"), ("min", "minimum distance")):
-        line = f"test {label}: the run {fmt(result.before.get(key))}"
+        metric = attrgetter(f"metrics.{key}")
+        line = f"test {label}: the run {fmt(metric(result.before))}"
         if done is not None:
-            line += f", searched as after {fmt(done.before_same_search.get(key))}"
-        print(f"{line}, after {fmt(result.after.get(key))}")
+            line += f", searched as after {fmt(metric(done.before_same_search))}"
+        print(f"{line}, after {fmt(metric(result.after))}")
     print(f"wrote {RunDir(run_dir).loop_json} and loop.md")
 
 

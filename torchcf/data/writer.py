@@ -22,13 +22,12 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Any
 
 from torchcf.data.extract import Extraction
 from torchcf.data.pairset import DataError, PairSet
 from torchcf.data.reader import FILES
 from torchcf.system.errors import first_names
-from torchcf.system.files import ensure_directory, write_json
+from torchcf.system.files import JSON, ensure_directory, write_json
 
 __all__ = ["write_extraction", "write_record", "write_six_csv"]
 
@@ -68,7 +67,7 @@ def write_extraction(
     extraction: Extraction,
     out: str | os.PathLike[str],
     *,
-    record: dict[str, Any] | None = None,
+    record: JSON | None = None,
     overwrite: bool = False,
 ) -> Path:
     """Write ``extraction`` as a six-CSV folder with its index (module docstring).
@@ -144,7 +143,7 @@ def write_extraction(
 def write_record(
     extraction: Extraction,
     folder: str | os.PathLike[str],
-    record: dict[str, Any] | None = None,
+    record: JSON | None = None,
 ) -> None:
     """``index.csv``, ``dropped.csv`` and ``extract.json`` of ``extraction`` in
     ``folder`` (a training run keeps them in ``<run>/data/``)."""

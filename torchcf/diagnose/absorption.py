@@ -33,8 +33,9 @@ Shapes: N pairs, S slots, K parameters, G profile values (:mod:`torchcf.typing`)
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Self
 
 import torch
 from torch import Tensor
@@ -42,11 +43,122 @@ from torch import Tensor
 from ..models import CFModel
 from ..models.effects import Effect
 from ..models.steady import equilibrium_spacing, time_gap
+from ..system.records import Record
 from .identifiability import RIDGE_CORRELATION, within_pair_correlation
 from .population import Population
 
 #: Values of a shared effect's profile (spread evenly over its prior).
 PROFILE_VALUES = 7
+
+
+@dataclass(frozen=True)
+class Absorption(Record):
+    """The strongest partner of a driver effect's parameters (:func:`absorbed_by`).
+
+    Attributes:
+        parameter: the pool model's parameter that takes the effect up.
+        model: that pool model.
+        effect_parameter: the effect's parameter it trades off against.
+        correlation: their within-pair correlation (pooled over pairs).
+        slope: the ridge's slope, partner units per effect unit (None: the
+            effect does not vary).
+        n_pairs: the pairs the correlation pools.
+        shift: the partner's median move when the effect is added (None: no
+            pair descends from one model on both sides).
+        absorbed: ``|correlation| >=`` :data:`~torchcf.diagnose.
+            identifiability.RIDGE_CORRELATION`.
+    """
+
+    parameter: str
+    model: str
+    effect_parameter: str
+    correlation: float
+    slope: float | None
+    n_pairs: int
+    shift: float | None
+    absorbed: bool
+
+
+@dataclass(frozen=True)
+class Profile(Record):
+    """A one-parameter effect's profile: its fixed values (G,) and, per value,
+    the summed fit score relative to the start's (G,)."""
+
+    values: tuple[float, ...]
+    relative_fit: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class SteadyShift(Record):
+    """How the pool's steady state moves along an effect's profile
+    (:func:`steady_shift`).
+
+    Attributes:
+        speed: where it is read [m/s].
+        gap_slope, gap_r: the equilibrium spacing's within-pair slope [m per
+            unit of the effect] and correlation on the effect's value.
+        time_gap_slope, time_gap_r: the same of the time gap [s per unit].
+        n_pairs: the (pair, pool model) rows pooled.
+    """
+
+    speed: float
+    gap_slope: float | None
+    gap_r: float | None
+    time_gap_slope: float | None
+    time_gap_r: float | None
+    n_pairs: int
+
+
+@dataclass(frozen=True)
+class ProfileAbsorption(Record):
+    """The strongest partner of a one-parameter effect along its profile
+    (:func:`profile_absorption`).
+
+    Attributes:
+        parameter, model, effect_parameter, correlation, slope, absorbed: as
+            :class:`Absorption`'s (the correlation of a pair's best particle's
+            parameter with the fixed value, centred per pair).
+        shift: the partner's median move from the neutral value to the
+            effect's estimate along the profile.
+        n_pairs: the pairs whose best particle descends from ``model`` at
+            every value.
+        profile: the values and the fit along them.
+        steady: the pool's steady state along them (None: not read, or no
+            equilibrium).
+    """
+
+    parameter: str
+    model: str
+    effect_parameter: str
+    correlation: float
+    slope: float
+    shift: float
+    n_pairs: int
+    absorbed: bool
+    profile: Profile
+    steady: SteadyShift | None
+
+    @classmethod
+    def from_json(cls, raw: Mapping[str, Any]) -> Self:
+        """The record of its JSON object (:meth:`to_json`'s)."""
+        steady = raw["steady"]
+        return cls(
+            **{k: v for k, v in raw.items() if k not in ("profile", "steady")},
+            profile=Profile.from_json(raw["profile"]),
+            steady=None if steady is None else SteadyShift.from_json(steady),
+        )
+
+
+#: What absorbs an effect: a driver effect's partner, or a shared one's along
+#: its profile.
+Absorbed = Absorption | ProfileAbsorption
+
+
+def absorbed_from_json(raw: Mapping[str, Any]) -> Absorbed:
+    """The absorption of its JSON object (a profile's holds ``profile``)."""
+    if "profile" in raw:
+        return ProfileAbsorption.from_json(raw)
+    return Absorption.from_json(raw)
 
 
 def _effect_columns(model: CFModel, effect: Effect) -> list[int]:
@@ -93,7 +205,7 @@ def absorbed_by(
     final: Population,
     base: Population,
     lifted_from: dict[CFModel, CFModel],
-) -> dict[str, Any] | None:
+) -> Absorption | None:
     """The strongest partner of a driver effect's parameters (module docstring).
 
     Args:
@@ -102,11 +214,10 @@ def absorbed_by(
         lifted_from: per variant carrying the effect, its pool model.
 
     Returns:
-        ``{"parameter", "model", "effect_parameter", "correlation", "slope",
-        "shift", "absorbed", "n_pairs"}``, or None where no pair holds enough
-        particles with the effect.
+        the partner, or None where no pair holds enough particles with the
+        effect.
     """
-    best: dict[str, Any] | None = None
+    best: tuple[str, str, str, float, float | None, int] | None = None
     for variant, parent in lifted_from.items():
         pair, slot = final.model_slots(variant)
         if pair.numel() == 0:
@@ -125,22 +236,24 @@ def absorbed_by(
                 r = float(correlation[column, names.index(partner)])
                 if not math.isfinite(r):
                     continue
-                if best is None or abs(r) > abs(best["correlation"]):
-                    best = {
-                        "parameter": partner,
-                        "model": parent.name,
-                        "effect_parameter": names[column],
-                        "correlation": r,
-                        "slope": _ridge_slope(
-                            theta[..., column], theta[..., names.index(partner)], score
-                        ),
-                        "n_pairs": n_pairs,
-                    }
+                if best is None or abs(r) > abs(best[3]):
+                    slope = _ridge_slope(
+                        theta[..., column], theta[..., names.index(partner)], score
+                    )
+                    best = (partner, parent, names[column], r, slope, n_pairs)
     if best is None:
         return None
-    best["shift"] = _shift(final, base, lifted_from, best["parameter"])
-    best["absorbed"] = abs(best["correlation"]) >= RIDGE_CORRELATION
-    return best
+    partner, parent, effect_parameter, r, slope, n_pairs = best
+    return Absorption(
+        parameter=partner,
+        model=parent.name,
+        effect_parameter=effect_parameter,
+        correlation=r,
+        slope=slope,
+        n_pairs=n_pairs,
+        shift=_shift(final, base, lifted_from, partner),
+        absorbed=abs(r) >= RIDGE_CORRELATION,
+    )
 
 
 def _ridge_slope(effect: Tensor, partner: Tensor, score: Tensor) -> float | None:
@@ -175,7 +288,7 @@ def profile_absorption(
     start: Population,
     estimate: Tensor | None,
     steady: Steady | None = None,
-) -> dict[str, Any] | None:
+) -> ProfileAbsorption | None:
     """The strongest partner of a one-parameter effect along its profile.
 
     Args:
@@ -189,10 +302,8 @@ def profile_absorption(
             (:func:`steady_shift`), or None.
 
     Returns:
-        ``{"parameter", "model", "correlation", "slope", "shift", "absorbed",
-        "n_pairs", "profile", "steady"}`` (``profile``: per value, the summed
-        relative fit score; ``steady``: :func:`steady_shift`), or None where no
-        pair's best particle carries the effect at every value.
+        the partner along the profile, or None where no pair's best particle
+        carries the effect at every value.
     """
     g = values.shape[0]
     reference = start.score[:, 0]
@@ -207,7 +318,7 @@ def profile_absorption(
         for m in fit.model[:, 0]
         if m >= 0
     }
-    best = None
+    best: tuple[str, str, float, float, float, int] | None = None
     along: list[tuple[CFModel, Tensor]] = []  # per pool model, its best particles
     for parent in sorted((m for m in models if m), key=lambda m: m.name):
         names = parent.param_names
@@ -239,7 +350,7 @@ def profile_absorption(
             if denominator <= 0:
                 continue
             r = float((xc * yc).sum()) / denominator
-            if best is None or abs(r) > abs(best["correlation"]):
+            if best is None or abs(r) > abs(best[2]):
                 slope = float((xc * yc).sum() / (xc * xc).sum())
                 at = (
                     0
@@ -247,26 +358,25 @@ def profile_absorption(
                     else int(torch.argmin((values[:, 0] - float(estimate[0])).abs()))
                 )
                 neutral = int(torch.argmin((values[:, 0] - effect.neutral[0]).abs()))
-                best = {
-                    "parameter": name,
-                    "model": parent.name,
-                    "effect_parameter": effect.param_specs[0].name,
-                    "correlation": r,
-                    "slope": slope,
-                    "shift": float((y[:, at] - y[:, neutral]).median()),
-                    "n_pairs": int(complete.sum()),
-                }
+                shift = float((y[:, at] - y[:, neutral]).median())
+                best = (name, parent, r, slope, shift, int(complete.sum()))
     if best is None:
         return None
-    best["absorbed"] = abs(best["correlation"]) >= RIDGE_CORRELATION
-    best["profile"] = {
-        "values": values[:, 0].tolist(),
-        "relative_fit": objective,
-    }
-    best["steady"] = (
-        steady_shift(values[:, 0], along, steady) if steady is not None else None
+    name, parent, r, slope, shift, n_pairs = best
+    return ProfileAbsorption(
+        parameter=name,
+        model=parent.name,
+        effect_parameter=effect.param_specs[0].name,
+        correlation=r,
+        slope=slope,
+        shift=shift,
+        n_pairs=n_pairs,
+        absorbed=abs(r) >= RIDGE_CORRELATION,
+        profile=Profile(tuple(values[:, 0].tolist()), tuple(objective)),
+        steady=steady_shift(values[:, 0], along, steady)
+        if steady is not None
+        else None,
     )
-    return best
 
 
 @dataclass(frozen=True)
@@ -281,7 +391,7 @@ class Steady:
 
 def steady_shift(
     values: Tensor, along: list[tuple[CFModel, Tensor]], steady: Steady
-) -> dict[str, Any] | None:
+) -> SteadyShift | None:
     """How the pool's own behaviour moves as an effect is fixed along its
     profile: each pair's best particle's equilibrium spacing at
     ``steady.speed`` and its time gap there (:mod:`torchcf.models.steady`),
@@ -299,9 +409,8 @@ def steady_shift(
             G, K), pairs where that model held the best at every value.
 
     Returns:
-        ``{"speed", "gap_slope", "gap_r", "time_gap_slope", "time_gap_r",
-        "n_pairs"}`` ([m] and [s] per unit of the effect), or None where no
-        pair has an equilibrium at that speed at every value.
+        the slopes and correlations, or None where no pair has an equilibrium
+        at that speed at every value.
     """
     xs, gaps, time_gaps = [], [], []
     for model, rows in along:
@@ -321,14 +430,14 @@ def steady_shift(
     x = torch.cat(xs)
     gap_slope, gap_r = _pooled_slope(x, torch.cat(gaps))
     tg_slope, tg_r = _pooled_slope(x, torch.cat(time_gaps))
-    return {
-        "speed": steady.speed,
-        "gap_slope": gap_slope,
-        "gap_r": gap_r,
-        "time_gap_slope": tg_slope,
-        "time_gap_r": tg_r,
-        "n_pairs": int(x.shape[0]),
-    }
+    return SteadyShift(
+        speed=steady.speed,
+        gap_slope=gap_slope,
+        gap_r=gap_r,
+        time_gap_slope=tg_slope,
+        time_gap_r=tg_r,
+        n_pairs=int(x.shape[0]),
+    )
 
 
 def _pooled_slope(x: Tensor, y: Tensor) -> tuple[float | None, float | None]:
@@ -346,8 +455,14 @@ def _pooled_slope(x: Tensor, y: Tensor) -> tuple[float | None, float | None]:
 
 __all__ = [
     "PROFILE_VALUES",
+    "Absorbed",
+    "Absorption",
+    "Profile",
+    "ProfileAbsorption",
     "Steady",
+    "SteadyShift",
     "absorbed_by",
+    "absorbed_from_json",
     "profile_absorption",
     "profile_values",
     "steady_shift",

@@ -68,7 +68,13 @@ from ..config import DiagnoseConfig, TrainConfig, config_hash
 from ..data import PairSet
 from ..models import CFModel, get_model
 from ..models.effects import Effect, RoadProfile
-from ..system.files import RunFileError, atomic_torch_save, read_torch
+from ..system.files import (
+    RunFileError,
+    TorchPayload,
+    atomic_torch_save,
+    read_torch,
+)
+from ..system.records import to_json_value
 from .absorption import Steady, absorbed_by, profile_absorption
 from .arms import (
     Arena,
@@ -84,12 +90,12 @@ from .arms import (
     pool_units,
 )
 from .population import Population, population_dict, population_of
-from .power import detectable_sizes
+from .power import Detectable, detectable_sizes
 from .refit import Pin
 from .road import one_step_residual
 from .search import INVALID_RATIO
 from .series import BestParticles, residual_series
-from .signatures import Signature, pointed_effects, signatures
+from .signatures import Signature, SignatureRow, pointed_effects, signatures
 from .significance import (
     comparable,
     fallback_levels,
@@ -97,7 +103,7 @@ from .significance import (
     sign_flip_test,
     step_levels,
 )
-from .tested import EffectTest
+from .tested import EffectTest, SharedValue
 from .validation import Judge
 from .workers import ArmPool, worker_count
 from .workers import tick as worker_tick
@@ -208,17 +214,17 @@ def effect_row(
         },
     )
     if result.value is not None:
-        row.shared = {
-            "value": dict(zip(names, result.value.tolist(), strict=True)),
-            "prior": {
+        row.shared = SharedValue(
+            value=dict(zip(names, result.value.tolist(), strict=True)),
+            prior={
                 k: tuple(b)
                 for k, b in zip(names, result.shared_prior.tolist(), strict=True)
             },
-            "interval": None
+            interval=None
             if result.interval is None
             else {names[0]: result.interval.tolist()},
-        }
-        row.estimate = row.shared["value"]
+        )
+        row.estimate = row.shared.value
     row.active = active(effect, row.estimate)
     if result.design is not None:
         values, fits = result.design
@@ -294,7 +300,7 @@ class Ledger:
 
     def __init__(self, path: Path | None, key: str) -> None:
         self.path, self.key = path, key
-        self.entries: dict[str, Any] = {}
+        self.entries: TorchPayload = {}  # the file's content: tensors, plain data
         self.written = -math.inf
         if path is not None and path.exists():
             try:
@@ -424,7 +430,7 @@ class EffectSelection:
     """
 
     steps: list[list[EffectTest]]
-    signatures: list[list[dict[str, Any]]]
+    signatures: list[list[SignatureRow]]
     chosen: list[Effect]
     models: list[CFModel]
     shared: dict[str, list[float]]
@@ -436,7 +442,7 @@ class EffectSelection:
     def shared_priors(self) -> dict[str, dict[str, tuple[float, float]]]:
         """Per chosen shared effect's token, its box of the last search round."""
         return {
-            row.token: row.shared["prior"]
+            row.token: row.shared.prior
             for rows in self.steps
             for row in rows
             if row.effect in self.chosen and row.shared is not None
@@ -538,7 +544,7 @@ def attribute_effects(
     )
     arm = Arm((), population_of(raw), {})
     steps: list[list[EffectTest]] = []
-    found: list[list[dict[str, Any]]] = []
+    found: list[list[SignatureRow]] = []
     remaining = list(effects)
     processes: ArmPool | None = None  # worker processes, where they pay
     with contextlib.ExitStack() as stack:
@@ -623,10 +629,14 @@ def attribute_effects(
                             f"step 1: detectable sizes, {label}", refresh=True
                         ),
                     )
-                    sizes = {row.token: row.detectable for row in rows}
+                    sizes = {row.token: to_json_value(row.detectable) for row in rows}
                     book.put(f"{step}/detectable", sizes)
-                for row in rows:
-                    row.detectable = sizes.get(row.token)
+                else:  # an interrupted run's sizes, as the ledger keeps them
+                    for row in rows:
+                        kept = sizes.get(row.token)
+                        row.detectable = (
+                            None if kept is None else Detectable.from_json(kept)
+                        )
             if best is None:
                 break
             best.chosen = True
@@ -680,7 +690,7 @@ def _pool_entry(
     pool: list[CFModel],
     tick: Callable[..., None],
     checkpoints: Checkpoints,
-) -> dict:
+) -> TorchPayload:
     """The pool's fit, as the ledger keeps it (its state kept as it goes)."""
     return population_dict(fit_pool(arena, pool, tick, checkpoints).population)
 
@@ -692,7 +702,7 @@ def _converged_entry(
     step: int,
     tick: Callable[[], None],
     checkpoints: Checkpoints,
-) -> dict[str, Any]:
+) -> TorchPayload:
     """A chosen arm converged, the next step's start, as the ledger keeps it."""
     converged = arena.converge(population, shared, ("step", step), tick, checkpoints)
     return population_dict(converged)
@@ -700,7 +710,7 @@ def _converged_entry(
 
 def _base_entry(
     arena: Arena, arm: Arm, step: int, tick: Callable[[], None]
-) -> dict[str, Any]:
+) -> TorchPayload:
     """A step's base arm, as the ledger keeps it."""
     return population_dict(base_arm(arena, arm, step, tick))
 
@@ -712,7 +722,7 @@ def _variants(arm: Arm, pool: list[CFModel]) -> list[CFModel]:
 
 def _placebo_entry(
     arena: Arena, arm: Arm, base: Population, step: int, tick: Callable[[], None]
-) -> dict[str, Any]:
+) -> TorchPayload:
     """A step's placebo arm, as the ledger keeps it."""
     return population_dict(placebo_arm(arena, arm, base, step, tick))
 
@@ -726,7 +736,7 @@ def _arm_entry(
     effect: Effect,
     step: int,
     tick: Callable[[], None],
-) -> dict[str, Any]:
+) -> TorchPayload:
     """An effect arm and its row, as the ledger keeps them."""
     result = effect_arm(arena, arm, base, effect, step, tick)
     row = effect_row(arena, effect, result, base, placebo, judge)

@@ -20,7 +20,7 @@ Shapes: N pairs, C buffer slots, K parameters (:mod:`torchcf.typing`).
 from __future__ import annotations
 
 import math
-from typing import Any
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -28,6 +28,7 @@ from torch import Tensor
 from ..models import get_model
 from ..models.effects import Effect
 from ..posterior import Posterior
+from ..system.records import Record
 
 #: |Pearson r| from which an effect parameter is reported as traded off against
 #: a model parameter.
@@ -61,19 +62,39 @@ def within_pair_correlation(theta: Tensor, score: Tensor) -> tuple[Tensor, int]:
     return correlation, int(usable.sum())
 
 
+@dataclass(frozen=True)
+class Partner(Record):
+    """An effect parameter's strongest partner among a model's own parameters.
+
+    Attributes:
+        partner: the model parameter.
+        r: their within-pair Pearson correlation (pooled over pairs).
+        traded_off: ``|r| >=`` :data:`RIDGE_CORRELATION`.
+        n_pairs: the pairs the correlation pools.
+    """
+
+    partner: str
+    r: float
+    traded_off: bool
+    n_pairs: int
+
+
+#: Per chosen effect's token, per augmented model carrying it, per effect
+#: parameter: its strongest partner (:func:`effect_identifiability`).
+Identifiability = dict[str, dict[str, dict[str, Partner]]]
+
+
 def effect_identifiability(
     posterior: Posterior, chosen: list[Effect]
-) -> dict[str, Any]:
+) -> Identifiability:
     """Per chosen effect and per augmented model carrying it, each effect
-    parameter's strongest partner among the model's parameters.
-
-    Returns:
-        ``{token: {model: {param: {"partner", "r", "traded_off", "n_pairs"}}}}``.
-    """
-    report: dict[str, Any] = {}
+    parameter's strongest partner among the model's parameters (a model where
+    no parameter has one is left out; an effect no model carries maps to
+    ``{}``)."""
+    report: Identifiability = {}
     for effect in chosen:
         names = [p.name for p in effect.param_specs]
-        per_model: dict[str, Any] = {}
+        per_model: dict[str, dict[str, Partner]] = {}
         for model_name, buffer in posterior.buffers.items():
             model = get_model(model_name)
             if effect.name not in model.effect_kinds:
@@ -82,7 +103,7 @@ def effect_identifiability(
             columns = list(model.param_names)
             theta = buffer["theta"][..., : len(columns)]
             correlation, n_pairs = within_pair_correlation(theta, buffer["score"])
-            rows = {}
+            rows: dict[str, Partner] = {}
             for name in names:
                 i = columns.index(name)
                 partners = {
@@ -94,12 +115,12 @@ def effect_identifiability(
                     continue
                 partner = max(partners, key=lambda k: abs(partners[k]))
                 r = partners[partner]
-                rows[name] = {
-                    "partner": partner,
-                    "r": r,
-                    "traded_off": abs(r) >= RIDGE_CORRELATION,
-                    "n_pairs": n_pairs,
-                }
+                rows[name] = Partner(
+                    partner=partner,
+                    r=r,
+                    traded_off=abs(r) >= RIDGE_CORRELATION,
+                    n_pairs=n_pairs,
+                )
             if rows:
                 per_model[model_name] = rows
         report[effect.token] = per_model
@@ -107,7 +128,9 @@ def effect_identifiability(
 
 
 __all__ = [
+    "Identifiability",
     "MIN_PER_PAIR",
+    "Partner",
     "RIDGE_CORRELATION",
     "effect_identifiability",
     "within_pair_correlation",

@@ -28,7 +28,6 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -45,15 +44,25 @@ from ..config import (
     validate_config,
 )
 from ..data import PairSet
+from ..evaluation.results import Evaluation
 from ..models import get_model
 from ..models.effects import Effect, RoadProfile, parse_effect
 from ..posterior import Posterior
 from ..runs.directory import RunDir
+from ..system.files import RunFileError
 from .arms import spanning
 from .attribution import EffectSelection, attribute_effects
 from .candidates import attribution_seed
 from .identifiability import effect_identifiability
-from .outcome import LoopResult, Recalibrated
+from .outcome import (
+    ChangeOnTest,
+    EffectPosterior,
+    LoopResult,
+    ParamSpread,
+    Recalibrated,
+    SearchBudget,
+    Unexplained,
+)
 from .population import Population
 from .recalibrate import (
     model_buffers,
@@ -71,7 +80,7 @@ from .retrain import (
     wrapped,
 )
 from .road import RoadOffer, choose_spacing, one_step_residual, shares_road_frame
-from .series import DiagnoseError, best_particles, diagnose_residuals
+from .series import DiagnoseError, ResidualRow, best_particles, diagnose_residuals
 from .signatures import family_of
 from .significance import paired_change
 from .validation import fit_part
@@ -119,10 +128,11 @@ def reusable(directory: Path, cfg: TrainConfig | None) -> bool:
     return False
 
 
-def effect_posterior(posterior: Posterior, chosen: list[Effect]) -> dict[str, Any]:
-    """Summary of each chosen effect's parameters over the hybrid's particles:
-    ``{token: {"share", "params": {name: {n, median, q05, q95, mean}}}}``."""
-    result: dict[str, Any] = {}
+def effect_posterior(
+    posterior: Posterior, chosen: list[Effect]
+) -> dict[str, EffectPosterior]:
+    """Per chosen effect's token, its parameters over the hybrid's particles."""
+    result: dict[str, EffectPosterior] = {}
     for effect in chosen:
         names = [p.name for p in effect.param_specs]
         columns: dict[str, list[Tensor]] = {n: [] for n in names}
@@ -137,21 +147,21 @@ def effect_posterior(posterior: Posterior, chosen: list[Effect]) -> dict[str, An
             n: _quantiles(torch.cat(parts) if parts else torch.empty(0))
             for n, parts in columns.items()
         }
-        result[effect.token] = {"share": share, "params": params}
+        result[effect.token] = EffectPosterior(share=share, params=params)
     return result
 
 
-def _quantiles(values: Tensor) -> dict[str, Any]:
+def _quantiles(values: Tensor) -> ParamSpread:
     if values.numel() == 0:
-        return {"n": 0}
+        return ParamSpread(n=0)
     q = torch.quantile(values, torch.tensor([0.05, 0.5, 0.95], dtype=values.dtype))
-    return {
-        "n": int(values.numel()),
-        "median": float(q[1]),
-        "q05": float(q[0]),
-        "q95": float(q[2]),
-        "mean": float(values.mean()),
-    }
+    return ParamSpread(
+        n=int(values.numel()),
+        median=float(q[1]),
+        q05=float(q[0]),
+        q95=float(q[2]),
+        mean=float(values.mean()),
+    )
 
 
 # ------------------------------------------------------------- the candidates
@@ -231,8 +241,9 @@ class LoopPlan:
         run: the diagnosed run.
         cfg: its config with the ``diagnose.*`` overrides.
         posterior: its posterior.
-        summary: its training summary.
-        before: its ``metrics.json``.
+        dataset: its data set's label (``summary.json``'s; the re-calibration's
+            summaries carry it).
+        before: its evaluation (``metrics.json``).
         train_pairs, test_pairs: its split.
         pool: the pool models that got the effects.
         road: how road effects were offered (:class:`Candidates`).
@@ -249,14 +260,14 @@ class LoopPlan:
     run: RunDir
     cfg: TrainConfig
     posterior: Posterior
-    summary: dict[str, Any]
-    before: dict[str, Any]
+    dataset: str
+    before: Evaluation
     train_pairs: PairSet
     test_pairs: PairSet
     pool: list[str]
     road: RoadOffer
     selection: EffectSelection
-    residuals_before: list[dict]
+    residuals_before: list[ResidualRow]
     series_before: Series
     recalibration: TrainConfig | None
     resume_recalibration: bool
@@ -296,7 +307,8 @@ def plan_loop(
 
     Raises:
         RunFileError: a file of the run is missing, unreadable or corrupted (the
-            run is not trained or not evaluated).
+            run is not trained or not evaluated, or its ``metrics.json`` is not
+            an evaluation this release reads).
         ConfigError: an override is not a ``diagnose.*`` key or not valid.
         DiagnoseError: the run cannot be diagnosed (other training pairs than
             the posterior's, none with a particle, windows too short).
@@ -305,7 +317,7 @@ def plan_loop(
     run = RunDir(run_dir)
     cfg, posterior, summary = run.load_run()
     cfg = _with_overrides(cfg, overrides)
-    before = run.read_metrics()
+    before = read_evaluation(run)
     train_pairs, test_pairs = load_split(cfg.data) if pairs is None else pairs
     if tuple(train_pairs.pair_ids) != tuple(posterior.train_pair_ids.tolist()):
         raise DiagnoseError("the training pairs differ from the run's posterior")
@@ -335,7 +347,9 @@ def plan_loop(
         run=run,
         cfg=cfg,
         posterior=posterior,
-        summary=summary,
+        # summary.json's content, read at the file's edge: the loop keeps its
+        # label alone (the training summary's record belongs to a later stage)
+        dataset=summary["dataset"],
         before=before,
         train_pairs=train_pairs,
         test_pairs=test_pairs,
@@ -348,6 +362,23 @@ def plan_loop(
         resume_recalibration=resume,
         began=began,
     )
+
+
+def read_evaluation(run: RunDir) -> Evaluation:
+    """The run's ``metrics.json`` as its record.
+
+    Raises:
+        RunFileError: missing, unreadable or corrupted, or not an evaluation
+            (one written by another release: evaluate the run again).
+    """
+    raw = run.read_metrics()
+    try:
+        return Evaluation.from_json(raw)
+    except ValueError as error:
+        raise RunFileError(
+            f"{run.metrics_json}: {error}; evaluate the run again "
+            f"(torchcf evaluate {run.path})"
+        ) from None
 
 
 def _with_overrides(cfg: TrainConfig, overrides: Sequence[str]) -> TrainConfig:
@@ -396,7 +427,7 @@ def run_recalibration(
         reference_cfg,
         plan.posterior,
         references,
-        plan.summary,
+        plan.dataset,
         how,
     )
     write_run(
@@ -404,7 +435,7 @@ def run_recalibration(
         plan.recalibration,
         plan.posterior,
         afters,
-        plan.summary,
+        plan.dataset,
         how,
     )
 
@@ -473,25 +504,25 @@ def finish_loop(plan: LoopPlan) -> LoopResult:
     recalibrated, series_after = _recalibrated(plan)
     result = LoopResult(
         run=plan.run.path,
-        dataset=plan.before.get("dataset"),
+        dataset=plan.before.dataset,
         pool=plan.pool,
         road=plan.road,
         selection=plan.selection,
         unexplained=unexplained(plan.selection),
         settings=settings,
-        search={
-            "population": max(settings.population, plan.cfg.abc.top_n),
-            "local_copies": settings.local_copies,
-            "rounds": settings.rounds,
-            "refit_rounds": settings.refit_rounds,
-            "refit_slots": settings.refit_slots,
-            "refit_stop": settings.refit_stop,
-            "validation_warmup": settings.validation_warmup,
-            "n_particles": settings.n_particles,
-            "run_particles": plan.cfg.abc.n_particles,
-            "n_train": plan.train_pairs.n_pairs,
-        },
-        before=plan.before["hybrid"],
+        search=SearchBudget(
+            population=max(settings.population, plan.cfg.abc.top_n),
+            local_copies=settings.local_copies,
+            rounds=settings.rounds,
+            refit_rounds=settings.refit_rounds,
+            validation_warmup=settings.validation_warmup,
+            n_particles=settings.n_particles,
+            run_particles=plan.cfg.abc.n_particles,
+            n_train=plan.train_pairs.n_pairs,
+            refit_slots=settings.refit_slots,
+            refit_stop=settings.refit_stop,
+        ),
+        before=plan.before.hybrid,
         shares_before=plan.posterior.shares,
         residuals_before=plan.residuals_before,
         recalibrated=recalibrated,
@@ -507,7 +538,7 @@ def finish_loop(plan: LoopPlan) -> LoopResult:
     return result
 
 
-def unexplained(selection: EffectSelection) -> list[dict[str, Any]]:
+def unexplained(selection: EffectSelection) -> list[Unexplained]:
     """Structure the library does not explain: every signature still found in
     the final model's residual (the last signatures of the selection) with the
     family it suggests, and whether an effect it points to was tested and not
@@ -518,20 +549,20 @@ def unexplained(selection: EffectSelection) -> list[dict[str, Any]]:
     chosen = {effect.name for effect in selection.chosen}
     out = []
     for mark in selection.signatures[-1]:
-        if not mark["found"]:
+        if not mark.found:
             continue
-        pointed = [e for e in mark["points_to"] if e not in chosen]
-        if mark["points_to"] and not pointed:
+        pointed = [e for e in mark.points_to if e not in chosen]
+        if mark.points_to and not pointed:
             continue  # explained by an effect chosen but left some structure
         out.append(
-            {
-                "signature": mark["signature"],
-                "mean": mark["mean"],
-                "unit": mark["unit"],
-                "p_value": mark["p_value"],
-                "tested_not_chosen": [e for e in pointed if e in tested],
-                "family": family_of(mark["signature"], mark["mean"]),
-            }
+            Unexplained(
+                signature=mark.signature,
+                mean=mark.mean,
+                unit=mark.unit,
+                p_value=mark.p_value,
+                tested_not_chosen=tuple(e for e in pointed if e in tested),
+                family=family_of(mark.signature, mark.mean),
+            )
         )
     return out
 
@@ -543,15 +574,15 @@ def _recalibrated(plan: LoopPlan) -> tuple[Recalibrated | None, Series | None]:
         return None, None
     after = RunDir(plan.recalibration_dir)
     posterior = after.load_posterior()
-    metrics = after.read_metrics()
+    metrics = read_evaluation(after)
     residuals, series = diagnose_residuals(posterior, plan.train_pairs)
-    reference = RunDir(plan.reference_dir).read_metrics()
+    reference = read_evaluation(RunDir(plan.reference_dir))
     return Recalibrated(
         after_run=after.path,
         reference_run=plan.reference_dir,
-        after=metrics["hybrid"],
+        after=metrics.hybrid,
         shares=posterior.shares,
-        before_same_search=reference["hybrid"],
+        before_same_search=reference.hybrid,
         test_pairs=_paired_on_test(plan, reference, metrics),
         posterior=effect_posterior(posterior, plan.chosen),
         identifiability=effect_identifiability(posterior, plan.chosen),
@@ -560,23 +591,19 @@ def _recalibrated(plan: LoopPlan) -> tuple[Recalibrated | None, Series | None]:
 
 
 def _paired_on_test(
-    plan: LoopPlan, reference: dict[str, Any], after: dict[str, Any]
-) -> dict[str, Any]:
+    plan: LoopPlan, reference: Evaluation, after: Evaluation
+) -> ChangeOnTest:
     """After against the run and against the reference, test pair by test pair
     (their hybrids' minimum distance per pair: :func:`~torchcf.diagnose.
-    testing.paired_change`); None where a run's ``metrics.json`` has no
-    per-pair distances (evaluated before it had them)."""
-    now = after.get("hybrid_min_by_pair")
+    significance.paired_change`)."""
+    now = after.hybrid_min_by_pair
     permutations, seed = plan.cfg.diagnose.permutations, attribution_seed(plan.cfg)
-    out = {}
-    for label, metrics in (("run", plan.before), ("reference", reference)):
-        then = metrics.get("hybrid_min_by_pair")
-        out[label] = (
-            paired_change(then, now, permutations, seed)
-            if then is not None and now is not None
-            else None
+    return ChangeOnTest(
+        *(
+            paired_change(metrics.hybrid_min_by_pair, now, permutations, seed)
+            for metrics in (plan.before, reference)
         )
-    return out
+    )
 
 
 __all__ = [
@@ -587,6 +614,7 @@ __all__ = [
     "effect_posterior",
     "finish_loop",
     "plan_loop",
+    "read_evaluation",
     "reusable",
     "run_recalibration",
     "unexplained",

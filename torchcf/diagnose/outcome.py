@@ -3,6 +3,12 @@
 :func:`torchcf.study.pipeline.close_loop`), written as ``RUN_DIR/loop.json``
 (:meth:`LoopResult.to_json`, format :data:`FORMAT`).
 
+Its parts that ``loop.json`` writes are records (:class:`~torchcf.system.
+records.Record`: their ``to_json`` is the file's object, key order included):
+:class:`ParamSpread` and :class:`EffectPosterior` (a chosen effect over the
+hybrid), :class:`ChangeOnTest` (test pair by test pair), :class:`Unexplained`
+(a signature no chosen effect explains) and :class:`SearchBudget`.
+
 Metrics are the evaluation's test-split metrics of a hybrid (``metrics.json``'s
 ``hybrid`` entry: Wasserstein-type distances, minimum distance [m]...); shares
 are fractions of the hybrid's particles per model.
@@ -10,18 +16,133 @@ are fractions of the hybrid's particles per model.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 from ..config import DiagnoseConfig
+from ..evaluation.results import SetEvaluation
 from ..models.effects import Effect
 from ..system.files import JSON
+from ..system.records import Record, to_json_value
 from .attribution import EffectSelection
+from .identifiability import Identifiability
 from .road import RoadOffer
+from .series import ResidualRow
+from .significance import PairedChange
 
 #: ``loop.json``'s format.
 FORMAT = "torchcf.loop/2"
+
+
+@dataclass(frozen=True)
+class ParamSpread(Record):
+    """One effect parameter over the hybrid's particles that carry it, in its
+    own unit (the file holds ``n`` alone where none does).
+
+    Attributes:
+        n: the particles; median, q05, q95, mean: of their values (None: no
+            particle).
+    """
+
+    n: int
+    median: float | None = None
+    q05: float | None = None
+    q95: float | None = None
+    mean: float | None = None
+
+    def to_json(self) -> JSON:
+        """The object: ``{"n": 0}`` without particles, else every field."""
+        return {"n": 0} if self.n == 0 else super().to_json()
+
+
+@dataclass(frozen=True)
+class EffectPosterior(Record):
+    """A chosen effect over the re-calibrated hybrid
+    (:func:`~torchcf.diagnose.loop.effect_posterior`).
+
+    Attributes:
+        share: the hybrid's share of the models that carry it.
+        params: per effect parameter, its spread over their particles.
+    """
+
+    share: float
+    params: dict[str, ParamSpread]
+
+    @classmethod
+    def from_json(cls, raw: Mapping[str, Any]) -> Self:
+        """The record of its JSON object."""
+        return cls(
+            share=raw["share"],
+            params={k: ParamSpread.from_json(v) for k, v in raw["params"].items()},
+        )
+
+
+@dataclass(frozen=True)
+class ChangeOnTest(Record):
+    """After against the run and against the reference, test pair by test pair
+    (:func:`~torchcf.diagnose.significance.paired_change`; None where the two
+    do not share a usable test pair)."""
+
+    run: PairedChange | None
+    reference: PairedChange | None
+
+    @classmethod
+    def from_json(cls, raw: Mapping[str, Any]) -> Self:
+        """The record of its JSON object."""
+        return cls(
+            *(
+                None if raw[k] is None else PairedChange.from_json(raw[k])
+                for k in ("run", "reference")
+            )
+        )
+
+
+@dataclass(frozen=True)
+class Unexplained(Record):
+    """A signature still in the final model's residual that no chosen effect
+    explains (:func:`~torchcf.diagnose.loop.unexplained`).
+
+    Attributes:
+        signature, mean, unit, p_value: the signature's test
+            (:class:`~torchcf.diagnose.signatures.SignatureRow`).
+        tested_not_chosen: effects it points to that were tested, not chosen.
+        family: the model family it suggests.
+    """
+
+    signature: str
+    mean: float
+    unit: str
+    p_value: float
+    tested_not_chosen: tuple[str, ...]
+    family: str
+
+
+@dataclass(frozen=True)
+class SearchBudget(Record):
+    """The loop's search budgets as run (``diagnose.*``, with the run's).
+
+    Attributes:
+        population: slots per pair (at least the run's ``top_n``).
+        local_copies, rounds, refit_rounds, validation_warmup: ``diagnose.*``.
+        n_particles: ``diagnose.n_particles``; run_particles: the run's
+            ``abc.n_particles``.
+        n_train: training pairs.
+        refit_slots, refit_stop: ``diagnose.*`` (None and "rounds" in a
+            record written before them: ``abc.top_n`` slots, every round run).
+    """
+
+    population: int
+    local_copies: int
+    rounds: int
+    refit_rounds: int
+    validation_warmup: float
+    n_particles: int
+    run_particles: int
+    n_train: int
+    refit_slots: int | None = None
+    refit_stop: str = "rounds"
 
 
 @dataclass(frozen=True)
@@ -35,8 +156,7 @@ class Recalibrated:
             hybrid's shares.
         before_same_search: the reference's test metrics (the hybrid's).
         test_pairs: after against the run and against the reference, test pair
-            by test pair (:func:`~torchcf.diagnose.significance.paired_change`;
-            None where a run's metrics have no per-pair distances).
+            by test pair.
         posterior: per chosen effect's token, its parameters over the hybrid's
             particles (:func:`~torchcf.diagnose.loop.effect_posterior`).
         identifiability: per chosen effect's token, its strongest partners
@@ -46,13 +166,13 @@ class Recalibrated:
 
     after_run: Path
     reference_run: Path
-    after: JSON
+    after: SetEvaluation
     shares: dict[str, float]
-    before_same_search: JSON
-    test_pairs: dict[str, Any]
-    posterior: dict[str, Any]
-    identifiability: dict[str, Any]
-    residuals_after: list[dict[str, Any]]
+    before_same_search: SetEvaluation
+    test_pairs: ChangeOnTest
+    posterior: dict[str, EffectPosterior]
+    identifiability: Identifiability
+    residuals_after: list[ResidualRow]
 
 
 @dataclass(frozen=True)
@@ -78,16 +198,16 @@ class LoopResult:
     """
 
     run: Path
-    dataset: str | None
+    dataset: str
     pool: list[str]
     road: RoadOffer
     selection: EffectSelection
-    unexplained: list[dict[str, Any]]
+    unexplained: list[Unexplained]
     settings: DiagnoseConfig
-    search: dict[str, Any]
-    before: JSON
+    search: SearchBudget
+    before: SetEvaluation
     shares_before: dict[str, float]
-    residuals_before: list[dict[str, Any]]
+    residuals_before: list[ResidualRow]
     recalibrated: Recalibrated | None
     seconds: float
 
@@ -97,7 +217,7 @@ class LoopResult:
         return self.selection.chosen
 
     @property
-    def after(self) -> JSON:
+    def after(self) -> SetEvaluation:
         """The test metrics after: the re-calibration's, or the run's when
         nothing was chosen."""
         return self.before if self.recalibrated is None else self.recalibrated.after
@@ -119,11 +239,11 @@ class LoopResult:
             "dataset": self.dataset,
             "pool": self.pool,
             "road": self.road.to_json(),
-            "signatures": selection.signatures,
+            "signatures": to_json_value(selection.signatures),
             "effects_ranked": [row.to_json() for row in first],
             "steps": [[row.to_json() for row in rows] for rows in selection.steps],
-            "absorption": {row.token: row.absorbed_by for row in first},
-            "unexplained": self.unexplained,
+            "absorption": {row.token: to_json_value(row.absorbed_by) for row in first},
+            "unexplained": to_json_value(self.unexplained),
             "chosen": [effect.token for effect in self.chosen],
             "shared": selection.shared,
             "models_after": [m.name for m in selection.models],
@@ -137,26 +257,39 @@ class LoopResult:
             "fit_pairs": selection.validation.fit_pairs,
             "min_gain": self.settings.min_gain,
             "recalibration": self.settings.recalibration,
-            "search": self.search,
-            "before": self.before,
-            "residuals_before": self.residuals_before,
-            "after": self.after,
+            "search": self.search.to_json(),
+            "before": self.before.to_json(),
+            "residuals_before": to_json_value(self.residuals_before),
+            "after": self.after.to_json(),
         }
         done = self.recalibrated
         out |= {
             "after_run": None if done is None else str(done.after_run),
             "shares_after": self.shares_after,
-            "before_same_search": None if done is None else done.before_same_search,
-            "test_pairs": None if done is None else done.test_pairs,
-            "reference_run": None if done is None else str(done.reference_run),
-            "posterior": {} if done is None else done.posterior,
-            "identifiability": {} if done is None else done.identifiability,
-            "residuals_after": self.residuals_before
+            "before_same_search": None
             if done is None
-            else done.residuals_after,
+            else done.before_same_search.to_json(),
+            "test_pairs": None if done is None else done.test_pairs.to_json(),
+            "reference_run": None if done is None else str(done.reference_run),
+            "posterior": {} if done is None else to_json_value(done.posterior),
+            "identifiability": {}
+            if done is None
+            else to_json_value(done.identifiability),
+            "residuals_after": to_json_value(
+                self.residuals_before if done is None else done.residuals_after
+            ),
             "seconds": self.seconds,
         }
         return out
 
 
-__all__ = ["FORMAT", "LoopResult", "Recalibrated"]
+__all__ = [
+    "FORMAT",
+    "ChangeOnTest",
+    "EffectPosterior",
+    "LoopResult",
+    "ParamSpread",
+    "Recalibrated",
+    "SearchBudget",
+    "Unexplained",
+]

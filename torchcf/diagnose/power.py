@@ -34,19 +34,23 @@ Shapes: U validation units (:mod:`torchcf.typing`).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Self
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from ..models.effects import Effect, Grade
+from ..system.records import Record
 from .refit import Pin
 from .search import INVALID_RATIO
 from .significance import comparable, sign_flip_test
-from .tested import EffectTest
 from .validation import Judge
+
+if TYPE_CHECKING:  # a row carries what this module finds (tested imports it)
+    from .tested import EffectTest
 
 #: The sizes tried, as shares of the way from the neutral value to each end of
 #: the effect's prior (a grade: of its prior's bound), smallest first.
@@ -85,7 +89,7 @@ def size_path(effect: Effect) -> list[tuple[str, list[tuple[float, Tensor]]]] | 
 
 
 @dataclass(frozen=True)
-class Rung:
+class Rung(Record):
     """One size tried: the test the data would have given it.
 
     Attributes:
@@ -139,12 +143,50 @@ class Ladder:
                 low = middle
         return self.rung(side, high).size
 
-    def tried_rungs(self) -> dict[str, list[dict[str, float]]]:
+    def tried_rungs(self) -> dict[str, tuple[Rung, ...]]:
         """Per side, the sizes tried and their tests, smallest first."""
-        out: dict[str, list[dict[str, float]]] = {}
+        out: dict[str, list[Rung]] = {}
         for (side, _), rung in sorted(self.tried.items()):
-            out.setdefault(side, []).append(vars(rung))
-        return out
+            out.setdefault(side, []).append(rung)
+        return {side: tuple(rungs) for side, rungs in out.items()}
+
+
+@dataclass(frozen=True)
+class Detectable(Record):
+    """The smallest sizes an effect's test would have found in these data
+    (:func:`detectable_sizes`), per side of the neutral value (``"below"``,
+    ``"above"``; None: not even at the end of the prior).
+
+    Attributes:
+        unit: the size's unit (a grade: ``"1 (grade amplitude)"``).
+        level: the level the effect was judged at (its place in the order).
+        at_level: per side, the smallest size detectable at ``level``.
+        first_level: the step's first level (had the residual pointed to it).
+        if_first: per side, the smallest size detectable at ``first_level``.
+        tried: per side, the sizes tried and their tests, smallest first.
+    """
+
+    unit: str
+    level: float
+    at_level: dict[str, float | None]
+    first_level: float
+    if_first: dict[str, float | None]
+    tried: dict[str, tuple[Rung, ...]]
+
+    @classmethod
+    def from_json(cls, raw: Mapping[str, Any]) -> Self:
+        """The record of its JSON object (:meth:`to_json`'s)."""
+        return cls(
+            unit=raw["unit"],
+            level=raw["level"],
+            at_level=dict(raw["at_level"]),
+            first_level=raw["first_level"],
+            if_first=dict(raw["if_first"]),
+            tried={
+                side: tuple(Rung.from_json(rung) for rung in rungs)
+                for side, rungs in raw["tried"].items()
+            },
+        )
 
 
 def _rung(size: float, before: np.ndarray, after: np.ndarray, perms: int) -> Rung:
@@ -182,14 +224,14 @@ def detectable_sizes(
             before = judge.profile(None)
         found = Ladder(judge, row.effect, before, permutations)
         sides = list(found.path)
-        row.detectable = {
-            "unit": _unit(row.effect),
-            "level": row.level,
-            "at_level": {s: found.smallest(s, row.level, min_gain) for s in sides},
-            "first_level": first_level,
-            "if_first": {s: found.smallest(s, first_level, min_gain) for s in sides},
-            "tried": found.tried_rungs(),
-        }
+        row.detectable = Detectable(
+            unit=_unit(row.effect),
+            level=row.level,
+            at_level={s: found.smallest(s, row.level, min_gain) for s in sides},
+            first_level=first_level,
+            if_first={s: found.smallest(s, first_level, min_gain) for s in sides},
+            tried=found.tried_rungs(),
+        )
 
 
 def _unit(effect: Effect) -> str:
@@ -198,4 +240,11 @@ def _unit(effect: Effect) -> str:
     return effect.param_specs[0].unit
 
 
-__all__ = ["LADDER", "Ladder", "Rung", "detectable_sizes", "size_path"]
+__all__ = [
+    "LADDER",
+    "Detectable",
+    "Ladder",
+    "Rung",
+    "detectable_sizes",
+    "size_path",
+]

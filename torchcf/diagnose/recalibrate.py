@@ -31,7 +31,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
 
 import torch
 from torch import Tensor
@@ -111,7 +110,13 @@ def recalibrate(
     ) -> Population:
         bounds = {m: model_bounds(m, priors, values) for m in begin.models}
         searched, _ = converge(
-            begin, rollout, bounds, noise, parents, Limits.of(settings), after_round=ticked
+            begin,
+            rollout,
+            bounds,
+            noise,
+            parents,
+            Limits.of(settings),
+            after_round=ticked,
         )
         return searched
 
@@ -265,7 +270,7 @@ def write_run(
     cfg: TrainConfig,
     posterior: Posterior,
     buffers: Sequence[TopN],
-    summary: dict[str, Any],
+    dataset: str,
     how: str,
 ) -> RunDir:
     """A run directory of a re-calibration: ``config.json``, ``posterior.pt``
@@ -276,7 +281,7 @@ def write_run(
         cfg: its config (:func:`recalibration_config`).
         buffers: every model's buffer, in the order of ``cfg.models``
             (:func:`model_buffers` for a searched population).
-        summary: the run's summary (its dataset; the rest is recomputed).
+        dataset: the run's data set label (its summary's).
         how: how the buffers were made, for ``summary.json``.
     """
     run = RunDir(out)
@@ -298,7 +303,7 @@ def write_run(
     run.save_posterior(learned)
     run.write_summary(
         {
-            "dataset": summary.get("dataset", posterior.dataset),
+            "dataset": dataset,
             "shares": learned.shares,
             "hybrid_size": sum(len(p) for p in learned.hybrid.values()),
             "pairwise": {

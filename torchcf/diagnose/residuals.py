@@ -42,6 +42,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..system.files import JSON
+
 __all__ = [
     "TestResult",
     "asymmetry",
@@ -658,7 +660,7 @@ def _jsonable(x: Any) -> Any:
 
 def summarize(
     results: Sequence[TestResult], *, include_pairs: bool = False
-) -> list[dict[str, Any]]:
+) -> list[JSON]:
     """JSON-able rows, one per result, sorted by p-value (untestable ones last).
 
     Args:

@@ -48,6 +48,7 @@ from ..data import PairSet
 from ..models import FollowerState, Perception
 from ..models.effects import GRAVITY, Bend, Grade, RoadProfile, parse_effect
 from ..sim.rollout import realise
+from ..system.files import JSON
 from .series import BestParticles
 
 #: Knot spacings [m] a bare road effect chooses from (coarse to fine).
@@ -325,7 +326,8 @@ class RoadChoice:
     standard_errors: dict[float, float]
     seed: Tensor | None
 
-    def report(self) -> dict[str, Any]:
+    def report(self) -> JSON:
+        """As ``loop.json``'s ``road.profiles`` holds it."""
         return {
             "effect": self.effect.token,
             "spacing": self.spacing,
@@ -349,7 +351,7 @@ class RoadOffer:
     skipped: list[RoadProfile]
     profiles: list[RoadChoice]
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> JSON:
         """As ``loop.json``'s ``road``."""
         return {
             "frame": self.frame,

@@ -15,6 +15,7 @@ Shapes: T steps, N pairs, K parameters (:mod:`torchcf.typing`).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -26,6 +27,7 @@ from ..models import CFModel
 from ..posterior import Posterior
 from ..sim.rollout import simulate
 from ..system.errors import TorchcfError
+from ..system.records import Record
 from . import residuals as rt
 
 #: A pair's best particle per model: ``{model: (theta (k, K) float64, pair position
@@ -38,6 +40,30 @@ CHANNELS = ("spacing", "speed", "acceleration")
 
 class DiagnoseError(TorchcfError, RuntimeError):
     """A run that cannot be diagnosed (one-line message)."""
+
+
+@dataclass(frozen=True)
+class ResidualRow(Record):
+    """One structure test of one residual channel, pooled over pairs (a row of
+    ``loop.json``'s ``residuals_before`` and ``residuals_after``).
+
+    Attributes:
+        channel: the residual (:data:`CHANNELS`).
+        test: the test (``"autocorrelation"``, ``"own speed"``, ...:
+            :func:`residual_tests`).
+        statistic, p_value: the test's (None: it could not run).
+        effect: its effect size, a float or per regressor (:mod:`torchcf.
+            diagnose.residuals`; None: not finite).
+        n: samples used, summed over pairs; n_pairs: pairs tested (None: none).
+    """
+
+    channel: str
+    test: str
+    statistic: float | None
+    p_value: float | None
+    effect: float | dict[str, float | None] | None
+    n: int
+    n_pairs: int | None
 
 
 def best_particles(posterior: Posterior, pairs: PairSet) -> BestParticles:
@@ -118,16 +144,15 @@ def residual_series(
 
 def residual_tests(
     series: dict[str, list[np.ndarray]], dt: float, period: float | None = None
-) -> list[dict]:
-    """The structure tests of every residual channel, as JSON rows.
+) -> list[ResidualRow]:
+    """The structure tests of every residual channel, one row each.
 
     ``road position`` is a linear trend in ``x`` on an open road, and the lap's
     first harmonic on a closed track of lap length ``period`` [m]
     (:func:`~torchcf.diagnose.residuals.lap_dependence`).
 
     Returns:
-        one row per (channel, test): ``channel, test, statistic, p_value, effect,
-        n, n_pairs`` (pooled over pairs).
+        one row per (channel, test), pooled over pairs.
     """
     rows = []
     for channel in CHANNELS:
@@ -153,21 +178,22 @@ def residual_tests(
         for test, run in tests.items():
             (row,) = rt.summarize([run()])
             rows.append(
-                {
-                    "channel": channel,
-                    "test": test,
-                    **{
-                        key: row[key]
-                        for key in ("statistic", "p_value", "effect", "n", "n_pairs")
-                    },
-                }
+                ResidualRow(
+                    channel=channel,
+                    test=test,
+                    statistic=row["statistic"],
+                    p_value=row["p_value"],
+                    effect=row["effect"],
+                    n=row["n"],
+                    n_pairs=row["n_pairs"],
+                )
             )
     return rows
 
 
 def diagnose_residuals(
     posterior: Posterior, pairs: PairSet, dtype: torch.dtype = torch.float64
-) -> tuple[list[dict], dict[str, list[np.ndarray]]]:
+) -> tuple[list[ResidualRow], dict[str, list[np.ndarray]]]:
     """Residual series of the hybrid's best particle per pair and their tests.
 
     Raises:
@@ -183,6 +209,7 @@ __all__ = [
     "CHANNELS",
     "BestParticles",
     "DiagnoseError",
+    "ResidualRow",
     "best_particles",
     "diagnose_residuals",
     "residual_series",

@@ -64,6 +64,7 @@ from typing import Any
 
 import numpy as np
 
+from ..system.records import Record
 from .significance import two_sided_sign_flip
 
 #: p-value (across pairs) under which a signature is found.
@@ -134,6 +135,32 @@ UNITS = {
 
 
 @dataclass(frozen=True)
+class SignatureRow(Record):
+    """A signature's test as a row of ``loop.json``'s ``signatures`` (and of
+    ``loop.md``'s table): :meth:`Signature.report`.
+
+    Attributes:
+        signature: its name; unit: its per-pair value's (:data:`UNITS`).
+        mean, median: of the per-pair values (median None: no pair carries one).
+        n_pairs: the pairs that carry one.
+        p_value: two-sided sign-flip p-value of a zero mean.
+        found: p < :data:`FOUND` (over at least two pairs).
+        points_to: the effects that leave it with the sign found.
+        family: the model family it suggests where no effect leaves it.
+    """
+
+    signature: str
+    unit: str
+    mean: float
+    median: float | None
+    n_pairs: int
+    p_value: float
+    found: bool
+    points_to: tuple[str, ...]
+    family: str | None
+
+
+@dataclass(frozen=True)
 class Signature:
     """One signature's test across pairs.
 
@@ -172,18 +199,19 @@ class Signature:
             return family_of(self.name, self.mean)
         return None
 
-    def report(self) -> dict[str, Any]:
-        return {
-            "signature": self.name,
-            "unit": UNITS[self.name],
-            "mean": self.mean,
-            "median": float(np.median(self.values)) if self.values.size else None,
-            "n_pairs": int(self.values.size),
-            "p_value": self.p_value,
-            "found": self.found,
-            "points_to": list(self.points_to),
-            "family": self.family,
-        }
+    def report(self) -> SignatureRow:
+        """The test as a row (its per-pair values summed up)."""
+        return SignatureRow(
+            signature=self.name,
+            unit=UNITS[self.name],
+            mean=self.mean,
+            median=float(np.median(self.values)) if self.values.size else None,
+            n_pairs=int(self.values.size),
+            p_value=self.p_value,
+            found=self.found,
+            points_to=self.points_to,
+            family=self.family,
+        )
 
 
 def family_of(name: str, mean: float) -> str:
@@ -396,6 +424,7 @@ __all__ = [
     "POINTS_TO",
     "UNITS",
     "Signature",
+    "SignatureRow",
     "pointed_effects",
     "response_lag",
     "road_share",

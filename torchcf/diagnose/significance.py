@@ -35,9 +35,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
+
+from ..system.records import Record
 
 
 def sign_flip_test(
@@ -85,22 +87,38 @@ def two_sided_sign_flip(values: np.ndarray, permutations: int, seed: int = 0) ->
     )
 
 
+@dataclass(frozen=True)
+class PairedChange(Record):
+    """Two runs compared pair by pair on the same test pairs (:func:`paired_change`).
+
+    Attributes:
+        pairs: the pairs both cover.
+        better: those where the second run is lower.
+        change: the geometric mean of ``after / before`` minus 1 (negative:
+            after covers the pairs better).
+        p_value: one-sided sign flips of the per-pair log ratios, "after no
+            better than before" (exact, the test pairs being independent of
+            both runs' training).
+    """
+
+    pairs: int
+    better: int
+    change: float
+    p_value: float
+
+
 def paired_change(
     before: Sequence[float | None],
     after: Sequence[float | None],
     permutations: int,
     seed: int = 0,
-) -> dict[str, Any] | None:
+) -> PairedChange | None:
     """Two runs compared pair by pair on the same test pairs: their minimum
     distance per pair (None: no valid particle there, that pair left out).
 
     Returns:
-        ``pairs`` (the pairs both cover), ``better`` (those where ``after`` is
-        lower), ``change`` (the geometric mean of ``after / before`` minus 1:
-        negative, after covers the pairs better) and ``p_value`` (one-sided
-        sign flips of the per-pair log ratios, "after no better than before":
-        exact, the test pairs being independent of both runs' training); None
-        when the lists differ in length or no pair is usable.
+        the comparison; None when the lists differ in length or no pair is
+        usable.
     """
     if len(before) != len(after):
         return None
@@ -114,12 +132,12 @@ def paired_change(
     if ratios.size == 0:
         return None
     _, p_value = sign_flip_test(-ratios, permutations, seed)
-    return {
-        "pairs": int(ratios.size),
-        "better": int(np.count_nonzero(ratios < 0)),
-        "change": float(math.expm1(ratios.mean())),
-        "p_value": p_value,
-    }
+    return PairedChange(
+        pairs=int(ratios.size),
+        better=int(np.count_nonzero(ratios < 0)),
+        change=float(math.expm1(ratios.mean())),
+        p_value=p_value,
+    )
 
 
 def comparable(
@@ -228,6 +246,7 @@ def fallback_levels(
 
 __all__ = [
     "LEVEL_SCHEMES",
+    "PairedChange",
     "comparable",
     "fallback_levels",
     "fallback_weights",

@@ -16,15 +16,46 @@ an estimate is in the effect parameters' own units.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Self
 
 from ..models.effects import Effect, Scope, parse_effect
 from ..system.files import JSON
+from ..system.records import Record, to_json_value
+from .absorption import Absorbed, absorbed_from_json
+from .power import Detectable
 
 #: ``detectable`` of a row whose sizes were not asked for (a step that chose):
 #: written as no key at all, where ``None`` is an effect without a size.
 NOT_SIZED: Any = "not sized"
+
+
+@dataclass(frozen=True)
+class SharedValue(Record):
+    """A shared effect's one value for every pair, as its arm found it.
+
+    Attributes:
+        value: per effect parameter, its value.
+        prior: per effect parameter, the ``(low, high)`` box of the search's
+            last round.
+        interval: per the effect's first parameter, its interval (None: not
+            measured).
+    """
+
+    value: dict[str, float]
+    prior: dict[str, tuple[float, float]]
+    interval: dict[str, list[float]] | None
+
+    @classmethod
+    def from_json(cls, raw: Mapping[str, Any]) -> Self:
+        """The record of its JSON object (a box read back as a tuple)."""
+        interval = raw["interval"]
+        return cls(
+            value=dict(raw["value"]),
+            prior={k: tuple(box) for k, box in raw["prior"].items()},
+            interval=None if interval is None else dict(interval),
+        )
 
 
 @dataclass
@@ -48,7 +79,7 @@ class EffectTest:
             carry it, or a shared effect's one value).
         per_pair: ``{"before": [...], "after": [...]}`` validation score per unit
             (None: invalid).
-        shared: a shared effect's ``{"value", "prior", "interval"}``, else None.
+        shared: a shared effect's one value, else None.
         active: the estimate lies away from the neutral value
             (:func:`~torchcf.diagnose.attribution.active`).
         absorbed_by: the model parameter that trades off against the effect
@@ -73,15 +104,15 @@ class EffectTest:
     variants: list[str]
     estimate: dict[str, float]
     per_pair: dict[str, list[float | None]]
-    shared: dict[str, Any] | None = None
+    shared: SharedValue | None = None
     active: bool = False
-    absorbed_by: dict[str, Any] | None = None
+    absorbed_by: Absorbed | None = None
     order: int = 0
     pointed_by: list[str] = dataclasses.field(default_factory=list)
     level: float = 0.0
     significant: bool = False
     chosen: bool = False
-    detectable: dict[str, Any] | None = NOT_SIZED
+    detectable: Detectable | None = NOT_SIZED
 
     @property
     def name(self) -> str:
@@ -107,16 +138,25 @@ class EffectTest:
                 continue
             if field.name == "detectable" and value is NOT_SIZED:
                 continue
-            out[field.name] = value
+            out[field.name] = to_json_value(value)
         return out
 
     @classmethod
     def from_json(cls, raw: JSON) -> EffectTest:
         """A row read back from :meth:`to_json`'s dict (the effect parsed from
-        its token: where a row re-enters from a file)."""
+        its token, the records of its parts from theirs: where a row re-enters
+        from a file)."""
         names = [f.name for f in dataclasses.fields(cls)[1:]]
         values = {name: raw[name] for name in names if name in raw}
+        parts = {
+            "shared": SharedValue.from_json,
+            "absorbed_by": absorbed_from_json,
+            "detectable": Detectable.from_json,
+        }
+        for name, read in parts.items():
+            if values.get(name) is not None:
+                values[name] = read(values[name])
         return cls(effect=parse_effect(raw["effect"]), **values)
 
 
-__all__ = ["NOT_SIZED", "EffectTest"]
+__all__ = ["NOT_SIZED", "EffectTest", "SharedValue"]
