@@ -25,11 +25,10 @@ from torchcf.diagnose.outcome import (
     SearchBudget,
     Unexplained,
 )
-from torchcf.diagnose.power import Detectable, Rung
 from torchcf.diagnose.series import ResidualRow
 from torchcf.diagnose.signatures import SignatureRow
 from torchcf.diagnose.significance import PairedChange
-from torchcf.diagnose.tested import EffectTest, SharedValue
+from torchcf.diagnose.tested import Detectable, EffectTest, Rung, SharedValue
 from torchcf.runs.directory import RunDir
 from torchcf.system.files import RunFileError
 

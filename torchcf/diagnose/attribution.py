@@ -90,7 +90,7 @@ from .arms import (
     pool_units,
 )
 from .population import Population, population_dict, population_of
-from .power import Detectable, detectable_sizes
+from .power import detectable_sizes
 from .refit import Pin
 from .road import one_step_residual
 from .search import INVALID_RATIO
@@ -103,7 +103,7 @@ from .significance import (
     sign_flip_test,
     step_levels,
 )
-from .tested import EffectTest, SharedValue
+from .tested import Detectable, EffectTest, SharedValue
 from .validation import Judge
 from .workers import ArmPool, worker_count
 from .workers import tick as worker_tick

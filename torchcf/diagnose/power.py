@@ -34,23 +34,18 @@ Shapes: U validation units (:mod:`torchcf.typing`).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Self
+from collections.abc import Callable
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from ..models.effects import Effect, Grade
-from ..system.records import Record
 from .refit import Pin
 from .search import INVALID_RATIO
 from .significance import comparable, sign_flip_test
+from .tested import Detectable, EffectTest, Rung
 from .validation import Judge
-
-if TYPE_CHECKING:  # a row carries what this module finds (tested imports it)
-    from .tested import EffectTest
 
 #: The sizes tried, as shares of the way from the neutral value to each end of
 #: the effect's prior (a grade: of its prior's bound), smallest first.
@@ -86,26 +81,6 @@ def size_path(effect: Effect) -> list[tuple[str, list[tuple[float, Tensor]]]] | 
             (side, [(v, torch.tensor([v], dtype=torch.float64)) for v in ladder])
         )
     return sides
-
-
-@dataclass(frozen=True)
-class Rung(Record):
-    """One size tried: the test the data would have given it.
-
-    Attributes:
-        size: the effect's value (a grade: the amplitude) [its unit].
-        gain: the relative drop of the summed score, ``sum(after - before) /
-            sum(after)`` with ``after`` the refit with the effect at the size
-            (what the model without the effect would score on data with it).
-        p_value: the one-sided sign-flip test of the per-unit log ratios.
-    """
-
-    size: float
-    gain: float
-    p_value: float
-
-    def passes(self, level: float, min_gain: float) -> bool:
-        return self.p_value <= level and self.gain >= min_gain
 
 
 class Ladder:
@@ -149,44 +124,6 @@ class Ladder:
         for (side, _), rung in sorted(self.tried.items()):
             out.setdefault(side, []).append(rung)
         return {side: tuple(rungs) for side, rungs in out.items()}
-
-
-@dataclass(frozen=True)
-class Detectable(Record):
-    """The smallest sizes an effect's test would have found in these data
-    (:func:`detectable_sizes`), per side of the neutral value (``"below"``,
-    ``"above"``; None: not even at the end of the prior).
-
-    Attributes:
-        unit: the size's unit (a grade: ``"1 (grade amplitude)"``).
-        level: the level the effect was judged at (its place in the order).
-        at_level: per side, the smallest size detectable at ``level``.
-        first_level: the step's first level (had the residual pointed to it).
-        if_first: per side, the smallest size detectable at ``first_level``.
-        tried: per side, the sizes tried and their tests, smallest first.
-    """
-
-    unit: str
-    level: float
-    at_level: dict[str, float | None]
-    first_level: float
-    if_first: dict[str, float | None]
-    tried: dict[str, tuple[Rung, ...]]
-
-    @classmethod
-    def from_json(cls, raw: Mapping[str, Any]) -> Self:
-        """The record of its JSON object (:meth:`to_json`'s)."""
-        return cls(
-            unit=raw["unit"],
-            level=raw["level"],
-            at_level=dict(raw["at_level"]),
-            first_level=raw["first_level"],
-            if_first=dict(raw["if_first"]),
-            tried={
-                side: tuple(Rung.from_json(rung) for rung in rungs)
-                for side, rungs in raw["tried"].items()
-            },
-        )
 
 
 def _rung(size: float, before: np.ndarray, after: np.ndarray, perms: int) -> Rung:

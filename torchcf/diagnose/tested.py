@@ -24,7 +24,65 @@ from ..models.effects import Effect, Scope, parse_effect
 from ..system.files import JSON
 from ..system.records import Record, to_json_value
 from .absorption import Absorbed, absorbed_from_json
-from .power import Detectable
+
+
+@dataclass(frozen=True)
+class Rung(Record):
+    """One size tried: the test the data would have given it.
+
+    Attributes:
+        size: the effect's value (a grade: the amplitude) [its unit].
+        gain: the relative drop of the summed score, ``sum(after - before) /
+            sum(after)`` with ``after`` the refit with the effect at the size
+            (what the model without the effect would score on data with it).
+        p_value: the one-sided sign-flip test of the per-unit log ratios.
+    """
+
+    size: float
+    gain: float
+    p_value: float
+
+    def passes(self, level: float, min_gain: float) -> bool:
+        return self.p_value <= level and self.gain >= min_gain
+
+
+@dataclass(frozen=True)
+class Detectable(Record):
+    """The smallest sizes an effect's test would have found in these data
+    (:func:`detectable_sizes`), per side of the neutral value (``"below"``,
+    ``"above"``; None: not even at the end of the prior).
+
+    Attributes:
+        unit: the size's unit (a grade: ``"1 (grade amplitude)"``).
+        level: the level the effect was judged at (its place in the order).
+        at_level: per side, the smallest size detectable at ``level``.
+        first_level: the step's first level (had the residual pointed to it).
+        if_first: per side, the smallest size detectable at ``first_level``.
+        tried: per side, the sizes tried and their tests, smallest first.
+    """
+
+    unit: str
+    level: float
+    at_level: dict[str, float | None]
+    first_level: float
+    if_first: dict[str, float | None]
+    tried: dict[str, tuple[Rung, ...]]
+
+    @classmethod
+    def from_json(cls, raw: Mapping[str, Any]) -> Self:
+        """The record of its JSON object (:meth:`to_json`'s)."""
+        return cls(
+            unit=raw["unit"],
+            level=raw["level"],
+            at_level=dict(raw["at_level"]),
+            first_level=raw["first_level"],
+            if_first=dict(raw["if_first"]),
+            tried={
+                side: tuple(Rung.from_json(rung) for rung in rungs)
+                for side, rungs in raw["tried"].items()
+            },
+        )
+
 
 #: ``detectable`` of a row whose sizes were not asked for (a step that chose):
 #: written as no key at all, where ``None`` is an effect without a size.
