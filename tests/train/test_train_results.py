@@ -328,26 +328,3 @@ def test_no_checkpoint_and_an_unreadable_one_are_refused(tmp_path):
     run.checkpoint.write_bytes(b"not a pickle")
     with pytest.raises(RunError, match="start again with another --out"):
         open_run(cfg, run.path, resume=True)
-
-
-def test_the_names_of_the_module_before_its_split_still_import():
-    """``from torchcf.train.run import ...`` (tools/, tests/) keeps working."""
-    import torchcf.train.run as run_module
-    from torchcf.train import checkpoint, engine, summary
-
-    for name in (
-        "CHECKPOINT_FORMAT",
-        "RunError",
-        "RunState",
-        "check_budget",
-        "open_run",
-        "rollout_of",
-        "run_device",
-        "smc_settings",
-        "train",
-        "tqdm",  # tests/train/test_chunk_progress.py patches it there
-    ):
-        assert hasattr(run_module, name), name
-    assert run_module.RunError is checkpoint.RunError
-    assert run_module.check_budget is engine.check_budget
-    assert run_module.RunSummary is summary.RunSummary

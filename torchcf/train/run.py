@@ -21,8 +21,6 @@ every rank holds the merged buffers). Its parts, by concern:
 - :mod:`torchcf.train.summary`: the results and ``summary.json``
   (:class:`~torchcf.train.summary.RunSummary`).
 
-Their public names are importable from here too, as before the split.
-
 The command line (:mod:`torchcf.train.__main__`) runs the study
 (:func:`torchcf.study.pipeline.run_study`): training, then the test-split evaluation
 (unless ``--no-eval``) and, with ``diagnose.run_after_training``, the diagnosis
@@ -67,11 +65,9 @@ from ..system.process import tune_malloc
 from ..system.signals import StopRequest
 from ..traffic.configured import hybrid_plausibility, plausibility_screen
 from .checkpoint import (
-    CHECKPOINT_FORMAT,
     Checkpointer,
     RunError,
     RunState,
-    checkpoint_state,
     open_run,
     resume_note,
 )
@@ -82,12 +78,7 @@ from .engine import (
     run_device,
     smc_settings,
 )
-from .summary import RunSummary, dataset_label, read_results
-
-#: The names this module held before it was split (``from torchcf.train.run
-#: import ...`` keeps working); the private ones for code that reached in.
-_Checkpointer = Checkpointer
-_checkpoint_state = checkpoint_state
+from .summary import RunSummary, read_results
 
 # --------------------------------------------------------------------------------------
 # One model's stream, with checkpoints and progress
@@ -355,18 +346,4 @@ def _log_results(
     )
 
 
-__all__ = [
-    "CHECKPOINT_FORMAT",
-    "Checkpointer",
-    "RunError",
-    "RunState",
-    "RunSummary",
-    "check_budget",
-    "checkpoint_state",
-    "dataset_label",
-    "open_run",
-    "rollout_of",
-    "run_device",
-    "smc_settings",
-    "train",
-]
+__all__ = ["train"]
