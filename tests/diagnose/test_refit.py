@@ -22,6 +22,7 @@ from torchcf.diagnose.refit import (
     refit_scores,
     start,
 )
+from torchcf.diagnose.search import CONVERGED
 from torchcf.diagnose.validation import design
 from torchcf.models import get_model
 from torchcf.models.effects import parse_effect
@@ -43,6 +44,14 @@ def _population(theta: torch.Tensor, n_pairs: int, name: str = "idm") -> Populat
         torch.arange(q),
     )
     return Population.from_particles([particles], n_pairs, q // n_pairs + 1)
+
+
+def _prior_draws(q: int, seed: int) -> dict:
+    """``q`` IDM particles drawn uniformly over its prior, as refit candidates."""
+    box = PRIORS["idm"]
+    g = torch.Generator().manual_seed(seed)
+    u = torch.rand(q, box.shape[0], generator=g, dtype=torch.float64)
+    return {get_model("idm"): box[:, 0] + u * (box[:, 1] - box[:, 0])}
 
 
 def test_candidates_drop_the_effect_and_lifting_pins_it():
@@ -80,10 +89,7 @@ def test_the_effect_pinned_at_its_neutral_value_refits_as_without_it():
     two refits draw the same steps: the scores agree exactly."""
     pairs = synthetic_pairs("idm", IDM, 4, 120, seed=1, noise=0.05)
     rollout = Rollout(pairs, True, torch.float64)
-    box = PRIORS["idm"]
-    g = torch.Generator().manual_seed(0)
-    u = torch.rand(12, 6, generator=g, dtype=torch.float64)
-    members = {get_model("idm"): box[:, 0] + u * (box[:, 1] - box[:, 0])}
+    members = _prior_draws(12, seed=0)
     key = ("test", 1)
     without = refit_scores(members, rollout, BUDGET, PRIORS, {}, key)
     neutral = Pin(parse_effect("delay"), torch.tensor([0.0], dtype=torch.float64))
@@ -157,10 +163,7 @@ def test_a_refit_until_calm_is_the_fixed_refit_cut_where_it_settles():
     cannot settle in its rounds runs them all."""
     pairs = synthetic_pairs("idm", IDM, 4, 120, seed=5, noise=0.05)
     rollout = Rollout(pairs, True, torch.float64)
-    box = PRIORS["idm"]
-    g = torch.Generator().manual_seed(3)
-    u = torch.rand(12, 6, generator=g, dtype=torch.float64)
-    members = {get_model("idm"): box[:, 0] + u * (box[:, 1] - box[:, 0])}
+    members = _prior_draws(12, seed=3)
     key = ("test", 5)
 
     def refit(rounds: int, calm: bool) -> torch.Tensor:
@@ -168,7 +171,7 @@ def test_a_refit_until_calm_is_the_fixed_refit_cut_where_it_settles():
         return refit_scores(members, rollout, budget, PRIORS, {}, key)
 
     summed = [float(refit(r, False).sum()) for r in range(41)]  # after r rounds
-    calm = [(summed[r - 1] - summed[r]) < 0.002 * summed[r - 1] for r in range(1, 41)]
+    calm = [summed[r - 1] - summed[r] < CONVERGED * summed[r - 1] for r in range(1, 41)]
     settled = next(r + 1 for r in range(1, 40) if calm[r - 1] and calm[r])
     assert settled < 40, "the search should settle within 40 rounds here"
     assert settled > 3, "a start this far off should need a few rounds"
