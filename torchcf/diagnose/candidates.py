@@ -23,8 +23,7 @@ from ..abc.streams import ParticleStream
 from ..abc.topn import TopN
 from ..config import ConfigError, TrainConfig
 from ..data import PairSet
-from ..models import UnknownModelError, augment, get_model
-from ..models.effects import Effect
+from ..models import get_model
 
 
 def attribution_rollout(cfg: TrainConfig, pairs: PairSet) -> Rollout:
@@ -43,21 +42,6 @@ def attribution_rollout(cfg: TrainConfig, pairs: PairSet) -> Rollout:
 def attribution_seed(cfg: TrainConfig) -> int:
     """``diagnose.seed``, or the run's ``abc.seed`` when it is not set."""
     return cfg.abc.seed if cfg.diagnose.seed is None else cfg.diagnose.seed
-
-
-def augmented_variants(pool: Sequence[str], effect: Effect) -> list[str]:
-    """Canonical names of ``m`` wrapped by ``effect`` for the pool models the
-    effect can wrap.
-
-    (``lag`` cannot wrap HL, which has its own actuation lag.)
-    """
-    names = []
-    for model in pool:
-        try:
-            names.append(augment(get_model(model), effect).name)
-        except UnknownModelError:
-            continue
-    return names
 
 
 def prior_particles(
@@ -150,6 +134,5 @@ def _refined_particles(
 __all__ = [
     "attribution_rollout",
     "attribution_seed",
-    "augmented_variants",
     "prior_particles",
 ]
