@@ -35,7 +35,7 @@ N_PAIRS = 300
 @pytest.fixture(scope="module")
 def many():
     """300 short IDM pairs (40 steps): a few hundred pairs in a second."""
-    return synthetic_pairs("idm", IDM, N_PAIRS, 40, seed=4, noise=0.05)
+    return synthetic_pairs(get_model("idm"), IDM, N_PAIRS, 40, seed=4, noise=0.05)
 
 
 def _config(**abc) -> TrainConfig:
@@ -163,7 +163,7 @@ def test_a_chunk_on_a_slice_of_the_pairs_scores_as_on_the_whole_set(many):
 def test_a_round_is_cut_in_equal_chunks():
     """A refinement round is simulated in equal chunks no larger than the
     rollout's, never a whole chunk padded for a remainder."""
-    pairs = synthetic_pairs("idm", IDM, 4, 20, seed=1)
+    pairs = synthetic_pairs(get_model("idm"), IDM, 4, 20, seed=1)
     model = get_model("mpc")  # simulates whole chunks (not batch-size invariant)
     for cap, per_round, expected in (
         (1000, 2500, 834),

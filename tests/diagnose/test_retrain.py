@@ -45,7 +45,9 @@ def _config(models=("idm", "llctg"), n_particles=N, method="rejection", **top):
 
 @pytest.fixture(scope="module")
 def pairs():
-    return synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=6, noise=0.05)
+    return synthetic_pairs(
+        get_model("idm+delay"), IDM + [0.8], 6, 200, seed=6, noise=0.05
+    )
 
 
 def _trained(tmp_path, name, cfg, pairs):

@@ -40,7 +40,7 @@ from ..abc.particles import Particles
 from ..abc.topn import TopN
 from ..config import TrainConfig, validate_config
 from ..data import PairSet
-from ..models import CFModel, get_model
+from ..models import CFModel, get_model, require_model
 from ..models.effects import Effect
 from ..posterior import Posterior
 from ..runs.directory import RunDir
@@ -239,18 +239,18 @@ def best_entries(
 
 def recalibration_config(
     cfg: TrainConfig,
-    models: Sequence[str | CFModel],
+    models: Sequence[CFModel],
     shared_priors: dict[str, dict[str, tuple[float, float]]],
 ) -> TrainConfig:
-    """The run's config with ``models`` (the run's, then the variants; names or
-    models: the config is where they leave as names), each
-    variant with its pool model's prior and, for a shared effect, the box its
-    value was found in; no loop after it, no output of its own."""
+    """The run's config with ``models`` (the run's, then the variants, as
+    model objects: the config is where they leave as names), each variant with
+    its pool model's prior and, for a shared effect, the box its value was
+    found in; no loop after it, no output of its own."""
     raw = cfg.model_dump(mode="json")
     present = {spec["name"] for spec in raw["models"]}
     priors = {spec["name"]: spec["prior"] for spec in raw["models"]}
-    for name in models:
-        model = get_model(name)
+    for model in models:
+        model = require_model(model, "recalibration_config")
         if model.name in present:
             continue
         prior = dict(priors.get(model.base.name) or {})
