@@ -235,7 +235,7 @@ def _stream(name: str, rollout: Rollout, n: int, chunk_rollout=None):
     model = get_model(name)
     buffer = TopN(N_PAIRS, 5, model.n_params)
     progress = ModelProgress()
-    stream = prior_stream(name, model.prior_bounds(torch.float64), 7, rollout)
+    stream = prior_stream(model, model.prior_bounds(torch.float64), 7, rollout)
     run_rejection(stream, buffer, chunk_rollout or rollout, n, progress)
     return buffer, progress
 

@@ -90,7 +90,9 @@ def test_the_refinement_state_does_not_grow_with_rounds(many, monkeypatch, round
     assert state.accepted is None  # built when the refinement runs
     rollout = Rollout(pairs, dtype=torch.float64, compile="off")
     run_smc(
-        prior_stream("idm", get_model("idm").prior_bounds(torch.float64), 0, rollout),
+        prior_stream(
+            get_model("idm"), get_model("idm").prior_bounds(torch.float64), 0, rollout
+        ),
         TopN(pairs.n_pairs, 3, 7),
         rollout,
         40 * pairs.n_pairs,
@@ -197,7 +199,7 @@ def test_rejection_in_the_full_layout_does_not_depend_on_the_chunk(many):
     for chunk in (7, 64):
         rollout = Rollout(many, paired=False, compile="off", chunk_size=chunk)
         buffer = TopN(N_PAIRS, 3, model.n_params)
-        stream = prior_stream("llcs", bounds, 5, rollout)
+        stream = prior_stream(get_model("llcs"), bounds, 5, rollout)
         run_rejection(stream, buffer, rollout, 150, ModelProgress())
         buffers.append(buffer)
     a, b = buffers

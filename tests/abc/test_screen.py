@@ -41,7 +41,7 @@ def _buffers(paired: bool, chunk: int, screen, n: int = 1500):
     buffer = TopN(pairs.n_pairs, 5, model.n_params)
     progress = ModelProgress()
     run_rejection(
-        prior_stream(MODEL, bounds, 0, rollout),
+        prior_stream(get_model(MODEL), bounds, 0, rollout),
         buffer,
         rollout,
         n,
@@ -57,7 +57,7 @@ def _reference(paired: bool, n: int = 1500) -> TopN:
     model = get_model(MODEL)
     bounds = model.prior_bounds(torch.float64)
     rollout = Rollout(pairs, paired=paired, dtype=torch.float64, compile="off")
-    theta, pair = prior_stream(MODEL, bounds, 0, rollout).draw(0, n)
+    theta, pair = prior_stream(get_model(MODEL), bounds, 0, rollout).draw(0, n)
     score, _ = rollout.score(model, theta, pair if paired else None)
     bad = check_plausibility(get_model(MODEL), theta, BATTERY).collided
     assert 0 < int(bad.sum()) < n  # the test needs both kinds

@@ -409,7 +409,7 @@ def test_local_search_spends_its_budget_and_never_loses_a_fit(monkeypatch):
     models = [get_model(m) for m in ("idm", "llctg")]
     bounds = {m: model_bounds(m, {}) for m in models}
     seed = attribution_seed(cfg)
-    streams = [prior_stream(m.name, bounds[m], seed, rollout) for m in models]
+    streams = [prior_stream(m, bounds[m], seed, rollout) for m in models]
     sets = [prior_particles(stream, rollout, (200,), 3)[0] for stream in streams]
     start = Population.from_particles(sets, 4, 3)
     simulated = []
@@ -439,7 +439,7 @@ def test_diagnose_seed_replaces_the_runs_seed_in_the_attribution():
     def drawn(**diagnose):
         cfg = _config(**diagnose)
         rollout = attribution_rollout(cfg, pairs)
-        stream = prior_stream("idm", bounds, attribution_seed(cfg), rollout)
+        stream = prior_stream(get_model("idm"), bounds, attribution_seed(cfg), rollout)
         (particles,) = prior_particles(stream, rollout, (50,), 2)
         return particles
 

@@ -55,7 +55,11 @@ def test_an_offset_against_a_standstill_gap_is_reported_traded_off():
     rollout = Rollout(pairs, dtype=torch.float64, compile="off")
     buffer = TopN(pairs.n_pairs, 15, model.n_params)
     run_rejection(
-        prior_stream(name, bounds, 0, rollout), buffer, rollout, 60_000, ModelProgress()
+        prior_stream(model, bounds, 0, rollout),
+        buffer,
+        rollout,
+        60_000,
+        ModelProgress(),
     )
     posterior = SimpleNamespace(
         buffers={

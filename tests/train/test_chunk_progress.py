@@ -65,7 +65,7 @@ def _mpc_stream(
 
     def stream() -> None:
         run_rejection(
-            prior_stream("mpc", bounds, 0, rollout),
+            prior_stream(get_model("mpc"), bounds, 0, rollout),
             buffer,
             rollout,
             n,

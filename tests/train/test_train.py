@@ -86,7 +86,9 @@ def test_buffers_equal_a_brute_force_sort(mixture, tmp_path):
     posterior = Posterior.load(tmp_path / "run" / "posterior.pt")
     for name in ("idm", "hl"):
         spec = next(s for s in cfg.models if s.name == name)
-        stream = ParticleStream(name, spec.bounds(torch.float64), 1, mixture.n_pairs)
+        stream = ParticleStream(
+            get_model(name), spec.bounds(torch.float64), 1, mixture.n_pairs
+        )
         theta, pair = stream.draw(0, 3000)
         score = simulate(
             get_model(name), theta.float(), mixture, pair, dtype=torch.float32

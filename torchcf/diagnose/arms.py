@@ -293,7 +293,7 @@ def fit_pool(
         kept = checkpoints.get(key) if checkpoints is not None else None
         if kept is None:
             box = model_bounds(model, arena.priors)
-            stream = prior_stream(model.name, box, arena.seed, arena.fit)
+            stream = prior_stream(model, box, arena.seed, arena.fit)
             (particles,) = prior_particles(
                 stream,
                 arena.fit,

@@ -214,7 +214,7 @@ def _more_of(
     buffer.load_state_dict(run_buffer)
     progress = ModelProgress(next=n_particles)
     run_rejection(
-        prior_stream(name, bounds, cfg.abc.seed, rollout),
+        prior_stream(get_model(name), bounds, cfg.abc.seed, rollout),
         buffer,
         rollout,
         2 * n_particles,
@@ -241,7 +241,7 @@ def _trained(
     n_pairs, capacity = rollout.pairs.n_pairs, cfg.abc.buffer_size
     k = bounds.shape[0]
     progress = ModelProgress()
-    stream = prior_stream(name, bounds, seed, rollout, fixed)
+    stream = prior_stream(get_model(name), bounds, seed, rollout, fixed)
     hooks = RoundHooks(screen=screen, after_round=_ticker(tick, start=0))
     if cfg.abc.method == "smc":
         settings = smc_settings(cfg)

@@ -123,7 +123,7 @@ def _stream_model(
         if due:
             checkpointer.save()
 
-    stream = prior_stream(name, spec.bounds(torch.float64), cfg.abc.seed, rollout)
+    stream = prior_stream(spec.model, spec.bounds(torch.float64), cfg.abc.seed, rollout)
     hooks = RoundHooks(group, screen, checkpointer.due, after_round)
     with bar:
         if cfg.abc.method == "smc":
