@@ -171,9 +171,9 @@ def test_recalibration_by_training_on_cuda_keeps_the_cpu_particles(tmp_path):
         cfg = _config(device=device, dtype="float64", models=["idm", "hl"])
         train(cfg, tmp_path / f"run{i}", pairs=(pairs, pairs))
         posterior = Posterior.load(tmp_path / f"run{i}" / "posterior.pt")
-        models = ["idm", "hl", "idm+delay"]
+        models = [get_model(name) for name in ("idm", "hl", "idm+delay")]
         final = FinalModel(models)
-        results.append(retrain(cfg, posterior, final, ["idm"], pairs))
+        results.append(retrain(cfg, posterior, final, [get_model("idm")], pairs))
     for on_cpu, on_gpu in zip(*results, strict=True):
         for name, cpu in on_cpu.items():
             gpu = on_gpu[name]

@@ -446,8 +446,9 @@ def _trained_buffers(
     """:func:`~torchcf.diagnose.retrain.retrain` with a progress bar in
     particles (the reference's and every variant's)."""
     final = FinalModel.of(plan.selection)
+    pool = [get_model(name) for name in plan.pool]
     variants = variants_of(final.models, plan.posterior.models)
-    models = len(variants) + len(wrapped(variants, plan.pool))
+    models = len(variants) + len(wrapped(variants, pool))
     total = plan.cfg.abc.n_particles * models
     with tqdm(
         total=total, desc="re-calibration", unit="particle", disable=not progress
@@ -456,7 +457,7 @@ def _trained_buffers(
             plan.cfg,
             plan.posterior,
             final,
-            plan.pool,
+            pool,
             plan.train_pairs,
             screen=screen,
             ledger=plan.run.loop_dir / "retrain.pt",
