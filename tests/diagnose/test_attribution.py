@@ -485,7 +485,12 @@ def test_an_interrupted_attribution_resumes_to_the_same_result(tmp_path, monkeyp
     cfg = _config(max_effects=2)
     effects = [DELAY, OFFSET, parse_effect("lag")]
     whole = attribute_effects(
-        cfg, ["idm"], effects, pairs, ledger=tmp_path / "a.pt", progress=False
+        cfg,
+        [get_model("idm")],
+        effects,
+        pairs,
+        ledger=tmp_path / "a.pt",
+        progress=False,
     )
     calls = {"n": 0}
     real = attribution.effect_arm  # as the selection calls it
@@ -499,11 +504,21 @@ def test_an_interrupted_attribution_resumes_to_the_same_result(tmp_path, monkeyp
     monkeypatch.setattr(attribution, "effect_arm", interrupted)
     with pytest.raises(KeyboardInterrupt):
         attribute_effects(
-            cfg, ["idm"], effects, pairs, ledger=tmp_path / "b.pt", progress=False
+            cfg,
+            [get_model("idm")],
+            effects,
+            pairs,
+            ledger=tmp_path / "b.pt",
+            progress=False,
         )
     monkeypatch.setattr(attribution, "effect_arm", real)
     resumed = attribute_effects(
-        cfg, ["idm"], effects, pairs, ledger=tmp_path / "b.pt", progress=False
+        cfg,
+        [get_model("idm")],
+        effects,
+        pairs,
+        ledger=tmp_path / "b.pt",
+        progress=False,
     )
     assert resumed.chosen == whole.chosen
     assert resumed.steps == whole.steps
@@ -569,7 +584,11 @@ def test_the_effect_arms_are_the_same_in_worker_processes():
     effects = [DELAY, OFFSET, parse_effect("lag")]
     alone, side_by_side = (
         attribute_effects(
-            _config(max_effects=1, workers=w), ["idm"], effects, pairs, progress=False
+            _config(max_effects=1, workers=w),
+            [get_model("idm")],
+            effects,
+            pairs,
+            progress=False,
         )
         for w in (1, 2)
     )
@@ -586,7 +605,9 @@ def test_the_recalibration_holds_the_reference_which_holds_the_run(tmp_path):
     cfg = _config()
     train(cfg, tmp_path / "run", pairs=(pairs, pairs))
     posterior = Posterior.load(tmp_path / "run" / "posterior.pt")
-    reference, after = recalibrate(cfg, posterior, [DELAY], {}, ["idm"], pairs)
+    reference, after = recalibrate(
+        cfg, posterior, [DELAY], {}, [get_model("idm")], pairs
+    )
     run = posterior.buffers["idm"]["score"][:, : reference.size]
     assert bool((reference.score <= run).all())
     assert bool((after.score <= reference.score).all())

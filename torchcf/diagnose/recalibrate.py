@@ -40,7 +40,7 @@ from ..abc.particles import Particles
 from ..abc.topn import TopN
 from ..config import TrainConfig, validate_config
 from ..data import PairSet
-from ..models import CFModel, get_model, require_model
+from ..models import CFModel, require_model
 from ..models.effects import Effect
 from ..posterior import Posterior
 from ..runs.directory import RunDir
@@ -76,7 +76,7 @@ def recalibrate(
     posterior: Posterior,
     chosen: Sequence[Effect],
     shared: dict[str, list[float]],
-    pool: Sequence[str],
+    pool: Sequence[CFModel],
     train_pairs: PairSet,
     *,
     tick: Callable[[], None] | None = None,
@@ -87,7 +87,7 @@ def recalibrate(
         chosen: the chosen effects, in the order chosen.
         shared: per chosen shared effect name, its value.
         pool: the pool models the effects were tested on (only their particles
-            get the effects), by name (looked up here, where the pool enters).
+            get the effects).
         tick: called after every search round.
 
     Returns:
@@ -124,7 +124,7 @@ def recalibrate(
     key = (seed, "recalibration")
     reference = search(start, Noise(key, current), {m: m for m in start.models})
     after = reference
-    growing = {get_model(name) for name in pool}
+    growing = set(pool)
     for effect in chosen:
         base = _only(after, growing)
         current = {m: m.param_names for m in base.models}
@@ -169,17 +169,16 @@ def _only(population: Population, models: set[CFModel]) -> Population:
 
 # ------------------------------------------------------------- run directories
 def model_buffers(
-    posterior: Posterior, population: Population, models: Sequence[str]
+    posterior: Posterior, population: Population, models: Sequence[CFModel]
 ) -> list[TopN]:
     """Per model, its per-pair best ``C`` (the run's buffer capacity) over the
-    run's buffer and the population's slots of that model (an entry held by
-    both is kept once)."""
+    run's buffer (by the model's name) and the population's slots of that model
+    (an entry held by both is kept once)."""
     n = population.n_pairs
     capacity = next(iter(posterior.buffers.values()))["score"].shape[1]
     out = []
-    for name in models:
-        model = get_model(name)  # a config name (the run directory's edge)
-        k = model.n_params
+    for model in models:
+        name, k = model.name, model.n_params
         parts = []
         if name in posterior.buffers:
             b = posterior.buffers[name]
