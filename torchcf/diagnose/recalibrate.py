@@ -291,7 +291,7 @@ def write_run(
     table = pairwise_table(buffers, names, cfg.abc.top_n, **kwargs)
     learned = hybrid_posterior(
         buffers,
-        names,
+        [spec.model for spec in cfg.models],
         selection,
         cfg.abc.top_n,
         posterior.train_pair_ids,

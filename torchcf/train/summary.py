@@ -479,7 +479,7 @@ def read_results(
     }
     posterior = hybrid_posterior(
         buffers,
-        names,
+        [spec.model for spec in cfg.models],
         selection,
         cfg.abc.top_n,
         torch.as_tensor(train_pairs.pair_ids, dtype=torch.int64),
