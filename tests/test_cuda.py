@@ -198,7 +198,7 @@ def test_held_out_coverage_on_cuda_equals_cpu():
         at = torch.arange(24) % fit.n_pairs
         rollout = Rollout(fit, True, torch.float64, compile="off")
         score, _ = rollout.score(get_model(name), theta, at)
-        sets.append(Particles(name, theta, at, score, torch.arange(24)))
+        sets.append(Particles(get_model(name), theta, at, score, torch.arange(24)))
     population = Population.from_particles(sets, fit.n_pairs, 4)
     on = {
         device: coverage_scores(

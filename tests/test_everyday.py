@@ -62,12 +62,14 @@ def _validate(raw):
 def _public_calls_with_a_name():
     """Each public function that takes a model, called with the name instead."""
     from torchcf import HybridSampler, simulate
+    from torchcf.abc.particles import Particles
     from torchcf.evaluation.evaluate import cost_matrices
     from torchcf.sim.synthetic import synthetic_pairs as drive
     from torchcf.traffic.battery import check_plausibility, collides
 
     theta = get_model("idm").prior_bounds(torch.float64).mean(1)  # (K,)
     pairs = synthetic_pairs(n_pairs=2, n_steps=50)
+    one_pair = torch.zeros(1, dtype=torch.int64)  # (1,) pair and particle index
     return {
         "simulate": lambda: simulate("idm", theta[None], pairs),
         "synthetic_pairs": lambda: drive("idm", theta, 2, 50),
@@ -75,6 +77,9 @@ def _public_calls_with_a_name():
         "collides": lambda: collides("idm", theta[None]),
         "HybridSampler": lambda: HybridSampler(["idm"], [theta[None]], dt=0.1),
         "cost_matrices": lambda: cost_matrices("idm", theta[None], pairs),
+        "Particles": lambda: Particles(
+            "idm", theta[None], one_pair, torch.zeros(1, dtype=torch.float64), one_pair
+        ),
     }
 
 
@@ -87,6 +92,7 @@ def _public_calls_with_a_name():
         "collides",
         "HybridSampler",
         "cost_matrices",
+        "Particles",
     ],
 )
 def test_a_model_name_where_the_object_goes_says_what_to_pass(caller):

@@ -101,7 +101,7 @@ def _config(models=("idm",), dtype="float32", **diagnose):
 def _particles(name, theta, pair, score, index=None):
     score = torch.as_tensor(score, dtype=torch.float64)
     return Particles(
-        name,
+        get_model(name),
         torch.as_tensor(theta, dtype=torch.float64),
         torch.as_tensor(pair, dtype=torch.int64),
         score,

@@ -355,7 +355,7 @@ def _candidates(name, theta, pair, score):
     """Hand-built particles; index 0 for all, so that ties go by set position."""
     score = torch.as_tensor(score, dtype=torch.float64)
     return Particles(
-        name,
+        get_model(name),
         torch.as_tensor(theta, dtype=torch.float64),
         torch.as_tensor(pair, dtype=torch.int64),
         score,

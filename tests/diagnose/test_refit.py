@@ -37,7 +37,7 @@ def _population(theta: torch.Tensor, n_pairs: int, name: str = "idm") -> Populat
     """Particles of ``name`` dealt round-robin to ``n_pairs`` pairs (scored 0)."""
     q = theta.shape[0]
     particles = Particles(
-        name,
+        get_model(name),
         theta.double(),
         torch.arange(q) % n_pairs,
         torch.zeros(q, dtype=torch.float64),

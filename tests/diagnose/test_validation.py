@@ -190,7 +190,7 @@ def _particles(name: str, theta: torch.Tensor, pairs) -> Particles:
     """Particles of ``name`` on pairs dealt round-robin, scored there."""
     pair = torch.arange(theta.shape[0]) % pairs.n_pairs
     score, _ = Rollout(pairs, True, torch.float64).score(get_model(name), theta, pair)
-    return Particles(name, theta, pair, score, torch.arange(theta.shape[0]))
+    return Particles(get_model(name), theta, pair, score, torch.arange(theta.shape[0]))
 
 
 @pytest.mark.parametrize(

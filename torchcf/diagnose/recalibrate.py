@@ -40,7 +40,7 @@ from ..abc.particles import Particles
 from ..abc.topn import TopN
 from ..config import TrainConfig, validate_config
 from ..data import PairSet
-from ..models import CFModel, require_model
+from ..models import CFModel, get_model, require_model
 from ..models.effects import Effect
 from ..posterior import Posterior
 from ..runs.directory import RunDir
@@ -56,12 +56,13 @@ def run_population(posterior: Posterior, size: int) -> Population:
     order)."""
     sets = []
     for name in posterior.models:
+        model = get_model(name)  # the posterior's names enter here
         buffer = posterior.buffers[name]
         score = buffer["score"].double()  # (N, C)
         n, c = score.shape
         sets.append(
             Particles(
-                name,
+                model,
                 buffer["theta"].double().reshape(n * c, -1),
                 torch.arange(n).repeat_interleave(c),
                 score.reshape(-1),
