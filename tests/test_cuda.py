@@ -17,7 +17,7 @@ import torch
 
 from tests.conftest import prior_draws, synthetic_pairs
 from tests.runs import run_module, torchrun_train, write_config, write_data
-from torchcf import MODELS, Execution, simulate
+from torchcf import MODELS, Execution, get_model, simulate
 from torchcf.config import validate_config
 from torchcf.posterior import Posterior
 from torchcf.study.pipeline import run_study
@@ -49,9 +49,14 @@ def test_simulate_on_cuda_equals_cpu(name, layout):
     theta = prior_draws(MODELS[name], 300, seed=1)
     index = torch.arange(300) % pairs.n_pairs if layout == "paired" else None
     for dtype, rtol in ((torch.float64, 1e-9), (torch.float32, 2e-3)):
-        cpu = simulate(name, theta.to(dtype), pairs, index, dtype=dtype)
+        cpu = simulate(get_model(name), theta.to(dtype), pairs, index, dtype=dtype)
         gpu = simulate(
-            name, theta.to(dtype), pairs, index, dtype=dtype, execution=ON_CUDA
+            get_model(name),
+            theta.to(dtype),
+            pairs,
+            index,
+            dtype=dtype,
+            execution=ON_CUDA,
         )
         assert gpu.score.device.type == "cuda" and gpu.score.dtype == dtype
         both = cpu.valid & gpu.valid.cpu()
@@ -78,8 +83,10 @@ def test_road_profiles_on_cuda_equal_cpu(name):
     pairs = synthetic_pairs(n_pairs=5, n_steps=200, seed=3)
     model = get_model(name)
     theta = prior_draws(model, 300, seed=1).double()
-    cpu = simulate(name, theta, pairs, dtype=torch.float64)
-    gpu = simulate(name, theta, pairs, dtype=torch.float64, execution=ON_CUDA)
+    cpu = simulate(get_model(name), theta, pairs, dtype=torch.float64)
+    gpu = simulate(
+        get_model(name), theta, pairs, dtype=torch.float64, execution=ON_CUDA
+    )
     both = cpu.valid & gpu.valid.cpu()
     assert bool(both.any()) and bool((cpu.valid == gpu.valid.cpu()).all())
     torch.testing.assert_close(
@@ -99,10 +106,10 @@ def test_compiled_rollout_on_cuda(name):
     theta = prior_draws(MODELS[name], 4096, seed=2, dtype=torch.float32)
     index = torch.arange(4096) % pairs.n_pairs
     eager = simulate(
-        name, theta, pairs, index, execution=replace(ON_CUDA, compile=False)
+        get_model(name), theta, pairs, index, execution=replace(ON_CUDA, compile=False)
     )
     fused = simulate(
-        name, theta, pairs, index, execution=replace(ON_CUDA, compile=True)
+        get_model(name), theta, pairs, index, execution=replace(ON_CUDA, compile=True)
     )
     assert float(eager.valid.float().mean()) > 0.2, "the test needs valid rollouts"
     assert float((eager.valid != fused.valid).float().mean()) <= 0.01
@@ -146,7 +153,7 @@ def test_training_evaluation_and_diagnosis_on_cuda(tmp_path):
         if not len(particles):
             continue
         positions = [train_pairs.pair_ids.index(int(p)) for p in particles.pair_ids]
-        cpu = simulate(name, particles.theta, train_pairs, positions)
+        cpu = simulate(get_model(name), particles.theta, train_pairs, positions)
         torch.testing.assert_close(cpu.score, particles.score, rtol=2e-3, atol=1e-5)
     result = close_loop(out, pairs=(train_pairs, test_pairs), progress=False)
     assert (out / "loop.json").exists() and "effects_ranked" in result.to_json()
@@ -164,9 +171,9 @@ def test_recalibration_by_training_on_cuda_keeps_the_cpu_particles(tmp_path):
         cfg = _config(device=device, dtype="float64", models=["idm", "hl"])
         train(cfg, tmp_path / f"run{i}", pairs=(pairs, pairs))
         posterior = Posterior.load(tmp_path / f"run{i}" / "posterior.pt")
-        models = ["idm", "hl", "idm+delay"]
+        models = [get_model(name) for name in ("idm", "hl", "idm+delay")]
         final = FinalModel(models)
-        results.append(retrain(cfg, posterior, final, ["idm"], pairs))
+        results.append(retrain(cfg, posterior, final, [get_model("idm")], pairs))
     for on_cpu, on_gpu in zip(*results, strict=True):
         for name, cpu in on_cpu.items():
             gpu = on_gpu[name]
@@ -191,7 +198,7 @@ def test_held_out_coverage_on_cuda_equals_cpu():
         at = torch.arange(24) % fit.n_pairs
         rollout = Rollout(fit, True, torch.float64, compile="off")
         score, _ = rollout.score(get_model(name), theta, at)
-        sets.append(Particles(name, theta, at, score, torch.arange(24)))
+        sets.append(Particles(get_model(name), theta, at, score, torch.arange(24)))
     population = Population.from_particles(sets, fit.n_pairs, 4)
     on = {
         device: coverage_scores(
@@ -238,13 +245,15 @@ def test_a_ceiling_on_cuda_stops_only_cells_above_it(name, compile):
     theta = prior_draws(MODELS[name], 3000, seed=5)
     pair = torch.arange(3000) % 6
     run = Execution(device="cuda", chunk_size=4096, compile=compile)
-    plain = _on_cpu(simulate(name, theta, pairs, pair, execution=run))
+    plain = _on_cpu(simulate(get_model(name), theta, pairs, pair, execution=run))
     per_pair = torch.stack(
         [plain.score.double()[pair == j].sort().values[20] for j in range(6)]
     )
     ceiling = per_pair[pair]
     cut = _on_cpu(
-        simulate(name, theta, pairs, pair, execution=replace(run, ceiling=ceiling))
+        simulate(
+            get_model(name), theta, pairs, pair, execution=replace(run, ceiling=ceiling)
+        )
     )
     stopped = cut.pruned
     assert int(stopped.sum()) > 0

@@ -59,6 +59,55 @@ def _validate(raw):
     return validate_config(raw)
 
 
+def _public_calls_with_a_name():
+    """Each public function that takes a model, called with the name instead."""
+    from torchcf import HybridSampler, simulate
+    from torchcf.abc.particles import Particles
+    from torchcf.evaluation.evaluate import cost_matrices
+    from torchcf.sim.synthetic import synthetic_pairs as drive
+    from torchcf.traffic.battery import check_plausibility, collides
+
+    theta = get_model("idm").prior_bounds(torch.float64).mean(1)  # (K,)
+    pairs = synthetic_pairs(n_pairs=2, n_steps=50)
+    one_pair = torch.zeros(1, dtype=torch.int64)  # (1,) pair and particle index
+    return {
+        "simulate": lambda: simulate("idm", theta[None], pairs),
+        "synthetic_pairs": lambda: drive("idm", theta, 2, 50),
+        "check_plausibility": lambda: check_plausibility("idm", theta[None]),
+        "collides": lambda: collides("idm", theta[None]),
+        "HybridSampler": lambda: HybridSampler(["idm"], [theta[None]], dt=0.1),
+        "cost_matrices": lambda: cost_matrices("idm", theta[None], pairs),
+        "Particles": lambda: Particles(
+            "idm", theta[None], one_pair, torch.zeros(1, dtype=torch.float64), one_pair
+        ),
+    }
+
+
+@pytest.mark.parametrize(
+    "caller",
+    [
+        "simulate",
+        "synthetic_pairs",
+        "check_plausibility",
+        "collides",
+        "HybridSampler",
+        "cost_matrices",
+        "Particles",
+    ],
+)
+def test_a_model_name_where_the_object_goes_says_what_to_pass(caller):
+    """A name is parsed where it enters (a config, the command line):
+    :func:`torchcf.get_model`; past that, a function given the name says so
+    in one line instead of parsing it again."""
+    expected = (
+        f"{caller} takes a model object, e.g. torchcf.get_model('idm'), "
+        "not the name 'idm'"
+    )
+    with pytest.raises(TypeError) as raised:
+        _public_calls_with_a_name()[caller]()
+    assert str(raised.value) == expected
+
+
 # ---------------------------------------------------------------- overrides
 def test_a_data_path_override_replaces_a_named_data_set(tmp_path):
     raw = {"data": {"name": "car-model-2", "split": "dataset"}, "models": ["idm"]}

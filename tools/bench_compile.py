@@ -59,7 +59,7 @@ index = torch.randint(0, pairs.n_pairs, (n,), generator=g)
 def timed(compile):
     run = torchcf.Execution(device=device, compile=compile)
     start = time.perf_counter()
-    out = torchcf.simulate(name, theta, pairs, index, execution=run)
+    out = torchcf.simulate(model, theta, pairs, index, execution=run)
     return time.perf_counter() - start, float(out.score[out.valid].double().sum())
 first, check_first = timed(True)
 second, check_second = timed(True)

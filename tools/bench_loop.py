@@ -49,6 +49,7 @@ from loop_cases import planted  # noqa: E402
 
 from torchcf.data import load_pairs  # noqa: E402
 from torchcf.data.writer import write_six_csv  # noqa: E402
+from torchcf.models import get_model  # noqa: E402
 from torchcf.sim.synthetic import synthetic_pairs  # noqa: E402
 from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 
@@ -99,8 +100,12 @@ def measured_data(
 
 def synthetic_data(work: Path) -> Path:
     out = work / "synthetic"
-    train = synthetic_pairs("idm+delay", IDM + [0.8], 50, 400, seed=1, noise=0.05)
-    test = synthetic_pairs("idm+delay", IDM + [0.8], 20, 400, seed=2, noise=0.05)
+    train = synthetic_pairs(
+        get_model("idm+delay"), IDM + [0.8], 50, 400, seed=1, noise=0.05
+    )
+    test = synthetic_pairs(
+        get_model("idm+delay"), IDM + [0.8], 20, 400, seed=2, noise=0.05
+    )
     write_six_csv(train, out / "Trajectory")
     write_six_csv(test, out / "Testing")
     (out / "meta.json").write_text(json.dumps({"dt": 0.1, "units": "m"}))

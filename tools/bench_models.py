@@ -42,7 +42,7 @@ from bench_sim import bench_meta, setup, write_report  # noqa: E402
 from peer_numpy import quiet_stdout, simulate_one  # noqa: E402
 
 import torchcf  # noqa: E402
-from torchcf import MODELS, Execution, simulate  # noqa: E402
+from torchcf import MODELS, Execution, get_model, simulate  # noqa: E402
 from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 from torchcf.system.process import tune_malloc  # noqa: E402
 
@@ -64,7 +64,7 @@ def time_torchcf(name, theta, pairs, index, device, compile_mode, repeats):
     def call():
         _sync(device)
         start = time.perf_counter()
-        out = simulate(name, theta, pairs, index, execution=run)
+        out = simulate(get_model(name), theta, pairs, index, execution=run)
         _sync(device)
         return time.perf_counter() - start, out
 
@@ -102,7 +102,7 @@ def time_baseline(name, theta, pairs, index, weights=(0.5, 0.3, 0.2)):
 
 def check_scores(name, theta, pairs, index, baseline: np.ndarray) -> dict:
     """The baseline's scores against torchcf's float64 scores, same particles."""
-    ours = simulate(name, theta.double(), pairs, index, dtype=torch.float64)
+    ours = simulate(get_model(name), theta.double(), pairs, index, dtype=torch.float64)
     ours = ours.score.numpy()
     both = np.isfinite(ours) & np.isfinite(baseline)
     rel = np.abs(ours[both] - baseline[both]) / np.maximum(np.abs(ours[both]), 1e-12)

@@ -207,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     index = torch.randint(0, pairs.n_pairs, (n_mpc,), generator=generator)
     start = time.perf_counter()
-    out = torchcf.simulate("mpc", theta, pairs, index)
+    out = torchcf.simulate(torchcf.get_model("mpc"), theta, pairs, index)
     mpc_s = time.perf_counter() - start
     rollout = {
         "particles": n_mpc,

@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 
 import torchcf
-from torchcf import MODELS, Execution, simulate
+from torchcf import MODELS, Execution, get_model, simulate
 from torchcf.system.console import OneLineParser, count, run_main
 from torchcf.system.process import tune_malloc
 
@@ -116,7 +116,7 @@ def time_run(model_name, theta, pairs, pair_index, compile_mode, repeats):
     run = Execution(compile=compile_mode)
     for _ in range(repeats):
         start = time.perf_counter()
-        out = simulate(model_name, theta, pairs, pair_index, execution=run)
+        out = simulate(get_model(model_name), theta, pairs, pair_index, execution=run)
         times.append(time.perf_counter() - start)
     return statistics.median(times), times, float((~out.valid).float().mean())
 
@@ -154,14 +154,18 @@ def main(argv: list[str] | None = None) -> int:
         # Warm-up: the first full-size call compiles; its excess over the median
         # of the timed runs is the compilation cost.
         start = time.perf_counter()
-        simulate(name, theta, pairs, index, execution=Execution(compile=True))
+        simulate(
+            get_model(name), theta, pairs, index, execution=Execution(compile=True)
+        )
         first_s = time.perf_counter() - start
         fused_s, fused_all, invalid = time_run(
             name, theta, pairs, index, True, args.repeats
         )
         compile_s = max(first_s - fused_s, 0.0)
         eager = Execution(compile=False)
-        simulate(name, theta[:n_eager], pairs, index[:n_eager], execution=eager)
+        simulate(
+            get_model(name), theta[:n_eager], pairs, index[:n_eager], execution=eager
+        )
         eager_s, eager_all, _ = time_run(
             name, theta[:n_eager], pairs, index[:n_eager], False, args.repeats
         )

@@ -284,7 +284,7 @@ def engine_quality(
     model = get_model(name)
     bounds = model.prior_bounds(torch.float64)
     rollout = Rollout(pairs, dtype=dtype, compile="off")
-    stream = prior_stream(name, bounds, seed, rollout)
+    stream = prior_stream(model, bounds, seed, rollout)
     began = time.perf_counter()
     outside = 0.0
     if method == "smc":
@@ -436,7 +436,7 @@ def engine_best(
     model = get_model(name)
     bounds = model.prior_bounds(torch.float64)
     rollout = Rollout(pair, dtype=dtype, compile="off")
-    stream = prior_stream(name, bounds, 0, rollout)
+    stream = prior_stream(model, bounds, 0, rollout)
     began = time.perf_counter()
     if method == "smc":
         buffer = TopN(1, 1, model.n_params + 1)

@@ -144,8 +144,9 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     first = cases[0][1]
     if "idm" in first.model_names and first.particles("idm").shape[0]:
+        idm = first.models[first.model_names.index("idm")]
         idm_only = HybridSampler(
-            ["idm"], [first.particles("idm")], dt=first.dt, dtype=first.dtype
+            [idm], [first.particles("idm")], dt=first.dt, dtype=first.dtype
         )
         cases.append((f"{cases[0][0].split()[0]} IDM only", idm_only))
 

@@ -188,9 +188,16 @@ def plant_grade(pairs: PairSet, grade: float, seed: int) -> PairSet:
     theta = torch.tensor([ACC_IDM] * pairs.n_pairs, dtype=torch.float64)
     with_grade = torch.cat((theta, values.expand(pairs.n_pairs, -1)), dim=1)
     index = torch.arange(pairs.n_pairs)
-    plain = simulate("idm", theta, pairs, index, dtype=torch.float64, return_traj=True)
+    plain = simulate(
+        get_model("idm"), theta, pairs, index, dtype=torch.float64, return_traj=True
+    )
     graded = simulate(
-        f"idm+{token}", with_grade, pairs, index, dtype=torch.float64, return_traj=True
+        get_model(f"idm+{token}"),
+        with_grade,
+        pairs,
+        index,
+        dtype=torch.float64,
+        return_traj=True,
     )
     fields = {
         "x_follow": pairs.x_follow + (graded.x - plain.x).to(pairs.x_follow.dtype),
@@ -269,8 +276,8 @@ def case_pairs(
             train, test = (planted(p, kind, theta[0]) for p in (train, test))
         return train, test, EIGHT
     n_train = TRAIN_PAIRS.get(name, 24)
-    train = synthetic_pairs(model, theta, n_train, 500, seed=1, noise=0.05)
-    test = synthetic_pairs(model, theta, 12, 500, seed=2, noise=0.05)
+    train = synthetic_pairs(get_model(model), theta, n_train, 500, seed=1, noise=0.05)
+    test = synthetic_pairs(get_model(model), theta, 12, 500, seed=2, noise=0.05)
     return train, test, ("idm", "llctg")
 
 

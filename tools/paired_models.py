@@ -32,6 +32,7 @@ from bench_sim import bench_meta, write_report  # noqa: E402
 from torchcf.config import load_split  # noqa: E402
 from torchcf.diagnose.significance import sign_flip_test  # noqa: E402
 from torchcf.evaluation.evaluate import cost_matrices  # noqa: E402
+from torchcf.models import get_model  # noqa: E402
 from torchcf.runs.directory import RunDir  # noqa: E402
 from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 
@@ -49,7 +50,7 @@ def minimum_distances(run: Path) -> tuple[dict[str, np.ndarray], int]:
         score = buffer["score"][:, :top_n].reshape(-1)
         theta = theta[torch.isfinite(score)]
         cost = cost_matrices(
-            model, theta, test, dtype=getattr(torch, cfg.dtype),
+            get_model(model), theta, test, dtype=getattr(torch, cfg.dtype),
             weights=tuple(cfg.abc.weights),
         )["score"]  # fmt: skip
         best[model] = np.where(np.isfinite(cost), cost, np.inf).min(axis=0)

@@ -67,7 +67,7 @@ def run_set(
         posterior = Posterior.load(out / "posterior.pt")
     sampler = HybridSampler.from_posterior(posterior, dt=0.1)
     battery = plausibility_battery(cfg.plausibility, load_split(cfg.data)[0])
-    particles = {name: sampler.particles(name) for name in sampler.model_names}
+    particles = {model: sampler.particles(model.name) for model in sampler.models}
     collided = {
         name: row.collided
         for name, row in plausibility_by_model(particles, battery).items()

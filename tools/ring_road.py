@@ -140,7 +140,7 @@ def braking_platoons(sampler: HybridSampler, args, safety) -> dict:
 def plausibility(sampler: HybridSampler, speed: float) -> dict:
     """Per model: the battery's shares over the hybrid's particles (as JSON)."""
     battery = Battery(speed=speed, dt=sampler.dt, leader_length=sampler.leader_length)
-    particles = {name: sampler.particles(name) for name in sampler.model_names}
+    particles = {model: sampler.particles(model.name) for model in sampler.models}
     return {
         name: summary.to_json()
         for name, summary in plausibility_by_model(particles, battery).items()

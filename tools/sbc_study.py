@@ -221,8 +221,7 @@ def run(args: argparse.Namespace) -> dict:
                 params=list(get_model(model).param_names),
                 seconds=seconds,
                 seconds_pairs=made,
-                # the summary has no such key (its rate is invalid_rate): as before
-                invalid_fraction=None,
+                invalid_rate=summary.per_model[model].invalid_rate,
             )
             block["models"][model] = entry
             cov = entry["coverage"]

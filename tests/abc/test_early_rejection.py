@@ -40,7 +40,7 @@ N_PAIRS = 6
 @pytest.fixture(scope="module")
 def pairs():
     """Six noisy IDM pairs of 120 steps."""
-    return synthetic_pairs("idm", IDM, N_PAIRS, 120, seed=3, noise=0.1)
+    return synthetic_pairs(get_model("idm"), IDM, N_PAIRS, 120, seed=3, noise=0.1)
 
 
 def _prior_draws(name: str, count: int, seed: int) -> torch.Tensor:
@@ -105,10 +105,16 @@ def test_a_ceiling_stops_only_cells_above_it_and_leaves_the_rest_exact(
     # the MPC's solver rounds by batch size (batch_size_invariant): one chunk
     invariant = get_model(name).batch_size_invariant
     chunk = (100 if paired else 8) if invariant else 256
-    plain = simulate(name, theta, pairs, pair, execution=Execution(chunk_size=chunk))
+    plain = simulate(
+        get_model(name), theta, pairs, pair, execution=Execution(chunk_size=chunk)
+    )
     ceiling = _ceiling_of(plain.score, pair)
     cut = simulate(
-        name, theta, pairs, pair, execution=Execution(chunk_size=256, ceiling=ceiling)
+        get_model(name),
+        theta,
+        pairs,
+        pair,
+        execution=Execution(chunk_size=256, ceiling=ceiling),
     )
     stopped = cut.pruned
     assert stopped is not None and stopped.shape == plain.score.shape
@@ -140,12 +146,16 @@ def test_compiled_blocks_stop_exactly_with_one_graph(pairs, name, paired, graphs
     theta = _prior_draws(name, count, seed=6)
     pair = torch.arange(count) % N_PAIRS if paired else None
     compiled = Execution(chunk_size=256, compile=True)
-    plain = simulate(name, theta, pairs, pair, execution=compiled)
+    plain = simulate(get_model(name), theta, pairs, pair, execution=compiled)
     ceiling = _ceiling_of(plain.score, pair)
     torch._dynamo.reset()
     torch._dynamo.utils.counters.clear()
     cut = simulate(
-        name, theta, pairs, pair, execution=replace(compiled, ceiling=ceiling)
+        get_model(name),
+        theta,
+        pairs,
+        pair,
+        execution=replace(compiled, ceiling=ceiling),
     )
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
     stopped = cut.pruned
@@ -160,10 +170,10 @@ def test_compiled_blocks_stop_exactly_with_one_graph(pairs, name, paired, graphs
 def test_float64(pairs):
     theta = _prior_draws("hl", 500, seed=4)
     pair = torch.arange(500) % N_PAIRS
-    plain = simulate("hl", theta, pairs, pair, dtype=torch.float64)
+    plain = simulate(get_model("hl"), theta, pairs, pair, dtype=torch.float64)
     ceiling = _ceiling_of(plain.score, pair)
     cut = simulate(
-        "hl",
+        get_model("hl"),
         theta,
         pairs,
         pair,
@@ -212,7 +222,7 @@ def test_a_ceiling_of_the_wrong_shape_is_refused(pairs):
     theta = _prior_draws("idm", 10, seed=6)
     with pytest.raises(ValueError, match="ceiling must have the score's shape"):
         simulate(
-            "idm",
+            get_model("idm"),
             theta,
             pairs,
             torch.zeros(10, dtype=torch.long),
@@ -225,7 +235,7 @@ def _stream(name: str, rollout: Rollout, n: int, chunk_rollout=None):
     model = get_model(name)
     buffer = TopN(N_PAIRS, 5, model.n_params)
     progress = ModelProgress()
-    stream = prior_stream(name, model.prior_bounds(torch.float64), 7, rollout)
+    stream = prior_stream(model, model.prior_bounds(torch.float64), 7, rollout)
     run_rejection(stream, buffer, chunk_rollout or rollout, n, progress)
     return buffer, progress
 

@@ -35,7 +35,7 @@ N_PAIRS = 300
 @pytest.fixture(scope="module")
 def many():
     """300 short IDM pairs (40 steps): a few hundred pairs in a second."""
-    return synthetic_pairs("idm", IDM, N_PAIRS, 40, seed=4, noise=0.05)
+    return synthetic_pairs(get_model("idm"), IDM, N_PAIRS, 40, seed=4, noise=0.05)
 
 
 def _config(**abc) -> TrainConfig:
@@ -90,7 +90,9 @@ def test_the_refinement_state_does_not_grow_with_rounds(many, monkeypatch, round
     assert state.accepted is None  # built when the refinement runs
     rollout = Rollout(pairs, dtype=torch.float64, compile="off")
     run_smc(
-        prior_stream("idm", get_model("idm").prior_bounds(torch.float64), 0, rollout),
+        prior_stream(
+            get_model("idm"), get_model("idm").prior_bounds(torch.float64), 0, rollout
+        ),
         TopN(pairs.n_pairs, 3, 7),
         rollout,
         40 * pairs.n_pairs,
@@ -163,7 +165,7 @@ def test_a_chunk_on_a_slice_of_the_pairs_scores_as_on_the_whole_set(many):
 def test_a_round_is_cut_in_equal_chunks():
     """A refinement round is simulated in equal chunks no larger than the
     rollout's, never a whole chunk padded for a remainder."""
-    pairs = synthetic_pairs("idm", IDM, 4, 20, seed=1)
+    pairs = synthetic_pairs(get_model("idm"), IDM, 4, 20, seed=1)
     model = get_model("mpc")  # simulates whole chunks (not batch-size invariant)
     for cap, per_round, expected in (
         (1000, 2500, 834),
@@ -197,7 +199,7 @@ def test_rejection_in_the_full_layout_does_not_depend_on_the_chunk(many):
     for chunk in (7, 64):
         rollout = Rollout(many, paired=False, compile="off", chunk_size=chunk)
         buffer = TopN(N_PAIRS, 3, model.n_params)
-        stream = prior_stream("llcs", bounds, 5, rollout)
+        stream = prior_stream(get_model("llcs"), bounds, 5, rollout)
         run_rejection(stream, buffer, rollout, 150, ModelProgress())
         buffers.append(buffer)
     a, b = buffers

@@ -28,7 +28,7 @@ BATTERY = Battery(speed=20.0, decelerations=(6.0,))
 
 
 def _pairs():
-    return synthetic_pairs(MODEL, TRUTH, 4, 200, seed=3)
+    return synthetic_pairs(get_model(MODEL), TRUTH, 4, 200, seed=3)
 
 
 def _buffers(paired: bool, chunk: int, screen, n: int = 1500):
@@ -41,7 +41,7 @@ def _buffers(paired: bool, chunk: int, screen, n: int = 1500):
     buffer = TopN(pairs.n_pairs, 5, model.n_params)
     progress = ModelProgress()
     run_rejection(
-        prior_stream(MODEL, bounds, 0, rollout),
+        prior_stream(get_model(MODEL), bounds, 0, rollout),
         buffer,
         rollout,
         n,
@@ -57,9 +57,9 @@ def _reference(paired: bool, n: int = 1500) -> TopN:
     model = get_model(MODEL)
     bounds = model.prior_bounds(torch.float64)
     rollout = Rollout(pairs, paired=paired, dtype=torch.float64, compile="off")
-    theta, pair = prior_stream(MODEL, bounds, 0, rollout).draw(0, n)
+    theta, pair = prior_stream(get_model(MODEL), bounds, 0, rollout).draw(0, n)
     score, _ = rollout.score(model, theta, pair if paired else None)
-    bad = check_plausibility(MODEL, theta, BATTERY).collided
+    bad = check_plausibility(get_model(MODEL), theta, BATTERY).collided
     assert 0 < int(bad.sum()) < n  # the test needs both kinds
     score = score.clone()
     score[bad] = torch.inf
@@ -86,13 +86,13 @@ def test_the_screen_gives_the_buffers_of_testing_every_particle(paired):
     kept = buffer.theta.reshape(-1, buffer.theta.shape[-1])[
         buffer.index.reshape(-1) >= 0
     ]
-    assert not bool(check_plausibility(MODEL, kept, BATTERY).collided.any())
+    assert not bool(check_plausibility(get_model(MODEL), kept, BATTERY).collided.any())
 
 
 def test_without_the_screen_implausible_particles_enter():
     buffer, progress, *_ = _buffers(True, 700, None)
     kept = buffer.theta.reshape(-1, buffer.theta.shape[-1])
-    assert bool(check_plausibility(MODEL, kept, BATTERY).collided.any())
+    assert bool(check_plausibility(get_model(MODEL), kept, BATTERY).collided.any())
     assert progress.implausible == 0
 
 
@@ -100,14 +100,14 @@ def test_string_unstable_particles_are_rejected_when_asked():
     screen = PlausibilityScreen(rejects(BATTERY, reject_string_unstable=True))
     buffer, *_ = _buffers(True, 700, screen)
     kept = buffer.theta.reshape(-1, buffer.theta.shape[-1])
-    result = check_plausibility(MODEL, kept, BATTERY)
+    result = check_plausibility(get_model(MODEL), kept, BATTERY)
     assert not bool((result.collided | result.string_unstable()).any())
 
 
 @pytest.mark.slow  # a training with the screen
 def test_training_with_the_filter_reports_it(tmp_path):
     pairs = _pairs()
-    test = synthetic_pairs(MODEL, TRUTH, 2, 200, seed=4)
+    test = synthetic_pairs(get_model(MODEL), TRUTH, 2, 200, seed=4)
     base = {
         "data": {"path": "synthetic"},
         "models": [MODEL, "idm"],
@@ -137,7 +137,7 @@ def test_training_with_the_filter_reports_it(tmp_path):
 @pytest.mark.slow  # about 20 s: SMC rounds with the whole battery
 def test_smc_with_the_filter_keeps_implausible_particles_out(tmp_path):
     pairs = _pairs()
-    test = synthetic_pairs(MODEL, TRUTH, 2, 200, seed=4)
+    test = synthetic_pairs(get_model(MODEL), TRUTH, 2, 200, seed=4)
     config = {
         "data": {"path": "synthetic"},
         "models": [MODEL],
@@ -148,4 +148,4 @@ def test_smc_with_the_filter_keeps_implausible_particles_out(tmp_path):
     summary = train(validate_config(config), tmp_path / "run", pairs=(pairs, test))
     assert summary.per_model[MODEL].implausible > 0
     kept = Posterior.load(tmp_path / "run" / "posterior.pt").hybrid[MODEL].theta
-    assert not bool(check_plausibility(MODEL, kept, BATTERY).collided.any())
+    assert not bool(check_plausibility(get_model(MODEL), kept, BATTERY).collided.any())

@@ -267,9 +267,12 @@ def test_prior_mass_and_evidence_shares():
 def test_proposals_per_pair_count_the_prior_round_and_the_rest():
     bounds = get_model("idm").prior_bounds(torch.float64)
     budget = smc_budget(9000, 4, SMCSettings(population=10, rounds=2))
-    counts = proposals_per_pair("idm", bounds, 3, budget)
+    counts = proposals_per_pair(get_model("idm"), bounds, 3, budget)
     _, pair = prior_stream(
-        "idm", bounds, 3, Rollout(mixture_pairs().subset(torch.arange(10) < 4))
+        get_model("idm"),
+        bounds,
+        3,
+        Rollout(mixture_pairs().subset(torch.arange(10) < 4)),
     ).draw(0, budget.prior)
     expected = torch.bincount(pair, minlength=4) + 2 * budget.per_pair
     assert torch.equal(counts, expected) and int(counts.sum()) == budget.total
@@ -291,7 +294,7 @@ def _recorded_rounds(mixture, n_particles, settings):
         last[state.round] = {k: v.clone() for k, v in held.items()}
 
     run_smc(
-        prior_stream("idm", bounds, 1, rollout),
+        prior_stream(get_model("idm"), bounds, 1, rollout),
         TopN(mixture.n_pairs, 5, 7),
         rollout,
         n_particles,
@@ -313,7 +316,7 @@ def test_the_prior_round_is_the_rejection_engines(mixture):
     rollout, bounds, seen, _ = _recorded_rounds(mixture, 4000, settings)
     reference = TopN(mixture.n_pairs, settings.population, 6)
     run_rejection(
-        prior_stream("idm", bounds, 1, rollout),
+        prior_stream(get_model("idm"), bounds, 1, rollout),
         reference,
         rollout,
         budget.prior,
@@ -456,7 +459,7 @@ def test_the_attribution_can_draw_its_arms_with_smc(mixture):
     bounds = get_model("idm").prior_bounds(torch.float64)
     # (at 2000 a population is the best 20 of ~60 prior draws per pair, too
     # broad to gain yet: refinement pays from a few thousand on)
-    idm = prior_stream("idm", bounds, 1, rollout)
+    idm = prior_stream(get_model("idm"), bounds, 1, rollout)
     plain = prior_particles(idm, rollout, (4000, 8000), 5)
     refined = prior_particles(idm, rollout, (4000, 8000), 5, settings)
     for a, b in zip(plain, refined, strict=True):
@@ -465,7 +468,7 @@ def test_the_attribution_can_draw_its_arms_with_smc(mixture):
         assert float(b.score[on_idm].mean()) < float(a.score[on_idm].mean())
     name = get_model("idm+offset").name
     fixed = torch.tensor([1.5], dtype=torch.float64)
-    offset = prior_stream(name, bounds, 1, rollout, fixed)
+    offset = prior_stream(get_model(name), bounds, 1, rollout, fixed)
     (variant,) = prior_particles(offset, rollout, (2000,), 5, settings)
     assert variant.theta.shape[1] == 7 and bool((variant.theta[:, -1] == 1.5).all())
     with pytest.raises(ConfigError, match="no proposal per pair"):

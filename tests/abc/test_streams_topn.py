@@ -8,6 +8,7 @@ import torch
 from torchcf.abc.hybrid import pairwise_table, select, select_global, select_per_pair
 from torchcf.abc.streams import STREAM_BLOCK, ParticleStream, block_seed, uniforms
 from torchcf.abc.topn import TopN, lexsort
+from torchcf.models import get_model
 
 # --------------------------------------------------------------------------------------
 # Streams
@@ -50,7 +51,7 @@ def test_uniforms_are_uniform():
 
 def test_particle_stream_maps_to_the_box_and_pairs():
     bounds = torch.tensor([[1.0, 2.0], [-5.0, 5.0]], dtype=torch.float64)
-    stream = ParticleStream("idm", bounds, seed=4, n_pairs=7)
+    stream = ParticleStream(get_model("idm"), bounds, seed=4, n_pairs=7)
     theta, pair = stream.draw(0, 50_000)
     assert theta.shape == (50_000, 2) and pair.shape == (50_000,)
     assert bool((theta[:, 0] >= 1).all() and (theta[:, 0] < 2).all())
@@ -59,10 +60,29 @@ def test_particle_stream_maps_to_the_box_and_pairs():
     assert counts.numel() == 7 and int(counts.min()) > 6500
     theta2, pair2 = stream.draw(123, 4567)
     assert torch.equal(theta2, theta[123:4567]) and torch.equal(pair2, pair[123:4567])
-    full = ParticleStream("idm", bounds, seed=4)
+    full = ParticleStream(get_model("idm"), bounds, seed=4)
     assert full.draw(0, 3)[1] is None
     with pytest.raises(ValueError):
-        ParticleStream("idm", torch.tensor([[1.0, 1.0]]), seed=0)
+        ParticleStream(get_model("idm"), torch.tensor([[1.0, 1.0]]), seed=0)
+
+
+def test_a_stream_hashes_its_models_name_as_before():
+    """The stream holds the model object and hashes its name: the particles are
+    the uniforms of the name itself, and the same as when the stream was given
+    the name (the values below, across a block boundary)."""
+    bounds = torch.tensor([[1.0, 2.0], [-5.0, 5.0]], dtype=torch.float64)
+    model = get_model("idm+delay")
+    theta, pair = ParticleStream(model, bounds, seed=4, n_pairs=7).draw(4094, 4098)
+    u = uniforms(4, "idm+delay", 4094, 4098, 3)
+    assert torch.equal(theta, bounds[:, 0] + (bounds[:, 1] - bounds[:, 0]) * u[:, :2])
+    assert torch.equal(pair, (u[:, 2] * 7).long())
+    expected = [
+        [1.5004389824589648, 2.448530667989507],
+        [1.939689979131059, -4.186915380381926],
+        [1.9314496846658962, 1.4702347664402655],
+        [1.6150291664177905, 1.0768132169700397],
+    ]
+    assert theta.tolist() == expected and pair.tolist() == [4, 6, 6, 6]
 
 
 # --------------------------------------------------------------------------------------

@@ -101,7 +101,7 @@ def _config(models=("idm",), dtype="float32", **diagnose):
 def _particles(name, theta, pair, score, index=None):
     score = torch.as_tensor(score, dtype=torch.float64)
     return Particles(
-        name,
+        get_model(name),
         torch.as_tensor(theta, dtype=torch.float64),
         torch.as_tensor(pair, dtype=torch.int64),
         score,
@@ -140,7 +140,7 @@ def test_merge_keeps_a_particle_once_and_prefers_the_earlier_population():
 
 
 def test_pick_scores_are_medians_with_invalid_picks_counted_worst():
-    pairs = synthetic_pairs("idm", IDM, 2, 120, seed=1)
+    pairs = synthetic_pairs(get_model("idm"), IDM, 2, 120, seed=1)
     rollout = attribution_rollout(_config(dtype="float64"), pairs)
     good = [IDM, [1.0, 2.5, 28.0, 1.5, 2.5, 4.0], [1.4, 1.5, 31.0, 1.1, 1.5, 4.0]]
     theta = good + [IDM]
@@ -211,7 +211,9 @@ def test_paired_change_compares_two_runs_pair_by_pair():
 @pytest.fixture(scope="module")
 def start():
     """A small arena on delayed IDM data and the pool's fit (IDM, LLCS)."""
-    pairs = synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=3, noise=0.05)
+    pairs = synthetic_pairs(
+        get_model("idm+delay"), IDM + [0.8], 6, 200, seed=3, noise=0.05
+    )
     cfg = _config(models=("idm", "llcs"))
     arena = Arena.of(cfg, pairs)
     return arena, fit_pool(arena, POOL, lambda *_: None)
@@ -315,7 +317,7 @@ def test_the_predictor_follows_the_secant_of_the_two_fits_before():
 def test_the_response_lag_points_to_a_delay():
     """IDM data with a 1 s delay, driven by the same IDM without it: the
     follower answers its leader later than the model, by about the delay."""
-    pairs = synthetic_pairs("idm+delay", IDM + [1.0], 12, 400, seed=5)
+    pairs = synthetic_pairs(get_model("idm+delay"), IDM + [1.0], 12, 400, seed=5)
     idm = get_model("idm")
     best = {idm: (torch.tensor([IDM] * 12, dtype=torch.float64), torch.arange(12))}
     closed = residual_series(best, pairs)
@@ -360,7 +362,7 @@ def test_a_signature_no_effect_leaves_names_the_family_of_its_own_sign():
 def _one_step_marks(model: str, theta: list[float], noise: float, lead_noise=0.0):
     """Signatures of 30 pairs made by ``model`` (theta), driven by the plain IDM
     at the truth's own parameters."""
-    pairs = synthetic_pairs(model, theta, 30, 400, seed=1, noise=noise)
+    pairs = synthetic_pairs(get_model(model), theta, 30, 400, seed=1, noise=noise)
     if lead_noise:
         g = torch.Generator().manual_seed(5)
         lead = {k: v for k, v in pairs.series().items() if k.endswith("_lead")}
@@ -429,7 +431,7 @@ def test_simulated_covariates_lag_the_simulated_follower():
 def test_an_offset_is_absorbed_by_the_standstill_gap():
     """LLCS perceives s + d_offset - s0: only the difference is identified. The
     offset's profile says so: s0 follows the offset one for one."""
-    pairs = synthetic_pairs("llcs", LLCS, 6, 200, seed=2)
+    pairs = synthetic_pairs(get_model("llcs"), LLCS, 6, 200, seed=2)
     cfg = _config(models=("llcs",), rounds=4, local_copies=8, population=5)
     arena = Arena.of(cfg, pairs)
     truth = _particles("llcs", [LLCS] * 6, range(6), [0.01] * 6)
@@ -477,11 +479,18 @@ def test_a_shared_value_is_refined_between_the_values_tried():
 # --------------------------------------------------------- ledger and resume
 @pytest.mark.slow  # attributions interrupted and resumed
 def test_an_interrupted_attribution_resumes_to_the_same_result(tmp_path, monkeypatch):
-    pairs = synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=4, noise=0.05)
+    pairs = synthetic_pairs(
+        get_model("idm+delay"), IDM + [0.8], 6, 200, seed=4, noise=0.05
+    )
     cfg = _config(max_effects=2)
     effects = [DELAY, OFFSET, parse_effect("lag")]
     whole = attribute_effects(
-        cfg, ["idm"], effects, pairs, ledger=tmp_path / "a.pt", progress=False
+        cfg,
+        [get_model("idm")],
+        effects,
+        pairs,
+        ledger=tmp_path / "a.pt",
+        progress=False,
     )
     calls = {"n": 0}
     real = attribution.effect_arm  # as the selection calls it
@@ -495,11 +504,21 @@ def test_an_interrupted_attribution_resumes_to_the_same_result(tmp_path, monkeyp
     monkeypatch.setattr(attribution, "effect_arm", interrupted)
     with pytest.raises(KeyboardInterrupt):
         attribute_effects(
-            cfg, ["idm"], effects, pairs, ledger=tmp_path / "b.pt", progress=False
+            cfg,
+            [get_model("idm")],
+            effects,
+            pairs,
+            ledger=tmp_path / "b.pt",
+            progress=False,
         )
     monkeypatch.setattr(attribution, "effect_arm", real)
     resumed = attribute_effects(
-        cfg, ["idm"], effects, pairs, ledger=tmp_path / "b.pt", progress=False
+        cfg,
+        [get_model("idm")],
+        effects,
+        pairs,
+        ledger=tmp_path / "b.pt",
+        progress=False,
     )
     assert resumed.chosen == whole.chosen
     assert resumed.steps == whole.steps
@@ -519,7 +538,7 @@ def test_an_interrupted_pool_fit_resumes_from_its_last_state(tmp_path, monkeypat
     """The pool's fit keeps each model's ABC result and its search's state as
     it goes: stopped in the middle of its search, it resumes from the last
     state kept, not from the start, and ends where an uninterrupted fit ends."""
-    pairs = synthetic_pairs("idm", IDM, 6, 200, seed=4, noise=0.05)
+    pairs = synthetic_pairs(get_model("idm"), IDM, 6, 200, seed=4, noise=0.05)
     cfg = _config(max_rounds=6)
     arena = Arena.of(cfg, pairs)
     real = search_module.search_round
@@ -559,11 +578,17 @@ def test_an_interrupted_pool_fit_resumes_from_its_last_state(tmp_path, monkeypat
 def test_the_effect_arms_are_the_same_in_worker_processes():
     """Arms searched side by side in two worker processes give the selection
     one process gives (every arm draws from its own seeded streams)."""
-    pairs = synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=4, noise=0.05)
+    pairs = synthetic_pairs(
+        get_model("idm+delay"), IDM + [0.8], 6, 200, seed=4, noise=0.05
+    )
     effects = [DELAY, OFFSET, parse_effect("lag")]
     alone, side_by_side = (
         attribute_effects(
-            _config(max_effects=1, workers=w), ["idm"], effects, pairs, progress=False
+            _config(max_effects=1, workers=w),
+            [get_model("idm")],
+            effects,
+            pairs,
+            progress=False,
         )
         for w in (1, 2)
     )
@@ -574,11 +599,15 @@ def test_the_effect_arms_are_the_same_in_worker_processes():
 # ------------------------------------------------------------ re-calibration
 @pytest.mark.slow  # a re-calibration
 def test_the_recalibration_holds_the_reference_which_holds_the_run(tmp_path):
-    pairs = synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=6, noise=0.05)
+    pairs = synthetic_pairs(
+        get_model("idm+delay"), IDM + [0.8], 6, 200, seed=6, noise=0.05
+    )
     cfg = _config()
     train(cfg, tmp_path / "run", pairs=(pairs, pairs))
     posterior = Posterior.load(tmp_path / "run" / "posterior.pt")
-    reference, after = recalibrate(cfg, posterior, [DELAY], {}, ["idm"], pairs)
+    reference, after = recalibrate(
+        cfg, posterior, [DELAY], {}, [get_model("idm")], pairs
+    )
     run = posterior.buffers["idm"]["score"][:, : reference.size]
     assert bool((reference.score <= run).all())
     assert bool((after.score <= reference.score).all())
@@ -615,7 +644,7 @@ def test_the_recalibration_config_lists_the_variants_with_their_boxes():
     grade = "grade(start=100,end=900,knots=4)"
     after = recalibration_config(
         cfg,
-        ["idm+delay", f"idm+delay+{grade}", "idm"],
+        [get_model(n) for n in ("idm+delay", f"idm+delay+{grade}", "idm")],
         {grade: {"grade_0": (0.0, 0.01)}},
     )
     names = [m.name for m in after.models]

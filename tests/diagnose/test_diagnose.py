@@ -121,8 +121,8 @@ def _loop_config(detectable=True):
 
 
 def _pairs(model, theta):
-    train_pairs = synthetic_pairs(model, theta, 24, 500, seed=1, noise=0.05)
-    test_pairs = synthetic_pairs(model, theta, 12, 500, seed=2, noise=0.05)
+    train_pairs = synthetic_pairs(get_model(model), theta, 24, 500, seed=1, noise=0.05)
+    test_pairs = synthetic_pairs(get_model(model), theta, 12, 500, seed=2, noise=0.05)
     return train_pairs, test_pairs
 
 
@@ -272,7 +272,7 @@ def test_cli_and_bad_input(loops, tmp_path, capsys):
 
 # ------------------------------------------------------------------ the pieces
 def test_residuals_vanish_for_the_true_particle():
-    pairs = synthetic_pairs("idm", IDM_TRUTH, 3, 200, seed=5)
+    pairs = synthetic_pairs(get_model("idm"), IDM_TRUTH, 3, 200, seed=5)
     best = {get_model("idm"): (torch.tensor([IDM_TRUTH] * 3), torch.arange(3))}
     series = residual_series(best, pairs)
     for channel in ("spacing", "speed", "acceleration"):
@@ -330,7 +330,7 @@ def test_an_earlier_recalibration_is_read_back_only_when_it_is_this_one(tmp_path
 
 
 def test_split_in_time_keeps_pairs_aligned():
-    pairs = synthetic_pairs("idm", IDM_TRUTH, 4, 300, seed=3)
+    pairs = synthetic_pairs(get_model("idm"), IDM_TRUTH, 4, 300, seed=3)
     fit, validation = split_in_time(pairs, 0.6)
     assert fit.n_steps == 180 and validation.n_steps == 120
     assert torch.equal(validation.x_lead[0], pairs.x_lead[180])
@@ -340,7 +340,7 @@ def test_split_in_time_keeps_pairs_aligned():
 
 def test_bare_grade_spans_the_road_section():
     road = Scene(start=(100.0, 200.0))
-    pairs = synthetic_pairs("idm", IDM_TRUTH, 2, 100, seed=3, scene=road)
+    pairs = synthetic_pairs(get_model("idm"), IDM_TRUTH, 2, 100, seed=3, scene=road)
     token = resolve_effect("grade", pairs).token
     x = pairs.x_follow
     assert token == (
@@ -355,7 +355,7 @@ def _candidates(name, theta, pair, score):
     """Hand-built particles; index 0 for all, so that ties go by set position."""
     score = torch.as_tensor(score, dtype=torch.float64)
     return Particles(
-        name,
+        get_model(name),
         torch.as_tensor(theta, dtype=torch.float64),
         torch.as_tensor(pair, dtype=torch.int64),
         score,
@@ -403,13 +403,13 @@ def test_jitter_stays_in_the_prior_and_keeps_fixed_parameters():
 def test_local_search_spends_its_budget_and_never_loses_a_fit(monkeypatch):
     import torchcf.diagnose.search as search
 
-    pairs = synthetic_pairs("idm", IDM_TRUTH, 4, 150, seed=9)
+    pairs = synthetic_pairs(get_model("idm"), IDM_TRUTH, 4, 150, seed=9)
     cfg = _config(population=3, local_copies=5, rounds=2)
     rollout = attribution_rollout(cfg, pairs)
     models = [get_model(m) for m in ("idm", "llctg")]
     bounds = {m: model_bounds(m, {}) for m in models}
     seed = attribution_seed(cfg)
-    streams = [prior_stream(m.name, bounds[m], seed, rollout) for m in models]
+    streams = [prior_stream(m, bounds[m], seed, rollout) for m in models]
     sets = [prior_particles(stream, rollout, (200,), 3)[0] for stream in streams]
     start = Population.from_particles(sets, 4, 3)
     simulated = []
@@ -433,13 +433,13 @@ def test_local_search_spends_its_budget_and_never_loses_a_fit(monkeypatch):
 def test_diagnose_seed_replaces_the_runs_seed_in_the_attribution():
     """diagnose.seed (None = abc.seed) draws another prior sample: a check that
     the loop's answer is not the luck of one stream."""
-    pairs = synthetic_pairs("idm", IDM_TRUTH, 3, 100, seed=9)
+    pairs = synthetic_pairs(get_model("idm"), IDM_TRUTH, 3, 100, seed=9)
     bounds = model_bounds(get_model("idm"), {})
 
     def drawn(**diagnose):
         cfg = _config(**diagnose)
         rollout = attribution_rollout(cfg, pairs)
-        stream = prior_stream("idm", bounds, attribution_seed(cfg), rollout)
+        stream = prior_stream(get_model("idm"), bounds, attribution_seed(cfg), rollout)
         (particles,) = prior_particles(stream, rollout, (50,), 2)
         return particles
 
@@ -457,7 +457,7 @@ def test_shared_value_finds_a_constant_grade():
 
     effect = parse_effect("grade(start=0,end=1000,knots=1)")
     model = f"llctg+{effect.token}"
-    pairs = synthetic_pairs(model, LLCTG_TRUTH + [0.04], 6, 300, seed=4)
+    pairs = synthetic_pairs(get_model(model), LLCTG_TRUTH + [0.04], 6, 300, seed=4)
     cfg = _config(local_copies=4)
     members = Population.from_particles(
         [_candidates("llctg", [LLCTG_TRUTH] * 6, range(6), [1.0] * 6)], 6, 2

@@ -49,13 +49,17 @@ def test_an_offset_against_a_standstill_gap_is_reported_traded_off():
     """LLCS with a spacing offset: the accepted particles lie on d_offset - s0 =
     const per pair, so the two are strongly positively correlated."""
     name = "llcs+offset"
-    pairs = synthetic_pairs(name, [20.0, 0.15, 0.8, -3.0], 6, 300, seed=2)
+    pairs = synthetic_pairs(get_model(name), [20.0, 0.15, 0.8, -3.0], 6, 300, seed=2)
     model = get_model(name)
     bounds = model.prior_bounds(torch.float64)
     rollout = Rollout(pairs, dtype=torch.float64, compile="off")
     buffer = TopN(pairs.n_pairs, 15, model.n_params)
     run_rejection(
-        prior_stream(name, bounds, 0, rollout), buffer, rollout, 60_000, ModelProgress()
+        prior_stream(model, bounds, 0, rollout),
+        buffer,
+        rollout,
+        60_000,
+        ModelProgress(),
     )
     posterior = SimpleNamespace(
         buffers={

@@ -37,7 +37,7 @@ def _population(theta: torch.Tensor, n_pairs: int, name: str = "idm") -> Populat
     """Particles of ``name`` dealt round-robin to ``n_pairs`` pairs (scored 0)."""
     q = theta.shape[0]
     particles = Particles(
-        name,
+        get_model(name),
         theta.double(),
         torch.arange(q) % n_pairs,
         torch.zeros(q, dtype=torch.float64),
@@ -87,7 +87,7 @@ def test_candidates_stay_within_their_cap_from_the_same_fit_pairs():
 def test_the_effect_pinned_at_its_neutral_value_refits_as_without_it():
     """At the neutral value the lifted particles are the model itself, and the
     two refits draw the same steps: the scores agree exactly."""
-    pairs = synthetic_pairs("idm", IDM, 4, 120, seed=1, noise=0.05)
+    pairs = synthetic_pairs(get_model("idm"), IDM, 4, 120, seed=1, noise=0.05)
     rollout = Rollout(pairs, True, torch.float64)
     members = _prior_draws(12, seed=0)
     key = ("test", 1)
@@ -118,7 +118,7 @@ def test_a_true_effect_pinned_at_its_value_fits_new_drivers_better():
 
 
 def test_the_refit_never_moves_the_pinned_effect():
-    pairs = synthetic_pairs("idm", IDM, 3, 80, seed=3)
+    pairs = synthetic_pairs(get_model("idm"), IDM, 3, 80, seed=3)
     rollout = Rollout(pairs, True, torch.float64)
     members = lifted(
         {get_model("idm"): torch.tensor([IDM], dtype=torch.float64)},
@@ -161,7 +161,7 @@ def test_a_refit_until_calm_is_the_fixed_refit_cut_where_it_settles():
     """``until_calm``: every round draws the numbers of its number, so a refit
     that settles after r rounds gives the fixed refit of r rounds; a search that
     cannot settle in its rounds runs them all."""
-    pairs = synthetic_pairs("idm", IDM, 4, 120, seed=5, noise=0.05)
+    pairs = synthetic_pairs(get_model("idm"), IDM, 4, 120, seed=5, noise=0.05)
     rollout = Rollout(pairs, True, torch.float64)
     members = _prior_draws(12, seed=3)
     key = ("test", 5)

@@ -45,7 +45,14 @@ def _config(models=("idm", "llctg"), n_particles=N, method="rejection", **top):
 
 @pytest.fixture(scope="module")
 def pairs():
-    return synthetic_pairs("idm+delay", IDM + [0.8], 6, 200, seed=6, noise=0.05)
+    return synthetic_pairs(
+        get_model("idm+delay"), IDM + [0.8], 6, 200, seed=6, noise=0.05
+    )
+
+
+def _models(*names):
+    """The model objects of ``names`` (what the loop passes)."""
+    return [get_model(name) for name in names]
 
 
 def _trained(tmp_path, name, cfg, pairs):
@@ -63,7 +70,11 @@ def test_after_is_the_run_beside_variants_trained_the_runs_way(tmp_path, pairs, 
     cfg = _config(method=method)
     run = _trained(tmp_path, "run", cfg, pairs)
     reference, after = retrain(  # llctg: a pool model no variant wraps
-        cfg, run, FinalModel(["idm", "llctg", "idm+delay"]), ["idm", "llctg"], pairs
+        cfg,
+        run,
+        FinalModel(_models("idm", "llctg", "idm+delay")),
+        _models("idm", "llctg"),
+        pairs,
     )
     alone = _trained(tmp_path, "variant", _config(["idm+delay"], method=method), pairs)
     _assert_same(after["idm+delay"], alone.buffers["idm+delay"])
@@ -82,7 +93,7 @@ def test_the_plausibility_filter_screens_the_variants_as_it_screened_the_run(
     cfg = _config(["idm"], **screened)
     run = _trained(tmp_path, "run", cfg, pairs)
     screen = plausibility_screen(cfg.plausibility, pairs)
-    args = (cfg, run, FinalModel(["idm", "idm+delay"]), ["idm"], pairs)
+    args = (cfg, run, FinalModel(_models("idm", "idm+delay")), _models("idm"), pairs)
     _, after = retrain(*args, screen=screen)
     alone = _trained(tmp_path, "variant", _config(["idm+delay"], **screened), pairs)
     _assert_same(after["idm+delay"], alone.buffers["idm+delay"])
@@ -91,8 +102,8 @@ def test_the_plausibility_filter_screens_the_variants_as_it_screened_the_run(
 def test_the_reference_of_rejection_is_the_run_with_twice_the_draws(tmp_path, pairs):
     cfg = _config()
     run = _trained(tmp_path, "run", cfg, pairs)
-    models = ["idm", "llctg", "idm+delay"]
-    reference, _ = retrain(cfg, run, FinalModel(models), ["idm"], pairs)
+    models = _models("idm", "llctg", "idm+delay")
+    reference, _ = retrain(cfg, run, FinalModel(models), _models("idm"), pairs)
     double = _trained(tmp_path, "double", _config(["idm"], 2 * N), pairs)
     _assert_same(reference["idm"], double.buffers["idm"])
 
@@ -102,11 +113,11 @@ def test_a_shared_effect_is_held_at_its_value(tmp_path, pairs, method):
     cfg = _config(["idm"], method=method)
     run = _trained(tmp_path, "run", cfg, pairs)
     final = FinalModel(
-        ["idm", "idm+offset"],
+        _models("idm", "idm+offset"),
         {"offset": [-2.5]},
         {"offset": {"d_offset": (-3.0, -2.0)}},
     )
-    _, after = retrain(cfg, run, final, ["idm"], pairs)
+    _, after = retrain(cfg, run, final, _models("idm"), pairs)
     theta = after["idm+offset"]["theta"]
     kept = torch.isfinite(after["idm+offset"]["score"])
     assert bool(kept.any())
@@ -116,8 +127,9 @@ def test_a_shared_effect_is_held_at_its_value(tmp_path, pairs, method):
 
 
 def test_the_reference_spends_draws_only_on_the_pool_models_a_variant_wraps():
-    assert wrapped(["idm+lag", "gfm+lag"], ["gfm", "idm", "hl"]) == ["gfm", "idm"]
-    assert wrapped([], ["idm"]) == []
+    both = wrapped(_models("idm+lag", "gfm+lag"), _models("gfm", "idm", "hl"))
+    assert [m.name for m in both] == ["gfm", "idm"]
+    assert wrapped([], _models("idm")) == []
 
 
 def test_a_shared_effect_ahead_of_a_driver_effect_is_drawn_from_its_box():
@@ -127,13 +139,13 @@ def test_a_shared_effect_ahead_of_a_driver_effect_is_drawn_from_its_box():
         {"offset": torch.tensor([-2.5], dtype=torch.float64)},
     )
     drawn, fixed = searched_box(
-        "idm+offset+delay", bounds, {"offset": {"d_offset": (-3.0, -2.0)}}
+        get_model("idm+offset+delay"), bounds, {"offset": {"d_offset": (-3.0, -2.0)}}
     )
     assert fixed is None and drawn[-2].tolist() == [-3.0, -2.0]
-    drawn, fixed = searched_box("idm+offset", bounds[:-1], {})
+    drawn, fixed = searched_box(get_model("idm+offset"), bounds[:-1], {})
     assert fixed.tolist() == [-2.5] and drawn.shape == (6, 2)
     with pytest.raises(ValueError, match="no box"):
-        searched_box("idm+offset+delay", bounds, {})
+        searched_box(get_model("idm+offset+delay"), bounds, {})
 
 
 def test_an_interrupted_recalibration_resumes_at_its_model(
@@ -141,20 +153,20 @@ def test_an_interrupted_recalibration_resumes_at_its_model(
 ):
     cfg = _config(["idm"])
     run = _trained(tmp_path, "run", cfg, pairs)
-    args = (cfg, run, FinalModel(["idm", "idm+delay"]), ["idm"], pairs)
+    args = (cfg, run, FinalModel(_models("idm", "idm+delay")), _models("idm"), pairs)
     whole = retrain(*args)
     real, calls = retrain_module._trained, []
 
-    def interrupted(cfg, name, *rest):
+    def interrupted(cfg, model, *rest):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(retrain_module, "_trained", interrupted)
     with pytest.raises(KeyboardInterrupt):  # after the reference, in the variant
         retrain(*args, ledger=tmp_path / "retrain.pt")
 
-    def counted(cfg, name, *rest):
-        calls.append(name)
-        return real(cfg, name, *rest)
+    def counted(cfg, model, *rest):
+        calls.append(model.name)
+        return real(cfg, model, *rest)
 
     monkeypatch.setattr(retrain_module, "_trained", counted)
     done = []

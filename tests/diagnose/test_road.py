@@ -175,7 +175,7 @@ def test_one_wild_pair_does_not_hide_the_profile():
 
 
 def test_road_frame_declared_or_decided():
-    pairs = synthetic_pairs("idm", IDM_TRUTH, 4, 100, seed=3)
+    pairs = synthetic_pairs(get_model("idm"), IDM_TRUTH, 4, 100, seed=3)
     frame, why = shares_road_frame(pairs)
     assert frame and "spread" in why  # synthetic pairs start at different places
     same = dataclasses.replace(
@@ -192,7 +192,7 @@ def test_road_frame_declared_or_decided():
 
 
 def test_road_effects_are_not_offered_without_one_road():
-    pairs = synthetic_pairs("idm", IDM_TRUTH, 6, 200, seed=3)
+    pairs = synthetic_pairs(get_model("idm"), IDM_TRUTH, 6, 200, seed=3)
     cfg = validate_config(
         {
             "data": {"path": "synthetic"},
@@ -221,7 +221,7 @@ def test_road_effects_are_not_offered_without_one_road():
 
 
 def test_meta_json_declares_the_road_frame(tmp_path):
-    pairs = synthetic_pairs("idm", IDM_TRUTH, 3, 50, seed=1)
+    pairs = synthetic_pairs(get_model("idm"), IDM_TRUTH, 3, 50, seed=1)
     folder = tmp_path / "set"
     folder.mkdir()
     for key, file in FILES.items():
@@ -257,7 +257,7 @@ def test_bend_seed_finds_the_speed_limit_the_followers_press_against():
     prior's top (no limit)."""
     limit = [25.0, 12.0, 25.0]
     pairs = synthetic_pairs(
-        "idm+bend(start=0,end=1200)", IDM_TRUTH + limit, 12, 500, seed=4
+        get_model("idm+bend(start=0,end=1200)"), IDM_TRUTH + limit, 12, 500, seed=4
     )
     x = [pairs.x_follow[:, j].numpy() for j in range(pairs.n_pairs)]
     v = [pairs.v_follow[:, j].numpy() for j in range(pairs.n_pairs)]
@@ -296,7 +296,12 @@ def test_a_grade_under_an_actuation_lag_is_whole_in_the_one_step_residual(lag):
     theta = torch.tensor(hl + truth.tolist(), dtype=torch.float64)
     road = Scene(start=(0, 700))
     pairs = synthetic_pairs(
-        f"hl+{effect.token}", theta, n_pairs=12, n_steps=400, seed=3, scene=road
+        get_model(f"hl+{effect.token}"),
+        theta,
+        n_pairs=12,
+        n_steps=400,
+        seed=3,
+        scene=road,
     )
     best = {
         get_model("hl"): (

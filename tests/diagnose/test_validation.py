@@ -47,7 +47,9 @@ def _config(warmup: float) -> TrainConfig:
 def _by_hand(model, theta, long, pair, skip: int) -> torch.Tensor:
     """The weighted RMSE over the long windows' steps ``skip ..``, from the
     simulated trajectories."""
-    out = simulate(model, theta, long, pair, dtype=torch.float64, return_traj=True)
+    out = simulate(
+        get_model(model), theta, long, pair, dtype=torch.float64, return_traj=True
+    )
     scores = []
     for j, i in enumerate(pair.tolist()):
         n = int(long.mask[:, i].sum())
@@ -137,7 +139,9 @@ def test_coverage_scores_are_the_minimum_distance_on_the_held_out_pairs():
     for name in picks.models:
         pair, slot = picks.model_slots(name)
         theta = picks.theta[pair, slot, : get_model(name).n_params]
-        cost = simulate(name, theta, held, dtype=torch.float64).score  # (Q, V)
+        cost = simulate(
+            get_model(name), theta, held, dtype=torch.float64
+        ).score  # (Q, V)
         cost = torch.where(torch.isfinite(cost), cost, math.inf)
         expected = torch.minimum(expected, cost.min(0).values)
     torch.testing.assert_close(got, expected)
@@ -186,7 +190,7 @@ def _particles(name: str, theta: torch.Tensor, pairs) -> Particles:
     """Particles of ``name`` on pairs dealt round-robin, scored there."""
     pair = torch.arange(theta.shape[0]) % pairs.n_pairs
     score, _ = Rollout(pairs, True, torch.float64).score(get_model(name), theta, pair)
-    return Particles(name, theta, pair, score, torch.arange(theta.shape[0]))
+    return Particles(get_model(name), theta, pair, score, torch.arange(theta.shape[0]))
 
 
 @pytest.mark.parametrize(

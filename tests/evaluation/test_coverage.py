@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from torchcf import get_model
 from torchcf.evaluation.coverage import (
     PredictiveCDF,
     add_draws,
@@ -266,7 +267,7 @@ def test_hybrid_coverage_equals_its_own_rollout_and_bands(evaluated):
         theta = posterior.hybrid[name].theta
         if not len(theta):
             continue
-        sim = simulate(name, theta.to(torch.float32), test, return_traj=True,
+        sim = simulate(get_model(name), theta.to(torch.float32), test, return_traj=True,
                        weights=cfg.abc.weights)  # fmt: skip
         spacing.append(test.x_lead.to(sim.x)[:, None, :] - sim.x)
         speed.append(sim.v)

@@ -21,6 +21,7 @@ from torchcf.evaluation.evaluate import (
 )
 from torchcf.evaluation.metrics import evaluate_costs, sinkhorn
 from torchcf.evaluation.results import Evaluation
+from torchcf.models import get_model
 from torchcf.posterior import Posterior
 from torchcf.study.crossval import CrossvalResult, aggregate, crossval, fold_config
 from torchcf.system.files import json_safe
@@ -87,7 +88,10 @@ def test_hybrid_costs_equal_their_own_rollout(trained):
     _, costs = evaluate_posterior(posterior, test_pairs, cfg, progress=False)
     direct = [
         cost_matrices(
-            name, posterior.hybrid[name].theta, test_pairs, dtype=torch.float64
+            get_model(name),
+            posterior.hybrid[name].theta,
+            test_pairs,
+            dtype=torch.float64,
         )
         for name in posterior.models
         if len(posterior.hybrid[name])
@@ -116,7 +120,9 @@ def test_a_global_selection_particle_outside_the_first_n_is_simulated(trained):
         len(posterior.hybrid[m])
         for m in posterior.models[: posterior.models.index(name)]
     )
-    own = cost_matrices(name, hybrid.theta[1:2], test_pairs, dtype=torch.float64)
+    own = cost_matrices(
+        get_model(name), hybrid.theta[1:2], test_pairs, dtype=torch.float64
+    )
     np.testing.assert_allclose(costs["hybrid"]["score"][first + 1], own["score"][0])
 
 
@@ -146,7 +152,7 @@ def test_metrics_equal_a_direct_computation(trained):
     posterior = Posterior.load(out / "posterior.pt")
     # hybrid: every model's hybrid particles, stacked in model order
     parts = [
-        cost_matrices(name, posterior.hybrid[name].theta, test_pairs)
+        cost_matrices(get_model(name), posterior.hybrid[name].theta, test_pairs)
         for name in posterior.models
         if len(posterior.hybrid[name])
     ]

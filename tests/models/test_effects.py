@@ -480,7 +480,7 @@ def assert_matches_reference(out, base, effects, theta, pairs):
 )
 def test_matches_independent_reference(name, base, effects, rows, road):
     theta = torch.tensor(rows, dtype=torch.float64)
-    out = simulate(name, theta, road, dtype=torch.float64, return_traj=True)
+    out = simulate(get_model(name), theta, road, dtype=torch.float64, return_traj=True)
     assert_matches_reference(out, base, effects, theta, road)
 
 
@@ -488,7 +488,9 @@ def test_delay_history_is_a_steady_past(road):
     """Within t_delay of the start the follower perceives the first perception."""
     s0, ks, kv = LLCS
     theta = torch.tensor([LLCS + [0.8]], dtype=torch.float64)  # 8 steps
-    out = simulate("llcs+delay", theta, road, dtype=torch.float64, return_traj=True)
+    out = simulate(
+        get_model("llcs+delay"), theta, road, dtype=torch.float64, return_traj=True
+    )
     for n in range(road.n_pairs):
         s_first = float(road.x_lead[0, n] - road.x_follow[0, n])
         vl_first = float(road.v_lead[0, n])
@@ -517,9 +519,11 @@ def test_augmented_command_sees_a_steady_past():
 def test_delay_outside_its_history_is_refused(road):
     theta = torch.tensor([LLCS + [0.6]], dtype=torch.float64)
     with pytest.raises(ValueError, match="t_delay"):
-        simulate("llcs+delay(max_delay=0.55)", theta, road, dtype=torch.float64)
+        simulate(
+            get_model("llcs+delay(max_delay=0.55)"), theta, road, dtype=torch.float64
+        )
     with pytest.raises(ValueError, match="t_delay"):
-        simulate("llcs+delay", torch.tensor([LLCS + [-0.1]]), road)
+        simulate(get_model("llcs+delay"), torch.tensor([LLCS + [-0.1]]), road)
 
 
 # --------------------------------------------- 2. neutral parameters = the base
@@ -559,9 +563,15 @@ def test_neutral_parameters_reproduce_the_base(base, tokens, road):
     neutral = [v for token in tokens for v in NEUTRAL[token]]
     extra = torch.tensor(neutral, dtype=torch.float64).expand(4, -1)
     name = "+".join([base, *tokens])
-    plain = simulate(base, theta, road, dtype=torch.float64, return_traj=True)
+    plain = simulate(
+        get_model(base), theta, road, dtype=torch.float64, return_traj=True
+    )
     augmented = simulate(
-        name, torch.cat((theta, extra), 1), road, dtype=torch.float64, return_traj=True
+        get_model(name),
+        torch.cat((theta, extra), 1),
+        road,
+        dtype=torch.float64,
+        return_traj=True,
     )
     tol = 1e-6 if base == "mpc" else 0.0
     for key in ("score", "e_p", "e_v", "e_a", "valid", "x", "v", "a"):
@@ -587,11 +597,13 @@ def all_effects_theta(n: int, seed: int = 0) -> torch.Tensor:
 @pytest.mark.parametrize("name", [ALL, "llctg+delay+grade(start=-50,end=700)"])
 def test_batched_equals_looped(name, road):
     theta = prior_draws(get_model(name), 5, seed=3)
-    batched = simulate(name, theta, road, dtype=torch.float64, return_traj=True)
+    batched = simulate(
+        get_model(name), theta, road, dtype=torch.float64, return_traj=True
+    )
     for j in range(5):
         for n in range(road.n_pairs):
             single = simulate(
-                name,
+                get_model(name),
                 theta[j : j + 1],
                 road.subset([n]),
                 dtype=torch.float64,
@@ -618,8 +630,10 @@ def test_paired_equals_full_layout_diagonal(name, road):
     if "max_delay=0.55" in name:  # the default t_delay prior reaches 1.5 s
         theta[:, 3] = theta[:, 3] * 0.55 / 1.5
     index = torch.arange(n) % road.n_pairs
-    full = simulate(name, theta, road, dtype=torch.float64, return_traj=True)
-    paired = simulate(name, theta, road, index, dtype=torch.float64, return_traj=True)
+    full = simulate(get_model(name), theta, road, dtype=torch.float64, return_traj=True)
+    paired = simulate(
+        get_model(name), theta, road, index, dtype=torch.float64, return_traj=True
+    )
     rows = torch.arange(n)
     for key in ("score", "e_p", "e_v", "e_a", "valid"):
         torch.testing.assert_close(
@@ -639,10 +653,12 @@ def test_paired_equals_full_layout_diagonal(name, road):
 def test_chunk_size_invariance(paired, road):
     theta = all_effects_theta(7, seed=5)
     index = torch.arange(7) % road.n_pairs if paired else None
-    whole = simulate(ALL, theta, road, index, dtype=torch.float64, return_traj=True)
+    whole = simulate(
+        get_model(ALL), theta, road, index, dtype=torch.float64, return_traj=True
+    )
     for chunk in (1, 3, 4):
         chunked = simulate(
-            ALL,
+            get_model(ALL),
             theta,
             road,
             index,
@@ -671,12 +687,22 @@ def test_compiled_equals_eager(road):
     index = torch.arange(6) % road.n_pairs
     kwargs = {"dtype": torch.float64, "return_traj": True}
     eager = simulate(
-        name, theta, road, index, execution=Execution(compile=False), **kwargs
+        get_model(name),
+        theta,
+        road,
+        index,
+        execution=Execution(compile=False),
+        **kwargs,
     )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         compiled = simulate(
-            name, theta, road, index, execution=Execution(compile=True), **kwargs
+            get_model(name),
+            theta,
+            road,
+            index,
+            execution=Execution(compile=True),
+            **kwargs,
         )
     fallbacks = [str(w.message) for w in caught if "compile failed" in str(w.message)]
     assert not fallbacks, fallbacks  # it really ran compiled
@@ -838,19 +864,21 @@ ACTIVE = [
 def test_every_effect_changes_the_trajectory(name, active, neutral, road):
     rows = [LLCTG + active, LLCTG + neutral]
     out = simulate(
-        name, torch.tensor(rows), road, dtype=torch.float64, return_traj=True
+        get_model(name), torch.tensor(rows), road, dtype=torch.float64, return_traj=True
     )
     gap = (out.x[:, 0] - out.x[:, 1]).abs().amax(0)  # (N,)
     assert bool((gap > 0.05).any()), gap
-    plain = simulate("llctg", torch.tensor([LLCTG]), road, dtype=torch.float64)
+    plain = simulate(
+        get_model("llctg"), torch.tensor([LLCTG]), road, dtype=torch.float64
+    )
     torch.testing.assert_close(out.score[1], plain.score[0], rtol=0, atol=0)
 
 
 def test_lag_changes_the_trajectory(road):
     lagged = simulate(
-        "llctg+lag", torch.tensor([LLCTG + [0.8]]), road, return_traj=True
+        get_model("llctg+lag"), torch.tensor([LLCTG + [0.8]]), road, return_traj=True
     )
-    plain = simulate("llctg", torch.tensor([LLCTG]), road, return_traj=True)
+    plain = simulate(get_model("llctg"), torch.tensor([LLCTG]), road, return_traj=True)
     gap = (lagged.x[:, 0] - plain.x[:, 0]).abs().amax(0)
     assert bool((gap > 0.05).all()), gap
     # the recorded acceleration is the lagged state: it starts at the observed one
@@ -863,7 +891,7 @@ def test_grade_reads_the_absolute_position(road):
     name = "llctg+grade(start=0,end=600,knots=7)"
     rows = [LLCTG + [0.0, 0.0, 0.0, 0.05, 0.05, 0.0, 0.0], LLCTG + [0.0] * 7]
     out = simulate(
-        name, torch.tensor(rows), road, dtype=torch.float64, return_traj=True
+        get_model(name), torch.tensor(rows), road, dtype=torch.float64, return_traj=True
     )
     gap = (out.x[:, 0] - out.x[:, 1]).abs().amax(0)
     assert float(gap[0]) > 0.05
@@ -916,8 +944,12 @@ def test_a_lap_profile_is_refused_a_period_that_is_no_length():
 def test_sync_at_zero_is_the_model_up_to_rounding(road):
     """t_sync = 0 perceives (s + x) - x: the model itself within rounding."""
     theta = torch.tensor([IDM + [0.0]], dtype=torch.float64)
-    synced = simulate("idm+sync", theta, road, dtype=torch.float64, return_traj=True)
-    plain = simulate("idm", theta[:, :-1], road, dtype=torch.float64, return_traj=True)
+    synced = simulate(
+        get_model("idm+sync"), theta, road, dtype=torch.float64, return_traj=True
+    )
+    plain = simulate(
+        get_model("idm"), theta[:, :-1], road, dtype=torch.float64, return_traj=True
+    )
     torch.testing.assert_close(synced.x, plain.x, rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(synced.score, plain.score, rtol=1e-9, atol=1e-9)
 
@@ -926,10 +958,10 @@ def test_sync_differs_from_a_delay(road):
     """A log offset delays the leader only; a perception delay delays the whole
     spacing (the follower's own position too)."""
     synced = simulate(
-        "idm+sync", torch.tensor([IDM + [0.8]]), road, dtype=torch.float64
+        get_model("idm+sync"), torch.tensor([IDM + [0.8]]), road, dtype=torch.float64
     )
     delayed = simulate(
-        "idm+delay", torch.tensor([IDM + [0.8]]), road, dtype=torch.float64
+        get_model("idm+delay"), torch.tensor([IDM + [0.8]]), road, dtype=torch.float64
     )
     assert bool((synced.score - delayed.score).abs().max() > 1e-3)
 

@@ -11,7 +11,7 @@ from tests.models.contract import CFModelContract, command_of, perception
 from tests.reference import mpc_qp
 from tests.sim.test_rollout import reference as pair_reference
 from torchcf import simulate
-from torchcf.models import MODELS
+from torchcf.models import MODELS, get_model
 from torchcf.models.mpc import MPC, mpc_qp_matrices
 
 
@@ -73,7 +73,7 @@ class TestMPC(CFModelContract):
 def test_rollout_matches_exact_reference(dtype, tol):
     pairs = synthetic_pairs(n_pairs=2, n_steps=120, seed=6)
     theta = prior_draws(MODELS["mpc"], 3, seed=2)
-    out = simulate("mpc", theta.to(dtype), pairs, return_traj=True)
+    out = simulate(get_model("mpc"), theta.to(dtype), pairs, return_traj=True)
     for j in range(3):
         for n in range(2):
             ref = pair_reference("mpc", theta[j], pairs, n)
@@ -88,8 +88,8 @@ def test_paired_equals_full_layout():
     pairs = synthetic_pairs(n_pairs=3, n_steps=80, seed=1)
     theta = prior_draws(MODELS["mpc"], 12, seed=3)
     index = torch.randint(0, 3, (12,))
-    full = simulate("mpc", theta, pairs)
-    paired = simulate("mpc", theta, pairs, index)
+    full = simulate(get_model("mpc"), theta, pairs)
+    paired = simulate(get_model("mpc"), theta, pairs, index)
     torch.testing.assert_close(
         paired.score, full.score[torch.arange(12), index], rtol=1e-8, atol=1e-8
     )

@@ -11,7 +11,7 @@ import torch
 import torchcf
 from tests.conftest import prior_draws, synthetic_pairs
 from tests.reference import simulate_pair
-from torchcf import MODELS, Execution, PairSet, simulate
+from torchcf import MODELS, Execution, PairSet, get_model, simulate
 
 NAMES = list(MODELS)
 
@@ -62,7 +62,7 @@ def well_conditioned(name, theta_row, pairs, n, ref) -> bool:
 @pytest.mark.parametrize("name", NAMES)
 def test_full_layout_matches_reference(name, pairs):
     theta = prior_draws(MODELS[name], 12, seed=7)
-    out = simulate(name, theta, pairs, dtype=torch.float64, return_traj=True)
+    out = simulate(get_model(name), theta, pairs, dtype=torch.float64, return_traj=True)
     assert out.score.shape == (12, pairs.n_pairs)
     assert out.x.shape == (pairs.n_steps, 12, pairs.n_pairs)
     compared = 0
@@ -91,8 +91,12 @@ def test_full_layout_matches_reference(name, pairs):
 def test_paired_equals_gathered_full_layout(name, pairs):
     theta = prior_draws(MODELS[name], 40, seed=11)
     index = torch.randint(0, pairs.n_pairs, (40,))
-    full = simulate(name, theta, pairs, dtype=torch.float64, return_traj=True)
-    paired = simulate(name, theta, pairs, index, dtype=torch.float64, return_traj=True)
+    full = simulate(
+        get_model(name), theta, pairs, dtype=torch.float64, return_traj=True
+    )
+    paired = simulate(
+        get_model(name), theta, pairs, index, dtype=torch.float64, return_traj=True
+    )
     rows = torch.arange(40)
     for key in ("score", "e_p", "e_v", "e_a", "valid"):
         torch.testing.assert_close(
@@ -108,11 +112,14 @@ def test_paired_equals_gathered_full_layout(name, pairs):
 @pytest.mark.parametrize("name", NAMES)
 def test_batched_equals_looped(name, pairs):
     theta = prior_draws(MODELS[name], 6, seed=5)
-    batched = simulate(name, theta, pairs, dtype=torch.float64)
+    batched = simulate(get_model(name), theta, pairs, dtype=torch.float64)
     for j in range(6):
         for n in range(pairs.n_pairs):
             single = simulate(
-                name, theta[j : j + 1], pairs.subset([n]), dtype=torch.float64
+                get_model(name),
+                theta[j : j + 1],
+                pairs.subset([n]),
+                dtype=torch.float64,
             )
             assert torch.equal(single.score[0, 0], batched.score[j, n])
 
@@ -121,8 +128,8 @@ def test_batched_equals_looped(name, pairs):
 def test_float32_close_to_float64(name):
     pairs = synthetic_pairs(n_pairs=3, n_steps=576, seed=2)
     theta = prior_draws(MODELS[name], 64, seed=9)
-    high = simulate(name, theta, pairs, dtype=torch.float64)
-    low = simulate(name, theta.float(), pairs)
+    high = simulate(get_model(name), theta, pairs, dtype=torch.float64)
+    low = simulate(get_model(name), theta.float(), pairs)
     assert low.score.dtype == torch.float32 and high.score.dtype == torch.float64
     both = high.valid & low.valid
     # a rollout on the edge of collision may flip validity in float32; rarely
@@ -137,25 +144,27 @@ def test_float32_close_to_float64(name):
 def test_result_independent_of_chunk_size(chunk_size, pairs):
     theta = prior_draws(MODELS["idm"], 40, seed=1, dtype=torch.float32)
     index = torch.randint(0, pairs.n_pairs, (40,))
-    reference_out = simulate("idm", theta, pairs, index)
+    reference_out = simulate(get_model("idm"), theta, pairs, index)
     chunks = Execution(chunk_size=chunk_size)
-    chunked = simulate("idm", theta, pairs, index, execution=chunks)
+    chunked = simulate(get_model("idm"), theta, pairs, index, execution=chunks)
     assert torch.equal(chunked.score, reference_out.score)
-    full = simulate("idm", theta, pairs, execution=chunks)
-    assert torch.equal(full.score, simulate("idm", theta, pairs).score)
+    full = simulate(get_model("idm"), theta, pairs, execution=chunks)
+    assert torch.equal(full.score, simulate(get_model("idm"), theta, pairs).score)
 
 
 def test_permuting_pairs_permutes_outputs(pairs):
     theta = prior_draws(MODELS["gfm"], 10)
     order = torch.tensor([2, 0, 3, 1])
-    out = simulate("gfm", theta, pairs, dtype=torch.float64)
-    permuted = simulate("gfm", theta, pairs.subset(order), dtype=torch.float64)
+    out = simulate(get_model("gfm"), theta, pairs, dtype=torch.float64)
+    permuted = simulate(
+        get_model("gfm"), theta, pairs.subset(order), dtype=torch.float64
+    )
     torch.testing.assert_close(permuted.score, out.score[:, order])
 
 
 def test_initial_state_is_observed(pairs):
     theta = prior_draws(MODELS["hl"], 3)
-    out = simulate("hl", theta, pairs, dtype=torch.float64, return_traj=True)
+    out = simulate(get_model("hl"), theta, pairs, dtype=torch.float64, return_traj=True)
     torch.testing.assert_close(out.x[0], pairs.x_follow[0].expand(3, -1))
     torch.testing.assert_close(out.v[0], pairs.v_follow[0].expand(3, -1))
     # HL records its acceleration state, which starts at the observed value
@@ -166,19 +175,21 @@ def test_perfect_model_scores_zero():
     """Observations generated by the engine itself are reproduced exactly."""
     base = synthetic_pairs(n_pairs=3, n_steps=200, seed=4)
     theta = torch.tensor([[1.2, 2.0, 30.0, 1.4, 2.0, 4.0]], dtype=torch.float64)
-    sim = simulate("idm", theta, base, dtype=torch.float64, return_traj=True)
+    sim = simulate(get_model("idm"), theta, base, dtype=torch.float64, return_traj=True)
     observed = PairSet.from_arrays(
         (base.x_lead, base.v_lead, base.a_lead, sim.x[:, 0], sim.v[:, 0], sim.a[:, 0]),
         dt=base.dt,
     )
-    again = simulate("idm", theta, observed, dtype=torch.float64)
+    again = simulate(get_model("idm"), theta, observed, dtype=torch.float64)
     assert float(again.score.max()) < 1e-9
 
 
 def test_score_weights():
     pairs = synthetic_pairs(n_pairs=2, n_steps=100)
     theta = prior_draws(MODELS["ovm"], 4)
-    out = simulate("ovm", theta, pairs, dtype=torch.float64, weights=(1.0, 0.0, 0.0))
+    out = simulate(
+        get_model("ovm"), theta, pairs, dtype=torch.float64, weights=(1.0, 0.0, 0.0)
+    )
     torch.testing.assert_close(out.score, out.e_p)
 
 
@@ -188,7 +199,9 @@ class TestInvalid:
         # LLCS with a 5 m desired spacing and weak damping drives into the leader
         # on an oscillating leader; a big desired spacing does not.
         theta = torch.tensor([[5.0, 2.3, 0.3], [25.0, 0.5, 1.5]], dtype=torch.float64)
-        out = simulate("llcs", theta, pairs, dtype=torch.float64, return_traj=True)
+        out = simulate(
+            get_model("llcs"), theta, pairs, dtype=torch.float64, return_traj=True
+        )
         for j in range(2):
             for n in range(2):
                 ref = reference("llcs", theta[j], pairs, n)
@@ -202,7 +215,9 @@ class TestInvalid:
         pairs = synthetic_pairs(n_pairs=1, n_steps=100)
         # huge spacing gain: the follower reaches the leader within the run
         theta = torch.tensor([[0.0, 2.3, 0.0]], dtype=torch.float64)
-        out = simulate("llcs", theta, pairs, dtype=torch.float64, return_traj=True)
+        out = simulate(
+            get_model("llcs"), theta, pairs, dtype=torch.float64, return_traj=True
+        )
         spacing = pairs.x_lead[:, 0] - out.x[:, 0, 0]
         assert bool((spacing <= 0).any()) and not bool(out.valid[0, 0])
 
@@ -210,19 +225,21 @@ class TestInvalid:
         pairs = synthetic_pairs(n_pairs=1, n_steps=50)
         # FVDM with tiny tau explodes numerically (|u| ~ 1/tau each step)
         theta = torch.tensor([[1e-30, 0.0, 30.0, 30.0, 0.1, 0.0]], dtype=torch.float32)
-        out = simulate("fvdm", theta, pairs)
+        out = simulate(get_model("fvdm"), theta, pairs)
         assert not bool(out.valid[0, 0]) and math.isinf(float(out.score[0, 0]))
 
     def test_failure_after_the_valid_prefix_is_ignored(self):
         full = synthetic_pairs(n_pairs=1, n_steps=200)
         theta = torch.tensor([[5.0, 2.3, 0.3]], dtype=torch.float64)
-        out = simulate("llcs", theta, full, dtype=torch.float64, return_traj=True)
+        out = simulate(
+            get_model("llcs"), theta, full, dtype=torch.float64, return_traj=True
+        )
         spacing = full.x_lead[:, 0] - out.x[:, 0, 0]
         first_bad = int(torch.nonzero(spacing <= 0)[0])
         mask = torch.zeros(200, 1, dtype=torch.bool)
         mask[:first_bad] = True
         prefix = PairSet.from_arrays(full.series(), dt=full.dt, mask=mask)
-        masked = simulate("llcs", theta, prefix, dtype=torch.float64)
+        masked = simulate(get_model("llcs"), theta, prefix, dtype=torch.float64)
         assert bool(masked.valid[0, 0])
 
 
@@ -232,12 +249,12 @@ def test_ragged_pair_equals_truncated_pair():
     mask = torch.arange(150)[:, None] < torch.tensor(lengths)[None, :]
     ragged = PairSet.from_arrays(pairs.series(), dt=pairs.dt, mask=mask)
     theta = prior_draws(MODELS["hl"], 5)
-    out = simulate("hl", theta, ragged, dtype=torch.float64)
+    out = simulate(get_model("hl"), theta, ragged, dtype=torch.float64)
     short = pairs.subset([1])
     truncated = PairSet.from_arrays(
         [s[:97] for s in short.series().values()], dt=pairs.dt
     )
-    alone = simulate("hl", theta, truncated, dtype=torch.float64)
+    alone = simulate(get_model("hl"), theta, truncated, dtype=torch.float64)
     torch.testing.assert_close(out.score[:, 1], alone.score[:, 0])
     for j in range(5):
         ref = reference("hl", theta[j], ragged, 1)
@@ -247,37 +264,45 @@ def test_ragged_pair_equals_truncated_pair():
 class TestArguments:
     def test_theta_shape(self, pairs):
         with pytest.raises(ValueError, match=r"theta must be \(P, 6\) for idm"):
-            simulate("idm", torch.zeros(3, 5), pairs)
+            simulate(get_model("idm"), torch.zeros(3, 5), pairs)
 
     def test_theta_non_finite(self, pairs):
         theta = prior_draws(MODELS["idm"], 2)
         theta[1, 0] = math.nan
         with pytest.raises(ValueError, match="non-finite"):
-            simulate("idm", theta, pairs)
+            simulate(get_model("idm"), theta, pairs)
 
     def test_pair_index(self, pairs):
         theta = prior_draws(MODELS["idm"], 3)
         with pytest.raises(ValueError, match="out of range"):
-            simulate("idm", theta, pairs, torch.tensor([0, 1, 4]))
+            simulate(get_model("idm"), theta, pairs, torch.tensor([0, 1, 4]))
         with pytest.raises(ValueError, match="pair_index must have shape"):
-            simulate("idm", theta, pairs, torch.tensor([0, 1]))
+            simulate(get_model("idm"), theta, pairs, torch.tensor([0, 1]))
 
     def test_unknown_model(self, pairs):
         with pytest.raises(torchcf.UnknownModelError, match="valid names"):
-            simulate("krauss", torch.zeros(1, 3), pairs)
+            simulate(get_model("krauss"), torch.zeros(1, 3), pairs)
 
     def test_dtype(self, pairs):
         with pytest.raises(ValueError, match="float32 or torch.float64"):
-            simulate("idm", prior_draws(MODELS["idm"], 1), pairs, dtype=torch.float16)
+            simulate(
+                get_model("idm"),
+                prior_draws(MODELS["idm"], 1),
+                pairs,
+                dtype=torch.float16,
+            )
 
     def test_default_dtype_follows_theta(self, pairs):
         theta = prior_draws(MODELS["idm"], 2, dtype=torch.float64)
-        assert simulate("idm", theta, pairs).score.dtype == torch.float64
-        assert simulate("idm", theta.float(), pairs).score.dtype == torch.float32
+        assert simulate(get_model("idm"), theta, pairs).score.dtype == torch.float64
+        assert (
+            simulate(get_model("idm"), theta.float(), pairs).score.dtype
+            == torch.float32
+        )
 
     def test_empty_theta(self, pairs):
         out = simulate(
-            "idm", torch.zeros(0, 6), pairs, torch.zeros(0, dtype=torch.long)
+            get_model("idm"), torch.zeros(0, 6), pairs, torch.zeros(0, dtype=torch.long)
         )
         assert out.score.shape == (0,)
 
@@ -287,7 +312,7 @@ def test_real_data_matches_reference(data_root):
     for name in NAMES:
         theta = prior_draws(MODELS[name], 3, seed=13)
         index = torch.tensor([0, 5, pairs.n_pairs - 1])
-        out = simulate(name, theta, pairs, index, dtype=torch.float64)
+        out = simulate(get_model(name), theta, pairs, index, dtype=torch.float64)
         for j in range(3):
             ref = reference(name, theta[j], pairs, int(index[j]))
             assert bool(out.valid[j]) == ref["valid"]
@@ -301,8 +326,12 @@ def test_compiled_equals_eager(name):
     pairs = synthetic_pairs(n_pairs=5, n_steps=120)
     theta = prior_draws(MODELS[name], 256, seed=3, dtype=torch.float32)
     index = torch.randint(0, 5, (256,))
-    eager = simulate(name, theta, pairs, index, execution=Execution(compile=False))
-    compiled = simulate(name, theta, pairs, index, execution=Execution(compile=True))
+    eager = simulate(
+        get_model(name), theta, pairs, index, execution=Execution(compile=False)
+    )
+    compiled = simulate(
+        get_model(name), theta, pairs, index, execution=Execution(compile=True)
+    )
     assert torch.equal(eager.valid, compiled.valid)
     torch.testing.assert_close(compiled.score, eager.score, rtol=1e-5, atol=1e-5)
 
@@ -376,7 +405,7 @@ def test_compiled_result_independent_of_chunk_size(name):
     index = torch.randint(0, 5, (300,))
     outs = [
         simulate(
-            name,
+            get_model(name),
             theta,
             pairs,
             index,
@@ -399,7 +428,11 @@ def test_a_padded_last_chunk_reuses_the_compiled_graph(name, graphs):
     theta = prior_draws(MODELS[name], 300, seed=5, dtype=torch.float32)
     index = torch.arange(300) % 5
     simulate(
-        name, theta, pairs, index, execution=Execution(chunk_size=128, compile=True)
+        get_model(name),
+        theta,
+        pairs,
+        index,
+        execution=Execution(chunk_size=128, compile=True),
     )
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
 

@@ -108,7 +108,7 @@ def test_every_heterogeneous_pair_has_its_own_plausible_driver():
     # without noise, each follower is its driver's rollout behind its leader
     index = torch.arange(0, 8, 2)
     replay = simulate(
-        "idm+delay", idm, pairs, index, dtype=torch.float64, return_traj=True
+        get_model("idm+delay"), idm, pairs, index, dtype=torch.float64, return_traj=True
     )
     observed = pairs.x_follow[:, index]
     torch.testing.assert_close(

@@ -14,7 +14,7 @@ pytest.importorskip(
 from tests.conftest import synthetic_pairs  # noqa: E402
 from tests.traffic.test_sampler import make_posterior  # noqa: E402
 from tests.traffic.test_traffic import KINDS  # noqa: E402
-from torchcf import HybridSampler, PairSet, simulate  # noqa: E402
+from torchcf import HybridSampler, PairSet, get_model, simulate  # noqa: E402
 from torchcf.sumo import backend  # noqa: E402
 from torchcf.sumo.backend import SumoError  # noqa: E402
 from torchcf.sumo.cosim import CoSimulation  # noqa: E402
@@ -53,7 +53,11 @@ def test_cosimulation_is_the_calibration_rollout(tmp_path):
     for name in KINDS:
         rows = sampler.particle_ids(name)
         ref = simulate(
-            name, sampler.particles(name), pairs, dtype=torch.float64, return_traj=True
+            get_model(name),
+            sampler.particles(name),
+            pairs,
+            dtype=torch.float64,
+            return_traj=True,
         )  # (T, 2, N)
         mine = torch.isin(particle, rows)
         x = run.x[:, mine].reshape(pairs.n_steps, 2, pairs.n_pairs)

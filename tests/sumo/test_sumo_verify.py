@@ -21,7 +21,7 @@ from tests.conftest import synthetic_pairs  # noqa: E402
 from tests.runs import run_module  # noqa: E402
 from tests.sumo.test_sumo_export import tiny_run  # noqa: E402, F401  (a fixture)
 from tests.traffic.test_sampler import make_posterior  # noqa: E402
-from torchcf import simulate  # noqa: E402
+from torchcf import get_model, simulate  # noqa: E402
 from torchcf.data import load_pairs  # noqa: E402
 from torchcf.sumo.export import VTYPES_FILE, export_hybrid, write_export  # noqa: E402
 from torchcf.sumo.verify import replay, score_cells  # noqa: E402
@@ -53,7 +53,7 @@ def _replay_vtypes(posterior, pairs, tmp_path):
         additional=tmp_path / VTYPES_FILE,
     )
     ref = simulate(
-        "idm", posterior.hybrid["idm"].theta, pairs, dtype=torch.float64,
+        get_model("idm"), posterior.hybrid["idm"].theta, pairs, dtype=torch.float64,
         return_traj=True,
     )  # fmt: skip
     return run, ref, [j for _, j in cells]
@@ -64,7 +64,9 @@ def test_score_cells_is_spec_section_4():
     follower through its leader is invalid."""
     pairs = synthetic_pairs(n_pairs=3, n_steps=80)
     theta = make_posterior({"idm": 2}, seed=4).hybrid["idm"].theta
-    ref = simulate("idm", theta, pairs, dtype=torch.float64, return_traj=True)
+    ref = simulate(
+        get_model("idm"), theta, pairs, dtype=torch.float64, return_traj=True
+    )
     flat = [t.reshape(pairs.n_steps, -1) for t in (ref.x, ref.v, ref.a)]
     pair_index = [j for _ in range(2) for j in range(pairs.n_pairs)]
     got = score_cells(*flat, pairs, pair_index)

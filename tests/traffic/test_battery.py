@@ -49,7 +49,7 @@ def test_the_leaders_do_what_the_battery_says():
 
 def test_a_sluggish_follower_collides_and_a_tuned_one_does_not():
     theta = torch.tensor([STABLE, SLUGGISH], dtype=torch.float64)
-    result = check_plausibility("llctg", theta, Battery(speed=20.0))
+    result = check_plausibility(get_model("llctg"), theta, Battery(speed=20.0))
     assert result.collided.tolist() == [False, True]
     assert result.scenario_collided["brake_8"].tolist() == [False, True]
     assert float(result.min_ttc[1]) == 0.0 and float(result.min_ttc[0]) > 0.5
@@ -61,7 +61,9 @@ def test_a_sluggish_follower_collides_and_a_tuned_one_does_not():
 
 def test_the_string_ratio_matches_linear_theory():
     theta = torch.tensor([STABLE, UNSTABLE], dtype=torch.float64)
-    ratio = check_plausibility("llctg", theta, Battery(speed=15.0)).string_ratio
+    ratio = check_plausibility(
+        get_model("llctg"), theta, Battery(speed=15.0)
+    ).string_ratio
     assert float(ratio[0]) < 1.0 < float(ratio[1])
 
 
@@ -69,7 +71,7 @@ def test_an_equilibrium_is_missing_above_the_models_desired_speed():
     """IDM with v0 = 20 m/s cannot follow at 25 m/s; with v0 = 40 it can."""
     idm = [[1.2, 2.0, v0, 1.3, 2.0, 4.0] for v0 in (20.0, 40.0)]
     theta = torch.tensor(idm, dtype=torch.float64)
-    result = check_plausibility("idm", theta, Battery(speed=25.0))
+    result = check_plausibility(get_model("idm"), theta, Battery(speed=25.0))
     assert result.equilibrium.tolist() == [False, True]
     assert math.isnan(float(result.string_ratio[0]))
     sampler = sampler_of({"idm": idm})
@@ -88,8 +90,8 @@ def test_outcomes_do_not_depend_on_the_chunk():
     high = torch.tensor([1.2, 2.3, 2.3, 11.0], dtype=torch.float64)
     theta = low + (high - low) * torch.rand(40, 4, generator=g, dtype=torch.float64)
     battery = Battery(speed=20.0, decelerations=(6.0,))
-    whole = check_plausibility("llctg", theta, battery)
-    pieces = check_plausibility("llctg", theta, battery, chunk=7)
+    whole = check_plausibility(get_model("llctg"), theta, battery)
+    pieces = check_plausibility(get_model("llctg"), theta, battery, chunk=7)
     assert torch.equal(whole.collided, pieces.collided)
     # to rounding: vectorised kernels round a batch's tail differently
     torch.testing.assert_close(whole.min_ttc, pieces.min_ttc, rtol=1e-12, atol=0)
@@ -97,7 +99,7 @@ def test_outcomes_do_not_depend_on_the_chunk():
         whole.string_ratio, pieces.string_ratio, rtol=1e-12, atol=0, equal_nan=True
     )
     # and each particle alone gives its row of the batch
-    alone = check_plausibility("llctg", theta[5:6], battery)
+    alone = check_plausibility(get_model("llctg"), theta[5:6], battery)
     assert float(alone.min_spacing[0]) == pytest.approx(float(whole.min_spacing[5]))
 
 
@@ -130,7 +132,7 @@ def test_battery_speed_and_bad_settings():
         with pytest.raises(ValueError):
             Battery(**bad)
     with pytest.raises(ValueError, match="theta must be"):
-        check_plausibility("llctg", torch.zeros(3, 5))
+        check_plausibility(get_model("llctg"), torch.zeros(3, 5))
 
 
 # ------------------------------------------------------------------ safety layer

@@ -30,6 +30,7 @@ MIXED = {
     "fvdm": 0,
 }
 DT = 0.1
+IDM = get_model("idm")
 
 
 def make_posterior(counts: dict[str, int], seed: int = 0, dataset="car-model-2"):
@@ -364,12 +365,15 @@ def test_from_file(tmp_path):
 @pytest.mark.parametrize(
     ("build", "message"),
     [
-        (lambda: HybridSampler(["idm"], [torch.zeros(3, 5)], dt=0.1), r"\(P, 6\)"),
-        (lambda: HybridSampler(["idm"], [torch.zeros(0, 6)], dt=0.1), "no particle"),
-        (lambda: HybridSampler(["idm"], [torch.ones(2, 6)], dt=0.0), "dt must"),
-        (lambda: HybridSampler(["nope"], [torch.ones(2, 6)], dt=0.1), "unknown"),
+        (lambda: HybridSampler([IDM], [torch.zeros(3, 5)], dt=0.1), r"\(P, 6\)"),
+        (lambda: HybridSampler([IDM], [torch.zeros(0, 6)], dt=0.1), "no particle"),
+        (lambda: HybridSampler([IDM], [torch.ones(2, 6)], dt=0.0), "dt must"),
         (
-            lambda: HybridSampler(["idm", "hl"], [torch.ones(2, 6)], dt=0.1),
+            lambda: HybridSampler([get_model("nope")], [torch.ones(2, 6)], dt=0.1),
+            "unknown",
+        ),
+        (
+            lambda: HybridSampler([IDM, get_model("hl")], [torch.ones(2, 6)], dt=0.1),
             "2 models but 1",
         ),
     ],

@@ -7,7 +7,7 @@ import torch
 
 from tests.conftest import synthetic_pairs
 from tests.traffic.test_sampler import make_posterior
-from torchcf import HybridSampler, PairSet, simulate
+from torchcf import HybridSampler, PairSet, get_model, simulate
 from torchcf.models import FollowerState
 from torchcf.sim.synthetic import leader_profiles
 from torchcf.traffic.scenarios import (
@@ -27,7 +27,7 @@ KINDS = ("idm", "gfm", "hl", "mpc", "llctg+delay", "llcs+lag", "ovm+grade")
 def sampler_of(models: dict[str, list[list[float]]], dtype=torch.float64):
     """A sampler whose learned set is exactly these parameter rows."""
     return HybridSampler(
-        list(models),
+        [get_model(name) for name in models],
         [torch.tensor(rows, dtype=torch.float64) for rows in models.values()],
         dt=0.1,
         dtype=dtype,
@@ -58,7 +58,12 @@ def test_platoon_of_one_reproduces_simulate(dtype):
         index = pair[mine]
         theta_per_scenario = theta[particle[mine] - rows[0]]
         ref = simulate(
-            name, theta_per_scenario, pairs, index, dtype=dtype, return_traj=True
+            get_model(name),
+            theta_per_scenario,
+            pairs,
+            index,
+            dtype=dtype,
+            return_traj=True,
         )
         for got, want in ((out.x, ref.x), (out.v, ref.v), (out.a, ref.a)):
             # The same arithmetic in the same order: equal, not merely close.
@@ -96,7 +101,12 @@ def test_followers_follow_each_other_as_the_rollout_does():
             name = sampler.model_names[int(sampler.particle_model[particle])]
             theta = sampler.particles(name)[:1]
             ref = simulate(
-                name, theta, ahead, [s], dtype=torch.float64, return_traj=True
+                get_model(name),
+                theta,
+                ahead,
+                [s],
+                dtype=torch.float64,
+                return_traj=True,
             )
             torch.testing.assert_close(out.x[:, s, j], ref.x[:, 0], rtol=0, atol=1e-9)
             torch.testing.assert_close(out.v[:, s, j], ref.v[:, 0], rtol=0, atol=1e-9)

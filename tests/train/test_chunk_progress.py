@@ -40,7 +40,7 @@ MPC_TRUTH = [1.0, 1.0, 1.0, 5.0, -4.0, 4.0]
 
 
 def _short_pairs(n_pairs: int = 4, n_steps: int = 30):
-    return synthetic_pairs("mpc", MPC_TRUTH, n_pairs, n_steps, seed=2)
+    return synthetic_pairs(get_model("mpc"), MPC_TRUTH, n_pairs, n_steps, seed=2)
 
 
 def _mpc_stream(
@@ -65,7 +65,7 @@ def _mpc_stream(
 
     def stream() -> None:
         run_rejection(
-            prior_stream("mpc", bounds, 0, rollout),
+            prior_stream(get_model("mpc"), bounds, 0, rollout),
             buffer,
             rollout,
             n,

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from tests.conftest import synthetic_pairs
-from torchcf import PairSet, simulate
+from torchcf import PairSet, get_model, simulate
 from torchcf.abc.streams import ParticleStream
 from torchcf.config import TrainConfig
 from torchcf.posterior import Posterior
@@ -38,7 +38,7 @@ def mixture_pairs() -> PairSet:
     for name, (theta, rows) in TRUTH.items():
         rows = list(rows)
         params = torch.tensor([theta] * len(rows), dtype=torch.float64)
-        out = simulate(name, params, base, rows, return_traj=True)
+        out = simulate(get_model(name), params, base, rows, return_traj=True)
         assert bool(out.valid.all()), name
         x[:, rows], v[:, rows], a[:, rows] = out.x, out.v, out.a
     return PairSet.from_arrays(
@@ -86,9 +86,13 @@ def test_buffers_equal_a_brute_force_sort(mixture, tmp_path):
     posterior = Posterior.load(tmp_path / "run" / "posterior.pt")
     for name in ("idm", "hl"):
         spec = next(s for s in cfg.models if s.name == name)
-        stream = ParticleStream(name, spec.bounds(torch.float64), 1, mixture.n_pairs)
+        stream = ParticleStream(
+            get_model(name), spec.bounds(torch.float64), 1, mixture.n_pairs
+        )
         theta, pair = stream.draw(0, 3000)
-        score = simulate(name, theta.float(), mixture, pair, dtype=torch.float32).score
+        score = simulate(
+            get_model(name), theta.float(), mixture, pair, dtype=torch.float32
+        ).score
         buffer = posterior.buffers[name]
         for p in range(mixture.n_pairs):
             rows = (pair == p) & torch.isfinite(score)

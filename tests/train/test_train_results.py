@@ -15,6 +15,7 @@ from tests.conftest import synthetic_pairs
 from torchcf.abc.rejection import ModelProgress
 from torchcf.abc.topn import TopN
 from torchcf.config import TrainConfig, config_hash
+from torchcf.models import get_model
 from torchcf.runs.directory import RunDir
 from torchcf.study.pipeline import StudyResult, train_and_evaluate
 from torchcf.traffic import PlausibilitySettings, PlausibilitySummary
@@ -29,6 +30,7 @@ from torchcf.train.summary import (
 )
 
 MODELS = ["idm", "hl"]
+MODEL_OBJECTS = [get_model(name) for name in MODELS]
 
 
 def _config(**abc) -> TrainConfig:
@@ -250,7 +252,9 @@ def _checkpointed(tmp_path, cfg: TrainConfig, n_pairs: int = 3) -> RunDir:
     run = RunDir(tmp_path / "run")
     run.path.mkdir()
     state = RunState(config_hash(cfg))
-    build_buffers(MODELS, n_pairs, cfg.abc.buffer_size, None, state, run.checkpoint)
+    build_buffers(
+        MODEL_OBJECTS, n_pairs, cfg.abc.buffer_size, None, state, run.checkpoint
+    )
     state.progress["idm"] = ModelProgress(next=100, invalid=2, seconds=0.5)
     state.buffers["idm"].score[0, 0] = 0.25
     run.save_checkpoint(state.as_checkpoint())
@@ -263,7 +267,7 @@ def test_a_checkpoint_resumes_to_its_state(tmp_path):
     assert run.load_checkpoint()["format"] == CHECKPOINT_FORMAT
     state = open_run(cfg, run.path, resume=True)
     assert state.progress["idm"] == ModelProgress(next=100, invalid=2, seconds=0.5)
-    build_buffers(MODELS, 3, cfg.abc.buffer_size, None, state, run.checkpoint)
+    build_buffers(MODEL_OBJECTS, 3, cfg.abc.buffer_size, None, state, run.checkpoint)
     assert float(state.buffers["idm"].score[0, 0]) == 0.25
     assert isinstance(state.buffers["hl"], TopN)
 
@@ -316,7 +320,9 @@ def test_a_checkpoint_of_other_buffers_is_refused_when_loaded(tmp_path):
     run = _checkpointed(tmp_path, cfg, n_pairs=3)
     state = open_run(cfg, run.path, resume=True)
     with pytest.raises(RunError, match="does not match this run"):
-        build_buffers(MODELS, 4, cfg.abc.buffer_size, None, state, run.checkpoint)
+        build_buffers(
+            MODEL_OBJECTS, 4, cfg.abc.buffer_size, None, state, run.checkpoint
+        )
 
 
 def test_no_checkpoint_and_an_unreadable_one_are_refused(tmp_path):

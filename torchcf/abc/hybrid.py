@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..models import get_model
+from ..models import CFModel, require_model
 from ..posterior import ModelParticles, Posterior
 from .topn import TopN, lexsort
 
@@ -183,7 +183,7 @@ def pairwise_table(
 
 def hybrid_posterior(
     buffers: Sequence[TopN],
-    models: Sequence[str],
+    models: Sequence[CFModel],
     selection: Selection,
     n: int,
     train_pair_ids: Tensor,
@@ -196,20 +196,23 @@ def hybrid_posterior(
 
     Args:
         buffers: one :class:`TopN` per model, in the run's model order.
-        models: their names.
+        models: their model objects (``spec.model`` of the run's config
+            entries), in the same order; the posterior is keyed by their names.
         selection: the hybrid (:func:`select` over the same buffers and ``n``).
         n: entries kept per pair (the top-N size).
         train_pair_ids: (N,) int64 data-set ids of the training pairs.
         dataset: the data set's label.
         mode: the selection mode ("per_pair" or "global").
     """
+    models = [require_model(model, "hybrid_posterior") for model in models]
     hybrid = {}
     saved = {}
-    for m, (name, buffer) in enumerate(zip(models, buffers, strict=True)):
+    for m, (model, buffer) in enumerate(zip(models, buffers, strict=True)):
+        name = model.name
         score, index, theta = buffer.first(n)
         # member[m] is (N, n); rows, ranks: (Q,) each, model m's Q members.
         rows, ranks = selection.member[m].nonzero(as_tuple=True)
-        param_names = tuple(get_model(name).param_names)
+        param_names = tuple(model.param_names)
         hybrid[name] = ModelParticles(
             param_names,
             theta[rows, ranks].clone(),
@@ -222,7 +225,7 @@ def hybrid_posterior(
         dataset=dataset,
         selection=mode,
         top_n=n,
-        models=tuple(models),
+        models=tuple(model.name for model in models),
         shares=selection.shares(),
         train_pair_ids=train_pair_ids,
         hybrid=hybrid,

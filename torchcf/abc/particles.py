@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..models import CFModel, get_model
+from ..models import CFModel, require_model
 from .hybrid import rank_per_pair
 from .topn import TopN
 
@@ -28,8 +28,8 @@ class Particles:
     """Particles of one model (or variant), each on one pair.
 
     Attributes:
-        model: the model (the registry's one instance of it; a registry name
-            given here is looked up once, where the set is made).
+        model: the model object, a variant included (:func:`torchcf.get_model`
+            makes it from a name); a name raises :class:`TypeError`.
         theta: (Q, K) float64 parameters.
         pair: (Q,) int64 pair position of each particle.
         score: (Q,) float64 score on its pair (``+inf``: invalid).
@@ -44,8 +44,7 @@ class Particles:
     index: Tensor
 
     def __post_init__(self) -> None:
-        if not isinstance(self.model, CFModel):  # a name, where the set enters
-            object.__setattr__(self, "model", get_model(self.model))
+        require_model(self.model, "Particles")
 
     def __len__(self) -> int:
         return self.score.shape[0]

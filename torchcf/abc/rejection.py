@@ -38,7 +38,7 @@ import torch
 from torch import Tensor
 
 from ..data import PairSet
-from ..models import CFModel, get_model
+from ..models import CFModel, require_model
 from ..sim.rollout import (
     COMPILE_CHUNK_MULTIPLE,
     CUDA_CHUNK_CELLS,
@@ -189,7 +189,7 @@ class Rollout:
 
 
 def prior_stream(
-    name: str,
+    model: CFModel,
     bounds: Tensor,
     seed: int,
     rollout: Rollout,
@@ -198,8 +198,9 @@ def prior_stream(
     """The model's prior stream for the rollout's layout (a pair per particle when
     paired); ``fixed``: the values of its last parameters where they are held
     (:class:`~torchcf.abc.streams.ParticleStream`)."""
+    model = require_model(model, "prior_stream")
     n_pairs = rollout.pairs.n_pairs if rollout.paired else None
-    return ParticleStream(name, bounds, seed, n_pairs, fixed)
+    return ParticleStream(model, bounds, seed, n_pairs, fixed)
 
 
 def run_rejection(
@@ -216,7 +217,7 @@ def run_rejection(
 
     Args:
         stream: the model's prior stream (:func:`prior_stream`): the simulated
-            model's name, the box of the ``K_drawn`` parameters it draws and the
+            model, the box of the ``K_drawn`` parameters it draws and the
             values of the others where they are held (``stream.fixed``,
             appended to every drawn particle: a shared effect's one value for
             all pairs).
@@ -232,7 +233,7 @@ def run_rejection(
         hooks: the processes sharing the stream, the plausibility filter and
             what runs between rounds (:class:`~torchcf.abc.rounds.RoundHooks`).
     """
-    simulated = get_model(stream.model)
+    simulated = stream.model
     planned = plan_particles if plan_particles is not None else n_particles
     compiled = rollout.compiled(simulated, planned)
     chunk = rollout.chunk(simulated, planned, compiled)

@@ -99,7 +99,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
-from ..models import CFModel, get_model
+from ..models import CFModel
 from ..sim.rollout import COMPILE_CHUNK_MULTIPLE
 from .kernel import KERNEL_FLOOR, SMCKernel
 from .rejection import Rollout
@@ -281,7 +281,7 @@ def run_smc(
     Args:
         stream: the model's prior stream on the rollout's pairs
             (:func:`~torchcf.abc.rejection.prior_stream`): the simulated
-            model's name (it keys the refinement's streams too), the seed, the
+            model (its name keys the refinement's streams too), the seed, the
             (K_drawn, 2) float64 prior box of the searched parameters and, for
             a variant searched in its first parameters only, the ``(K -
             K_drawn,)`` values of the others, appended to every particle
@@ -305,7 +305,7 @@ def run_smc(
             f"the stream's particles go to {stream.n_pairs} pairs, the rollout "
             f"has {rollout.pairs.n_pairs}: make it with prior_stream(..., rollout)"
         )
-    model = get_model(stream.model)
+    model = stream.model
     budget = smc_budget(n_particles, rollout.pairs.n_pairs, settings)
     if budget.per_pair < 1:
         raise ValueError(
@@ -383,7 +383,7 @@ def _round_proposals(
         if kernel is None:
             theta, pair = stream.draw(start, stop)
         else:
-            key = f"{stream.model}/smc{t}"
+            key = f"{stream.model.name}/smc{t}"
             theta, log_r, pair = _proposals(
                 kernel, stream.seed, key, start, stop, budget.per_pair
             )
@@ -502,10 +502,12 @@ def _next_population(
 
 
 # ------------------------------------------------------------- the evidence
-def proposals_per_pair(name: str, bounds: Tensor, seed: int, budget: Budget) -> Tensor:
+def proposals_per_pair(
+    model: CFModel, bounds: Tensor, seed: int, budget: Budget
+) -> Tensor:
     """(N,) int64: how many of the model's proposals went to each pair (the prior
     round's stream-drawn pairs, then ``q`` per pair and round)."""
-    stream = ParticleStream(name, bounds, seed, budget.n_pairs)
+    stream = ParticleStream(model, bounds, seed, budget.n_pairs)
     counts = torch.zeros(budget.n_pairs, dtype=torch.int64)
     step = 1 << 20
     for start in range(0, budget.prior, step):

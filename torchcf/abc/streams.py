@@ -13,7 +13,9 @@ of float64 uniforms in [0, 1): columns ``0 .. K-1`` map to the parameters, colum
 The block size is part of the stream's definition, not a tuning knob.
 
 The model enters through a CRC-32 of its name, not its position in the config, so
-reordering or dropping models leaves every other model's particles unchanged.
+reordering or dropping models leaves every other model's particles unchanged:
+:func:`block_seed` and :func:`uniforms` take the name (the bytes hashed), and a
+:class:`ParticleStream` holds the model object and hashes its ``name``.
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ import zlib
 
 import torch
 from torch import Tensor
+
+from ..models import CFModel, require_model
 
 #: Particles per generator block (part of the definition of every stream).
 STREAM_BLOCK = 4096
@@ -38,7 +42,9 @@ def _splitmix64(value: int) -> int:
 
 
 def block_seed(seed: int, model: str, block: int) -> int:
-    """Generator seed of block ``block`` of model ``model``'s stream: a 63-bit hash."""
+    """Generator seed of block ``block`` of model ``model``'s stream: a 63-bit hash
+    of the run's seed, the model's name (its canonical name: the bytes that
+    enter the hash) and the block."""
     h = _splitmix64(seed & _MASK64)
     h = _splitmix64(h ^ zlib.crc32(model.encode()))
     h = _splitmix64(h ^ (block & _MASK64))
@@ -48,7 +54,8 @@ def block_seed(seed: int, model: str, block: int) -> int:
 def uniforms(seed: int, model: str, start: int, stop: int, width: int) -> Tensor:
     """Uniforms of particles ``start .. stop-1``: ``(stop - start, width)`` float64.
 
-    Row ``i`` depends only on ``(seed, model, start + i, width)``.
+    Row ``i`` depends only on ``(seed, model, start + i, width)``; ``model`` is the
+    model's name, hashed by :func:`block_seed`.
     """
     if not 0 <= start <= stop:
         raise ValueError(f"need 0 <= start <= stop, got {start}, {stop}")
@@ -77,8 +84,8 @@ class ParticleStream:
     simulated (:class:`torchcf.abc.rounds.Plan`).
 
     Args:
-        model: the model's registry name (enters the stream); the simulated
-            model.
+        model: the simulated model (object); its ``name`` enters the stream's
+            hash (:func:`block_seed`), so a stream depends on the name alone.
         bounds: (K_drawn, 2) float64 ``[low, high]`` per drawn parameter.
         seed: the run's seed.
         n_pairs: training pairs for the paired layout, or None (full layout).
@@ -88,7 +95,7 @@ class ParticleStream:
 
     def __init__(
         self,
-        model: str,
+        model: CFModel,
         bounds: Tensor,
         seed: int,
         n_pairs: int | None = None,
@@ -101,7 +108,7 @@ class ParticleStream:
             raise ValueError("every prior needs low < high")
         if n_pairs is not None and n_pairs < 1:
             raise ValueError(f"n_pairs must be >= 1, got {n_pairs}")
-        self.model = model
+        self.model = require_model(model, "ParticleStream")
         self.bounds = bounds
         self.seed = int(seed)
         self.n_pairs = n_pairs
@@ -116,7 +123,7 @@ class ParticleStream:
                 None.
         """
         k = self.bounds.shape[0]
-        u = uniforms(self.seed, self.model, start, stop, k + 1)
+        u = uniforms(self.seed, self.model.name, start, stop, k + 1)
         low, high = self.bounds[:, 0], self.bounds[:, 1]
         theta = low + (high - low) * u[:, :k]
         if self.n_pairs is None:

@@ -36,7 +36,6 @@ Re-exports only.
 
 from .arms import resolve_effect
 from .attribution import EffectSelection, attribute_effects
-from .candidates import augmented_variants
 from .loop import (
     Candidates,
     LoopPlan,
@@ -73,7 +72,6 @@ __all__ = [
     "Recalibrated",
     "active_models",
     "attribute_effects",
-    "augmented_variants",
     "best_particles",
     "candidate_effects",
     "diagnose_residuals",

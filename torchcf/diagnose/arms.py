@@ -45,7 +45,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..abc.particles import Particles
 from ..abc.rejection import Rollout, prior_stream
 from ..abc.smc import SMCSettings
 from ..config import DiagnoseConfig, TrainConfig
@@ -58,6 +57,7 @@ from .population import (
     Population,
     merge,
     particles_dict,
+    particles_of,
     population_dict,
     population_of,
     rescore,
@@ -293,7 +293,7 @@ def fit_pool(
         kept = checkpoints.get(key) if checkpoints is not None else None
         if kept is None:
             box = model_bounds(model, arena.priors)
-            stream = prior_stream(model.name, box, arena.seed, arena.fit)
+            stream = prior_stream(model, box, arena.seed, arena.fit)
             (particles,) = prior_particles(
                 stream,
                 arena.fit,
@@ -305,7 +305,7 @@ def fit_pool(
             if checkpoints is not None:
                 checkpoints.keep(key, particles_dict(particles), now=True)
         else:
-            particles = Particles(**kept)
+            particles = particles_of(kept)
             tick(1.0)
         sets.append(particles)
     start = Population.from_particles(sets, arena.fit.pairs.n_pairs, arena.size)

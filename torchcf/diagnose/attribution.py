@@ -66,7 +66,7 @@ from tqdm import tqdm
 
 from ..config import DiagnoseConfig, TrainConfig, config_hash
 from ..data import PairSet
-from ..models import CFModel, get_model
+from ..models import CFModel, require_model
 from ..models.effects import Effect, RoadProfile
 from ..system.files import (
     RunFileError,
@@ -461,7 +461,7 @@ class EffectSelection:
 
 def attribute_effects(
     cfg: TrainConfig,
-    pool: list[str],
+    pool: Sequence[CFModel],
     effects: list[Effect],
     train_pairs: PairSet,
     *,
@@ -474,8 +474,8 @@ def attribute_effects(
 
     Args:
         cfg: the run's config (its ``diagnose`` section sets the budgets).
-        pool: the pool models that get the effects, by name (looked up here,
-            where the pool enters the attribution).
+        pool: the pool models that get the effects (model objects; the
+            ledger is keyed by their names).
         effects: the candidate effects (options resolved, see
             :func:`~torchcf.diagnose.arms.resolve_effect`).
         train_pairs: the run's training pairs.
@@ -496,8 +496,8 @@ def attribute_effects(
     settings = arena.settings
     steps_at_most = min(settings.max_effects, len(effects))
     levels = step_levels(settings.alpha, steps_at_most)
-    book = Ledger(ledger, ledger_key(cfg, pool, effects))
-    models = [get_model(name) for name in pool]
+    models = [require_model(m, "attribute_effects") for m in pool]
+    book = Ledger(ledger, ledger_key(cfg, [m.name for m in models], effects))
     if progress and book.entries:
         print(resuming(book), file=sys.stderr, flush=True)
     units = {effect: arm_units(arena, effect) for effect in effects}

@@ -23,8 +23,6 @@ from ..abc.streams import ParticleStream
 from ..abc.topn import TopN
 from ..config import ConfigError, TrainConfig
 from ..data import PairSet
-from ..models import UnknownModelError, augment, get_model
-from ..models.effects import Effect
 
 
 def attribution_rollout(cfg: TrainConfig, pairs: PairSet) -> Rollout:
@@ -45,21 +43,6 @@ def attribution_seed(cfg: TrainConfig) -> int:
     return cfg.abc.seed if cfg.diagnose.seed is None else cfg.diagnose.seed
 
 
-def augmented_variants(pool: Sequence[str], effect: Effect) -> list[str]:
-    """Canonical names of ``m`` wrapped by ``effect`` for the pool models the
-    effect can wrap.
-
-    (``lag`` cannot wrap HL, which has its own actuation lag.)
-    """
-    names = []
-    for model in pool:
-        try:
-            names.append(augment(get_model(model), effect).name)
-        except UnknownModelError:
-            continue
-    return names
-
-
 def prior_particles(
     stream: ParticleStream,
     rollout: Rollout,
@@ -73,8 +56,8 @@ def prior_particles(
 
     Args:
         stream: the model's prior stream on the rollout's pairs
-            (:func:`~torchcf.abc.rejection.prior_stream` of its canonical name,
-            the prior box of the drawn parameters (K_drawn, 2), the seed
+            (:func:`~torchcf.abc.rejection.prior_stream` of the model, the
+            prior box of the drawn parameters (K_drawn, 2), the seed
             :func:`attribution_seed`, and the values (K - K_drawn,) of the last
             parameters where they are held, the same for every particle: a
             shared effect's value).
@@ -89,7 +72,7 @@ def prior_particles(
             rejection simulated (the shares sum to 1); SMC calls it once, at
             the end.
     """
-    model = get_model(stream.model)
+    model = stream.model
     if smc is not None:
         sets = [
             _refined_particles(stream, rollout, budget, keep, smc) for budget in budgets
@@ -129,7 +112,7 @@ def _refined_particles(
     smc: SMCSettings,
 ) -> Particles:
     """The ``keep`` best per pair of one SMC run of ``budget`` proposals."""
-    model, fixed = get_model(stream.model), stream.fixed
+    model, fixed = stream.model, stream.fixed
     n_pairs, k_drawn = rollout.pairs.n_pairs, stream.bounds.shape[0]
     buffer = TopN(n_pairs, keep, k_drawn + 1)
     state = new_state(n_pairs, smc, k_drawn)
@@ -150,6 +133,5 @@ def _refined_particles(
 __all__ = [
     "attribution_rollout",
     "attribution_seed",
-    "augmented_variants",
     "prior_particles",
 ]

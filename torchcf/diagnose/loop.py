@@ -45,7 +45,7 @@ from ..config import (
 )
 from ..data import PairSet
 from ..evaluation.results import Evaluation
-from ..models import get_model
+from ..models import CFModel, get_model
 from ..models.effects import Effect, RoadProfile, parse_effect
 from ..posterior import Posterior
 from ..runs.directory import RunDir
@@ -89,17 +89,19 @@ Series = dict[str, list[np.ndarray]]
 
 
 # ------------------------------------------------------------- the pool, after
-def active_models(cfg: TrainConfig, posterior: Posterior) -> list[str]:
-    """The pool models that get the effects: every plain model of the run
-    (``diagnose.models = "all"``), or those with a share of at least
-    ``diagnose.min_share`` (at least the largest)."""
-    names = [spec.name for spec in cfg.models if spec.plain]
+def active_models(cfg: TrainConfig, posterior: Posterior) -> list[CFModel]:
+    """The pool models that get the effects, as the config's model objects:
+    every plain model of the run (``diagnose.models = "all"``), or those with a
+    share of at least ``diagnose.min_share`` (at least the largest)."""
+    plain = [spec.model for spec in cfg.models if spec.plain]
     if cfg.diagnose.models == "all":
-        return names
-    active = [
-        n for n in names if posterior.shares.get(n, 0.0) >= cfg.diagnose.min_share
-    ]
-    return active or [max(names, key=lambda n: posterior.shares.get(n, 0.0))]
+        return plain
+
+    def share(model: CFModel) -> float:
+        return posterior.shares.get(model.name, 0.0)
+
+    active = [m for m in plain if share(m) >= cfg.diagnose.min_share]
+    return active or [max(plain, key=share)]
 
 
 def reusable(directory: Path, cfg: TrainConfig | None) -> bool:
@@ -138,6 +140,7 @@ def effect_posterior(
         columns: dict[str, list[Tensor]] = {n: [] for n in names}
         share = 0.0
         for model, particles in posterior.hybrid.items():
+            # the after run's posterior names its models: they enter here
             if effect.name not in get_model(model).effect_kinds:
                 continue
             share += posterior.shares.get(model, 0.0)
@@ -245,7 +248,8 @@ class LoopPlan:
             summaries carry it).
         before: its evaluation (``metrics.json``).
         train_pairs, test_pairs: its split.
-        pool: the pool models that got the effects.
+        pool: the pool models that got the effects (model objects;
+            ``loop.json`` lists their names).
         road: how road effects were offered (:class:`Candidates`).
         selection: the forward selection (:func:`attribute_effects`).
         residuals_before: the residual tests of the run; series_before: its
@@ -264,7 +268,7 @@ class LoopPlan:
     before: Evaluation
     train_pairs: PairSet
     test_pairs: PairSet
-    pool: list[str]
+    pool: tuple[CFModel, ...]
     road: RoadOffer
     selection: EffectSelection
     residuals_before: list[ResidualRow]
@@ -323,7 +327,7 @@ def plan_loop(
         raise DiagnoseError("the training pairs differ from the run's posterior")
 
     residuals_before, series_before = diagnose_residuals(posterior, train_pairs)
-    pool = active_models(cfg, posterior)
+    pool = tuple(active_models(cfg, posterior))
     one_step = one_step_residual(best_particles(posterior, train_pairs), train_pairs)
     candidates = candidate_effects(cfg, train_pairs, one_step)
     selection = attribute_effects(
@@ -405,9 +409,10 @@ def run_recalibration(
     or both are there already."""
     if plan.recalibration is None or plan.resume_recalibration:
         return
-    names = [spec.name for spec in plan.recalibration.models]
+    models = [spec.model for spec in plan.recalibration.models]
     reference_cfg = recalibration_config(plan.cfg, [], {})
-    run_names = [spec.name for spec in reference_cfg.models]
+    run_models = [spec.model for spec in reference_cfg.models]
+    names, run_names = [m.name for m in models], [m.name for m in run_models]
     if plan.cfg.diagnose.recalibration == "train":
         reference, after = _trained_buffers(plan, progress, screen)
         references = buffers_in_order(reference, run_names)
@@ -416,8 +421,8 @@ def run_recalibration(
         how += "sampler (torchcf.diagnose.retrain)"
     else:
         before, now = _searched_populations(plan, progress)
-        references = model_buffers(plan.posterior, before, run_names)
-        afters = model_buffers(plan.posterior, now, names)
+        references = model_buffers(plan.posterior, before, run_models)
+        afters = model_buffers(plan.posterior, now, models)
         how = "the run's buffers, then local search (torchcf.diagnose.recalibrate)"
     for directory in (plan.reference_dir, plan.recalibration_dir):
         if directory.exists():
@@ -505,7 +510,7 @@ def finish_loop(plan: LoopPlan) -> LoopResult:
     result = LoopResult(
         run=plan.run.path,
         dataset=plan.before.dataset,
-        pool=plan.pool,
+        pool=[model.name for model in plan.pool],
         road=plan.road,
         selection=plan.selection,
         unexplained=unexplained(plan.selection),

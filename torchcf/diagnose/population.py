@@ -280,8 +280,8 @@ def population_of(raw: dict) -> Population:
 
 
 def particles_dict(particles: Particles) -> dict:
-    """A particle set as a checkpoint keeps it (its model by name;
-    ``Particles(**kept)`` reads it)."""
+    """A particle set as a checkpoint keeps it (plain types and tensors: its
+    model by name; :func:`particles_of` reads it)."""
     return {
         "model": particles.model.name,
         "theta": particles.theta,
@@ -291,10 +291,19 @@ def particles_dict(particles: Particles) -> dict:
     }
 
 
+def particles_of(raw: dict) -> Particles:
+    """The particle set :func:`particles_dict` kept (its model looked up by
+    name, where it enters from the file)."""
+    return Particles(
+        get_model(raw["model"]), raw["theta"], raw["pair"], raw["score"], raw["index"]
+    )
+
+
 __all__ = [
     "Population",
     "merge",
     "particles_dict",
+    "particles_of",
     "pick_scores",
     "population_dict",
     "population_of",

@@ -40,7 +40,7 @@ from ..abc.particles import Particles
 from ..abc.topn import TopN
 from ..config import TrainConfig, validate_config
 from ..data import PairSet
-from ..models import CFModel, get_model
+from ..models import CFModel, get_model, require_model
 from ..models.effects import Effect
 from ..posterior import Posterior
 from ..runs.directory import RunDir
@@ -56,12 +56,13 @@ def run_population(posterior: Posterior, size: int) -> Population:
     order)."""
     sets = []
     for name in posterior.models:
+        model = get_model(name)  # the posterior's names enter here
         buffer = posterior.buffers[name]
         score = buffer["score"].double()  # (N, C)
         n, c = score.shape
         sets.append(
             Particles(
-                name,
+                model,
                 buffer["theta"].double().reshape(n * c, -1),
                 torch.arange(n).repeat_interleave(c),
                 score.reshape(-1),
@@ -76,7 +77,7 @@ def recalibrate(
     posterior: Posterior,
     chosen: Sequence[Effect],
     shared: dict[str, list[float]],
-    pool: Sequence[str],
+    pool: Sequence[CFModel],
     train_pairs: PairSet,
     *,
     tick: Callable[[], None] | None = None,
@@ -87,7 +88,7 @@ def recalibrate(
         chosen: the chosen effects, in the order chosen.
         shared: per chosen shared effect name, its value.
         pool: the pool models the effects were tested on (only their particles
-            get the effects), by name (looked up here, where the pool enters).
+            get the effects).
         tick: called after every search round.
 
     Returns:
@@ -124,7 +125,7 @@ def recalibrate(
     key = (seed, "recalibration")
     reference = search(start, Noise(key, current), {m: m for m in start.models})
     after = reference
-    growing = {get_model(name) for name in pool}
+    growing = set(pool)
     for effect in chosen:
         base = _only(after, growing)
         current = {m: m.param_names for m in base.models}
@@ -169,17 +170,16 @@ def _only(population: Population, models: set[CFModel]) -> Population:
 
 # ------------------------------------------------------------- run directories
 def model_buffers(
-    posterior: Posterior, population: Population, models: Sequence[str]
+    posterior: Posterior, population: Population, models: Sequence[CFModel]
 ) -> list[TopN]:
     """Per model, its per-pair best ``C`` (the run's buffer capacity) over the
-    run's buffer and the population's slots of that model (an entry held by
-    both is kept once)."""
+    run's buffer (by the model's name) and the population's slots of that model
+    (an entry held by both is kept once)."""
     n = population.n_pairs
     capacity = next(iter(posterior.buffers.values()))["score"].shape[1]
     out = []
-    for name in models:
-        model = get_model(name)  # a config name (the run directory's edge)
-        k = model.n_params
+    for model in models:
+        name, k = model.name, model.n_params
         parts = []
         if name in posterior.buffers:
             b = posterior.buffers[name]
@@ -239,18 +239,18 @@ def best_entries(
 
 def recalibration_config(
     cfg: TrainConfig,
-    models: Sequence[str | CFModel],
+    models: Sequence[CFModel],
     shared_priors: dict[str, dict[str, tuple[float, float]]],
 ) -> TrainConfig:
-    """The run's config with ``models`` (the run's, then the variants; names or
-    models: the config is where they leave as names), each
-    variant with its pool model's prior and, for a shared effect, the box its
-    value was found in; no loop after it, no output of its own."""
+    """The run's config with ``models`` (the run's, then the variants, as
+    model objects: the config is where they leave as names), each variant with
+    its pool model's prior and, for a shared effect, the box its value was
+    found in; no loop after it, no output of its own."""
     raw = cfg.model_dump(mode="json")
     present = {spec["name"] for spec in raw["models"]}
     priors = {spec["name"]: spec["prior"] for spec in raw["models"]}
-    for name in models:
-        model = get_model(name)
+    for model in models:
+        model = require_model(model, "recalibration_config")
         if model.name in present:
             continue
         prior = dict(priors.get(model.base.name) or {})
@@ -292,7 +292,7 @@ def write_run(
     table = pairwise_table(buffers, names, cfg.abc.top_n, **kwargs)
     learned = hybrid_posterior(
         buffers,
-        names,
+        [spec.model for spec in cfg.models],
         selection,
         cfg.abc.top_n,
         posterior.train_pair_ids,

@@ -61,7 +61,7 @@ from ..abc.smc import new_state, run_smc
 from ..abc.topn import TopN
 from ..config import TrainConfig
 from ..data import PairSet
-from ..models import get_model
+from ..models import CFModel, require_model
 from ..posterior import Posterior
 from .attribution import EffectSelection, Ledger, ledger_key
 from .recalibrate import best_entries
@@ -72,9 +72,12 @@ from .search import derive_seed, model_bounds
 Buffers = dict[str, dict[str, Tensor]]
 
 
-def variants_of(models_after: Sequence[str], run_models: Sequence[str]) -> list[str]:
-    """The variants of the after model: its models the run does not have."""
-    return [m for m in models_after if m not in run_models]
+def variants_of(
+    models_after: Sequence[CFModel], run_models: Sequence[str]
+) -> list[CFModel]:
+    """The variants of the after model: its models the run does not have (the
+    run's models by name, as its posterior lists them)."""
+    return [m for m in models_after if m.name not in run_models]
 
 
 @dataclass(frozen=True)
@@ -82,32 +85,36 @@ class FinalModel:
     """The selection's final model, as the re-calibration trains it.
 
     Attributes:
-        models: the pool and the variants of the chosen effects, by name (the
-            run's buffers and the samplers' streams are keyed by name).
+        models: the pool and the variants of the chosen effects, as model
+            objects (the run's buffers and the ledger are keyed by their
+            ``name``).
         shared: per chosen shared effect name, its value (K_E,).
         shared_priors: per chosen shared effect token, the box it was found
             in: per parameter name, ``(low, high)``.
     """
 
-    models: Sequence[str]
+    models: Sequence[CFModel]
     shared: dict[str, list[float]] = field(default_factory=dict)
     shared_priors: dict[str, dict[str, tuple[float, float]]] = field(
         default_factory=dict
     )
 
+    def __post_init__(self) -> None:
+        for model in self.models:
+            require_model(model, "FinalModel")
+
     @classmethod
     def of(cls, selection: EffectSelection) -> FinalModel:
         """The final model of a forward selection (:func:`attribute_effects
         <torchcf.diagnose.attribution.attribute_effects>`)."""
-        names = [m.name for m in selection.models]
-        return cls(names, selection.shared, selection.shared_priors)
+        return cls(list(selection.models), selection.shared, selection.shared_priors)
 
 
 def retrain(
     cfg: TrainConfig,
     posterior: Posterior,
     final: FinalModel,
-    pool: Sequence[str],
+    pool: Sequence[CFModel],
     train_pairs: PairSet,
     *,
     screen: PlausibilityScreen | None = None,
@@ -138,7 +145,7 @@ def retrain(
     priors = {spec.name: spec.bounds(torch.float64) for spec in cfg.models}
     shared = final.shared
     values = {k: torch.tensor(v, dtype=torch.float64) for k, v in shared.items()}
-    key = ledger_key(cfg, list(pool), list(final.models))
+    key = ledger_key(cfg, [m.name for m in pool], [m.name for m in final.models])
     book = Ledger(ledger, f"retrain|{key}|{json.dumps(shared, sort_keys=True)}")
     run_buffers = {m: _run_buffer(posterior, m) for m in run_models}
 
@@ -152,38 +159,40 @@ def retrain(
         return entry
 
     reference = dict(run_buffers)
-    for name in wrapped(variants, pool):
+    for model in wrapped(variants, pool):
+        name = model.name
         reference[name] = kept(
             f"reference:{name}",
-            lambda name=name: _more_of(
-                cfg, name, priors[name], run_buffers[name], rollout, screen, tick
+            lambda model=model, name=name: _more_of(
+                cfg, model, priors[name], run_buffers[name], rollout, screen, tick
             ),
         )
     after = dict(run_buffers)
-    for name in variants:
+    for variant in variants:
         bounds, fixed = searched_box(
-            name, model_bounds(get_model(name), priors, values), final.shared_priors
+            variant, model_bounds(variant, priors, values), final.shared_priors
         )
-        after[name] = kept(
-            f"after:{name}",
-            lambda name=name, bounds=bounds, fixed=fixed: _trained(
-                cfg, name, bounds, cfg.abc.seed, rollout, screen, tick, fixed
+        after[variant.name] = kept(
+            f"after:{variant.name}",
+            lambda variant=variant, bounds=bounds, fixed=fixed: _trained(
+                cfg, variant, bounds, cfg.abc.seed, rollout, screen, tick, fixed
             ),
         )
     return reference, after
 
 
-def wrapped(variants: Sequence[str], pool: Sequence[str]) -> list[str]:
+def wrapped(variants: Sequence[CFModel], pool: Sequence[CFModel]) -> list[CFModel]:
     """The pool models the variants wrap, in pool order: those after spends
     ``N`` particles on (``lag`` cannot wrap HL: HL gets none either way)."""
-    bases = {get_model(v).base.name for v in variants}
-    return [m for m in pool if m in bases]
+    bases = {v.pool_model.name for v in variants}
+    return [m for m in pool if m.name in bases]
 
 
 def _run_buffer(posterior: Posterior, name: str) -> dict[str, Tensor]:
-    """The run's buffer of ``name`` with its own parameters (``K_m`` columns)."""
+    """The run's buffer of ``name`` with its own parameters (``K_m`` columns, as
+    many as the posterior records for the model)."""
     raw = posterior.buffers[name]
-    k = get_model(name).n_params
+    k = len(posterior.hybrid[name].param_names)
     return {
         "score": raw["score"].double(),
         "index": raw["index"].long(),
@@ -193,28 +202,28 @@ def _run_buffer(posterior: Posterior, name: str) -> dict[str, Tensor]:
 
 def _more_of(
     cfg: TrainConfig,
-    name: str,
+    model: CFModel,
     bounds: Tensor,
     run_buffer: dict[str, Tensor],
     rollout: Rollout,
     screen: PlausibilityScreen | None,
     tick: Callable[[int], None] | None,
 ) -> dict[str, Tensor]:
-    """The run's buffer of pool model ``name`` after ``N`` more particles drawn
+    """The run's buffer of pool model ``model`` after ``N`` more particles drawn
     the run's way (module docstring: the reference)."""
     n_particles = cfg.abc.n_particles
     if cfg.abc.method == "smc":
-        seed = derive_seed(cfg.abc.seed, "reference", name)
-        fresh = _trained(cfg, name, bounds, seed, rollout, screen, tick)
+        seed = derive_seed(cfg.abc.seed, "reference", model.name)
+        fresh = _trained(cfg, model, bounds, seed, rollout, screen, tick)
         capacity = run_buffer["score"].shape[1]
         parts = [(b["score"], b["index"], b["theta"]) for b in (run_buffer, fresh)]
         return best_entries(parts, capacity)
     n, capacity = run_buffer["score"].shape
-    buffer = TopN(n, capacity, get_model(name).n_params)
+    buffer = TopN(n, capacity, model.n_params)
     buffer.load_state_dict(run_buffer)
     progress = ModelProgress(next=n_particles)
     run_rejection(
-        prior_stream(name, bounds, cfg.abc.seed, rollout),
+        prior_stream(model, bounds, cfg.abc.seed, rollout),
         buffer,
         rollout,
         2 * n_particles,
@@ -227,7 +236,7 @@ def _more_of(
 
 def _trained(
     cfg: TrainConfig,
-    name: str,
+    model: CFModel,
     bounds: Tensor,
     seed: int,
     rollout: Rollout,
@@ -235,13 +244,13 @@ def _trained(
     tick: Callable[[int], None] | None,
     fixed: Tensor | None = None,
 ) -> dict[str, Tensor]:
-    """Model ``name``'s buffer after ``N`` particles from its stream of ``seed``,
+    """``model``'s buffer after ``N`` particles from its stream of ``seed``,
     by the run's sampler, as :func:`torchcf.train.train` does for a model; with
     ``fixed``, its last parameters held there (in the buffer's ``theta``)."""
     n_pairs, capacity = rollout.pairs.n_pairs, cfg.abc.buffer_size
     k = bounds.shape[0]
     progress = ModelProgress()
-    stream = prior_stream(name, bounds, seed, rollout, fixed)
+    stream = prior_stream(model, bounds, seed, rollout, fixed)
     hooks = RoundHooks(screen=screen, after_round=_ticker(tick, start=0))
     if cfg.abc.method == "smc":
         settings = smc_settings(cfg)
@@ -259,7 +268,7 @@ def _trained(
         state = _cpu(buffer.state_dict())
         state["theta"] = state["theta"][..., :k].contiguous()
         return _with_fixed(state, fixed)
-    buffer = TopN(n_pairs, capacity, get_model(name).n_params)  # fixed ones too
+    buffer = TopN(n_pairs, capacity, model.n_params)  # fixed ones too
     run_rejection(stream, buffer, rollout, cfg.abc.n_particles, progress, hooks=hooks)
     return _cpu(buffer.state_dict())
 
@@ -275,7 +284,9 @@ def _with_fixed(state: dict[str, Tensor], fixed: Tensor | None) -> dict[str, Ten
 
 
 def searched_box(
-    name: str, bounds: Tensor, shared_priors: dict[str, dict[str, tuple[float, float]]]
+    model: CFModel,
+    bounds: Tensor,
+    shared_priors: dict[str, dict[str, tuple[float, float]]],
 ) -> tuple[Tensor, Tensor | None]:
     """What a variant's sampler draws, ``(K_drawn, 2)``, and the values of its
     last ``K - K_drawn`` parameters, held (None: all drawn).
@@ -293,10 +304,10 @@ def searched_box(
     fixed = bounds[drawn:, 0].clone() if drawn < pinned.numel() else None
     out = bounds[:drawn].clone()
     boxes = {p: box for prior in shared_priors.values() for p, box in prior.items()}
-    names = get_model(name).param_names
+    names = model.param_names
     for column in torch.nonzero(pinned[:drawn]).flatten().tolist():
         if names[column] not in boxes:
-            raise ValueError(f"{name}: no box for the shared {names[column]}")
+            raise ValueError(f"{model.name}: no box for the shared {names[column]}")
         out[column] = torch.tensor(boxes[names[column]], dtype=torch.float64)
     return out, fixed
 

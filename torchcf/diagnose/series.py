@@ -23,7 +23,7 @@ from torch import Tensor
 
 from ..abc.particles import Particles, best_per_pair
 from ..data import PairSet
-from ..models import CFModel
+from ..models import CFModel, get_model
 from ..posterior import Posterior
 from ..sim.rollout import simulate
 from ..system.errors import TorchcfError
@@ -88,7 +88,7 @@ def best_particles(posterior: Posterior, pairs: PairSet) -> BestParticles:
         known = position >= 0  # (h,) kept for a pair of ``pairs``
         sets.append(
             Particles(
-                name,
+                get_model(name),  # the posterior's names enter here
                 particles.theta[known].double(),
                 position[known],
                 particles.score[known].double(),

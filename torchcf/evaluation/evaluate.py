@@ -53,6 +53,7 @@ from tqdm import tqdm
 
 from ..config import TrainConfig, load_split
 from ..data import PairSet
+from ..models import CFModel, get_model, require_model
 from ..posterior import Posterior
 from ..runs.directory import RunDir
 from ..runs.tensorboard import RunLogger
@@ -157,7 +158,7 @@ def hybrid_rows_in_single(posterior: Posterior, name: str) -> np.ndarray:
 
 
 def cost_matrices(
-    model: str,
+    model: CFModel,
     theta: Tensor,
     test: PairSet,
     *,
@@ -167,6 +168,9 @@ def cost_matrices(
     predictive: Sequence[tuple[PredictiveCDF, np.ndarray | None]] = (),
 ) -> dict[str, np.ndarray]:
     """Score, e_p, e_v, e_a of every particle on every test pair: (P, n_test) each.
+
+    ``model`` is the model object (``torchcf.get_model(name)``); ``theta``
+    ``(P, K)`` its particles.
 
     With ``predictive``, the same rollout's spacing and speed also feed each
     ``(cdf, weights)``: ``weights`` (P,) per particle, None: 1 each. The
@@ -180,6 +184,7 @@ def cost_matrices(
     descheduled thread (the smoke run's 12 sets: 1.2 s on one thread, 14-30 s on
     two under load 4).
     """
+    model = require_model(model, "cost_matrices")
     n_particles = theta.shape[0]
     # x, v, a of the rollout, then spacing and the coverage's copies: about 6
     # (T, P, N) arrays of the run's dtype per particle
@@ -217,24 +222,25 @@ def cost_matrices(
 
 
 def _hybrid_costs(
-    name: str,
+    model: CFModel,
     theta: Tensor,
     rows: np.ndarray,
-    costs: dict[str, dict[str, np.ndarray]],
+    single: dict[str, np.ndarray] | None,
     test: PairSet,
     kwargs: RolloutOptions,
     predictive: PredictiveCDF | None = None,
 ) -> dict[str, np.ndarray]:
     """The (h, n_test) cost matrices of a model's hybrid particles ``theta``:
-    the single model's rows where :func:`hybrid_rows_in_single` found them (the
-    same particle on the same pairs, no second rollout), a rollout for the rest
+    the single model's rows (``single``, its cost matrices; None where it has
+    no particle) where :func:`hybrid_rows_in_single` found them (the same
+    particle on the same pairs, no second rollout), a rollout for the rest
     (whose trajectories also feed the hybrid's ``predictive`` CDF; the found
     rows fed it with the single model's rollout)."""
     found = rows >= 0
     if found.all():
-        return {key: value[rows] for key, value in costs[name].items()}
+        return {key: value[rows] for key, value in single.items()}
     fresh = cost_matrices(
-        name,
+        model,
         theta[torch.from_numpy(~found)],
         test,
         **kwargs,
@@ -244,7 +250,7 @@ def _hybrid_costs(
     for key, value in out.items():
         value[~found] = fresh[key]
         if found.any():
-            value[found] = costs[name][key][rows[found]]
+            value[found] = single[key][rows[found]]
     return out
 
 
@@ -299,6 +305,7 @@ def evaluate_posterior(
     """
     dtype = getattr(torch, cfg.dtype)
     kwargs = RolloutOptions(dtype=dtype, device=cfg.device, weights=cfg.abc.weights)
+    models = {name: get_model(name) for name in posterior.models}  # names enter
     singles = {
         name: single_model_particles(posterior, name) for name in posterior.models
     }
@@ -331,16 +338,16 @@ def evaluate_posterior(
                             )
                         )
                 costs[name] = cost_matrices(
-                    name, singles[name], test, **kwargs, predictive=feeds
+                    models[name], singles[name], test, **kwargs, predictive=feeds
                 )
                 bar.update(len(singles[name]))
             if len(hybrid[name]):
                 hybrid_parts.append(
                     _hybrid_costs(
-                        name,
+                        models[name],
                         hybrid[name],
                         rows[name],
-                        costs,
+                        costs.get(name),
                         test,
                         kwargs,
                         None if predictive is None else predictive["hybrid"],
@@ -415,7 +422,7 @@ def position_errors(
             continue
         with limit_threads(theta.shape[0]):  # one pair: see cost_matrices
             out = simulate(
-                name,
+                get_model(name),  # the posterior's name enters here
                 theta.to(dtype),
                 one,
                 dtype=dtype,

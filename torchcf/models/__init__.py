@@ -72,6 +72,32 @@ def get_model(name_or_model: str | CFModel) -> CFModel:
     return model
 
 
+def require_model(model: object, caller: str) -> CFModel:
+    """``model`` where it is a model object; anything else raises a one-line
+    :class:`TypeError` that names what to pass.
+
+    A model's name is parsed once, where it enters (a config, a command line, a
+    saved file: :func:`get_model`); a public function past that point takes
+    the object and calls this first, so that a name passed by mistake says how
+    to make the object instead of failing deeper in.
+
+    Args:
+        model: what the caller was given.
+        caller: the public function's name, for the message (``"simulate"``).
+    """
+    if isinstance(model, CFModel):
+        return model
+    if isinstance(model, str):
+        raise TypeError(
+            f"{caller} takes a model object, e.g. torchcf.get_model({model!r}), "
+            f"not the name {model!r}"
+        )
+    raise TypeError(
+        f"{caller} takes a model object (torchcf.get_model(name)), "
+        f"not a {type(model).__name__}"
+    )
+
+
 def augment(model: CFModel, *effects: Effect) -> CFModel:
     """``model`` wrapped by ``effects`` besides its own: the one instance of that
     variant (``augment(IDM, Delay())`` is ``get_model("idm+delay")``).
@@ -130,5 +156,6 @@ __all__ = [
     "first_order_lag_advance",
     "get_model",
     "point_mass_advance",
+    "require_model",
     "split_name",
 ]

@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import torch
 from torch import Tensor
 
-from ..models import CFModel, FollowerState, Perception, get_model
+from ..models import CFModel, FollowerState, Perception, require_model
 from .compiled import (  # noqa: F401 - resolve_compile and the rest: sim's API
     COMPILE_MIN_STEPS,
     COMPILE_MIN_STEPS_CUDA,
@@ -469,7 +469,7 @@ class Execution:
 
 
 def simulate(
-    model: str | CFModel,
+    model: CFModel,
     theta: Tensor,
     pairs: PairSet,
     pair_index: Tensor | Sequence[int] | None = None,
@@ -494,7 +494,8 @@ def simulate(
     (:meth:`_Filled.result`).
 
     Args:
-        model: registry name (``"idm"``...) or a model instance.
+        model: the model object (``torchcf.get_model("idm")``, effects allowed:
+            ``get_model("idm+delay")``); a name raises :class:`TypeError`.
         theta: ``(P, K)`` parameters in the model's order (``model.param_names``).
         pairs: the observed pairs ``(T, N)``.
         pair_index: ``(P,)`` pair of each particle (paired layout); None simulates
@@ -509,7 +510,7 @@ def simulate(
     Returns:
         :class:`SimOutput` with ``(P, N)`` (full) or ``(P,)`` (paired) fields.
     """
-    model = get_model(model)
+    model = require_model(model, "simulate")
     theta, dtype, device = _checked_theta(model, theta, dtype, execution.device)
     if len(weights) != 3:
         raise ValueError(f"weights must be 3 numbers (p, v, a), got {weights!r}")

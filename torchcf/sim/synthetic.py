@@ -29,7 +29,7 @@ import torch
 from torch import Tensor
 
 from ..data import PairSet
-from ..models import CFModel, get_model
+from ..models import CFModel, get_model, require_model
 from ..models.base import Perception, spec
 from .rollout import simulate
 
@@ -156,7 +156,7 @@ class Scene:
 
 
 def synthetic_pairs(
-    model: str | CFModel,
+    model: CFModel,
     theta: Tensor | Sequence[float],
     n_pairs: int,
     n_steps: int = 500,
@@ -169,9 +169,11 @@ def synthetic_pairs(
     """Pairs whose followers are driven by ``model`` with parameters ``theta``.
 
     Args:
-        model: registry name, effects allowed (``"idm+delay"``), or a model
-            object (e.g. :class:`Gipps`, or one wrapped by effects:
-            ``AugmentedModel(Gipps(), [parse_effect("delay")])``).
+        model: the model object: a registry model, effects allowed
+            (``get_model("idm+delay")``), or one outside the registry (e.g.
+            :class:`Gipps`, or one wrapped by effects:
+            ``AugmentedModel(Gipps(), [parse_effect("delay")])``); a name
+            raises :class:`TypeError`.
         theta: ``(K,)`` one particle for every pair, or ``(N, K)`` (N = ``n_pairs``),
             one per pair.
         noise: standard deviation of white noise added to the recorded follower
@@ -183,7 +185,7 @@ def synthetic_pairs(
     Returns:
         A PairSet; ``notes`` record the generating model.
     """
-    cf_model = get_model(model)
+    cf_model = require_model(model, "synthetic_pairs")
     theta = torch.as_tensor(theta, dtype=torch.float64)
     if theta.ndim == 1:
         theta = theta[None].expand(n_pairs, -1)
@@ -287,6 +289,12 @@ class DriverMixture:
         effect = self.effect
         return [f"{m}+{effect}" if effect else m for m in self.models]
 
+    @property
+    def variants(self) -> list[CFModel]:
+        """Each driver's model with the effect, as an object: the mixture is
+        described by names, and this is where they are parsed."""
+        return [get_model(name) for name in self.names]
+
 
 def heterogeneous_pairs(
     mixture: DriverMixture,
@@ -335,7 +343,7 @@ def heterogeneous_pairs(
         raise ValueError("heterogeneous_pairs: give at least one model")
     g = torch.Generator().manual_seed(seed)
     names = mixture.names
-    width = max(get_model(n).n_params for n in names)
+    width = max(variant.n_params for variant in mixture.variants)
     want = [len(range(i, n_pairs, len(models))) for i in range(len(models))]
     found: list[list[tuple[Tensor, Tensor]]] = [[] for _ in models]
     for _ in range(50):  # batches of candidates, until every model has its share
@@ -394,7 +402,7 @@ def _plausible_batch(
     """One batch of candidate drivers (each model's share of ``batch``) and
     their leaders; the plausible ones, in the order drawn, as ``(model
     position, theta, series (6, T): leader x, v, a, follower x, v, a)``."""
-    models, names, boxes = mixture.models, mixture.names, mixture.boxes
+    models, variants, boxes = mixture.models, mixture.variants, mixture.boxes
     leader_seed = int(torch.randint(0, 2**62, (1,), generator=g))
     x_lead, v_lead, a_lead = leader_profiles(
         batch, n_steps, dt, seed=leader_seed, start=scene.start
@@ -410,15 +418,17 @@ def _plausible_batch(
     which = torch.arange(batch) % len(models)
     kept = []
     plant = torch.as_tensor(list(mixture.effect_values), dtype=torch.float64)
-    for i, (model, name) in enumerate(zip(models, names, strict=True)):
+    for i, (model, variant) in enumerate(zip(models, variants, strict=True)):
         index = (which == i).nonzero().squeeze(1)
         box = (boxes or {}).get(model)
         if box is None:
-            box = get_model(model).prior_bounds(torch.float64)
+            box = variant.pool_model.prior_bounds(torch.float64)
         u = torch.rand(index.numel(), box.shape[0], generator=g, dtype=torch.float64)
         own = box[:, 0] + u * (box[:, 1] - box[:, 0])
         theta = torch.cat((own, plant.expand(index.numel(), -1)), dim=1)
-        out = simulate(name, theta, first, index, dtype=torch.float64, return_traj=True)
+        out = simulate(
+            variant, theta, first, index, dtype=torch.float64, return_traj=True
+        )
         ok = out.valid & _plausible(out, x_lead[:, index], first.leader_length)
         for j in ok.nonzero().squeeze(1).tolist():
             p = int(index[j])

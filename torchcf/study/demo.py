@@ -44,7 +44,7 @@ def prior_rollouts(pairs: PairSet, particles: int, seed: int = 0) -> Iterator[De
         theta = bounds[:, 0] + (bounds[:, 1] - bounds[:, 0]) * unit
         pair_index = torch.randint(0, pairs.n_pairs, (particles,), generator=generator)
         start = time.perf_counter()
-        out = simulate(name, theta, pairs, pair_index)
+        out = simulate(model, theta, pairs, pair_index)
         elapsed = time.perf_counter() - start
         valid_scores = out.score[out.valid]
         best = float(valid_scores.min()) if valid_scores.numel() else float("inf")

@@ -469,6 +469,7 @@ def _verify_held(
     backend.binary("netconvert")
     n_test = test.n_pairs
     names = [n for n in posterior.models if len(posterior.hybrid[n])]
+    models = {n: get_model(n) for n in names}  # the posterior's names enter here
     theta = {
         n: posterior.hybrid[n].theta[: max_particles or None].double() for n in names
     }
@@ -481,7 +482,12 @@ def _verify_held(
     )
     own = {
         n: simulate(
-            n, theta[n], test, dtype=torch.float64, return_traj=True, weights=weights
+            models[n],
+            theta[n],
+            test,
+            dtype=torch.float64,
+            return_traj=True,
+            weights=weights,
         )
         for n in names
     }
@@ -545,7 +551,7 @@ def _verify_held(
         folder = base / "cosim"
         folder.mkdir(parents=True, exist_ok=True)
         sampler = HybridSampler(
-            names,
+            [models[n] for n in names],
             [theta[n] for n in names],
             dt=test.dt,
             leader_length=test.leader_length,

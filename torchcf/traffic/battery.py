@@ -56,7 +56,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from ..models import CFModel, FollowerState, get_model
+from ..models import CFModel, FollowerState, require_model
 from ..system.records import Record
 from .sampler import HybridSampler
 from .scenarios import platoon
@@ -310,7 +310,7 @@ def standstill_leader(speed: float, dt: float) -> Tensor:
 
 # ------------------------------------------------------------------ the battery
 def check_plausibility(
-    model: str | CFModel,
+    model: CFModel,
     theta: Tensor,
     battery: Battery = Battery(),
     *,
@@ -321,7 +321,8 @@ def check_plausibility(
     """Every particle of one model through the battery.
 
     Args:
-        model: the model (registry name, effects allowed, or an instance).
+        model: the model object (``torchcf.get_model("idm")``, effects
+            allowed); a name raises :class:`TypeError`.
         theta: ``(P, K)`` particles in the model's parameter order (SI).
         battery: the scenarios' settings.
         chunk: particles simulated at once (memory: about ``chunk x T``
@@ -332,7 +333,8 @@ def check_plausibility(
     Returns:
         :class:`Plausibility`, ``(P,)`` per outcome, on the CPU.
     """
-    model, theta = _particles(model, theta, chunk)
+    model = require_model(model, "check_plausibility")
+    theta = _particles(model, theta, chunk)
     device = theta.device if device is None else torch.device(device)
     parts = [
         _chunk(model, theta[i : i + chunk].to(device, dtype), battery)
@@ -365,11 +367,8 @@ def check_plausibility(
     )
 
 
-def _particles(
-    model: str | CFModel, theta: Tensor, chunk: int
-) -> tuple[CFModel, Tensor]:
-    """The model and ``(P, K)`` particles of a battery call, checked."""
-    model = get_model(model)
+def _particles(model: CFModel, theta: Tensor, chunk: int) -> Tensor:
+    """The ``(P, K)`` particles of a battery call, checked against the model."""
     theta = torch.as_tensor(theta)
     if theta.ndim != 2 or theta.shape[1] != model.n_params:
         raise ValueError(
@@ -378,7 +377,7 @@ def _particles(
         )
     if chunk < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
-    return model, theta
+    return theta
 
 
 def _sampler(model: CFModel, theta: Tensor, battery: Battery, n: int) -> HybridSampler:
@@ -469,7 +468,7 @@ def _collision_scenarios(battery: Battery, gap: Tensor) -> list[_Scenario]:
 
 
 def collides(
-    model: str | CFModel,
+    model: CFModel,
     theta: Tensor,
     battery: Battery = Battery(),
     *,
@@ -486,7 +485,8 @@ def collides(
     not collided yet: a model whose particles mostly fail the first scenario
     (MPC, whose deceleration limit is 3-5 m/s^2) costs about one scenario.
     """
-    model, theta = _particles(model, theta, chunk)
+    model = require_model(model, "collides")
+    theta = _particles(model, theta, chunk)
     parts = [
         _collides_chunk(model, theta[i : i + chunk].to(dtype), battery)
         for i in range(0, theta.shape[0], chunk)
@@ -584,13 +584,14 @@ def _string_ratio(
 
 
 def plausibility_by_model(
-    particles: Mapping[str, Tensor], battery: Battery
+    particles: Mapping[CFModel, Tensor], battery: Battery
 ) -> dict[str, PlausibilitySummary]:
     """:meth:`Plausibility.summary` per model of a learned set (model ->
-    ``(P_m, K_m)`` particles; models without particles left out)."""
+    ``(P_m, K_m)`` particles), by model name; models without particles left
+    out."""
     return {
-        name: check_plausibility(name, theta, battery).summary()
-        for name, theta in particles.items()
+        model.name: check_plausibility(model, theta, battery).summary()
+        for model, theta in particles.items()
         if theta.shape[0]
     }
 

@@ -20,6 +20,7 @@ from tqdm import tqdm
 from ..abc.screen import PlausibilityScreen
 from ..config import PlausibilityConfig
 from ..data import PairSet
+from ..models import get_model
 from ..posterior import Posterior
 from ..system.console import bar_interval
 from .battery import (
@@ -86,8 +87,9 @@ def hybrid_plausibility(
     out = {}
     for name in bar:
         bar.set_postfix_str(f"{name}, {len(posterior.hybrid[name])} particles")
+        model = get_model(name)  # the posterior's names enter here
         out[name] = check_plausibility(
-            name, posterior.hybrid[name].theta, battery, chunk=BATTERY_CHUNK
+            model, posterior.hybrid[name].theta, battery, chunk=BATTERY_CHUNK
         ).summary()
     return out
 

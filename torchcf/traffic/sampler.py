@@ -47,7 +47,7 @@ from torch import Tensor, nn
 from torch.utils import _pytree as pytree
 
 from ..data import DATASETS
-from ..models import CFModel, FollowerState, Perception, get_model
+from ..models import CFModel, FollowerState, Perception, get_model, require_model
 from ..posterior import Posterior
 from ..runs.directory import RunDir
 from ..sim.rollout import check_theta, realise
@@ -95,8 +95,8 @@ class HybridSampler(nn.Module):
         sampler.tick()                                    # clock, redraws
 
     Args:
-        models: model names (registry keys, effects allowed: ``"idm+delay"``) or
-            instances, one per entry of ``particles``.
+        models: the model objects (``torchcf.get_model("idm+delay")``), one per
+            entry of ``particles``; a name raises :class:`TypeError`.
         particles: per model, ``(P_m, K_m)`` parameters in the model's order (SI);
             ``P_m`` may be 0 (a model with no share).
         dt: step [s]. The step the particles were learned at: MPC's prediction
@@ -120,7 +120,7 @@ class HybridSampler(nn.Module):
 
     def __init__(
         self,
-        models: Sequence[str | CFModel],
+        models: Sequence[CFModel],
         particles: Sequence[Tensor],
         *,
         dt: float,
@@ -142,7 +142,7 @@ class HybridSampler(nn.Module):
             )
         if not models:
             raise ValueError("a hybrid sampler needs at least one model")
-        self.models = tuple(get_model(m) for m in models)
+        self.models = tuple(require_model(m, "HybridSampler") for m in models)
         self.model_names = tuple(m.name for m in self.models)
         if len(set(self.model_names)) != len(self.model_names):
             raise ValueError(f"a model is listed twice: {list(self.model_names)}")
@@ -228,15 +228,16 @@ class HybridSampler(nn.Module):
     ) -> HybridSampler:
         """The sampler of a :class:`~torchcf.posterior.Posterior` (its hybrid set)."""
         names = [name for name in posterior.models if name in posterior.hybrid]
-        for name in names:
+        models = [get_model(name) for name in names]  # the file's names enter here
+        for name, model in zip(names, models, strict=True):
             stored = tuple(posterior.hybrid[name].param_names)
-            if stored != get_model(name).param_names:
+            if stored != model.param_names:
                 raise ValueError(
                     f"{name}: the posterior's parameters {list(stored)} are not the "
-                    f"model's {list(get_model(name).param_names)}"
+                    f"model's {list(model.param_names)}"
                 )
         return cls(
-            names,
+            models,
             [posterior.hybrid[name].theta for name in names],
             dt=dt,
             leader_length=leader_length,
@@ -296,7 +297,7 @@ class HybridSampler(nn.Module):
         return rows.long() + first
 
     def _model_id(self, model: str) -> int:
-        name = get_model(model).name
+        name = get_model(model).name  # a caller's name, in its canonical spelling
         if name not in self.model_names:
             raise ValueError(
                 f"{model!r} is not in the learned set ({', '.join(self.model_names)})"

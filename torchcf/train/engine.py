@@ -32,7 +32,7 @@ from ..abc.smc import SMCSettings, new_state, smc_budget
 from ..abc.topn import TopN
 from ..config import ConfigError, TrainConfig
 from ..data import PairSet
-from ..models import get_model
+from ..models import CFModel, require_model
 from .checkpoint import RunError, RunState
 
 # --------------------------------------------------------------------------------------
@@ -109,7 +109,7 @@ def check_smc_budget(n_particles: int, n_pairs: int, settings: SMCSettings) -> N
 
 
 def build_buffers(
-    models: Sequence[str],
+    models: Sequence[CFModel],
     n_pairs: int,
     buffer_size: int,
     smc: SMCSettings | None,
@@ -121,7 +121,8 @@ def build_buffers(
     buffer carries one more column, ``log r``.
 
     Args:
-        models: the run's model names, in the config's order.
+        models: the run's model objects (``spec.model`` of each config entry),
+            in the config's order; each buffer is keyed by the model's name.
         n_pairs: training pairs ``N``.
         buffer_size: slots per pair ``B`` (``abc.buffer_size``).
         smc: the refinement's settings; None for rejection.
@@ -131,8 +132,9 @@ def build_buffers(
     Raises:
         RunError: a saved buffer or refinement state does not fit this run.
     """
-    for name in models:
-        n_params = len(get_model(name).param_names)
+    for model in models:
+        name = require_model(model, "build_buffers").name
+        n_params = len(model.param_names)
         buffer = TopN(n_pairs, buffer_size, n_params + (smc is not None))
         refinement = None if smc is None else new_state(n_pairs, smc, n_params)
         try:

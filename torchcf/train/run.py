@@ -51,7 +51,7 @@ from ..abc.distributed import SINGLE, Group
 from ..abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
 from ..abc.rounds import RoundHooks
 from ..abc.smc import run_smc
-from ..config import TrainConfig, load_split, resolved_json
+from ..config import ModelSpec, TrainConfig, load_split, resolved_json
 from ..data import PairSet
 from ..data.importer import record_extraction
 from ..evaluation.plots import hybrid_images, save_image
@@ -86,7 +86,7 @@ from .summary import RunSummary, read_results
 
 def _stream_model(
     cfg: TrainConfig,
-    name: str,
+    spec: ModelSpec,
     rollout: Rollout,
     state: RunState,
     checkpointer: Checkpointer,
@@ -94,8 +94,12 @@ def _stream_model(
     group: Group,
 ) -> None:
     """Run one model's particles through its buffer (rejection or SMC), with a
-    progress bar, TensorBoard scalars and checkpoints between rounds."""
-    spec = next(s for s in cfg.models if s.name == name)
+    progress bar, TensorBoard scalars and checkpoints between rounds.
+
+    ``spec`` is the model's config entry (its model object and prior box); its
+    buffer, progress and refinement state in ``state`` are keyed by its name.
+    """
+    name = spec.name
     buffer, progress = state.buffers[name], state.progress[name]
     if progress.done:
         return
@@ -123,7 +127,7 @@ def _stream_model(
         if due:
             checkpointer.save()
 
-    stream = prior_stream(name, spec.bounds(torch.float64), cfg.abc.seed, rollout)
+    stream = prior_stream(spec.model, spec.bounds(torch.float64), cfg.abc.seed, rollout)
     hooks = RoundHooks(group, screen, checkpointer.due, after_round)
     with bar:
         if cfg.abc.method == "smc":
@@ -235,9 +239,13 @@ def _train_held(
     check_budget(cfg, train_pairs)
     _prepare(cfg, run, group)
     smc = smc_settings(cfg) if cfg.abc.method == "smc" else None
-    models = [spec.name for spec in cfg.models]
     build_buffers(
-        models, train_pairs.n_pairs, cfg.abc.buffer_size, smc, state, run.checkpoint
+        [spec.model for spec in cfg.models],
+        train_pairs.n_pairs,
+        cfg.abc.buffer_size,
+        smc,
+        state,
+        run.checkpoint,
     )
     rollout = rollout_of(cfg, train_pairs, device)
     stop = StopRequest()
@@ -245,8 +253,8 @@ def _train_held(
 
     with RunLogger(run.tb_dir, enabled=group.is_main) as logger:
         with stop:  # a signal stops the stream at its next checkpoint
-            for name in models:
-                _stream_model(cfg, name, rollout, state, checkpointer, logger, group)
+            for spec in cfg.models:
+                _stream_model(cfg, spec, rollout, state, checkpointer, logger, group)
         # Every rank holds the same buffers now; the selection is cheap and
         # deterministic, so each computes it and only rank 0 writes.
         wall = time.perf_counter() - began

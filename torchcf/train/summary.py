@@ -433,7 +433,7 @@ def smc_result(
     masses = []
     for spec in cfg.models:
         proposals = proposals_per_pair(
-            spec.name, spec.bounds(torch.float64), cfg.abc.seed, budget
+            spec.model, spec.bounds(torch.float64), cfg.abc.seed, budget
         )
         masses.append(prior_mass(state.buffers[spec.name], proposals, tau))
     return SMCResult(
@@ -479,7 +479,7 @@ def read_results(
     }
     posterior = hybrid_posterior(
         buffers,
-        names,
+        [spec.model for spec in cfg.models],
         selection,
         cfg.abc.top_n,
         torch.as_tensor(train_pairs.pair_ids, dtype=torch.int64),
