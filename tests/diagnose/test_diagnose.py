@@ -415,9 +415,9 @@ def test_local_search_spends_its_budget_and_never_loses_a_fit(monkeypatch):
     simulated = []
     scores = search.score_on
 
-    def counted(rollout, model, theta, pair):
+    def counted(rollout, model, theta, pair, ceiling=None):
         simulated.append(theta.shape[0])
-        return scores(rollout, model, theta, pair)
+        return scores(rollout, model, theta, pair, ceiling)
 
     monkeypatch.setattr(search, "score_on", counted)
     current = {m: get_model(m).param_names for m in start.models}

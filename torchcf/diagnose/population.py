@@ -232,13 +232,20 @@ def rescore(population: Population, rollout: Rollout) -> Population:
     )
 
 
-def score_on(rollout: Rollout, model: CFModel, theta: Tensor, pair: Tensor) -> Tensor:
+def score_on(
+    rollout: Rollout,
+    model: CFModel,
+    theta: Tensor,
+    pair: Tensor,
+    ceiling: Tensor | None = None,
+) -> Tensor:
     """Scores (Q,) float64 on the CPU of particles ``theta`` (Q, K) of ``model``,
     each on its own pair ``pair`` (Q,) of the rollout's pairs (``+inf``:
-    invalid)."""
+    invalid, or stopped early above its ``ceiling`` (Q,) float64 where one is
+    given: :attr:`torchcf.sim.rollout.Execution.ceiling`)."""
     if theta.shape[0] == 0:
         return torch.empty(0, dtype=torch.float64)
-    score, _ = rollout.score(model, theta, pair)
+    score, _ = rollout.score(model, theta, pair, ceiling=ceiling)
     return score.cpu()
 
 

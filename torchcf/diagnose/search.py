@@ -7,6 +7,14 @@ width for copy c, clipped to the prior box: the kernel of sequential ABC), score
 on the rollout's pairs, and every pair keeps its ``S`` best of members and copies
 (elitist: a pair's best never gets worse).
 
+**Early rejection.** A copy can enter its pair's population only by scoring at
+most the population's worst kept score (where the population is full), so its
+rollout stops once its score so far, a lower bound of its final score, exceeds
+that :func:`admission_ceiling` (the early rejection of SPEC section 2,
+:attr:`torchcf.sim.rollout.Execution.ceiling`). A stopped copy scores ``+inf``
+and is dropped at the merge, where its final score would have dropped it too:
+the search's populations are those of copies run to the end.
+
 **Common random numbers.** A round draws its steps for *slots*, not for
 particles: one (N, S, C, K_c) normal tensor from a generator seeded by the
 search's key and the round (:class:`Noise`), where column k is the k-th parameter
@@ -186,6 +194,18 @@ def jitter(theta: Tensor, steps: Tensor, bounds: Tensor) -> Tensor:
     return torch.maximum(torch.minimum(moved, bounds[:, 1]), bounds[:, 0])
 
 
+def admission_ceiling(population: Population) -> Tensor:
+    """(N,) float64: per pair, the score above which a new particle cannot enter
+    the population at a :func:`~torchcf.diagnose.population.merge` of its size:
+    its worst kept score where it holds ``S`` distinct particles, ``+inf`` where
+    it has room (an empty slot, or a repeat the merge would drop)."""
+    n, size = population.score.shape
+    if size == 0:
+        return torch.full((n,), math.inf, dtype=torch.float64)
+    worst = merge([population], size).score[:, -1]
+    return torch.where(torch.isfinite(worst), worst, math.inf)
+
+
 def search_round(
     population: Population,
     rollout: Rollout,
@@ -194,8 +214,13 @@ def search_round(
     columns: Callable[[CFModel], Tensor],
 ) -> Population:
     """The scored copies of every filled slot (N, S C): slot (j, s), copy c reads
-    ``steps[j, s, c]`` (N, S, C, K_c + K_E) at its model's ``columns``."""
+    ``steps[j, s, c]`` (N, S, C, K_c + K_E) at its model's ``columns``.
+
+    A copy sure to score above its pair's :func:`admission_ceiling` is stopped
+    early and scores ``+inf``: merged with ``population`` at its size, the
+    copies give the population they would give run to the end."""
     n, size = population.score.shape
+    ceiling = admission_ceiling(population)
     copies = steps.shape[2]
     width = population.theta.shape[2]
     model = torch.full((n, size, copies), -1, dtype=torch.int64)
@@ -213,7 +238,7 @@ def search_round(
         theta[pair, slot, :, :k] = moved
         flat_pair = pair.repeat_interleave(copies)
         score[pair, slot] = score_on(
-            rollout, slot_model, moved.reshape(-1, k), flat_pair
+            rollout, slot_model, moved.reshape(-1, k), flat_pair, ceiling[flat_pair]
         ).reshape(-1, copies)
     return Population(
         population.models,
@@ -574,6 +599,7 @@ __all__ = [
     "SHARED_ROUNDS",
     "SHARED_VALUES",
     "Noise",
+    "admission_ceiling",
     "converge",
     "derive_seed",
     "effect_prior",
