@@ -36,12 +36,14 @@ def _start(n_pairs: int = 5, size: int = 4):
             "compile": "off",
         }
     )
-    pairs = synthetic_pairs("idm+delay", IDM + [0.6], n_pairs, 200, seed=3, noise=0.05)
+    pairs = synthetic_pairs(
+        get_model("idm+delay"), IDM + [0.6], n_pairs, 200, seed=3, noise=0.05
+    )
     rollout = attribution_rollout(cfg, pairs)
     models = [get_model(m) for m in ("idm", "llctg")]
     bounds = {m: model_bounds(m, {}) for m in models}
     seed = attribution_seed(cfg)
-    streams = [prior_stream(m.name, bounds[m], seed, rollout) for m in models]
+    streams = [prior_stream(m, bounds[m], seed, rollout) for m in models]
     sets = [prior_particles(s, rollout, (150,), size)[0] for s in streams]
     return Population.from_particles(sets, n_pairs, size), rollout, bounds
 
