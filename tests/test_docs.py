@@ -15,6 +15,10 @@ ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 LINK = re.compile(r"\]\(([^)#\s]*)(?:#([^)\s]*))?\)")
 FENCE = re.compile(r"^\s*(```|~~~)")
+#: A commit hash as a word: 7-40 hex digits, at least one letter and one digit.
+COMMIT = re.compile(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b")
+#: A wall time: a figure followed by s, min, ms or h ("48 s", "1.1 s", "27 min").
+WALL_TIME = re.compile(r"\b\d+(?:\.\d+)? ?(?:s|min|ms|h)\b")
 
 
 def heading_slugs(text: str) -> set[str]:
@@ -127,3 +131,49 @@ def test_the_docs_site_builds_strict(tmp_path):
     assert (site / "reports" / "loop_cases" / "index.html").exists()
     loop = (site / "loop" / "index.html").read_text()
     assert 'href="../reports/loop_heterogeneous/"' in loop
+
+
+def pinned_data_commit() -> str:
+    """The commit of the authors' data repository that torchcf downloads from."""
+    from torchcf.data.registry import SOURCE_URL
+
+    match = re.search(r"/([0-9a-f]{40})/", SOURCE_URL)
+    assert match is not None, SOURCE_URL
+    return match.group(1)
+
+
+def test_the_commit_hash_pattern():
+    text = "at 7bb6e03, e4d4982 and 64a2872a7dc9; not 1000000, deadbeef, 0x1f or abc12"
+    assert COMMIT.findall(text) == ["7bb6e03", "e4d4982", "64a2872a7dc9"]
+
+
+def test_the_docs_name_no_commit():
+    """Commit hashes date measurements, and those live in ``reports/``: no page
+    of docs/ nor the README names one. The exception is a fact about the code:
+    docs/data.md names the commit of the authors' data repository that
+    ``torchcf.data.registry`` downloads from (a prefix of 7 or more digits)."""
+    pinned = pinned_data_commit()
+    found = []
+    for page in PAGES:
+        for word in COMMIT.findall(page.read_text()):
+            if page.name == "data.md" and pinned.startswith(word):
+                continue
+            found.append(f"{page.relative_to(ROOT)}: {word}")
+    assert not found, "commit hashes belong in reports/: " + ", ".join(found)
+    data_page = (ROOT / "docs" / "data.md").read_text()
+    assert any(pinned.startswith(word) for word in COMMIT.findall(data_page)), (
+        "docs/data.md no longer names the data commit the code downloads from"
+    )
+
+
+def test_the_performance_page_quotes_no_wall_time():
+    """docs/performance.md describes how the code is made fast; the seconds,
+    per machine and revision, are in reports/performance.md."""
+    assert WALL_TIME.findall("took 48 s, 1.1 s a chunk, 27 min; 2^16 cells, 8 steps") == [
+        "48 s",
+        "1.1 s",
+        "27 min",
+    ]
+    text = (ROOT / "docs" / "performance.md").read_text()
+    assert WALL_TIME.findall(text) == [], "wall times belong in reports/performance.md"
+    assert (ROOT / "reports" / "performance.md").exists()

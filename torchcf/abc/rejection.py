@@ -104,10 +104,10 @@ class Rollout:
         """Whether a stream of ``n_particles`` of ``model`` runs compiled."""
         if self.compile == "auto" and self.early_rejection and model.prunable:
             # "auto" with early rejection stays eager: compiled blocks can drop
-            # particles ("on", a dynamic particle dimension), but the paper-scale
-            # study on 2 CPU cores took 32-38 s so on a warm compile cache
-            # against 39-42 s eager, but 119 s against 42 s on an empty one; eager
-            # on one H100 too (reports/bench/train_carII*.md, performance.md)
+            # particles ("on", a dynamic particle dimension), but on the
+            # paper-scale study compiling saves little on a warm compile cache
+            # and costs far more on an empty one, on 2 CPU cores and on one
+            # H100 (reports/bench/train_carII*.md, reports/performance.md)
             return False
         cells = n_particles * self.cells_per_particle * self.pairs.n_steps
         return resolve_compile(model, self.compile, self.device, cells)

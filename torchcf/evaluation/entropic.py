@@ -41,7 +41,7 @@ same start ``u = v = 0``. Three things bound the time it takes:
 Epsilon-scaling (``eps`` halved from the cost range down to the target, the
 potentials warm-started) is not used: on the smoke run's cost matrices it saved
 no iterations in all, single matrices both gaining and losing (the last
-stage's linear rate dominates; the figures: ``docs/performance.md``,
+stage's linear rate dominates; the figures: ``reports/performance.md``,
 "Sinkhorn").
 
 **Threads.** A Sinkhorn step on the evaluation's matrices (a few 10^4 cells) is

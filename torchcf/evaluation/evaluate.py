@@ -181,8 +181,8 @@ def cost_matrices(
     Runs on one torch thread when ``P * n_test`` is small (:func:`limit_threads`):
     every step of the rollout is a handful of ops on ``P * n_test`` numbers, too
     few for threads to pay, and on a loaded machine each parallel op waits for a
-    descheduled thread (the smoke run's 12 sets: 1.2 s on one thread, 14-30 s on
-    two under load 4).
+    descheduled thread (on the smoke run's sets, two threads under load took
+    over ten times as long as one).
     """
     model = require_model(model, "cost_matrices")
     n_particles = theta.shape[0]

@@ -33,11 +33,10 @@ from .step import _Accumulators, _block, _draft_step, _finish_step
 #: (``reports/bench/compile.md``: IDM, HL, LLCTG pay from 1.5e8-3e8 on 2 cores).
 COMPILE_MIN_STEPS = 2e8
 #: The same on CUDA, where eager rollouts are fast too: on one H100 compiling
-#: an 8-step block took 20-26 s and saved 0.13-0.14 us per particle of 576 steps
-#: (IDM and HL at 2^23 particles), so it pays from 1.6e8-2e8 particles, about
+#: an 8-step block pays from 1.6e8-2e8 particles of 576 steps (IDM and HL), about
 #: 1e11 particle-steps (``reports/bench/compile_cuda_h100_8m.md``); the
-#: paper-scale study (5.8e8) runs eager there in 28 s against 97 s compiled on
-#: an empty cache and 43 s on a full one (``reports/bench/train_carII_cuda_h100*``).
+#: paper-scale study (5.8e8) runs eager there, faster than compiled on an empty
+#: cache and on a full one (``reports/bench/train_carII_cuda_h100*``).
 COMPILE_MIN_STEPS_CUDA = 1e11
 
 
@@ -53,7 +52,7 @@ class _CorrectedBlock:
     Two compiled calls a step, not one fused block: the MPC's step is bound by
     its memory traffic, not by the calls (fusing each step's motion with the
     next step's draft, a third graph to compile, was no faster:
-    ``docs/performance.md``, "MPC").
+    ``reports/performance.md``, "MPC and its QP solver").
     """
 
     def __init__(
@@ -254,9 +253,9 @@ def _probe_vector_isa() -> str | None:
     kernels then use the first of the list alone (``pick_vec_isa``). So that
     first ISA is probed here, with inductor's own check; where it passes,
     ``vec_isa_ok`` tells inductor not to probe the others, which are never used.
-    The kernels are the same, and the probe takes 3.0 s instead of 6.8 s in a
-    process on an empty compile cache and 0.35 s instead of 1.1 s on a full one
-    (a 2-core EPYC reporting AVX2, AVX-512 and AVX-512 VNNI; docs/performance.md).
+    The kernels are the same, and a process's probe takes about half as long on
+    an empty compile cache and a third on a full one, on a CPU reporting AVX2,
+    AVX-512 and AVX-512 VNNI (``reports/performance.md``, "The whole study").
 
     Where the first ISA fails, or the user chose an ISA (``ATEN_CPU_CAPABILITY``,
     inductor's ``cpp.simdlen`` or ``cpp.vec_isa_ok``), or the CPU is not x86,

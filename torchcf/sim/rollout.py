@@ -60,9 +60,9 @@ from .step import (  # noqa: F401 - realise: sim's API
 
 #: Steps per block function call (the unit that ``torch.compile`` fuses). The
 #: compile time grows with the steps unrolled, the throughput with fewer trips
-#: to memory: on 2 CPU cores (``reports/bench/compile.md``, IDM, HL, LLCTG) 16
-#: steps compile in 19-28 s, 8 in 14-17 s at the same throughput (-7 % to +58 %
-#: per model), 4 in 12-13 s at 10-20 % less; compiled results do not depend on it.
+#: to memory: on 2 CPU cores (``reports/bench/compile.md``, IDM, HL, LLCTG) 8
+#: steps compile sooner than 16 at the same throughput (-7 % to +58 % per model),
+#: 4 only a little sooner at 10-20 % less; compiled results do not depend on it.
 BLOCK_STEPS = 8
 #: With compilation or early rejection, chunks are a multiple of this: every
 #: element then takes the vectorised path of a kernel, never a scalar tail

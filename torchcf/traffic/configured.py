@@ -35,7 +35,7 @@ from .battery import (
 #: about 350 KiB per particle at its peak (the scenarios' recorded series): its
 #: own default of 16 384 took 5.6 GiB once a model held that many hybrid
 #: particles (10 000 pairs x 5), 2 048 take 0.7 GiB, and run faster (IDM, 8 192
-#: particles: 13 s against 20 s on 1 thread). The result does not depend on it.
+#: particles on 1 thread). The result does not depend on it.
 BATTERY_CHUNK = 1 << 11
 
 
