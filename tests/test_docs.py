@@ -169,7 +169,9 @@ def test_the_docs_name_no_commit():
 def test_the_performance_page_quotes_no_wall_time():
     """docs/performance.md describes how the code is made fast; the seconds,
     per machine and revision, are in reports/performance.md."""
-    assert WALL_TIME.findall("took 48 s, 1.1 s a chunk, 27 min; 2^16 cells, 8 steps") == [
+    assert WALL_TIME.findall(
+        "took 48 s, 1.1 s a chunk, 27 min; 2^16 cells, 8 steps"
+    ) == [
         "48 s",
         "1.1 s",
         "27 min",
