@@ -449,13 +449,22 @@ def power_markdown(payload: dict) -> str:
         sizes = ", ".join(
             f"{s['size']:g}: {s['hits']}/{s['seeds']}" for s in entry["sizes"]
         )
-        smallest = entry["smallest"]
         lines.append(
             f"| {entry['effect']} | {entry['pairs']} | {sizes} | "
-            + (f"{smallest:g}" if smallest is not None else "none tried")
-            + " |"
+            f"{_smallest_text(entry)} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _smallest_text(entry: dict) -> str:
+    """The power table's last column: the smallest size chosen in 80 % of the
+    seeds, or, where none is (yet), the largest size tried and its hits."""
+    if entry["smallest"] is not None:
+        return f"{entry['smallest']:g}"
+    if not entry["sizes"]:
+        return "none tried"
+    first = entry["sizes"][0]
+    return f"none (largest tried, {first['size']:g}: {first['hits']}/{first['seeds']})"
 
 
 def power(
