@@ -32,7 +32,7 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_sim import bench_meta, write_report  # noqa: E402
+from bench_sim import bench_meta, provenance, write_report  # noqa: E402
 
 from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 
@@ -103,8 +103,7 @@ def markdown(payload: dict) -> str:
     lines = [
         "# Compilation: its cost on a cold cache, its gain per particle",
         "",
-        f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
-        f"{meta['cpu']}, git {meta['git']}. CAR MODEL II training pairs (44 x 576 "
+        provenance(meta) + f". CAR MODEL II training pairs (44 x 576 "
         f"steps), {payload['particles']} paired particles per call on "
         f"{payload['device']}, float32; each row in a "
         "fresh process with an empty inductor cache. *Compile*: first compiled "

@@ -44,7 +44,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_sim import bench_meta, write_report  # noqa: E402
+from bench_sim import bench_meta, provenance, write_report  # noqa: E402
 from loop_cases import planted  # noqa: E402
 
 from torchcf.data import load_pairs  # noqa: E402
@@ -245,8 +245,7 @@ def markdown(payload: dict) -> str:
     lines = [
         "# The diagnosis loop's wall time",
         "",
-        f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
-        f"{meta['cpu']}, git {meta['git']}. A run trained with 2e5 particles "
+        provenance(meta) + ". A run trained with 2e5 particles "
         "per model (eight models), then `python -m torchcf.diagnose RUN` at its "
         "defaults, timed as a whole process (start-up included) from an empty "
         "loop folder.",

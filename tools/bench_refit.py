@@ -36,7 +36,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_sim import bench_meta, write_report  # noqa: E402
+from bench_sim import bench_meta, provenance, write_report  # noqa: E402
 
 from torchcf.config import validate_config  # noqa: E402
 from torchcf.diagnose.refit import Pin, RefitBudget, refit_scores  # noqa: E402
@@ -118,8 +118,7 @@ def markdown(payload: dict) -> str:
     lines = [
         "# A held-out pair's refit: cost and depth by design",
         "",
-        f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
-        f"{meta['cpu']}, git {meta['git']}. Both sides of one comparison (without "
+        provenance(meta) + ". Both sides of one comparison (without "
         "the effect, and with the delay pinned at 0.8 s) on the loop's 20 held-out "
         "pairs of 50 heterogeneous IDM/GFM drivers 0.8 s late, from 300 prior "
         "draws per model; median of the repeats (`tools/bench_refit.py`).",

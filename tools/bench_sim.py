@@ -92,6 +92,15 @@ def bench_meta(argv: list[str], threads: int, device: str = "cpu") -> dict:
     }
 
 
+def provenance(meta: dict) -> str:
+    """A report's first words: the command, torch, threads, CPU and git revision
+    of :func:`bench_meta` (the caller goes on with its own punctuation)."""
+    return (
+        f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
+        f"{meta['cpu']}, git {meta['git']}"
+    )
+
+
 def write_report(out: Path, payload: dict, markdown: str) -> None:
     """Write a benchmark's ``out.json`` (``payload``) and ``out.md`` (``markdown``)."""
     out.parent.mkdir(parents=True, exist_ok=True)

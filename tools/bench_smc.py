@@ -49,7 +49,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_sim import bench_meta, write_report  # noqa: E402
+from bench_sim import bench_meta, provenance, write_report  # noqa: E402
 
 import torchcf.abc.smc as smc_module  # noqa: E402
 from torchcf.abc.rejection import (  # noqa: E402
@@ -172,8 +172,7 @@ def datasets_markdown(payload: dict, args) -> str:
     lines = [
         "# Time to quality: rejection against SMC",
         "",
-        f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
-        f"{meta['cpu']}, git {meta['git']}, compile {args.compile}.",
+        provenance(meta) + f", compile {args.compile}.",
         "",
         "Quality: the hybrid's per-pair N-th best score (the worst particle it keeps "
         "on a training pair), mean over the pairs; lower is better. Budget: "
@@ -376,8 +375,7 @@ def models_markdown(payload: dict) -> str:
     lines = [
         "# SMC per model: 20x fewer simulations against rejection",
         "",
-        f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
-        f"{meta['cpu']}, git {meta['git']}, compile off, the engine alone.",
+        provenance(meta) + ", compile off, the engine alone.",
         "",
         f"Quality: each model's own mean over the training pairs of its 5th best "
         f"score; lower is better. Rejection: {payload['rejection_budget']:,} prior "
@@ -496,8 +494,7 @@ def pyabc_markdown(payload: dict, args) -> str:
     lines = [
         "# Time to pyABC's best score on one pair",
         "",
-        f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
-        f"{meta['cpu']}, git {meta['git']}, {args.dtype}, compile off.",
+        provenance(meta) + f", {args.dtype}, compile off.",
         "",
         f"pyABC {ref['version']} (`{ref['trace']}`, `tools/pyabc_baseline.py`): best "
         f"score **{ref['best']:.5f}** after {ref['seconds']:.1f} s on CAR MODEL II "

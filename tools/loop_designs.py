@@ -27,7 +27,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_loop import clear_loop, config, measured_data  # noqa: E402
-from bench_sim import bench_meta, write_report  # noqa: E402
+from bench_sim import bench_meta, provenance, write_report  # noqa: E402
 
 from torchcf.system.console import OneLineParser, count, finite, run_main  # noqa: E402
 
@@ -61,8 +61,7 @@ def markdown(payload: dict) -> str:
     lines = [
         "# The loop's validation designs on measured data",
         "",
-        f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
-        f"{meta['cpu']}, git {meta['git']}. 50 training / 20 test pairs of the "
+        provenance(meta) + f". 50 training / 20 test pairs of the "
         "ZalaZONE campaign (the draw of `tools/bench_loop.py`), the leader's log "
         f"planted {payload['shift']:g} s ahead; eight models at 2e5 particles; "
         "the loop at its defaults but `diagnose.validation`.",

@@ -53,7 +53,7 @@ from types import SimpleNamespace
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_sim import bench_meta, write_report  # noqa: E402
+from bench_sim import bench_meta, provenance, write_report  # noqa: E402
 from loop_cases import config as loop_cases_config  # noqa: E402
 
 from torchcf.data import PairSet  # noqa: E402
@@ -248,8 +248,7 @@ def cases_markdown(payload: dict) -> str:
     lines = [
         "# The loop where drivers differ: hit rates",
         "",
-        f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
-        f"{meta['cpu']}, git {meta['git']}. Every pair its own driver (a "
+        provenance(meta) + ". Every pair its own driver (a "
         "two-model mixture, parameters drawn over the priors, kept where they "
         "follow plausibly), 50 training / 20 test pairs of 30-50 s, noise 0.1 m; "
         "pool IDM, GFM, LLCTG, HL at 40 000 particles; the loop at its defaults "
@@ -436,8 +435,7 @@ def power_markdown(payload: dict) -> str:
     lines = [
         "# The loop's power where drivers differ",
         "",
-        f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
-        f"{meta['cpu']}, git {meta['git']}. The cases of "
+        provenance(meta) + ". The cases of "
         "`reports/loop_heterogeneous.md` at smaller sizes, the loop's first step "
         "(was the planted effect chosen first?), sizes from large to small until "
         "fewer than 80 % of the seeds choose it.",
@@ -546,8 +544,7 @@ def detectable_report(payload: dict, planted: list[dict]) -> str:
     lines = [
         "# What the loop could show where drivers differ: its own power estimate",
         "",
-        f"`{meta['command']}`; torch {meta['torch']}, {meta['threads']} threads, "
-        f"{meta['cpu']}, git {meta['git']}. The controls of "
+        provenance(meta) + ". The controls of "
         "`tools/loop_heterogeneous.py` (nothing planted) at each number of "
         "training pairs (20 test pairs), the loop's first step: the sizes "
         "each tested effect would have had to have to be chosen "
