@@ -19,7 +19,9 @@ simulate afresh for every pair. Modules, each importing only those above it:
 - :mod:`~torchcf.amortised.training`: the training loop, its budget, early
   stopping, checkpoints and resume (:func:`train_estimator`);
 - :mod:`~torchcf.amortised.inference`: every pair of a pair set, in chunks
-  (:func:`infer`).
+  (:func:`infer`);
+- :mod:`~torchcf.amortised.proposals`: a model's samples scored and kept as
+  ABC particles in its per-pair top-N buffer (:func:`run_amortised`).
 
 Re-exports only.
 """
@@ -29,6 +31,7 @@ from .encoder import EncoderSettings, TrajectoryEncoder
 from .estimator import AmortisedEstimator, Draws, EstimatorSettings, new_estimator
 from .features import CHANNELS, channel_features, pair_features
 from .inference import PairPosteriors, infer
+from .proposals import run_amortised
 from .simulations import (
     NoiseLevels,
     SimulatedSet,
@@ -67,6 +70,7 @@ __all__ = [
     "infer",
     "new_estimator",
     "pair_features",
+    "run_amortised",
     "train_estimator",
     "validation_scores",
 ]
