@@ -215,3 +215,23 @@ def test_early_stopping_and_the_time_budget_end_a_training(space, simulator):
     result = train_estimator(estimator, simulator, timed, Session(progress_bar=False))
     assert result.progress.finished == "seconds"
     assert len(result.progress.history) == 1
+
+
+def test_a_finished_training_resumed_hands_back_its_weights(space, simulator, tmp_path):
+    """Nothing is simulated again: the checkpoint's best weights are the result."""
+    checkpoint = tmp_path / "amortised.pt"
+    trained = new_estimator(space, TINY, seed=0)
+    first = train_estimator(
+        trained, simulator, SMALL, Session(checkpoint, progress_bar=False)
+    )
+    again = new_estimator(space, TINY, seed=7)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(simulator, "draw", lambda *a, **k: pytest.fail("simulated"))
+        result = train_estimator(
+            again,
+            simulator,
+            SMALL,
+            Session(checkpoint, resume=True, progress_bar=False),
+        )
+    assert _weights_equal(again, trained)
+    assert _history(result) == _history(first)

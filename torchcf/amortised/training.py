@@ -204,6 +204,8 @@ class _Trainer:
 
     def run(self) -> TrainingResult:
         settings, progress = self.settings, self.progress
+        if progress.finished:  # resumed after it ended: its weights alone
+            return self._result()
         validation = self.simulator.draw("validation", settings.validation_simulations)
         if progress.epoch == 0 and progress.batch == 0 and not progress.history:
             progress.simulations += validation.n_drawn
@@ -225,6 +227,11 @@ class _Trainer:
                 elif progress.epoch >= settings.max_epochs and not progress.finished:
                     progress.finished = "epochs"
                 self._checkpoint(force=bool(progress.finished))
+        return self._result()
+
+    def _result(self) -> TrainingResult:
+        """The best weights into the estimator, and how the training ended."""
+        progress = self.progress
         if self.best is not None:
             self.estimator.load_state_dict(self.best)
         best = min(progress.history, key=lambda r: r.validation_loss, default=None)
