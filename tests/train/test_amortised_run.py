@@ -4,6 +4,8 @@ particles, the same outputs, and a resume that ends identical."""
 
 from __future__ import annotations
 
+import json
+
 import pytest
 import torch
 
@@ -16,6 +18,7 @@ from torchcf.config import ConfigError, validate_config
 from torchcf.posterior import Posterior
 from torchcf.train import train
 from torchcf.train.amortised import amortised_samples
+from torchcf.train.summary import RunSummary
 
 #: Seconds of training: three epochs of 1000 simulations.
 AMORTISED = {
@@ -66,6 +69,14 @@ def test_the_run_writes_the_outputs_of_rejection(finished):
     posterior = Posterior.load(out / "posterior.pt")
     assert set(posterior.hybrid) == {"idm", "hl"}
     assert summary.hybrid_size == 10 * 5
+    # the estimator's record, read back from summary.json as it was written
+    record = summary.amortised
+    assert record.epochs == 3 and record.finished == "epochs"
+    assert record.simulations == 3 * 1000 + 300
+    assert 0.0 <= record.validation_accuracy <= 1.0
+    raw = json.loads((out / "summary.json").read_text())
+    assert list(raw)[-3:-1] == ["method", "amortised"]
+    assert RunSummary.from_json(raw).amortised == record
 
 
 def test_the_buffers_keep_each_pairs_best_samples(finished, mixture, tmp_path):
@@ -74,7 +85,7 @@ def test_the_buffers_keep_each_pairs_best_samples(finished, mixture, tmp_path):
     particles do."""
     out, _ = finished
     cfg = config()
-    samples = amortised_samples(cfg, mixture, _Run(tmp_path), resume=False)
+    samples = amortised_samples(cfg, mixture, _Run(tmp_path), resume=False).samples
     rollout = Rollout(mixture, compile="off")
     posterior = Posterior.load(out / "posterior.pt")
     for m, spec in enumerate(cfg.models):

@@ -19,6 +19,8 @@ pair, are drawn again identical.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 from ..amortised import (
     NoiseLevels,
     PairPosteriors,
@@ -35,6 +37,20 @@ from ..config import TrainConfig
 from ..data import PairSet
 from ..runs.directory import RunDir
 from ..system.signals import StopRequest
+from .summary import AmortisedResult
+
+
+class AmortisedSamples(NamedTuple):
+    """The training pairs' samples and the estimator's record.
+
+    Attributes:
+        samples: every training pair's samples of (model, parameters).
+        record: how the estimator was trained (``summary.json``'s
+            ``amortised``).
+    """
+
+    samples: PairPosteriors
+    record: AmortisedResult
 
 
 def amortised_samples(
@@ -43,7 +59,7 @@ def amortised_samples(
     run: RunDir,
     resume: bool,
     stop: StopRequest | None = None,
-) -> PairPosteriors:
+) -> AmortisedSamples:
     """Train (or resume, or read back) the run's estimator and draw the
     training pairs' samples.
 
@@ -56,7 +72,8 @@ def amortised_samples(
         stop: a stop request checked between the training's batches.
 
     Returns:
-        Every training pair's samples (:class:`~torchcf.amortised.PairPosteriors`).
+        Every training pair's samples
+        (:class:`~torchcf.amortised.PairPosteriors`) and the training's record.
     """
     settings = cfg.abc.amortised
     space = ParameterSpace(
@@ -93,8 +110,21 @@ def amortised_samples(
         resume=resume and checkpoint.exists(),
         stop=stop,
     )
-    train_estimator(estimator, simulator, training, session)
-    return infer(estimator, pairs, settings.samples_per_pair, seed=cfg.abc.seed)
+    result = train_estimator(estimator, simulator, training, session)
+    samples = infer(estimator, pairs, settings.samples_per_pair, seed=cfg.abc.seed)
+    progress = result.progress
+    record = AmortisedResult(
+        samples_per_pair=settings.samples_per_pair,
+        noise=(noise.position, noise.speed, noise.acceleration),
+        epochs=len(progress.history),
+        finished=progress.finished,
+        simulations=progress.simulations,
+        invalid=progress.invalid,
+        seconds=round(progress.seconds, 3),
+        validation_loss=result.best_loss,
+        validation_accuracy=result.validation_accuracy,
+    )
+    return AmortisedSamples(samples, record)
 
 
-__all__ = ["amortised_samples"]
+__all__ = ["AmortisedSamples", "amortised_samples"]

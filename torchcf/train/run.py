@@ -267,14 +267,15 @@ def _train_held(
 
     with RunLogger(run.tb_dir, enabled=group.is_main) as logger:
         with stop:  # a signal stops the stream at its next checkpoint
-            samples = None
+            amortised = None
             if cfg.abc.method == "amortised":
                 # the run's checkpoint first: a run stopped while its estimator
                 # trains is a run to resume
                 checkpointer.save()
-                samples = group.on_main(
+                amortised = group.on_main(
                     amortised_samples, cfg, train_pairs, run, resume, stop
                 )
+            samples = amortised.samples if amortised is not None else None
             for spec in cfg.models:
                 _stream_model(
                     cfg, spec, rollout, state, checkpointer, logger, group, samples
@@ -285,6 +286,8 @@ def _train_held(
         posterior, summary = read_results(
             cfg, train_pairs, test_pairs, state, wall, group.world_size
         )
+        if amortised is not None:
+            summary = summary.with_amortised(amortised.record)
         if cfg.plausibility.report and group.is_main:
             report = hybrid_plausibility(
                 cfg.plausibility, train_pairs, posterior, progress=True
