@@ -42,7 +42,7 @@ from torch import Tensor
 from ..abc.streams import block_seed
 from ..data import PairSet
 from ..sim.rollout import Execution, simulate
-from .features import CHANNELS, channel_features
+from .features import channel_features
 from .space import ParameterSpace
 
 
@@ -201,17 +201,12 @@ class TrainingSimulator:
         self.seed = int(seed)
         self._lengths = lengths
 
-    @property
-    def n_channels(self) -> int:
-        """C."""
-        return len(CHANNELS)
-
     def draw(self, name: str, n: int) -> SimulatedSet:
         """Set ``name`` of ``n`` drawn examples (its valid ones kept).
 
         Args:
-            name: the set's name (``"validation"``, ``"epoch-3"``): enters the
-                seed of its chunks.
+            name: the set's name (the training's ``"validation"`` and
+                ``"set-0"``, ``"set-1"``, ...): enters the seed of its chunks.
             n: examples drawn.
         """
         if n < 1:
