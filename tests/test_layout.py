@@ -24,7 +24,7 @@ STAGES = [
     {"models"},
     {"sim"},  # the rollout; pairs made by it
     {"config", "posterior", "runs"},  # the run's config, learned set and folder
-    {"abc"},  # the ABC engine
+    {"abc", "amortised"},  # the ABC engine; the amortised estimator beside it
     {"evaluation"},  # metrics and the test-split evaluation
     {"diagnose"},
     {"traffic"},

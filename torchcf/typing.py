@@ -41,6 +41,10 @@ letter    dimension                                             where
 ``V``     vehicles of a traffic simulation, flattened           traffic.sampler
           (``vehicle_shape``, e.g. ``(S, n)``); ``V_g``: those
           of one model's group
+``C``     channels of the amortised encoder's input             amortised
+``E``     width of the amortised encoder's embedding            amortised
+``J``     series the amortised networks read in one call:       amortised
+          simulated examples or observed pairs
 ``D``     depth of a perception delay's history [steps]         models.effects
 ``L``     lags of a residual cross-correlation                  diagnose.residuals
 ``H, W``  height and width of an image                          evaluation.plots,

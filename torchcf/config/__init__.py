@@ -14,6 +14,7 @@ from .overrides import apply_overrides
 from .pairs import load_split
 from .schema import (
     ABCConfig,
+    AmortisedConfig,
     DataConfig,
     DiagnoseConfig,
     EvalConfig,
@@ -25,6 +26,7 @@ from .schema import (
 
 __all__ = [
     "ABCConfig",
+    "AmortisedConfig",
     "ConfigError",
     "DataConfig",
     "DiagnoseConfig",

@@ -84,18 +84,27 @@ def config_hash(cfg: TrainConfig) -> str:
     """Fingerprint of the settings that determine the learned particle sets.
 
     Everything except ``output``, ``threads``, ``abc.checkpoint_every``,
-    ``abc.chunk_size``, ``data.root`` and ``eval`` (none changes the result), and
-    ``abc.smc`` in a rejection run.
+    ``abc.chunk_size``, ``data.root`` and ``eval`` (none changes the result),
+    ``abc.smc`` unless the method is SMC, and ``abc.amortised`` unless it is
+    the amortised one (whose ``max_seconds`` a resumed run may change).
     Shorthand and object forms, key order and ``1`` vs ``1.0`` give the same hash.
 
     Returns:
         The first 16 hex digits of the SHA-256 of the canonical JSON.
     """
     payload = cfg.model_dump(mode="json", exclude=_NOT_HASHED)
-    if payload["abc"]["method"] == "rejection":
-        # The refinement's settings do not enter a rejection run: its hash stays
-        # what it was before they existed (checkpoints of earlier runs resume).
-        del payload["abc"]["method"], payload["abc"]["smc"]
+    method = payload["abc"]["method"]
+    # A method's settings do not enter another method's run: the hashes of
+    # rejection and SMC runs stay what they were before the later methods'
+    # settings existed (checkpoints of earlier runs resume).
+    amortised = payload["abc"].pop("amortised")
+    if method == "amortised":
+        del amortised["max_seconds"]
+        payload["abc"]["amortised"] = amortised
+    if method != "smc":
+        del payload["abc"]["smc"]
+    if method == "rejection":
+        del payload["abc"]["method"]
     text = json.dumps(payload, sort_keys=True, separators=(",", ":"), allow_nan=False)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 

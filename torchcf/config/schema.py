@@ -49,6 +49,7 @@ from torchcf.system.files import JSON
 
 __all__ = [
     "ABCConfig",
+    "AmortisedConfig",
     "ConfigError",
     "DataConfig",
     "DiagnoseConfig",
@@ -330,6 +331,84 @@ class SMCConfig(BaseModel):
     )
 
 
+class AmortisedConfig(BaseModel):
+    """The amortised method (``abc.method = "amortised"``,
+    :mod:`torchcf.amortised`): one estimator of (model, parameters) given a
+    pair's series, trained on simulations behind the training pairs' leaders,
+    whose samples for every training pair are scored and kept as rejection's
+    particles are."""
+
+    model_config = _STRICT
+
+    samples_per_pair: int = Field(
+        200,
+        gt=0,
+        description=(
+            "Samples of (model, parameters) drawn per training pair from its "
+            "amortised posterior; each is simulated once on its pair, scored with "
+            "the run's distance and offered to its model's top-N buffer, as a "
+            "rejection particle is."
+        ),
+    )
+    window_steps: int = Field(
+        300,
+        ge=2,
+        description=(
+            "Steps of the leader windows the estimator is trained on (300: 30 s "
+            "at dt 0.1 s); a training pair shorter than it lends no leader."
+        ),
+    )
+    noise: tuple[_NonNegativeFloat, _NonNegativeFloat, _NonNegativeFloat] | None = (
+        Field(
+            None,
+            description=(
+                "Standard deviations of the white noise added to the simulated "
+                "followers: position [m], speed [m/s], acceleration [m/s^2]; "
+                "None: measured from the training pairs' followers (from their "
+                "second differences)."
+            ),
+        )
+    )
+    simulations_per_epoch: int = Field(
+        20_000,
+        gt=0,
+        description="Simulations drawn for an epoch's training set.",
+    )
+    reuse: int = Field(
+        1,
+        gt=0,
+        description=(
+            "Epochs each simulated set serves: 1 draws fresh simulations every "
+            "epoch; max_epochs trains on one fixed set."
+        ),
+    )
+    max_epochs: int = Field(40, gt=0, description="Training epochs at most.")
+    max_seconds: float | None = Field(
+        None,
+        gt=0,
+        description=(
+            "Training time at most [s] (the epoch under way ends early); None: "
+            "no limit. A limit makes the estimator depend on the machine's speed; "
+            "a resumed run may change it."
+        ),
+    )
+    validation_simulations: int = Field(
+        4_000,
+        gt=0,
+        description=(
+            "Simulations of the validation set, whose loss stops the training "
+            "early and picks the weights kept."
+        ),
+    )
+    batch_size: int = Field(256, gt=0, description="Simulations per gradient step.")
+    learning_rate: float = Field(1e-3, gt=0, description="Adam's learning rate.")
+    patience: int = Field(
+        5,
+        gt=0,
+        description="Epochs without a lower validation loss before stopping.",
+    )
+
+
 #: Most particles per model: 1e12 take about 12 days at 1e6 particles/s, far
 #: beyond any calibration (the paper's uses 1e6); a larger number is a typo.
 MAX_PARTICLES = 10**12
@@ -349,16 +428,22 @@ class ABCConfig(BaseModel):
             f"At most {MAX_PARTICLES:.0e} (about 12 days at 1e6 particles/s)."
         ),
     )
-    method: Literal["rejection", "smc"] = Field(
+    method: Literal["rejection", "smc", "amortised"] = Field(
         "rejection",
         description=(
             "'rejection': every particle drawn from the prior (the paper's); "
             "'smc': the same budget spent in rounds that refine, per pair, a "
-            "population around the best fits (see abc.smc)."
+            "population around the best fits (see abc.smc); 'amortised': one "
+            "network trained on simulations proposes every pair's particles "
+            "(see abc.amortised; abc.n_particles is not used)."
         ),
     )
     smc: SMCConfig = Field(
         default_factory=SMCConfig, description="Settings of the 'smc' method."
+    )
+    amortised: AmortisedConfig = Field(
+        default_factory=AmortisedConfig,
+        description="Settings of the 'amortised' method.",
     )
     layout: Literal["paired", "full"] = Field(
         "paired",
@@ -435,6 +520,10 @@ class ABCConfig(BaseModel):
     def _smc_is_paired(self) -> ABCConfig:
         if self.method == "smc" and self.layout != "paired":
             raise ValueError("method='smc' refines per pair: it needs layout='paired'")
+        if self.method == "amortised" and self.layout != "paired":
+            raise ValueError(
+                "method='amortised' proposes per pair: it needs layout='paired'"
+            )
         return self
 
     @model_validator(mode="after")

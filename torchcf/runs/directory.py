@@ -6,6 +6,8 @@ A run directory, as the commands leave it::
     ├── config.json       train     the resolved configuration (written first)
     ├── checkpoint.pt     train     ABC progress and buffers, rewritten during the
     │                               run and kept after it (``--resume``)
+    ├── amortised.pt      train     abc.method "amortised" only: the estimator's
+    │                               training checkpoint, its trained weights
     ├── tb/               train, evaluate, diagnose: TensorBoard event files
     ├── posterior.pt      train     the learned particle set (torchcf.posterior)
     ├── summary.json      train     written LAST by training: the run is trained
@@ -147,6 +149,12 @@ class RunDir:
     @property
     def checkpoint(self) -> Path:
         return self._path / "checkpoint.pt"
+
+    @property
+    def amortised_checkpoint(self) -> Path:
+        """The amortised estimator's training checkpoint and trained weights
+        (``abc.method = "amortised"`` only)."""
+        return self._path / "amortised.pt"
 
     @property
     def posterior_pt(self) -> Path:

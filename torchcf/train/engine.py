@@ -2,7 +2,8 @@
 
 - the device a process simulates on (:func:`run_device`);
 - the particle budget checked against the training pairs (:func:`check_budget`,
-  and for ``abc.method = "smc"`` the refinement's budget);
+  and for ``abc.method = "smc"`` the refinement's budget, for ``"amortised"``
+  its samples and windows);
 - the refinement's settings (:func:`smc_settings`, defined in
   :mod:`torchcf.abc.configured` beside :func:`rollout_of`, which the loop's
   re-calibration uses too);
@@ -65,6 +66,9 @@ def check_budget(cfg: TrainConfig, pairs: PairSet) -> None:
     abc = cfg.abc
     if abc.method == "smc":
         check_smc_budget(abc.n_particles, pairs.n_pairs, smc_settings(cfg))
+    if abc.method == "amortised":
+        check_amortised_budget(cfg, pairs)
+        return
     paired = abc.layout == "paired"
     per_pair = abc.n_particles / pairs.n_pairs if paired else abc.n_particles
     for key, n in (("top_n", abc.top_n), ("sensitivity_n", max(abc.sensitivity_n))):
@@ -81,6 +85,32 @@ def check_budget(cfg: TrainConfig, pairs: PairSet) -> None:
             f"abc.{key}: {n} particles per pair asked for, more than a training "
             f"pair receives ({received}); set abc.n_particles >= {need} or lower "
             f"abc.{key}"
+        )
+
+
+def check_amortised_budget(cfg: TrainConfig, pairs: PairSet) -> None:
+    """The amortised method draws ``abc.amortised.samples_per_pair`` samples
+    per training pair (over all models) and trains on leader windows of
+    ``abc.amortised.window_steps``: ConfigError if a pair's samples cannot
+    fill the hybrid's top-N, or no training pair is as long as a window."""
+    settings = cfg.abc.amortised
+    for key, n in (
+        ("top_n", cfg.abc.top_n),
+        ("sensitivity_n", max(cfg.abc.sensitivity_n)),
+    ):
+        if n > settings.samples_per_pair:
+            raise ConfigError(
+                f"abc.{key}: {n} particles per pair asked for, more than the "
+                f"abc.amortised.samples_per_pair = {settings.samples_per_pair} "
+                f"drawn per training pair; set abc.amortised.samples_per_pair >= "
+                f"{n} or lower abc.{key}"
+            )
+    longest = int(pairs.lengths.max())
+    if longest < settings.window_steps:
+        raise ConfigError(
+            f"abc.amortised.window_steps: {settings.window_steps} steps, longer "
+            f"than every training pair (the longest has {longest}); set it to "
+            f"{longest} or less"
         )
 
 
@@ -154,6 +184,7 @@ def build_buffers(
 
 __all__ = [
     "build_buffers",
+    "check_amortised_budget",
     "check_budget",
     "check_smc_budget",
     "rollout_of",

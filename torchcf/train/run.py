@@ -7,7 +7,9 @@
 
 The ABC itself is :mod:`torchcf.abc`: for every model of the config, its prior
 stream is run through its per-pair top-N buffer (:func:`torchcf.abc.run_rejection`)
-and the hybrid is read from the buffers (:mod:`torchcf.abc.hybrid`). This module
+and the hybrid is read from the buffers (:mod:`torchcf.abc.hybrid`). With
+``abc.method = "amortised"`` an estimator is trained first and its samples for
+the training pairs are the streams (:mod:`torchcf.train.amortised`). This module
 is the run's orchestration: :func:`train` streams each model (with a progress
 bar, TensorBoard scalars and checkpoints), then selects the hybrid and writes the
 outputs, across the processes of a ``torchrun`` group (rank 0 reads and writes,
@@ -51,6 +53,7 @@ from ..abc.distributed import SINGLE, Group
 from ..abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
 from ..abc.rounds import RoundHooks
 from ..abc.smc import run_smc
+from ..amortised import PairPosteriors, run_amortised
 from ..config import ModelSpec, TrainConfig, load_split, resolved_json
 from ..data import PairSet
 from ..data.importer import record_extraction
@@ -64,6 +67,7 @@ from ..system.files import ensure_directory, writing
 from ..system.process import tune_malloc
 from ..system.signals import StopRequest
 from ..traffic.configured import hybrid_plausibility, plausibility_screen
+from .amortised import amortised_samples
 from .checkpoint import (
     Checkpointer,
     RunError,
@@ -92,18 +96,26 @@ def _stream_model(
     checkpointer: Checkpointer,
     logger: RunLogger,
     group: Group,
+    samples: PairPosteriors | None = None,
 ) -> None:
-    """Run one model's particles through its buffer (rejection or SMC), with a
-    progress bar, TensorBoard scalars and checkpoints between rounds.
+    """Run one model's particles through its buffer (rejection, SMC or the
+    amortised samples), with a progress bar, TensorBoard scalars and
+    checkpoints between rounds.
 
     ``spec`` is the model's config entry (its model object and prior box); its
-    buffer, progress and refinement state in ``state`` are keyed by its name.
+    buffer, progress and refinement state in ``state`` are keyed by its name;
+    ``samples``: the training pairs' amortised samples (``abc.method =
+    "amortised"`` only).
     """
     name = spec.name
     buffer, progress = state.buffers[name], state.progress[name]
     if progress.done:
         return
     n_total = cfg.abc.n_particles
+    own = None
+    if samples is not None:  # the model's samples are its stream
+        own = samples.of_model([s.name for s in cfg.models].index(name))
+        n_total = own[0].shape[0]
     bar = _progress_bar(name, n_total, progress.next, enabled=group.is_main)
     screen = plausibility_screen(cfg.plausibility, rollout.pairs)
 
@@ -130,7 +142,9 @@ def _stream_model(
     stream = prior_stream(spec.model, spec.bounds(torch.float64), cfg.abc.seed, rollout)
     hooks = RoundHooks(group, screen, checkpointer.due, after_round)
     with bar:
-        if cfg.abc.method == "smc":
+        if own is not None:
+            run_amortised(spec.model, own, buffer, rollout, progress, hooks=hooks)
+        elif cfg.abc.method == "smc":
             run_smc(
                 stream,
                 buffer,
@@ -253,14 +267,27 @@ def _train_held(
 
     with RunLogger(run.tb_dir, enabled=group.is_main) as logger:
         with stop:  # a signal stops the stream at its next checkpoint
+            amortised = None
+            if cfg.abc.method == "amortised":
+                # the run's checkpoint first: a run stopped while its estimator
+                # trains is a run to resume
+                checkpointer.save()
+                amortised = group.on_main(
+                    amortised_samples, cfg, train_pairs, run, resume, stop
+                )
+            samples = amortised.samples if amortised is not None else None
             for spec in cfg.models:
-                _stream_model(cfg, spec, rollout, state, checkpointer, logger, group)
+                _stream_model(
+                    cfg, spec, rollout, state, checkpointer, logger, group, samples
+                )
         # Every rank holds the same buffers now; the selection is cheap and
         # deterministic, so each computes it and only rank 0 writes.
         wall = time.perf_counter() - began
         posterior, summary = read_results(
             cfg, train_pairs, test_pairs, state, wall, group.world_size
         )
+        if amortised is not None:
+            summary = summary.with_amortised(amortised.record)
         if cfg.plausibility.report and group.is_main:
             report = hybrid_plausibility(
                 cfg.plausibility, train_pairs, posterior, progress=True

@@ -164,6 +164,38 @@ class SMCResult(Record):
 
 
 @dataclass(frozen=True)
+class AmortisedResult(Record):
+    """The amortised estimator's training and sampling (``abc.method =
+    "amortised"``, :mod:`torchcf.train.amortised`).
+
+    Attributes:
+        samples_per_pair: samples drawn per training pair, over all models.
+        noise: the measurement noise added to the simulated followers:
+            position [m], speed [m/s], acceleration [m/s^2].
+        epochs: training epochs run.
+        finished: why the training ended: ``"epochs"`` (its budget),
+            ``"patience"`` (early stopping) or ``"seconds"`` (its time limit).
+        simulations: simulations drawn, validation set included.
+        invalid: of them, invalid rollouts (discarded).
+        seconds: training time, every session of it (s, ms).
+        validation_loss: the lowest validation loss, the weights kept (the
+            negative log density in the flows' unbounded space).
+        validation_accuracy: the share of validation simulations whose most
+            probable model is the true one, with those weights.
+    """
+
+    samples_per_pair: int
+    noise: tuple[float, float, float]
+    epochs: int
+    finished: str
+    simulations: int
+    invalid: int
+    seconds: float
+    validation_loss: float
+    validation_accuracy: float
+
+
+@dataclass(frozen=True)
 class RunSummary(Record):
     """A finished run's summary: the content of ``summary.json``.
 
@@ -192,6 +224,7 @@ class RunSummary(Record):
         versions: the software's versions.
         method: ``abc.method``; None (absent in the file) in older summaries.
         smc: the refinement's record; ``abc.method = "smc"`` only.
+        amortised: the estimator's record; ``abc.method = "amortised"`` only.
         plausibility: model -> the battery's shares over the hybrid's particles
             (:meth:`torchcf.traffic.Plausibility.summary`); with
             ``plausibility.report`` only.
@@ -221,11 +254,17 @@ class RunSummary(Record):
     versions: Versions
     method: str | None = None
     smc: SMCResult | None = None
+    amortised: AmortisedResult | None = None
     plausibility: dict[str, PlausibilitySummary] | None = None
     extra: JSON = field(default_factory=dict)
 
     #: fields written only when set (absent from the file when None)
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("method", "smc", "plausibility")
+    OPTIONAL: ClassVar[tuple[str, ...]] = (
+        "method",
+        "smc",
+        "amortised",
+        "plausibility",
+    )
 
     # ------------------------------------------------------------------ JSON
 
@@ -258,6 +297,7 @@ class RunSummary(Record):
         names = {f.name for f in fields(cls)} - {"extra"}
         try:
             smc, plausibility = raw.get("smc"), raw.get("plausibility")
+            amortised = raw.get("amortised")
             return cls(
                 dataset=raw["dataset"],
                 layout=raw["layout"],
@@ -284,6 +324,9 @@ class RunSummary(Record):
                 versions=Versions.from_json(raw["versions"]),
                 method=raw.get("method"),
                 smc=None if smc is None else SMCResult.from_json(smc),
+                amortised=None
+                if amortised is None
+                else AmortisedResult.from_json(amortised),
                 plausibility=None
                 if plausibility is None
                 else {
@@ -302,6 +345,10 @@ class RunSummary(Record):
     ) -> RunSummary:
         """This summary with the hybrid's plausibility report."""
         return replace(self, plausibility=plausibility)
+
+    def with_amortised(self, amortised: AmortisedResult) -> RunSummary:
+        """This summary with the amortised estimator's record."""
+        return replace(self, amortised=amortised)
 
 
 # --------------------------------------------------------------------------------------
@@ -495,6 +542,7 @@ def read_results(
 
 
 __all__ = [
+    "AmortisedResult",
     "ModelResult",
     "Pairwise",
     "RunSummary",

@@ -1,0 +1,155 @@
+"""A training run with ``abc.method = "amortised"``: the estimator trained on
+the run's models, its samples scored into the same buffers as rejection's
+particles, the same outputs, and a resume that ends identical."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+import torchcf.amortised.simulations as simulations_module
+from tests.abc.interrupt import interrupt_after, same_buffers
+from tests.train.test_train import config as train_config
+from tests.train.test_train import mixture_pairs
+from torchcf.abc.rejection import Rollout
+from torchcf.config import ConfigError, validate_config
+from torchcf.posterior import Posterior
+from torchcf.train import train
+from torchcf.train.amortised import amortised_samples
+from torchcf.train.summary import RunSummary
+
+#: Seconds of training: three epochs of 1000 simulations.
+AMORTISED = {
+    "samples_per_pair": 40,
+    "window_steps": 200,
+    "simulations_per_epoch": 1000,
+    "max_epochs": 3,
+    "validation_simulations": 300,
+    "batch_size": 128,
+}
+
+
+def config(**abc):
+    """The trainer tests' config (IDM and HL, seed 1), the amortised method."""
+    return train_config(**{"method": "amortised", "amortised": AMORTISED, **abc})
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def mixture():
+    return mixture_pairs()
+
+
+@pytest.fixture(scope="module")
+def finished(mixture, tmp_path_factory):
+    out = tmp_path_factory.mktemp("amortised") / "run"
+    summary = train(config(), out, pairs=(mixture, mixture))
+    return out, summary
+
+
+def test_the_run_writes_the_outputs_of_rejection(finished):
+    out, summary = finished
+    for name in ("posterior.pt", "summary.json", "amortised.pt", "checkpoint.pt"):
+        assert (out / name).exists(), name
+    assert (out / "report" / "parameters.csv").exists()
+    assert summary.method == "amortised"
+    assert sum(summary.shares.values()) == pytest.approx(1.0)
+    # every training pair's samples, split between the models, were offered
+    offered = sum(result.particles for result in summary.per_model.values())
+    assert offered == 10 * AMORTISED["samples_per_pair"]
+    posterior = Posterior.load(out / "posterior.pt")
+    assert set(posterior.hybrid) == {"idm", "hl"}
+    assert summary.hybrid_size == 10 * 5
+    # the estimator's record, read back from summary.json as it was written
+    record = summary.amortised
+    assert record.epochs == 3 and record.finished == "epochs"
+    assert record.simulations == 3 * 1000 + 300
+    assert 0.0 <= record.validation_accuracy <= 1.0
+    raw = json.loads((out / "summary.json").read_text())
+    assert list(raw)[-3:-1] == ["method", "amortised"]
+    assert RunSummary.from_json(raw).amortised == record
+
+
+def test_the_buffers_keep_each_pairs_best_samples(finished, mixture, tmp_path):
+    """The buffers equal an independent scoring of every sample (one rollout
+    each) and a sort per pair: the amortised samples enter as rejection's
+    particles do."""
+    out, _ = finished
+    cfg = config()
+    samples = amortised_samples(cfg, mixture, _Run(tmp_path), resume=False).samples
+    rollout = Rollout(mixture, compile="off")
+    posterior = Posterior.load(out / "posterior.pt")
+    for m, spec in enumerate(cfg.models):
+        pair, theta = samples.of_model(m)
+        score, _ = rollout.score(spec.model, theta.double(), pair)
+        buffer = posterior.buffers[spec.name]
+        for j in range(mixture.n_pairs):
+            mine = score[pair == j]
+            best = torch.sort(mine).values[: buffer["score"].shape[1]]
+            kept = buffer["score"][j, : best.numel()]
+            finite = torch.isfinite(best)
+            torch.testing.assert_close(kept[finite], best[finite])
+
+
+class _Run:
+    """A run directory's one file that :func:`amortised_samples` writes."""
+
+    def __init__(self, path):
+        self.amortised_checkpoint = path / "amortised.pt"
+
+
+@pytest.mark.parametrize("where", ["training", "streams"])
+def test_a_resumed_run_ends_identical(finished, mixture, tmp_path, where):
+    """Killed while the estimator trains (a checkpoint after every batch) or
+    while a model's samples are scored: ``--resume`` gives the same buffers."""
+    _, expected = finished
+    cfg = config(checkpoint_every=1e-6, chunk_size=64)
+    out = tmp_path / "run"
+
+    def run():
+        train(cfg, out, pairs=(mixture, mixture))
+
+    if where == "streams":
+        interrupt_after(2, run)
+    else:
+        calls = [0]
+        real = simulations_module.simulate
+
+        def killed(*args, **kwargs):
+            calls[0] += 1
+            if calls[0] > 6:  # drawing the third epoch's set
+                raise KeyboardInterrupt
+            return real(*args, **kwargs)
+
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(simulations_module, "simulate", killed)
+            with pytest.raises(KeyboardInterrupt):
+                run()
+        assert (out / "amortised.pt").exists()
+    summary = train(cfg, out, resume=True, pairs=(mixture, mixture))
+    finished_out, _ = finished
+    same_buffers(Posterior.load(out / "posterior.pt"),
+                 Posterior.load(finished_out / "posterior.pt"))  # fmt: skip
+    assert summary.shares == expected.shares
+
+
+def test_the_config_guards_the_method(mixture, tmp_path):
+    raw = config().model_dump(mode="json")
+    raw["abc"]["layout"] = "full"
+    with pytest.raises(ConfigError, match="method='amortised' proposes per pair"):
+        validate_config(raw)
+    short = config(amortised={**AMORTISED, "samples_per_pair": 3})
+    with pytest.raises(ConfigError, match="abc.amortised.samples_per_pair = 3"):
+        train(short, tmp_path / "short", pairs=(mixture, mixture))
+    long = config(amortised={**AMORTISED, "window_steps": 301})
+    with pytest.raises(ConfigError, match="abc.amortised.window_steps: 301"):
+        train(long, tmp_path / "long", pairs=(mixture, mixture))
