@@ -176,3 +176,26 @@ def test_an_interrupted_recalibration_resumes_at_its_model(
     for a, b in zip(resumed, whole, strict=True):
         for name in b:
             _assert_same(a[name], b[name])
+
+
+def test_an_amortised_run_is_recalibrated_by_rejection(tmp_path, pairs):
+    """The variants are rejection's N prior draws; the reference merges N fresh
+    draws of each wrapped pool model into the run's buffer."""
+    amortised = {
+        "samples_per_pair": 20,
+        "window_steps": 150,
+        "simulations_per_epoch": 300,
+        "max_epochs": 1,
+        "validation_simulations": 100,
+        "batch_size": 100,
+    }
+    cfg = _config(["idm"], method="amortised")
+    raw = cfg.model_dump(mode="json")
+    raw["abc"]["amortised"] = amortised
+    cfg = validate_config(raw)
+    run = _trained(tmp_path, "run", cfg, pairs)
+    models = _models("idm", "idm+delay")
+    reference, after = retrain(cfg, run, FinalModel(models), _models("idm"), pairs)
+    alone = _trained(tmp_path, "variant", _config(["idm+delay"]), pairs)
+    _assert_same(after["idm+delay"], alone.buffers["idm+delay"])
+    assert bool((reference["idm"]["score"] <= run.buffers["idm"]["score"]).all())

@@ -283,6 +283,10 @@ def test_resume_says_what_it_reuses():
     assert resume_note(RunState("h"), ["idm"], 10).endswith(
         "no model finished; idm to run"
     )
+    # an amortised run: a model's particles are its samples, not n_particles
+    assert resume_note(state, ["idm", "gfm"], None) == (
+        "resuming from checkpoint.pt: idm finished; gfm at 340"
+    )
 
 
 @pytest.mark.parametrize(

@@ -305,14 +305,86 @@ def run_smc(
             f"the stream's particles go to {stream.n_pairs} pairs, the rollout "
             f"has {rollout.pairs.n_pairs}: make it with prior_stream(..., rollout)"
         )
-    model = stream.model
     budget = smc_budget(n_particles, rollout.pairs.n_pairs, settings)
     if budget.per_pair < 1:
         raise ValueError(
             f"{n_particles} particles leave no proposal per pair and round "
             f"({rollout.pairs.n_pairs} pairs, {settings.rounds} rounds)"
         )
-    compiled = rollout.compiled(model, n_particles)
+    schedule = (budget, settings, n_particles)
+    _run_from(stream, buffer, rollout, schedule, progress, state, hooks)
+
+
+def refine_population(
+    stream: ParticleStream,
+    buffer: TopN,
+    rollout: Rollout,
+    budget: Budget,
+    settings: SMCSettings,
+    progress: ModelProgress,
+    state: SMCState,
+    *,
+    hooks: RoundHooks = NO_HOOKS,
+) -> None:
+    """Refine, per pair, particles a buffer already holds: SMC's rounds ``1 ..
+    budget.rounds`` after a round 0 made elsewhere (an amortised estimator's
+    samples, :mod:`torchcf.train.refinement`).
+
+    Round 0 is the buffer's content: per pair its ``population`` best entries
+    form the first population (:func:`seed_population`), with the ``log r`` its
+    rows carry (0: equally weighted); the later rounds are :func:`run_smc`'s.
+
+    Args:
+        stream: the model's prior stream (its model, seed, box and fixed
+            values; no particle is drawn from it).
+        buffer: the model's per-pair buffer, ``theta`` (N, capacity, K + 1),
+            holding round 0's particles, indices ``0 .. budget.prior - 1``.
+        rollout: how particles are simulated (paired layout).
+        budget: ``prior`` the particles of round 0 (the later rounds' indices
+            follow them), ``per_pair`` and ``rounds`` the refinement's.
+        settings: the kernel's settings (``rounds`` and ``prior_fraction`` are
+            the budget's, not read).
+        progress: proposals offered so far (``budget.prior`` after round 0).
+        state: where the refinement stands (round 0: not started).
+        hooks: as in :func:`run_smc`.
+    """
+    if not rollout.paired:
+        raise ValueError("SMC refines per pair: it needs the paired layout")
+    if state.round == 0:
+        seed_population(state, buffer, settings)
+    schedule = (budget, settings, budget.total - budget.prior)
+    _run_from(stream, buffer, rollout, schedule, progress, state, hooks)
+
+
+def seed_population(state: SMCState, buffer: TopN, settings: SMCSettings) -> None:
+    """Round 0 from a buffer: per pair its ``population`` best entries become
+    the population (the ``log r`` of their last column kept), and round 1 starts
+    with its elite accepted, as after a prior round (:func:`_next_population`)."""
+    seed = TopN(buffer.n_pairs, settings.population, buffer.theta.shape[-1])
+    rows, slots = torch.isfinite(buffer.score).nonzero(as_tuple=True)
+    seed.push(
+        rows, buffer.score[rows, slots], buffer.index[rows, slots],
+        buffer.theta[rows, slots],
+    )  # fmt: skip
+    state.accepted = seed
+    _next_population(state, settings, buffer.n_pairs, buffer)
+
+
+def _run_from(
+    stream: ParticleStream,
+    buffer: TopN,
+    rollout: Rollout,
+    schedule: tuple[Budget, SMCSettings, int],
+    progress: ModelProgress,
+    state: SMCState,
+    hooks: RoundHooks,
+) -> None:
+    """The rounds ``state.round .. budget.rounds`` of one model's refinement;
+    ``schedule``: its budget, its settings and the particles whose count
+    decides whether the rollout runs compiled."""
+    budget, settings, planned = schedule
+    model = stream.model
+    compiled = rollout.compiled(model, planned)
     chunk = _round_chunk(rollout, model, budget.per_round, compiled)
     plan = Plan(rollout, model, chunk, compiled, stream.fixed)
     bounds = stream.bounds
@@ -545,7 +617,9 @@ __all__ = [
     "parameter_buffer",
     "prior_mass",
     "proposals_per_pair",
+    "refine_population",
     "run_smc",
+    "seed_population",
     "smc_budget",
     "thresholds",
 ]

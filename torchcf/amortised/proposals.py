@@ -42,6 +42,7 @@ def run_amortised(
     progress: ModelProgress,
     *,
     hooks: RoundHooks = NO_HOOKS,
+    weight_column: bool = False,
 ) -> None:
     """Offer one model's samples ``progress.next .. Q - 1`` to its buffer.
 
@@ -54,6 +55,9 @@ def run_amortised(
         progress: where to start; updated after every round.
         hooks: the processes, the plausibility screen and what runs between
             rounds (:class:`~torchcf.abc.rounds.RoundHooks`).
+        weight_column: the buffer holds one more column, SMC's ``log r``
+            (a refinement follows, :func:`torchcf.abc.smc.refine_population`):
+            the samples enter with ``log r = 0``, equally weighted.
     """
     model = require_model(model, "run_amortised")
     if not rollout.paired:
@@ -64,7 +68,7 @@ def run_amortised(
     compiled = rollout.compiled(model, planned)
     chunk = rollout.chunk(model, planned, compiled)
     run_rounds(
-        sample_proposals(pair, theta),
+        sample_proposals(pair, theta, weight_column),
         [Sink(buffer)],
         Plan(rollout, model, chunk, compiled),
         progress,
@@ -73,16 +77,24 @@ def run_amortised(
     )
 
 
-def sample_proposals(pair: Tensor, theta: Tensor) -> Propose:
+def sample_proposals(
+    pair: Tensor, theta: Tensor, weight_column: bool = False
+) -> Propose:
     """The samples ``start .. stop - 1`` as a round's proposals (particle index
-    = sample index), padded to a batch with copies of the last sample."""
+    = sample index), padded to a batch with copies of the last sample; with
+    ``weight_column`` the buffers receive each sample with a last column 0."""
     theta = theta.to(torch.float64)
     last = pair.shape[0] - 1
 
     def propose(start: int, stop: int, batch: int | None) -> Chunk:
         drawn = batch if batch is not None else stop - start
         rows = torch.arange(start, start + drawn).clamp(max=last)
-        return Chunk(theta[rows], pair[rows], torch.arange(start, stop))
+        index = torch.arange(start, stop)
+        if not weight_column:
+            return Chunk(theta[rows], pair[rows], index)
+        offered = theta[start:stop]
+        zero = torch.zeros(offered.shape[0], 1, dtype=theta.dtype)
+        return Chunk(theta[rows], pair[rows], index, rows=torch.cat((offered, zero), 1))
 
     return propose
 

@@ -15,11 +15,13 @@ from .pairs import load_split
 from .schema import (
     ABCConfig,
     AmortisedConfig,
+    AmortisedNetworkConfig,
     DataConfig,
     DiagnoseConfig,
     EvalConfig,
     ModelSpec,
     PlausibilityConfig,
+    RefineConfig,
     SMCConfig,
     TrainConfig,
 )
@@ -27,10 +29,12 @@ from .schema import (
 __all__ = [
     "ABCConfig",
     "AmortisedConfig",
+    "AmortisedNetworkConfig",
     "ConfigError",
     "DataConfig",
     "DiagnoseConfig",
     "PlausibilityConfig",
+    "RefineConfig",
     "EvalConfig",
     "ModelSpec",
     "SMCConfig",

@@ -50,12 +50,14 @@ from torchcf.system.files import JSON
 __all__ = [
     "ABCConfig",
     "AmortisedConfig",
+    "AmortisedNetworkConfig",
     "ConfigError",
     "DataConfig",
     "DiagnoseConfig",
     "EvalConfig",
     "ModelSpec",
     "PlausibilityConfig",
+    "RefineConfig",
     "SMCConfig",
     "TrainConfig",
 ]
@@ -331,6 +333,77 @@ class SMCConfig(BaseModel):
     )
 
 
+class AmortisedNetworkConfig(BaseModel):
+    """The amortised estimator's size (:class:`torchcf.amortised.
+    EstimatorSettings`): the trajectory encoder, the model head and the flows."""
+
+    model_config = _STRICT
+
+    encoder_width: int = Field(
+        48, gt=0, description="Feature maps of every convolution of the encoder."
+    )
+    encoder_depth: int = Field(
+        4,
+        gt=0,
+        description=(
+            "Convolutions of the encoder; the first three (or all, if fewer) "
+            "halve the time axis."
+        ),
+    )
+    embedding: int = Field(
+        64,
+        gt=0,
+        description="Width of the encoder's output, the series' summary (E).",
+    )
+    head_width: int = Field(64, gt=0, description="Hidden units of the model head.")
+    transforms: int = Field(
+        3, gt=0, description="Spline coupling layers of each model's flow."
+    )
+    flow_width: int = Field(
+        64,
+        gt=0,
+        description="Hidden units of each coupling layer's two-layer conditioner.",
+    )
+    bins: int = Field(8, gt=1, description="Bins of each spline.")
+
+
+class RefineConfig(BaseModel):
+    """The optional refinement of an amortised run: per model and training
+    pair, a short SMC (:mod:`torchcf.abc.smc`) whose first population is the
+    pair's best amortised samples (:mod:`torchcf.train.refinement`)."""
+
+    model_config = _STRICT
+
+    rounds: int = Field(
+        0,
+        ge=0,
+        description=(
+            "SMC rounds after the amortised samples; 0: no refinement. A pair "
+            "receives rounds * per_pair simulations per model."
+        ),
+    )
+    per_pair: int = Field(
+        50, gt=0, description="Proposals per training pair, model and round."
+    )
+    population: int = Field(
+        20,
+        gt=1,
+        description=(
+            "Particles per training pair carried from round to round; the first "
+            "population is the pair's best amortised samples of the model."
+        ),
+    )
+    quantile: float = Field(
+        0.5,
+        gt=0,
+        le=1,
+        description=(
+            "Threshold schedule: a round accepts the proposals scoring at most "
+            "this quantile of the previous population's scores."
+        ),
+    )
+
+
 class AmortisedConfig(BaseModel):
     """The amortised method (``abc.method = "amortised"``,
     :mod:`torchcf.amortised`): one estimator of (model, parameters) given a
@@ -406,6 +479,17 @@ class AmortisedConfig(BaseModel):
         5,
         gt=0,
         description="Epochs without a lower validation loss before stopping.",
+    )
+    network: AmortisedNetworkConfig = Field(
+        default_factory=AmortisedNetworkConfig,
+        description="The estimator's size.",
+    )
+    refine: RefineConfig = Field(
+        default_factory=RefineConfig,
+        description=(
+            "A short SMC per training pair and model started from the amortised "
+            "samples (off unless refine.rounds > 0)."
+        ),
     )
 
 

@@ -20,6 +20,14 @@ once with the effects and once without:
   pool model again with a seed derived from the run's and its best ``C`` per
   pair are merged into the run's buffer.
 
+An amortised run (``abc.method = "amortised"``) is re-calibrated by
+**rejection** at ``N = abc.n_particles``: its estimator was trained on the pool
+models, not on the variants, and its samples are no stream to continue. So
+after's variants are rejection's ``N`` prior draws each, and the reference
+merges ``N`` fresh prior draws of each wrapped pool model (a seed derived from
+the run's, as for SMC) into the run's buffer. ``abc.n_particles`` then sets the
+re-calibration's cost alone.
+
 So after and reference hold the run's particles and ``N`` more per pool model
 drawn the run's way: the test-split change from the reference to after is the
 effects', not the search's, and neither can be worse than the run on the
@@ -212,7 +220,7 @@ def _more_of(
     """The run's buffer of pool model ``model`` after ``N`` more particles drawn
     the run's way (module docstring: the reference)."""
     n_particles = cfg.abc.n_particles
-    if cfg.abc.method == "smc":
+    if cfg.abc.method != "rejection":  # SMC again, or amortised: rejection's
         seed = derive_seed(cfg.abc.seed, "reference", model.name)
         fresh = _trained(cfg, model, bounds, seed, rollout, screen, tick)
         capacity = run_buffer["score"].shape[1]
@@ -245,7 +253,8 @@ def _trained(
     fixed: Tensor | None = None,
 ) -> dict[str, Tensor]:
     """``model``'s buffer after ``N`` particles from its stream of ``seed``,
-    by the run's sampler, as :func:`torchcf.train.train` does for a model; with
+    by the run's sampler, as :func:`torchcf.train.train` does for a model (an
+    amortised run's: rejection, module docstring); with
     ``fixed``, its last parameters held there (in the buffer's ``theta``)."""
     n_pairs, capacity = rollout.pairs.n_pairs, cfg.abc.buffer_size
     k = bounds.shape[0]

@@ -22,6 +22,9 @@ from __future__ import annotations
 from typing import NamedTuple
 
 from ..amortised import (
+    AmortisedEstimator,
+    EncoderSettings,
+    EstimatorSettings,
     NoiseLevels,
     PairPosteriors,
     ParameterSpace,
@@ -33,9 +36,10 @@ from ..amortised import (
     new_estimator,
     train_estimator,
 )
-from ..config import TrainConfig
+from ..config import AmortisedNetworkConfig, TrainConfig
 from ..data import PairSet
 from ..runs.directory import RunDir
+from ..system.files import read_torch
 from ..system.signals import StopRequest
 from .summary import AmortisedResult
 
@@ -76,10 +80,7 @@ def amortised_samples(
         (:class:`~torchcf.amortised.PairPosteriors`) and the training's record.
     """
     settings = cfg.abc.amortised
-    space = ParameterSpace(
-        [spec.model for spec in cfg.models],
-        [spec.bounds() for spec in cfg.models],
-    )
+    space = parameter_space(cfg)
     noise = (
         NoiseLevels(*settings.noise)
         if settings.noise is not None
@@ -103,7 +104,9 @@ def amortised_samples(
         checkpoint_every=cfg.abc.checkpoint_every,
         seed=cfg.abc.seed,
     )
-    estimator = new_estimator(space, seed=cfg.abc.seed)
+    estimator = new_estimator(
+        space, estimator_settings(settings.network), seed=cfg.abc.seed
+    )
     checkpoint = run.amortised_checkpoint
     session = Session(
         checkpoint=checkpoint,
@@ -127,4 +130,55 @@ def amortised_samples(
     return AmortisedSamples(samples, record)
 
 
-__all__ = ["AmortisedSamples", "amortised_samples"]
+def parameter_space(cfg: TrainConfig) -> ParameterSpace:
+    """The config's models and their prior boxes, the estimator's space."""
+    return ParameterSpace(
+        [spec.model for spec in cfg.models],
+        [spec.bounds() for spec in cfg.models],
+    )
+
+
+def trained_estimator(cfg: TrainConfig, run: RunDir) -> AmortisedEstimator:
+    """The estimator a finished amortised run trained (its kept weights, read
+    from :attr:`RunDir.amortised_checkpoint
+    <torchcf.runs.directory.RunDir.amortised_checkpoint>`), in eval mode.
+
+    Raises:
+        RunFileError: the checkpoint is missing, unreadable or corrupted.
+    """
+    raw = read_torch(run.amortised_checkpoint)
+    estimator = new_estimator(
+        parameter_space(cfg),
+        estimator_settings(cfg.abc.amortised.network),
+        seed=cfg.abc.seed,
+    )
+    best = raw.get("best")
+    estimator.load_state_dict(best if best is not None else raw["estimator"])
+    return estimator.eval()
+
+
+def estimator_settings(network: AmortisedNetworkConfig) -> EstimatorSettings:
+    """The estimator's size of ``abc.amortised.network``; the encoder's first
+    three convolutions (at most) halve the time axis."""
+    encoder = EncoderSettings(
+        width=network.encoder_width,
+        depth=network.encoder_depth,
+        strided=min(EncoderSettings.strided, network.encoder_depth),
+        embedding=network.embedding,
+    )
+    return EstimatorSettings(
+        encoder=encoder,
+        head_width=network.head_width,
+        transforms=network.transforms,
+        flow_width=network.flow_width,
+        bins=network.bins,
+    )
+
+
+__all__ = [
+    "AmortisedSamples",
+    "amortised_samples",
+    "estimator_settings",
+    "parameter_space",
+    "trained_estimator",
+]

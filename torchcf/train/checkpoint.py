@@ -8,12 +8,17 @@
         "progress": {model: ModelProgress.as_dict()},   # particles offered, ...
         "buffers": {model: TopN.state_dict()},          # per-pair top-N buffers
         "smc": {model: SMCState.state_dict()},          # abc.method = "smc" only
+        "refinement_before": {model: {...}},            # amortised, refined only
     }
 
 A buffer's state holds the tensors ``score`` ``(N, B)`` (the run's distance,
 ascending per pair), ``index`` ``(N, B)`` (the particle's number in its model's
 stream) and ``theta`` ``(N, B, K)`` (SI units, one more column ``log r`` under
-SMC), for ``N`` training pairs and ``B = abc.buffer_size`` slots.
+SMC and an amortised run's refinement), for ``N`` training pairs and ``B =
+abc.buffer_size`` slots. ``refinement_before`` (an amortised run with
+``abc.amortised.refine``, once every model's samples are scored) holds per model
+its share and median best score before the refinement
+(:mod:`torchcf.train.refinement`).
 
 :func:`open_run` checks the output directory against ``--resume`` and, resuming,
 reads the checkpoint into a :class:`RunState` (refusing one of another format,
@@ -65,6 +70,9 @@ class RunState:
     #: buffers are built
     saved_buffers: dict[str, TorchPayload] = field(default_factory=dict)
     saved_smc: dict[str, TorchPayload] = field(default_factory=dict)
+    #: per model, its share and median best score on the amortised samples,
+    #: before the refinement (an amortised run's refinement only)
+    refinement_before: dict[str, dict[str, float | None]] | None = None
 
     def as_checkpoint(self) -> TorchPayload:
         """The checkpoint's content (the module docstring's format)."""
@@ -76,6 +84,10 @@ class RunState:
         }
         if self.smc:
             checkpoint["smc"] = {k: v.state_dict() for k, v in self.smc.items()}
+        if self.refinement_before is not None:
+            checkpoint["refinement_before"] = {
+                k: dict(v) for k, v in self.refinement_before.items()
+            }
         return checkpoint
 
 
@@ -117,14 +129,17 @@ def open_run(cfg: TrainConfig, out: Path, resume: bool) -> RunState:
     return RunState(digest)
 
 
-def resume_note(state: RunState, models: list[str], n_particles: int) -> str:
+def resume_note(state: RunState, models: list[str], n_particles: int | None) -> str:
     """What ``--resume`` reuses from the checkpoint, in one line: the models
     finished, the one stopped part-way and how far, the ones still to run.
 
     Args:
         state: the checkpoint's state.
         models: the config's models, in run order.
-        n_particles: particles per model (``abc.n_particles``).
+        n_particles: particles per model (``abc.n_particles``); None where a
+            model's count is not the config's (the amortised method: its
+            samples of the model, then its refinement): the note gives the
+            particles done alone.
     """
     progress = state.progress
     done = [m for m in models if m in progress and progress[m].done]
@@ -133,7 +148,8 @@ def resume_note(state: RunState, models: list[str], n_particles: int) -> str:
     ]
     todo = [m for m in models if m not in done and m not in partial]
     parts = [f"{', '.join(done)} finished" if done else "no model finished"]
-    parts += [f"{m} at {progress[m].next:,} of {n_particles:,}" for m in partial]
+    total = "" if n_particles is None else f" of {n_particles:,}"
+    parts += [f"{m} at {progress[m].next:,}{total}" for m in partial]
     if todo:
         parts.append(f"{', '.join(todo)} to run")
     return "resuming from checkpoint.pt: " + "; ".join(parts)
@@ -196,6 +212,9 @@ def checkpoint_state(raw: Mapping[str, Any], digest: str, path: Path) -> RunStat
         ) from None
     state.saved_buffers = buffers
     state.saved_smc = raw.get("smc", {})
+    before = raw.get("refinement_before")
+    if before is not None:
+        state.refinement_before = {k: dict(v) for k, v in before.items()}
     return state
 
 

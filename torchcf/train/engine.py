@@ -6,7 +6,8 @@
   its samples and windows);
 - the refinement's settings (:func:`smc_settings`, defined in
   :mod:`torchcf.abc.configured` beside :func:`rollout_of`, which the loop's
-  re-calibration uses too);
+  re-calibration uses too; :func:`refine_settings` for an amortised run's
+  refinement);
 - every model's per-pair top-N buffer, progress and refinement state, fresh or
   from the checkpoint (:func:`build_buffers`);
 - how the particles are simulated (:func:`rollout_of`: a
@@ -15,7 +16,8 @@
 Units: SI throughout (m, s, m/s); ``abc.n_particles`` counts particles per
 model; a buffer is ``(N, B)`` scores for ``N`` training pairs and ``B =
 abc.buffer_size`` slots, with ``K`` parameter columns (``K + 1`` under SMC: the
-log of the importance weight's ratio, ``log r``).
+log of the importance weight's ratio, ``log r``; and under an amortised run's
+refinement).
 """
 
 from __future__ import annotations
@@ -134,6 +136,25 @@ def check_smc_budget(n_particles: int, n_pairs: int, settings: SMCSettings) -> N
         )
 
 
+def refine_settings(cfg: TrainConfig) -> SMCSettings | None:
+    """The refinement's settings of an amortised run (``abc.amortised.refine``,
+    :mod:`torchcf.train.refinement`) as the SMC engine's; None without one."""
+    refine = cfg.abc.amortised.refine
+    if cfg.abc.method != "amortised" or refine.rounds == 0:
+        return None
+    return SMCSettings(
+        population=refine.population, rounds=refine.rounds, quantile=refine.quantile
+    )
+
+
+def weighted_buffers(cfg: TrainConfig) -> SMCSettings | None:
+    """The SMC settings whose buffers carry the ``log r`` column: SMC's, or an
+    amortised run's refinement; None: the buffers hold the parameters alone."""
+    if cfg.abc.method == "smc":
+        return smc_settings(cfg)
+    return refine_settings(cfg)
+
+
 # --------------------------------------------------------------------------------------
 # Buffers
 
@@ -187,7 +208,9 @@ __all__ = [
     "check_amortised_budget",
     "check_budget",
     "check_smc_budget",
+    "refine_settings",
     "rollout_of",
     "run_device",
     "smc_settings",
+    "weighted_buffers",
 ]

@@ -9,7 +9,8 @@ The ABC itself is :mod:`torchcf.abc`: for every model of the config, its prior
 stream is run through its per-pair top-N buffer (:func:`torchcf.abc.run_rejection`)
 and the hybrid is read from the buffers (:mod:`torchcf.abc.hybrid`). With
 ``abc.method = "amortised"`` an estimator is trained first and its samples for
-the training pairs are the streams (:mod:`torchcf.train.amortised`). This module
+the training pairs are the streams (:mod:`torchcf.train.amortised`), refined
+per pair with ``abc.amortised.refine`` (:mod:`torchcf.train.refinement`). This module
 is the run's orchestration: :func:`train` streams each model (with a progress
 bar, TensorBoard scalars and checkpoints), then selects the hybrid and writes the
 outputs, across the processes of a ``torchrun`` group (rank 0 reads and writes,
@@ -52,7 +53,7 @@ from tqdm import tqdm
 from ..abc.distributed import SINGLE, Group
 from ..abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
 from ..abc.rounds import RoundHooks
-from ..abc.smc import run_smc
+from ..abc.smc import refine_population, run_smc
 from ..amortised import PairPosteriors, run_amortised
 from ..config import ModelSpec, TrainConfig, load_split, resolved_json
 from ..data import PairSet
@@ -78,10 +79,13 @@ from .checkpoint import (
 from .engine import (
     build_buffers,
     check_budget,
+    refine_settings,
     rollout_of,
     run_device,
     smc_settings,
+    weighted_buffers,
 )
+from .refinement import refine_budget, refinement_result, scores_before
 from .summary import RunSummary, read_results
 
 # --------------------------------------------------------------------------------------
@@ -97,6 +101,7 @@ def _stream_model(
     logger: RunLogger,
     group: Group,
     samples: PairPosteriors | None = None,
+    refining: bool = False,
 ) -> None:
     """Run one model's particles through its buffer (rejection, SMC or the
     amortised samples), with a progress bar, TensorBoard scalars and
@@ -105,17 +110,23 @@ def _stream_model(
     ``spec`` is the model's config entry (its model object and prior box); its
     buffer, progress and refinement state in ``state`` are keyed by its name;
     ``samples``: the training pairs' amortised samples (``abc.method =
-    "amortised"`` only).
+    "amortised"`` only). With ``abc.amortised.refine`` a model is streamed
+    twice: its samples (the model left unfinished, since the shares before
+    the refinement need every model's), then, ``refining``, its refinement
+    (:mod:`torchcf.train.refinement`).
     """
     name = spec.name
     buffer, progress = state.buffers[name], state.progress[name]
     if progress.done:
         return
     n_total = cfg.abc.n_particles
-    own = None
+    own = refine = None
     if samples is not None:  # the model's samples are its stream
         own = samples.of_model([s.name for s in cfg.models].index(name))
         n_total = own[0].shape[0]
+        if refine_settings(cfg) is not None:
+            refine = refine_budget(cfg, n_total, rollout.pairs.n_pairs)
+            n_total = refine.total
     bar = _progress_bar(name, n_total, progress.next, enabled=group.is_main)
     screen = plausibility_screen(cfg.plausibility, rollout.pairs)
 
@@ -142,8 +153,31 @@ def _stream_model(
     stream = prior_stream(spec.model, spec.bounds(torch.float64), cfg.abc.seed, rollout)
     hooks = RoundHooks(group, screen, checkpointer.due, after_round)
     with bar:
-        if own is not None:
-            run_amortised(spec.model, own, buffer, rollout, progress, hooks=hooks)
+        if refine is not None and refining:
+            refine_population(
+                stream,
+                buffer,
+                rollout,
+                refine,
+                refine_settings(cfg),
+                progress,
+                state.smc[name],
+                hooks=hooks,
+            )
+        elif own is not None:
+            if progress.next < own[0].shape[0]:
+                run_amortised(
+                    spec.model,
+                    own,
+                    buffer,
+                    rollout,
+                    progress,
+                    hooks=hooks,
+                    weight_column=refine is not None,
+                )
+            if refine is not None:  # refined once every model's samples are in
+                checkpointer.save()
+                return
         elif cfg.abc.method == "smc":
             run_smc(
                 stream,
@@ -159,6 +193,27 @@ def _stream_model(
             run_rejection(stream, buffer, rollout, n_total, progress, hooks=hooks)
     progress.done = True
     checkpointer.save()
+
+
+def _refine_models(
+    cfg: TrainConfig,
+    rollout: Rollout,
+    state: RunState,
+    checkpointer: Checkpointer,
+    logger: RunLogger,
+    group: Group,
+    samples: PairPosteriors,
+) -> None:
+    """Every model's refinement, after the record of the shares and scores
+    before it (kept in the checkpoint, so that a resumed run reports the
+    same)."""
+    if state.refinement_before is None:
+        state.refinement_before = scores_before(cfg, state.buffers)
+        checkpointer.save()
+    for spec in cfg.models:
+        _stream_model(
+            cfg, spec, rollout, state, checkpointer, logger, group, samples, True
+        )
 
 
 def _progress_bar(name: str, total: int, initial: int, enabled: bool) -> tqdm:
@@ -246,13 +301,15 @@ def _train_held(
         return finished
     if resume and group.is_main:
         models = [spec.name for spec in cfg.models]
-        print(resume_note(state, models, cfg.abc.n_particles), file=sys.stderr)
+        # an amortised run's models have their samples' count, not n_particles
+        counted = None if cfg.abc.method == "amortised" else cfg.abc.n_particles
+        print(resume_note(state, models, counted), file=sys.stderr)
     if pairs is None:
         pairs = group.on_main(load_split, cfg.data)
     train_pairs, test_pairs = pairs
     check_budget(cfg, train_pairs)
     _prepare(cfg, run, group)
-    smc = smc_settings(cfg) if cfg.abc.method == "smc" else None
+    smc = weighted_buffers(cfg)
     build_buffers(
         [spec.model for spec in cfg.models],
         train_pairs.n_pairs,
@@ -280,6 +337,10 @@ def _train_held(
                 _stream_model(
                     cfg, spec, rollout, state, checkpointer, logger, group, samples
                 )
+            if samples is not None and refine_settings(cfg) is not None:
+                _refine_models(
+                    cfg, rollout, state, checkpointer, logger, group, samples
+                )
         # Every rank holds the same buffers now; the selection is cheap and
         # deterministic, so each computes it and only rank 0 writes.
         wall = time.perf_counter() - began
@@ -287,7 +348,14 @@ def _train_held(
             cfg, train_pairs, test_pairs, state, wall, group.world_size
         )
         if amortised is not None:
-            summary = summary.with_amortised(amortised.record)
+            record = amortised.record
+            if state.refinement_before is not None:
+                record = record.with_refinement(
+                    refinement_result(
+                        cfg, state.refinement_before, state.buffers, train_pairs.n_pairs
+                    )
+                )
+            summary = summary.with_amortised(record)
         if cfg.plausibility.report and group.is_main:
             report = hybrid_plausibility(
                 cfg.plausibility, train_pairs, posterior, progress=True

@@ -48,7 +48,7 @@ from ..system.files import JSON
 from ..system.records import Record, copy_json, to_json_value
 from ..traffic.battery import PlausibilitySummary
 from .checkpoint import RunState
-from .engine import smc_settings
+from .engine import smc_settings, weighted_buffers
 
 PAIRWISE_MEANING = "table[i][j]: share of models[i] in the hybrid of {i, j} alone"
 SMC_MEANING = (
@@ -164,6 +164,60 @@ class SMCResult(Record):
 
 
 @dataclass(frozen=True)
+class RefinedModel(Record):
+    """What the refinement changed for one model
+    (:mod:`torchcf.train.refinement`).
+
+    Attributes:
+        share_before, share_after: the model's share of the hybrid on the
+            amortised samples alone, and after the refinement.
+        median_best_before, median_best_after: the median over the training
+            pairs of the pair's best score of the model (the run's distance;
+            None where no pair has one).
+    """
+
+    share_before: float
+    share_after: float
+    median_best_before: float | None
+    median_best_after: float | None
+
+
+@dataclass(frozen=True)
+class RefinementResult(Record):
+    """The refinement of an amortised run (``abc.amortised.refine``).
+
+    Attributes:
+        rounds: SMC rounds after the amortised samples.
+        per_pair: proposals per training pair, model and round.
+        population: particles per pair carried from round to round.
+        quantile: the threshold schedule's quantile.
+        simulations: the refinement's simulations, all models and pairs.
+        simulations_per_pair: of them, per training pair (all models).
+        per_model: model -> :class:`RefinedModel`.
+    """
+
+    rounds: int
+    per_pair: int
+    population: int
+    quantile: float
+    simulations: int
+    simulations_per_pair: int
+    per_model: dict[str, RefinedModel]
+
+    @classmethod
+    def from_json(cls, raw: Mapping[str, Any]) -> RefinementResult:
+        """The record of ``summary.json``'s ``amortised.refinement`` object."""
+        plain = super().from_json({**raw, "per_model": {}})
+        return replace(
+            plain,
+            per_model={
+                name: RefinedModel.from_json(record)
+                for name, record in raw["per_model"].items()
+            },
+        )
+
+
+@dataclass(frozen=True)
 class AmortisedResult(Record):
     """The amortised estimator's training and sampling (``abc.method =
     "amortised"``, :mod:`torchcf.train.amortised`).
@@ -182,6 +236,8 @@ class AmortisedResult(Record):
             negative log density in the flows' unbounded space).
         validation_accuracy: the share of validation simulations whose most
             probable model is the true one, with those weights.
+        refinement: what the refinement changed (``abc.amortised.refine``);
+            None (absent in the file) without one.
     """
 
     samples_per_pair: int
@@ -193,6 +249,27 @@ class AmortisedResult(Record):
     seconds: float
     validation_loss: float
     validation_accuracy: float
+    refinement: RefinementResult | None = None
+
+    def to_json(self) -> JSON:
+        """The JSON object: the fields in order, ``refinement`` only when set."""
+        raw = super().to_json()
+        if self.refinement is None:
+            del raw["refinement"]
+        return raw
+
+    @classmethod
+    def from_json(cls, raw: Mapping[str, Any]) -> AmortisedResult:
+        """The record of ``summary.json``'s ``amortised`` object."""
+        refinement = raw.get("refinement")
+        plain = super().from_json({k: v for k, v in raw.items() if k != "refinement"})
+        if refinement is None:
+            return plain
+        return replace(plain, refinement=RefinementResult.from_json(refinement))
+
+    def with_refinement(self, refinement: RefinementResult) -> AmortisedResult:
+        """This record with the refinement's."""
+        return replace(self, refinement=refinement)
 
 
 @dataclass(frozen=True)
@@ -515,7 +592,7 @@ def read_results(
     """
     names = [spec.name for spec in cfg.models]
     buffers = [state.buffers[name] for name in names]
-    if cfg.abc.method == "smc":  # the hybrid reads the parameters alone
+    if weighted_buffers(cfg) is not None:  # the hybrid reads the parameters alone
         buffers = [parameter_buffer(b) for b in buffers]
     kwargs = {"mode": cfg.abc.selection, "global_size": cfg.abc.global_size}
     selection = select(buffers, names, cfg.abc.top_n, **kwargs)
@@ -545,6 +622,8 @@ __all__ = [
     "AmortisedResult",
     "ModelResult",
     "Pairwise",
+    "RefinedModel",
+    "RefinementResult",
     "RunSummary",
     "SMCBudgetResult",
     "SMCResult",
