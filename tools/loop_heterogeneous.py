@@ -438,7 +438,9 @@ def power_markdown(payload: dict) -> str:
         provenance(meta) + ". The cases of "
         "`reports/loop_heterogeneous.md` at smaller sizes, the loop's first step "
         "(was the planted effect chosen first?), sizes from large to small until "
-        "fewer than 80 % of the seeds choose it.",
+        "fewer than 80 % of the seeds choose it. At more pairs the sizes begin "
+        "below the smallest chosen at fewer pairs, which is carried (not run "
+        "again: more pairs only add power).",
         "",
         "| effect | pairs | size: chosen / seeds | smallest size chosen in >= 80 % |",
         "|---|---|---|---|",
@@ -447,6 +449,8 @@ def power_markdown(payload: dict) -> str:
         sizes = ", ".join(
             f"{s['size']:g}: {s['hits']}/{s['seeds']}" for s in entry["sizes"]
         )
+        if entry.get("from") is not None:
+            sizes = f"{entry['from']:g}: carried from fewer pairs, {sizes}"
         lines.append(
             f"| {entry['effect']} | {entry['pairs']} | {sizes} | "
             f"{_smallest_text(entry)} |"
@@ -477,11 +481,16 @@ def power(
     in at least 80 % of the seeds (``done``: runs read back, by (effect,
     pairs, size, seed); ``save`` is called after every run)."""
     out = []
-    for n_train in pairs:
+    chosen_at_fewer: dict[str, float] = {}  # effect -> smallest chosen so far
+    for n_train in sorted(pairs):
         for effect in effects:
-            entry = {"effect": effect, "pairs": n_train, "sizes": [], "smallest": None}
+            start = chosen_at_fewer.get(effect)
+            entry = {"effect": effect, "pairs": n_train, "sizes": [], "smallest": None,
+                     "from": start}  # fmt: skip
             out.append(entry)
             for size in POWER_SIZES[effect]:
+                if start is not None and abs(size) >= abs(start):
+                    continue  # chosen at fewer pairs: more pairs only add power
                 runs = []
                 tried = {"size": size, "hits": 0, "seeds": 0, "runs": runs}
                 entry["sizes"].append(tried)
@@ -506,6 +515,10 @@ def power(
                 if hits < _needed(seeds):
                     break
                 entry["smallest"] = size
+            if entry["smallest"] is None and start is not None:
+                entry["smallest"] = start  # carried from fewer pairs
+            if entry["smallest"] is not None:
+                chosen_at_fewer[effect] = entry["smallest"]
             save(out)
     return out
 
@@ -603,6 +616,10 @@ def main(argv: list[str] | None = None) -> int:
         help="keep the runs of the report written before (same settings)",
     )  # fmt: skip
     parser.add_argument(
+        "--also-from", nargs="+", default=[], metavar="NAME",
+        help="with --resume: keep the runs of these reports too (same settings)",
+    )  # fmt: skip
+    parser.add_argument(
         "--diagnose", action="append", default=[], metavar="KEY=JSON",
         help="a loop setting beside the defaults, e.g. validation='\"time\"'",
     )  # fmt: skip
@@ -639,9 +656,13 @@ def main(argv: list[str] | None = None) -> int:
         detectable(args.pairs, args.seeds, diagnose, done, save_rows)
         return 0
     if args.what == "power":
+        reports = [earlier] + [
+            _earlier(REPORTS / name, payload["diagnose"]) for name in args.also_from
+        ]
         done = {
             (e["effect"], e["pairs"], s["size"], r["seed"]): r
-            for e in earlier.get("power", [])
+            for report in (reports if args.resume else [])
+            for e in report.get("power", [])
             for s in e["sizes"]
             for r in s["runs"]
         }
