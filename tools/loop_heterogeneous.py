@@ -451,11 +451,24 @@ def power_markdown(payload: dict) -> str:
         )
         if entry.get("from") is not None:
             sizes = f"{entry['from']:g}: carried from fewer pairs, {sizes}"
-        lines.append(
-            f"| {entry['effect']} | {entry['pairs']} | {sizes} | "
-            f"{_smallest_text(entry)} |"
-        )
+        smallest = _smallest_text(entry)
+        if not _finished(entry, payload.get("seeds", 5)):
+            smallest += " (unfinished: its last size needs more seeds)"
+        lines.append(f"| {entry['effect']} | {entry['pairs']} | {sizes} | {smallest} |")
     return "\n".join(lines) + "\n"
+
+
+def _finished(entry: dict, seeds: int) -> bool:
+    """Whether an effect's sizes at its number of pairs are all decided: its
+    last size has every seed or too many misses for 80 %, and it is either
+    below 80 % or the smallest size of the study."""
+    if not entry["sizes"]:
+        return False
+    last = entry["sizes"][-1]
+    misses = last["seeds"] - last["hits"]
+    decided = last["seeds"] == seeds or misses > seeds - _needed(seeds)
+    smallest = abs(last["size"]) == min(abs(s) for s in POWER_SIZES[entry["effect"]])
+    return decided and (last["hits"] < _needed(seeds) or smallest)
 
 
 def _smallest_text(entry: dict) -> str:
@@ -594,7 +607,8 @@ def main(argv: list[str] | None = None) -> int:
         "what", nargs="?", choices=("cases", "power", "detectable", "report"),
         default="cases",
         help="detectable: the loop's own power estimate on the controls at each "
-        "--pairs; report: write the cases' markdown again from their JSON",
+        "--pairs; report: write a cases' or power report's markdown again from "
+        "its JSON (--name)",
     )  # fmt: skip
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=CASES)
     parser.add_argument("--effects", nargs="+", default=list(POWER_SIZES))
@@ -637,7 +651,8 @@ def main(argv: list[str] | None = None) -> int:
     out = REPORTS / (args.name or default)
     if args.what == "report":
         written = json.loads(out.with_suffix(".json").read_text())
-        write_report(out, written, cases_markdown(written))
+        text = power_markdown if "power" in written else cases_markdown
+        write_report(out, written, text(written))
         return 0
     earlier = _earlier(out, payload["diagnose"]) if args.resume else {}
     if args.what == "detectable":
@@ -666,6 +681,8 @@ def main(argv: list[str] | None = None) -> int:
             for s in e["sizes"]
             for r in s["runs"]
         }
+
+        payload["seeds"] = args.seeds
 
         def save(entries: list[dict]) -> None:
             payload["power"] = entries
