@@ -1,4 +1,7 @@
 """The run configuration: :mod:`torchcf.config.schema` (the pydantic schema),
+with its ABC methods' settings in :mod:`torchcf.config.methods`, the loop's in
+:mod:`torchcf.config.diagnose` and their shared field types in
+:mod:`torchcf.config.fields`,
 :mod:`torchcf.config.loading` (its loader and hash),
 :mod:`torchcf.config.overrides` (``--set key=VALUE``),
 :mod:`torchcf.config.pairs` (the ``data`` section to its pairs: :func:`load_split`),
@@ -8,21 +11,18 @@
 Re-exports only.
 """
 
+from .diagnose import DiagnoseConfig
 from .loading import config_hash, load_config, resolved_json, validate_config
 from .messages import ConfigError
+from .methods import AmortisedConfig, AmortisedNetworkConfig, RefineConfig, SMCConfig
 from .overrides import apply_overrides
 from .pairs import load_split
 from .schema import (
     ABCConfig,
-    AmortisedConfig,
-    AmortisedNetworkConfig,
     DataConfig,
-    DiagnoseConfig,
     EvalConfig,
     ModelSpec,
     PlausibilityConfig,
-    RefineConfig,
-    SMCConfig,
     TrainConfig,
 )
 

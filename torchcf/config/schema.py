@@ -27,55 +27,47 @@ Command line (:mod:`torchcf.config.__main__`)::
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 
 import torch
 from pydantic import (
     BaseModel,
-    ConfigDict,
     Field,
     ValidationInfo,
     field_validator,
     model_validator,
 )
 
+from torchcf.config.diagnose import DiagnoseConfig
+from torchcf.config.fields import STRICT, NonNegativeFloat, PositiveInt
 from torchcf.config.messages import ConfigError
+from torchcf.config.methods import AmortisedConfig, SMCConfig
 from torchcf.config.raw import RawSource
 from torchcf.data.reader import UNITS, unit_factor
 from torchcf.data.registry import DATASETS
 from torchcf.models import EFFECTS, MODELS, CFModel, UnknownModelError, get_model
-from torchcf.models.effects import parse_effect
 from torchcf.system.files import JSON
 
 __all__ = [
     "ABCConfig",
-    "AmortisedConfig",
-    "AmortisedNetworkConfig",
     "ConfigError",
     "DataConfig",
-    "DiagnoseConfig",
     "EvalConfig",
     "ModelSpec",
     "PlausibilityConfig",
-    "RefineConfig",
-    "SMCConfig",
     "TrainConfig",
 ]
 
 
 # Shared by every section: unknown keys are errors, values are immutable after
 # validation, and NaN / Infinity (which Python's json accepts) never pass.
-_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-_PositiveInt = Annotated[int, Field(gt=0)]
-_NonNegativeFloat = Annotated[float, Field(ge=0)]
 
 
 # --------------------------------------------------------------------- sections
 class DataConfig(BaseModel):
     """Which observed pairs to train and test on (:func:`torchcf.config.load_split`)."""
 
-    model_config = _STRICT
+    model_config = STRICT
 
     name: str | None = Field(
         None,
@@ -221,7 +213,7 @@ class DataConfig(BaseModel):
 class ModelSpec(BaseModel):
     """One car-following model to calibrate, with optional prior overrides."""
 
-    model_config = _STRICT
+    model_config = STRICT
 
     name: str = Field(
         description=(
@@ -303,196 +295,6 @@ class ModelSpec(BaseModel):
         return box
 
 
-class SMCConfig(BaseModel):
-    """The sequential refinement (``abc.method = "smc"``, :mod:`torchcf.abc.smc`)."""
-
-    model_config = _STRICT
-
-    population: int = Field(
-        50,
-        gt=1,
-        description="Particles per training pair carried from round to round.",
-    )
-    rounds: int = Field(
-        12, gt=0, description="Refinement rounds after the prior round."
-    )
-    prior_fraction: float = Field(
-        0.25,
-        gt=0,
-        lt=1,
-        description="Share of abc.n_particles drawn from the prior (round 0).",
-    )
-    quantile: float = Field(
-        0.5,
-        gt=0,
-        le=1,
-        description=(
-            "Threshold schedule: a round accepts the proposals scoring at most this "
-            "quantile of the previous population's scores."
-        ),
-    )
-
-
-class AmortisedNetworkConfig(BaseModel):
-    """The amortised estimator's size (:class:`torchcf.amortised.
-    EstimatorSettings`): the trajectory encoder, the model head and the flows."""
-
-    model_config = _STRICT
-
-    encoder_width: int = Field(
-        48, gt=0, description="Feature maps of every convolution of the encoder."
-    )
-    encoder_depth: int = Field(
-        4,
-        gt=0,
-        description=(
-            "Convolutions of the encoder; the first three (or all, if fewer) "
-            "halve the time axis."
-        ),
-    )
-    embedding: int = Field(
-        64,
-        gt=0,
-        description="Width of the encoder's output, the series' summary (E).",
-    )
-    head_width: int = Field(64, gt=0, description="Hidden units of the model head.")
-    transforms: int = Field(
-        3, gt=0, description="Spline coupling layers of each model's flow."
-    )
-    flow_width: int = Field(
-        64,
-        gt=0,
-        description="Hidden units of each coupling layer's two-layer conditioner.",
-    )
-    bins: int = Field(8, gt=1, description="Bins of each spline.")
-
-
-class RefineConfig(BaseModel):
-    """The optional refinement of an amortised run: per model and training
-    pair, a short SMC (:mod:`torchcf.abc.smc`) whose first population is the
-    pair's best amortised samples (:mod:`torchcf.train.refinement`)."""
-
-    model_config = _STRICT
-
-    rounds: int = Field(
-        0,
-        ge=0,
-        description=(
-            "SMC rounds after the amortised samples; 0: no refinement. A pair "
-            "receives rounds * per_pair simulations per model."
-        ),
-    )
-    per_pair: int = Field(
-        50, gt=0, description="Proposals per training pair, model and round."
-    )
-    population: int = Field(
-        20,
-        gt=1,
-        description=(
-            "Particles per training pair carried from round to round; the first "
-            "population is the pair's best amortised samples of the model."
-        ),
-    )
-    quantile: float = Field(
-        0.5,
-        gt=0,
-        le=1,
-        description=(
-            "Threshold schedule: a round accepts the proposals scoring at most "
-            "this quantile of the previous population's scores."
-        ),
-    )
-
-
-class AmortisedConfig(BaseModel):
-    """The amortised method (``abc.method = "amortised"``,
-    :mod:`torchcf.amortised`): one estimator of (model, parameters) given a
-    pair's series, trained on simulations behind the training pairs' leaders,
-    whose samples for every training pair are scored and kept as rejection's
-    particles are."""
-
-    model_config = _STRICT
-
-    samples_per_pair: int = Field(
-        200,
-        gt=0,
-        description=(
-            "Samples of (model, parameters) drawn per training pair from its "
-            "amortised posterior; each is simulated once on its pair, scored with "
-            "the run's distance and offered to its model's top-N buffer, as a "
-            "rejection particle is."
-        ),
-    )
-    window_steps: int = Field(
-        300,
-        ge=2,
-        description=(
-            "Steps of the leader windows the estimator is trained on (300: 30 s "
-            "at dt 0.1 s); a training pair shorter than it lends no leader."
-        ),
-    )
-    noise: tuple[_NonNegativeFloat, _NonNegativeFloat, _NonNegativeFloat] | None = (
-        Field(
-            None,
-            description=(
-                "Standard deviations of the white noise added to the simulated "
-                "followers: position [m], speed [m/s], acceleration [m/s^2]; "
-                "None: measured from the training pairs' followers (from their "
-                "second differences)."
-            ),
-        )
-    )
-    simulations_per_epoch: int = Field(
-        20_000,
-        gt=0,
-        description="Simulations drawn for an epoch's training set.",
-    )
-    reuse: int = Field(
-        1,
-        gt=0,
-        description=(
-            "Epochs each simulated set serves: 1 draws fresh simulations every "
-            "epoch; max_epochs trains on one fixed set."
-        ),
-    )
-    max_epochs: int = Field(40, gt=0, description="Training epochs at most.")
-    max_seconds: float | None = Field(
-        None,
-        gt=0,
-        description=(
-            "Training time at most [s] (the epoch under way ends early); None: "
-            "no limit. A limit makes the estimator depend on the machine's speed; "
-            "a resumed run may change it."
-        ),
-    )
-    validation_simulations: int = Field(
-        4_000,
-        gt=0,
-        description=(
-            "Simulations of the validation set, whose loss stops the training "
-            "early and picks the weights kept."
-        ),
-    )
-    batch_size: int = Field(256, gt=0, description="Simulations per gradient step.")
-    learning_rate: float = Field(1e-3, gt=0, description="Adam's learning rate.")
-    patience: int = Field(
-        5,
-        gt=0,
-        description="Epochs without a lower validation loss before stopping.",
-    )
-    network: AmortisedNetworkConfig = Field(
-        default_factory=AmortisedNetworkConfig,
-        description="The estimator's size.",
-    )
-    refine: RefineConfig = Field(
-        default_factory=RefineConfig,
-        description=(
-            "A short SMC per training pair and model started from the amortised "
-            "samples (off unless refine.rounds > 0)."
-        ),
-    )
-
-
 #: Most particles per model: 1e12 take about 12 days at 1e6 particles/s, far
 #: beyond any calibration (the paper's uses 1e6); a larger number is a typo.
 MAX_PARTICLES = 10**12
@@ -501,7 +303,7 @@ MAX_PARTICLES = 10**12
 class ABCConfig(BaseModel):
     """ABC rejection sampling: particles, buffers and selection (SPEC section 5)."""
 
-    model_config = _STRICT
+    model_config = STRICT
 
     n_particles: int = Field(
         1_000_000,
@@ -541,7 +343,7 @@ class ABCConfig(BaseModel):
         gt=0,
         description="Particles kept per training pair and model (N of the paper).",
     )
-    sensitivity_n: list[_PositiveInt] = Field(
+    sensitivity_n: list[PositiveInt] = Field(
         [5, 10, 15],
         min_length=1,
         description="Alternative top_n values evaluated from the same buffers.",
@@ -580,7 +382,7 @@ class ABCConfig(BaseModel):
             "top_n x the number of training pairs, the per-pair set's size."
         ),
     )
-    weights: tuple[_NonNegativeFloat, _NonNegativeFloat, _NonNegativeFloat] = Field(
+    weights: tuple[NonNegativeFloat, NonNegativeFloat, NonNegativeFloat] = Field(
         (0.5, 0.3, 0.2),
         description=(
             "Score weights of the position [1/m], speed [s/m] and acceleration "
@@ -638,7 +440,7 @@ class ABCConfig(BaseModel):
 class EvalConfig(BaseModel):
     """Evaluation of the learned particle set on the test pairs (SPEC section 6)."""
 
-    model_config = _STRICT
+    model_config = STRICT
 
     beta: float = Field(
         0.15,
@@ -722,7 +524,7 @@ class PlausibilityConfig(BaseModel):
     (:mod:`torchcf.abc.screen`).
     """
 
-    model_config = _STRICT
+    model_config = STRICT
 
     report: bool = Field(
         True,
@@ -777,260 +579,6 @@ class PlausibilityConfig(BaseModel):
         return values
 
 
-class DiagnoseConfig(BaseModel):
-    """Close the loop after training (``python -m torchcf.diagnose RUN_DIR``).
-
-    Residual diagnosis of the run's hybrid, attribution of candidate effects by
-    their out-of-sample gain in small ABC runs, re-calibration with the chosen
-    effects and evaluation on the test split (:mod:`torchcf.diagnose`).
-    """
-
-    model_config = _STRICT
-
-    run_after_training: bool = Field(
-        False,
-        description=(
-            "Run the loop at the end of the study (torchcf train, python -m "
-            "torchcf.train)."
-        ),
-    )
-    effects: list[str] = Field(
-        list(EFFECTS),
-        min_length=1,
-        description=(
-            f"Candidate effects, from {', '.join(EFFECTS)}; options in brackets, "
-            "e.g. 'grade(knots=4)' (a grade without start/end spans the training "
-            "pairs' road section)."
-        ),
-    )
-    models: Literal["active", "all"] = Field(
-        "active",
-        description=(
-            "Pool models that get the effects: 'active' = those whose share of the "
-            "run's hybrid is at least min_share, 'all' = every model of the run."
-        ),
-    )
-    min_share: float = Field(
-        0.05, ge=0, le=1, description="Share that makes a model 'active' [1]."
-    )
-    n_particles: int = Field(
-        50_000,
-        gt=0,
-        description=(
-            "Prior draws per pool model in the small ABC run that starts the "
-            "attribution on the fit windows (its S best per pair start the local "
-            "search)."
-        ),
-    )
-    population: int = Field(
-        20,
-        gt=0,
-        description=(
-            "S: particles per pair every arm keeps and refines by local search "
-            "(at least abc.top_n)."
-        ),
-    )
-    local_copies: int = Field(
-        32,
-        gt=0,
-        description="Perturbed copies of every kept particle per local-search round.",
-    )
-    rounds: int = Field(
-        6,
-        ge=0,
-        description=(
-            "Local-search rounds of the pool's fit, of every arm of a comparison "
-            "and of the re-calibration."
-        ),
-    )
-    max_rounds: int = Field(
-        40,
-        gt=0,
-        description=(
-            "Local-search rounds at most to converge the current model before "
-            "each step's comparisons (it stops once two rounds in a row lower "
-            "the fit by less than 0.2 %)."
-        ),
-    )
-    fit_fraction: float = Field(
-        0.6,
-        gt=0.1,
-        lt=0.95,
-        description=(
-            "The share of the data the attribution fits: of every training "
-            "pair's steps (validation 'time'), or of the training pairs "
-            "(validation 'pairs'); the rest is out of sample."
-        ),
-    )
-    validation: Literal["auto", "time", "pairs", "refit"] = Field(
-        "auto",
-        description=(
-            "How an arm is judged out of sample: 'time' fits the first "
-            "fit_fraction of every training pair's steps and scores each pair's "
-            "picks on the rest; 'pairs' fits the whole windows of fit_fraction of "
-            "the training pairs (a seeded draw) and scores every other pair by "
-            "the best of all the picks (the minimum distance on pairs the arms "
-            "never saw); 'refit' splits as 'pairs' and refits every held-out "
-            "pair by a short search of its own, with and without the effect "
-            "(pinned at the value the fit pairs gave), from one start; 'auto': "
-            "'refit' where at least log2(permutations + 1) pairs are held out "
-            "(15 at the defaults), else 'time'."
-        ),
-    )
-    refit_rounds: int = Field(
-        24,
-        ge=0,
-        description=(
-            "Local-search rounds of a held-out pair's refit (validation "
-            "'refit'), of refit_slots particles and local_copies / 2 copies each: "
-            "at most this many with refit_stop 'calm', exactly this many with "
-            "'rounds'."
-        ),
-    )
-    refit_slots: int = Field(
-        5,
-        gt=0,
-        description=(
-            "Particles a held-out pair's refit keeps and searches from "
-            "(validation 'refit'; a pair's own best with 'time'): the refit's "
-            "cost per round is pairs x refit_slots x local_copies / 2 rollouts."
-        ),
-    )
-    refit_stop: Literal["calm", "rounds"] = Field(
-        "calm",
-        description=(
-            "When a held-out pair's refit stops: 'calm' once two rounds in a "
-            "row lower the held-out pairs' summed best score by less than "
-            "0.2 % (as the fit's search converges; each side of a comparison "
-            "is then refitted until neither would gain from more rounds), "
-            "'rounds' after exactly refit_rounds rounds."
-        ),
-    )
-    validation_warmup: float = Field(
-        0.0,
-        ge=0,
-        le=10,
-        description=(
-            "Seconds of recorded history before each validation window [s] "
-            "(validation 'time'; with 'auto' it asks for it): the validation "
-            "rollout starts this long before the split from the observed state, "
-            "and only the steps after the split are scored, so a delay's, a "
-            "clock offset's or a lag's memory enters the window filled by the "
-            "recorded leader (0: the window starts at the split, its memory a "
-            "steady past). Held-out pairs ('pairs', 'refit') are simulated from "
-            "their first step."
-        ),
-    )
-    alpha: float = Field(
-        0.05,
-        gt=0,
-        lt=1,
-        description=(
-            "Family-wise significance level of the whole selection: step s is "
-            "tested at alpha / 2^s (the last step the rest), each by the fallback "
-            "procedure in the order the fit windows give."
-        ),
-    )
-    levels: Literal["halving", "pointed", "equal"] = Field(
-        "halving",
-        description=(
-            "How a step's level is shared among its tests, in their order: "
-            "'halving' gives the i-th test 2^-i of it (the first half, whatever "
-            "pointed to it); 'pointed' gives the effects a residual signature "
-            "points to half of it in equal shares and the others the other half "
-            "in equal shares; 'equal' gives every test the same share "
-            "(Bonferroni). The fallback procedure passes a significant test's "
-            "level on to the next under each."
-        ),
-    )
-    min_gain: float = Field(
-        0.05,
-        ge=0,
-        lt=1,
-        description="Smallest relative out-of-sample score drop that counts [1].",
-    )
-    max_effects: int = Field(
-        3,
-        gt=0,
-        description=(
-            "Forward selection's steps at most: each chooses the significant "
-            "effect of largest out-of-sample gain, given those chosen before."
-        ),
-    )
-    permutations: int = Field(
-        20_000, ge=1000, description="Sign-flip permutations of the gain test."
-    )
-    seed: int | None = Field(
-        None,
-        ge=0,
-        description=(
-            "Seed of the attribution's prior draws and local search; None = "
-            "abc.seed. Another seed checks that the answer is not luck."
-        ),
-    )
-    recalibration: Literal["train", "search"] = Field(
-        "train",
-        description=(
-            "How the chosen effects are re-calibrated on the whole training "
-            "windows: 'train' trains every pool model's variant as the run "
-            "trained its models (abc.method, abc.n_particles, beside the run's "
-            "buffers) against the pool given the same draws again; 'search' "
-            "refines the run's best particles by local search, with and without "
-            "the effects."
-        ),
-    )
-    detectable: bool = Field(
-        True,
-        description=(
-            "Where the loop chooses nothing (its first step), estimate per "
-            "tested effect the "
-            "smallest size its test would have found in these data "
-            "(:mod:`torchcf.diagnose.power`; one refit per size tried). Off "
-            "only to save that time where the sizes are not read (a power "
-            "study)."
-        ),
-    )
-    workers: int = Field(
-        0,
-        ge=0,
-        description=(
-            "Processes that search a step's effect arms side by side, one "
-            "thread each: 0 (auto) one per core where an arm's search rounds "
-            "are large enough to pay for starting them, 1 none (the results are "
-            "the same either way)."
-        ),
-    )
-    method: Literal["rejection", "smc"] = Field(
-        "rejection",
-        description=(
-            "The small ABC run that starts the attribution: 'rejection' (prior "
-            "draws) or 'smc' (the refinement of abc.smc at the same budget); "
-            "local search follows either."
-        ),
-    )
-
-    @field_validator("effects")
-    @classmethod
-    def _known_effects(cls, effects: list[str]) -> list[str]:
-        # parse_effect raises ValueError naming a bad effect or option.
-        names = [parse_effect(token).name for token in effects]
-        if len(set(names)) != len(names):
-            raise ValueError(f"an effect is listed twice: {effects}")
-        return [token.strip().lower() for token in effects]
-
-    @model_validator(mode="after")
-    def _warmup_in_time(self) -> DiagnoseConfig:
-        asked = "validation_warmup" in self.model_fields_set
-        held = self.validation in ("pairs", "refit")
-        if held and asked and self.validation_warmup > 0:
-            raise ValueError(
-                "diagnose.validation_warmup applies to validation 'time' only: a "
-                f"held-out pair ('{self.validation}') is simulated from its first "
-                "step"
-            )
-        return self
-
-
 def _models_schema(schema: JSON) -> None:
     """JSON schema of ``models``: items are a name or a ModelSpec object."""
     schema["items"] = {
@@ -1045,7 +593,7 @@ def _models_schema(schema: JSON) -> None:
 class TrainConfig(BaseModel):
     """A whole training run: ``python -m torchcf.train CONFIG``."""
 
-    model_config = _STRICT
+    model_config = STRICT
 
     data: DataConfig = Field(description="The observed pairs and their split.")
     models: list[ModelSpec] = Field(
