@@ -69,3 +69,14 @@ def data_root() -> Path:
     if not root:
         pytest.skip("TORCHCF_DATA is not set: no real data to test against")
     return Path(root)
+
+
+@pytest.fixture
+def one_thread():
+    """torch on one thread for the test (the small networks and rollouts of the
+    amortised tests: their figures and timing do not depend on the machine's
+    other load), the thread count restored after."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import pytest
-import torch
 
 from torchcf.amortised import (
     EncoderSettings,
@@ -37,11 +36,8 @@ SIMULATION = SimulationSettings(
 
 
 @pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+def _one_thread(one_thread):
+    """Every test of the package on one torch thread (``tests/conftest.py``)."""
 
 
 @pytest.fixture(scope="package")

@@ -21,20 +21,14 @@ from torchcf.posterior import Posterior
 from torchcf.train import train
 from torchcf.train.summary import RunSummary
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 REFINE = {"rounds": 2, "per_pair": 10, "population": 5}
 
 
 def config(**abc):
     """The amortised run's config, refined."""
     return amortised_config(amortised={**AMORTISED, "refine": REFINE}, **abc)
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

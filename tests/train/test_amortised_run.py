@@ -20,6 +20,8 @@ from torchcf.train import train
 from torchcf.train.amortised import amortised_samples
 from torchcf.train.summary import RunSummary
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 #: Seconds of training: three epochs of 1000 simulations.
 AMORTISED = {
     "samples_per_pair": 40,
@@ -34,14 +36,6 @@ AMORTISED = {
 def config(**abc):
     """The trainer tests' config (IDM and HL, seed 1), the amortised method."""
     return train_config(**{"method": "amortised", "amortised": AMORTISED, **abc})
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
