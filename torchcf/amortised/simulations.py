@@ -78,7 +78,7 @@ class NoiseLevels:
         deviation ``s``, ``x(t+1) - 2 x(t) + x(t-1)`` has standard deviation
         ``s sqrt(6)`` (the signal's own part is of order ``dt^2``). Over the
         steps whose three points are valid."""
-        valid = pairs.mask[2:] & pairs.mask[:-2]  # (T - 2, N)
+        valid = pairs.mask[2:] & pairs.mask[1:-1] & pairs.mask[:-2]  # (T - 2, N)
         levels = []
         for series in (pairs.x_follow, pairs.v_follow, pairs.a_follow):
             second = series[2:] - 2 * series[1:-1] + series[:-2]
