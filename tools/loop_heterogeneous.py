@@ -318,8 +318,8 @@ def detectable_markdown(
     lines = []
     for control in ("control (human)", "control (ACC)"):
         runs = [r for r in rows if r["case"] == control]
-        if not runs:
-            continue
+        if not any(t and t.get("detectable") for r in runs for t in r["first_step"]):
+            continue  # run with diagnose.detectable off: nothing to show
         mixture = CASES[control].mixture
         lines += [
             "",
@@ -515,6 +515,8 @@ def power(
                     runs.append(row)
                     tried["hits"] = sum(r["hit"] for r in runs)
                     tried["seeds"] = len(runs)
+                    if tried["hits"] >= _needed(seeds):  # more seeds only add hits
+                        entry["smallest"] = size
                     save(out)
                     misses = sum(not r["hit"] for r in runs)
                     if misses > seeds - _needed(seeds):
@@ -527,7 +529,6 @@ def power(
                 )
                 if hits < _needed(seeds):
                     break
-                entry["smallest"] = size
             if entry["smallest"] is None and start is not None:
                 entry["smallest"] = start  # carried from fewer pairs
             if entry["smallest"] is not None:
