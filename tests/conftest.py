@@ -71,11 +71,12 @@ def data_root() -> Path:
     return Path(root)
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def one_thread():
-    """torch on one thread for the test (the small networks and rollouts of the
-    amortised tests: their figures and timing do not depend on the machine's
-    other load), the thread count restored after."""
+    """torch on one thread for a module's tests and its module fixtures (the
+    small networks and rollouts of the amortised tests: a run trained by a
+    module fixture and again by a test must see the same thread count, as
+    float32 sums depend on it), the thread count restored after."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     yield

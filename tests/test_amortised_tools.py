@@ -37,7 +37,7 @@ def test_the_bench_reports_training_sizes_and_quality(bench, tmp_path):
         "--validation", "100", "--epochs", "1", "--samples", "10",
         "--refine-rounds", "1", "--refine-per-pair", "5", "--refine-population", "3",
         "--common", "6", "--smc-per-pair", "200", "--smc-population", "10",
-        "--smc-rounds", "2", "--threads", "1", "--out", str(out),
+        "--smc-rounds", "2", "--threads", "1", "--compile", "off", "--out", str(out),
     ]  # fmt: skip
     assert bench.main(argv) == 0
     payload = json.loads(out.with_suffix(".json").read_text())

@@ -6,7 +6,9 @@ paper's data sets, against rejection and SMC.
 draws (``tools/sbc_study.py``'s :func:`prior_pairs`: ``--steps`` steps, 0.05 m
 position noise). One amortised run of the whole pool on them (its estimator
 trained on simulations behind their leaders, never on the pairs themselves),
-and one with the refinement (``--refine-rounds``):
+and one with the refinement (``--refine-rounds``), which reuses the first
+run's estimator (``abc.amortised.estimator``: trained once, the same samples
+refined; its seconds are the refinement's alone):
 
 - (a) SBC and coverage per model (:mod:`torchcf.evaluation.sbc`): the rank of
   each pair's true parameters among ``--draws`` draws of its true model's flow
@@ -22,7 +24,8 @@ and one with the refinement (``--refine-rounds``):
 **Data sets** (``--parts datasets``): each config of ``--datasets`` (the
 paper's three, data under ``$TORCHCF_DATA``) trained and evaluated on its test
 split four ways: rejection at ``--rejection`` particles per model, SMC at
-``--smc``, amortised, amortised with the refinement. Per method the hybrid's
+``--smc``, amortised, amortised with the refinement (reusing the amortised
+run's estimator, as above). Per method the hybrid's
 test WS, 0.15-WS and minimum distance with their bootstrap intervals (the
 evaluation's ``metrics.json``), the models' test WS, and where amortised is
 worse than SMC: the models whose test WS is more than 5 % above SMC's and the
@@ -79,9 +82,11 @@ SEED = 50
 
 
 # ----------------------------------------------------------------- the runs
-def amortised_settings(args, refined: bool) -> dict:
-    """``abc.amortised`` of the study's amortised runs."""
+def amortised_settings(args, refined: bool, estimator: Path | None) -> dict:
+    """``abc.amortised`` of the study's amortised runs; ``estimator``: the
+    amortised run whose trained estimator a refined run reuses."""
     return {
+        "estimator": None if estimator is None else str(estimator),
         "samples_per_pair": args.samples,
         "window_steps": args.window,
         "simulations_per_epoch": args.simulations,
@@ -94,8 +99,10 @@ def amortised_settings(args, refined: bool) -> dict:
     }
 
 
-def method_abc(args, method: str) -> dict:
-    """The ``abc`` settings of one of :data:`METHODS`."""
+def method_abc(args, method: str, amortised_run: Path) -> dict:
+    """The ``abc`` settings of one of :data:`METHODS`; the refined run reuses
+    the estimator of the amortised run in ``amortised_run`` (trained once,
+    refined samples drawn from the same posterior)."""
     if method == "rejection":
         return {"method": "rejection", "n_particles": args.rejection}
     if method == "smc":
@@ -103,7 +110,11 @@ def method_abc(args, method: str) -> dict:
         return {"method": "smc", "n_particles": args.smc, "smc": smc}
     return {
         "method": "amortised",
-        "amortised": amortised_settings(args, refined=method == "refined"),
+        "amortised": amortised_settings(
+            args,
+            refined=method == "refined",
+            estimator=amortised_run if method == "refined" else None,
+        ),
     }
 
 
@@ -160,7 +171,7 @@ def synthetic(args, work: Path) -> dict:
             "data": {"path": "synthetic prior draws (tools/amortised_quality.py)"},
             "models": list(MODELS),
             "abc": {"top_n": 5, "sensitivity_n": [5], "seed": SEED}
-            | method_abc(args, method),
+            | method_abc(args, method, work / "synthetic" / "amortised"),
             "compile": "off",
             "threads": args.threads,
         }
@@ -224,7 +235,9 @@ def datasets(args, work: Path) -> dict:
         mins = {}
         for method in METHODS:
             raw = base.model_dump(mode="json")
-            raw["abc"] = raw["abc"] | method_abc(args, method)
+            raw["abc"] = raw["abc"] | method_abc(
+                args, method, work / name / "amortised"
+            )
             raw["threads"] = args.threads
             cfg = validate_config(raw)
             run_dir = work / name / method

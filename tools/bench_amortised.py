@@ -10,8 +10,10 @@ refinement, against per-pair SMC.
   models in turn and of a model outside the pool, Gipps
   (:class:`torchcf.sim.synthetic.Gipps`), every ``len(models) + 1``-th pair),
   parameters near the middle of each model's prior box: the network alone
-  (``--samples`` samples per pair, :func:`torchcf.amortised.infer`), then
-  every sample simulated once and scored into per-pair buffers
+  (``--samples`` samples per pair, :func:`torchcf.amortised.infer`), with the
+  flows' sampling eager and compiled (``--compile``; compiled once beforehand
+  on an empty compile cache, its seconds apart), then every sample simulated
+  once and scored into per-pair buffers
   (:func:`torchcf.amortised.run_amortised`; up to ``--score-max-pairs``
   pairs), then the refinement (``--refine-rounds`` rounds of
   ``--refine-per-pair`` proposals per pair and model,
@@ -27,17 +29,23 @@ refinement, against per-pair SMC.
 The targets (issue 50, on 2 cores): training <= 30 min, 10^5 pairs inferred in
 <= 5 min, quality within 5 % of per-pair SMC.
 
-    python tools/bench_amortised.py --threads 2                  # full size
+    python tools/bench_amortised.py --threads 2 --keep DIR       # full size
     python tools/bench_amortised.py --sizes 100 --epochs 1 --simulations 500 \\
         --samples 20 --common 20 --smc-per-pair 300 --out /tmp/bench_amortised
+
+``--keep DIR`` keeps the trained estimator (``DIR/amortised.pt``) and reads
+it back on the next run, so that inference can be measured again without
+training again.
 
 Writes ``reports/bench/amortised.{json,md}`` (``--out``).
 """
 
 from __future__ import annotations
 
+import os
 import resource
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -62,9 +70,12 @@ from torchcf.amortised import (  # noqa: E402
     ParameterSpace,
     Session,
     SimulationSettings,
+    TrainingProgress,
     TrainingSettings,
     TrainingSimulator,
+    estimator_fingerprint,
     infer,
+    load_trained,
     new_estimator,
     run_amortised,
     train_estimator,
@@ -152,7 +163,11 @@ def peak_rss_mb() -> float:
 def train(
     args, space: ParameterSpace, pairs: PairSet
 ) -> tuple[AmortisedEstimator, dict]:
-    """The estimator trained behind ``pairs``' leaders; its cost."""
+    """The estimator trained behind ``pairs``' leaders; its cost. With
+    ``--keep DIR`` the training's checkpoint is ``DIR/amortised.pt``: a
+    finished one is read back (its seconds those of the run that trained it)."""
+    if args.estimator is not None:
+        return read_estimator(args.estimator, new_estimator(space, seed=args.seed))
     simulator = TrainingSimulator(
         space,
         pairs,
@@ -166,30 +181,53 @@ def train(
         seed=args.seed,
     )
     estimator = new_estimator(space, seed=args.seed)
-    began = time.perf_counter()
-    result = train_estimator(estimator, simulator, settings, Session())
-    seconds = time.perf_counter() - began
+    session = Session()
+    if args.keep is not None:
+        args.keep.mkdir(parents=True, exist_ok=True)
+        checkpoint = args.keep / "amortised.pt"
+        session = Session(checkpoint=checkpoint, resume=checkpoint.exists())
+    result = train_estimator(estimator, simulator, settings, session)
     progress = result.progress
     return estimator, {
         "simulations": progress.simulations,
         "epochs": len(progress.history),
         "finished": progress.finished,
-        "seconds": round(seconds, 3),
+        "seconds": round(progress.seconds, 3),
         "peak_rss_mb": round(peak_rss_mb(), 1),
         "validation_accuracy": result.validation_accuracy,
+        "read_back": session.resume,
     }
 
 
-def scored(
-    estimator: AmortisedEstimator,
-    pairs: PairSet,
-    models: list[str],
-    n_samples: int,
-    seed: int,
-) -> dict[str, TopN]:
-    """Every pair's samples simulated once and kept in per-model buffers with
-    SMC's ``log r`` column (0), ready to be refined."""
-    samples = infer(estimator, pairs, n_samples, seed=seed)
+def read_estimator(
+    path: Path, estimator: AmortisedEstimator
+) -> tuple[AmortisedEstimator, dict]:
+    """A trained estimator of the same models, boxes and network read from
+    ``path`` (an amortised run's ``amortised.pt``, or its directory) into
+    ``estimator``; its training's record."""
+    if path.is_dir():
+        path = path / "amortised.pt"
+    raw = load_trained(path, estimator_fingerprint(estimator))
+    estimator.load_state_dict(
+        raw["best"] if raw["best"] is not None else raw["estimator"]
+    )
+    progress = TrainingProgress.from_dict(raw["progress"])
+    best = min(progress.history, key=lambda r: r.validation_loss)
+    return estimator.eval(), {
+        "simulations": progress.simulations,
+        "epochs": len(progress.history),
+        "finished": progress.finished,
+        "seconds": round(progress.seconds, 3),
+        "peak_rss_mb": round(peak_rss_mb(), 1),
+        "validation_accuracy": best.validation_accuracy,
+        "read_back": True,
+        "estimator": str(path),
+    }
+
+
+def scored(samples, pairs: PairSet, models: list[str]) -> dict[str, TopN]:
+    """Every pair's samples (:func:`infer`'s) simulated once and kept in
+    per-model buffers with SMC's ``log r`` column (0), ready to be refined."""
     rollout = Rollout(pairs, compile="off")
     buffers = {}
     for m, name in enumerate(models):
@@ -307,20 +345,33 @@ def measure(args) -> dict:
     train_pairs, _ = make_pairs(makers[:-1], args.train_pairs, args.steps, seed=1)
     estimator, training = train(args, space, train_pairs)
     print(f"training: {training}", flush=True)
+    modes = {"off": [False], "on": [True], "both": [False, True]}[args.compile]
+    compile_seconds = None
+    if True in modes:  # the flows compiled once, on an empty compile cache
+        os.environ["TORCHINDUCTOR_CACHE_DIR"] = tempfile.mkdtemp(prefix="inductor-")
+        warm, _ = make_pairs(makers, 64, args.steps, seed=5)
+        began = time.perf_counter()
+        infer(estimator, warm, args.samples, seed=args.seed, compile=True)
+        compile_seconds = time.perf_counter() - began
+        print(f"compiled in {compile_seconds:.1f} s", flush=True)
     rows = []
     for size in args.sizes:
         pairs, label = make_pairs(makers, size, args.steps, seed=100 + size)
         row: dict = {"pairs": size}
-        began = time.perf_counter()
-        samples = infer(estimator, pairs, args.samples, seed=args.seed)
-        row["infer_s_per_1000"] = (time.perf_counter() - began) * 1000 / size
+        for compiled in modes:
+            began = time.perf_counter()
+            samples = infer(
+                estimator, pairs, args.samples, seed=args.seed, compile=compiled
+            )
+            key = "infer_compiled_s_per_1000" if compiled else "infer_s_per_1000"
+            row[key] = (time.perf_counter() - began) * 1000 / size
         top = samples.probabilities.argmax(1)
         row["top_model_rate_pool"] = float(
             (top == label)[label < len(models)].to(torch.float64).mean()
         )
         if size <= args.score_max_pairs:
             began = time.perf_counter()
-            buffers = scored(estimator, pairs, models, args.samples, args.seed)
+            buffers = scored(samples, pairs, models)
             row["score_s_per_1000"] = (time.perf_counter() - began) * 1000 / size
             if size <= args.refine_max_pairs and args.refine_rounds:
                 began = time.perf_counter()
@@ -330,22 +381,25 @@ def measure(args) -> dict:
         row["peak_rss_mb"] = round(peak_rss_mb(), 1)
         print(row, flush=True)
         rows.append(row)
+    if not args.common:
+        return {"training": training, "compile_seconds": compile_seconds, "sizes": rows}
     common, label = make_pairs(makers, args.common, args.steps, seed=7)
     began = time.perf_counter()
     smc = quality(smc_buffers(common, models, args))
     smc_seconds = time.perf_counter() - began
-    buffers = scored(estimator, common, models, args.samples, args.seed)
+    samples = infer(estimator, common, args.samples, seed=args.seed)
+    buffers = scored(samples, common, models)
     amortised = quality(buffers)
     comparison = {"amortised": compare(smc, amortised, label, names)}
     out = {"smc": _plain(smc), "amortised": _plain(amortised)}
     if args.refine_rounds:
-        samples = infer(estimator, common, args.samples, seed=args.seed)
         refined(buffers, common, args, sample_counts(samples, models))
         after = quality(buffers)
         out["refined"] = _plain(after)
         comparison["refined"] = compare(smc, after, label, names)
     return {
         "training": training,
+        "compile_seconds": compile_seconds,
         "sizes": rows,
         "common": {
             "pairs": args.common,
@@ -359,6 +413,8 @@ def measure(args) -> dict:
 def markdown(payload: dict) -> str:
     meta, res, args = payload["meta"], payload["results"], payload["settings"]
     t = res["training"]
+    sizes = res["sizes"]
+    compiled = any("infer_compiled_s_per_1000" in row for row in sizes)
     lines = [
         "# The amortised method at scale",
         "",
@@ -371,26 +427,48 @@ def markdown(payload: dict) -> str:
         "",
         f"{t['simulations']:,} simulations, {t['epochs']} epochs ({t['finished']}), "
         f"{t['seconds']:.1f} s, peak RSS {t['peak_rss_mb']:.0f} MB, validation "
-        f"model accuracy {t['validation_accuracy']:.1%}.",
+        f"model accuracy {t['validation_accuracy']:.1%}"
+        + (
+            f" (read back from `{t.get('estimator', '--keep')}`: the seconds of "
+            "the run that trained it, the peak RSS of this one)."
+            if t.get("read_back")
+            else "."
+        ),
         "",
         "## Seconds per 1 000 pairs",
         "",
         f"{args['samples']} samples per pair; refinement {args['refine_rounds']} "
-        f"rounds x {args['refine_per_pair']} proposals per pair and model.",
+        f"rounds x {args['refine_per_pair']} proposals per pair and model. "
+        "Inference: the network's forward passes and samples; scoring: every "
+        "sample simulated once and kept (inference not included)."
+        + (
+            f" Compiled: the flows' sampling through `torch.compile` "
+            f"(`compile`), compiled once beforehand in {res['compile_seconds']:.1f} "
+            "s on an empty compile cache (not included)."
+            if compiled
+            else ""
+        ),
         "",
-        "| pairs | inference | scoring | refinement | top model (pool pairs) "
-        "| peak RSS MB |",
-        "|---:|---:|---:|---:|---:|---:|",
+        "| pairs | inference | inference, compiled | scoring | refinement "
+        "| top model (pool pairs) | peak RSS MB |",
+        "|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for row in res["sizes"]:
+    for row in sizes:
         cells = [
             f"{row[key]:.2f}" if key in row else "-"
-            for key in ("infer_s_per_1000", "score_s_per_1000", "refine_s_per_1000")
+            for key in (
+                "infer_s_per_1000",
+                "infer_compiled_s_per_1000",
+                "score_s_per_1000",
+                "refine_s_per_1000",
+            )
         ]
         lines.append(
             f"| {row['pairs']:,} | {' | '.join(cells)} | "
             f"{row['top_model_rate_pool']:.1%} | {row['peak_rss_mb']:.0f} |"
         )
+    if "common" not in res:
+        return "\n".join(lines) + "\n"
     common = res["common"]
     lines += [
         "",
@@ -434,21 +512,42 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--validation", type=count, default=4000)
     parser.add_argument("--epochs", type=count, default=40)
     parser.add_argument("--samples", type=count, default=200)
-    parser.add_argument("--score-max-pairs", type=count, default=10000)
+    parser.add_argument("--score-max-pairs", type=natural, default=10000)
     parser.add_argument("--refine-max-pairs", type=count, default=10000)
     parser.add_argument("--refine-rounds", type=natural, default=4)
     parser.add_argument("--refine-per-pair", type=count, default=50)
     parser.add_argument("--refine-population", type=count, default=20)
-    parser.add_argument("--common", type=count, default=200)
+    parser.add_argument(
+        "--common", type=natural, default=200,
+        help="pairs of the quality comparison with per-pair SMC (0: none)",
+    )  # fmt: skip
     parser.add_argument("--smc-per-pair", type=count, default=2000)
     parser.add_argument("--smc-population", type=count, default=50)
     parser.add_argument("--smc-rounds", type=count, default=12)
     parser.add_argument("--seed", type=natural, default=0)
     parser.add_argument("--threads", type=count, default=2)
+    parser.add_argument(
+        "--compile", choices=("off", "on", "both"), default="both",
+        help="inference with the flows' sampling eager, compiled or both",
+    )  # fmt: skip
+    parser.add_argument(
+        "--estimator", type=Path, default=None,
+        help="a trained estimator of the same models and network (an amortised "
+        "run's amortised.pt or directory) instead of training one",
+    )  # fmt: skip
+    parser.add_argument(
+        "--keep", type=Path, default=None,
+        help="keep the trained estimator in this folder (amortised.pt), or read "
+        "it back from there",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, default=REPORTS / "bench" / "amortised")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    settings = {k: v for k, v in vars(args).items() if k != "out"}
+    settings = {
+        k: str(v) if isinstance(v, Path) else v
+        for k, v in vars(args).items()
+        if k != "out"
+    }
     payload = {
         "meta": bench_meta(sys.argv, args.threads),
         "settings": settings,

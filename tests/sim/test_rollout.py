@@ -504,7 +504,7 @@ def test_auto_compiles_from_a_threshold_per_device(monkeypatch):
     compiles."""
     import torchcf.sim.compiled as sim
 
-    monkeypatch.setattr(sim, "_compiler_available", lambda: True)
+    monkeypatch.setattr(sim, "compiler_available", lambda: True)
     idm, cpu, cuda = MODELS["idm"], torch.device("cpu"), torch.device("cuda")
     cpu_limit, cuda_limit = int(sim.COMPILE_MIN_STEPS), int(sim.COMPILE_MIN_STEPS_CUDA)
     assert cpu_limit < cuda_limit
@@ -520,7 +520,7 @@ def test_auto_compiles_from_a_threshold_per_device(monkeypatch):
     assert sim.resolve_compile(mpc, "auto", cpu, cpu_limit)
     untraceable = type("Untraceable", (type(mpc),), {"corrects": False})()
     assert not sim.resolve_compile(untraceable, True, cpu, cuda_limit)
-    monkeypatch.setattr(sim, "_compiler_available", lambda: False)
+    monkeypatch.setattr(sim, "compiler_available", lambda: False)
     assert not sim.resolve_compile(idm, "auto", cpu, cuda_limit)
 
 

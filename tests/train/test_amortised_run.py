@@ -147,3 +147,61 @@ def test_the_config_guards_the_method(mixture, tmp_path):
     long = config(amortised={**AMORTISED, "window_steps": 301})
     with pytest.raises(ConfigError, match="abc.amortised.window_steps: 301"):
         train(long, tmp_path / "long", pairs=(mixture, mixture))
+
+
+def test_a_run_reusing_a_trained_estimator_draws_the_same_samples(
+    finished, mixture, tmp_path
+):
+    """``abc.amortised.estimator``: no training (its settings unused), the
+    earlier run's weights copied in, the same samples and buffers, the
+    earlier training's record marked reused."""
+    finished_out, expected = finished
+    reuse = {**AMORTISED, "estimator": str(finished_out), "simulations_per_epoch": 7}
+    out = tmp_path / "run"
+
+    def no_simulation(*args, **kwargs):
+        raise AssertionError("a reusing run trains nothing")
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(simulations_module, "simulate", no_simulation)
+        summary = train(config(amortised=reuse), out, pairs=(mixture, mixture))
+    same_buffers(Posterior.load(out / "posterior.pt"),
+                 Posterior.load(finished_out / "posterior.pt"))  # fmt: skip
+    assert summary.shares == expected.shares
+    record = summary.amortised.to_json()
+    assert record.pop("reused") == str(finished_out)
+    assert record == expected.amortised.to_json()  # the earlier training's
+    copied = torch.load(out / "amortised.pt", weights_only=True)
+    original = torch.load(finished_out / "amortised.pt", weights_only=True)
+    assert copied["fingerprint"] == original["fingerprint"]
+    assert all(torch.equal(copied["best"][k], v) for k, v in original["best"].items())
+
+
+def test_a_reused_estimator_must_be_the_configs_and_finished(
+    finished, mixture, tmp_path
+):
+    """A bad ``abc.amortised.estimator`` is a one-line config error, found
+    before the run writes anything."""
+    finished_out, _ = finished
+
+    def refused(estimator, match, **settings):
+        amortised = {**AMORTISED, "estimator": str(estimator), **settings}
+        out = tmp_path / "refused"
+        with pytest.raises(ConfigError, match=match):
+            train(config(amortised=amortised), out, pairs=(mixture, mixture))
+        assert not (out / "config.json").exists()
+
+    refused(tmp_path / "nowhere", "abc.amortised.estimator: .*no such file")
+    refused(
+        finished_out,
+        r"abc.amortised.estimator: .*another estimator \(estimator: ",
+        network={"embedding": 8},
+    )
+    raw = torch.load(finished_out / "amortised.pt", weights_only=True)
+    raw["progress"]["finished"] = ""
+    torch.save(raw, tmp_path / "unfinished.pt")
+    refused(tmp_path / "unfinished.pt", "has not finished; resume its run first")
+    raw["fingerprint"]["models"] = ["idm", "gfm"]
+    raw["progress"]["finished"] = "epochs"
+    torch.save(raw, tmp_path / "other.pt")
+    refused(tmp_path / "other.pt", r"another estimator \(models: \['idm', 'gfm'\]")

@@ -26,7 +26,7 @@ simulate afresh for every pair. Modules, each importing only those above it:
 Re-exports only.
 """
 
-from .checkpoint import CheckpointError, EpochRecord, TrainingProgress
+from .checkpoint import CheckpointError, EpochRecord, TrainingProgress, load_trained
 from .encoder import EncoderSettings, TrajectoryEncoder
 from .estimator import AmortisedEstimator, Draws, EstimatorSettings, new_estimator
 from .features import CHANNELS, channel_features, pair_features
@@ -43,6 +43,7 @@ from .training import (
     Session,
     TrainingResult,
     TrainingSettings,
+    estimator_fingerprint,
     train_estimator,
     validation_scores,
 )
@@ -67,7 +68,9 @@ __all__ = [
     "TrainingSimulator",
     "TrajectoryEncoder",
     "channel_features",
+    "estimator_fingerprint",
     "infer",
+    "load_trained",
     "new_estimator",
     "pair_features",
     "run_amortised",

@@ -134,6 +134,37 @@ def load_checkpoint(path: Path, fingerprint: dict[str, Any]) -> dict[str, Any]:
     return raw
 
 
+def load_trained(path: Path, estimator: dict[str, Any]) -> dict[str, Any]:
+    """The finished checkpoint at ``path``, its estimator reused by another
+    training run: the estimator's part of its fingerprint (models, boxes,
+    networks' sizes) must be ``estimator``, the rest (leaders, noise, budget)
+    may differ.
+
+    Raises:
+        RunFileError: the file is missing, unreadable or corrupted.
+        CheckpointError: another format, another estimator (the first
+            differing entry named) or a training not finished.
+    """
+    raw = read_torch(path)
+    if not isinstance(raw, dict) or raw.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path}: not an amortised training checkpoint")
+    saved = raw.get("fingerprint", {})
+    for key, value in estimator.items():
+        if saved.get(key) != value:
+            raise CheckpointError(
+                f"{path}: another estimator ({key}: {saved.get(key)!r} there, "
+                f"{value!r} in this config)"
+            )
+    missing = {"estimator", "best", "progress"} - set(raw)
+    if missing:
+        raise CheckpointError(f"{path}: no {', '.join(sorted(missing))}")
+    if not raw["progress"].get("finished"):
+        raise CheckpointError(
+            f"{path}: its training has not finished; resume its run first"
+        )
+    return raw
+
+
 def copy_state(state: dict[str, Any]) -> dict[str, Any]:
     """A deep copy of a state dict (the best weights, kept apart from the
     weights being trained)."""
@@ -147,5 +178,6 @@ __all__ = [
     "TrainingProgress",
     "copy_state",
     "load_checkpoint",
+    "load_trained",
     "save_checkpoint",
 ]

@@ -20,6 +20,7 @@ samples per series.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -27,6 +28,7 @@ import torch
 import zuko
 from torch import Tensor, nn
 
+from ..sim.compiled import compile_any_batch
 from .encoder import EncoderSettings, TrajectoryEncoder
 from .space import (
     ParameterSpace,
@@ -100,6 +102,7 @@ class AmortisedEstimator(nn.Module):
             )
             for k in space.n_params
         )
+        self._compiled: dict[int, Callable[[Tensor, Tensor], Tensor]] = {}
 
     def embed(self, features: Tensor, lengths: Tensor) -> Tensor:
         """(J, C, T) series, (J,) lengths -> (J, E) embeddings."""
@@ -161,7 +164,13 @@ class AmortisedEstimator(nn.Module):
         latent = self.latent_log_prob(embedding, model, unit)
         return latent - jacobian.to(latent)
 
-    def draw(self, embedding: Tensor, uniform: Tensor, normal: Tensor) -> Draws:
+    def draw(
+        self,
+        embedding: Tensor,
+        uniform: Tensor,
+        normal: Tensor,
+        compiled: bool = False,
+    ) -> Draws:
         """Samples from given random numbers: sample ``i`` of series ``j`` takes
         the model whose cumulative probability first exceeds ``uniform[j, i]``
         and the parameters its flow maps ``normal[j, i, :K_m]`` to.
@@ -173,6 +182,10 @@ class AmortisedEstimator(nn.Module):
             embedding: (J, E).
             uniform: (J, n) in [0, 1).
             normal: (J, n, K) standard normal.
+            compiled: each flow's inverse through ``torch.compile`` (one graph
+                per model for any number of samples; the same samples up to
+                float32 rounding; the compilation pays from millions of samples,
+                ``reports/bench/amortised.md``).
 
         Returns:
             :class:`Draws`.
@@ -197,10 +210,17 @@ class AmortisedEstimator(nn.Module):
                 continue
             k = self.space.n_params[m]
             context = embedding[series[rows]]
-            latent = flow(context).transform.inv(flat_normal[rows, :k])
+            inverse = self._compiled_inverse(m) if compiled else _inverse(flow)
+            latent = inverse(context, flat_normal[rows, :k])
             unit = latent_to_unit(latent)
             flat_theta[rows, :k] = self.space.to_theta(m, unit)
         return Draws(model, theta)
+
+    def _compiled_inverse(self, model: int) -> Callable[[Tensor, Tensor], Tensor]:
+        """The inverse of flow ``model``, compiled once per estimator."""
+        if model not in self._compiled:
+            self._compiled[model] = compile_any_batch(_inverse(self.flows[model]))
+        return self._compiled[model]
 
     def sample(
         self,
@@ -227,6 +247,16 @@ class AmortisedEstimator(nn.Module):
         """(J, M) ``q(m | x)`` of J series."""
         with torch.no_grad():
             return torch.softmax(self.model_logits(self.embed(features, lengths)), 1)
+
+
+def _inverse(flow: nn.Module) -> Callable[[Tensor, Tensor], Tensor]:
+    """(context (R, E), normal (R, K_m)) -> latent (R, K_m): the flow's map
+    from its base distribution to the parameters' unbounded space."""
+
+    def inverse(context: Tensor, normal: Tensor) -> Tensor:
+        return flow(context).transform.inv(normal)
+
+    return inverse
 
 
 def new_estimator(

@@ -56,6 +56,7 @@ def infer(
     *,
     seed: int = 0,
     chunk_size: int = 1024,
+    compile: bool = False,
 ) -> PairPosteriors:
     """The models' probabilities and ``n_samples`` samples per pair.
 
@@ -65,6 +66,9 @@ def infer(
         n_samples: n, samples of (model, parameters) per pair.
         seed: the samples are a function of it and each pair's position.
         chunk_size: pairs per forward pass.
+        compile: the flows' sampling compiled
+            (:meth:`AmortisedEstimator.draw`; the same samples up to float32
+            rounding).
 
     Returns:
         :class:`PairPosteriors`.
@@ -86,7 +90,7 @@ def infer(
                 features[start:stop, :, :longest], chunk_lengths
             )
             uniform, normal = _pair_random_numbers(seed, start, stop, n_samples, width)
-            draws = estimator.draw(embedding, uniform, normal)
+            draws = estimator.draw(embedding, uniform, normal, compiled=compile)
             probabilities.append(torch.softmax(estimator.model_logits(embedding), 1))
             models.append(draws.model)
             thetas.append(draws.theta)

@@ -398,6 +398,19 @@ def _epoch_order(seed: int, epoch: int, n: int) -> Tensor:
     return torch.randperm(n, generator=generator)
 
 
+def estimator_fingerprint(estimator: AmortisedEstimator) -> dict[str, Any]:
+    """What a trained estimator must match to be reused by another run: the
+    models and their boxes, the networks' sizes (a checkpoint's
+    fingerprint's first entries)."""
+    space = estimator.space
+    return {
+        "models": list(space.names),
+        "low": space.low.nan_to_num(0.0).tolist(),
+        "high": space.high.nan_to_num(0.0).tolist(),
+        "estimator": repr(estimator.settings),
+    }
+
+
 def _fingerprint(
     estimator: AmortisedEstimator,
     simulator: TrainingSimulator,
@@ -407,16 +420,12 @@ def _fingerprint(
     networks' sizes, the simulation's and the training's settings (all but
     the time budget and the checkpoints' pace, which a resumed run may
     change)."""
-    space = estimator.space
     training = asdict(settings)
     for free in ("max_seconds", "checkpoint_every"):
         training.pop(free)
     sim = simulator.settings
     return {
-        "models": list(space.names),
-        "low": space.low.nan_to_num(0.0).tolist(),
-        "high": space.high.nan_to_num(0.0).tolist(),
-        "estimator": repr(estimator.settings),
+        **estimator_fingerprint(estimator),
         "window_steps": sim.window_steps,
         "noise": repr(sim.noise),
         "chunk_size": sim.chunk_size,
@@ -431,6 +440,7 @@ __all__ = [
     "Stopper",
     "TrainingResult",
     "TrainingSettings",
+    "estimator_fingerprint",
     "train_estimator",
     "validation_scores",
 ]

@@ -86,7 +86,8 @@ def config_hash(cfg: TrainConfig) -> str:
     Everything except ``output``, ``threads``, ``abc.checkpoint_every``,
     ``abc.chunk_size``, ``data.root`` and ``eval`` (none changes the result),
     ``abc.smc`` unless the method is SMC, and ``abc.amortised`` unless it is
-    the amortised one (whose ``max_seconds`` a resumed run may change).
+    the amortised one (whose ``max_seconds`` a resumed run may change;
+    ``estimator`` enters only where set).
     Shorthand and object forms, key order and ``1`` vs ``1.0`` give the same hash.
 
     Returns:
@@ -100,6 +101,8 @@ def config_hash(cfg: TrainConfig) -> str:
     amortised = payload["abc"].pop("amortised")
     if method == "amortised":
         del amortised["max_seconds"]
+        if amortised["estimator"] is None:  # trained by the run: as before it existed
+            del amortised["estimator"]
         payload["abc"]["amortised"] = amortised
     if method != "smc":
         del payload["abc"]["smc"]

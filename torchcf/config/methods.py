@@ -149,6 +149,16 @@ class AmortisedConfig(BaseModel):
             "second differences)."
         ),
     )
+    estimator: str | None = Field(
+        None,
+        description=(
+            "A trained estimator to use instead of training one: the "
+            "amortised.pt of an earlier amortised run, or that run's directory, "
+            "whose models, prior boxes and network are this config's; its "
+            "training settings are then not used. It is copied into the run "
+            "directory. None: train one."
+        ),
+    )
     simulations_per_epoch: int = Field(
         20_000,
         gt=0,

@@ -639,8 +639,9 @@ class TrainConfig(BaseModel):
         "auto",
         description=(
             "torch.compile of the rollout: 'auto' where it pays off (from 2e8 "
-            "particle-steps on the CPU, 1e11 on CUDA), 'on' always (where the "
-            "model allows), 'off' never."
+            "particle-steps on the CPU, 1e11 on CUDA; an amortised run's "
+            "sampling from 1e7 samples), 'on' always (where the model allows), "
+            "'off' never."
         ),
     )
 

@@ -151,7 +151,8 @@ class _BlockRunner:
             return self._eager(*args)
 
 
-def _compiler_available() -> bool:
+def compiler_available() -> bool:
+    """Whether a C++ compiler is on the PATH (inductor's CPU kernels need one)."""
     return shutil.which("g++") is not None or shutil.which("c++") is not None
 
 
@@ -223,6 +224,15 @@ def _compile(function: Callable[..., Any], dynamic: bool = False) -> Callable[..
     # dynamic: None lets the marked dimensions (mark_batch_dynamic) be symbolic
     # and the rest static; False would ignore the marks.
     return torch.compile(function, dynamic=None if dynamic else False, fullgraph=True)
+
+
+def compile_any_batch(function: Callable[..., Any]) -> Callable[..., Any]:
+    """``function`` compiled with torchcf's settings (:func:`configure_compiler`)
+    for inputs whose sizes vary from call to call (dynamic shapes: one graph,
+    not one per size); graph breaks allowed, as a library's code (zuko's flows)
+    is traced as it comes."""
+    configure_compiler()
+    return torch.compile(function, dynamic=True)
 
 
 def configure_compiler() -> None:
@@ -316,5 +326,5 @@ def resolve_compile(
         # Compilation costs seconds; it pays on long runs only.
         if device.type == "cuda":
             return cells >= COMPILE_MIN_STEPS_CUDA
-        return cells >= COMPILE_MIN_STEPS and _compiler_available()
+        return cells >= COMPILE_MIN_STEPS and compiler_available()
     return bool(compile)

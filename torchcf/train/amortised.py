@@ -19,10 +19,14 @@ pair, are drawn again identical.
 
 from __future__ import annotations
 
+import math
+import re
+from pathlib import Path
 from typing import NamedTuple
 
 from ..amortised import (
     AmortisedEstimator,
+    CheckpointError,
     EncoderSettings,
     EstimatorSettings,
     NoiseLevels,
@@ -30,16 +34,20 @@ from ..amortised import (
     ParameterSpace,
     Session,
     SimulationSettings,
+    TrainingProgress,
     TrainingSettings,
     TrainingSimulator,
+    estimator_fingerprint,
     infer,
+    load_trained,
     new_estimator,
     train_estimator,
 )
-from ..config import AmortisedNetworkConfig, TrainConfig
+from ..config import AmortisedNetworkConfig, ConfigError, TrainConfig
 from ..data import PairSet
 from ..runs.directory import RunDir
-from ..system.files import read_torch
+from ..sim.compiled import compiler_available
+from ..system.files import RunFileError, atomic_torch_save, read_torch
 from ..system.signals import StopRequest
 from .summary import AmortisedResult
 
@@ -80,6 +88,8 @@ def amortised_samples(
         (:class:`~torchcf.amortised.PairPosteriors`) and the training's record.
     """
     settings = cfg.abc.amortised
+    if settings.estimator is not None:
+        return reused_samples(cfg, pairs, run, resume)
     space = parameter_space(cfg)
     noise = (
         NoiseLevels(*settings.noise)
@@ -114,7 +124,13 @@ def amortised_samples(
         stop=stop,
     )
     result = train_estimator(estimator, simulator, training, session)
-    samples = infer(estimator, pairs, settings.samples_per_pair, seed=cfg.abc.seed)
+    samples = infer(
+        estimator,
+        pairs,
+        settings.samples_per_pair,
+        seed=cfg.abc.seed,
+        compile=sampling_compiled(cfg, pairs.n_pairs),
+    )
     progress = result.progress
     record = AmortisedResult(
         samples_per_pair=settings.samples_per_pair,
@@ -130,6 +146,22 @@ def amortised_samples(
     return AmortisedSamples(samples, record)
 
 
+#: Samples (training pairs x ``samples_per_pair``) from which ``compile =
+#: "auto"`` compiles the flows' sampling: below it the compilation costs more
+#: than it saves (``tools/bench_amortised.py``, ``reports/bench/amortised.md``).
+COMPILE_MIN_SAMPLES = 10_000_000
+
+
+def sampling_compiled(cfg: TrainConfig, n_pairs: int) -> bool:
+    """Whether the run's samples are drawn with the flows compiled
+    (:func:`torchcf.amortised.infer`): the config's ``compile``, "auto" from
+    :data:`COMPILE_MIN_SAMPLES` samples on where a C++ compiler is there."""
+    if cfg.compile != "auto":
+        return cfg.compile == "on"
+    samples = n_pairs * cfg.abc.amortised.samples_per_pair
+    return samples >= COMPILE_MIN_SAMPLES and compiler_available()
+
+
 def parameter_space(cfg: TrainConfig) -> ParameterSpace:
     """The config's models and their prior boxes, the estimator's space."""
     return ParameterSpace(
@@ -138,23 +170,110 @@ def parameter_space(cfg: TrainConfig) -> ParameterSpace:
     )
 
 
+def reused_samples(
+    cfg: TrainConfig, pairs: PairSet, run: RunDir, resume: bool
+) -> AmortisedSamples:
+    """The training pairs' samples of the trained estimator of
+    ``abc.amortised.estimator`` (no training), which is copied into the run
+    directory first, so that the run keeps its estimator as a run that
+    trained one does (a resumed run reads its copy).
+
+    Raises:
+        ConfigError: the estimator cannot be read or is not this config's
+            (:func:`reused_checkpoint`).
+    """
+    settings = cfg.abc.amortised
+    copy = run.amortised_checkpoint
+    source = reused_source(cfg, run, resume)
+    raw = reused_checkpoint(cfg, source)
+    if source != copy:
+        atomic_torch_save(raw, copy)
+    estimator = _estimator_of(cfg, raw)
+    samples = infer(
+        estimator,
+        pairs,
+        settings.samples_per_pair,
+        seed=cfg.abc.seed,
+        compile=sampling_compiled(cfg, pairs.n_pairs),
+    )
+    progress = TrainingProgress.from_dict(raw["progress"])
+    best = min(progress.history, key=lambda r: r.validation_loss, default=None)
+    record = AmortisedResult(
+        samples_per_pair=settings.samples_per_pair,
+        noise=_noise_of(raw["fingerprint"]["noise"]),
+        epochs=len(progress.history),
+        finished=progress.finished,
+        simulations=progress.simulations,
+        invalid=progress.invalid,
+        seconds=round(progress.seconds, 3),
+        validation_loss=progress.best_loss,
+        validation_accuracy=best.validation_accuracy if best else math.nan,
+        reused=str(settings.estimator),
+    )
+    return AmortisedSamples(samples, record)
+
+
+def reused_source(cfg: TrainConfig, run: RunDir, resume: bool) -> Path:
+    """Where a run reusing ``abc.amortised.estimator`` reads it: its own copy
+    when resumed and the copy is there, else the configured path."""
+    copy = run.amortised_checkpoint
+    if resume and copy.exists():
+        return copy
+    return Path(cfg.abc.amortised.estimator)
+
+
+def reused_checkpoint(cfg: TrainConfig, source: Path | None = None) -> dict:
+    """The finished training checkpoint of ``abc.amortised.estimator`` (or of
+    ``source``; a run directory stands for its ``amortised.pt``), checked
+    against the config's models, prior boxes and network.
+
+    Raises:
+        ConfigError: missing, unreadable, not a finished training's, or
+            another estimator's (the first differing entry named).
+    """
+    path = Path(source if source is not None else cfg.abc.amortised.estimator)
+    if path.is_dir():
+        path = RunDir(path).amortised_checkpoint
+    fingerprint = estimator_fingerprint(_new_estimator(cfg))
+    try:
+        return load_trained(path, fingerprint)
+    except (RunFileError, CheckpointError) as error:
+        raise ConfigError(f"abc.amortised.estimator: {error}") from None
+
+
 def trained_estimator(cfg: TrainConfig, run: RunDir) -> AmortisedEstimator:
-    """The estimator a finished amortised run trained (its kept weights, read
-    from :attr:`RunDir.amortised_checkpoint
+    """The estimator a finished amortised run trained or reused (its kept
+    weights, read from :attr:`RunDir.amortised_checkpoint
     <torchcf.runs.directory.RunDir.amortised_checkpoint>`), in eval mode.
 
     Raises:
         RunFileError: the checkpoint is missing, unreadable or corrupted.
     """
-    raw = read_torch(run.amortised_checkpoint)
-    estimator = new_estimator(
+    return _estimator_of(cfg, read_torch(run.amortised_checkpoint))
+
+
+def _new_estimator(cfg: TrainConfig) -> AmortisedEstimator:
+    """A fresh estimator of the config's models, boxes and network."""
+    return new_estimator(
         parameter_space(cfg),
         estimator_settings(cfg.abc.amortised.network),
         seed=cfg.abc.seed,
     )
+
+
+def _estimator_of(cfg: TrainConfig, raw: dict) -> AmortisedEstimator:
+    """The estimator of a training checkpoint's kept weights, in eval mode."""
+    estimator = _new_estimator(cfg)
     best = raw.get("best")
     estimator.load_state_dict(best if best is not None else raw["estimator"])
     return estimator.eval()
+
+
+def _noise_of(text: str) -> tuple[float, float, float]:
+    """The noise levels of a checkpoint's fingerprint (``repr`` of
+    :class:`~torchcf.amortised.NoiseLevels`): position, speed, acceleration."""
+    values = dict(re.findall(r"(\w+)=([^,)]+)", text))
+    return tuple(float(values[k]) for k in ("position", "speed", "acceleration"))
 
 
 def estimator_settings(network: AmortisedNetworkConfig) -> EstimatorSettings:
@@ -176,9 +295,14 @@ def estimator_settings(network: AmortisedNetworkConfig) -> EstimatorSettings:
 
 
 __all__ = [
+    "COMPILE_MIN_SAMPLES",
     "AmortisedSamples",
     "amortised_samples",
     "estimator_settings",
     "parameter_space",
+    "reused_checkpoint",
+    "reused_samples",
+    "reused_source",
+    "sampling_compiled",
     "trained_estimator",
 ]

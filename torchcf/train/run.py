@@ -68,7 +68,7 @@ from ..system.files import ensure_directory, writing
 from ..system.process import tune_malloc
 from ..system.signals import StopRequest
 from ..traffic.configured import hybrid_plausibility, plausibility_screen
-from .amortised import amortised_samples
+from .amortised import amortised_samples, reused_checkpoint, reused_source
 from .checkpoint import (
     Checkpointer,
     RunError,
@@ -308,6 +308,9 @@ def _train_held(
         pairs = group.on_main(load_split, cfg.data)
     train_pairs, test_pairs = pairs
     check_budget(cfg, train_pairs)
+    if cfg.abc.method == "amortised" and cfg.abc.amortised.estimator is not None:
+        # a bad estimator found before any output
+        group.on_main(reused_checkpoint, cfg, reused_source(cfg, run, resume))
     _prepare(cfg, run, group)
     smc = weighted_buffers(cfg)
     build_buffers(

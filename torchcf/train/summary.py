@@ -238,6 +238,9 @@ class AmortisedResult(Record):
             probable model is the true one, with those weights.
         refinement: what the refinement changed (``abc.amortised.refine``);
             None (absent in the file) without one.
+        reused: where the estimator was read from
+            (``abc.amortised.estimator``), its training figures above being
+            that earlier run's; None (absent in the file): trained by this run.
     """
 
     samples_per_pair: int
@@ -250,12 +253,15 @@ class AmortisedResult(Record):
     validation_loss: float
     validation_accuracy: float
     refinement: RefinementResult | None = None
+    reused: str | None = None
 
     def to_json(self) -> JSON:
-        """The JSON object: the fields in order, ``refinement`` only when set."""
+        """The JSON object: the fields in order, ``refinement`` and ``reused``
+        only when set."""
         raw = super().to_json()
-        if self.refinement is None:
-            del raw["refinement"]
+        for optional in ("refinement", "reused"):
+            if getattr(self, optional) is None:
+                del raw[optional]
         return raw
 
     @classmethod
