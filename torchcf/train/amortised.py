@@ -15,6 +15,10 @@ run directory (:attr:`RunDir.amortised_checkpoint
 trained weights after the run; ``--resume`` continues it (or reads it back,
 finished) and the samples, a function of the weights, the seed and each
 pair, are drawn again identical.
+
+With ``abc.amortised.estimator`` the run trains nothing: it reads a finished
+estimator of an earlier run (same models, boxes and network), copies it into
+its own directory and draws its pairs' samples from it.
 """
 
 from __future__ import annotations
@@ -147,8 +151,9 @@ def amortised_samples(
 
 
 #: Samples (training pairs x ``samples_per_pair``) from which ``compile =
-#: "auto"`` compiles the flows' sampling: below it the compilation costs more
-#: than it saves (``tools/bench_amortised.py``, ``reports/bench/amortised.md``).
+#: "auto"`` compiles the flows' sampling: below it compiling the flows on an
+#: empty compile cache costs more than it saves (``tools/bench_amortised.py``;
+#: ``reports/performance.md``, "Amortised calibration").
 COMPILE_MIN_SAMPLES = 10_000_000
 
 
