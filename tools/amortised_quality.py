@@ -294,17 +294,29 @@ def worse(block: dict, mins: dict, method: str) -> dict:
 
 # ----------------------------------------------------------------- the report
 def markdown(payload: dict) -> str:
-    meta, res = payload["meta"], payload["results"]
+    meta, res, args = payload["meta"], payload["results"], payload["settings"]
     lines = ["# The amortised posteriors: calibration, recovery, test metrics", ""]
-    lines += [f"{provenance(meta)}.", ""]
+    lines += [
+        f"{provenance(meta)}. Amortised: {args['samples']} samples per pair, the "
+        f"estimator trained on {args['simulations']:,} simulations per epoch for "
+        f"at most {args['epochs']} epochs; refined: {args['refine_rounds']} rounds "
+        f"of {args['refine_per_pair']} proposals per pair and model, from the "
+        "amortised run's estimator. Data sets: rejection at "
+        f"{args['rejection']:,} particles per model, SMC at {args['smc']:,} "
+        f"(population {args['smc_population']}, {args['smc_rounds']} rounds).",
+        "",
+    ]
     if "synthetic" in res:
         syn = res["synthetic"]
         lines += [
             f"## Synthetic pairs ({syn['pairs_per_model']} per model)",
             "",
             "Coverage of the central 50 % / 90 % intervals (mean over the "
-            "parameters; calibrated: 0.50 / 0.90): the flow's draws of the true "
-            "model, and the run's 5 best scored samples per pair.",
+            "parameters; calibrated: 0.50 / 0.90), then SBC: the parameters "
+            "whose ranks of the truth are not uniform (chi-square p < 0.01) of "
+            "the model's; for the flow's draws of the true model (the amortised "
+            "posterior itself) and the run's 5 best scored samples per pair "
+            "(the ABC posterior the run keeps).",
             "",
             "| model | flow | top 5 amortised | top 5 refined |",
             "|---|---|---|---|",
@@ -316,8 +328,10 @@ def markdown(payload: dict) -> str:
                     cells.append("- (no pair with 5 fits)")
                     continue
                 cov = entry[key]["coverage"]
+                pvalues = np.asarray(entry[key]["pvalue"])
                 cells.append(
                     " / ".join(f"{np.mean(cov[str(q)]):.2f}" for q in LEVELS)
+                    + f"; SBC {int((pvalues < 0.01).sum())} of {pvalues.size}"
                     + f" ({entry[key]['pairs_used']} pairs)"
                 )
             lines.append(f"| {model} | {' | '.join(cells)} |")
@@ -337,13 +351,17 @@ def markdown(payload: dict) -> str:
             "",
             f"## {name}: the hybrid on the test split",
             "",
-            "Value [bootstrap interval over test pairs].",
+            "Value [bootstrap interval over test pairs]; seconds: the training "
+            "run's (the refined run reuses the amortised run's estimator: its "
+            "seconds are the sampling, scoring and refinement).",
             "",
-            "| method | " + " | ".join(label for _, label in METRICS) + " |",
-            "|---|" + "---|" * len(METRICS),
+            "| method | " + " | ".join(label for _, label in METRICS) + " | seconds |",
+            "|---|" + "---|" * len(METRICS) + "---:|",
         ]
         for method, entry in block["methods"].items():
             cells = [_interval(entry["hybrid"][key]) for key, _ in METRICS]
+            seconds = entry.get("seconds")
+            cells.append("-" if seconds is None else f"{seconds:.0f}")
             lines.append(f"| {method} | " + " | ".join(cells) + " |")
         for method, w in block["worse_than_smc"].items():
             models = ", ".join(f"{m} x{r:.2f}" for m, r in w["models_ws_ratio"].items())
