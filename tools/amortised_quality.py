@@ -47,6 +47,7 @@ Writes ``reports/amortised/quality.{json,md}`` (``--out``).
 from __future__ import annotations
 
 import json
+import math
 import sys
 import tempfile
 from pathlib import Path
@@ -245,11 +246,14 @@ def datasets(args, work: Path) -> dict:
             metrics = RunDir(run_dir).read_metrics()
             hybrid = metrics["hybrid"]
             block["methods"][method] = {
+                # WS is infinite where a particle is invalid on every test
+                # pair: its value over the valid particles is kept beside it
                 "hybrid": {
                     key: [
                         hybrid.get(key),
                         hybrid.get(f"{key}_low"),
                         hybrid.get(f"{key}_high"),
+                        hybrid.get(f"{key}_valid"),
                     ]
                     for key, _ in METRICS
                 },  # fmt: skip
@@ -398,9 +402,11 @@ def markdown(payload: dict) -> str:
 
 
 def _interval(cell: list) -> str:
-    value, low, high = cell
+    value, low, high, valid = (list(cell) + [None])[:4]
     if value is None:
         return "-"
+    if not math.isfinite(value) and valid is not None:
+        return f"inf (over the particles valid somewhere: {valid:.4f})"
     if low is None or high is None:
         return f"{value:.4f}"
     return f"{value:.4f} [{low:.4f}, {high:.4f}]"
