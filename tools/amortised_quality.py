@@ -250,16 +250,16 @@ def datasets(args, work: Path) -> dict:
                 # pair: its value over the valid particles is kept beside it
                 "hybrid": {
                     key: [
-                        hybrid.get(key),
-                        hybrid.get(f"{key}_low"),
-                        hybrid.get(f"{key}_high"),
-                        hybrid.get(f"{key}_valid"),
+                        _number(hybrid.get(key)),
+                        _number(hybrid.get(f"{key}_low")),
+                        _number(hybrid.get(f"{key}_high")),
+                        _number(hybrid.get(f"{key}_valid")),
                     ]
                     for key, _ in METRICS
                 },  # fmt: skip
                 # a model the hybrid keeps no particle of has no test WS
                 "model_ws": {
-                    m: metrics[m]["ws"] if m in metrics else None
+                    m: _number(metrics[m]["ws"]) if m in metrics else None
                     for m in summary["models"]
                 },
                 "shares": summary["shares"],
@@ -267,7 +267,10 @@ def datasets(args, work: Path) -> dict:
                 "amortised": summary.get("amortised"),
             }
             mins[method] = np.asarray(
-                [np.inf if v is None else v for v in metrics["hybrid_min_by_pair"]]
+                [
+                    np.inf if v is None else float(v)
+                    for v in metrics["hybrid_min_by_pair"]
+                ]
             )
             block["test_pair_ids"] = metrics["test_pair_ids"]
         block["worse_than_smc"] = {
@@ -275,6 +278,12 @@ def datasets(args, work: Path) -> dict:
         }
         out[name] = block
     return out
+
+
+def _number(value) -> float | None:
+    """A metric as a float (``metrics.json`` writes an infinite one as the
+    string "inf"); None stays None."""
+    return None if value is None else float(value)
 
 
 def _seconds(summary: dict) -> float:
