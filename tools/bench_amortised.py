@@ -212,14 +212,13 @@ def read_estimator(
         raw["best"] if raw["best"] is not None else raw["estimator"]
     )
     progress = TrainingProgress.from_dict(raw["progress"])
-    best = min(progress.history, key=lambda r: r.validation_loss)
     return estimator.eval(), {
         "simulations": progress.simulations,
         "epochs": len(progress.history),
         "finished": progress.finished,
         "seconds": round(progress.seconds, 3),
         "peak_rss_mb": round(peak_rss_mb(), 1),
-        "validation_accuracy": best.validation_accuracy,
+        "validation_accuracy": progress.best_accuracy,
         "read_back": True,
         "estimator": str(path),
     }

@@ -20,6 +20,7 @@ uninterrupted one.
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -86,6 +87,13 @@ class TrainingProgress:
     seconds: float = 0.0
     history: list[EpochRecord] = field(default_factory=list)
     finished: str = ""
+
+    @property
+    def best_accuracy(self) -> float:
+        """The validation model accuracy of the epoch with the lowest
+        validation loss (the weights kept); NaN before the first epoch."""
+        best = min(self.history, key=lambda r: r.validation_loss, default=None)
+        return best.validation_accuracy if best is not None else math.nan
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -234,9 +234,7 @@ class _Trainer:
         progress = self.progress
         if self.best is not None:
             self.estimator.load_state_dict(self.best)
-        best = min(progress.history, key=lambda r: r.validation_loss, default=None)
-        accuracy = best.validation_accuracy if best is not None else math.nan
-        return TrainingResult(progress, progress.best_loss, accuracy)
+        return TrainingResult(progress, progress.best_loss, progress.best_accuracy)
 
     # ------------------------------------------------------------------ epochs
     def _epoch_set(self, previous: SimulatedSet | None) -> SimulatedSet:

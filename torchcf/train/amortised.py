@@ -23,7 +23,6 @@ its own directory and draws its pairs' samples from it.
 
 from __future__ import annotations
 
-import math
 import re
 from pathlib import Path
 from typing import NamedTuple
@@ -128,26 +127,9 @@ def amortised_samples(
         stop=stop,
     )
     result = train_estimator(estimator, simulator, training, session)
-    samples = infer(
-        estimator,
-        pairs,
-        settings.samples_per_pair,
-        seed=cfg.abc.seed,
-        compile=sampling_compiled(cfg, pairs.n_pairs),
-    )
-    progress = result.progress
-    record = AmortisedResult(
-        samples_per_pair=settings.samples_per_pair,
-        noise=(noise.position, noise.speed, noise.acceleration),
-        epochs=len(progress.history),
-        finished=progress.finished,
-        simulations=progress.simulations,
-        invalid=progress.invalid,
-        seconds=round(progress.seconds, 3),
-        validation_loss=result.best_loss,
-        validation_accuracy=result.validation_accuracy,
-    )
-    return AmortisedSamples(samples, record)
+    noises = (noise.position, noise.speed, noise.acceleration)
+    record = _record(cfg, result.progress, noises)
+    return AmortisedSamples(_samples(cfg, estimator, pairs), record)
 
 
 #: Samples (training pairs x ``samples_per_pair``) from which ``compile =
@@ -193,29 +175,45 @@ def reused_samples(
     raw = reused_checkpoint(cfg, source)
     if source != copy:
         atomic_torch_save(raw, copy)
-    estimator = _estimator_of(cfg, raw)
-    samples = infer(
+    progress = TrainingProgress.from_dict(raw["progress"])
+    noises = _noise_of(raw["fingerprint"]["noise"])
+    record = _record(cfg, progress, noises, reused=str(settings.estimator))
+    samples = _samples(cfg, _estimator_of(cfg, raw), pairs)
+    return AmortisedSamples(samples, record)
+
+
+def _samples(
+    cfg: TrainConfig, estimator: AmortisedEstimator, pairs: PairSet
+) -> PairPosteriors:
+    """The training pairs' ``abc.amortised.samples_per_pair`` samples each."""
+    return infer(
         estimator,
         pairs,
-        settings.samples_per_pair,
+        cfg.abc.amortised.samples_per_pair,
         seed=cfg.abc.seed,
         compile=sampling_compiled(cfg, pairs.n_pairs),
     )
-    progress = TrainingProgress.from_dict(raw["progress"])
-    best = min(progress.history, key=lambda r: r.validation_loss, default=None)
-    record = AmortisedResult(
-        samples_per_pair=settings.samples_per_pair,
-        noise=_noise_of(raw["fingerprint"]["noise"]),
+
+
+def _record(
+    cfg: TrainConfig,
+    progress: TrainingProgress,
+    noise: tuple[float, float, float],
+    reused: str | None = None,
+) -> AmortisedResult:
+    """``summary.json``'s ``amortised`` of a training's progress."""
+    return AmortisedResult(
+        samples_per_pair=cfg.abc.amortised.samples_per_pair,
+        noise=noise,
         epochs=len(progress.history),
         finished=progress.finished,
         simulations=progress.simulations,
         invalid=progress.invalid,
         seconds=round(progress.seconds, 3),
         validation_loss=progress.best_loss,
-        validation_accuracy=best.validation_accuracy if best else math.nan,
-        reused=str(settings.estimator),
+        validation_accuracy=progress.best_accuracy,
+        reused=reused,
     )
-    return AmortisedSamples(samples, record)
 
 
 def reused_source(cfg: TrainConfig, run: RunDir, resume: bool) -> Path:
