@@ -196,14 +196,15 @@ def _particles(name: str, theta: torch.Tensor, pairs) -> Particles:
 @pytest.mark.parametrize(
     ("n_pairs", "permutations", "warmup", "kind"),
     [
-        (24, 20_000, 0.0, "time"),  # 10 held out: 2^-10 > 1/20 001
-        (38, 20_000, 0.0, "refit"),  # 15 held out: 2^-15 < 1/20 001
-        (36, 20_000, 0.0, "time"),  # 14 held out
-        (24, 1_000, 0.0, "refit"),  # 10 held out reach 1/1 001
+        (14, 20_000, 0.0, "time"),  # 2^-14 > 1/20 001
+        (15, 20_000, 0.0, "crossfit"),  # every pair a unit: 2^-15 < 1/20 001
+        (24, 20_000, 0.0, "crossfit"),
+        (10, 1_000, 0.0, "crossfit"),  # 10 units reach 1/1 001
+        (9, 1_000, 0.0, "time"),
         (327, 20_000, 2.0, "time"),  # a warm-up asks for windows in time
     ],
 )
-def test_auto_holds_pairs_out_where_they_reach_the_tests_resolution(
+def test_auto_crossfits_where_the_pairs_reach_the_tests_resolution(
     n_pairs, permutations, warmup, kind
 ):
     settings = _config(warmup).diagnose.model_copy(
@@ -217,7 +218,8 @@ def test_auto_holds_pairs_out_where_they_reach_the_tests_resolution(
 
 def test_what_is_decided_before_the_arms_sees_only_their_fit_part():
     """The knot spacing of a road profile is chosen on the part the arms are
-    fitted on: the fit windows, or the fit pairs whole (never a held-out pair)."""
+    fitted on: the fit windows, the fit pairs whole (never a held-out pair),
+    or every pair whole where every pair is fitted (cross-fitting)."""
     pairs = synthetic_pairs(n_pairs=40, n_steps=50)
     series = {"x": [pairs.x_follow[:, i].numpy() for i in range(pairs.n_pairs)]}
     cfg = _config(0.0)
@@ -230,8 +232,10 @@ def test_what_is_decided_before_the_arms_sees_only_their_fit_part():
 
     cut = fit_part(validation("time"), 0, pairs.n_steps, series)
     assert len(cut["x"]) == 40 and all(len(a) == 30 for a in cut["x"])
-    kept = fit_part(validation("auto"), 7, pairs.n_steps, series)  # 16 held out
+    kept = fit_part(validation("refit"), 7, pairs.n_steps, series)  # 16 held out
     fit, _ = split_by_pair(pairs, 0.6, seed=7)
     assert len(kept["x"]) == fit.n_pairs == 24
     for array, i in zip(kept["x"], fit.pair_ids, strict=True):
         np.testing.assert_array_equal(array, series["x"][i])
+    whole = fit_part(validation("auto"), 7, pairs.n_steps, series)  # crossfit
+    assert len(whole["x"]) == 40 and all(len(a) == 50 for a in whole["x"])

@@ -16,7 +16,7 @@ from .loading import config_hash, load_config, resolved_json, validate_config
 from .messages import ConfigError
 from .methods import AmortisedConfig, AmortisedNetworkConfig, RefineConfig, SMCConfig
 from .overrides import apply_overrides
-from .pairs import load_split
+from .pairs import load_index, load_split
 from .schema import (
     ABCConfig,
     DataConfig,
@@ -42,6 +42,7 @@ __all__ = [
     "apply_overrides",
     "config_hash",
     "load_config",
+    "load_index",
     "load_split",
     "resolved_json",
     "validate_config",

@@ -100,7 +100,7 @@ class DiagnoseConfig(BaseModel):
             "(validation 'pairs'); the rest is out of sample."
         ),
     )
-    validation: Literal["auto", "time", "pairs", "refit"] = Field(
+    validation: Literal["auto", "time", "pairs", "refit", "crossfit"] = Field(
         "auto",
         description=(
             "How an arm is judged out of sample: 'time' fits the first "
@@ -110,9 +110,12 @@ class DiagnoseConfig(BaseModel):
             "the best of all the picks (the minimum distance on pairs the arms "
             "never saw); 'refit' splits as 'pairs' and refits every held-out "
             "pair by a short search of its own, with and without the effect "
-            "(pinned at the value the fit pairs gave), from one start; 'auto': "
-            "'refit' where at least log2(permutations + 1) pairs are held out "
-            "(15 at the defaults), else 'time'."
+            "(pinned at the value the fit pairs gave), from one start; "
+            "'crossfit' fits every training pair and refits every pair as "
+            "'refit' does, from the picks of the other drivers (runs) only, so "
+            "every pair is held out once; 'auto': 'crossfit' with at least "
+            "log2(permutations + 1) training pairs (15 at the defaults), else "
+            "'time'."
         ),
     )
     refit_rounds: int = Field(
@@ -179,6 +182,16 @@ class DiagnoseConfig(BaseModel):
             "in equal shares; 'equal' gives every test the same share "
             "(Bonferroni). The fallback procedure passes a significant test's "
             "level on to the next under each."
+        ),
+    )
+    families: Literal["signature", "none"] = Field(
+        "signature",
+        description=(
+            "'signature' tests the effects one found residual signature points "
+            "to (twins: a response lag points to delay, sync and lag) as one "
+            "family at the place of the first, by the largest of their "
+            "statistics under common sign flips, and chooses the member within "
+            "it; 'none' tests every effect by itself, each at its own place."
         ),
     )
     min_gain: float = Field(
@@ -259,7 +272,7 @@ class DiagnoseConfig(BaseModel):
     @model_validator(mode="after")
     def _warmup_in_time(self) -> DiagnoseConfig:
         asked = "validation_warmup" in self.model_fields_set
-        held = self.validation in ("pairs", "refit")
+        held = self.validation in ("pairs", "refit", "crossfit")
         if held and asked and self.validation_warmup > 0:
             raise ValueError(
                 "diagnose.validation_warmup applies to validation 'time' only: a "

@@ -7,13 +7,48 @@ arguments (which is why it lives here, above both).
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import pandas as pd
+
 from torchcf.data import Cleaning, DataError, PairSet
 from torchcf.data.importer import extract_source
 from torchcf.data.splits import split_pairs
 
 from .schema import DataConfig
 
-__all__ = ["load_split"]
+__all__ = ["load_index", "load_split"]
+
+
+def load_index(data: DataConfig, split: str = "train") -> pd.DataFrame | None:
+    """Where the pairs of one side of the split came from, one row per pair
+    id (``run``, ``follower``, ...): a raw source's whole index, whose row is
+    a pair's id in the full set; a folder's ``index.csv`` rows of ``split``,
+    in the order of its files, which is a pair's id there. None where the
+    data keep no index (a named data set, a folder without ``index.csv``) or
+    it cannot be read."""
+    if data.raw is not None:
+        raw = data.raw
+        index = extract_source(
+            raw.source,
+            raw.format,
+            reader_options=raw.reader_options(),
+            options=raw.extract_options(),
+        ).index
+        return index.reset_index(drop=True)
+    if data.name is None and data.path is not None:
+        path = Path(data.path) / "index.csv"
+        if not path.is_file():
+            return None
+        try:
+            index = pd.read_csv(path)
+        except (OSError, ValueError):
+            return None
+    else:
+        return None
+    if "split" not in index.columns:
+        return None
+    return index[index["split"] == split].reset_index(drop=True)
 
 
 def load_split(data: DataConfig, *, download: bool = True) -> tuple[PairSet, PairSet]:

@@ -151,12 +151,19 @@ class Arena:
     road_profile: RoadProfile | None = None
 
     @classmethod
-    def of(cls, cfg: TrainConfig, train_pairs: PairSet, **extra: Any) -> Arena:
+    def of(
+        cls,
+        cfg: TrainConfig,
+        train_pairs: PairSet,
+        groups: Tensor | None = None,
+        **extra: Any,
+    ) -> Arena:
         """The arena of the run's config on its training pairs, split as
-        ``diagnose.validation`` asks."""
+        ``diagnose.validation`` asks (``groups``: (N,) the pairs' drivers or
+        runs, which cross-fitting keeps apart; None: each pair its own)."""
         settings = cfg.diagnose
         seed = attribution_seed(cfg)
-        fit, validation = design(cfg, train_pairs, seed)
+        fit, validation = design(cfg, train_pairs, seed, groups)
         return cls(
             settings=settings,
             fit=fit,

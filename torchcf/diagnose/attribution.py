@@ -100,16 +100,17 @@ from .significance import (
     comparable,
     fallback_levels,
     level_weights,
+    max_flip_test,
     sign_flip_test,
     step_levels,
 )
 from .tested import Detectable, EffectTest, SharedValue
-from .validation import Judge
+from .validation import Judge, refits
 from .workers import ArmPool, worker_count
 from .workers import tick as worker_tick
 
 #: Ledger format (``RUN_DIR/loop/attribution.pt``).
-LEDGER_FORMAT = "torchcf.attribution/10"
+LEDGER_FORMAT = "torchcf.attribution/11"
 #: A fit's state is written to the ledger at least this often while it runs
 #: [s] (the pool's search, a converging search), besides every finished arm.
 CHECKPOINT_SECONDS = 30.0
@@ -204,7 +205,7 @@ def effect_row(
         n_pairs=int(usable.sum()),
         pairs_changed=int(np.count_nonzero(drops)),
         pinned=dict(zip(names, pin.value.tolist(), strict=True))
-        if judge.validation.kind == "refit"
+        if refits(judge.validation.kind)
         else None,
         variants=sorted(m.name for m in result.lifted_from),
         estimate=found,
@@ -427,6 +428,10 @@ class EffectSelection:
         steps_at_most: the selection's steps at most, ``min(max_effects, E)``.
         levels: the level of each step (they sum to ``alpha``).
         validation: how the arms were judged.
+        start: the pool's converged fit on the fit part (the model class
+            without effects); final: the final model's (with the chosen
+            effects); both for the test split's class judgement
+            (:mod:`torchcf.diagnose.on_test`), not written to ``loop.json``.
     """
 
     steps: list[list[EffectTest]]
@@ -437,6 +442,8 @@ class EffectSelection:
     steps_at_most: int
     levels: list[float]
     validation: JudgedOn
+    start: Population | None = None
+    final: Population | None = None
 
     @property
     def shared_priors(self) -> dict[str, dict[str, tuple[float, float]]]:
@@ -467,6 +474,7 @@ def attribute_effects(
     *,
     road_seeds: dict[Effect, Tensor] | None = None,
     road_profile: RoadProfile | None = None,
+    groups: Tensor | None = None,
     ledger: Path | None = None,
     progress: bool = True,
 ) -> EffectSelection:
@@ -481,6 +489,9 @@ def attribute_effects(
         train_pairs: the run's training pairs.
         road_seeds: per road effect, a first candidate of its value.
         road_profile: the road profile of the road signature (None: none).
+        groups: (N,) int64 each training pair's driver or run (cross-fitting
+            never refits a pair from its own group's picks; None: each pair
+            its own group).
         ledger: where finished arms are kept (None: nowhere, no resume).
         progress: show a progress bar (it moves every search round).
 
@@ -490,6 +501,7 @@ def attribute_effects(
     arena = Arena.of(
         cfg,
         train_pairs,
+        groups,
         road_seeds=dict(road_seeds or {}),
         road_profile=road_profile,
     )
@@ -543,6 +555,7 @@ def attribute_effects(
         book.within("pool"),
     )
     arm = Arm((), population_of(raw), {})
+    start = arm.population
     steps: list[list[EffectTest]] = []
     found: list[list[SignatureRow]] = []
     remaining = list(effects)
@@ -676,6 +689,8 @@ def attribute_effects(
         validation=JudgedOn(
             arena.validation.kind, arena.validation.n_units, arena.fit.pairs.n_pairs
         ),
+        start=start,
+        final=arm.population,
     )
 
 
@@ -788,28 +803,85 @@ def choose(rows: list[EffectTest], margin: float) -> EffectTest | None:
     return best
 
 
+def families(
+    rows: list[EffectTest], pointed: dict[str, list[str]], scheme: str
+) -> list[list[EffectTest]]:
+    """The step's tests grouped in families, in the order of their first
+    member: the effects that one found signature points to first (their
+    twins: a response lag points to a delay, a clock offset and an actuation
+    lag) form one family (``diagnose.families = "signature"``); every other
+    effect, and every effect with ``"none"``, is a family of its own."""
+    out: dict[str, list[EffectTest]] = {}
+    for row in rows:
+        signature = pointed.get(row.name, [None])[0]
+        key = (
+            f"signature:{signature}"
+            if scheme == "signature" and signature
+            else row.token
+        )
+        out.setdefault(key, []).append(row)
+    return list(out.values())
+
+
+def _unit_drops(row: EffectTest) -> np.ndarray:
+    """(U,) the row's per-unit log ratio ``log(before / after)``, 0 where a
+    side is invalid (the per-unit scores as :func:`effect_row` kept them)."""
+    before = np.array([np.nan if v is None else v for v in row.per_pair["before"]])
+    after = np.array([np.nan if v is None else v for v in row.per_pair["after"]])
+    usable = np.isfinite(before) & np.isfinite(after) & (before > 0) & (after > 0)
+    out = np.zeros(before.shape)
+    out[usable] = np.log(before[usable] / after[usable])
+    return out
+
+
 def _judge(
     rows: list[EffectTest],
     pointed: dict[str, list[str]],
     level: float,
     settings: DiagnoseConfig,
 ) -> list[EffectTest]:
-    """The fallback procedure over the rows in their order: each row's
-    ``order``, ``pointed_by``, ``level`` and ``significant``."""
-    weights = level_weights([r.name in pointed for r in rows], settings.levels)
-    levels, significant = fallback_levels(
-        [r.p_value for r in rows],
-        [r.gain >= settings.min_gain and r.active for r in rows],
-        level,
-        weights,
-    )
-    for i, (row, at, yes) in enumerate(zip(rows, levels, significant, strict=True)):
-        row.order = i + 1
-        row.pointed_by = pointed.get(row.name, [])
-        row.level = at
-        row.significant = yes
-        row.chosen = False
-    return rows
+    """The fallback procedure over the step's families in their order: each
+    row's ``order``, ``pointed_by``, ``family``, ``family_p_value``,
+    ``level`` and ``significant``.
+
+    A family of one is its effect's own test. A family of twins is tested by
+    the largest statistic over its members under common sign flips
+    (:func:`~torchcf.diagnose.significance.max_flip_test`) at the level of its
+    place; where it is rejected, the member it stands for is the one
+    :func:`choose` takes among those that gain ``min_gain`` with an active
+    estimate, and that member alone is significant."""
+    groups = families(rows, pointed, settings.families)
+    p_values, passes = [], []
+    for members in groups:
+        ok = [r for r in members if r.gain >= settings.min_gain and r.active]
+        if len(members) == 1:
+            p_values.append(members[0].p_value)
+        else:
+            p, _ = max_flip_test(
+                [_unit_drops(r) for r in members], settings.permutations
+            )
+            p_values.append(p)
+        passes.append(bool(ok))
+    weights = level_weights([m[0].name in pointed for m in groups], settings.levels)
+    levels, significant = fallback_levels(p_values, passes, level, weights)
+    order = 0
+    for members, p, at, yes in zip(groups, p_values, levels, significant, strict=True):
+        for row in members:
+            order += 1
+            row.order = order
+            row.pointed_by = pointed.get(row.name, [])
+            row.family = [r.token for r in members] if len(members) > 1 else []
+            row.family_p_value = p if len(members) > 1 else None
+            row.level = at
+            row.significant = False
+            row.chosen = False
+        if yes:
+            for row in members:  # choose() reads them as the candidates
+                row.significant = row.gain >= settings.min_gain and row.active
+            stands_for = choose(members, settings.min_gain)
+            for row in members:
+                row.significant = row is stands_for
+    return [row for members in groups for row in members]
 
 
 __all__ = [
@@ -824,6 +896,7 @@ __all__ = [
     "choose",
     "effect_row",
     "estimate",
+    "families",
     "ledger_key",
     "test_order",
 ]

@@ -40,6 +40,7 @@ from ..config import (
     TrainConfig,
     apply_overrides,
     config_hash,
+    load_index,
     load_split,
     validate_config,
 )
@@ -54,6 +55,13 @@ from .arms import spanning
 from .attribution import EffectSelection, attribute_effects
 from .candidates import attribution_seed
 from .identifiability import effect_identifiability
+from .on_test import (
+    ClassOnTest,
+    ResponseTimes,
+    chosen_value,
+    class_on_test,
+    response_times,
+)
 from .outcome import (
     ChangeOnTest,
     EffectPosterior,
@@ -70,6 +78,7 @@ from .recalibrate import (
     recalibration_config,
     write_run,
 )
+from .refit import Pin
 from .report import write_report
 from .retrain import (
     Buffers,
@@ -83,7 +92,7 @@ from .road import RoadOffer, choose_spacing, one_step_residual, shares_road_fram
 from .series import DiagnoseError, ResidualRow, best_particles, diagnose_residuals
 from .signatures import family_of
 from .significance import paired_change
-from .validation import fit_part
+from .validation import fit_part, pair_groups
 
 Series = dict[str, list[np.ndarray]]
 
@@ -259,6 +268,9 @@ class LoopPlan:
         resume_recalibration: ``RUN_DIR/loop/after`` and ``.../reference`` hold
             this re-calibration, evaluated (a loop run again reads them back).
         began: ``time.perf_counter()`` at the start of the loop.
+        response_before: the data's and the run's response times.
+        class_on_test: the model class with and without the chosen effects,
+            every test pair refitted (None: nothing chosen).
     """
 
     run: RunDir
@@ -276,6 +288,8 @@ class LoopPlan:
     recalibration: TrainConfig | None
     resume_recalibration: bool
     began: float
+    response_before: ResponseTimes | None = None
+    class_on_test: ClassOnTest | None = None
 
     @property
     def chosen(self) -> list[Effect]:
@@ -298,6 +312,7 @@ def plan_loop(
     overrides: Sequence[str] = (),
     *,
     pairs: tuple[PairSet, PairSet] | None = None,
+    groups: Tensor | None = None,
     progress: bool = True,
 ) -> LoopPlan:
     """Steps 1-2 of the loop on a finished, evaluated run (module docstring), and
@@ -307,6 +322,9 @@ def plan_loop(
         run_dir: a trainer output directory holding ``metrics.json``.
         overrides: ``diagnose.key=VALUE`` items applied to the run's config.
         pairs: optional ``(train, test)`` instead of loading the run's data.
+        groups: (N,) each training pair's driver or run, which cross-fitting
+            keeps apart (None: from the data's ``index.csv`` where the run
+            loads its data, else each pair its own).
         progress: show progress bars.
 
     Raises:
@@ -328,7 +346,8 @@ def plan_loop(
 
     residuals_before, series_before = diagnose_residuals(posterior, train_pairs)
     pool = tuple(active_models(cfg, posterior))
-    one_step = one_step_residual(best_particles(posterior, train_pairs), train_pairs)
+    best_before = best_particles(posterior, train_pairs)
+    one_step = one_step_residual(best_before, train_pairs)
     candidates = candidate_effects(cfg, train_pairs, one_step)
     selection = attribute_effects(
         cfg,
@@ -337,10 +356,19 @@ def plan_loop(
         train_pairs,
         road_seeds=candidates.seeds,
         road_profile=candidates.profile,
+        groups=groups
+        if groups is not None
+        else pair_groups(train_pairs, load_index(cfg.data) if pairs is None else None),
         ledger=run.loop_dir / "attribution.pt",
         progress=progress,
     )
-    recalibration = None
+    recalibration, on_test = None, None
+    if selection.chosen and selection.start is not None and selection.final is not None:
+        pins = [
+            Pin(e, chosen_value(e, selection.shared, selection.estimates))
+            for e in selection.chosen
+        ]
+        on_test = class_on_test(cfg, selection.start, selection.final, pins, test_pairs)
     if selection.chosen:
         run_models = [spec.model for spec in cfg.models]
         variants = [m for m in selection.models if m not in run_models]
@@ -365,6 +393,8 @@ def plan_loop(
         recalibration=recalibration,
         resume_recalibration=resume,
         began=began,
+        response_before=response_times(best_before, series_before, train_pairs.dt),
+        class_on_test=on_test,
     )
 
 
@@ -532,6 +562,8 @@ def finish_loop(plan: LoopPlan) -> LoopResult:
         residuals_before=plan.residuals_before,
         recalibrated=recalibrated,
         seconds=time.perf_counter() - plan.began,
+        response_before=plan.response_before,
+        class_on_test=plan.class_on_test,
     )
     write_report(
         plan.run,
@@ -581,6 +613,7 @@ def _recalibrated(plan: LoopPlan) -> tuple[Recalibrated | None, Series | None]:
     posterior = after.load_posterior()
     metrics = read_evaluation(after)
     residuals, series = diagnose_residuals(posterior, plan.train_pairs)
+    best = best_particles(posterior, plan.train_pairs)
     reference = read_evaluation(RunDir(plan.reference_dir))
     return Recalibrated(
         after_run=after.path,
@@ -592,6 +625,7 @@ def _recalibrated(plan: LoopPlan) -> tuple[Recalibrated | None, Series | None]:
         posterior=effect_posterior(posterior, plan.chosen),
         identifiability=effect_identifiability(posterior, plan.chosen),
         residuals_after=residuals,
+        response_after=response_times(best, series, plan.train_pairs.dt),
     ), series
 
 

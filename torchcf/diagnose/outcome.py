@@ -28,6 +28,7 @@ from ..system.files import JSON
 from ..system.records import Record, to_json_value
 from .attribution import EffectSelection
 from .identifiability import Identifiability
+from .on_test import ClassOnTest, ResponseTimes
 from .road import RoadOffer
 from .series import ResidualRow
 from .significance import PairedChange
@@ -162,6 +163,7 @@ class Recalibrated:
         identifiability: per chosen effect's token, its strongest partners
             (:func:`~torchcf.diagnose.identifiability.effect_identifiability`).
         residuals_after: the residual tests of the re-calibrated hybrid.
+        response_after: the re-calibrated hybrid's response times.
     """
 
     after_run: Path
@@ -173,6 +175,7 @@ class Recalibrated:
     posterior: dict[str, EffectPosterior]
     identifiability: Identifiability
     residuals_after: list[ResidualRow]
+    response_after: ResponseTimes | None = None
 
 
 @dataclass(frozen=True)
@@ -195,6 +198,11 @@ class LoopResult:
         residuals_before: the residual tests of the run.
         recalibrated: the re-calibration, or None when nothing was chosen.
         seconds: the loop's wall-clock time [s].
+        response_before: the data's and the run's response times
+            (:func:`~torchcf.diagnose.on_test.response_times`).
+        class_on_test: the model class with and without the chosen effects,
+            every test pair refitted (:func:`~torchcf.diagnose.on_test.
+            class_on_test`; None: nothing chosen).
     """
 
     run: Path
@@ -210,6 +218,8 @@ class LoopResult:
     residuals_before: list[ResidualRow]
     recalibrated: Recalibrated | None
     seconds: float
+    response_before: ResponseTimes | None = None
+    class_on_test: ClassOnTest | None = None
 
     @property
     def chosen(self) -> list[Effect]:
@@ -278,6 +288,13 @@ class LoopResult:
             "residuals_after": to_json_value(
                 self.residuals_before if done is None else done.residuals_after
             ),
+            "class_on_test": to_json_value(self.class_on_test),
+            "response_times": {
+                "before": to_json_value(self.response_before),
+                "after": to_json_value(
+                    self.response_before if done is None else done.response_after
+                ),
+            },
             "seconds": self.seconds,
         }
         return out

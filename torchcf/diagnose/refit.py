@@ -23,6 +23,13 @@ the two refits' scores on that pair are compared:
 - **common random numbers**: both refits draw their steps from one key by
   slot (:class:`~torchcf.diagnose.search.Noise`).
 
+**Cross-fitting** (``diagnose.validation = "crossfit"``): the arms are
+fitted on every training pair, and every pair is then refitted as a held-out
+pair, its candidates the picks of the *other* groups only (a group: the pairs
+of one driver or run, else the pair alone; :class:`Exclusion`), so every
+training pair is judged once, by candidates that never saw its data, in one
+batched search.
+
 What the comparison asks: fitted to a driver it has not seen, does the model
 with E (at the value the other drivers gave) fit that driver better than the
 model without it? The pooled picks' coverage of new drivers (``"pairs"``) asks
@@ -100,6 +107,29 @@ class Pin:
     value: Tensor
 
 
+@dataclass(frozen=True)
+class Exclusion:
+    """Which candidates a held-out pair may start from (cross-fitting).
+
+    Attributes:
+        sources: per entry of the candidates' mapping, in its order, (Q_m, G)
+            bool: the groups whose picks hold each candidate.
+        groups: (V,) int64 each held-out pair's group (0..G-1).
+
+    A candidate is allowed for a pair where some group other than the pair's
+    own holds it: a particle kept by another driver on that driver's data.
+    """
+
+    sources: tuple[Tensor, ...]
+    groups: Tensor
+
+    def allowed(self, entry: int) -> Tensor:
+        """(Q_m, V) bool: candidate q of entry ``entry`` may start pair j."""
+        sources = self.sources[entry]  # (Q, G)
+        own = sources[:, self.groups]  # (Q, V): held by the pair's own group
+        return sources.sum(1, keepdim=True) > own.to(torch.int64)
+
+
 def candidates(
     population: Population,
     n: int,
@@ -145,6 +175,56 @@ def candidates(
     }
 
 
+def sourced_candidates(
+    population: Population,
+    n: int,
+    current: Mapping[CFModel, CFModel],
+    seed: int,
+    groups: Tensor,
+    cap: int = REFIT_CANDIDATES,
+) -> tuple[dict[CFModel, Tensor], tuple[Tensor, ...]]:
+    """:func:`candidates` with, per candidate, the groups whose picks hold it.
+
+    Args:
+        groups: (N,) int64 each pair's group of ``population`` (0..G-1).
+
+    Returns:
+        per current model its candidates (Q_m, K_m), exact repeats merged, and
+        per entry (in the mapping's order) the (Q_m, G) bool sources of
+        :class:`Exclusion`.
+    """
+    n_groups = int(groups.max()) + 1 if groups.numel() else 0
+    n_pairs = population.n_pairs
+    per_pair = max(1, min(n, cap // max(1, n_pairs)))
+    keep = torch.arange(n_pairs)
+    if n_pairs * per_pair > cap:
+        order = torch.randperm(n_pairs, generator=generator(seed, "refit-candidates"))
+        keep = torch.sort(order[:cap]).values
+    thetas: dict[CFModel, list[Tensor]] = {}
+    owners: dict[CFModel, list[Tensor]] = {}
+    picks = population.best(per_pair)
+    for model in picks.models:
+        pair, slot = picks.model_slots(model)
+        chosen = torch.isin(pair, keep)
+        if not bool(chosen.any()):
+            continue
+        parent = current.get(model, model)
+        own = model.param_names
+        columns = [own.index(p) for p in parent.param_names]
+        thetas.setdefault(parent, []).append(
+            picks.theta[pair[chosen], slot[chosen]][:, columns]
+        )
+        owners.setdefault(parent, []).append(groups[pair[chosen]])
+    out, sources = {}, []
+    for model, parts in thetas.items():
+        unique, inverse = torch.unique(torch.cat(parts), dim=0, return_inverse=True)
+        held = torch.zeros(unique.shape[0], n_groups, dtype=torch.bool)
+        held[inverse, torch.cat(owners[model])] = True
+        out[model] = unique
+        sources.append(held)
+    return out, tuple(sources)
+
+
 def lifted(candidates: Mapping[CFModel, Tensor], pin: Pin) -> dict[CFModel, Tensor]:
     """Every candidate as ``m+E`` with E at ``pin.value`` (K_E,); a model the
     effect cannot wrap (``lag`` on HL) stays as it is."""
@@ -167,17 +247,23 @@ def lifted(candidates: Mapping[CFModel, Tensor], pin: Pin) -> dict[CFModel, Tens
 
 
 def start(
-    candidates: Mapping[CFModel, Tensor], rollout: Rollout, slots: int
+    candidates: Mapping[CFModel, Tensor],
+    rollout: Rollout,
+    slots: int,
+    exclusion: Exclusion | None = None,
 ) -> Population:
     """Per held-out pair of ``rollout``, its ``slots`` best candidates (every
-    candidate scored on every pair: the rollout's full layout)."""
+    candidate scored on every pair: the rollout's full layout), among those
+    ``exclusion`` allows it (None: all)."""
     every = dataclasses.replace(rollout, paired=False)
     n_held = rollout.pairs.n_pairs
     sets, index = [], 0
-    for model, theta in candidates.items():
+    for entry, (model, theta) in enumerate(candidates.items()):
         if theta.shape[0] == 0:
             continue
         score, _ = every.score(model, theta, None)  # (Q, V)
+        if exclusion is not None:
+            score = torch.where(exclusion.allowed(entry), score.cpu(), math.inf)
         q = theta.shape[0]
         sets.append(
             Particles(
@@ -226,6 +312,7 @@ def refit_scores(
     shared: Mapping[str, Tensor],
     key: tuple,
     pin: Pin | None = None,
+    exclusion: Exclusion | None = None,
 ) -> Tensor:
     """(V,) float64 each held-out pair's best score after its refit (``+inf``:
     no valid particle).
@@ -237,13 +324,15 @@ def refit_scores(
         shared: per chosen shared effect, its one value (pinned on both sides).
         key: the refit's random numbers (the same for both sides).
         pin: the effect and its value (None: the side without it).
+        exclusion: which candidates each held-out pair may start from
+            (cross-fitting; None: all).
     """
     current = {m: m.param_names for m in candidates}
     members = candidates if pin is None else lifted(candidates, pin)
     parents = {m: m for m in candidates}
     if pin is not None:
         parents |= {variant_of(m, pin.effect) or m: m for m in candidates}
-    population = start(members, rollout, budget.slots)
+    population = start(members, rollout, budget.slots, exclusion)
     return _searched(
         population, rollout, budget, priors, shared, key, pin, current, parents
     )
@@ -291,6 +380,7 @@ def _searched(
 
 
 __all__ = [
+    "Exclusion",
     "REFIT_CANDIDATES",
     "Pin",
     "RefitBudget",
@@ -298,5 +388,6 @@ __all__ = [
     "lifted",
     "refit_paired",
     "refit_scores",
+    "sourced_candidates",
     "start",
 ]

@@ -230,7 +230,7 @@ def _slope(y: np.ndarray, x: np.ndarray) -> float:
     return float(x @ (y - y.mean()) / denominator) if denominator > 0 else np.nan
 
 
-def _peak_lag(y: np.ndarray, u: np.ndarray, steps: int) -> tuple[int, float]:
+def peak_lag(y: np.ndarray, u: np.ndarray, steps: int) -> tuple[int, float]:
     """The lag (steps, 0..``steps``) of the largest correlation of ``y(t)`` with
     ``u(t - lag)``, and that correlation."""
     best, best_r = 0, -np.inf
@@ -257,10 +257,10 @@ def response_lag(series: dict[str, list[np.ndarray]], dt: float) -> np.ndarray:
         a_obs, a_sim, a_lead = a_obs[ok], (a_obs - e_a)[ok], a_lead[ok]
         if a_obs.size < steps + 20:
             continue
-        lag_obs, r_obs = _peak_lag(a_obs, a_lead, steps)
+        lag_obs, r_obs = peak_lag(a_obs, a_lead, steps)
         if r_obs < MIN_RESPONSE_CORRELATION:
             continue
-        lag_sim, _ = _peak_lag(a_sim, a_lead, steps)
+        lag_sim, _ = peak_lag(a_sim, a_lead, steps)
         out.append((lag_obs - lag_sim) * dt)
     return np.array(out)
 
@@ -426,6 +426,7 @@ __all__ = [
     "Signature",
     "SignatureRow",
     "pointed_effects",
+    "peak_lag",
     "response_lag",
     "road_share",
     "signatures",

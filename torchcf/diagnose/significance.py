@@ -24,6 +24,13 @@ does not stop at the first effect that fails, and unlike Bonferroni it gives
 half the level to the effect the fit windows point to first. Why not Holm: Holm
 ignores the order, so it cannot spend the level where the residual points.
 
+**Families** (:func:`max_flip_test`). Effects that one residual signature
+points to (a response lag: a reaction delay, a clock offset, an actuation
+lag) are twins: they explain much the same residual, and tested one by one
+they split the level between them. They are tested as one family at the
+place of the first: the largest of their statistics under common sign flips
+(exact for the family), the member then chosen within it, its twins named.
+
 **Steps** (:func:`step_levels`). Forward selection tests the remaining effects
 again once one is chosen; step s gets ``alpha_s = alpha 2^-s`` (the last step
 the rest), so the steps' levels sum to ``alpha``: the chance that any chosen
@@ -70,6 +77,39 @@ def sign_flip_test(
     sd = drops.std(ddof=1) if n > 1 else 0.0
     statistic = observed / (sd / math.sqrt(n)) if sd > 0 else 0.0
     return float(statistic), float(min(p_value, 1.0))
+
+
+def max_flip_test(
+    drops: Sequence[np.ndarray], permutations: int, seed: int = 0
+) -> tuple[float, int]:
+    """One-sided test of a family of effects by the largest of their
+    self-normalised statistics under common sign flips.
+
+    Every member m gives per unit u a drop ``d_mu`` (the same units for all,
+    0 where a member's unit is not usable); its statistic is ``T_m = sum_u d_mu
+    / sqrt(sum_u d_mu^2)``, whose denominator sign flips leave unchanged. Under
+    "no member helps" the vector ``(d_1u, ..., d_Mu)`` of a unit is as likely
+    negated as not, so flipping every member's drop of a unit together keeps
+    the members' dependence, and the p-value of ``max_m T_m`` is exact for the
+    family: ``(1 + #{max_m T_m(flipped) >= max_m T_m}) / (1 + n_perm)``. With
+    one member it is :func:`sign_flip_test`'s p-value.
+
+    Returns:
+        ``(p-value, the member of the largest statistic)``.
+    """
+    matrix = np.array([np.asarray(d, dtype=np.float64) for d in drops])  # (M, U)
+    if matrix.size == 0 or not np.any(matrix):
+        return 1.0, 0
+    norm = np.sqrt((matrix**2).sum(axis=1))
+    norm[norm == 0] = np.inf  # a member that never moves: statistic 0
+    observed = matrix.sum(axis=1) / norm  # (M,)
+    rng = np.random.default_rng(seed)
+    signs = rng.choice(np.array([-1.0, 1.0]), size=(permutations, matrix.shape[1]))
+    flipped = (signs @ matrix.T) / norm  # (P, M)
+    top = observed.max()
+    count = np.count_nonzero(flipped.max(axis=1) >= top - 1e-12)
+    p_value = (1.0 + count) / (1.0 + permutations)
+    return float(min(p_value, 1.0)), int(observed.argmax())
 
 
 def two_sided_sign_flip(values: np.ndarray, permutations: int, seed: int = 0) -> float:
@@ -251,6 +291,7 @@ __all__ = [
     "fallback_levels",
     "fallback_weights",
     "level_weights",
+    "max_flip_test",
     "paired_change",
     "sign_flip_test",
     "step_levels",

@@ -143,6 +143,10 @@ class EffectTest:
         absorbed_by: the model parameter that trades off against the effect
             (:mod:`torchcf.diagnose.absorption`), or None.
         order, pointed_by, level, significant, chosen: the verdict.
+        family: the tokens of the family the effect was tested in (twins
+            that one signature points to, itself among them; empty: tested
+            alone); family_p_value: that family's p-value (the largest
+            statistic over its members), None when tested alone.
         detectable: the smallest sizes these data could have shown
             (:func:`~torchcf.diagnose.power.detectable_sizes`; None: the effect
             has no one-number size; :data:`NOT_SIZED`: not asked).
@@ -167,6 +171,8 @@ class EffectTest:
     absorbed_by: Absorbed | None = None
     order: int = 0
     pointed_by: list[str] = dataclasses.field(default_factory=list)
+    family: list[str] = dataclasses.field(default_factory=list)
+    family_p_value: float | None = None
     level: float = 0.0
     significant: bool = False
     chosen: bool = False

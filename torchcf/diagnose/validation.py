@@ -30,14 +30,26 @@ its search never saw; three designs split the data:
   the arm's few hundred particles happen to lie near them: with drivers who
   differ, as measured drivers do, that is ruled by how sparse the particles
   are, not by the effect.
-- ``"auto"`` (the default): ``"refit"`` where the held-out pairs are enough
-  for the test, else ``"time"`` (:func:`resolve_validation`). A sign-flip test
-  over V units cannot give a p-value below ``2^-V`` (all V drops positive), and
-  the test's own resolution is ``1 / (permutations + 1)``; the held-out pairs
-  are enough when ``2^-V`` is below that resolution (V >= 15 at the default
-  20 000 permutations), so that no test of the step is denied a level the time
-  design could reach. Fewer pairs keep the time design, whose units are all
-  the training pairs. A ``validation_warmup`` asks for the time design.
+- ``"crossfit"``: every training pair is held out once. The arms are fitted
+  on the whole windows of every training pair; every pair is then refitted
+  as in ``"refit"``, its candidates the picks of the pairs of *other groups*
+  only (:func:`pair_groups`: a group is the windows of one follower in one
+  run where the data's ``index.csv`` says so, else the pair alone), in one
+  batched search (:class:`~torchcf.diagnose.refit.Exclusion`). All N pairs
+  are units of the test where ``"refit"`` has the 40 % no arm saw. What is
+  not held out: the effect's pinned value (a driver effect's median over
+  every pair's picks, a shared effect's one value) and the order of the
+  tests are learned on all the pairs, each pair one of N; the test is then
+  not exact by construction, and its false-choice rate on data without the
+  effect is measured instead (``docs/loop.md``, *Power on small sets*).
+- ``"auto"`` (the default): ``"crossfit"`` where the training pairs are
+  enough for the test, else ``"time"`` (:func:`resolve_validation`). A
+  sign-flip test over V units cannot give a p-value below ``2^-V`` (all V
+  drops positive), and the test's own resolution is ``1 / (permutations +
+  1)``; the units are enough when ``2^-V`` is below that resolution (V >= 15
+  at the default 20 000 permutations), so that no test of the step is denied
+  a level the time design could reach. A ``validation_warmup`` asks for the
+  time design.
 
 Shapes: N pairs, S slots per pair, Q particles, V held-out pairs
 (:mod:`torchcf.typing`).
@@ -48,7 +60,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 import torch
@@ -60,8 +72,19 @@ from ..data import PairSet
 from ..models import CFModel
 from .candidates import attribution_rollout
 from .population import Population, pick_scores
-from .refit import Pin, RefitBudget, candidates, refit_paired, refit_scores
+from .refit import (
+    Exclusion,
+    Pin,
+    RefitBudget,
+    candidates,
+    refit_paired,
+    refit_scores,
+    sourced_candidates,
+)
 from .series import DiagnoseError
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 #: Shortest out-of-sample window that counts for a pair [steps].
 MIN_VALIDATION_STEPS = 20
@@ -219,7 +242,10 @@ def fit_part(
     arms are judged on."""
     settings = cfg.diagnose
     n_pairs = len(next(iter(series.values()), []))
-    if held_out(resolve_validation(settings, n_pairs)):
+    kind = resolve_validation(settings, n_pairs)
+    if kind == "crossfit":
+        return {key: list(arrays) for key, arrays in series.items()}
+    if held_out(kind):
         fit, _ = pair_split(n_pairs, settings.fit_fraction, seed)
         kept = fit.tolist()
         return {key: [arrays[i] for i in kept] for key, arrays in series.items()}
@@ -256,21 +282,45 @@ def held_out_count(n_pairs: int, fraction: float) -> int:
 
 def resolve_validation(settings: DiagnoseConfig, n_pairs: int) -> str:
     """``diagnose.validation``, with ``"auto"`` resolved (module docstring):
-    ``"refit"`` when the held-out pairs reach the sign-flip test's resolution
-    (``2^-V <= 1 / (permutations + 1)``) and no warm-up asks for windows in
-    time, else ``"time"``."""
+    ``"crossfit"`` when the training pairs reach the sign-flip test's
+    resolution (``2^-N <= 1 / (permutations + 1)``) and no warm-up asks for
+    windows in time, else ``"time"``."""
     if settings.validation != "auto":
         return settings.validation
     if settings.validation_warmup > 0:
         return "time"
     enough = math.ceil(math.log2(settings.permutations + 1))
-    held = held_out_count(n_pairs, settings.fit_fraction)
-    return "refit" if held >= enough else "time"
+    return "crossfit" if n_pairs >= enough else "time"
 
 
 def held_out(kind: str) -> bool:
-    """Whether a design judges on held-out pairs (``"pairs"``, ``"refit"``)."""
-    return kind in ("pairs", "refit")
+    """Whether a design judges on held-out pairs (``"pairs"``, ``"refit"``,
+    ``"crossfit"``)."""
+    return kind in ("pairs", "refit", "crossfit")
+
+
+def refits(kind: str) -> bool:
+    """Whether a design refits its units with and without the effect
+    (``"refit"``, ``"crossfit"``)."""
+    return kind in ("refit", "crossfit")
+
+
+def pair_groups(pairs: PairSet, index: pd.DataFrame | None) -> Tensor:
+    """(N,) int64 each pair's cross-fitting group (0..G-1, in order of first
+    appearance): the pairs that share a follower in one run (``index.csv``'s
+    ``run`` and ``follower`` of the pair's row ``pair_ids``) form one group, so
+    that no window of a driver is refitted from the picks of another window of
+    the same driver in the same run; without an index (or one that does not
+    cover the pairs) each pair is its own group."""
+    n = pairs.n_pairs
+    ids = list(pairs.pair_ids)
+    if index is None or not {"run", "follower"} <= set(index.columns):
+        return torch.arange(n)
+    if len(index) <= max(ids, default=-1):
+        return torch.arange(n)
+    keys = [(index["run"].iat[i], index["follower"].iat[i]) for i in ids]
+    labels: dict[tuple, int] = {}
+    return torch.tensor([labels.setdefault(k, len(labels)) for k in keys])
 
 
 @dataclass(frozen=True)
@@ -286,13 +336,16 @@ class Validation:
             profile of :meth:`Judge.profile` in every design).
         priors: the run's prior box (K, 2) per pool model.
         seed: the attribution's seed (the refits' random numbers).
+        groups: (N,) int64 each training pair's group (``"crossfit"``: a pair
+            is refitted from the picks of the other groups only).
     """
 
-    kind: Literal["time", "pairs", "refit"]
+    kind: Literal["time", "pairs", "refit", "crossfit"]
     rollout: Rollout
     budget: RefitBudget | None = None
     priors: dict[str, Tensor] = dataclasses.field(default_factory=dict)
     seed: int = 0
+    groups: Tensor | None = None
 
     @property
     def n_units(self) -> int:
@@ -303,6 +356,8 @@ class Validation:
     @property
     def units(self) -> str:
         """What one value of :meth:`scores` is, for the report."""
+        if self.kind == "crossfit":
+            return "training pairs, each held out once"
         return "validation windows" if self.kind == "time" else "held-out pairs"
 
     def scores(self, population: Population, n: int) -> np.ndarray:
@@ -318,19 +373,35 @@ class Validation:
 
     def refit(
         self,
-        members: dict[CFModel, Tensor],
+        arm: Population,
+        n: int,
+        current: dict[CFModel, CFModel],
         step: int,
         shared: dict[str, Tensor],
         pin: Pin | None = None,
+        budget: RefitBudget | None = None,
+        label: str = "refit",
     ) -> np.ndarray:
         """(V,) float64 each held-out pair's score after its refit from the
-        candidates ``members`` (:func:`~torchcf.diagnose.refit.candidates`),
-        with the effect ``pin`` held at its value (None: without)."""
-        if self.budget is None:
+        picks of ``arm`` (``n`` per pair, as their current models:
+        :func:`~torchcf.diagnose.refit.candidates`; cross-fitting: those of
+        the other groups), with the effect ``pin`` held at its value (None:
+        without)."""
+        budget = budget or self.budget
+        if budget is None:
             raise ValueError("a refit needs its budget")
-        key = (self.seed, "refit", step)
+        key = (self.seed, label, step)
+        exclusion = None
+        if self.kind == "crossfit":
+            groups = self.groups
+            if groups is None:
+                groups = torch.arange(self.rollout.pairs.n_pairs)
+            members, sources = sourced_candidates(arm, n, current, self.seed, groups)
+            exclusion = Exclusion(sources, groups)
+        else:
+            members = candidates(arm, n, current, self.seed)
         return refit_scores(
-            members, self.rollout, self.budget, self.priors, shared, key, pin
+            members, self.rollout, budget, self.priors, shared, key, pin, exclusion
         ).numpy()
 
     def judge(
@@ -342,8 +413,8 @@ class Validation:
     ) -> Judge:
         """The step's judge of effect arms against its placebo arm."""
         shared = dict(shared or {})
-        if self.kind == "refit":
-            before = self.refit(candidates(placebo, n, {}, self.seed), step, shared)
+        if refits(self.kind):
+            before = self.refit(placebo, n, {}, step, shared)
         else:
             before = self.scores(placebo, n)
         return Judge(self, placebo, n, step, shared, before)
@@ -383,12 +454,12 @@ class Judge:
                 None for the others, which score the arm's own particles).
         """
         v = self.validation
-        if v.kind != "refit":
+        if not refits(v.kind):
             return self.before, v.scores(arm, self.n)
         if pin is None:
             raise ValueError("a refit needs the effect's value")
-        mine = candidates(arm, self.n, lifted_from, v.seed)
-        return self.before, v.refit(mine, self.step, self.shared, pin)
+        after = v.refit(arm, self.n, dict(lifted_from), self.step, self.shared, pin)
+        return self.before, after
 
     def profile(self, pin: Pin | None) -> np.ndarray:
         """(U,) float64 every validation unit refitted from the placebo's picks,
@@ -405,21 +476,35 @@ class Judge:
                 self.placebo, v.rollout, budget, v.priors, self.shared, key, pin
             )
             return scores.numpy()
-        members = candidates(self.placebo, self.n, {}, v.seed)
-        return refit_scores(
-            members, v.rollout, budget, v.priors, self.shared, key, pin
-        ).numpy()
+        return v.refit(
+            self.placebo, self.n, {}, self.step, self.shared, pin, budget, "profile"
+        )
 
 
 def design(
-    cfg: TrainConfig, train_pairs: PairSet, seed: int
+    cfg: TrainConfig,
+    train_pairs: PairSet,
+    seed: int,
+    groups: Tensor | None = None,
 ) -> tuple[Rollout, Validation]:
     """The fit rollout and the :class:`Validation` of ``diagnose.validation``
-    (``"auto"`` resolved by :func:`resolve_validation`)."""
+    (``"auto"`` resolved by :func:`resolve_validation`); ``groups``: (N,) the
+    pairs' cross-fitting groups (None: each pair its own)."""
     settings = cfg.diagnose
     kind = resolve_validation(settings, train_pairs.n_pairs)
     budget = refit_budget(settings)
     priors = {spec.name: spec.bounds(torch.float64) for spec in cfg.models}
+    if kind == "crossfit":
+        if groups is None:
+            groups = torch.arange(train_pairs.n_pairs)
+        if int(groups.max()) + 1 < MIN_PAIRS:
+            raise DiagnoseError(
+                "diagnose.validation='crossfit' needs pairs of at least "
+                f"{MIN_PAIRS} groups (drivers or runs); these pairs are one "
+                "group: use diagnose.validation='time'"
+            )
+        whole = attribution_rollout(cfg, train_pairs)
+        return whole, Validation(kind, whole, budget, priors, seed, groups)
     if held_out(kind):
         fit, held = split_by_pair(train_pairs, settings.fit_fraction, seed)
         return attribution_rollout(cfg, fit), Validation(
@@ -454,7 +539,9 @@ __all__ = [
     "fit_part",
     "held_out",
     "held_out_count",
+    "pair_groups",
     "refit_budget",
+    "refits",
     "pair_split",
     "resolve_validation",
     "split_by_pair",

@@ -26,6 +26,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from torch import Tensor
+
 from ..abc.distributed import SINGLE, Group
 from ..config import TrainConfig, load_split
 from ..data import PairSet
@@ -162,6 +164,7 @@ def close_loop(
     overrides: Sequence[str] = (),
     *,
     pairs: tuple[PairSet, PairSet] | None = None,
+    groups: Tensor | None = None,
     progress: bool = True,
 ) -> LoopResult:
     """Close the loop on a finished, evaluated run (:mod:`torchcf.diagnose`).
@@ -176,6 +179,9 @@ def close_loop(
         run_dir: a trained and evaluated run directory.
         overrides: ``diagnose.key=VALUE`` items applied to the run's config.
         pairs: ``(train, test)`` instead of loading the run's data.
+        groups: (N,) each training pair's driver or run, which cross-fitting
+            keeps apart (None: read from the data's index where the run loads
+            its data, else each pair its own).
         progress: show progress bars.
 
     Returns:
@@ -183,7 +189,7 @@ def close_loop(
     """
     run = RunDir(run_dir)
     with run.locked():
-        plan = plan_loop(run, overrides, pairs=pairs, progress=progress)
+        plan = plan_loop(run, overrides, pairs=pairs, groups=groups, progress=progress)
         if plan.recalibration is not None and not plan.resume_recalibration:
             # the re-calibration trains as the run did: with its plausibility
             # filter, handed down (the loop does not build a battery)
