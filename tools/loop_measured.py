@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -107,11 +108,15 @@ def config(diagnose: dict) -> object:
     )
 
 
-def run_case(name: str, cache: Path, diagnose: dict) -> dict:
+def run_case(name: str, cache: Path, diagnose: dict, keep: Path | None) -> dict:
+    """One case's run and loop (kept in ``keep/<case>`` when given)."""
     train, test, groups = case_pairs(name, cache)
     began = time.perf_counter()
+    out = keep / name.replace(",", "").replace(" ", "-") if keep else None
     with tempfile.TemporaryDirectory() as folder:
-        out = Path(folder) / "run"
+        out = out or Path(folder) / "run"
+        if out.exists():
+            shutil.rmtree(out)
         train_and_evaluate(config(diagnose), out, pairs=(train, test))
         trained = time.perf_counter()
         result = close_loop(out, pairs=(train, test), groups=groups, progress=False)
@@ -246,6 +251,9 @@ def main(argv: list[str] | None = None) -> int:
         "--diagnose", nargs="*", default=[], help="loop settings KEY=JSON"
     )
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument(
+        "--keep", type=Path, default=None, help="keep each case's run here"
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     diagnose = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.diagnose)}
@@ -255,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for name in args.cases:
         print(f"{name} ...", file=sys.stderr, flush=True)
-        rows.append(run_case(name, args.cache, diagnose))
+        rows.append(run_case(name, args.cache, diagnose, args.keep))
         payload = {
             "meta": bench_meta(sys.argv, args.threads),
             "diagnose": diagnose,

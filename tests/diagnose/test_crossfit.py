@@ -12,12 +12,21 @@ from torchcf.abc.particles import Particles
 from torchcf.abc.rejection import Rollout
 from torchcf.config import validate_config
 from torchcf.diagnose import Population
-from torchcf.diagnose.refit import Exclusion, sourced_candidates, start
-from torchcf.diagnose.validation import design, pair_groups
+from torchcf.diagnose.refit import (
+    Exclusion,
+    Pin,
+    RefitBudget,
+    refit_scores,
+    sourced_candidates,
+    start,
+)
+from torchcf.diagnose.validation import design, free_effect_windows, pair_groups
 from torchcf.models import get_model
+from torchcf.models.effects import parse_effect
 from torchcf.sim.synthetic import synthetic_pairs
 
 IDM = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
+PRIORS = {"idm": get_model("idm").prior_bounds(torch.float64)}
 
 
 def _own_picks(n_pairs: int, per_pair: int) -> tuple[Population, torch.Tensor]:
@@ -112,3 +121,27 @@ def test_crossfit_judges_every_training_pair():
     else:  # pragma: no cover - the guard must fire
         raise AssertionError("one group was accepted")
     assert not math.isnan(float(fit.pairs.dt))
+
+
+def test_a_free_driver_effect_is_searched_per_pair_and_judged_later_in_time():
+    """refit_effect "free": the refit starts the delay at the pinned value and
+    searches it on each pair's first steps; scored on the later steps, drivers
+    who wait 1.2 s are fitted better than with the delay held at 0.2 s, every
+    one of them."""
+    delayed = get_model("idm+delay")
+    pairs = synthetic_pairs(delayed, IDM + [1.2], n_pairs=4, n_steps=300, noise=0.02)
+    judged, first, later = free_effect_windows(pairs, 0.6)
+    assert judged.tolist() == [0, 1, 2, 3]
+    assert (first.n_steps, later.n_steps) == (180, 120)
+    found = {get_model("idm"): torch.tensor([IDM], dtype=torch.float64)}
+    budget = RefitBudget(slots=2, copies=8, rounds=8)
+    rollout, scored_on = (Rollout(p, True, torch.float64) for p in (first, later))
+    value = torch.tensor([0.2], dtype=torch.float64)
+    scores = {}
+    for free in (False, True):
+        pin = Pin(parse_effect("delay"), value, free=free)
+        scores[free] = refit_scores(
+            found, rollout, budget, PRIORS, {}, ("t",), pin, scored_on=scored_on
+        )
+    assert bool((scores[True] < scores[False]).all()), scores
+    assert float(scores[True].sum()) < 0.6 * float(scores[False].sum()), scores

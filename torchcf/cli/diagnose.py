@@ -86,10 +86,31 @@ def _print_result(result: LoopResult, run_dir: str) -> None:
         )
         for row in rows:
             mark = "  <- chosen" if row.chosen else ""
+            family = (
+                f"  family p {row.family_p_value:.4f}"
+                if row.family_p_value is not None
+                else ""
+            )
             print(
                 f"  {row.order:>2}. {row.token:<28} gain {row.gain:+7.1%}"
-                f"  p {row.p_value:.4f} (level {row.level:.2g}){mark}"
+                f"  p {row.p_value:.4f}{family} (level {row.level:.2g}){mark}"
             )
+    on_test = result.class_on_test
+    if on_test is not None:
+        print(
+            "new drivers (test pairs, each refitted): the model class with "
+            f"{' + '.join(e.token for e in result.chosen)} fits "
+            f"{on_test.change:+.1%} per pair, better on {on_test.better} of "
+            f"{on_test.pairs} (p {on_test.p_value:.2g})"
+        )
+    times = result.response_before
+    if times is not None and times.data is not None:
+        after = result.recalibrated.response_after if result.recalibrated else None
+        print(
+            f"response time [s]: the data {fmt(times.data)}, the hybrid "
+            f"{fmt(times.model)}"
+            + (f", after {fmt(after.model)}" if after and after.model else "")
+        )
     done = result.recalibrated
     for key, label in (("ws", "WS"), ("min", "minimum distance")):
         metric = attrgetter(f"metrics.{key}")

@@ -128,6 +128,18 @@ class DiagnoseConfig(BaseModel):
             "'rounds'."
         ),
     )
+    refit_effect: Literal["pinned", "free"] = Field(
+        "pinned",
+        description=(
+            "How a refit holds a driver effect (validation 'refit', "
+            "'crossfit'): 'pinned' at the value the training gave (the median "
+            "of the arm's picks) for every judged pair, both sides scored on "
+            "the whole pair; 'free' searched per pair within its prior from "
+            "that value on the first fit_fraction of the pair's steps, both "
+            "sides scored on the rest (a parameter fitted to the pair is judged "
+            "out of sample in time). Shared effects are pinned either way."
+        ),
+    )
     refit_slots: int = Field(
         5,
         gt=0,

@@ -101,10 +101,14 @@ class Pin:
     Attributes:
         effect: the effect.
         value: (K_E,) float64 its parameters, in the effect's order.
+        free: the refit starts the effect at ``value`` and searches it per
+            pair within its prior (``diagnose.refit_effect = "free"``, a
+            driver effect), where pinned it never moves.
     """
 
     effect: Effect
     value: Tensor
+    free: bool = False
 
 
 @dataclass(frozen=True)
@@ -299,9 +303,10 @@ def refit_paired(
         members, lifted_from = lift(members, pin.effect, pin.value)
         parents |= lifted_from
     members = merge([rescore(members, rollout)], budget.slots)
-    return _searched(
+    searched = _searched(
         members, rollout, budget, priors, shared, key, pin, current, parents
     )
+    return _best_scores(searched)
 
 
 def refit_scores(
@@ -313,6 +318,7 @@ def refit_scores(
     key: tuple,
     pin: Pin | None = None,
     exclusion: Exclusion | None = None,
+    scored_on: Rollout | None = None,
 ) -> Tensor:
     """(V,) float64 each held-out pair's best score after its refit (``+inf``:
     no valid particle).
@@ -326,6 +332,10 @@ def refit_scores(
         pin: the effect and its value (None: the side without it).
         exclusion: which candidates each held-out pair may start from
             (cross-fitting; None: all).
+        scored_on: where the refitted pairs are scored (the same pairs'
+            later steps, when ``rollout`` holds their first: each pair's best
+            particle on its fit steps, scored out of sample in time; None: on
+            ``rollout`` itself).
     """
     current = {m: m.param_names for m in candidates}
     members = candidates if pin is None else lifted(candidates, pin)
@@ -333,9 +343,18 @@ def refit_scores(
     if pin is not None:
         parents |= {variant_of(m, pin.effect) or m: m for m in candidates}
     population = start(members, rollout, budget.slots, exclusion)
-    return _searched(
+    searched = _searched(
         population, rollout, budget, priors, shared, key, pin, current, parents
     )
+    return _best_scores(searched, scored_on)
+
+
+def _best_scores(population: Population, scored_on: Rollout | None = None) -> Tensor:
+    """(V,) each pair's best score (``+inf``: no valid particle), or that best
+    particle's score on ``scored_on`` (the same pairs, other steps)."""
+    if scored_on is not None:
+        population = rescore(population.best(1), scored_on)
+    return torch.where(population.filled[:, 0], population.score[:, 0], math.inf)
 
 
 def _searched(
@@ -349,17 +368,17 @@ def _searched(
     current: dict[CFModel, tuple[str, ...]],
     parents: dict[CFModel, CFModel],
 ) -> Tensor:
-    """(V,) the best score per pair of ``population`` after ``budget.rounds``
-    rounds of local search (or fewer, converged: ``budget.until_calm``) within
-    the priors, the chosen shared effects and ``pin`` held at their values
-    (``+inf``: no valid particle).
+    """``population`` after ``budget.rounds`` rounds of local search (or
+    fewer, converged: ``budget.until_calm``) within the priors, the chosen
+    shared effects and ``pin`` held at their values (a free pin: searched
+    within its prior from its value).
 
     A round's random numbers are those of its number whichever rule stops the
     search, so a converged refit is the fixed one cut short. Each side of a
     comparison stops on its own: a side still gaining from more rounds is not
     compared in mid-descent with one that has settled."""
     pinned = dict(shared)
-    if pin is not None:
+    if pin is not None and not pin.free:
         pinned[pin.effect.name] = pin.value
     bounds = {m: model_bounds(m, dict(priors), pinned) for m in population.models}
     noise = Noise(key, current, pin.effect if pin is not None else None)
@@ -376,7 +395,7 @@ def _searched(
             rounds=budget.rounds,
             copies=budget.copies,
         )
-    return torch.where(population.filled[:, 0], population.score[:, 0], math.inf)
+    return population
 
 
 __all__ = [

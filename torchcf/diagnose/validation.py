@@ -338,6 +338,11 @@ class Validation:
         seed: the attribution's seed (the refits' random numbers).
         groups: (N,) int64 each training pair's group (``"crossfit"``: a pair
             is refitted from the picks of the other groups only).
+        scored_on: with ``diagnose.refit_effect = "free"``, the judged pairs'
+            later steps (``rollout`` then holds their first ``fit_fraction``):
+            a refit searches a driver effect per pair on the first steps and
+            is scored on the rest (:func:`free_effect_windows`); None: a
+            refit is scored where it searched.
     """
 
     kind: Literal["time", "pairs", "refit", "crossfit"]
@@ -346,6 +351,9 @@ class Validation:
     priors: dict[str, Tensor] = dataclasses.field(default_factory=dict)
     seed: int = 0
     groups: Tensor | None = None
+    scored_on: Rollout | None = None
+
+    judged: Tensor | None = None
 
     @property
     def n_units(self) -> int:
@@ -381,12 +389,14 @@ class Validation:
         pin: Pin | None = None,
         budget: RefitBudget | None = None,
         label: str = "refit",
+        as_pinned: bool = False,
     ) -> np.ndarray:
         """(V,) float64 each held-out pair's score after its refit from the
         picks of ``arm`` (``n`` per pair, as their current models:
         :func:`~torchcf.diagnose.refit.candidates`; cross-fitting: those of
         the other groups), with the effect ``pin`` held at its value (None:
-        without)."""
+        without; ``as_pinned``: held there even where ``refit_effect`` frees
+        a driver effect, as the power analysis's sizes are)."""
         budget = budget or self.budget
         if budget is None:
             raise ValueError("a refit needs its budget")
@@ -395,13 +405,25 @@ class Validation:
         if self.kind == "crossfit":
             groups = self.groups
             if groups is None:
-                groups = torch.arange(self.rollout.pairs.n_pairs)
+                groups = torch.arange(arm.n_pairs)
             members, sources = sourced_candidates(arm, n, current, self.seed, groups)
-            exclusion = Exclusion(sources, groups)
+            held = groups if self.judged is None else groups[self.judged]
+            exclusion = Exclusion(sources, held)
         else:
             members = candidates(arm, n, current, self.seed)
+        free = self.scored_on is not None and not as_pinned
+        if pin is not None and free and not pin.effect.shared:
+            pin = dataclasses.replace(pin, free=True)
         return refit_scores(
-            members, self.rollout, budget, self.priors, shared, key, pin, exclusion
+            members,
+            self.rollout,
+            budget,
+            self.priors,
+            shared,
+            key,
+            pin,
+            exclusion,
+            self.scored_on,
         ).numpy()
 
     def judge(
@@ -477,7 +499,15 @@ class Judge:
             )
             return scores.numpy()
         return v.refit(
-            self.placebo, self.n, {}, self.step, self.shared, pin, budget, "profile"
+            self.placebo,
+            self.n,
+            {},
+            self.step,
+            self.shared,
+            pin,
+            budget,
+            "profile",
+            as_pinned=True,
         )
 
 
@@ -504,9 +534,33 @@ def design(
                 "group: use diagnose.validation='time'"
             )
         whole = attribution_rollout(cfg, train_pairs)
+        if settings.refit_effect == "free":
+            judged, first, later = free_effect_windows(
+                train_pairs, settings.fit_fraction
+            )
+            return whole, Validation(
+                kind,
+                attribution_rollout(cfg, first),
+                budget,
+                priors,
+                seed,
+                groups,
+                attribution_rollout(cfg, later),
+                judged,
+            )
         return whole, Validation(kind, whole, budget, priors, seed, groups)
     if held_out(kind):
         fit, held = split_by_pair(train_pairs, settings.fit_fraction, seed)
+        if kind == "refit" and settings.refit_effect == "free":
+            _, first, later = free_effect_windows(held, settings.fit_fraction)
+            return attribution_rollout(cfg, fit), Validation(
+                kind,
+                attribution_rollout(cfg, first),
+                budget,
+                priors,
+                seed,
+                scored_on=attribution_rollout(cfg, later),
+            )
         return attribution_rollout(cfg, fit), Validation(
             kind, attribution_rollout(cfg, held), budget, priors, seed
         )
@@ -515,6 +569,25 @@ def design(
     return attribution_rollout(cfg, fit), Validation(
         "time", rollout, budget, priors, seed
     )
+
+
+def free_effect_windows(
+    pairs: PairSet, fraction: float
+) -> tuple[Tensor, PairSet, PairSet]:
+    """The judged pairs of ``diagnose.refit_effect = "free"``: those with a
+    later window of at least :data:`MIN_VALIDATION_STEPS` valid steps
+    (positions (V,) int64), their first ``fraction`` of steps (where a refit
+    searches a driver effect per pair) and the rest (where it is scored, from
+    the observed state at the split).
+
+    Raises:
+        DiagnoseError: a window would be too short, or fewer than 2 pairs are
+            long enough.
+    """
+    split = int(round(fraction * pairs.n_steps))
+    kept, _ = _long_enough(pairs, fraction)
+    keep = (pairs.mask[split:].sum(0) >= MIN_VALIDATION_STEPS).nonzero().squeeze(1)
+    return keep, _window(kept, slice(0, split)), _window(kept, slice(split, None))
 
 
 def refit_budget(settings: DiagnoseConfig) -> RefitBudget:
@@ -538,6 +611,7 @@ __all__ = [
     "design",
     "fit_part",
     "held_out",
+    "free_effect_windows",
     "held_out_count",
     "pair_groups",
     "refit_budget",
