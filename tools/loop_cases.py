@@ -60,7 +60,7 @@ from bench_sim import bench_meta, write_report  # noqa: E402
 
 from torchcf.config import DiagnoseConfig, validate_config  # noqa: E402
 from torchcf.data import PairSet, load_pairs  # noqa: E402
-from torchcf.diagnose.attribution import attribute_effects  # noqa: E402
+from torchcf.diagnose.attribution import RoadStart, attribute_effects  # noqa: E402
 from torchcf.diagnose.loop import active_models  # noqa: E402
 from torchcf.diagnose.road import profile_agreement  # noqa: E402
 from torchcf.models import AugmentedModel, get_model, parse_effect  # noqa: E402
@@ -386,8 +386,7 @@ def truth_seeded_arm(run_dir: Path, train: PairSet, grade: float) -> dict:
         active_models(cfg, posterior),
         [profile],
         train,
-        road_seeds={profile: values},
-        road_profile=profile,
+        road=RoadStart({profile: values}, profile),
         progress=False,
     )
     row = selection.steps[0][0]

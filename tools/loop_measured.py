@@ -50,7 +50,7 @@ from torchcf.config import validate_config  # noqa: E402
 from torchcf.data import PairSet, load_pairs  # noqa: E402
 from torchcf.diagnose.validation import pair_groups  # noqa: E402
 from torchcf.study.pipeline import close_loop, train_and_evaluate  # noqa: E402
-from torchcf.system.console import OneLineParser, run_main  # noqa: E402
+from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 #: Published response times of commercial ACCs [s] (the issue's range:
@@ -250,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--diagnose", nargs="*", default=[], help="loop settings KEY=JSON"
     )
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=count, default=2)
     parser.add_argument(
         "--keep", type=Path, default=None, help="keep each case's run here"
     )
@@ -275,4 +275,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(run_main(main))
+    raise SystemExit(run_main(main))

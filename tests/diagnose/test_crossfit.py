@@ -14,6 +14,7 @@ from torchcf.config import validate_config
 from torchcf.diagnose import Population
 from torchcf.diagnose.refit import (
     Exclusion,
+    Layout,
     Pin,
     RefitBudget,
     refit_scores,
@@ -140,8 +141,9 @@ def test_a_free_driver_effect_is_searched_per_pair_and_judged_later_in_time():
     scores = {}
     for free in (False, True):
         pin = Pin(parse_effect("delay"), value, free=free)
+        where = Layout(scored_on=scored_on)
         scores[free] = refit_scores(
-            found, rollout, budget, PRIORS, {}, ("t",), pin, scored_on=scored_on
+            found, rollout, budget, PRIORS, {}, ("t",), pin, where
         )
     assert bool((scores[True] < scores[False]).all()), scores
     assert float(scores[True].sum()) < 0.6 * float(scores[False].sum()), scores

@@ -50,6 +50,7 @@ Shapes: N pairs, S slots per pair, K parameters (:mod:`torchcf.typing`).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import math
 import sys
@@ -395,6 +396,19 @@ def ledger_key(
 
 # ------------------------------------------------------------- the selection
 @dataclass(frozen=True)
+class RoadStart:
+    """How road effects enter an attribution.
+
+    Attributes:
+        seeds: per road effect, a first candidate of its value.
+        profile: the road profile of the road signature (None: none).
+    """
+
+    seeds: dict[Effect, Tensor] = dataclasses.field(default_factory=dict)
+    profile: RoadProfile | None = None
+
+
+@dataclass(frozen=True)
 class JudgedOn:
     """How the arms of a selection were judged out of sample.
 
@@ -472,8 +486,7 @@ def attribute_effects(
     effects: list[Effect],
     train_pairs: PairSet,
     *,
-    road_seeds: dict[Effect, Tensor] | None = None,
-    road_profile: RoadProfile | None = None,
+    road: RoadStart | None = None,
     groups: Tensor | None = None,
     ledger: Path | None = None,
     progress: bool = True,
@@ -487,8 +500,8 @@ def attribute_effects(
         effects: the candidate effects (options resolved, see
             :func:`~torchcf.diagnose.arms.resolve_effect`).
         train_pairs: the run's training pairs.
-        road_seeds: per road effect, a first candidate of its value.
-        road_profile: the road profile of the road signature (None: none).
+        road: how road effects start (:class:`RoadStart`; None: no seeds, no
+            road signature).
         groups: (N,) int64 each training pair's driver or run (cross-fitting
             never refits a pair from its own group's picks; None: each pair
             its own group).
@@ -502,8 +515,8 @@ def attribute_effects(
         cfg,
         train_pairs,
         groups,
-        road_seeds=dict(road_seeds or {}),
-        road_profile=road_profile,
+        road_seeds=dict(road.seeds) if road else {},
+        road_profile=road.profile if road else None,
     )
     settings = arena.settings
     steps_at_most = min(settings.max_effects, len(effects))
@@ -891,6 +904,7 @@ __all__ = [
     "active",
     "EffectSelection",
     "JudgedOn",
+    "RoadStart",
     "arm_signatures",
     "attribute_effects",
     "choose",

@@ -52,7 +52,7 @@ from ..posterior import Posterior
 from ..runs.directory import RunDir
 from ..system.files import RunFileError
 from .arms import spanning
-from .attribution import EffectSelection, attribute_effects
+from .attribution import EffectSelection, RoadStart, attribute_effects
 from .candidates import attribution_seed
 from .identifiability import effect_identifiability
 from .on_test import (
@@ -354,8 +354,7 @@ def plan_loop(
         pool,
         candidates.effects,
         train_pairs,
-        road_seeds=candidates.seeds,
-        road_profile=candidates.profile,
+        road=RoadStart(candidates.seeds, candidates.profile),
         groups=groups
         if groups is not None
         else pair_groups(train_pairs, load_index(cfg.data) if pairs is None else None),

@@ -134,6 +134,23 @@ class Exclusion:
         return sources.sum(1, keepdim=True) > own.to(torch.int64)
 
 
+@dataclass(frozen=True)
+class Layout:
+    """Where a refit's pairs start and are scored.
+
+    Attributes:
+        exclusion: which candidates each pair may start from (cross-fitting;
+            None: all).
+        scored_on: where the refitted pairs are scored: the same pairs' later
+            steps, when the refit's rollout holds their first (each pair's
+            best particle on its first steps, scored out of sample in time);
+            None: where it searched.
+    """
+
+    exclusion: Exclusion | None = None
+    scored_on: Rollout | None = None
+
+
 def candidates(
     population: Population,
     n: int,
@@ -317,8 +334,7 @@ def refit_scores(
     shared: Mapping[str, Tensor],
     key: tuple,
     pin: Pin | None = None,
-    exclusion: Exclusion | None = None,
-    scored_on: Rollout | None = None,
+    layout: Layout = Layout(),
 ) -> Tensor:
     """(V,) float64 each held-out pair's best score after its refit (``+inf``:
     no valid particle).
@@ -330,23 +346,19 @@ def refit_scores(
         shared: per chosen shared effect, its one value (pinned on both sides).
         key: the refit's random numbers (the same for both sides).
         pin: the effect and its value (None: the side without it).
-        exclusion: which candidates each held-out pair may start from
-            (cross-fitting; None: all).
-        scored_on: where the refitted pairs are scored (the same pairs'
-            later steps, when ``rollout`` holds their first: each pair's best
-            particle on its fit steps, scored out of sample in time; None: on
-            ``rollout`` itself).
+        layout: which candidates each pair may start from and where it is
+            scored (:class:`Layout`; the default: all, where it searched).
     """
     current = {m: m.param_names for m in candidates}
     members = candidates if pin is None else lifted(candidates, pin)
     parents = {m: m for m in candidates}
     if pin is not None:
         parents |= {variant_of(m, pin.effect) or m: m for m in candidates}
-    population = start(members, rollout, budget.slots, exclusion)
+    population = start(members, rollout, budget.slots, layout.exclusion)
     searched = _searched(
         population, rollout, budget, priors, shared, key, pin, current, parents
     )
-    return _best_scores(searched, scored_on)
+    return _best_scores(searched, layout.scored_on)
 
 
 def _best_scores(population: Population, scored_on: Rollout | None = None) -> Tensor:
@@ -400,6 +412,7 @@ def _searched(
 
 __all__ = [
     "Exclusion",
+    "Layout",
     "REFIT_CANDIDATES",
     "Pin",
     "RefitBudget",

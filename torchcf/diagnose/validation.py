@@ -74,6 +74,7 @@ from .candidates import attribution_rollout
 from .population import Population, pick_scores
 from .refit import (
     Exclusion,
+    Layout,
     Pin,
     RefitBudget,
     candidates,
@@ -384,11 +385,11 @@ class Validation:
         arm: Population,
         n: int,
         current: dict[CFModel, CFModel],
-        step: int,
         shared: dict[str, Tensor],
         pin: Pin | None = None,
+        *,
+        key: tuple,
         budget: RefitBudget | None = None,
-        label: str = "refit",
         as_pinned: bool = False,
     ) -> np.ndarray:
         """(V,) float64 each held-out pair's score after its refit from the
@@ -400,7 +401,7 @@ class Validation:
         budget = budget or self.budget
         if budget is None:
             raise ValueError("a refit needs its budget")
-        key = (self.seed, label, step)
+        key = (self.seed, *key)
         exclusion = None
         if self.kind == "crossfit":
             groups = self.groups
@@ -414,16 +415,9 @@ class Validation:
         free = self.scored_on is not None and not as_pinned
         if pin is not None and free and not pin.effect.shared:
             pin = dataclasses.replace(pin, free=True)
+        layout = Layout(exclusion, self.scored_on)
         return refit_scores(
-            members,
-            self.rollout,
-            budget,
-            self.priors,
-            shared,
-            key,
-            pin,
-            exclusion,
-            self.scored_on,
+            members, self.rollout, budget, self.priors, shared, key, pin, layout
         ).numpy()
 
     def judge(
@@ -436,7 +430,7 @@ class Validation:
         """The step's judge of effect arms against its placebo arm."""
         shared = dict(shared or {})
         if refits(self.kind):
-            before = self.refit(placebo, n, {}, step, shared)
+            before = self.refit(placebo, n, {}, shared, key=("refit", step))
         else:
             before = self.scores(placebo, n)
         return Judge(self, placebo, n, step, shared, before)
@@ -480,7 +474,9 @@ class Judge:
             return self.before, v.scores(arm, self.n)
         if pin is None:
             raise ValueError("a refit needs the effect's value")
-        after = v.refit(arm, self.n, dict(lifted_from), self.step, self.shared, pin)
+        current = dict(lifted_from)
+        key = ("refit", self.step)
+        after = v.refit(arm, self.n, current, self.shared, pin, key=key)
         return self.before, after
 
     def profile(self, pin: Pin | None) -> np.ndarray:
@@ -502,11 +498,10 @@ class Judge:
             self.placebo,
             self.n,
             {},
-            self.step,
             self.shared,
             pin,
-            budget,
-            "profile",
+            key=("profile", self.step),
+            budget=budget,
             as_pinned=True,
         )
 
