@@ -212,9 +212,22 @@ def run_case(
         "same_search": [
             (loop["before_same_search"] or loop["before"]).get(k) for k in ("ws", "min")
         ],
+        "class_on_test": _class_change(loop.get("class_on_test")),
+        "response_times": {
+            side: None if times is None else {k: times[k] for k in ("data", "model")}
+            for side, times in (loop.get("response_times") or {}).items()
+        },
         "loop_seconds": time.perf_counter() - trained,
         "seconds": time.perf_counter() - began,
     }
+
+
+def _class_change(found: dict | None) -> dict | None:
+    """The model class on the test pairs (``loop.json``'s), without its
+    per-pair lists."""
+    if found is None:
+        return None
+    return {k: v for k, v in found.items() if k != "per_pair"}
 
 
 def _test_of(row: dict | None) -> dict | None:
@@ -301,9 +314,20 @@ def cases_markdown(payload: dict) -> str:
         lines.append(
             f"- {r['case']}, seed {r['seed']}: {', '.join(r['chosen']) or 'none'}"
             f" ({r['validation']}; min distance {_fmt(r['min'][0])} -> "
-            f"{_fmt(r['min'][1])}, searched as after {_fmt(r['same_search'][1])})"
+            f"{_fmt(r['min'][1])}, searched as after {_fmt(r['same_search'][1])}"
+            + _class_text(r.get("class_on_test"))
+            + ")"
         )
     return "\n".join(lines) + "\n"
+
+
+def _class_text(found: dict | None) -> str:
+    if not found:
+        return ""
+    return (
+        f"; the class on the test pairs {found['change']:+.1%}, better on "
+        f"{found['better']} of {found['pairs']}, p {found['p_value']:.2g}"
+    )
 
 
 def detectable_markdown(
