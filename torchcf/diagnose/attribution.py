@@ -2,9 +2,10 @@
 
 The training data are split (:mod:`torchcf.diagnose.validation`): in time, the
 arms fitted on every pair's first ``fit_fraction`` of steps (the *fit windows*)
-and judged on the rest (the *validation windows*); or by pair, fitted on
-``fit_fraction`` of the pairs and judged on the others, held out whole. Either
-way they are judged out of sample.
+and judged on the rest (the *validation windows*); by pair, fitted on
+``fit_fraction`` of the pairs and judged on the others, held out whole; or
+cross-fitted (the default from 15 pairs), fitted on every pair and each pair
+judged by a refit started from the other drivers' picks only.
 
 **The arms** (:mod:`torchcf.diagnose.arms`). The current model (at first the
 active pool) is fitted on the fit windows until its search converges. Each step
@@ -16,8 +17,11 @@ without the effect.
 
 **The test.** Per validation unit, the arm's out-of-sample score
 (:meth:`~torchcf.diagnose.validation.Validation.scores`: a pair's ``top_n`` best,
-the hybrid's picks, on its validation window, their median; or a held-out
-pair's best score among all the picks). The effect's gain is the relative drop
+the hybrid's picks, on its validation window, their median; a held-out
+pair's best score among all the picks; or a pair's score after its refit with
+and without the effect: :class:`~torchcf.diagnose.validation.Judge`). Twins
+that one signature points to are tested as one family (:func:`_judge`). The
+effect's gain is the relative drop
 of the summed score against the placebo, its p-value the one-sided sign-flip
 test of the per-unit log ratios (:mod:`torchcf.diagnose.significance`).
 

@@ -1,7 +1,7 @@
 """How the attribution judges an arm out of sample (``diagnose.validation``).
 
 An arm is fitted on one part of the training data and judged on another that
-its search never saw; three designs split the data:
+its search never saw; four designs split the data:
 
 - ``"time"``: every training pair is split in time (:func:`split_in_time`).
   The arms are fitted on the first ``fit_fraction`` of its steps (the *fit
