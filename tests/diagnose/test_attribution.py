@@ -575,16 +575,18 @@ def test_an_interrupted_pool_fit_resumes_from_its_last_state(tmp_path, monkeypat
 
 
 @pytest.mark.slow  # two attributions
-def test_the_effect_arms_are_the_same_in_worker_processes():
+@pytest.mark.parametrize("validation", ["time", "crossfit"])
+def test_the_effect_arms_are_the_same_in_worker_processes(validation):
     """Arms searched side by side in two worker processes give the selection
-    one process gives (every arm draws from its own seeded streams)."""
+    one process gives (every arm draws from its own seeded streams), the
+    cross-fitted refits of every pair included."""
     pairs = synthetic_pairs(
         get_model("idm+delay"), IDM + [0.8], 6, 200, seed=4, noise=0.05
     )
     effects = [DELAY, OFFSET, parse_effect("lag")]
     alone, side_by_side = (
         attribute_effects(
-            _config(max_effects=1, workers=w),
+            _config(max_effects=1, workers=w, validation=validation),
             [get_model("idm")],
             effects,
             pairs,
@@ -594,6 +596,7 @@ def test_the_effect_arms_are_the_same_in_worker_processes():
     )
     assert side_by_side.chosen == alone.chosen
     assert side_by_side.steps == alone.steps
+    assert alone.validation.kind == validation
 
 
 # ------------------------------------------------------------ re-calibration
