@@ -16,6 +16,7 @@ import pytest
 import torch
 
 import torchcf.diagnose.attribution as attribution
+import torchcf.diagnose.ledger as ledger
 import torchcf.diagnose.search as search_module
 from torchcf.abc.particles import Particles
 from torchcf.config import validate_config
@@ -554,7 +555,7 @@ def test_an_interrupted_pool_fit_resumes_from_its_last_state(tmp_path, monkeypat
     whole = fit_pool(arena, POOL, lambda *_: None).population
     rounds, calls["n"], calls["stop"] = calls["n"], 0, 3
     assert rounds > 3
-    monkeypatch.setattr(attribution, "CHECKPOINT_SECONDS", 0.0)  # keep every round
+    monkeypatch.setattr(ledger, "CHECKPOINT_SECONDS", 0.0)  # keep every round
     book = attribution.Ledger(tmp_path / "a.pt", "key")
     with pytest.raises(KeyboardInterrupt):
         fit_pool(arena, POOL, lambda *_: None, book.within("pool"))

@@ -93,7 +93,7 @@ class Checkpoints(Protocol):
 
     def keep(self, name: str, value: Any, *, now: bool = False) -> None:
         """Keep ``value`` under ``name``: written to disk now, or with the next
-        write when the last was recent (:data:`torchcf.diagnose.attribution.
+        write when the last was recent (:data:`torchcf.diagnose.ledger.
         CHECKPOINT_SECONDS`)."""
 
 

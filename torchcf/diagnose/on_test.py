@@ -51,7 +51,7 @@ from .population import Population
 from .refit import Pin, candidates, lifted, refit_scores
 from .search import INVALID_RATIO
 from .series import BestParticles
-from .signatures import MAX_LAG_S, MIN_RESPONSE_CORRELATION, peak_lag
+from .signatures import MAX_LAG_S, response_lags
 from .significance import comparable, sign_flip_test
 from .validation import refit_budget
 
@@ -218,22 +218,10 @@ def response_times(
     )
     if len(models) != len(series["a"]):  # a pair whose rollout failed: no names
         models = [(j, "?") for j in range(len(series["a"]))]
-    steps = int(round(RESPONSE_MAX_LAG_S / dt))
-    observed, simulated, names = [], [], []
-    for (_, name), a_obs, e_a, a_lead in zip(
-        models, series["a"], series["acceleration"], series["a_lead"], strict=True
-    ):
-        ok = np.isfinite(a_obs) & np.isfinite(e_a) & np.isfinite(a_lead)
-        a_obs, a_sim, a_lead = a_obs[ok], (a_obs - e_a)[ok], a_lead[ok]
-        if a_obs.size < steps + 20:
-            continue
-        lag_obs, r_obs = peak_lag(a_obs, a_lead, steps)
-        if r_obs < MIN_RESPONSE_CORRELATION:
-            continue
-        lag_sim, _ = peak_lag(a_sim, a_lead, steps)
-        observed.append(lag_obs * dt)
-        simulated.append(lag_sim * dt)
-        names.append(name)
+    lags = response_lags(series, int(round(RESPONSE_MAX_LAG_S / dt)))
+    observed = [lag * dt for _, lag, _ in lags]
+    simulated = [lag * dt for _, _, lag in lags]
+    names = [models[j][1] for j, _, _ in lags]
     by_model: dict[str, list[float]] = {}
     for name, value in zip(names, simulated, strict=True):
         by_model.setdefault(name, []).append(value)

@@ -173,13 +173,30 @@ def candidates(
         per current model, (Q_m, K_m) float64 parameters: the effect's own
         dropped, exact repeats removed.
     """
+    thetas, _ = _picked(population, n, current, seed, cap)
+    return {
+        model: torch.unique(torch.cat(parts), dim=0) for model, parts in thetas.items()
+    }
+
+
+def _picked(
+    population: Population,
+    n: int,
+    current: Mapping[CFModel, CFModel],
+    seed: int,
+    cap: int,
+) -> tuple[dict[CFModel, list[Tensor]], dict[CFModel, list[Tensor]]]:
+    """The picks :func:`candidates` offers, per current model: their
+    parameters (pieces of (Q, K_m), the effect's own dropped) and the pair
+    (pieces of (Q,)) each comes from, before repeats are merged."""
     n_pairs = population.n_pairs
     per_pair = max(1, min(n, cap // max(1, n_pairs)))
     keep = torch.arange(n_pairs)
     if n_pairs * per_pair > cap:
         order = torch.randperm(n_pairs, generator=generator(seed, "refit-candidates"))
         keep = torch.sort(order[:cap]).values
-    parts: dict[CFModel, list[Tensor]] = {}
+    thetas: dict[CFModel, list[Tensor]] = {}
+    pairs: dict[CFModel, list[Tensor]] = {}
     picks = population.best(per_pair)
     for model in picks.models:
         pair, slot = picks.model_slots(model)
@@ -189,11 +206,11 @@ def candidates(
         parent = current.get(model, model)
         own = model.param_names
         columns = [own.index(p) for p in parent.param_names]
-        theta = picks.theta[pair[chosen], slot[chosen]][:, columns]
-        parts.setdefault(parent, []).append(theta)
-    return {
-        model: torch.unique(torch.cat(thetas), dim=0) for model, thetas in parts.items()
-    }
+        thetas.setdefault(parent, []).append(
+            picks.theta[pair[chosen], slot[chosen]][:, columns]
+        )
+        pairs.setdefault(parent, []).append(pair[chosen])
+    return thetas, pairs
 
 
 def sourced_candidates(
@@ -215,32 +232,12 @@ def sourced_candidates(
         :class:`Exclusion`.
     """
     n_groups = int(groups.max()) + 1 if groups.numel() else 0
-    n_pairs = population.n_pairs
-    per_pair = max(1, min(n, cap // max(1, n_pairs)))
-    keep = torch.arange(n_pairs)
-    if n_pairs * per_pair > cap:
-        order = torch.randperm(n_pairs, generator=generator(seed, "refit-candidates"))
-        keep = torch.sort(order[:cap]).values
-    thetas: dict[CFModel, list[Tensor]] = {}
-    owners: dict[CFModel, list[Tensor]] = {}
-    picks = population.best(per_pair)
-    for model in picks.models:
-        pair, slot = picks.model_slots(model)
-        chosen = torch.isin(pair, keep)
-        if not bool(chosen.any()):
-            continue
-        parent = current.get(model, model)
-        own = model.param_names
-        columns = [own.index(p) for p in parent.param_names]
-        thetas.setdefault(parent, []).append(
-            picks.theta[pair[chosen], slot[chosen]][:, columns]
-        )
-        owners.setdefault(parent, []).append(groups[pair[chosen]])
+    thetas, pairs = _picked(population, n, current, seed, cap)
     out, sources = {}, []
     for model, parts in thetas.items():
         unique, inverse = torch.unique(torch.cat(parts), dim=0, return_inverse=True)
         held = torch.zeros(unique.shape[0], n_groups, dtype=torch.bool)
-        held[inverse, torch.cat(owners[model])] = True
+        held[inverse, groups[torch.cat(pairs[model])]] = True
         out[model] = unique
         sources.append(held)
     return out, tuple(sources)

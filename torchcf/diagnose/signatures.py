@@ -248,10 +248,21 @@ def response_lag(series: dict[str, list[np.ndarray]], dt: float) -> np.ndarray:
     """Per pair, the observed minus the simulated response lag [s] (module
     docstring); pairs whose observed follower correlates less than
     :data:`MIN_RESPONSE_CORRELATION` with its leader are left out."""
-    steps = int(round(MAX_LAG_S / dt))
+    lags = response_lags(series, int(round(MAX_LAG_S / dt)))
+    return np.array([(observed - simulated) * dt for _, observed, simulated in lags])
+
+
+def response_lags(
+    series: dict[str, list[np.ndarray]], steps: int
+) -> list[tuple[int, int, int]]:
+    """Per pair of the residual ``series`` that carries one, ``(its position in
+    the series, the observed follower's lag, the simulated one's)`` [steps,
+    0..``steps``] of the largest correlation with the leader's acceleration;
+    pairs shorter than ``steps + 20`` valid steps, or whose observed follower
+    correlates less than :data:`MIN_RESPONSE_CORRELATION`, are left out."""
     out = []
-    for a_obs, e_a, a_lead in zip(
-        series["a"], series["acceleration"], series["a_lead"], strict=True
+    for j, (a_obs, e_a, a_lead) in enumerate(
+        zip(series["a"], series["acceleration"], series["a_lead"], strict=True)
     ):
         ok = np.isfinite(a_obs) & np.isfinite(e_a) & np.isfinite(a_lead)
         a_obs, a_sim, a_lead = a_obs[ok], (a_obs - e_a)[ok], a_lead[ok]
@@ -261,8 +272,8 @@ def response_lag(series: dict[str, list[np.ndarray]], dt: float) -> np.ndarray:
         if r_obs < MIN_RESPONSE_CORRELATION:
             continue
         lag_sim, _ = peak_lag(a_sim, a_lead, steps)
-        out.append((lag_obs - lag_sim) * dt)
-    return np.array(out)
+        out.append((j, lag_obs, lag_sim))
+    return out
 
 
 def _per_pair(fn: Callable[..., float], *columns: list[np.ndarray]) -> np.ndarray:
@@ -428,6 +439,7 @@ __all__ = [
     "pointed_effects",
     "peak_lag",
     "response_lag",
+    "response_lags",
     "road_share",
     "signatures",
     "simulated_covariates",
