@@ -214,7 +214,9 @@ def run_case(
         ],
         "class_on_test": _class_change(loop.get("class_on_test")),
         "response_times": {
-            side: None if times is None else {k: times[k] for k in ("data", "model")}
+            side: None
+            if times is None
+            else {k: times.get(k) for k in ("data", "model", "perturbation")}
             for side, times in (loop.get("response_times") or {}).items()
         },
         "loop_seconds": time.perf_counter() - trained,

@@ -221,6 +221,11 @@ def test_the_undeclared_effects_are_found_and_help(loops, case):
         assert key in on_disk
     text = (out / "loop.md").read_text()
     assert "WS change" in text and "From the residual to the effects" in text
+    # the calibrated models' response behind a standard perturbation, before
+    # and after, beside the data's on the recorded pairs
+    assert "behind a standard perturbation" in text
+    for times in (result.response_before, recalibrated.response_after):
+        assert times.perturbation_pairs > 0 and 0 < times.perturbation < 8
     if "offset" in case:  # a recording effect: its behavioural twin named
         assert "the data's fault or the drivers' habit?" in text
         assert "To separate them" in text

@@ -1,52 +1,19 @@
-"""The model class judged on the test split and the response times
-(torchcf.diagnose.on_test)."""
+"""The model class judged on the test split (torchcf.diagnose.on_test)."""
 
 from __future__ import annotations
 
-import numpy as np
-import pytest
 import torch
 
 from torchcf.abc.particles import Particles
 from torchcf.config import validate_config
 from torchcf.diagnose import Population
-from torchcf.diagnose.on_test import chosen_value, class_on_test, response_times
+from torchcf.diagnose.on_test import chosen_value, class_on_test
 from torchcf.diagnose.refit import Pin
 from torchcf.models import get_model
 from torchcf.models.effects import parse_effect
 from torchcf.sim.synthetic import DriverMixture, heterogeneous_pairs
 
 IDM = [1.2, 2.0, 30.0, 1.3, 2.0, 4.0]
-
-
-def _shifted(u: np.ndarray, steps: int) -> np.ndarray:
-    return np.concatenate([np.zeros(steps), u[: u.size - steps]])
-
-
-def test_response_times_read_the_lag_of_data_and_model_per_model():
-    rng = np.random.default_rng(0)
-    dt, n = 0.1, 400
-    series = {"a": [], "acceleration": [], "a_lead": []}
-    lags = [(12, 5), (14, 6), (10, 20)]  # (observed, simulated) steps per pair
-    for observed, simulated in lags:
-        lead = np.convolve(rng.normal(size=n), np.ones(8) / 8, mode="same")
-        a_obs = _shifted(lead, observed)
-        a_sim = _shifted(lead, simulated)
-        series["a"].append(a_obs)
-        series["acceleration"].append(a_obs - a_sim)  # observed - simulated
-        series["a_lead"].append(lead)
-    idm, gfm = get_model("idm"), get_model("gfm")
-    best = {
-        idm: (torch.zeros(2, 6), torch.tensor([0, 1])),
-        gfm: (torch.zeros(1, 4), torch.tensor([2])),
-    }
-    found = response_times(best, series, dt)
-    assert found.data_quartiles == pytest.approx((1.1, 1.3))
-    assert found.pairs == 3
-    assert found.data == pytest.approx(1.2)  # median of 1.2, 1.4, 1.0 s
-    assert found.model == pytest.approx(0.6)  # median of 0.5, 0.6, 2.0 s
-    assert found.by_model == pytest.approx({"idm": 0.55, "gfm": 2.0})
-    assert found.per_model == {"idm": 2, "gfm": 1}
 
 
 def test_a_chosen_effects_value_is_its_shared_value_or_its_estimate():

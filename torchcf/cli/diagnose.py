@@ -104,12 +104,17 @@ def _print_result(result: LoopResult, run_dir: str) -> None:
             f"{on_test.pairs} (p {on_test.p_value:.2g})"
         )
     times = result.response_before
-    if times is not None and times.data is not None:
+    if times is not None:
         after = result.recalibrated.response_after if result.recalibrated else None
         print(
-            f"response time [s]: the data {fmt(times.data)}, the hybrid "
-            f"{fmt(times.model)}"
-            + (f", after {fmt(after.model)}" if after and after.model else "")
+            "response time [s], perturbation (as published for ACCs): the "
+            f"hybrid {fmt(times.perturbation)}"
+            + (f", after {fmt(after.perturbation)}" if after else "")
+            + f"; on the data's braking events ({times.events}): the data "
+            f"{fmt(times.event_data)}, the hybrid {fmt(times.event_model)}"
+            + (f", after {fmt(after.event_model)}" if after else "")
+            + f"; on the recorded pairs: the data {fmt(times.data)}, the hybrid "
+            f"{fmt(times.model)}" + (f", after {fmt(after.model)}" if after else "")
         )
     done = result.recalibrated
     for key, label in (("ws", "WS"), ("min", "minimum distance")):

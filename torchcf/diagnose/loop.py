@@ -55,13 +55,7 @@ from .arms import spanning
 from .attribution import EffectSelection, RoadStart, attribute_effects
 from .candidates import attribution_seed
 from .identifiability import effect_identifiability
-from .on_test import (
-    ClassOnTest,
-    ResponseTimes,
-    chosen_value,
-    class_on_test,
-    response_times,
-)
+from .on_test import ClassOnTest, chosen_value, class_on_test
 from .outcome import (
     ChangeOnTest,
     EffectPosterior,
@@ -80,6 +74,7 @@ from .recalibrate import (
 )
 from .refit import Pin
 from .report import write_report
+from .response import ResponseTimes, response_times
 from .retrain import (
     Buffers,
     FinalModel,
@@ -392,7 +387,7 @@ def plan_loop(
         recalibration=recalibration,
         resume_recalibration=resume,
         began=began,
-        response_before=response_times(best_before, series_before, train_pairs.dt),
+        response_before=response_times(best_before, series_before, train_pairs),
         class_on_test=on_test,
     )
 
@@ -624,7 +619,7 @@ def _recalibrated(plan: LoopPlan) -> tuple[Recalibrated | None, Series | None]:
         posterior=effect_posterior(posterior, plan.chosen),
         identifiability=effect_identifiability(posterior, plan.chosen),
         residuals_after=residuals,
-        response_after=response_times(best, series, plan.train_pairs.dt),
+        response_after=response_times(best, series, plan.train_pairs),
     ), series
 
 

@@ -1,5 +1,4 @@
-"""The model class judged on the test split, and the response time of the data
-and of the calibrated models.
+"""The model class judged on the test split.
 
 **The class on the test pairs** (:func:`class_on_test`). The hybrid's test
 metrics (WS, minimum distance) score the pooled particles of the training
@@ -17,18 +16,8 @@ numbers. The per-pair change is tested by one-sided sign flips of the log
 ratios (exact: the test pairs took no part in the attribution, and both refits
 move the models' own parameters only).
 
-**Response time** (:func:`response_times`). Per pair, the lag (0 to
-:data:`RESPONSE_MAX_LAG_S`) of the largest correlation of
-the follower's acceleration with its leader's: of the observed follower (the
-data's response time, the figure published for commercial ACCs) and of the
-pair's best particle driven behind the recorded leader (the calibrated
-model's own). Pairs whose observed follower correlates less than
-:data:`~torchcf.diagnose.signatures.MIN_RESPONSE_CORRELATION` with its
-leader at every lag carry no response time and are left out of both. The
-lag searched is twice the residual signature's
-(:data:`~torchcf.diagnose.signatures.MAX_LAG_S`): on measured highway
-driving the followers' median reaches that signature's 4 s, and a median at
-the edge of the search says nothing.
+The response times of the data and of the calibrated models are
+:mod:`torchcf.diagnose.response`'s.
 
 Shapes: V test pairs, Q candidates (:mod:`torchcf.typing`).
 """
@@ -50,13 +39,8 @@ from .candidates import attribution_rollout, attribution_seed
 from .population import Population
 from .refit import Pin, candidates, lifted, refit_scores
 from .search import INVALID_RATIO
-from .series import BestParticles
-from .signatures import MAX_LAG_S, response_lags
 from .significance import comparable, sign_flip_test
 from .validation import refit_budget
-
-#: Longest response time searched [s] (module docstring).
-RESPONSE_MAX_LAG_S = 2 * MAX_LAG_S
 
 
 @dataclass(frozen=True)
@@ -181,73 +165,8 @@ def _finite(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
-# ------------------------------------------------------------ response time
-@dataclass(frozen=True)
-class ResponseTimes(Record):
-    """The response time of the data and of the calibrated models [s]
-    (module docstring): medians over pairs.
-
-    Attributes:
-        data: the observed followers' (None: no pair carries one).
-        data_quartiles: their 25 % and 75 % quantiles.
-        model: the pairs' best particles' (the hybrid's own).
-        model_quartiles: their 25 % and 75 % quantiles.
-        by_model: per model (the model of each pair's best particle), its
-            pairs' median.
-        pairs: pairs that carry a response time; per_model: per model, its.
-    """
-
-    data: float | None
-    data_quartiles: tuple[float, float] | None
-    model: float | None
-    model_quartiles: tuple[float, float] | None
-    by_model: dict[str, float]
-    pairs: int
-    per_model: dict[str, int]
-
-
-def response_times(
-    best: BestParticles, series: dict[str, list[np.ndarray]], dt: float
-) -> ResponseTimes:
-    """The response times of the pairs of ``series`` (the residual series of
-    ``best``, one entry per pair with a particle, in position order)."""
-    models = sorted(
-        (int(p), model.name)
-        for model, (_, positions) in best.items()
-        for p in positions.tolist()
-    )
-    if len(models) != len(series["a"]):  # a pair whose rollout failed: no names
-        models = [(j, "?") for j in range(len(series["a"]))]
-    lags = response_lags(series, int(round(RESPONSE_MAX_LAG_S / dt)))
-    observed = [lag * dt for _, lag, _ in lags]
-    simulated = [lag * dt for _, _, lag in lags]
-    names = [models[j][1] for j, _, _ in lags]
-    by_model: dict[str, list[float]] = {}
-    for name, value in zip(names, simulated, strict=True):
-        by_model.setdefault(name, []).append(value)
-    return ResponseTimes(
-        data=float(np.median(observed)) if observed else None,
-        data_quartiles=_quartiles(observed),
-        model=float(np.median(simulated)) if simulated else None,
-        model_quartiles=_quartiles(simulated),
-        by_model={k: float(np.median(v)) for k, v in by_model.items()},
-        pairs=len(observed),
-        per_model={k: len(v) for k, v in by_model.items()},
-    )
-
-
-def _quartiles(values: list[float]) -> tuple[float, float] | None:
-    if not values:
-        return None
-    low, high = np.percentile(values, [25, 75])
-    return float(low), float(high)
-
-
 __all__ = [
-    "RESPONSE_MAX_LAG_S",
     "ClassOnTest",
-    "ResponseTimes",
     "chosen_value",
     "class_on_test",
-    "response_times",
 ]

@@ -28,7 +28,8 @@ from ..system.files import JSON
 from ..system.records import Record, to_json_value
 from .attribution import EffectSelection
 from .identifiability import Identifiability
-from .on_test import ClassOnTest, ResponseTimes
+from .on_test import ClassOnTest
+from .response import ResponseTimes
 from .road import RoadOffer
 from .series import ResidualRow
 from .significance import PairedChange
@@ -199,7 +200,7 @@ class LoopResult:
         recalibrated: the re-calibration, or None when nothing was chosen.
         seconds: the loop's wall-clock time [s].
         response_before: the data's and the run's response times
-            (:func:`~torchcf.diagnose.on_test.response_times`).
+            (:func:`~torchcf.diagnose.response.response_times`).
         class_on_test: the model class with and without the chosen effects,
             every test pair refitted (:func:`~torchcf.diagnose.on_test.
             class_on_test`; None: nothing chosen).
