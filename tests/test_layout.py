@@ -30,6 +30,7 @@ STAGES = [
     {"traffic"},
     {"sumo"},  # the learned hybrid in SUMO (export, co-simulation, verify)
     {"train"},
+    {"predict"},  # a trained run predicting pairs it never saw
     {"study", "__init__"},  # the study and its variants
     {"cli"},  # the command lines: parse, call the library, print
 ]

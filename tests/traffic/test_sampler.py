@@ -348,12 +348,30 @@ def test_from_file(tmp_path):
     custom.save(tmp_path / "custom.pt")
     with pytest.raises(ValueError, match="pass dt="):
         HybridSampler.from_file(tmp_path / "custom.pt")
-    assert HybridSampler.from_file(tmp_path / "custom.pt", dt=0.04).dt == 0.04
+    with pytest.raises(ValueError, match="pass leader_length="):  # never 5 m unsaid
+        HybridSampler.from_file(tmp_path / "custom.pt", dt=0.04)
+    given = HybridSampler.from_file(tmp_path / "custom.pt", dt=0.04, leader_length=4.5)
+    assert (given.dt, given.leader_length) == (0.04, 4.5)
     run = tmp_path / "run"
     run.mkdir()
     custom.save(run / "posterior.pt")
-    (run / "config.json").write_text(json.dumps({"data": {"dt": 0.2}}))
-    assert HybridSampler.from_file(run / "posterior.pt").dt == 0.2
+    (run / "config.json").write_text(
+        json.dumps({"data": {"dt": 0.2, "leader_length": 4.0}})
+    )
+    sampler = HybridSampler.from_file(run / "posterior.pt")
+    assert (sampler.dt, sampler.leader_length) == (0.2, 4.0)
+    # a folder run: the folder's meta.json, as its loader read it
+    folder = tmp_path / "pairs"
+    folder.mkdir()
+    (folder / "meta.json").write_text(json.dumps({"dt": 0.05, "leader_length": 4.51}))
+    (run / "config.json").write_text(json.dumps({"data": {"path": str(folder)}}))
+    sampler = HybridSampler.from_file(run)
+    assert (sampler.dt, sampler.leader_length) == (0.05, 4.51)
+    # the run's summary.json, which records its training pairs' constants, first
+    summary = {"dataset": "my-road", "pairwise": {}, "dt": 0.1, "leader_length": 4.2}
+    (run / "summary.json").write_text(json.dumps(summary))
+    sampler = HybridSampler.from_file(run)
+    assert (sampler.dt, sampler.leader_length) == (0.1, 4.2)
 
     with pytest.raises(ValueError, match="no such posterior file"):
         HybridSampler.from_file(tmp_path / "missing.pt")

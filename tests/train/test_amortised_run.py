@@ -69,7 +69,8 @@ def test_the_run_writes_the_outputs_of_rejection(finished):
     assert record.simulations == 3 * 1000 + 300
     assert 0.0 <= record.validation_accuracy <= 1.0
     raw = json.loads((out / "summary.json").read_text())
-    assert list(raw)[-3:-1] == ["method", "amortised"]
+    assert list(raw)[-5:-3] == ["method", "amortised"]  # then plausibility, dt, length
+    assert (raw["dt"], raw["leader_length"]) == (0.1, 5.0)  # the training pairs'
     assert RunSummary.from_json(raw).amortised == record
 
 

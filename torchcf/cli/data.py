@@ -12,11 +12,14 @@ to a six-CSV pair folder.
         --columns pair=id,time=frame,x_lead=xl,x_follow=xf,gap=s \\
         --time-unit frame --frame-rate 25 --out pairs/video
     python -m torchcf.data extract punzo/ --format punzo --out pairs/punzo
+    python -m torchcf.data extract log.csv --format csv --window whole \\
+        --test-fraction 0 --out pairs/whole
 
 The folder it writes (:mod:`torchcf.data.writer`) is a ``data.path`` for
 ``python -m torchcf.train``; a config's ``data.raw`` section runs the same
-extraction when the run starts. Exit codes: 0 done, 2 bad input (one line on
-stderr), 130 interrupted.
+extraction when the run starts. With ``--test-fraction 0`` the folder has no
+test split (no ``Testing/``): a run trains on it and skips the evaluation.
+Exit codes: 0 done, 2 bad input (one line on stderr), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from pydantic import ValidationError
 
 from torchcf.config.messages import ConfigError, describe
 from torchcf.config.raw import RawSource
+from torchcf.data.extract import AUTO, MIN_WHOLE_LENGTH, WHOLE
 from torchcf.data.formats import FORMATS, reader_options
 from torchcf.data.formats.generic import (
     FRAME_UNIT,
@@ -92,18 +96,18 @@ LONGEST_WINDOW = 86_400.0
 
 
 def _window(text: str) -> float | str:
-    """A window length [s], or "auto"."""
-    if text.strip().lower() == "auto":
-        return "auto"
+    """A window length [s], "auto" or "whole"."""
+    if text.strip().lower() in (AUTO, WHOLE):
+        return text.strip().lower()
     try:
         seconds = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"not a number of seconds or 'auto': {text[:40]!r}"
+            f"not a number of seconds, 'auto' or 'whole': {text[:40]!r}"
         ) from None
     if not 0.0 < seconds <= LONGEST_WINDOW:
         raise argparse.ArgumentTypeError(
-            f"a window of 0-{LONGEST_WINDOW:g} s or 'auto', got {text[:40]!r}"
+            f"a window of 0-{LONGEST_WINDOW:g} s, 'auto' or 'whole', got {text[:40]!r}"
         )
     return seconds
 
@@ -120,10 +124,10 @@ def _parser() -> argparse.ArgumentParser:
         help="cut leader-follower pairs from raw trajectories",
         formatter_class=DefaultsHelpFormatter,
         description=(
-            "Read raw trajectories, cut leader-follower pairs of one length, drop "
-            "windows that fail the quality filters, split by source group and "
-            "write the six-CSV layout with meta.json, index.csv, dropped.csv and "
-            "extract.json."
+            "Read raw trajectories, cut leader-follower pairs of one length (or "
+            "keep whole couples, --window whole), drop what fails the quality "
+            "filters, split by source group and write the six-CSV layout with "
+            "meta.json, index.csv, dropped.csv and extract.json."
         ),
     )
     p.add_argument("source", help="raw file or folder")
@@ -159,14 +163,16 @@ def _parser() -> argparse.ArgumentParser:
         "--window",
         type=_window,
         default=40.0,
-        help="pair length [s], or 'auto': the median length of the couples' "
-        "spans, rounded down to 0.5 s, at most 40 s",
+        help="pair length [s]; 'auto': the median length of the couples' "
+        "spans, rounded down to 0.5 s, at most 40 s; 'whole': every couple one "
+        "pair of its own length, cut only where a step fails a filter into "
+        f"clean stretches of at least {MIN_WHOLE_LENGTH:g} s",
     )
     cut.add_argument(
         "--stride",
         type=positive,
         default=None,
-        help="[s] between windows (None: window)",
+        help="[s] between windows (None: window; not with --window whole)",
     )
     cut.add_argument(
         "--leader-length",
@@ -187,7 +193,8 @@ def _parser() -> argparse.ArgumentParser:
         "--test-fraction",
         type=share,
         default=0.3,
-        help="share of groups for test",
+        help="share of pairs for test, whole groups; 0: no test split (no "
+        "Testing/: training runs, the evaluation is skipped)",
     )
     cut.add_argument("--seed", type=natural, default=0, help="seed of the split")
     quality = p.add_argument_group("quality filters ('none' switches one off)")
@@ -364,24 +371,48 @@ def _raw_source(args: argparse.Namespace) -> RawSource:
         raise ConfigError(describe(error, RawSource)) from None
 
 
+def _listed(counts: dict[str, int]) -> str:
+    return ", ".join(f"{k} {v}" for k, v in counts.items()) or "none"
+
+
 def _report(extraction, out, seconds: float) -> None:
     summary = extraction.summary
-    dropped = summary["windows_dropped"]
-    print(
-        f"{summary['pairs']} pairs ({summary['train_pairs']} train, "
-        f"{summary['test_pairs']} test) of {summary['window_steps']} steps at "
-        f"dt = {summary['dt']:g} s from {summary['vehicles']} vehicles in "
-        f"{summary['runs']} run(s); {summary['candidate_windows']} candidate windows, "
-        f"dropped: {', '.join(f'{k} {v}' for k, v in dropped.items()) or 'none'}; "
-        f"{summary['spans_short']} couple spans shorter than a window of "
-        f"{summary['window_steps'] * summary['dt']:g} s "
-        f"({summary['seconds_in_short_spans']:.0f} s of data in them)"
-    )
+    print(_whole_line(summary) if extraction.whole else _windows_line(summary))
     for note in extraction.attention:  # units that look wrong, a chosen window
         print(f"note: {note}")
     others = len(extraction.notes) - len(extraction.attention)
     more = f"{others} more note{'s' if others != 1 else ''} in extract.json"
     print(f"wrote {out} in {seconds:.1f} s ({more})")
+
+
+def _windows_line(summary: dict) -> str:
+    return (
+        f"{summary['pairs']} pairs ({summary['train_pairs']} train, "
+        f"{summary['test_pairs']} test) of {summary['window_steps']} steps at "
+        f"dt = {summary['dt']:g} s from {summary['vehicles']} vehicles in "
+        f"{summary['runs']} run(s); {summary['candidate_windows']} candidate windows, "
+        f"dropped: {_listed(summary['windows_dropped'])}; "
+        f"{summary['spans_short']} couple spans shorter than a window of "
+        f"{summary['window_steps'] * summary['dt']:g} s "
+        f"({summary['seconds_in_short_spans']:.0f} s of data in them)"
+    )
+
+
+def _whole_line(summary: dict) -> str:
+    seconds = summary["pair_seconds"]
+    shortest = summary["min_pair_steps"] * summary["dt"]
+    return (
+        f"{summary['pairs']} pairs ({summary['train_pairs']} train, "
+        f"{summary['test_pairs']} test), {summary['pairs_are']} of "
+        f"{seconds['min']:.1f}-{seconds['max']:.1f} s (median "
+        f"{seconds['median']:.1f} s) at dt = {summary['dt']:g} s from "
+        f"{summary['vehicles']} vehicles in {summary['runs']} run(s); couples cut "
+        f"at: {_listed(summary['defects'])}; stretches dropped: "
+        f"{_listed(summary['stretches_dropped'])}; {summary['spans_short']} couple "
+        f"spans and {summary['stretches_short']} stretches shorter than "
+        f"{shortest:g} s ({summary['seconds_in_short_spans']:.0f} s and "
+        f"{summary['seconds_in_short_stretches']:.0f} s of data in them)"
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:

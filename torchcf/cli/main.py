@@ -36,6 +36,10 @@ COMMANDS = {
     ),
     "evaluate": ("torchcf.cli.evaluate", "evaluate a trained run on its test split"),
     "diagnose": ("torchcf.cli.diagnose", "close the loop on a trained run"),
+    "predict": (
+        "torchcf.cli.predict",
+        "predict pairs from a trained run: population, bands, after a history",
+    ),
     "crossval": ("torchcf.cli.crossval", "k-fold cross-validation of a config"),
     "data": ("torchcf.cli.data", "extract pairs from raw trajectory files"),
     "config": ("torchcf.cli.config", "check a config, print its schema"),

@@ -13,7 +13,9 @@ budget checked first, then :func:`torchcf.train.train`, then the test-split
 evaluation unless ``--no-eval``, then the diagnosis loop if
 ``diagnose.run_after_training``) and prints the shares and the hybrid's test
 metrics. With ``--no-eval`` nothing runs after the training: ``torchcf evaluate
-OUT`` and ``torchcf diagnose OUT`` take the run from there.
+OUT`` and ``torchcf diagnose OUT`` take the run from there. Data without a test
+split (a folder extracted with ``--test-fraction 0``, or ``data.raw.test_fraction``
+0) are trained on, and a one-line note says the evaluation is skipped.
 
 Exit codes (:mod:`torchcf.system.console`): 0 done; 2 bad config, data, arguments or
 output directory, a corrupted checkpoint, or an output that cannot be written
@@ -179,6 +181,8 @@ def run_config(
         if group.is_main:
             if done:
                 print(f"{out} is " + finished_note.format(out=out))
+            if result.skipped is not None:  # e.g. no test split to evaluate on
+                print(f"note: {result.skipped}")
             print_result(
                 result.summary, RunDir(out), evaluated=evaluated, wrote=not done
             )

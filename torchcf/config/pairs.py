@@ -51,7 +51,9 @@ def load_index(data: DataConfig, split: str = "train") -> pd.DataFrame | None:
     return index[index["split"] == split].reset_index(drop=True)
 
 
-def load_split(data: DataConfig, *, download: bool = True) -> tuple[PairSet, PairSet]:
+def load_split(
+    data: DataConfig, *, download: bool = True, require_test: bool = True
+) -> tuple[PairSet, PairSet | None]:
     """Load the training and test pairs a run configuration asks for.
 
     A raw source is extracted and split by source group
@@ -61,13 +63,18 @@ def load_split(data: DataConfig, *, download: bool = True) -> tuple[PairSet, Pai
     Args:
         data: the ``data`` section of the run configuration.
         download: allow fetching missing files of a named set into the cache.
+        require_test: data without a test split (a raw source with
+            ``test_fraction`` 0, a folder extracted so: no ``Testing/``) are an
+            error, as evaluating needs test pairs; False gives None as the test
+            pairs instead (training needs none).
 
     Returns:
-        ``(train, test)`` PairSets in SI units (float64, as loaded).
+        ``(train, test)`` PairSets in SI units (float64, as loaded); ``test`` is
+        None only with ``require_test=False``.
 
     Raises:
-        DataError: the data cannot be loaded, a raw source gives no test pairs,
-            or the k-fold split is impossible.
+        DataError: the data cannot be loaded, test pairs are required and there
+            are none, or the k-fold split is impossible.
     """
     if data.raw is not None:
         raw = data.raw
@@ -77,8 +84,11 @@ def load_split(data: DataConfig, *, download: bool = True) -> tuple[PairSet, Pai
             reader_options=raw.reader_options(),
             options=raw.extract_options(),
         )
-        if extraction.test is None:
-            raise DataError("data.raw.test_fraction is 0: a run needs test pairs")
+        if extraction.test is None and require_test:
+            raise DataError(
+                "no test split: data.raw.test_fraction is 0, and evaluating a run "
+                "needs test pairs (set data.raw.test_fraction > 0)"
+            )
         return extraction.train, extraction.test
     source = data.name if data.name is not None else data.path
     if source is None:
@@ -95,4 +105,5 @@ def load_split(data: DataConfig, *, download: bool = True) -> tuple[PairSet, Pai
         data_root=data.root,
         download=download,
         cleaning=Cleaning(data.drop_duplicates, data.min_spacing),
+        require_test=require_test,
     )

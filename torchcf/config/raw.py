@@ -14,7 +14,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, model_validator
 
-from torchcf.data.extract import ExtractOptions
+from torchcf.data.extract import MIN_WHOLE_LENGTH, ExtractOptions
 from torchcf.data.formats import FORMATS
 from torchcf.data.formats import reader_options as format_options
 from torchcf.data.formats.generic import (
@@ -153,15 +153,22 @@ class RawSource(BaseModel):
             "leave the circle are left out."
         ),
     )
-    window: PositiveFloat | Literal["auto"] = Field(
+    window: PositiveFloat | Literal["auto", "whole"] = Field(
         40.0,
         description=(
-            "Pair length [s], or 'auto': the median length of the couples' spans, "
-            "rounded down to 0.5 s, at most 40 s."
+            "Pair length [s]; 'auto': the median length of the couples' spans, "
+            "rounded down to 0.5 s, at most 40 s; 'whole': every couple one pair "
+            "of its own length, cut only where a step fails a filter into clean "
+            f"stretches of at least {MIN_WHOLE_LENGTH:g} s."
         ),
     )
     stride: float | None = Field(
-        None, gt=0, description="Start-to-start distance of windows [s]; None = window."
+        None,
+        gt=0,
+        description=(
+            "Start-to-start distance of windows [s]; None = window. Not with "
+            "window 'whole'."
+        ),
     )
     leader_length: float | None = Field(
         None, gt=0, description="Leader length of the pair set [m]; None = median."
@@ -197,7 +204,15 @@ class RawSource(BaseModel):
     split_by: Literal["follower", "couple", "run"] = Field(
         "follower", description="Source group kept on one side of the split."
     )
-    test_fraction: float = Field(0.3, ge=0, lt=1, description="Share of test pairs.")
+    test_fraction: float = Field(
+        0.3,
+        ge=0,
+        lt=1,
+        description=(
+            "Share of test pairs; 0: no test split (the run trains and skips the "
+            "evaluation)."
+        ),
+    )
     seed: int = Field(0, description="Seed of the split's order of groups.")
 
     @model_validator(mode="after")
@@ -233,6 +248,11 @@ class RawSource(BaseModel):
             time_factor(self.time_unit, self.frame_rate)
         except DataError as error:
             raise ValueError(f"time_unit: {error}") from None
+        if self.window == "whole" and self.stride is not None:
+            raise ValueError(
+                "stride: not used with window 'whole' (each couple is one pair, "
+                "not cut into windows)"
+            )
         return self
 
     def reader_options(self) -> dict[str, Any]:

@@ -1,8 +1,9 @@
 """From a long trajectory table to leader-follower pairs: couples, windows, filters.
 
 :func:`extract_pairs` turns a :class:`~torchcf.data.trajectory.TrajectoryTable` into
-a :class:`~torchcf.data.pairset.PairSet` of equal-length windows, with a record of
-where every pair came from and of what was dropped and why:
+a :class:`~torchcf.data.pairset.PairSet` of equal-length windows, or of whole
+couples of their own lengths (``window="whole"``), with a record of where every
+pair came from and of what was dropped and why:
 
 1. **Derivatives.** Speeds and accelerations the source lacks are derived from
    positions and speeds (:func:`torchcf.data.derive.fill_derivatives`).
@@ -25,6 +26,12 @@ where every pair came from and of what was dropped and why:
    used. A span shorter than one window is dropped as ``short``.
 6. **Filters.** Each window passes the quality filters of
    :mod:`torchcf.data.quality` or is dropped for the first it fails.
+
+   With ``window="whole"``, steps 5 and 6 are those of :mod:`torchcf.data.whole`
+   instead: each span is one pair, cut where a step or a link fails a filter
+   into its clean stretches of at least :data:`MIN_WHOLE_LENGTH` (a gap in the
+   follower's record longer than that ends a span), and the pairs are ragged
+   (``PairSet.mask``; ``index.csv``'s ``steps`` is each pair's length).
 7. **Pairs.** The PairSet has one leader length ``L`` (the median leader length of
    the kept windows, or ``leader_length=``). Where a pair's own leader length
    ``L_i`` differs, its leader position is written as the leader's rear bumper
@@ -38,8 +45,9 @@ where every pair came from and of what was dropped and why:
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -50,9 +58,12 @@ from torchcf.data.pairset import DataError, PairSet
 from torchcf.data.physics import MAX_SPEED, check_time_step, check_units
 from torchcf.data.quality import FILTERS, QualityThresholds, Windows, first_failure
 from torchcf.data.trajectory import TrajectoryTable
+from torchcf.data.whole import MIN_WHOLE_LENGTH, CoupleSpan, whole_candidates
 
 __all__ = [
     "MAX_SPEED",
+    "MIN_WHOLE_LENGTH",
+    "WHOLE",
     "ExtractOptions",
     "Extraction",
     "extract_pairs",
@@ -63,6 +74,11 @@ __all__ = [
 SplitBy = Literal["follower", "couple", "run"]
 #: ``window="auto"``: the window is chosen from the data (:func:`auto_window`).
 AUTO = "auto"
+#: ``window="whole"``: every couple is one pair of its own length, cut only at
+#: its defects (:mod:`torchcf.data.whole`).
+WHOLE = "whole"
+#: What the summary's ``pairs_are`` says of whole couples (else "windows").
+WHOLE_COUPLES = "whole couples"
 #: The default window [s] and the cap of an automatic one: long enough to hold
 #: several speed changes (the paper's pairs last 35-58 s).
 DEFAULT_WINDOW = 40.0
@@ -80,9 +96,12 @@ class ExtractOptions:
 
     Attributes:
         window: length of a pair [s]. The default suits the paper's 35-58 s
-            pairs: long enough to hold several speed changes.
+            pairs: long enough to hold several speed changes. "auto": chosen
+            from the data (:func:`auto_window`); "whole": every couple is one
+            pair of its own length, at least :data:`MIN_WHOLE_LENGTH`, cut
+            only at its defects (:mod:`torchcf.data.whole`).
         stride: start-to-start distance of windows of one span [s]; None = the
-            window (windows do not overlap).
+            window (windows do not overlap). Not used with "whole".
         leader_length: the PairSet's leader length [m]; None = the median
             leader length of the kept windows.
         default_length: length of vehicles whose source gives none [m].
@@ -96,7 +115,7 @@ class ExtractOptions:
         name: name of the pair set (defaults to the table's source).
     """
 
-    window: float | Literal["auto"] = DEFAULT_WINDOW
+    window: float | Literal["auto", "whole"] = DEFAULT_WINDOW
     stride: float | None = None
     leader_length: float | None = None
     default_length: float = 5.0
@@ -109,8 +128,13 @@ class ExtractOptions:
     name: str = ""
 
     def __post_init__(self) -> None:
-        if self.window != AUTO:
+        if self.window not in (AUTO, WHOLE):
             _positive_number("window", self.window)
+        if self.window == WHOLE and self.stride is not None:
+            raise DataError(
+                "stride is not used with window 'whole': each couple is one pair, "
+                "not cut into windows"
+            )
         for label, value in (
             ("default_length", self.default_length),
             ("speed_window", self.speed_window),
@@ -136,7 +160,7 @@ class ExtractOptions:
 
 def _positive_number(label: str, value: object) -> None:
     if not (isinstance(value, int | float) and np.isfinite(value) and value > 0):
-        raise DataError(f"{label} must be > 0 or 'auto', got {value!r}")
+        raise DataError(f"{label} must be > 0, 'auto' or 'whole', got {value!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -159,6 +183,8 @@ class Extraction:
         attention: the notes a user must see (among ``notes``): units that
             look wrong (:mod:`torchcf.data.physics`), a window chosen from the
             data.
+        whole: the pairs are whole couples of their own lengths (ragged:
+            ``pairs.mask``), not windows of one length.
     """
 
     pairs: PairSet
@@ -172,6 +198,7 @@ class Extraction:
     notes: tuple[str, ...]
     road_period: float | None = None
     attention: tuple[str, ...] = ()
+    whole: bool = False
 
 
 INDEX_COLUMNS = (
@@ -204,6 +231,21 @@ DROPPED_COLUMNS = (
 )
 
 
+class _Cut(NamedTuple):
+    """Steps 4-6 of either kind: the (T, K) candidates and their (K,) lengths
+    in steps (all T for windows), the kept candidates' columns, where each
+    came from, what was dropped, the kind's summary entries, and the closing
+    note's two halves (what the pairs are; what was dropped)."""
+
+    windows: Windows
+    lengths: np.ndarray
+    kept: np.ndarray
+    meta: list[dict]
+    dropped: list[dict]
+    summary: dict
+    note: tuple[str, str]
+
+
 def extract_pairs(
     table: TrajectoryTable, options: ExtractOptions | None = None
 ) -> Extraction:
@@ -211,8 +253,9 @@ def extract_pairs(
 
     Raises:
         DataError: time stamps off a common grid, implausible units, no couple
-            lasting one window, no window passing the filters (the message counts
-            what each filter removed), or a split that cannot keep groups apart.
+            lasting one window (or :data:`MIN_WHOLE_LENGTH` for whole couples),
+            no window or stretch passing the filters (the message counts what
+            each filter removed), or a split that cannot keep groups apart.
     """
     options = options or ExtractOptions()
     table = fill_derivatives(
@@ -228,54 +271,36 @@ def extract_pairs(
         spans, _ = _spans(couples, int(round(DEFAULT_WINDOW / dt)))
         options = dataclasses.replace(options, window=auto_window(spans, dt))
         chosen = (f"window {options.window:g} s from the data (auto: {AUTO_RULE})",)
-    width = int(round(options.window / dt))
-    if width < 2:
-        raise DataError(f"window {options.window} s is under two steps of {dt} s")
-    stride = width if options.stride is None else max(1, round(options.stride / dt))
-
-    spans, unmatched = _spans(couples, width)
-    windows, meta, dropped = _candidate_windows(couples, spans, width, stride, dt)
-    if not meta:
-        lengths = np.array([s.stop - s.start for s in spans]) * dt
-        longest = float(lengths.max()) if lengths.size else 0.0
-        proposal = (
-            f"; the data support --window {auto_window(spans, dt):g} "
-            f"(--window auto: {AUTO_RULE})"
-            if lengths.size and lengths.max() >= 2 * dt
-            else ""
-        )
-        raise DataError(
-            f"no leader-follower couple in '{source}' lasts one window "
-            f"({options.window:g} s): {lengths.size} couple spans, median "
-            f"{np.median(lengths) if lengths.size else 0.0:.1f} s, the longest "
-            f"{longest:.1f} s{proposal}"
-        )
-    kept, counts = _filter(windows, meta, dropped, options.quality, source)
+    if options.window == WHOLE:
+        cut, spans, unmatched = _cut_whole(couples, dt, options, source)
+    else:
+        cut, spans, unmatched = _cut_windows(couples, dt, options, source)
+    windows, kept = cut.windows, cut.kept
 
     leader_length = options.leader_length or float(
         np.median(windows.leader_length[0, kept])
     )
     pairs = dataclasses.replace(
-        _pair_set(windows, kept, leader_length, dt, options.name or table.source),
+        _pair_set(
+            windows, cut.lengths, kept, leader_length, options.name or table.source
+        ),
         road_frame=table.road_frame,
         road_period=table.road_period,
     )
-    index = _index(meta, windows, kept, table.source)
+    index = _index(cut.meta, windows, cut.lengths, kept, table.source)
     index, train_ids, test_ids = group_split(index, options)
     summary = {
         "dt": dt,
-        "window_steps": width,
-        "stride_steps": stride,
+        "pairs_are": WHOLE_COUPLES if options.window == WHOLE else "windows",
+        **cut.summary,
         "rows": int(len(frame)),
         "runs": int(frame["run"].nunique()),
         "vehicles": int(frame.groupby(["run", "vehicle"]).ngroups),
         "spans": len(spans),
-        "candidate_windows": len(meta),
         "pairs": int(pairs.n_pairs),
         "train_pairs": len(train_ids),
         "test_pairs": len(test_ids),
         "leader_length": leader_length,
-        **counts,
         "rows_outside_couples": unmatched,
     }
     return Extraction(
@@ -287,7 +312,7 @@ def extract_pairs(
             else None
         ),
         index=index,
-        dropped=pd.DataFrame(dropped, columns=list(DROPPED_COLUMNS)),
+        dropped=pd.DataFrame(cut.dropped, columns=list(DROPPED_COLUMNS)),
         dt=dt,
         road_frame=table.road_frame,
         road_period=table.road_period,
@@ -296,10 +321,129 @@ def extract_pairs(
             *table.notes,
             *flags,
             *chosen,
-            *_notes(index, unmatched, len(meta), options.window),
+            *_notes(index, unmatched, cut.note),
         ),
         attention=(*flags, *chosen),
+        whole=options.window == WHOLE,
     )
+
+
+def _cut_windows(
+    couples: pd.DataFrame, dt: float, options: ExtractOptions, source: str
+) -> tuple[_Cut, list[_Span], dict[str, int]]:
+    """Steps 4-6 for windows of ``options.window`` seconds: the cut, the spans
+    and the follower rows outside any couple.
+
+    Raises:
+        DataError: the window is under two steps, no couple lasts one window,
+            or no window passes the filters.
+    """
+    width = int(round(options.window / dt))
+    if width < 2:
+        raise DataError(f"window {options.window} s is under two steps of {dt} s")
+    stride = width if options.stride is None else max(1, round(options.stride / dt))
+
+    spans, unmatched = _spans(couples, width)
+    windows, meta, dropped = _candidate_windows(couples, spans, width, stride, dt)
+    if not meta:
+        lengths = np.array([s.stop - s.start for s in spans]) * dt
+        proposal = (
+            f"; the data support --window {auto_window(spans, dt):g} "
+            f"(--window auto: {AUTO_RULE})"
+            if lengths.size and lengths.max() >= 2 * dt
+            else ""
+        )
+        raise DataError(
+            f"no leader-follower couple in '{source}' lasts one window "
+            f"({options.window:g} s): {_span_lengths(spans, dt)}{proposal}"
+        )
+    kept, counts = _filter(windows, meta, dropped, options.quality, source)
+    summary = {
+        "window_steps": width,
+        "stride_steps": stride,
+        "candidate_windows": len(meta),
+        **counts,
+    }
+    note = (
+        f"{len(kept)} pairs of {options.window:g} s",
+        f"{len(meta) - len(kept)} of {len(meta)} candidate windows dropped",
+    )
+    lengths = np.full(len(meta), width)
+    return _Cut(windows, lengths, kept, meta, dropped, summary, note), spans, unmatched
+
+
+def _span_lengths(spans: list[_Span], dt: float) -> str:
+    """How many spans, and their median and longest length, for a message."""
+    lengths = np.array([s.stop - s.start for s in spans]) * dt
+    return (
+        f"{lengths.size} couple spans, median "
+        f"{np.median(lengths) if lengths.size else 0.0:.1f} s, the longest "
+        f"{float(lengths.max()) if lengths.size else 0.0:.1f} s"
+    )
+
+
+def _cut_whole(
+    couples: pd.DataFrame, dt: float, options: ExtractOptions, source: str
+) -> tuple[_Cut, list[_Span], dict[str, int]]:
+    """Steps 4-6 for whole couples (:mod:`torchcf.data.whole`): the cut, the
+    spans and the follower rows outside any couple.
+
+    Raises:
+        DataError: no couple lasts :data:`MIN_WHOLE_LENGTH`, or no clean
+            stretch of it is left (the message counts the defects and drops).
+    """
+    min_steps = max(2, int(round(MIN_WHOLE_LENGTH / dt)))
+    # A hole in the follower's record up to the minimum's length stays inside
+    # its span, as missing steps the couple is cut at; a longer one ends it.
+    spans, unmatched = _spans(couples, min_steps)
+    found = whole_candidates(
+        _couple_spans(couples, spans, dt), min_steps, options.quality
+    )
+    counts = found.counts
+    if not found.meta:
+        if counts["spans_short"] == len(spans):
+            raise DataError(
+                f"no leader-follower couple in '{source}' lasts "
+                f"{MIN_WHOLE_LENGTH:g} s, the shortest whole couple kept: "
+                f"{_span_lengths(spans, dt)} (--window auto cuts shorter pairs)"
+            )
+        raise DataError(
+            f"no clean stretch of {MIN_WHOLE_LENGTH:g} s is left in '{source}': "
+            f"{len(spans)} couple spans, cut at "
+            + _listed(counts["defects"])
+            + f", {counts['stretches_short']} pieces shorter than "
+            f"{MIN_WHOLE_LENGTH:g} s, stretches dropped by "
+            + _listed(counts["stretches_dropped"])
+        )
+    seconds = found.lengths * dt
+    summary = {
+        "min_pair_steps": min_steps,
+        # rounded: steps x dt carries float noise (63.900000000000006)
+        "pair_seconds": {
+            "min": round(float(seconds.min()), 6),
+            "median": round(float(np.median(seconds)), 6),
+            "max": round(float(seconds.max()), 6),
+        },
+        "seconds_in_pairs": round(float(seconds.sum()), 6),
+        **counts,
+    }
+    note = (
+        f"{len(found.meta)} pairs, whole couples of {seconds.min():.1f}-"
+        f"{seconds.max():.1f} s (median {np.median(seconds):.1f} s, at least "
+        f"{MIN_WHOLE_LENGTH:g} s)",
+        f"{counts['spans_short']} of {len(spans)} couple spans shorter than "
+        f"{MIN_WHOLE_LENGTH:g} s; couples cut at " + _listed(counts["defects"]),
+    )
+    kept = np.arange(len(found.meta))
+    cut = _Cut(
+        found.windows, found.lengths, kept, found.meta, found.dropped, summary, note
+    )
+    return cut, spans, unmatched
+
+
+def _listed(counts: dict[str, int]) -> str:
+    """``name n, name n`` or ``none``."""
+    return ", ".join(f"{k} {v}" for k, v in counts.items()) or "none"
 
 
 def auto_window(spans: list[_Span], dt: float) -> float:
@@ -365,7 +509,7 @@ def _filter(
 
 
 def _notes(
-    index: pd.DataFrame, unmatched: dict[str, int], candidates: int, window: float
+    index: pd.DataFrame, unmatched: dict[str, int], note: tuple[str, str]
 ) -> list[str]:
     notes = []
     if unmatched:
@@ -373,10 +517,10 @@ def _notes(
             "follower rows outside any couple: "
             + ", ".join(f"{n} with {why}" for why, n in unmatched.items())
         )
+    what, dropped = note
     notes.append(
-        f"{len(index)} pairs of {window:g} s from {index['run'].nunique()} run(s), "
-        f"{index['follower'].nunique()} follower id(s); "
-        f"{candidates - len(index)} of {candidates} candidate windows dropped"
+        f"{what} from {index['run'].nunique()} run(s), "
+        f"{index['follower'].nunique()} follower id(s); {dropped}"
     )
     return notes
 
@@ -488,37 +632,87 @@ def _spans(couples: pd.DataFrame, width: int) -> tuple[list[_Span], dict[str, in
     return spans, {k: v for k, v in unmatched.items() if v}
 
 
+#: The couple frame's column of each :class:`Windows` series.
+_SERIES = {
+    "x_lead": "position_l",
+    "v_lead": "speed_l",
+    "a_lead": "acceleration_l",
+    "x_follow": "position",
+    "v_follow": "speed",
+    "a_follow": "acceleration",
+    "gap": "gap",
+    "leader_length": "length_l",
+}
+
+
+class _Columns(NamedTuple):
+    """The couple frame as arrays: each series (rows,), step and time."""
+
+    series: dict[str, np.ndarray]
+    steps: np.ndarray
+    time: np.ndarray
+
+
+def _columns(couples: pd.DataFrame) -> _Columns:
+    return _Columns(
+        {k: couples[c].to_numpy(dtype=float) for k, c in _SERIES.items()},
+        couples["step"].to_numpy(),
+        couples["time"].to_numpy(),
+    )
+
+
+def _describe(
+    couples: pd.DataFrame, columns: _Columns, span: _Span, dt: float
+) -> tuple[dict, float]:
+    """The couple of ``span`` (run, follower, leader, lane, mode,
+    follower_length) and the time of its first step [s]."""
+    first = span.rows.start
+    row = couples.iloc[first]
+    t0 = float(columns.time[first]) - (columns.steps[first] - span.start) * dt
+    describe = {
+        "run": row["run"],
+        "follower": row["vehicle"],
+        "leader": row["leader"],
+        "lane": row["lane"],
+        "mode": row["mode"],
+        "follower_length": float(row["length"]),
+    }
+    return describe, t0
+
+
+def _dense(columns: _Columns, span: _Span, dt: float) -> Windows:
+    """The span's (W, 1) series on its dense grid of W = stop - start steps;
+    steps without a row are absent (``present`` False, values NaN)."""
+    length = span.stop - span.start
+    local = columns.steps[span.rows] - span.start
+    dense = {k: np.full((length, 1), np.nan) for k in _SERIES}
+    for k in _SERIES:
+        dense[k][local, 0] = columns.series[k][span.rows]
+    present = np.zeros((length, 1), dtype=bool)
+    present[local] = True
+    return Windows(present=present, dt=dt, **dense)
+
+
+def _couple_spans(
+    couples: pd.DataFrame, spans: list[_Span], dt: float
+) -> Iterator[CoupleSpan]:
+    """Every span as a :class:`~torchcf.data.whole.CoupleSpan`, one at a time."""
+    columns = _columns(couples)
+    for span in spans:
+        describe, t0 = _describe(couples, columns, span, dt)
+        yield CoupleSpan(describe, t0, _dense(columns, span, dt))
+
+
 def _candidate_windows(
     couples: pd.DataFrame, spans: list[_Span], width: int, stride: int, dt: float
 ) -> tuple[Windows, list[dict], list[dict]]:
     """Dense (W, K) arrays of every candidate window, their metadata, short spans."""
-    names = {
-        "x_lead": "position_l",
-        "v_lead": "speed_l",
-        "a_lead": "acceleration_l",
-        "x_follow": "position",
-        "v_follow": "speed",
-        "a_follow": "acceleration",
-        "gap": "gap",
-        "leader_length": "length_l",
-    }
-    columns = {k: couples[c].to_numpy(dtype=float) for k, c in names.items()}
-    steps = couples["step"].to_numpy()
-    time = couples["time"].to_numpy()
-    blocks: dict[str, list[np.ndarray]] = {k: [] for k in (*names, "present")}
+    columns = _columns(couples)
+    blocks: dict[str, list[np.ndarray]] = {k: [] for k in (*_SERIES, "present")}
     meta: list[dict] = []
     short: list[dict] = []
     for span in spans:
-        row = couples.iloc[span.rows.start]
-        t0 = float(time[span.rows.start]) - (steps[span.rows.start] - span.start) * dt
-        describe = {
-            "run": row["run"],
-            "follower": row["vehicle"],
-            "leader": row["leader"],
-            "lane": row["lane"],
-            "mode": row["mode"],
-            "follower_length": float(row["length"]),
-        }
+        describe, t0 = _describe(couples, columns, span, dt)
         length = span.stop - span.start
         if length < width:
             short.append(
@@ -532,17 +726,11 @@ def _candidate_windows(
                 }
             )
             continue
-        local = steps[span.rows] - span.start
-        dense = {k: np.full(length, np.nan) for k in names}
-        for k in names:
-            dense[k][local] = columns[k][span.rows]
-        present = np.zeros(length, dtype=bool)
-        present[local] = True
+        dense = _dense(columns, span, dt)
         for first in range(0, length - width + 1, stride):
             part = slice(first, first + width)
-            for k in names:
-                blocks[k].append(dense[k][part])
-            blocks["present"].append(present[part])
+            for k in (*_SERIES, "present"):
+                blocks[k].append(getattr(dense, k)[part, 0])
             meta.append(
                 {
                     **describe,
@@ -557,7 +745,7 @@ def _candidate_windows(
     windows = Windows(
         present=stacked["present"].astype(bool),
         dt=dt,
-        **{k: stacked[k] for k in names},
+        **{k: stacked[k] for k in _SERIES},
     )
     return windows, meta, short
 
@@ -579,11 +767,19 @@ def _counts(reason: np.ndarray, dropped: list[dict]) -> dict:
 
 
 # ----------------------------------------------------------------------- pairs
-def _index(meta: list[dict], w: Windows, kept: np.ndarray, source: str) -> pd.DataFrame:
-    """One row per kept window (:data:`INDEX_COLUMNS`); ``split`` filled later."""
+def _index(
+    meta: list[dict],
+    w: Windows,
+    lengths: np.ndarray,
+    kept: np.ndarray,
+    source: str,
+) -> pd.DataFrame:
+    """One row per kept candidate (:data:`INDEX_COLUMNS`), over its own
+    ``lengths[k]`` steps; ``split`` filled later."""
     rows = []
     for pair, k in enumerate(kept):
-        gap = w.x_lead[:, k] - w.leader_length[:, k] - w.x_follow[:, k]
+        steps = slice(0, int(lengths[k]))
+        gap = w.x_lead[steps, k] - w.leader_length[steps, k] - w.x_follow[steps, k]
         rows.append(
             {
                 "pair": pair,
@@ -593,11 +789,11 @@ def _index(meta: list[dict], w: Windows, kept: np.ndarray, source: str) -> pd.Da
                 },
                 "t_start": meta[k]["t_start"],
                 "t_end": meta[k]["t_end"],
-                "steps": w.x_lead.shape[0],
+                "steps": int(lengths[k]),
                 "leader_length": float(w.leader_length[0, k]),
                 "follower_length": meta[k]["follower_length"],
                 "min_gap": float(gap.min()),
-                "mean_speed": float(w.v_follow[:, k].mean()),
+                "mean_speed": float(w.v_follow[steps, k].mean()),
                 "source": source,
             }
         )
@@ -605,10 +801,16 @@ def _index(meta: list[dict], w: Windows, kept: np.ndarray, source: str) -> pd.Da
 
 
 def _pair_set(
-    w: Windows, kept: np.ndarray, leader_length: float, dt: float, name: str
+    w: Windows,
+    lengths: np.ndarray,
+    kept: np.ndarray,
+    leader_length: float,
+    name: str,
 ) -> PairSet:
-    """(W, N) PairSet; leader positions re-based to the common leader length."""
-    shift = leader_length - w.leader_length[:, kept]  # (W, N)
+    """(T, N) PairSet of the kept candidates, each valid for its ``lengths``
+    steps (the mask; all T for windows); leader positions re-based to the
+    common leader length."""
+    shift = leader_length - w.leader_length[:, kept]  # (T, N), NaN after an end
     series = [
         w.x_lead[:, kept] + shift,
         w.v_lead[:, kept],
@@ -617,9 +819,11 @@ def _pair_set(
         w.v_follow[:, kept],
         w.a_follow[:, kept],
     ]
+    mask = np.arange(w.x_lead.shape[0])[:, None] < lengths[kept][None, :]  # (T, N)
     return PairSet.from_arrays(
         [torch.from_numpy(np.ascontiguousarray(s)) for s in series],
-        dt=dt,
+        dt=w.dt,
+        mask=torch.from_numpy(mask),
         leader_length=leader_length,
         name=name,
     )

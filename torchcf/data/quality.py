@@ -29,6 +29,13 @@ leader_standstill   the leader's speed stays under ``standstill_speed`` [m/s]
                     throughout (nothing to follow: every model fits it)
 ==================  ==========================================================
 
+The first five judge single steps or links (the move from one step to the
+next), and a window's number is their worst over the window. Whole couples
+(``window="whole"`` in :mod:`torchcf.data.extract`) use them step by step
+(:func:`step_failures`): a couple is cut where a step or a link fails, and
+``gap_consistency`` and ``leader_standstill``, which judge a stretch as a
+whole, then judge each stretch that is left.
+
 Every threshold can be switched off with ``None``. The defaults are for 10 Hz
 data of passenger cars: 1 m per step is about three times the position noise of
 tracked video or GNSS and far below a tracking jump; a step's speed may depart
@@ -51,7 +58,17 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["FILTERS", "QualityThresholds", "Windows", "first_failure"]
+__all__ = [
+    "FILTERS",
+    "LINK_FILTERS",
+    "STEP_FILTERS",
+    "QualityThresholds",
+    "StepFailures",
+    "Windows",
+    "first_failure",
+    "step_failures",
+    "worst",
+]
 
 
 @dataclass(frozen=True)
@@ -105,60 +122,81 @@ class Windows(NamedTuple):
 Check = Callable[[Windows, QualityThresholds], "tuple[np.ndarray, np.ndarray] | None"]
 
 
+# The step-wise measures: one number per step (W, K) or per link, the move
+# from one step to the next (W - 1, K). A window's check reduces them over the
+# window; a whole couple is cut where they fail (:func:`step_failures`).
+def _missing_steps(w: Windows) -> np.ndarray:
+    """(W, K) True where a step has no row or a NaN in a series."""
+    values = np.stack(
+        [w.x_lead, w.v_lead, w.a_lead, w.x_follow, w.v_follow, w.a_follow]
+    )
+    return ~w.present | ~np.isfinite(values).all(axis=0)
+
+
+def _gaps(w: Windows) -> np.ndarray:
+    """(W, K) bumper-to-bumper gap ``x_l - L_l - x_f`` [m]."""
+    return w.x_lead - w.leader_length - w.x_follow
+
+
+def _link_disagreement(w: Windows) -> np.ndarray:
+    """(W - 1, K) |x(k+1) - x(k) - (v(k) + v(k+1)) dt / 2| [m], the larger of
+    the two vehicles'."""
+    return np.maximum(
+        _step_disagreement(w.x_lead, w.v_lead, w.dt),
+        _step_disagreement(w.x_follow, w.v_follow, w.dt),
+    )
+
+
+def _step_disagreement(x: np.ndarray, v: np.ndarray, dt: float) -> np.ndarray:
+    """(W - 1, K) |x(k+1) - x(k) - (v(k) + v(k+1)) dt / 2| [m]."""
+    return np.abs(np.diff(x, axis=0) - 0.5 * (v[1:] + v[:-1]) * dt)
+
+
+def _largest_link_disagreement(w: Windows) -> np.ndarray:
+    """(K,) the window's largest link disagreement [m] (0 for one step)."""
+    if w.x_lead.shape[0] < 2:
+        return np.zeros(w.x_lead.shape[1])
+    return _link_disagreement(w).max(axis=0)
+
+
+def _abs_acceleration(w: Windows) -> np.ndarray:
+    """(W, K) the larger |a| of the two vehicles [m/s^2]."""
+    return np.maximum(np.abs(w.a_lead), np.abs(w.a_follow))
+
+
 def _missing(w: Windows, q: QualityThresholds):
     """(fails (K,), number of missing steps (K,))."""
     if not q.missing:
         return None
-    values = np.stack(
-        [w.x_lead, w.v_lead, w.a_lead, w.x_follow, w.v_follow, w.a_follow]
-    )
-    bad = ~w.present | ~np.isfinite(values).all(axis=0)  # (W, K)
-    count = bad.sum(axis=0)
+    count = _missing_steps(w).sum(axis=0)
     return count > 0, count.astype(float)
 
 
 def _non_positive_gap(w: Windows, q: QualityThresholds):
     if not q.non_positive_gap:
         return None
-    smallest = np.min(w.x_lead - w.leader_length - w.x_follow, axis=0)
+    smallest = np.min(_gaps(w), axis=0)
     return smallest <= 0.0, smallest
 
 
 def _jump(w: Windows, q: QualityThresholds):
     if q.jump is None:
         return None
-    worst = np.maximum(
-        _step_disagreement(w.x_lead, w.v_lead, w.dt),
-        _step_disagreement(w.x_follow, w.v_follow, w.dt),
-    )
+    worst = _largest_link_disagreement(w)
     return worst > q.jump, worst
-
-
-def _step_disagreement(x: np.ndarray, v: np.ndarray, dt: float) -> np.ndarray:
-    """(K,) max_k |x(k+1) - x(k) - (v(k) + v(k+1)) dt / 2| [m]."""
-    if x.shape[0] < 2:
-        return np.zeros(x.shape[1])
-    step = np.diff(x, axis=0) - 0.5 * (v[1:] + v[:-1]) * dt
-    return np.abs(step).max(axis=0)
 
 
 def _speed_mismatch(w: Windows, q: QualityThresholds):
     if q.speed_mismatch is None:
         return None
-    worst = (
-        np.maximum(
-            _step_disagreement(w.x_lead, w.v_lead, w.dt),
-            _step_disagreement(w.x_follow, w.v_follow, w.dt),
-        )
-        / w.dt
-    )
+    worst = _largest_link_disagreement(w) / w.dt
     return worst > q.speed_mismatch, worst
 
 
 def _acceleration(w: Windows, q: QualityThresholds):
     if q.max_acceleration is None:
         return None
-    worst = np.maximum(np.abs(w.a_lead).max(axis=0), np.abs(w.a_follow).max(axis=0))
+    worst = _abs_acceleration(w).max(axis=0)
     return worst > q.max_acceleration, worst
 
 
@@ -233,3 +271,86 @@ def first_failure(
         reason[new] = name
         value[new] = number[new]
     return reason, value
+
+
+#: The filters that judge one step, or one link (the move from a step to the
+#: next), rather than a whole window: where one fails, a whole couple is cut
+#: (:func:`step_failures`); the others judge each stretch that is left.
+STEP_FILTERS = ("missing", "non_positive_gap", "acceleration")
+LINK_FILTERS = ("jump", "speed_mismatch")
+
+
+class StepFailures(NamedTuple):
+    """The first step-wise filter each step and each link of W steps fails.
+
+    ``steps``: (W, K) object array of filter names ("" where a step passes),
+    ``step_values``: (W, K) that filter's number at the step; ``links`` and
+    ``link_values``: the same, (W - 1, K), for the move from step k to k + 1.
+    Numbers are in the filter's unit (:data:`FILTERS`); a missing step counts 1.
+    """
+
+    steps: np.ndarray
+    step_values: np.ndarray
+    links: np.ndarray
+    link_values: np.ndarray
+
+
+def _step_checks(
+    w: Windows, q: QualityThresholds
+) -> dict[str, tuple[np.ndarray, np.ndarray] | None]:
+    """Each step-wise filter's ``(fails, number)`` per step or link, None when off.
+
+    NaN compares False, so a NaN step fails ``missing`` alone.
+    """
+    missing, gaps = _missing_steps(w), _gaps(w)
+    link, accel = _link_disagreement(w), _abs_acceleration(w)
+    checks: dict[str, tuple[np.ndarray, np.ndarray] | None] = dict.fromkeys(
+        (*STEP_FILTERS, *LINK_FILTERS)
+    )
+    if q.missing:
+        checks["missing"] = missing, missing.astype(float)
+    if q.non_positive_gap:
+        checks["non_positive_gap"] = gaps <= 0.0, gaps
+    if q.jump is not None:
+        checks["jump"] = link > q.jump, link
+    if q.speed_mismatch is not None:
+        checks["speed_mismatch"] = link / w.dt > q.speed_mismatch, link / w.dt
+    if q.max_acceleration is not None:
+        checks["acceleration"] = accel > q.max_acceleration, accel
+    return checks
+
+
+def step_failures(windows: Windows, thresholds: QualityThresholds) -> StepFailures:
+    """Where the step-wise filters (:data:`STEP_FILTERS`, :data:`LINK_FILTERS`)
+    fail, step by step and link by link, each naming the first it fails in the
+    order of :data:`FILTERS` (the window checks reduce these same numbers)."""
+    n_steps, k = windows.x_lead.shape
+    steps = np.full((n_steps, k), "", dtype=object)
+    links = np.full((max(n_steps - 1, 0), k), "", dtype=object)
+    step_values, link_values = (
+        np.full(steps.shape, np.nan),
+        np.full(links.shape, np.nan),
+    )
+    checks = _step_checks(windows, thresholds)
+    for name in FILTERS:  # the order of the window checks
+        if checks.get(name) is None:
+            continue
+        fails, number = checks[name]
+        names, values = (
+            (steps, step_values) if name in STEP_FILTERS else (links, link_values)
+        )
+        new = fails & (names == "")
+        names[new] = name
+        values[new] = number[new]
+    return StepFailures(steps, step_values, links, link_values)
+
+
+def worst(name: str, numbers: np.ndarray) -> float:
+    """A step-wise filter's number over several steps or links, as its window
+    check reduces it (:data:`FILTERS`' units): the count of missing steps, the
+    smallest gap, else the largest number."""
+    if name == "missing":
+        return float(numbers.size)
+    if name == "non_positive_gap":
+        return float(numbers.min())
+    return float(numbers.max())

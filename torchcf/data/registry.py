@@ -60,7 +60,10 @@ Any other folder in the six-CSV layout loads by path: units default to "m", and
 (``{"dt": 0.1, "units": "m", "leader_length": 5.0, "road_frame": true}``;
 ``road_frame``: whether all pairs' positions are on one road, which road effects
 need, see :func:`torchcf.diagnose.road.shares_road_frame`; ``road_period``, with
-it: the lap length [m] of a closed track, whose road profiles are periodic).
+it: the lap length [m] of a closed track, whose road profiles are periodic;
+``pairs``, which reading ignores: an extraction of whole couples says so, with
+their lengths). A folder with ``Trajectory/`` but no ``Testing/`` (extracted with
+``--test-fraction 0``) has no test split (:func:`torchcf.data.splits.split_pairs`).
 """
 
 from __future__ import annotations
@@ -98,6 +101,7 @@ __all__ = [
     "cache_dir",
     "load_pairs",
     "notes_deferred",
+    "read_meta",
     "resolve_data_root",
 ]
 
@@ -398,7 +402,7 @@ def _load_folder(
     notes: list[tuple[int, str]],
 ) -> PairSet:
     """Read a six-CSV folder (or its split sub-folder), settings from meta.json."""
-    meta = _read_meta(folder)
+    meta = read_meta(folder)
     dt = dt if dt is not None else meta.get("dt")
     if dt is None:
         raise DataError(
@@ -425,7 +429,14 @@ def _load_folder(
     return _drop_copies(pairs, _column_keys(pairs), drop_duplicates, notes)
 
 
-def _read_meta(folder: Path) -> dict:
+def read_meta(folder: Path) -> dict:
+    """A pair folder's ``meta.json`` (empty where it has none): the keys it
+    states of ``dt``, ``units``, ``leader_length``, ``road_frame``,
+    ``road_period`` and ``pairs``.
+
+    Raises:
+        DataError: not valid JSON, or keys it may not hold.
+    """
     path = folder / "meta.json"
     if not path.is_file():
         return {}
@@ -433,7 +444,9 @@ def _read_meta(folder: Path) -> dict:
         meta = json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise DataError(f"'{path}' is not valid JSON: {err}") from None
-    allowed = {"dt", "units", "leader_length", "road_frame", "road_period"}
+    # "pairs" describes an extraction's pairs (whole couples: their lengths);
+    # reading needs none of it.
+    allowed = {"dt", "units", "leader_length", "road_frame", "road_period", "pairs"}
     if not isinstance(meta, dict) or set(meta) - allowed:
         extra = sorted(set(meta) - allowed) if isinstance(meta, dict) else meta
         raise DataError(

@@ -6,7 +6,9 @@ three ways:
 
 * ``split="dataset"``: the data set's own split, ``Trajectory/`` for training and
   ``Testing/`` for testing (see :mod:`torchcf.data.registry` for the quirks handled
-  on the way, e.g. the train-to-test leak of CAR MODEL II).
+  on the way, e.g. the train-to-test leak of CAR MODEL II). A folder extracted
+  with ``--test-fraction 0`` has no ``Testing/``: training takes its pairs, a
+  step that needs test pairs says there are none (:func:`has_test_split`).
 * ``raw``: a raw trajectory source, extracted when the run starts
   (:func:`torchcf.data.importer.extract_source`) and split by source group
   (:func:`torchcf.data.extract.group_split`).
@@ -18,15 +20,26 @@ three ways:
 from __future__ import annotations
 
 import dataclasses
+import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
 from torchcf.data.pairset import DataError, PairSet
-from torchcf.data.registry import load_pairs
+from torchcf.data.registry import DATASETS, SPLITS, load_pairs
 
-__all__ = ["kfold_split", "split_pairs"]
+__all__ = ["has_test_split", "kfold_split", "split_pairs"]
+
+
+def has_test_split(source: str | os.PathLike[str]) -> bool:
+    """Whether ``split="dataset"`` has test pairs: a named data set always
+    has them; a folder has them in ``Testing/``, which an extraction with
+    ``--test-fraction 0`` does not write (its training split is all of it)."""
+    if isinstance(source, str) and source in DATASETS:
+        return True
+    return (Path(source) / SPLITS["test"]).is_dir()
 
 
 def kfold_split(
@@ -81,8 +94,9 @@ def split_pairs(
     folds: int = 5,
     fold: int = 0,
     seed: int = 0,
+    require_test: bool = True,
     **load_options: Any,
-) -> tuple[PairSet, PairSet]:
+) -> tuple[PairSet, PairSet | None]:
     """The training and test pairs of a named data set or a six-CSV folder.
 
     Args:
@@ -94,21 +108,32 @@ def split_pairs(
         folds: the k-fold split's number of folds; ignored for ``"dataset"``.
         fold: the test fold, in ``[0, folds)``; ignored for ``"dataset"``.
         seed: the k-fold permutation's seed; ignored for ``"dataset"``.
+        require_test: a folder without a test split (:func:`has_test_split`)
+            is an error; False gives None as its test pairs (training needs
+            none).
         **load_options: passed to :func:`load_pairs` (``units``, ``dt``,
             ``leader_length``, ``data_root``, ``download``, ``cleaning``).
 
     Returns:
-        ``(train, test)`` PairSets in SI units (float64, as loaded).
+        ``(train, test)`` PairSets in SI units (float64, as loaded); ``test`` is
+        None only with ``require_test=False``.
 
     Raises:
-        DataError: the data cannot be loaded, the split is unknown, or the k-fold
-            split is impossible.
+        DataError: the data cannot be loaded, the split is unknown, the k-fold
+            split is impossible, or test pairs are required and there are none.
     """
     if split == "dataset":
-        return (
-            load_pairs(source, "train", **load_options),
-            load_pairs(source, "test", **load_options),
-        )
+        train = load_pairs(source, "train", **load_options)
+        if has_test_split(source):
+            return train, load_pairs(source, "test", **load_options)
+        if require_test:
+            raise DataError(
+                f"no test split: '{source}' has no Testing/ folder (an extraction "
+                "with --test-fraction 0 writes none), and evaluating a run needs "
+                "test pairs: extract with --test-fraction > 0, or set "
+                "data.split='kfold'"
+            )
+        return train, None
     if split == "kfold":
         full = load_pairs(source, None, **load_options)
         return kfold_split(full, folds, fold, seed)

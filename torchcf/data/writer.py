@@ -4,8 +4,11 @@
 
     Leading Position.csv ... Following Acc.csv   the full set (SI; rows = steps)
     Trajectory/  the six files of the training pairs
-    Testing/     the six files of the test pairs (absent when there are none)
-    meta.json    {"dt", "units": "m", "leader_length", "road_frame"[, "road_period"]}
+    Testing/     the six files of the test pairs (absent when there are none,
+                 ``test_fraction=0``: the folder then has no test split)
+    meta.json    {"dt", "units": "m", "leader_length", "road_frame"[, "road_period"]
+                 [, "pairs": {"kind": "whole couples", "seconds": {"min",
+                 "median", "max"}}]} (the last for whole couples only)
     index.csv    one row per pair of the full set: where it came from
     dropped.csv  one row per dropped window or short span: why
     extract.json the counts, the options, the notes and the command
@@ -116,20 +119,7 @@ def write_extraction(
         write_six_csv(extraction.train, staging / "Trajectory")
         if extraction.test is not None:
             write_six_csv(extraction.test, staging / "Testing")
-        write_json(
-            staging / "meta.json",
-            {
-                "dt": extraction.dt,
-                "units": "m",
-                "leader_length": extraction.pairs.leader_length,
-                "road_frame": extraction.road_frame,
-                **(
-                    {"road_period": extraction.road_period}
-                    if extraction.road_period is not None
-                    else {}
-                ),
-            },
-        )
+        write_json(staging / "meta.json", _meta(extraction))
         write_record(extraction, staging, record)
         if out.exists():
             shutil.rmtree(out)
@@ -138,6 +128,25 @@ def write_extraction(
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return out
+
+
+def _meta(extraction: Extraction) -> JSON:
+    """``meta.json``: what reading the folder needs, and for whole couples what
+    the pairs are (ragged: their lengths in seconds)."""
+    meta: dict = {
+        "dt": extraction.dt,
+        "units": "m",
+        "leader_length": extraction.pairs.leader_length,
+        "road_frame": extraction.road_frame,
+    }
+    if extraction.road_period is not None:
+        meta["road_period"] = extraction.road_period
+    if extraction.whole:
+        meta["pairs"] = {
+            "kind": extraction.summary["pairs_are"],
+            "seconds": extraction.summary["pair_seconds"],
+        }
+    return meta
 
 
 def write_record(

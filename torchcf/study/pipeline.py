@@ -23,6 +23,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -51,24 +52,37 @@ class StudyResult:
             finished run resumed is not evaluated again).
         loop: the loop's result (``loop.json``) when this call closed the loop
             (rank 0, ``diagnose.run_after_training``), else None.
+        skipped: why the evaluation (and the loop) asked for did not run, one
+            line (the data have no test split: :data:`NO_TEST_SPLIT`), else
+            None.
     """
 
     run: Path
     summary: RunSummary
     evaluated: bool = False
     loop: LoopResult | None = None
+    skipped: str | None = None
+
+
+#: Why a study of data without a test split (``--test-fraction 0``) is not
+#: evaluated: the evaluation and the loop score the test pairs.
+NO_TEST_SPLIT = (
+    "no test split in the data (a test fraction of 0): the run is trained, not "
+    "evaluated (the evaluation and the loop need test pairs)"
+)
 
 
 def _checked_pairs(
     cfg: TrainConfig, run: RunDir, resume: bool, group: Group
-) -> tuple[PairSet, PairSet]:
+) -> tuple[PairSet, PairSet | None]:
     """The config's ``(train, test)`` pairs, read on rank 0 once the output
     directory is known to be usable (fail fast: :func:`torchcf.train.open_run`;
-    training checks it again, cheaply, as it must when called alone)."""
+    training checks it again, cheaply, as it must when called alone). Test
+    None: the data have no test split, which training does not need."""
     group.on_main(open_run, cfg, run.path, resume)
     run_device(cfg, group)  # a missing GPU is said before the data are read
     with notes_deferred():  # a budget short for these pairs: the error alone
-        pairs = group.on_main(load_split, cfg.data)
+        pairs = group.on_main(partial(load_split, require_test=False), cfg.data)
         check_budget(cfg, pairs[0])
     return pairs
 
@@ -85,7 +99,7 @@ def train_and_evaluate(
     out: str | Path | RunDir,
     *,
     resume: bool = False,
-    pairs: tuple[PairSet, PairSet] | None = None,
+    pairs: tuple[PairSet, PairSet | None] | None = None,
     evaluate: bool = True,
     group: Group = SINGLE,
 ) -> StudyResult:
@@ -97,7 +111,8 @@ def train_and_evaluate(
         resume: continue the run in ``out``; a run that finished is not trained
             again, and not evaluated again if it was (delete its
             ``metrics.json`` to evaluate it again).
-        pairs: ``(train, test)`` instead of loading ``cfg.data``.
+        pairs: ``(train, test)`` instead of loading ``cfg.data``; test None:
+            no test split (the evaluation is skipped: ``result.skipped``).
         evaluate: run the test-split evaluation after training.
         group: the processes sharing the training (:mod:`torchcf.abc.distributed`).
 
@@ -116,13 +131,15 @@ def _train_and_evaluate(
     cfg: TrainConfig,
     run: RunDir,
     resume: bool,
-    pairs: tuple[PairSet, PairSet],
+    pairs: tuple[PairSet, PairSet | None],
     evaluate: bool,
     group: Group,
 ) -> StudyResult:
     """:func:`train_and_evaluate` with the run directory held and the pairs
     read."""
     summary = train(cfg, run, resume=resume, pairs=pairs, group=group)
+    if evaluate and pairs[1] is None:
+        return StudyResult(run.path, summary, skipped=NO_TEST_SPLIT)
     done = resume and run.is_evaluated()
     evaluated = evaluate and group.is_main and not done
     if evaluated:
@@ -135,13 +152,13 @@ def run_study(
     out: str | Path | RunDir,
     *,
     resume: bool = False,
-    pairs: tuple[PairSet, PairSet] | None = None,
+    pairs: tuple[PairSet, PairSet | None] | None = None,
     evaluate: bool = True,
     group: Group = SINGLE,
 ) -> StudyResult:
     """The study of a config: :func:`train_and_evaluate`, then, with
     ``diagnose.run_after_training`` (and an evaluation), :func:`close_loop` on
-    rank 0.
+    rank 0. Data without a test split are trained only (``result.skipped``).
 
     Returns:
         the training summary, whether this call evaluated the run and the loop's
@@ -153,7 +170,8 @@ def run_study(
             pairs = _checked_pairs(cfg, run, resume, group)
         result = _train_and_evaluate(cfg, run, resume, pairs, evaluate, group)
         looped = resume and run.is_looped()  # a finished loop is not rerun
-        if evaluate and cfg.diagnose.run_after_training and group.is_main:
+        tested = result.skipped is None  # the loop scores the test pairs too
+        if evaluate and tested and cfg.diagnose.run_after_training and group.is_main:
             if not looped:
                 result = replace(result, loop=close_loop(run, pairs=pairs))
     return result
@@ -202,4 +220,10 @@ def close_loop(
         return finish_loop(plan)
 
 
-__all__ = ["StudyResult", "close_loop", "run_study", "train_and_evaluate"]
+__all__ = [
+    "NO_TEST_SPLIT",
+    "StudyResult",
+    "close_loop",
+    "run_study",
+    "train_and_evaluate",
+]

@@ -355,14 +355,15 @@ def export_hybrid(
 
 def run_constants(cfg: TrainConfig, posterior: Posterior) -> tuple[float, float]:
     """``(dt, leader_length)`` of a trained run's data [s, m]: the registry's for a
-    named data set, else the config's, else the test split's own (loaded)."""
+    named data set, else the config's, else the training split's own (loaded;
+    the test split's are the same, and data may have none)."""
     if posterior.dataset in DATASETS:
         spec = DATASETS[posterior.dataset]
         return spec.dt, spec.leader_length
     if cfg.data.dt is not None and cfg.data.leader_length is not None:
         return cfg.data.dt, cfg.data.leader_length
-    test = load_split(cfg.data)[1]
-    return test.dt, test.leader_length
+    train = load_split(cfg.data, require_test=False)[0]
+    return train.dt, train.leader_length
 
 
 def write_export(export: Export, out_dir: str | os.PathLike[str]) -> tuple[Path, Path]:

@@ -46,7 +46,8 @@ import torch
 from torch import Tensor, nn
 from torch.utils import _pytree as pytree
 
-from ..data import DATASETS
+from ..data import DATASETS, DataError
+from ..data.registry import read_meta
 from ..models import CFModel, FollowerState, Perception, get_model, require_model
 from ..posterior import Posterior
 from ..runs.directory import RunDir
@@ -186,14 +187,15 @@ class HybridSampler(nn.Module):
 
         Args:
             path: the ``posterior.pt`` (or the run directory holding it).
-            dt: the time step [s]; default: the registry's value for the
-                posterior's named data set, else the ``config.json``'s beside
-                the file.
+            dt: the time step [s]; default: the run's (its ``summary.json``,
+                else the registry's for a named data set, else the
+                ``config.json``'s data beside the file).
             leader_length: the leader's length [m]; default as ``dt``.
             dtype: float32 or float64.
 
         Raises:
-            ValueError: no such file, not a posterior, or no ``dt`` to be found.
+            ValueError: no such file, not a posterior, or no ``dt`` or leader
+                length to be found.
         """
         path = Path(path)
         if path.is_dir():
@@ -205,16 +207,18 @@ class HybridSampler(nn.Module):
             known_dt, known_length = _data_constants(posterior.dataset, path.parent)
             dt = known_dt if dt is None else dt
             leader_length = known_length if leader_length is None else leader_length
-        if dt is None:
-            raise ValueError(
-                f"{path}: the data set {posterior.dataset!r} is not a named one and "
-                "no config.json gives its dt; pass dt="
-            )
+        for value, name, unit in (
+            (dt, "dt", "s"),
+            (leader_length, "leader_length", "m"),
+        ):
+            if value is None:
+                raise ValueError(
+                    f"{path}: the data set {posterior.dataset!r} is not a named one "
+                    f"and neither the run's summary.json nor its config gives its "
+                    f"{name}; pass {name}= [{unit}]"
+                )
         return cls.from_posterior(
-            posterior,
-            dt=dt,
-            leader_length=5.0 if leader_length is None else leader_length,
-            dtype=dtype,
+            posterior, dt=dt, leader_length=leader_length, dtype=dtype
         )
 
     @classmethod
@@ -760,14 +764,30 @@ def increasing_root(
 
 
 def _data_constants(dataset: str, run_dir: Path) -> tuple[float | None, float | None]:
-    """``(dt, leader_length)`` of a posterior's data set, where they can be known."""
+    """``(dt, leader_length)`` of a posterior's data set, where they can be
+    known: the run's ``summary.json`` (which records its training pairs'), the
+    registry's for a named set, else the config's ``data`` section and, for a
+    folder, its ``meta.json`` (the leader length its loader took: 5.0 m where
+    the folder states none)."""
+    run = RunDir(run_dir)
+    try:
+        summary = run.read_summary()
+        if summary.get("dt") is not None and summary.get("leader_length") is not None:
+            return summary["dt"], summary["leader_length"]
+    except RunFileError:
+        pass
     if dataset in DATASETS:
         spec = DATASETS[dataset]
         return spec.dt, spec.leader_length
     try:
-        data = RunDir(run_dir).read_config_json()["data"]
-        return data.get("dt"), data.get("leader_length")
-    except (RunFileError, KeyError, TypeError, AttributeError):
+        data = run.read_config_json()["data"]
+        dt, length = data.get("dt"), data.get("leader_length")
+        if data.get("path") and (dt is None or length is None):
+            meta = read_meta(Path(data["path"]))
+            dt = meta.get("dt") if dt is None else dt
+            length = meta.get("leader_length", 5.0) if length is None else length
+        return dt, length
+    except (RunFileError, DataError, OSError, KeyError, TypeError, AttributeError):
         return None, None
 
 

@@ -8,12 +8,15 @@
   budgets, buffers, the rollout);
 - :mod:`torchcf.train.summary`: the results and ``summary.json``
   (:class:`RunSummary`);
+- :mod:`torchcf.train.amortised`: the amortised method's estimator in a run
+  (:func:`trained_estimator`: the one a finished run trained);
 - :mod:`torchcf.train.__main__`: ``python -m torchcf.train CONFIG``, which runs the
   study (:mod:`torchcf.study.pipeline`).
 
 Re-exports only.
 """
 
+from .amortised import trained_estimator
 from .checkpoint import RunError, RunState, open_run
 from .engine import check_budget, rollout_of, run_device
 from .run import train
@@ -29,4 +32,5 @@ __all__ = [
     "rollout_of",
     "run_device",
     "train",
+    "trained_estimator",
 ]

@@ -44,6 +44,7 @@ from __future__ import annotations
 import sys
 import time
 from contextlib import nullcontext
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -241,7 +242,7 @@ def train(
     out: str | Path | RunDir,
     *,
     resume: bool = False,
-    pairs: tuple[PairSet, PairSet] | None = None,
+    pairs: tuple[PairSet, PairSet | None] | None = None,
     group: Group = SINGLE,
 ) -> RunSummary:
     """Run (or resume) the ABC rejection and hybrid selection of ``cfg`` into ``out``.
@@ -256,7 +257,8 @@ def train(
         pairs: optional ``(train, test)`` pair sets to use instead of loading
             ``cfg.data`` (which then only labels the run; the config hash that
             guards ``resume`` does not cover these pairs). In a distributed run
-            every process must pass the same pairs.
+            every process must pass the same pairs. Training needs no test
+            pairs: test None (data without a test split) counts none.
         group: the processes sharing the run (:func:`torchcf.abc.distributed.
             init_from_env`); default a single process. Every process of the group
             calls ``train`` with the same arguments; rank 0 writes the outputs.
@@ -286,7 +288,7 @@ def _train_held(
     cfg: TrainConfig,
     run: RunDir,
     resume: bool,
-    pairs: tuple[PairSet, PairSet] | None,
+    pairs: tuple[PairSet, PairSet | None] | None,
     group: Group,
     device: torch.device,
     began: float,
@@ -304,8 +306,8 @@ def _train_held(
         # an amortised run's models have their samples' count, not n_particles
         counted = None if cfg.abc.method == "amortised" else cfg.abc.n_particles
         print(resume_note(state, models, counted), file=sys.stderr)
-    if pairs is None:
-        pairs = group.on_main(load_split, cfg.data)
+    if pairs is None:  # training needs no test pairs
+        pairs = group.on_main(partial(load_split, require_test=False), cfg.data)
     train_pairs, test_pairs = pairs
     check_budget(cfg, train_pairs)
     if cfg.abc.method == "amortised" and cfg.abc.amortised.estimator is not None:

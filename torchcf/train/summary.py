@@ -289,7 +289,7 @@ class RunSummary(Record):
         top_n: ``abc.top_n``, the N of the per-pair top-N.
         n_particles: ``abc.n_particles``, particles per model.
         n_train: training pairs.
-        n_test: test pairs.
+        n_test: test pairs (0: the data have no test split).
         train_pair_ids: ``(n_train,)`` the training pairs' ids.
         test_pair_ids: ``(n_test,)`` the test pairs' ids.
         models: the models, in the config's order.
@@ -311,6 +311,9 @@ class RunSummary(Record):
         plausibility: model -> the battery's shares over the hybrid's particles
             (:meth:`torchcf.traffic.Plausibility.summary`); with
             ``plausibility.report`` only.
+        dt: the data's time step [s]; leader_length: its leader length [m]
+            (the training pairs'; None in summaries written before they were
+            recorded).
         extra: keys of the file this release does not know, kept in order after
             the known ones (none in the summaries it writes).
     """
@@ -339,6 +342,8 @@ class RunSummary(Record):
     smc: SMCResult | None = None
     amortised: AmortisedResult | None = None
     plausibility: dict[str, PlausibilitySummary] | None = None
+    dt: float | None = None
+    leader_length: float | None = None
     extra: JSON = field(default_factory=dict)
 
     #: fields written only when set (absent from the file when None)
@@ -347,6 +352,8 @@ class RunSummary(Record):
         "smc",
         "amortised",
         "plausibility",
+        "dt",
+        "leader_length",
     )
 
     # ------------------------------------------------------------------ JSON
@@ -416,6 +423,8 @@ class RunSummary(Record):
                     name: PlausibilitySummary.from_json(record)
                     for name, record in plausibility.items()
                 },
+                dt=raw.get("dt"),
+                leader_length=raw.get("leader_length"),
                 extra={k: copy_json(v) for k, v in raw.items() if k not in names},
             )
         except (KeyError, TypeError, ValueError, AttributeError) as error:
@@ -494,7 +503,7 @@ class SelectionResults:
 def summarize(
     cfg: TrainConfig,
     train: PairSet,
-    test: PairSet,
+    test: PairSet | None,
     state: RunState,
     selected: SelectionResults,
     wall: float,
@@ -504,7 +513,8 @@ def summarize(
 
     Args:
         cfg: the run's config.
-        train, test: the training and test pairs.
+        train, test: the training and test pairs (test None: the data have
+            no test split, ``n_test`` is 0).
         state: the run state after the streams (buffers and progress).
         selected: the hybrid, the pairwise table, the shares at other N and
             the refinement's record.
@@ -521,9 +531,9 @@ def summarize(
         top_n=cfg.abc.top_n,
         n_particles=cfg.abc.n_particles,
         n_train=train.n_pairs,
-        n_test=test.n_pairs,
+        n_test=0 if test is None else test.n_pairs,
         train_pair_ids=tuple(int(i) for i in train.pair_ids),
-        test_pair_ids=tuple(int(i) for i in test.pair_ids),
+        test_pair_ids=() if test is None else tuple(int(i) for i in test.pair_ids),
         models=tuple(names),
         shares=dict(posterior.shares),
         hybrid_size=sum(len(p) for p in posterior.hybrid.values()),
@@ -545,6 +555,8 @@ def summarize(
         versions=Versions.current(),
         method=cfg.abc.method,
         smc=selected.smc,
+        dt=train.dt,
+        leader_length=train.leader_length,
     )
 
 
@@ -582,7 +594,7 @@ def smc_result(
 def read_results(
     cfg: TrainConfig,
     train_pairs: PairSet,
-    test_pairs: PairSet,
+    test_pairs: PairSet | None,
     state: RunState,
     wall: float,
     processes: int = 1,
@@ -591,7 +603,7 @@ def read_results(
 
     Args:
         cfg: the run's config.
-        train_pairs, test_pairs: the run's pairs.
+        train_pairs, test_pairs: the run's pairs (test None: no test split).
         state: the run state after the streams.
         wall: this process's wall time so far (s).
         processes: the run's processes.
