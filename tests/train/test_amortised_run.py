@@ -206,3 +206,25 @@ def test_a_reused_estimator_must_be_the_configs_and_finished(
     raw["progress"]["finished"] = "epochs"
     torch.save(raw, tmp_path / "other.pt")
     refused(tmp_path / "other.pt", r"another estimator \(models: \['idm', 'gfm'\]")
+
+
+def test_a_prediction_after_a_history_draws_from_the_estimator(finished, mixture):
+    """``torchcf.predict`` on an amortised run: a history's candidates hold
+    the estimator's draws of ``q(m, theta | history)`` beside the hybrid's."""
+    from torchcf.predict import PredictSettings, TrainedRun, predict
+    from torchcf.predict.history import AMORTISED_SAMPLES, _candidates
+    from torchcf.predict.rollouts import steps_between
+
+    out, _ = finished
+    run = TrainedRun.load(out, train=mixture)
+    assert run.estimator is not None
+    pairs = mixture.subset([1, 7])
+    past = steps_between(pairs, 0, 51)
+    _, theta, source = _candidates(run, run.hybrid_models, past, seed=0)
+    assert int((source == -1).sum(1)[0]) == AMORTISED_SAMPLES
+    drawn = theta[source == -1]
+    assert torch.isfinite(drawn[:, :6]).any(1).all()  # every draw a model's vector
+    settings = PredictSettings(draws=8, history=5.0, keep=20, conditioning="rejection")
+    found = predict(run, pairs, settings)
+    assert found.summary.history.source == "hybrid + amortised"
+    assert found.summary.history.pairs == 2

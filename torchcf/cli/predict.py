@@ -18,6 +18,8 @@ no traceback); 130 interrupted.
 from __future__ import annotations
 
 import argparse
+import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -142,8 +144,21 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"from {args.run_dir}",
             flush=True,
         )
+        began = time.perf_counter()
+
+        def progress(stage: str) -> None:
+            print(
+                f"  [{time.perf_counter() - began:5.0f} s] {stage}",
+                file=sys.stderr,
+                flush=True,
+            )
+
         found = predict(
-            run, pairs, settings, data=str(args.data or "the run's test split")
+            run,
+            pairs,
+            settings,
+            data=str(args.data or "the run's test split"),
+            progress=progress,
         )
         write_prediction(found, out)
         print_summary(found.summary.to_json())
@@ -189,6 +204,4 @@ def _f(value) -> str:
 
 
 if __name__ == "__main__":
-    import sys
-
     sys.exit(main())

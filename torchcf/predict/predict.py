@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -217,9 +218,10 @@ def predict(
     settings: PredictSettings = PredictSettings(),
     *,
     data: str = "",
+    progress: Callable[[str], None] | None = None,
 ) -> Prediction:
     """Predict every pair of ``pairs`` from the trained ``run`` (module
-    docstring).
+    docstring); ``progress`` hears each stage as it begins (one line each).
 
     Raises:
         PredictError: the pairs' time step or leader length is not the run's.
@@ -229,27 +231,25 @@ def predict(
     pairs = pairs.to(dtype=torch.float64)
     observed_gap = _gap(pairs, pairs.x_follow.double().cpu())
     mask = pairs.mask.cpu()
-    fits = pooled_fits(
-        run.models,
-        {m.name: run.kept(m) for m in run.models},
-        run.priors,
-        run.train,
-        objective=settings.objective,
-        seed=settings.seed,
+    say = progress or (lambda _: None)
+    say(
+        f"the population model: {len(run.models)} models' pooled vectors on "
+        f"{run.train.n_pairs} training pairs"
     )
+    fits, by_model, (population_x, population_rmse) = _population(run, pairs, settings)
     chosen = population_model(fits)
-    by_model, paths = {}, {}
-    for fit in fits:
-        x = _one_vector(fit, pairs)
-        by_model[fit.model], rmse = summarize_rmse(
-            x - pairs.x_follow.double().cpu(), mask
-        )
-        paths[fit.model] = (x, rmse)
-    population_x, population_rmse = paths[chosen.model]
+    say(
+        f"the hybrid's median and bands: {settings.draws} draws on each of "
+        f"{pairs.n_pairs} pairs"
+    )
     bands = predictive_bands(run, pairs, settings.draws, settings.seed)
     bands_result, draw_scores = _bands_result(bands, observed_gap, mask)
     history, conditioned, conditioned_rmse = None, None, None
     if settings.history is not None:
+        say(
+            f"after {settings.history:g} s of history: the designs judged on the "
+            "training pairs, then each pair's own prediction"
+        )
         history, conditioned, conditioned_rmse = _conditioned(
             run, pairs, fits, chosen, settings
         )
@@ -298,6 +298,29 @@ def predict(
         conditioned=conditioned,
         per_pair=per_pair,
     )
+
+
+def _population(
+    run: TrainedRun, pairs: PairSet, settings: PredictSettings
+) -> tuple[list[PooledFit], dict[str, SpacingRMSE], tuple[Tensor, np.ndarray]]:
+    """Every model's pooled vector, its spacing RMSE on ``pairs``, and the
+    population model's ``(T, N)`` follower positions [m] with its ``(N,)``
+    per-pair RMSE."""
+    fits = pooled_fits(
+        run.models,
+        {m.name: run.kept(m) for m in run.models},
+        run.priors,
+        run.train,
+        objective=settings.objective,
+        seed=settings.seed,
+    )
+    observed = pairs.x_follow.double().cpu()
+    by_model, paths = {}, {}
+    for fit in fits:
+        x = _one_vector(fit, pairs)
+        by_model[fit.model], rmse = summarize_rmse(x - observed, pairs.mask.cpu())
+        paths[fit.model] = (x, rmse)
+    return fits, by_model, paths[population_model(fits).model]
 
 
 def _gap(pairs: PairSet, x_follow: Tensor) -> Tensor:
