@@ -212,7 +212,8 @@ def test_help_shows_the_defaults(capsys):
     text = " ".join(capsys.readouterr().out.split())
     assert "pair length [s]; 'auto'" in text and "(default: 40.0)" in text
     assert "'whole': every couple one pair of its own length" in text
-    assert "share of groups for test (default: 0.3)" in text
+    assert "share of pairs for test, whole groups; 0: no test split" in text
+    assert "(default: 0.3) --seed" in text
     assert "the raw format (default" not in text  # required: no default to show
 
 

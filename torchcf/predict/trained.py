@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..config import TrainConfig
+from ..config import DataConfig, TrainConfig
 from ..config.pairs import load_split
 from ..data import PairSet, load_pairs
 from ..data.registry import DATASETS, read_meta
@@ -109,7 +109,7 @@ class TrainedRun:
         run = RunDir(path)
         cfg, posterior, _ = run.load_run()
         if train is None:
-            train = _training_pairs(cfg, run)
+            train = _training_pairs(cfg.data, run)
         ids = tuple(int(i) for i in posterior.train_pair_ids.tolist())
         if tuple(train.pair_ids) != ids:
             raise PredictError(
@@ -181,9 +181,9 @@ def _stated_constants(source: str | os.PathLike[str]) -> set[str]:
     return set(read_meta(Path(source)))
 
 
-def _training_pairs(cfg: TrainConfig, run: RunDir) -> PairSet:
+def _training_pairs(data: DataConfig, run: RunDir) -> PairSet:
     try:
-        train, _ = load_split(cfg.data, download=False)
+        train, _ = load_split(data, download=False, require_test=False)
     except TorchcfError as error:
         raise PredictError(
             f"{run.path}: the run's training pairs cannot be loaded ({error})"
