@@ -55,6 +55,16 @@ class PairSet:
     Build one with :meth:`from_arrays` (converts, pads, validates) or through
     ``torchcf.data.load_pairs``; the constructor validates but converts nothing.
 
+    Example:
+        >>> import torch
+        >>> from torchcf import PairSet
+        >>> t = torch.arange(50, dtype=torch.float64)[:, None] * 0.1  # (T, 1) [s]
+        >>> x_lead, v = 35.0 + 20.0 * t, torch.full_like(t, 20.0)  # 20 m/s
+        >>> a = torch.zeros_like(t)
+        >>> pairs = PairSet.from_arrays([x_lead, v, a, x_lead - 35.0, v, a], dt=0.1)
+        >>> pairs.n_steps, pairs.n_pairs
+        (50, 1)
+
     Attributes:
         x_lead: (T, N) leader front-bumper position [m].
         v_lead: (T, N) leader speed [m/s].

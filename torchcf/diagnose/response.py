@@ -35,9 +35,10 @@ rollout that fails (a collision, a non-finite state) carries none.
 own perturbations show; :func:`event_shifts`). An event: the leader, steady for
 ``EVENT_STEADY`` seconds (its speed's standard deviation under
 ``EVENT_STEADY_SPREAD``), falls ``EVENT_ONSET`` below that level (the onset)
-and at least ``EVENT_DROP`` below it within ``EVENT_WITHIN`` seconds; the shift of the leader's speed that the follower's
-matches best over the ``EVENT_WINDOW`` seconds from its onset, of the observed
-follower and of the pair's best particle behind the recorded leader. Everyday
+and at least ``EVENT_DROP`` below it within ``EVENT_WITHIN`` seconds; the
+shift of the leader's speed that the follower's matches best over the
+``EVENT_WINDOW`` seconds from its onset, of the observed follower and of the
+pair's best particle behind the recorded leader. Everyday
 driving holds few such events (a pair carries at most one per window), so this
 is the figure to set beside the perturbation response where the data have them.
 

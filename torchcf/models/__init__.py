@@ -46,6 +46,13 @@ def get_model(name_or_model: str | CFModel) -> CFModel:
     ``"<model>+<effect>+..."`` (e.g. ``"idm+delay"``) is the pool model wrapped by
     the effects of :mod:`torchcf.models.effects`; its canonical name (effects in
     their canonical order) is the returned model's ``name``.
+
+    Example:
+        >>> from torchcf import get_model
+        >>> get_model("IDM").param_names
+        ('a', 'b', 'v0', 'T', 's0', 'delta')
+        >>> get_model("idm+delay").param_names[-1]
+        't_delay'
     """
     if isinstance(name_or_model, CFModel):
         return name_or_model

@@ -509,6 +509,18 @@ def simulate(
 
     Returns:
         :class:`SimOutput` with ``(P, N)`` (full) or ``(P,)`` (paired) fields.
+
+    Example:
+        >>> import torch
+        >>> from torchcf import PairSet, get_model, simulate
+        >>> t = torch.arange(50, dtype=torch.float64)[:, None] * 0.1
+        >>> x_lead, v = 35.0 + 20.0 * t, torch.full_like(t, 20.0)
+        >>> a = torch.zeros_like(t)
+        >>> pairs = PairSet.from_arrays([x_lead, v, a, x_lead - 35.0, v, a], dt=0.1)
+        >>> theta = torch.tensor([[1.5, 2.0, 33.0, 1.2, 2.0, 4.0]])  # one IDM
+        >>> out = simulate(get_model("idm"), theta, pairs, [0], return_traj=True)
+        >>> out.score.shape, out.x.shape, bool(out.valid[0])
+        (torch.Size([1]), torch.Size([50, 1]), True)
     """
     model = require_model(model, "simulate")
     theta, dtype, device = _checked_theta(model, theta, dtype, execution.device)

@@ -95,6 +95,20 @@ class HybridSampler(nn.Module):
         x, v, a = sampler.advance(x, v, a, u)             # one step of dt
         sampler.tick()                                    # clock, redraws
 
+    Example:
+        >>> import torch
+        >>> from torchcf import HybridSampler, get_model
+        >>> idm = torch.tensor(
+        ...     [[1.5, 2.0, 33.0, 1.2, 2.0, 4.0], [1.0, 1.5, 30.0, 1.6, 2.5, 4.0]]
+        ... )
+        >>> sampler = HybridSampler([get_model("idm")], [idm], dt=0.1)
+        >>> _ = sampler.sample(3, generator=torch.Generator().manual_seed(0))
+        >>> spacing, v = torch.full((3,), 40.0), torch.full((3,), 20.0)
+        >>> u = sampler(spacing, v, v, torch.zeros(3))  # commands [m/s^2]
+        >>> x, v, a = sampler.advance(torch.zeros(3), v, torch.zeros(3), u)
+        >>> u.shape, bool((x > 0).all())
+        (torch.Size([3]), True)
+
     Args:
         models: the model objects (``torchcf.get_model("idm+delay")``), one per
             entry of ``particles``; a name raises :class:`TypeError`.
