@@ -310,9 +310,9 @@ def test_cli_resume_with_a_different_config_is_refused(data_root, tmp_path):
 def test_cuda_chunks_are_larger_by_default():
     """On CUDA a chunk holds at least CUDA_CHUNK_CELLS cells (launch overhead),
     unless the config sets one; no GPU is touched."""
+    from torchcf.abc.configured import rollout_of
     from torchcf.abc.rejection import CUDA_CHUNK_CELLS
     from torchcf.models import get_model
-    from torchcf.train import rollout_of
 
     pairs = synthetic_pairs(n_pairs=4, n_steps=50)
     model = get_model("idm")

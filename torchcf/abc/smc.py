@@ -20,28 +20,17 @@ of Del Moral, Doucet & Jasra 2012):
   at its centre, keeps a collapsed population proposing). Every proposal lies in
   the box, and near a bound the steps shrink with the room left, so a parameter
   whose fit lies at its bound is refined there instead of wasting proposals
-  outside. (A kernel in the box itself, the design before, counted a proposal
-  outside the box in the budget without simulating it: 33-56 % of every
-  model's refinement proposals on the paper's three data sets. HL lost most
-  where its fits lie at bounds: on CAR MODEL II 71 % of its best particles have
-  the spacing gain ``ks`` within 3 % of its lower bound, 40 % ``tau`` at its
-  upper one, and 85 % of round 1's proposals, 19 % of round 12's, fell outside;
-  its mean per-pair 5th best at 5e4 particles was 1.385 against rejection's
-  1.349 at 1e6, and is 1.137 with the logit kernel. More rounds or a smaller
-  prior round did not help the box kernel; ``reports/bench/smc_models.md``
-  compares the designs per model.) The proposals of every pair are simulated on
-  their pair in one batched rollout per chunk, whatever their pair.
+  outside (why, measured: ``reports/smc/design.md``). The proposals of every
+  pair are simulated on their pair in one batched rollout per chunk, whatever
+  their pair.
 - **threshold**: ``eps_t,p`` = the ``quantile`` of the previous population's
   scores. The round's accepted set starts with the previous population's members
   at or under ``eps_t,p`` (elitism), and the proposals with score ``<= eps_t,p``
   are offered to it; the ``population`` best (score, then particle index) form
   the next population. So the threshold never rises, and a population never
-  falls below ``quantile`` of its size, however few proposals a round accepts.
-  Without the elite, a round that accepts few proposals (late rounds, a small
-  budget per pair) leaves a population of a handful of particles, whose
-  covariance then says little about where the fit is: on CAR MODEL II (IDM,
-  5e4 particles) the mean population fell to 12-30 and the per-pair 5th best
-  score reached 1.61 after 12 rounds; with the elite it reaches 1.34.
+  falls below ``quantile`` of its size, however few proposals a round accepts
+  (a population of a handful of particles says little about where the fit
+  is: ``reports/smc/design.md``).
 - **weights** (uniform prior ``pi`` on the box): a particle of round ``t``
   carries ``log r = log pi_z(z) - log q_t(z)``, ``q_t(z) = sum_i w_i N(z; z_i,
   Sigma_p)``, the density of the proposal it was drawn from and

@@ -18,7 +18,7 @@ Re-exports only.
 
 from .amortised import trained_estimator
 from .checkpoint import RunError, RunState, open_run
-from .engine import check_budget, rollout_of, run_device
+from .engine import check_budget, run_device
 from .run import train
 from .summary import ModelResult, RunSummary
 
@@ -29,7 +29,6 @@ __all__ = [
     "RunSummary",
     "check_budget",
     "open_run",
-    "rollout_of",
     "run_device",
     "train",
     "trained_estimator",

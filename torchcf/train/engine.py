@@ -4,14 +4,12 @@
 - the particle budget checked against the training pairs (:func:`check_budget`,
   and for ``abc.method = "smc"`` the refinement's budget, for ``"amortised"``
   its samples and windows);
-- the refinement's settings (:func:`smc_settings`, defined in
-  :mod:`torchcf.abc.configured` beside :func:`rollout_of`, which the loop's
-  re-calibration uses too; :func:`refine_settings` for an amortised run's
-  refinement);
+- the refinement's settings for an amortised run (:func:`refine_settings`;
+  SMC's, :func:`~torchcf.abc.configured.smc_settings`, and how the particles
+  are simulated, :func:`~torchcf.abc.configured.rollout_of`, are
+  :mod:`torchcf.abc.configured`'s: the loop's re-calibration uses them too);
 - every model's per-pair top-N buffer, progress and refinement state, fresh or
   from the checkpoint (:func:`build_buffers`);
-- how the particles are simulated (:func:`rollout_of`: a
-  :class:`~torchcf.abc.rejection.Rollout`; re-exported);
 
 Units: SI throughout (m, s, m/s); ``abc.n_particles`` counts particles per
 model; a buffer is ``(N, B)`` scores for ``N`` training pairs and ``B =
@@ -28,7 +26,7 @@ from pathlib import Path
 
 import torch
 
-from ..abc.configured import rollout_of, smc_settings
+from ..abc.configured import smc_settings
 from ..abc.distributed import Group
 from ..abc.rejection import ModelProgress
 from ..abc.smc import SMCSettings, new_state, smc_budget
@@ -209,8 +207,6 @@ __all__ = [
     "check_budget",
     "check_smc_budget",
     "refine_settings",
-    "rollout_of",
     "run_device",
-    "smc_settings",
     "weighted_buffers",
 ]

@@ -51,6 +51,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ..abc.configured import rollout_of, smc_settings
 from ..abc.distributed import SINGLE, Group
 from ..abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
 from ..abc.rounds import RoundHooks
@@ -81,9 +82,7 @@ from .engine import (
     build_buffers,
     check_budget,
     refine_settings,
-    rollout_of,
     run_device,
-    smc_settings,
     weighted_buffers,
 )
 from .refinement import refine_budget, refinement_result, scores_before

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from .. import __version__
+from ..abc.configured import smc_settings
 from ..abc.hybrid import Selection, hybrid_posterior, pairwise_table, select
 from ..abc.rejection import ModelProgress
 from ..abc.smc import (
@@ -48,7 +49,7 @@ from ..system.files import JSON
 from ..system.records import Record, copy_json, to_json_value
 from ..traffic.battery import PlausibilitySummary
 from .checkpoint import RunState
-from .engine import smc_settings, weighted_buffers
+from .engine import weighted_buffers
 
 PAIRWISE_MEANING = "table[i][j]: share of models[i] in the hybrid of {i, j} alone"
 SMC_MEANING = (
