@@ -21,10 +21,11 @@ import torch
 
 from tests.conftest import synthetic_pairs
 from tests.runs import REPO, run_module, write_config, write_data
+from torchcf.cli.data import main as data_main
+from torchcf.cli.train import main as train_main
 from torchcf.config import ConfigError, TrainConfig, load_config
 from torchcf.config.overrides import apply_overrides
 from torchcf.data import registry
-from torchcf.data.__main__ import main as data_main
 from torchcf.data.registry import notes_deferred
 from torchcf.evaluation.evaluate import evaluate_run
 from torchcf.models import get_model, parse_effect
@@ -33,7 +34,6 @@ from torchcf.study.pipeline import run_study
 from torchcf.system.errors import did_you_mean
 from torchcf.system.files import RunFileError
 from torchcf.traffic.scenarios import pair_leader
-from torchcf.train.__main__ import main as train_main
 
 
 # ------------------------------------------------------------------- names

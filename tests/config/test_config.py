@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from tests.conftest import synthetic_pairs
+from torchcf.cli.config import main
 from torchcf.config import (
     ABCConfig,
     ConfigError,
@@ -25,7 +26,6 @@ from torchcf.config import (
     resolved_json,
     validate_config,
 )
-from torchcf.config.__main__ import main
 from torchcf.data import DataError, kfold_split
 from torchcf.models import MODELS, get_model
 

@@ -17,9 +17,9 @@ import pytest
 from tests.cli.test_bad_input import one_error_line
 from tests.data.test_extract import couple_rows
 from tests.runs import exit_code
+from torchcf.cli.data import main as data_main
 from torchcf.config import ConfigError, load_split, validate_config
 from torchcf.data import load_pairs
-from torchcf.data.__main__ import main as data_main
 from torchcf.train import __main__ as train_cli
 
 FOOT = 0.3048

@@ -409,7 +409,7 @@ def test_accelerations_no_car_reaches_are_flagged() -> None:
 def test_the_command_line_shows_what_needs_attention(tmp_path, capsys) -> None:
     """A file in feet read as metres: the flag is printed, the other notes are
     counted and left to extract.json."""
-    from torchcf.data.__main__ import main as data_main
+    from torchcf.cli.data import main as data_main
 
     frames = couple_rows(T)
     for frame in frames:

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from torchcf.data.__main__ import main as data_main
+from torchcf.cli.data import main as data_main
 from torchcf.data.extract import ExtractOptions, extract_pairs
 from torchcf.data.formats import read_trajectories
 from torchcf.data.formats.openacc import read_openacc, read_openacc_metadata

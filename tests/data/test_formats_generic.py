@@ -12,7 +12,7 @@ import pytest
 from tests.cli.test_bad_input import one_error_line
 from tests.data.test_data_cli import extract_args, write_log
 from tests.runs import exit_code
-from torchcf.data.__main__ import main as data_main
+from torchcf.cli.data import main as data_main
 from torchcf.data.formats import read_trajectories
 from torchcf.data.formats.generic import (
     ACCELERATION_UNITS,

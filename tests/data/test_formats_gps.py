@@ -286,7 +286,7 @@ def test_fixes_without_a_position_are_dropped_with_their_reason(tmp_path):
 
 
 def test_the_command_line_extracts_pairs_from_gps_logs(tmp_path, capsys):
-    from torchcf.data.__main__ import main as data_main
+    from torchcf.cli.data import main as data_main
 
     folder, _ = platoon_logs(bend, tmp_path / "logs", seconds=90.0)
     out = tmp_path / "pairs"

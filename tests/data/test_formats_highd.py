@@ -432,7 +432,7 @@ def test_small_recording_end_to_end(tmp_path: Path) -> None:
 def test_the_command_line_reads_a_recording(tmp_path: Path) -> None:
     """``python -m torchcf.data extract DIR --format highd`` with its options;
     an option of another format is refused in one line."""
-    from torchcf.data.__main__ import main
+    from torchcf.cli.data import main
 
     vehicles = [
         Vehicle(1, 100.0, length=TRUCK, kind="Truck"),

@@ -18,9 +18,9 @@ import pytest
 from tests.cli.test_bad_input import one_error_line
 from tests.data.test_extract import leader_motion
 from tests.runs import exit_code
+from torchcf.cli.data import main as data_main
 from torchcf.config import load_split, validate_config
 from torchcf.config.raw import RawSource
-from torchcf.data.__main__ import main as data_main
 from torchcf.data.extract import ExtractOptions, extract_pairs
 from torchcf.data.formats import read_trajectories, reader_options
 from torchcf.data.formats.generic import TableUnits

@@ -16,7 +16,7 @@ import pytest
 from tests.cli.test_bad_input import one_error_line
 from tests.data.test_extract import leader_motion
 from tests.runs import exit_code
-from torchcf.data.__main__ import main as data_main
+from torchcf.cli.data import main as data_main
 from torchcf.data.extract import ExtractOptions, extract_pairs
 from torchcf.data.formats import read_trajectories
 from torchcf.data.formats.punzo import read_punzo

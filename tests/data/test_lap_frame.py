@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from torchcf.data.__main__ import main as data_main
+from torchcf.cli.data import main as data_main
 from torchcf.data.formats.openacc import read_openacc
 from torchcf.data.formats.track import (
     Circle,

@@ -20,9 +20,9 @@ from tests.data.test_data_cli import FOOT, extract_args, raw_config
 from tests.data.test_extract import couple_rows
 from tests.runs import exit_code
 from torchcf.cli import evaluate as evaluate_cli
+from torchcf.cli.data import main as data_main
 from torchcf.config import load_split, validate_config
 from torchcf.data import DataError, load_pairs
-from torchcf.data.__main__ import main as data_main
 from torchcf.train import __main__ as train_cli
 
 #: follower -> duration [s] of its couple

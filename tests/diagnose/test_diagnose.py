@@ -24,6 +24,7 @@ import torch
 
 from torchcf.abc.particles import Particles, best_per_pair
 from torchcf.abc.rejection import prior_stream
+from torchcf.cli.diagnose import main
 from torchcf.config import ConfigError, resolved_json, validate_config
 from torchcf.diagnose import (
     DiagnoseError,
@@ -34,7 +35,6 @@ from torchcf.diagnose import (
     reusable,
     split_in_time,
 )
-from torchcf.diagnose.__main__ import main
 from torchcf.diagnose.candidates import (
     attribution_rollout,
     attribution_seed,

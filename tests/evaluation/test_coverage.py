@@ -301,7 +301,7 @@ def test_smoke_config_end_to_end(tmp_path):
     import os
     from pathlib import Path
 
-    from torchcf.train.__main__ import main
+    from torchcf.cli.train import main
 
     if not os.environ.get("TORCHCF_DATA"):
         pytest.skip("TORCHCF_DATA is not set: no real data to test against")

@@ -13,12 +13,12 @@ import torch
 
 from tests.data.test_extract import T, couple_rows, table_of
 from tests.runs import exit_code
+from torchcf.cli.posterior import main
 from torchcf.config import TrainConfig
 from torchcf.data import load_pairs
 from torchcf.data.extract import ExtractOptions, extract_pairs
 from torchcf.data.writer import write_extraction
 from torchcf.posterior import ModelParticles, Posterior
-from torchcf.posterior.__main__ import main
 from torchcf.posterior.tables import (
     ALL,
     NO_GROUP,

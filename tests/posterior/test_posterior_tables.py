@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from tests.conftest import synthetic_pairs
+from torchcf.cli.posterior import main
 from torchcf.config import TrainConfig
 from torchcf.posterior import ModelParticles, Posterior
-from torchcf.posterior.__main__ import main
 from torchcf.posterior.tables import (
     csv_header,
     parameter_summary,

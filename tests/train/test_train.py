@@ -16,11 +16,11 @@ import torch
 from tests.conftest import synthetic_pairs
 from torchcf import PairSet, get_model, simulate
 from torchcf.abc.streams import ParticleStream
+from torchcf.cli.train import main
 from torchcf.config import TrainConfig
 from torchcf.posterior import Posterior
 from torchcf.study.pipeline import run_study
 from torchcf.train import train
-from torchcf.train.__main__ import main
 
 REPO = Path(__file__).resolve().parents[2]
 

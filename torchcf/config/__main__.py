@@ -1,9 +1,8 @@
 """``python -m torchcf.config``: validate a run configuration, or print the schema.
 
 The command is :mod:`torchcf.cli.config` (``torchcf config``): its options,
-output and exit codes; this module runs it under its ``python -m`` name and keeps
-``from torchcf.config.__main__ import main`` working. It lives apart from the
-schema (:mod:`torchcf.config.schema`) so that ``import torchcf`` may load the
+output and exit codes; this module runs it under its ``python -m`` name. It
+lives apart from the schema (:mod:`torchcf.config.schema`) so that ``import torchcf`` may load the
 schema without ``python -m torchcf.config`` then running a module already
 imported.
 """

@@ -1,8 +1,7 @@
 """``python -m torchcf.data extract``: raw trajectories to a six-CSV pair folder.
 
 The command is :mod:`torchcf.cli.data` (``torchcf data``): its options, output
-and exit codes; this module runs it under its ``python -m`` name and keeps
-``from torchcf.data.__main__ import main`` working.
+and exit codes; this module runs it under its ``python -m`` name.
 """
 
 from __future__ import annotations

@@ -2,8 +2,7 @@
 evaluated run.
 
 The command is :mod:`torchcf.cli.diagnose` (``torchcf diagnose``): its options,
-output and exit codes; this module runs it under its ``python -m`` name and keeps
-``from torchcf.diagnose.__main__ import main`` working.
+output and exit codes; this module runs it under its ``python -m`` name.
 """
 
 from __future__ import annotations

@@ -2,8 +2,7 @@
 shares per group of pairs.
 
 The command is :mod:`torchcf.cli.posterior` (``torchcf posterior``): its options,
-output and exit codes; this module runs it under its ``python -m`` name and keeps
-``from torchcf.posterior.__main__ import main`` working.
+output and exit codes; this module runs it under its ``python -m`` name.
 """
 
 from __future__ import annotations

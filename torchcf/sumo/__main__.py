@@ -2,8 +2,7 @@
 verify RUN``: the learned hybrid in Eclipse SUMO.
 
 The command is :mod:`torchcf.cli.sumo` (``torchcf sumo``): its options, output
-and exit codes; this module runs it under its ``python -m`` name and keeps
-``from torchcf.sumo.__main__ import main`` working.
+and exit codes; this module runs it under its ``python -m`` name.
 """
 
 from __future__ import annotations
