@@ -2,9 +2,9 @@
 
 The command is :mod:`torchcf.cli.config` (``torchcf config``): its options,
 output and exit codes; this module runs it under its ``python -m`` name. It
-lives apart from the schema (:mod:`torchcf.config.schema`) so that ``import torchcf`` may load the
-schema without ``python -m torchcf.config`` then running a module already
-imported.
+lives apart from the schema (:mod:`torchcf.config.schema`) so that ``import
+torchcf`` may load the schema without ``python -m torchcf.config`` then
+running a module already imported.
 """
 
 from __future__ import annotations
