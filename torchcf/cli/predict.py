@@ -23,7 +23,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from ..predict import PredictSettings, TrainedRun, predict
+from ..predict import PredictionSummary, PredictSettings, TrainedRun, predict
 from ..predict.conditioning import CONDITIONINGS
 from ..predict.files import REPORT, RESULT, write_prediction
 from ..predict.population import OBJECTIVES
@@ -161,41 +161,34 @@ def main(argv: Sequence[str] | None = None) -> int:
             progress=progress,
         )
         write_prediction(found, out)
-        print_summary(found.summary.to_json())
+        print_summary(found.summary)
         print(f"wrote {out / REPORT} (what each number answers) and {out / RESULT}")
         return 0
 
     return run_main(body)
 
 
-def print_summary(summary: dict) -> None:
+def print_summary(summary: PredictionSummary) -> None:
     """The three predictions' mean spacing RMSE, and the bands' coverage."""
-    population, bands, history = (
-        summary["population"],
-        summary["bands"],
-        summary["history"],
-    )
+    population, bands, history = summary.population, summary.bands, summary.history
     rows = [
-        (f"population model ({population['chosen']})", population["spacing_rmse"]),
-        (f"hybrid median ({bands['draws']} draws)", bands["median"]),
+        (f"population model ({population.chosen})", population.spacing_rmse),
+        (f"hybrid median ({bands.draws} draws)", bands.median),
     ]
     if history:
         rows += [
             (
-                f"after {history['history']:g} s: own ({history['design']})",
-                history["conditioned"],
+                f"after {history.history:g} s: own ({history.design})",
+                history.conditioned,
             ),
-            (f"after {history['history']:g} s: population", history["population"]),
+            (f"after {history.history:g} s: population", history.population),
         ]
     print(f"{'spacing RMSE per pair [m]':44} {'mean':>7} {'median':>7} {'pairs':>6}")
     for label, rmse in rows:
-        print(
-            f"{label:44} {_f(rmse['mean']):>7} {_f(rmse['median']):>7} "
-            f"{rmse['pairs']:>6}"
-        )
+        print(f"{label:44} {_f(rmse.mean):>7} {_f(rmse.median):>7} {rmse.pairs:>6}")
     print(
-        f"bands: 50 % covers {bands['coverage_50']:.1%}, 90 % covers "
-        f"{bands['coverage_90']:.1%}; draws collided {bands['collisions']:.1%}"
+        f"bands: 50 % covers {bands.coverage_50:.1%}, 90 % covers "
+        f"{bands.coverage_90:.1%}; draws collided {bands.collisions:.1%}"
     )
 
 
