@@ -229,10 +229,12 @@ class BoxQP:
 
         Args:
             q: (b, n) with ``b = B`` or ``len(index)``.
-            l, u: (b, n) bounds, ``-inf`` / ``+inf`` allowed.
-            x0, y0: (b, n) optional warm start of ADMM (the MPC passes its previous
-                plan, shifted by one step, as ``x0`` alone); ``x0`` is also stage
-                2's guess unless ``active_guess`` is given.
+            l: (b, n) lower bounds, ``-inf`` allowed.
+            u: (b, n) upper bounds, ``+inf`` allowed.
+            x0: (b, n) optional warm start of ADMM's primal iterate (the MPC
+                passes its previous plan, shifted by one step, as ``x0`` alone);
+                also stage 2's guess unless ``active_guess`` is given.
+            y0: (b, n) optional warm start of ADMM's dual iterate.
             index: optional (b,) int64 rows of the batch to solve; the cached factors
                 are gathered.
             method: "auto" or "admm", see above.

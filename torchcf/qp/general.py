@@ -43,9 +43,11 @@ def solve_qp_batch(
         P: (B, n, n) symmetric positive semidefinite.
         q: (B, n).
         A: (B, m, n).
-        l, u: (B, m) bounds, ``l <= u``.
+        l: (B, m) lower bounds, ``l <= u``.
+        u: (B, m) upper bounds.
         settings: solver settings; default :class:`QPSettings()`.
-        x0, y0: (B, n), (B, m) optional warm start of the primal and dual iterate.
+        x0: (B, n) optional warm start of the primal iterate.
+        y0: (B, m) optional warm start of the dual iterate.
 
     Returns:
         :class:`QPResult` in the dtype and on the device of ``q``.

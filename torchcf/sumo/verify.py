@@ -263,8 +263,11 @@ def score_cells(
     ``+inf`` where a value is not finite or the spacing ``x_l - x <= 0``.
 
     Args:
-        x, v, a: ``(T, C)`` simulated [m, m/s, m/s^2].
-        test: the pairs; pair_index: ``(C,)`` the pair of each column.
+        x: ``(T, C)`` simulated position [m].
+        v: ``(T, C)`` simulated speed [m/s].
+        a: ``(T, C)`` simulated acceleration [m/s^2].
+        test: the pairs.
+        pair_index: ``(C,)`` the pair of each column.
         weights: of (position, speed, acceleration).
 
     Returns:

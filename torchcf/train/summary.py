@@ -514,8 +514,9 @@ def summarize(
 
     Args:
         cfg: the run's config.
-        train, test: the training and test pairs (test None: the data have
-            no test split, ``n_test`` is 0).
+        train: the training pairs.
+        test: the test pairs (None: the data have no test split, ``n_test``
+            is 0).
         state: the run state after the streams (buffers and progress).
         selected: the hybrid, the pairwise table, the shares at other N and
             the refinement's record.
@@ -604,7 +605,8 @@ def read_results(
 
     Args:
         cfg: the run's config.
-        train_pairs, test_pairs: the run's pairs (test None: no test split).
+        train_pairs: the run's training pairs.
+        test_pairs: its test pairs (None: no test split).
         state: the run state after the streams.
         wall: this process's wall time so far (s).
         processes: the run's processes.
