@@ -197,3 +197,14 @@ def test_constructor_checks_types(pairs: PairSet) -> None:
         dataclasses.replace(pairs, pair_ids=(0, 1))
     with pytest.raises(DataError, match="split must be"):
         dataclasses.replace(pairs, split="validation")
+
+
+def test_steps_keep_the_pairs_and_cut_every_series_and_the_mask():
+    from tests.conftest import synthetic_pairs
+
+    pairs = synthetic_pairs(n_pairs=3, n_steps=40)
+    part = pairs.steps(10, 25)
+    assert (part.n_steps, part.n_pairs, part.pair_ids) == (15, 3, pairs.pair_ids)
+    assert torch.equal(part.x_follow, pairs.x_follow[10:25])
+    assert torch.equal(part.mask, pairs.mask[10:25])
+    assert pairs.steps(30).n_steps == 10

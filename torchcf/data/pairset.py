@@ -264,6 +264,17 @@ class PairSet:
         moved = {f: t.to(device=device, dtype=dtype) for f, t in self.series().items()}
         return dataclasses.replace(self, **moved, mask=self.mask.to(device=device))
 
+    def steps(self, start: int, stop: int | None = None) -> PairSet:
+        """Every pair's steps ``start`` to ``stop`` (exclusive; None: the
+        end): the same pairs, a follower then starting from its recorded state
+        at ``start``."""
+        rows = slice(start, stop)
+        return dataclasses.replace(
+            self,
+            **{field: t[rows] for field, t in self.series().items()},
+            mask=self.mask[rows],
+        )
+
     def subset(self, index: Sequence[int] | Tensor) -> PairSet:
         """The pairs at positions ``index`` (0-based positions in this set).
 

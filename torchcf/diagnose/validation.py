@@ -145,11 +145,7 @@ def _long_enough(pairs: PairSet, fraction: float) -> tuple[PairSet, int]:
 def _window(pairs: PairSet, rows: slice) -> PairSet:
     """The steps ``rows`` of every pair (a validation window starts from the
     observed state at its first step)."""
-    return dataclasses.replace(
-        pairs,
-        **{field: t[rows] for field, t in pairs.series().items()},
-        mask=pairs.mask[rows],
-    )
+    return pairs.steps(rows.start, rows.stop)
 
 
 @dataclass(frozen=True)

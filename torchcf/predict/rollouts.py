@@ -152,6 +152,8 @@ def length_buckets(pairs: PairSet) -> list[tuple[Tensor, PairSet]]:
     longest pair is at most :data:`BUCKET_SPREAD` times its shortest (its
     padding, simulated for nothing, at most that share)."""
     lengths = pairs.lengths.cpu()
+    if bool((lengths == pairs.n_steps).all()):  # not ragged: the pairs as they are
+        return [(torch.arange(pairs.n_pairs), pairs)]
     order = torch.argsort(lengths, stable=True)
     buckets, start = [], 0
     while start < len(order):
@@ -187,16 +189,7 @@ def steps_between(pairs: PairSet, start: int, stop: int | None = None) -> PairSe
             f"pair {pairs.pair_ids[int(short[0])]} has fewer than 2 recorded steps "
             f"in steps {start}-{stop}"
         )
-    series = {k: t[start:stop] for k, t in pairs.series().items()}
-    return PairSet.from_arrays(
-        series,
-        dt=pairs.dt,
-        mask=mask,
-        leader_length=pairs.leader_length,
-        pair_ids=pairs.pair_ids,
-        name=pairs.name,
-        split=pairs.split,
-    )
+    return pairs.steps(start, stop)
 
 
 __all__ = [
