@@ -47,6 +47,7 @@ Shapes: P particles, T steps (:mod:`torchcf.typing`).
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -191,7 +192,7 @@ def response_times(
         model_quartiles=_quartiles(simulated),
         by_model=_medians(zip(names, simulated, strict=True)),
         pairs=len(observed),
-        per_model=_counts(names),
+        per_model=dict(Counter(names)),
         perturbation=_median(every),
         perturbation_quartiles=_quartiles(every),
         perturbation_by_model={
@@ -352,13 +353,6 @@ def _medians(named) -> dict[str, float]:
     for name, value in named:
         by_model.setdefault(name, []).append(value)
     return {k: float(np.median(v)) for k, v in by_model.items()}
-
-
-def _counts(names: list[str]) -> dict[str, int]:
-    counts: dict[str, int] = {}
-    for name in names:
-        counts[name] = counts.get(name, 0) + 1
-    return counts
 
 
 __all__ = [
