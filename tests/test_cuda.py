@@ -163,7 +163,7 @@ def test_recalibration_by_training_on_cuda_keeps_the_cpu_particles(tmp_path):
     """The loop's re-calibration by the run's sampler (float64): the reference
     (the run's streams continued) and after (a variant trained) keep the
     particles the CPU keeps."""
-    from torchcf.diagnose.retrain import FinalModel, retrain
+    from torchcf.diagnose.recalibration import FinalModel, retrain
 
     pairs = synthetic_pairs(n_pairs=6, n_steps=200, seed=1)
     results = []
@@ -187,7 +187,7 @@ def test_held_out_coverage_on_cuda_equals_cpu():
     from torchcf.abc.particles import Particles
     from torchcf.abc.rejection import Rollout
     from torchcf.diagnose import Population
-    from torchcf.diagnose.validation import coverage_scores, split_by_pair
+    from torchcf.diagnose.arms.validation import coverage_scores, split_by_pair
     from torchcf.models import get_model
 
     pairs = synthetic_pairs(n_pairs=10, n_steps=150, seed=6)
@@ -217,7 +217,7 @@ def test_held_out_coverage_on_cuda_equals_cpu():
 def test_two_gpus_equal_one(tmp_path):
     data = write_data(tmp_path / "pairs")
     config = write_config(tmp_path / "cfg.json", data, device="cuda")
-    one = run_module("torchcf.train", str(config), "--out", str(tmp_path / "one"))
+    one = run_module("torchcf", "train", str(config), "--out", str(tmp_path / "one"))
     assert one.returncode == 0, one.stderr[-3000:]
     two = torchrun_train(str(config), "--out", str(tmp_path / "two"))
     assert two.returncode == 0, two.stderr[-3000:]

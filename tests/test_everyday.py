@@ -293,7 +293,7 @@ def test_a_finished_run_resumed_does_nothing(study):
     run, pairs = study
     before = _stamps(run)
     result = run_study(_config(), run.path, resume=True, pairs=pairs)
-    assert result.summary.to_json() == run.read_summary()
+    assert result.summary == run.read_summary()
     assert _stamps(run) == before  # nothing retrained, re-evaluated or logged
 
 
@@ -336,7 +336,7 @@ def test_a_signal_writes_a_checkpoint_and_says_how_to_continue(
     abc = {"n_particles": 300_000, "chunk_size": 2000, "checkpoint_every": 3600}
     config = write_config(tmp_path / "cfg.json", data, abc=abc, models=["idm"])
     out = tmp_path / "run"
-    command = [sys.executable, "-m", "torchcf.train", str(config), "--out", str(out)]
+    command = [sys.executable, "-m", "torchcf", "train", str(config), "--out", str(out)]
     process = subprocess.Popen(
         [*command, "--no-eval"], stderr=subprocess.PIPE, text=True, cwd=REPO
     )
@@ -352,7 +352,7 @@ def test_a_signal_writes_a_checkpoint_and_says_how_to_continue(
     assert 0 < progress["next"] < 300_000 and not progress["done"]
     if signum == signal.SIGTERM:
         resumed = run_module(
-            "torchcf.train", str(config), "--out", str(out), "--resume", "--no-eval"
+            "torchcf", "train", str(config), "--out", str(out), "--resume", "--no-eval"
         )
         assert resumed.returncode == 0, resumed.stderr
         assert RunDir(out).is_trained()

@@ -25,6 +25,7 @@ STAGES = [
     {"sim"},  # the rollout; pairs made by it
     {"config", "posterior", "runs"},  # the run's config, learned set and folder
     {"abc", "amortised"},  # the ABC engine; the amortised estimator beside it
+    {"calibration"},  # one calibration: samplers, buffers, the hybrid
     {"evaluation"},  # metrics and the test-split evaluation
     {"diagnose"},
     {"traffic"},
@@ -34,17 +35,10 @@ STAGES = [
     {"study", "__init__"},  # the study and its variants
     {"cli"},  # the command lines: parse, call the library, print
 ]
-#: Entry modules (``python -m torchcf.<x>`` where <x> is a package, and
-#: ``python -m torchcf``): above the commands they run, imported by nothing.
-CLI_MODULES = {
-    "torchcf.config.__main__",
-    "torchcf.data.__main__",
-    "torchcf.train.__main__",
-    "torchcf.diagnose.__main__",
-    "torchcf.posterior.__main__",
-    "torchcf.sumo.__main__",
-    "torchcf.__main__",
-}
+#: The entry module (``python -m torchcf``, the only one: ``torchcf COMMAND``
+#: and ``python -m torchcf COMMAND``): above the commands it runs, imported by
+#: nothing.
+CLI_MODULES = {"torchcf.__main__"}
 
 
 def _module_name(path: Path) -> str:
@@ -176,7 +170,7 @@ def test_nothing_imports_a_command_line():
 def test_training_is_reached_through_its_package():
     """The study and the commands call training by ``torchcf.train``'s names
     only: what the loop's re-calibration shares with training (the rollout, the
-    plausibility screen) sits below both (``torchcf.abc.configured``,
+    plausibility screen) sits below both (``torchcf.calibration``,
     ``torchcf.traffic.configured``), not in training's own modules."""
     reaching = [
         f"{module} -> {target}"
@@ -194,7 +188,7 @@ def test_the_graph_sees_relative_and_function_level_imports():
     assert "torchcf.abc.rejection" in graph["torchcf.train.run"]
     assert "torchcf.sim.rollout" in graph["torchcf.abc.rejection"]
     assert "torchcf.study.pipeline" in graph["torchcf.cli.train"]
-    assert "torchcf.cli.train" in graph["torchcf.train.__main__"]
+    assert "torchcf.cli.main" in graph["torchcf.__main__"]
 
 
 def test_the_commands_sit_above_the_study():
@@ -207,9 +201,9 @@ def test_the_commands_sit_above_the_study():
 
 
 def test_only_the_command_lines_hold_main():
-    """A command's ``main`` lives in :mod:`torchcf.cli` (and the ``python -m``
-    entry modules that call it): a library module with its own ``main`` would
-    hand over to a command above it, an import up the house."""
+    """A command's ``main`` lives in :mod:`torchcf.cli` (and ``python -m
+    torchcf``'s entry module, which calls it): a library module with its own
+    ``main`` would hand over to a command above it, an import up the house."""
     holders = []
     for name, path in _modules().items():
         if name.startswith("torchcf.cli") or name in CLI_MODULES:

@@ -13,16 +13,24 @@ import os
 import re
 import subprocess
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 import torch
 
-from tests.runs import run_module, write_config, write_data
-from torchcf.config import ConfigError, TrainConfig, load_config, resolved_json
+from tests.runs import evaluation, run_module, run_summary, write_config, write_data
+from torchcf.config import (
+    ConfigError,
+    TrainConfig,
+    config_hash,
+    load_config,
+    resolved_json,
+)
 from torchcf.models import get_model
 from torchcf.posterior import ModelParticles, Posterior
 from torchcf.runs.directory import RunDir
+from torchcf.runs.summary import Pairwise, RecalibrationSummary
 from torchcf.system.errors import TorchcfError
 from torchcf.system.files import (
     RunFileError,
@@ -72,16 +80,13 @@ def small_posterior(dataset: str = "synthetic") -> Posterior:
     )
 
 
-SUMMARY = {
-    "dataset": "synthetic",
-    "pairwise": {"models": ["idm", "llcs"], "table": [[0.5, 0.5], [0.5, 0.5]]},
-    "shares": {"idm": 0.6, "llcs": 0.4},
-}
-METRICS = {
-    "dataset": "synthetic",
-    "n_test": 3,
-    "hybrid": {"ws": 1.5, "beta_ws": float("inf"), "min": 0.25},
-}
+SUMMARY = run_summary(("idm", "llcs"))
+METRICS = evaluation()
+
+
+def trained_summary(cfg: TrainConfig):
+    """:data:`SUMMARY` as the training of ``cfg`` would record it (its hash)."""
+    return replace(SUMMARY, config_hash=config_hash(cfg))
 
 
 def small_config(folder: Path) -> TrainConfig:
@@ -95,7 +100,7 @@ def finished_run(folder: Path, cfg: TrainConfig) -> RunDir:
     run.write_config(cfg)
     run.save_checkpoint({"format": "test", "step": torch.arange(5)})
     run.save_posterior(small_posterior())
-    run.write_summary(SUMMARY)
+    run.write_summary(trained_summary(cfg))
     return run
 
 
@@ -187,17 +192,43 @@ def test_every_file_round_trips(tmp_path, cfg):
         theta = posterior.buffers[name]["theta"]
         assert torch.equal(back.buffers[name]["theta"], theta)
 
-    run.write_summary(SUMMARY)
-    assert run.is_trained() and run.read_summary() == SUMMARY
+    summary = trained_summary(cfg)
+    run.write_summary(summary)
+    assert run.is_trained() and run.read_summary() == summary
+    assert read_json_object(run.summary_json) == summary.to_json()  # the file's
     cfg_back, posterior_back, summary_back = run.load_run()
-    assert cfg_back == cfg and summary_back == SUMMARY
+    assert cfg_back == cfg and summary_back == summary
     assert posterior_back.shares == posterior.shares
+    # a re-calibration's summary (the loop's run directories) reads as its own
+    recalibrated = RecalibrationSummary(
+        dataset="synthetic",
+        shares={"idm": 0.5, "llcs": 0.5},
+        hybrid_size=4,
+        pairwise=Pairwise(models=("idm", "llcs"), table=((1.0, 0.5), (0.5, 1.0))),
+        recalibration="search",
+    )
+    run.write_summary(recalibrated)
+    assert run.read_summary() == recalibrated
+    assert list(read_json_object(run.summary_json)) == [
+        "dataset",
+        "shares",
+        "hybrid_size",
+        "pairwise",
+        "recalibration",
+    ]
+    assert run.load_run()[2] == recalibrated  # no config hash to check
+    # an edited config is refused against a training's summary
+    run.write_summary(replace(summary, config_hash="0" * 16))
+    with pytest.raises(RunFileError, match="is not the config .* was trained with"):
+        run.load_run()
+    run.write_summary(summary)
 
     run.write_metrics(METRICS)
     assert run.is_evaluated()
-    metrics = run.read_metrics()
-    assert metrics["hybrid"]["beta_ws"] == "inf"  # JSON has no infinity
-    assert metrics == json_safe(METRICS)
+    raw = read_json_object(run.metrics_json)
+    assert raw["hybrid"]["beta_ws"] == "inf"  # JSON has no infinity
+    assert raw == json_safe(METRICS.to_json())
+    assert run.read_metrics() == METRICS
     run.discard_metrics()
     assert not run.is_evaluated()
     run.discard_metrics()  # gone already: nothing to do
@@ -284,10 +315,30 @@ def test_a_metrics_file_that_is_not_one(tmp_path, text, needle):
         run.read_metrics()
 
 
+def test_an_evaluation_of_another_release_says_what_to_do(tmp_path):
+    run = RunDir(tmp_path).prepare()
+    raw = json_safe(METRICS.to_json())
+    del raw["seconds"]
+    run.metrics_json.write_text(json.dumps(raw))
+    with pytest.raises(RunFileError) as info:
+        run.read_metrics()
+    message = str(info.value)
+    assert message.startswith(f"{run.metrics_json}: not an evaluation (KeyError")
+    assert message.endswith(f"; evaluate the run again (torchcf evaluate {tmp_path})")
+    assert "\n" not in message
+
+
 def test_other_damage(tmp_path, cfg):
     run = RunDir(tmp_path / "run").prepare()
     run.summary_json.write_text('{"dataset": "x"}')
     with pytest.raises(RunFileError, match=r"summary.json: no 'pairwise' entry"):
+        run.read_summary()
+    raw = SUMMARY.to_json()
+    del raw["per_model"]
+    run.summary_json.write_text(json.dumps(raw))
+    with pytest.raises(
+        RunFileError, match=r"summary.json: not a run summary \(KeyError: 'per_model'"
+    ):
         run.read_summary()
     run.summary_json.write_bytes(b"\xff\xfe{}")
     with pytest.raises(RunFileError, match=r"summary.json is corrupted: not UTF-8"):
@@ -453,7 +504,7 @@ def test_text_write_on_a_full_disk(small_fs):
         atomic_write_text(path, "x" * 700_000)
     assert str(info.value) == f"cannot write {path}: No space left on device"
     with pytest.raises(RunFileError, match="No space left on device"):
-        RunDir(small_fs).write_metrics({"hybrid": {"pad": "y" * 700_000}})
+        RunDir(small_fs).write_metrics(evaluation(dataset="y" * 700_000))
     assert path.read_text() == '{"before": 1}\n'
     no_temporary_files(small_fs)
 
@@ -506,7 +557,7 @@ def test_crossval_with_a_truncated_fold_metrics(tmp_path, cfg):
 @pytest.mark.slow  # trainings on a full disk
 @pytest.mark.parametrize("free_kb", [0, 24])
 def test_training_on_a_full_disk(small_fs, tmp_path, free_kb):
-    """``python -m torchcf.train`` with ``--out`` on a small file system that is
+    """``torchcf train`` with ``--out`` on a small file system that is
     full (0 kB left: found by the probe, before any data is read) or fills up
     during the run (24 kB left: a checkpoint or the posterior does not fit, and
     torch.save's RuntimeError underneath is the machine's error): one line, exit
@@ -517,7 +568,7 @@ def test_training_on_a_full_disk(small_fs, tmp_path, free_kb):
         with open(small_fs / "filler", "r+b") as handle:
             handle.truncate(os.path.getsize(small_fs / "filler") - free_kb * 1024)
     out = small_fs / "run"
-    result = run_module("torchcf.train", str(config), "--out", str(out), "--no-eval")
+    result = run_module("torchcf", "train", str(config), "--out", str(out), "--no-eval")
     assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
     lines = [line for line in result.stderr.splitlines() if "particle" not in line]
     lines = [line for line in lines if line.strip()]  # less the progress bars

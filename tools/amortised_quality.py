@@ -46,7 +46,6 @@ Writes ``reports/amortised/quality.{json,md}`` (``--out``).
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 import tempfile
@@ -62,15 +61,18 @@ from sbc_study import LEVELS, MODELS, accepted_draws, join, prior_pairs, sbc_of 
 
 from torchcf.amortised import AmortisedEstimator, pair_features  # noqa: E402
 from torchcf.amortised.space import latent_to_unit  # noqa: E402
+from torchcf.calibration.amortised import trained_estimator  # noqa: E402
+from torchcf.calibration.of_config import method_of  # noqa: E402
 from torchcf.config import TrainConfig, load_config, validate_config  # noqa: E402
 from torchcf.data import PairSet  # noqa: E402
 from torchcf.evaluation import sbc  # noqa: E402
 from torchcf.models import get_model  # noqa: E402
 from torchcf.posterior import Posterior  # noqa: E402
 from torchcf.runs.directory import RunDir  # noqa: E402
+from torchcf.runs.metrics import SetEvaluation  # noqa: E402
+from torchcf.runs.summary import RunSummary  # noqa: E402
 from torchcf.study.pipeline import train_and_evaluate  # noqa: E402
 from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
-from torchcf.train.amortised import trained_estimator  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports"
 PAPER = ("configs/carI.json", "configs/carII.json", "configs/ngsim.json")
@@ -124,7 +126,7 @@ def trained(
     out: Path,
     pairs: tuple[PairSet, PairSet] | None,
     evaluate: bool,
-) -> tuple[Posterior, dict]:
+) -> tuple[Posterior, RunSummary]:
     """The run of ``cfg`` in ``out``, trained (and evaluated) unless it is
     there already; its posterior and summary."""
     run = RunDir(out)
@@ -133,7 +135,7 @@ def trained(
         train_and_evaluate(
             cfg, out, pairs=pairs, evaluate=evaluate, resume=run.holds_run()
         )
-    return Posterior.load(run.posterior_pt), json.loads(run.summary_json.read_text())
+    return Posterior.load(run.posterior_pt), run.read_summary()
 
 
 # ----------------------------------------------------------------- synthetic
@@ -180,7 +182,9 @@ def synthetic(args, work: Path) -> dict:
         out = work / "synthetic" / method
         posteriors[method], summaries[method] = trained(cfg, out, held, False)
         if method == "amortised":
-            estimator = trained_estimator(cfg, RunDir(out))
+            priors = {spec.model: spec.bounds() for spec in cfg.models}
+            checkpoint = RunDir(out).amortised_checkpoint
+            estimator = trained_estimator(method_of(cfg), priors, checkpoint)
     probabilities = estimator.model_probabilities(*pair_features(pairs))  # (N, M)
     top = probabilities.argmax(1).numpy()
     recovery = {
@@ -205,9 +209,9 @@ def synthetic(args, work: Path) -> dict:
         "pairs_per_model": args.pairs,
         "calibration": calibration,
         "recovery": recovery,
-        "refinement": summaries["refined"]["amortised"].get("refinement"),
+        "refinement": _json_or_none(summaries["refined"].amortised.refinement),
         "training": {
-            key: summaries["amortised"]["amortised"][key]
+            key: getattr(summaries["amortised"].amortised, key)
             for key in ("epochs", "simulations", "seconds", "validation_accuracy")
         },
     }
@@ -243,36 +247,25 @@ def datasets(args, work: Path) -> dict:
             cfg = validate_config(raw)
             run_dir = work / name / method
             _, summary = trained(cfg, run_dir, None, True)
-            metrics = RunDir(run_dir).read_metrics()
-            hybrid = metrics["hybrid"]
+            evaluation = RunDir(run_dir).read_metrics()
+            hybrid = evaluation.hybrid
             block["methods"][method] = {
                 # WS is infinite where a particle is invalid on every test
                 # pair: its value over the valid particles is kept beside it
-                "hybrid": {
-                    key: [
-                        _number(hybrid.get(key)),
-                        _number(hybrid.get(f"{key}_low")),
-                        _number(hybrid.get(f"{key}_high")),
-                        _number(hybrid.get(f"{key}_valid")),
-                    ]
-                    for key, _ in METRICS
-                },  # fmt: skip
+                "hybrid": {key: _with_interval(hybrid, key) for key, _ in METRICS},
                 # a model the hybrid keeps no particle of has no test WS
                 "model_ws": {
-                    m: _number(metrics[m]["ws"]) if m in metrics else None
-                    for m in summary["models"]
+                    m: evaluation.sets[m].metrics.ws if m in evaluation.sets else None
+                    for m in summary.models
                 },
-                "shares": summary["shares"],
+                "shares": summary.shares,
                 "seconds": _seconds(summary),
-                "amortised": summary.get("amortised"),
+                "amortised": _json_or_none(summary.amortised),
             }
             mins[method] = np.asarray(
-                [
-                    np.inf if v is None else float(v)
-                    for v in metrics["hybrid_min_by_pair"]
-                ]
+                [np.inf if v is None else v for v in evaluation.hybrid_min_by_pair]
             )
-            block["test_pair_ids"] = metrics["test_pair_ids"]
+            block["test_pair_ids"] = list(evaluation.test_pair_ids)
         block["worse_than_smc"] = {
             method: worse(block, mins, method) for method in ("amortised", "refined")
         }
@@ -280,18 +273,33 @@ def datasets(args, work: Path) -> dict:
     return out
 
 
-def _number(value) -> float | None:
-    """A metric as a float (``metrics.json`` writes an infinite one as the
-    string "inf"); None stays None."""
-    return None if value is None else float(value)
+def _with_interval(entry: SetEvaluation, key: str) -> list[float | None]:
+    """A set's metric ``key``: its value, its bootstrap interval's bounds and
+    its value over the particles valid on some test pair (None: not
+    computed)."""
+    metrics = entry.metrics
+    interval = None
+    if entry.uncertainty is not None:
+        interval = entry.uncertainty.intervals.get(key)
+    return [
+        getattr(metrics, key),
+        None if interval is None else interval.low,
+        None if interval is None else interval.high,
+        getattr(metrics, f"{key}_valid", None),
+    ]
 
 
-def _seconds(summary: dict) -> float:
+def _json_or_none(record) -> dict | None:
+    """A record's JSON object; None stays None."""
+    return None if record is None else record.to_json()
+
+
+def _seconds(summary: RunSummary) -> float:
     """A training run's seconds: its models' streams (``seconds_total``) and,
     where it trained one, its estimator's training."""
-    amortised = summary.get("amortised") or {}
-    trained = amortised.get("seconds", 0.0) if not amortised.get("reused") else 0.0
-    return summary["seconds_total"] + trained
+    amortised = summary.amortised
+    trained = amortised.seconds if amortised and not amortised.reused else 0.0
+    return summary.seconds_total + trained
 
 
 def worse(block: dict, mins: dict, method: str) -> dict:

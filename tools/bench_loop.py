@@ -1,16 +1,16 @@
 """Benchmark: the diagnosis loop's wall time at its defaults, and how it grows
 with the number of pairs.
 
-The targets: on 2 quiet cores ``python -m torchcf.diagnose RUN`` at its
+The targets: on 2 quiet cores ``python -m torchcf diagnose RUN`` at its
 defaults, on a run of 50 measured training pairs where an effect is chosen and
 re-calibrated, in <= 5 minutes, on 500 pairs in <= 20 minutes, its cost
 linear in pairs (the whole ZalaZONE campaign: 451 pairs, 314 of them
 training). The runs (eight models trained with 2e5 particles each by
-``python -m torchcf.train``, not timed):
+``python -m torchcf train``, not timed):
 
 - **measured, log 0.8 s ahead**: 50 training and 20 test pairs of the ZalaZONE
   OpenACC campaign (ACC platoons, ``$TORCHCF_RAW/openacc-zalazone-dynamic``,
-  extracted with the defaults of ``python -m torchcf.data extract``, drawn at
+  extracted with the defaults of ``python -m torchcf data extract``, drawn at
   random with a fixed seed from its training and test pairs) with the leader's
   log planted 0.8 s ahead of the follower's (``tools/loop_cases.py``'s
   ``planted``): the followers seem to answer 0.8 s late, and the loop chooses an
@@ -87,7 +87,7 @@ def extracted(raw: Path, work: Path) -> Path:
     source = work / "zalazone"
     if not source.exists():
         subprocess.run(
-            [sys.executable, "-m", "torchcf.data", "extract",
+            [sys.executable, "-m", "torchcf", "data", "extract",
              str(raw / "openacc-zalazone-dynamic"), "--format", "openacc",
              "--out", str(source)],
             check=True, capture_output=True,
@@ -140,7 +140,7 @@ def train(data: Path, run: Path, n_particles: int, threads: int) -> None:
     cfg = config(data, n_particles, threads, run.parent / f"{run.name}.json")
     env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
     subprocess.run(
-        [sys.executable, "-m", "torchcf.train", str(cfg), "--out", str(run)],
+        [sys.executable, "-m", "torchcf", "train", str(cfg), "--out", str(run)],
         check=True, capture_output=True, env=env,
     )  # fmt: skip
 
@@ -161,7 +161,7 @@ def time_loop(run: Path, threads: int, repeats: int) -> tuple[list[float], dict]
         clear_loop(run)
         began = time.perf_counter()
         subprocess.run(
-            [sys.executable, "-m", "torchcf.diagnose", str(run),
+            [sys.executable, "-m", "torchcf", "diagnose", str(run),
              "--threads", str(threads)],
             check=True, capture_output=True,
         )  # fmt: skip
@@ -270,7 +270,7 @@ def markdown(payload: dict) -> str:
         "# The diagnosis loop's wall time",
         "",
         provenance(meta) + ". A run trained with 2e5 particles "
-        "per model (eight models), then `python -m torchcf.diagnose RUN` at its "
+        "per model (eight models), then `python -m torchcf diagnose RUN` at its "
         "defaults, timed as a whole process (start-up included) from an empty "
         "loop folder.",
         "",

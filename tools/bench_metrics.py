@@ -266,12 +266,14 @@ def run_costs(run_dir: Path) -> tuple[dict[str, np.ndarray], float]:
     """The learned sets' score matrices of a trained run on its test pairs
     (invalid rollouts at ``inf``, as the metrics see them), and its reg."""
     from torchcf.config import load_split
-    from torchcf.evaluation.evaluate import evaluate_posterior
+    from torchcf.evaluation.evaluate import EvaluationSettings, evaluate_posterior
     from torchcf.runs.directory import RunDir
 
     cfg, posterior, _ = RunDir(run_dir).load_run()
     test = load_split(cfg.data)[1]
-    _, costs = evaluate_posterior(posterior, test, cfg, progress=False)
+    _, costs = evaluate_posterior(
+        posterior, test, EvaluationSettings.of(cfg), progress=False
+    )
     out = {}
     for name, c in costs.items():
         errors = np.stack([c["e_p"], c["e_v"], c["e_a"]])

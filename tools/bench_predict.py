@@ -82,7 +82,7 @@ def case_pairs(name: str, cache: Path) -> tuple[PairSet, PairSet]:
     out = cache / f"{source}-whole"
     if not (out / "extract.json").exists():
         subprocess.run(
-            [sys.executable, "-m", "torchcf.data", "extract", str(raw / source),
+            [sys.executable, "-m", "torchcf", "data", "extract", str(raw / source),
              "--format", "openacc", "--window", "whole", "--split-by", "run",
              "--test-fraction", "0.3", "--out", str(out), "--overwrite"],
             check=True, capture_output=True,

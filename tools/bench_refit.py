@@ -2,7 +2,7 @@
 by design.
 
 The loop judges an effect arm by refitting every held-out pair twice, without
-the effect and with it pinned (:mod:`torchcf.diagnose.refit`). Its budget is
+the effect and with it pinned (:mod:`torchcf.diagnose.arms.refit`). Its budget is
 ``slots`` particles per pair, ``copies`` perturbed copies of each per round and
 ``rounds`` rounds: a round costs held-out pairs x slots x copies rollouts. This
 times both sides of one comparison, on the loop's own held-out rollout, for:
@@ -39,8 +39,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, provenance, write_report  # noqa: E402
 
 from torchcf.config import validate_config  # noqa: E402
-from torchcf.diagnose.refit import Pin, RefitBudget, refit_scores  # noqa: E402
-from torchcf.diagnose.validation import design  # noqa: E402
+from torchcf.diagnose.arms.refit import Pin, RefitBudget, refit_scores  # noqa: E402
+from torchcf.diagnose.arms.validation import design  # noqa: E402
 from torchcf.models import get_model  # noqa: E402
 from torchcf.models.effects import parse_effect  # noqa: E402
 from torchcf.sim.synthetic import DriverMixture, heterogeneous_pairs  # noqa: E402

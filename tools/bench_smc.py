@@ -44,6 +44,7 @@ import math
 import sys
 import tempfile
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
@@ -52,12 +53,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, provenance, write_report  # noqa: E402
 
 import torchcf.abc.smc as smc_module  # noqa: E402
+from torchcf.abc.kernel import SMCKernel  # noqa: E402
 from torchcf.abc.rejection import (  # noqa: E402
     ModelProgress,
     Rollout,
     prior_stream,
     run_rejection,
 )
+from torchcf.abc.rounds import Chunk  # noqa: E402
 from torchcf.abc.smc import SMCSettings, new_state, run_smc  # noqa: E402
 from torchcf.abc.topn import TopN  # noqa: E402
 from torchcf.config import (
@@ -219,19 +222,20 @@ def datasets_markdown(payload: dict, args) -> str:
 
 
 # ------------------------------------------------------------- per model
-#: The designs compared by ``models``: name -> settings (the kept one first).
+#: The designs compared by ``models``: name -> (settings, the kernel's space:
+#: ``"logit"`` the engine's, ``"box"`` :class:`BoxKernel`), the kept one first.
 DESIGNS = {
-    "logit (kept)": SMCSettings(),
-    "box (before)": SMCSettings(space="box"),
-    "box, scale 1": SMCSettings(space="box", kernel_scale=1.0),
-    "box, 20 rounds": SMCSettings(space="box", rounds=20),
-    "box, prior 10 %": SMCSettings(space="box", prior_fraction=0.1),
-    "logit, scale 1": SMCSettings(kernel_scale=1.0),
-    "logit, prior 15 %": SMCSettings(prior_fraction=0.15),
-    "logit, quantile 0.3": SMCSettings(quantile=0.3),
-    "logit, population 30": SMCSettings(population=30),
-    "logit, 8 rounds": SMCSettings(rounds=8),
-    "logit, 16 rounds": SMCSettings(rounds=16),
+    "logit (kept)": (SMCSettings(), "logit"),
+    "box (before)": (SMCSettings(), "box"),
+    "box, scale 1": (SMCSettings(kernel_scale=1.0), "box"),
+    "box, 20 rounds": (SMCSettings(rounds=20), "box"),
+    "box, prior 10 %": (SMCSettings(prior_fraction=0.1), "box"),
+    "logit, scale 1": (SMCSettings(kernel_scale=1.0), "logit"),
+    "logit, prior 15 %": (SMCSettings(prior_fraction=0.15), "logit"),
+    "logit, quantile 0.3": (SMCSettings(quantile=0.3), "logit"),
+    "logit, population 30": (SMCSettings(population=30), "logit"),
+    "logit, 8 rounds": (SMCSettings(rounds=8), "logit"),
+    "logit, 16 rounds": (SMCSettings(rounds=16), "logit"),
 }
 
 
@@ -241,30 +245,86 @@ def model_quality(buffer: TopN, n: int) -> float:
     return float(nth[torch.isfinite(nth)].mean())
 
 
-class _Outside:
-    """Counts the refinement's proposals and those outside the prior box (the
-    box kernel's unsimulated ones), wrapping :func:`torchcf.abc.smc._propose`."""
+class BoxKernel(SMCKernel):
+    """The engine's kernel (:class:`torchcf.abc.kernel.SMCKernel`) stepping in
+    the prior box itself instead of its logit: the design before
+    (``reports/smc/design.md``). ``Sigma_p = scale Cov_w(theta) +
+    (KERNEL_FLOOR width)^2 I``; the uniform prior's density is one over the
+    box's volume; a step can leave the box (:class:`BoxKernelRuns` counts such
+    a proposal in the budget without simulating it)."""
+
+    @staticmethod
+    def _free(theta: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
+        return theta
+
+    @staticmethod
+    def _boxed(z: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
+        return z
+
+    @staticmethod
+    def _log_prior(z: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
+        width = bounds[:, 1] - bounds[:, 0]
+        return (-torch.log(width).sum()).expand(z.shape[0])
+
+    @staticmethod
+    def _centre_width(bounds: torch.Tensor) -> torch.Tensor:
+        return bounds[:, 1] - bounds[:, 0]
+
+
+def inside_box(theta: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
+    """(Q,) bool: rows of ``theta`` (Q, K) inside the box ``bounds`` (K, 2)."""
+    return ((theta >= bounds[:, 0]) & (theta <= bounds[:, 1])).all(dim=1)
+
+
+class BoxKernelRuns:
+    """Within it, :func:`torchcf.abc.run_smc` refines with :class:`BoxKernel`:
+    the engine's kernel and round proposals (``torchcf.abc.smc.SMCKernel`` and
+    ``_round_proposals``) replaced, a refinement proposal outside the box
+    dropped from its chunk before it is simulated (its particle index spent),
+    and counted."""
 
     def __init__(self) -> None:
         self.proposed = self.outside = 0
 
-    def __enter__(self) -> _Outside:
-        self.real = smc_module._propose
+    def __enter__(self) -> BoxKernelRuns:
+        self.real = smc_module.SMCKernel, smc_module._round_proposals
+        kernel_class, round_proposals = self.real
 
-        def counted(kernel, bounds, u, pair):
-            theta, log_r = self.real(kernel, bounds, u, pair)
-            self.proposed += log_r.numel()
-            self.outside += int((~torch.isfinite(log_r)).sum())
-            return theta, log_r
+        def box_round_proposals(kernel, stream, t, budget):
+            propose = round_proposals(kernel, stream, t, budget)
+            if kernel is None:  # round 0: the prior's draws
+                return propose
 
-        smc_module._propose = counted
+            def inside_only(start: int, stop: int, batch: int | None) -> Chunk:
+                chunk = propose(start, stop, batch)
+                real = chunk.size
+                keep = inside_box(chunk.theta[:real], kernel.bounds)
+                keep = keep.nonzero().squeeze(1)
+                self.proposed += real
+                self.outside += real - keep.numel()
+                theta, pair = chunk.theta[keep], chunk.pair[keep]
+                if not keep.numel():
+                    return Chunk(theta, pair, chunk.index[keep])
+                pad = batch - keep.numel() if batch is not None else 0
+                return Chunk(
+                    torch.cat((theta, theta[:1].expand(pad, -1))),
+                    torch.cat((pair, pair[:1].expand(pad))),
+                    chunk.index[keep],
+                    rows=chunk.rows[keep],
+                )
+
+            return inside_only
+
+        smc_module.SMCKernel = BoxKernel
+        smc_module._round_proposals = box_round_proposals
         return self
 
     def __exit__(self, *exc) -> None:
-        smc_module._propose = self.real
+        smc_module.SMCKernel, smc_module._round_proposals = self.real
 
     @property
     def fraction(self) -> float:
+        """Share of the refinement's proposals outside the box."""
         return self.outside / max(self.proposed, 1)
 
 
@@ -273,13 +333,15 @@ def engine_quality(
     name: str,
     pairs,
     budget: int,
-    settings: SMCSettings,
+    design: tuple[SMCSettings, str],
     seed: int,
     n: int,
     dtype,
 ) -> tuple[float, float, float]:
     """(quality, seconds, share of the refinement's proposals outside the box)
-    of one model's engine run on ``pairs``."""
+    of one model's engine run on ``pairs``; ``design``: the settings and the
+    kernel's space (:data:`DESIGNS`)."""
+    settings, space = design
     model = get_model(name)
     bounds = model.prior_bounds(torch.float64)
     rollout = Rollout(pairs, dtype=dtype, compile="off")
@@ -289,9 +351,13 @@ def engine_quality(
     if method == "smc":
         buffer = TopN(pairs.n_pairs, n, model.n_params + 1)
         state = new_state(pairs.n_pairs, settings, model.n_params)
-        with _Outside() as tally:
-            run_smc(stream, buffer, rollout, budget, settings, ModelProgress(), state)
-        outside = tally.fraction
+        progress = ModelProgress()
+        if space == "box":
+            with BoxKernelRuns() as tally:
+                run_smc(stream, buffer, rollout, budget, settings, progress, state)
+            outside = tally.fraction
+        else:  # the engine's own kernel never leaves the box
+            run_smc(stream, buffer, rollout, budget, settings, progress, state)
     else:
         buffer = TopN(pairs.n_pairs, n, model.n_params)
         run_rejection(stream, buffer, rollout, budget, ModelProgress())
@@ -309,8 +375,9 @@ def models(args) -> int:
         for spec in cfg.models:
             name = spec.name
             ref, ref_s, _ = engine_quality(
-                "rejection", name, pairs, args.rejection, SMCSettings(), 0, n, dtype
-            )
+                "rejection", name, pairs, args.rejection, DESIGNS["logit (kept)"], 0,
+                n, dtype,
+            )  # fmt: skip
             row = {"rejection": ref, "rejection_seconds": ref_s, "designs": {}}
             runs = [(d, 0) for d in DESIGNS] + [
                 (next(iter(DESIGNS)), s) for s in args.seeds if s != 0
@@ -336,7 +403,10 @@ def models(args) -> int:
         "meta": bench_meta(sys.argv, args.threads),
         "budget": args.budget,
         "rejection_budget": args.rejection,
-        "designs": {k: v.__dict__ for k, v in DESIGNS.items()},
+        "designs": {
+            k: {**asdict(settings), "space": space}
+            for k, (settings, space) in DESIGNS.items()
+        },
         "results": results,
         "summary": design_summary(results),
     }

@@ -1,6 +1,6 @@
 """Benchmark: a whole training run, timed from outside.
 
-Runs ``python -m torchcf.train CONFIG --out DIR`` in a child process (under
+Runs ``python -m torchcf train CONFIG --out DIR`` in a child process (under
 ``torchrun`` with ``--nproc K``), measures its wall time and peak resident memory
 (the largest process), and writes the per-model times, rates, invalid counts and
 the shares found to ``reports/bench/train_<config>.{json,md}``. It runs twice:
@@ -15,7 +15,6 @@ again with the cache that run filled, as for every later run.
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import subprocess
@@ -27,6 +26,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import bench_meta, write_report  # noqa: E402
 
+from torchcf.runs.directory import RunDir  # noqa: E402
 from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
@@ -35,7 +35,7 @@ REPORTS = Path(__file__).resolve().parents[1] / "reports" / "bench"
 def _run(args, stem: str, env: dict[str, str]) -> dict | None:
     """One training run in a child process: wall time, peak RSS, its summary."""
     run_dir = Path(tempfile.mkdtemp(prefix=f"torchcf-{stem}-"))
-    launcher = ["-m", "torchcf.train"]
+    launcher = ["-m", "torchcf", "train"]
     if args.nproc > 1:
         launcher = [
             "-m",
@@ -64,7 +64,7 @@ def _run(args, stem: str, env: dict[str, str]) -> dict | None:
         if code != 2:  # 2: the command said why, on one line
             print(f"training failed: exit code {code}", file=sys.stderr)
         return None
-    summary = json.loads((run_dir / "run" / "summary.json").read_text())
+    summary = RunDir(run_dir / "run").read_summary()
     shutil.rmtree(run_dir, ignore_errors=True)
     return {
         "wall_seconds": wall,
@@ -108,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     if "cold" not in runs:
         runs["cold"] = runs["warm"]
     summary = runs["warm"]["summary"]
-    if runs["cold"]["summary"]["shares"] != summary["shares"]:
+    if runs["cold"]["summary"].shares != summary.shares:
         print("the two runs found different shares", file=sys.stderr)
         return 1
 
@@ -125,10 +125,9 @@ def main(argv: list[str] | None = None) -> int:
         "cold_cache": {k: v for k, v in runs["cold"].items() if k != "summary"},
         "warm_cache": {k: v for k, v in runs["warm"].items() if k != "summary"},
         "cold_cache_per_model_seconds": {
-            name: m["seconds"]
-            for name, m in runs["cold"]["summary"]["per_model"].items()
+            name: m.seconds for name, m in runs["cold"]["summary"].per_model.items()
         },
-        "summary": summary,
+        "summary": summary.to_json(),
     }
     lines = [
         f"# Training run: `{args.config}`",
@@ -137,9 +136,9 @@ def main(argv: list[str] | None = None) -> int:
         "",
         *(f"- {key}: {value}" for key, value in meta.items() if key != "command"),
         "",
-        f"{summary['dataset']}: {summary['n_train']} training pairs, "
-        f"{summary['n_particles']:,} particles per model, layout {summary['layout']}, "
-        f"N = {summary['top_n']}.",
+        f"{summary.dataset}: {summary.n_train} training pairs, "
+        f"{summary.n_particles:,} particles per model, layout {summary.layout}, "
+        f"N = {summary.top_n}.",
         "",
         (
             f"**Wall time {wall:.0f} s ({wall / 60:.1f} min)** with the machine's "
@@ -161,17 +160,17 @@ def main(argv: list[str] | None = None) -> int:
         "|---|---|---|---|---|---|---|---|",
     ]
     cold_seconds = result["cold_cache_per_model_seconds"]
-    for name in summary["models"]:
-        m = summary["per_model"][name]
-        best = "n/a" if m["best_score"] is None else f"{m['best_score']:.3f}"
-        thr = "n/a" if m["threshold"] is None else f"{m['threshold']:.3f}"
+    for name in summary.models:
+        m = summary.per_model[name]
+        best = "n/a" if m.best_score is None else f"{m.best_score:.3f}"
+        thr = "n/a" if m.threshold is None else f"{m.threshold:.3f}"
         lines.append(
-            f"| {name} | {summary['shares'][name]:.1%} | "
-            f"{cold_seconds[name]:.1f} / {m['seconds']:.1f} | "
-            f"{m['particles_per_s']:.3g} | {m['invalid']:,} | "
-            f"{m.get('stopped', 0):,} | {best} | {thr} |"
+            f"| {name} | {summary.shares[name]:.1%} | "
+            f"{cold_seconds[name]:.1f} / {m.seconds:.1f} | "
+            f"{m.particles_per_s:.3g} | {m.invalid:,} | "
+            f"{m.stopped:,} | {best} | {thr} |"
         )
-    early = any(m.get("stopped", 0) for m in summary["per_model"].values())
+    early = any(m.stopped for m in summary.per_model.values())
     lines += [
         "",
         (

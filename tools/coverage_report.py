@@ -23,33 +23,32 @@ from torchcf.evaluation.report import (
     differences_table,
     intervals_table,
 )
-from torchcf.evaluation.results import BootstrapSettings, Difference
 from torchcf.runs.directory import RunDir
+from torchcf.runs.metrics import Evaluation
 from torchcf.system.console import OneLineParser, run_main
-from torchcf.system.files import from_json_safe, json_safe
+from torchcf.system.files import json_safe
 
 REPORTS = Path(__file__).resolve().parents[1] / "reports" / "uncertainty"
 SETS = ("hybrid", "ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc")
 
 
-def run_table(name: str, metrics: dict) -> list[str]:
+def set_rows(evaluation: Evaluation) -> dict[str, dict]:
+    """The evaluation's sets in :data:`SETS` order, each as its ``metrics.json``
+    entry (the rows of :mod:`torchcf.evaluation.report`'s tables)."""
+    return {s: evaluation.sets[s].to_json() for s in SETS if s in evaluation.sets}
+
+
+def run_table(name: str, evaluation: Evaluation) -> list[str]:
     """Markdown lines of one run: the tables its own ``report/table.md`` has
     (:mod:`torchcf.evaluation.report`), coverage first."""
-    order = [s for s in SETS if s in metrics]
+    rows = set_rows(evaluation)
+    order = list(rows)
     return [
-        f"## {name} ({metrics.get('dataset', '?')}, {metrics.get('n_test', '?')} "
-        "test pairs)",
+        f"## {name} ({evaluation.dataset}, {evaluation.n_test} test pairs)",
         "",
-        coverage_table(metrics, order, metrics.get("coverage_levels", (0.5, 0.9))),
-        intervals_table(
-            metrics, order, BootstrapSettings.from_json(metrics["bootstrap"])
-        ),
-        differences_table(
-            {
-                model: {key: Difference.from_json(d) for key, d in row.items()}
-                for model, row in metrics.get("hybrid_minus", {}).items()
-            }
-        ),
+        coverage_table(rows, order, evaluation.coverage_levels),
+        intervals_table(rows, order, evaluation.bootstrap),
+        differences_table(evaluation.hybrid_minus),
     ]
 
 
@@ -91,14 +90,16 @@ def main(argv: list[str] | None = None) -> int:
         ],
     )
     for run in args.runs:
-        metrics = from_json_safe(RunDir(run).read_metrics())
+        evaluation = RunDir(run).read_metrics()
         payload[str(run)] = {
-            s: {k: metrics[s].get(k) for k in metrics[s] if k.startswith("coverage")}
-            for s in SETS
-            if s in metrics
+            s: {k: v for k, v in row.items() if k.startswith("coverage")}
+            for s, row in set_rows(evaluation).items()
         }
-        payload[str(run)]["hybrid_minus"] = metrics.get("hybrid_minus", {})
-        lines += run_table(run.name, metrics)
+        payload[str(run)]["hybrid_minus"] = {
+            model: {key: d.to_json() for key, d in row.items()}
+            for model, row in evaluation.hybrid_minus.items()
+        }
+        lines += run_table(run.name, evaluation)
     args.out.mkdir(parents=True, exist_ok=True)
     text = json.dumps(json_safe(payload), indent=1)
     (args.out / "coverage.json").write_text(text + "\n")

@@ -15,7 +15,7 @@ follower no pool model is. Writes ``reports/loop_cases.{json,md}``.
 the driving is measured, only the plant is known.
 
 - ZalaZONE (``$TORCHCF_RAW/openacc-zalazone-dynamic``: commercial ACC cars in
-  platoons, extracted with ``python -m torchcf.data extract``'s defaults, 50
+  platoons, extracted with ``python -m torchcf data extract``'s defaults, 50
   training and 20 test pairs drawn with a fixed seed), calibrated with the
   eight models at 2e5 particles each: as measured (nothing planted), with
   every leader position +3 m (a spacing-sensor offset: ``offset`` -3 m), with
@@ -60,9 +60,9 @@ from bench_sim import bench_meta, write_report  # noqa: E402
 
 from torchcf.config import DiagnoseConfig, validate_config  # noqa: E402
 from torchcf.data import PairSet, load_pairs  # noqa: E402
-from torchcf.diagnose.attribution import RoadStart, attribute_effects  # noqa: E402
 from torchcf.diagnose.loop import active_models  # noqa: E402
-from torchcf.diagnose.road import profile_agreement  # noqa: E402
+from torchcf.diagnose.selection.attribution import RoadStart, attribute_effects  # noqa: E402
+from torchcf.diagnose.signatures.road import profile_agreement  # noqa: E402
 from torchcf.models import AugmentedModel, get_model, parse_effect  # noqa: E402
 from torchcf.models.effects import RoadProfile  # noqa: E402
 from torchcf.runs.directory import RunDir  # noqa: E402
@@ -239,7 +239,7 @@ def zalazone(
     source = cache / "zalazone"
     if not (source / "extract.json").exists():
         subprocess.run(
-            [sys.executable, "-m", "torchcf.data", "extract",
+            [sys.executable, "-m", "torchcf", "data", "extract",
              str(raw / "openacc-zalazone-dynamic"), "--format", "openacc",
              "--out", str(source), "--overwrite"],
             check=True, capture_output=True,

@@ -3,7 +3,7 @@
 50 training and 20 test pairs of the ZalaZONE OpenACC campaign (the draw of
 ``tools/bench_loop.py``), with the leader's log planted ``--shift`` seconds
 ahead of the follower's (0: as measured), trained once with 2e5 particles per
-model (eight models); then ``python -m torchcf.diagnose`` once per design of
+model (eight models); then ``python -m torchcf diagnose`` once per design of
 ``diagnose.validation`` (``refit``, ``pairs``, ``time``), everything else at
 its defaults. Per design: what was chosen, the first step's tests in their
 order and the loop's wall time.
@@ -44,7 +44,7 @@ def run_design(run: Path, design: str, out: Path, threads: int) -> dict:
     clear_loop(run)
     began = time.perf_counter()
     subprocess.run(
-        [sys.executable, "-m", "torchcf.diagnose", str(run), "--threads",
+        [sys.executable, "-m", "torchcf", "diagnose", str(run), "--threads",
          str(threads), "--set", f'diagnose.validation="{design}"'],
         check=True, capture_output=True,
     )  # fmt: skip
@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     if not (run / "posterior.pt").exists():
         cfg = config(data, 200_000, args.threads, work / "cfg.json")
         subprocess.run(
-            [sys.executable, "-m", "torchcf.train", str(cfg), "--out", str(run)],
+            [sys.executable, "-m", "torchcf", "train", str(cfg), "--out", str(run)],
             check=True, capture_output=True,
         )  # fmt: skip
     rows = []

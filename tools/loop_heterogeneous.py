@@ -26,7 +26,7 @@ smallest size chosen in at least 80 % is the effect's detectable size at that
 number of pairs (``reports/loop_power.{json,md}``).
 
 **Detectable** (``detectable``): the loop's own power estimate
-(:mod:`torchcf.diagnose.power`, what each tested effect would have had to
+(:mod:`torchcf.diagnose.selection.power`, what each tested effect would have had to
 measure to be chosen) on the controls' data at each ``--pairs``, the first step
 over ``--seeds`` seeds, beside the planted cases' hit rates
 (``reports/loop_detectable.{json,md}``): one run per control and seed where
@@ -57,7 +57,7 @@ from bench_sim import bench_meta, provenance, write_report  # noqa: E402
 from loop_cases import config as loop_cases_config  # noqa: E402
 
 from torchcf.data import PairSet  # noqa: E402
-from torchcf.diagnose.attribution import choose  # noqa: E402
+from torchcf.diagnose.selection.attribution import choose  # noqa: E402
 from torchcf.diagnose.significance import (  # noqa: E402
     LEVEL_SCHEMES,
     fallback_levels,
@@ -336,7 +336,7 @@ def detectable_markdown(
     rows: list[dict], planted: list[dict] | None = None
 ) -> list[str]:
     """What the controls could have shown: the loop's own detectable sizes
-    (:mod:`torchcf.diagnose.power`, computed where nothing is chosen) on each
+    (:mod:`torchcf.diagnose.selection.power`, computed where nothing is chosen) on each
     control's data, median over seeds, beside the planted case of the same
     mixture and its hit rate (from ``planted``, default ``rows``): the
     estimate's check against planted effects."""
@@ -566,7 +566,7 @@ def power(
 def detectable(
     pairs: list[int], seeds: int, diagnose: dict, done: dict[tuple, dict], save
 ) -> list[dict]:
-    """The loop's own power estimate (:mod:`torchcf.diagnose.power`) on the
+    """The loop's own power estimate (:mod:`torchcf.diagnose.selection.power`) on the
     controls' data at each number of training pairs: every control over
     ``seeds`` seeds (and every seed ``done`` holds), the first step only
     (``done``: runs read back, by (case, pairs, seed), the cases' controls
@@ -601,7 +601,7 @@ def detectable_report(payload: dict, planted: list[dict]) -> str:
         "`tools/loop_heterogeneous.py` (nothing planted) at each number of "
         "training pairs (20 test pairs), the loop's first step: the sizes "
         "each tested effect would have had to have to be chosen "
-        "(`torchcf.diagnose.power`). Hits: the planted cases of "
+        "(`torchcf.diagnose.selection.power`). Hits: the planted cases of "
         "`reports/loop_heterogeneous.md` (50 pairs).",
     ]
     for n_train in sorted({r["n_train"] for r in payload["runs"]}):

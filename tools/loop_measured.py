@@ -15,7 +15,8 @@ Cases (``$TORCHCF_RAW``; every run: the eight models at 2e5 particles each,
 
 What a case records: the effects chosen, the first step's tests (gain, p-value,
 level, family), the residual's response lag, the response times of the data
-and of the calibrated hybrid before and after (:mod:`torchcf.diagnose.response`:
+and of the calibrated hybrid before and after
+(:mod:`torchcf.diagnose.signatures.response`:
 on the recorded pairs, the lag of the follower's best correlation with its
 leader's acceleration; behind a standard perturbation, the shift of the
 leader's speed the calibrated follower's matches best; medians over pairs),
@@ -52,7 +53,7 @@ from loop_cases import EIGHT, zalazone  # noqa: E402
 
 from torchcf.config import validate_config  # noqa: E402
 from torchcf.data import PairSet, load_pairs  # noqa: E402
-from torchcf.diagnose.validation import pair_groups  # noqa: E402
+from torchcf.diagnose.arms.validation import pair_groups  # noqa: E402
 from torchcf.study.pipeline import close_loop, train_and_evaluate  # noqa: E402
 from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
 
@@ -73,7 +74,7 @@ def casale(raw: Path, cache: Path) -> tuple[PairSet, PairSet, Path]:
         import subprocess
 
         subprocess.run(
-            [sys.executable, "-m", "torchcf.data", "extract",
+            [sys.executable, "-m", "torchcf", "data", "extract",
              str(raw / "openacc-casale"), "--format", "openacc",
              "--window", "40", "--split-by", "run", "--test-fraction", "0.3",
              "--out", str(source), "--overwrite"],
@@ -201,7 +202,7 @@ def markdown(payload: dict) -> str:
         "correlation with its leader's acceleration on the training pairs "
         "(the data's and the calibrated hybrid's); *perturbation*, the "
         "calibrated hybrid behind a standard leader that brakes and comes "
-        "back (`torchcf.diagnose.response`), the measure of the published "
+        "back (`torchcf.diagnose.signatures.response`), the measure of the published "
         "figures; *braking events*, the same measure on the recorded leaders' "
         "braking events (steady 2 s, then at least 2 m/s lost within 5 s), of "
         "the data and of the calibrated hybrid behind the recorded leaders.",

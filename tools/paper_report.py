@@ -74,8 +74,47 @@ def paper_metrics(dataset: str) -> dict[str, dict[str, float]]:
     }
 
 
-def _number(value) -> float:
-    return float(value) if isinstance(value, str) else value
+def our_metrics(run: RunDir, crossval: bool) -> dict[str, dict[str, float]]:
+    """Our metrics per learned set (:data:`MODELS` order): the run's
+    evaluation, or the mean over a cross-validation's folds.
+
+    Raises:
+        RunFileError: the folder's ``metrics.json`` is missing or not one
+            (one line).
+    """
+    keys = (*KEYS, "sinkhorn")
+    if crossval:
+        entries = run.read_crossval().entries
+        return {
+            entry: {k: getattr(entries[entry], k) for k in keys}
+            for entry in MODELS
+            if entry in entries
+        }
+    sets = run.read_metrics().sets
+    return {
+        entry: {k: getattr(sets[entry].metrics, k) for k in keys}
+        for entry in MODELS
+        if entry in sets
+    }
+
+
+def kept_summary(run: RunDir) -> dict:
+    """What the report keeps of a run's summary (its JSON)."""
+    summary = run.read_summary()
+    keep = {
+        "dataset": summary.dataset,
+        "n_train": summary.n_train,
+        "n_test": summary.n_test,
+        "shares": summary.shares,
+        "pairwise": summary.pairwise.to_json(),
+        "sensitivity": {str(n): s for n, s in summary.sensitivity.items()},
+    }
+    if summary.plausibility is not None:  # the battery on the hybrid's particles
+        keep["plausibility"] = {
+            m: row.to_json() for m, row in summary.plausibility.items()
+        }
+    keep["per_model_seconds"] = {m: v.seconds for m, v in summary.per_model.items()}
+    return keep
 
 
 def _comparison(ours, paper, order, label: str) -> list[str]:
@@ -105,15 +144,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     out = args.out or REPORTS / args.dataset
-    raw = RunDir(args.run_dir).read_metrics()  # one-line error, nothing written
+    run = RunDir(args.run_dir)
+    ours = our_metrics(run, args.crossval)  # one-line error, nothing written
     out.mkdir(parents=True, exist_ok=True)
-    ours = {
-        entry: {
-            k: _number(v) for k, v in raw[entry].items() if k in (*KEYS, "sinkhorn")
-        }
-        for entry in MODELS
-        if entry in raw
-    }
     paper = paper_metrics(args.dataset)
     order = [entry for entry in MODELS if entry in ours]
     lines = [
@@ -137,21 +170,14 @@ def main(argv: list[str] | None = None) -> int:
             *_comparison(in_feet, paper, order, "ours in feet"),
         ]
     (out / "comparison.md").write_text("\n".join(lines) + "\n")
-    (out / "metrics.json").write_text(json.dumps(raw, indent=2) + "\n")
+    shutil.copyfile(run.metrics_json, out / "metrics.json")
 
     sources = (
         [args.run_dir] if not args.crossval else sorted(args.run_dir.glob("fold*"))
     )
     for source in sources:
         suffix = "" if not args.crossval else f"_{source.name}"
-        summary = json.loads((source / "summary.json").read_text())
-        keep = {k: summary[k] for k in ("dataset", "n_train", "n_test", "shares")}
-        keep.update({k: summary[k] for k in ("pairwise", "sensitivity")})
-        if "plausibility" in summary:  # the battery on the hybrid's particles
-            keep["plausibility"] = summary["plausibility"]
-        keep["per_model_seconds"] = {
-            m: v["seconds"] for m, v in summary["per_model"].items()
-        }
+        keep = kept_summary(RunDir(source))
         (out / f"summary{suffix}.json").write_text(json.dumps(keep, indent=2) + "\n")
         for png in (source / "report").glob("*.png"):
             shutil.copyfile(png, out / f"{png.stem}{suffix}.png")

@@ -37,7 +37,6 @@ from torchcf.posterior import Posterior  # noqa: E402
 from torchcf.runs.directory import RunDir  # noqa: E402
 from torchcf.study.pipeline import train_and_evaluate  # noqa: E402
 from torchcf.system.console import OneLineParser, count, run_main  # noqa: E402
-from torchcf.system.files import from_json_safe  # noqa: E402
 from torchcf.traffic import HybridSampler  # noqa: E402
 from torchcf.traffic.battery import plausibility_by_model  # noqa: E402
 from torchcf.traffic.configured import plausibility_battery  # noqa: E402
@@ -63,7 +62,7 @@ def run_set(
         began = time.perf_counter()
         summary = train_and_evaluate(cfg, out).summary
         seconds = time.perf_counter() - began
-        metrics = from_json_safe(RunDir(out).read_metrics())
+        evaluation = RunDir(out).read_metrics()
         posterior = Posterior.load(out / "posterior.pt")
     sampler = HybridSampler.from_posterior(posterior, dt=0.1)
     battery = plausibility_battery(cfg.plausibility, load_split(cfg.data)[0])
@@ -78,7 +77,7 @@ def run_set(
         "implausible": {m: row.implausible for m, row in summary.per_model.items()},
         "metrics": {
             key: {
-                k: metrics[key].get(k)
+                k: getattr(evaluation.sets[key].metrics, k)
                 for k in (
                     "ws",
                     "beta_ws",
@@ -89,7 +88,7 @@ def run_set(
                 )
             }
             for key in [*summary.models, "hybrid"]
-            if key in metrics
+            if key in evaluation.sets
         },  # fmt: skip
         "hybrid_collided": collided,
         "battery_speed": battery.speed,

@@ -40,13 +40,13 @@ def commands(work: Path) -> dict[str, list[str]]:
     python = sys.executable
     main_run = str(work / "carII")
     return {
-        "main job": [python, "-m", "torchcf.train", "configs/carII.json",
+        "main job": [python, "-m", "torchcf", "train", "configs/carII.json",
                      "--out", main_run],
-        "smoke": [python, "-m", "torchcf.train", "configs/smoke.json",
+        "smoke": [python, "-m", "torchcf", "train", "configs/smoke.json",
                   "--out", str(work / "smoke")],
-        "sumo export": [python, "-m", "torchcf.sumo", "export", main_run,
+        "sumo export": [python, "-m", "torchcf", "sumo", "export", main_run,
                         "--out", str(work / "export")],
-        "sumo verify": [python, "-m", "torchcf.sumo", "verify", main_run,
+        "sumo verify": [python, "-m", "torchcf", "sumo", "verify", main_run,
                         "--out", str(work / "verify")],
     }  # fmt: skip
 

@@ -1,6 +1,6 @@
 """The SMC hybrids beside the rejection ones: ``reports/smc/README.md``.
 
-Reads the SMC runs (``python -m torchcf.train configs/<ds>.json --set
+Reads the SMC runs (``python -m torchcf train configs/<ds>.json --set
 abc.method=smc --out runs/smc/<ds>``) and the rejection runs' metrics kept in
 ``reports/`` (the paper's studies, same config but the method), and writes one
 table per data set: the test metrics of the hybrid and of every model alone

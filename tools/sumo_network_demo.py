@@ -6,7 +6,7 @@ platoons as the AVs, NGSIM I-80's drivers as the humans). Each vehicle draws its
 class (run) with the given probabilities, then a particle of that run's hybrid
 (uniformly over its particles, so each model drives its share ``beta_m`` of the
 class). A vehicle whose particle is of a model SUMO has (IDM) drives as its
-exported vType, SUMO's own car following (``python -m torchcf.sumo export``;
+exported vType, SUMO's own car following (``python -m torchcf sumo export``;
 vType ids prefixed by the class's tag); every other vehicle is co-simulated
 (:class:`torchcf.sumo.CoSimulation`, one per class, one sampler call per step for
 all of its vehicles, torchcf's safety layer on). Lane changes are SUMO's (LC2013).

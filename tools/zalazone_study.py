@@ -4,23 +4,23 @@ The 19 platoon files of the OpenACC ZalaZONE dynamic-platform campaign
 (``$TORCHCF_RAW/openacc-zalazone-dynamic``, see its ``SOURCE.md``) go through
 torchcf's commands, each as its own process, timed:
 
-1. **extract**: ``python -m torchcf.data extract RAW --format openacc
+1. **extract**: ``python -m torchcf data extract RAW --format openacc
    --lap-frame --out pairs/zalazone-dynamic`` (the campaign folder read
    recursively, every run on the platform's lap coordinate, so the loop can
    offer the 1 % tilt as a grade round the lap; the runs that drive on the
    access roads left out; 40 s windows, split by follower);
-2. **train**: ``python -m torchcf.train configs/zalazone.json --no-eval`` (the
+2. **train**: ``python -m torchcf train configs/zalazone.json --no-eval`` (the
    eight models, ABC rejection, the config's budget);
 3. **evaluate**: ``torchcf evaluate RUN`` (the test split);
-4. **loop**: ``python -m torchcf.diagnose RUN`` (at its defaults);
-5. **shares**: ``python -m torchcf.posterior RUN --by mode`` (the ACC distance
+4. **loop**: ``python -m torchcf diagnose RUN`` (at its defaults);
+5. **shares**: ``python -m torchcf posterior RUN --by mode`` (the ACC distance
    setting), ``--groups make.csv`` (the car make, from
    :func:`torchcf.data.formats.openacc.read_openacc_metadata` joined on
    ``(run, follower)``) and ``--by run``, each with a bootstrap interval over
    pairs, and the setting and make again over clusters of pairs (one follower
    in one run).
 
-(``python -m torchcf.train configs/zalazone.json`` alone runs steps 2-4 in one
+(``python -m torchcf train configs/zalazone.json`` alone runs steps 2-4 in one
 process; they are run apart here to time each.) Then it writes
 ``reports/zalazone-dynamic/README.md`` (pair counts, drop reasons, shares,
 test metrics, the loop, step times, commands, machine, git revision),
@@ -165,19 +165,19 @@ def study(args: argparse.Namespace) -> dict:
     plan = [
         (
             "extract",
-            [*py, "torchcf.data", "extract", str(raw), "--format", "openacc",
+            [*py, "torchcf", "data", "extract", str(raw), "--format", "openacc",
              "--lap-frame", "--out", PAIRS, "--overwrite"],
             pairs / "extract.json",
         ),
         (
             "train",
-            [*py, "torchcf.train", CONFIG, "--out", RUN, "--no-eval"],
+            [*py, "torchcf", "train", CONFIG, "--out", RUN, "--no-eval"],
             run / "summary.json",
         ),
         ("evaluate", [*py, "torchcf", "evaluate", RUN], run / "metrics.json"),
         (
             "loop",
-            [*py, "torchcf.diagnose", RUN,
+            [*py, "torchcf", "diagnose", RUN,
              *(w for item in args.loop_set for w in ("--set", f"diagnose.{item}"))],
             run / "loop.json",
         ),
@@ -190,7 +190,7 @@ def study(args: argparse.Namespace) -> dict:
             shutil.rmtree(run)
         run_step(name, argv, work, steps, threads=args.threads)
     make_mapping(raw, work / "make.csv")
-    posterior = [*py, "torchcf.posterior", RUN]
+    posterior = [*py, "torchcf", "posterior", RUN]
     boot = ["--bootstrap", str(args.bootstrap), "--csv"]
     shares = {
         "shares_setting": ["--by", "mode"],
@@ -562,7 +562,8 @@ def tilt_in_residual(run_dir: Path, notes: list[str], seed: int = 0) -> dict:
     (the extraction's plane fitted to the altitudes, ``docs/data.md``), so a
     follower that did nothing about the grade would leave ``z(s) = -g slope
     sin(s / R)`` [m/s^2] in the command residual of the run's best particle
-    (:func:`torchcf.diagnose.road.one_step_residual`). The share reaching it is
+    (:func:`torchcf.diagnose.signatures.road.one_step_residual`). The share reaching it
+    is
     the slope of that residual on ``z`` within pairs (each pair's mean
     removed), pooled over the training pairs with the loop's pair weights: 1
     = the grade is missed whole, 0 = the controller (or the fitted model)
@@ -575,8 +576,12 @@ def tilt_in_residual(run_dir: Path, notes: list[str], seed: int = 0) -> dict:
     import numpy as np
 
     from torchcf.config import load_split
-    from torchcf.diagnose.road import finite_samples, one_step_residual, pair_weights
-    from torchcf.diagnose.series import best_particles
+    from torchcf.diagnose.signatures.road import (
+        finite_samples,
+        one_step_residual,
+        pair_weights,
+    )
+    from torchcf.diagnose.signatures.series import best_particles
     from torchcf.models.effects import GRAVITY
     from torchcf.runs.directory import RunDir
 
@@ -825,7 +830,7 @@ def readme(
         "## Shares",
         "",
         "Each training pair's N slots in the hybrid, and which model holds them, "
-        "summed per group (`python -m torchcf.posterior RUN --by mode`, `--groups "
+        "summed per group (`python -m torchcf posterior RUN --by mode`, `--groups "
         "make.csv`): a model's share of a group is its slots over the group's. Two "
         "intervals: over pairs (every 40 s window drawn on its own), and over "
         "clusters of pairs, the windows of one follower in one run drawn together "
@@ -923,7 +928,7 @@ def readme(
         "```",
         "",
         "The same in one line: `TORCHCF_RAW=../shared/data/raw python "
-        "tools/zalazone_study.py`; `python -m torchcf.train configs/zalazone.json` "
+        "tools/zalazone_study.py`; `python -m torchcf train configs/zalazone.json` "
         "runs train, evaluation and loop in one process. `make.csv` is "
         "`read_openacc_metadata(RAW)`'s `run, vehicle, name` as `run, follower, "
         f"group` (`{UNVERIFIED}` where the names may not be the cars).",

@@ -15,7 +15,7 @@ from scipy.stats import multivariate_normal
 import torchcf.abc.kernel as kernel_module
 import torchcf.abc.smc as smc
 from tests.abc.interrupt import interrupt_after, same_buffers
-from tests.runs import torchrun_train, write_config, write_data
+from tests.runs import tool_module, torchrun_train, write_config, write_data
 from tests.train.test_train import config as train_config
 from tests.train.test_train import mixture_pairs
 from torchcf.abc.kernel import SMCKernel
@@ -49,6 +49,12 @@ def config(**abc) -> TrainConfig:
 @pytest.fixture(scope="module")
 def mixture():
     return mixture_pairs()
+
+
+@pytest.fixture(scope="module")
+def bench():
+    """tools/bench_smc.py (its box kernel, the design before)."""
+    yield from tool_module("bench_smc")
 
 
 def _population(n_pairs=3, pop=6, k=3, seed=0):
@@ -92,19 +98,15 @@ def _logit(theta, bounds):
     return np.log(unit) - np.log1p(-unit)
 
 
-@pytest.mark.parametrize("space", ["logit", "box"])
-def test_kernel_is_twice_the_weighted_covariance(space):
-    """In the kernel's space: the logit of the box (the default) or the box."""
+def test_kernel_is_twice_the_weighted_covariance():
+    """In the kernel's space, the logit of the box."""
     population, bounds = _population()
-    kernel = SMCKernel.fit(population, bounds, space=space)
-    width = (bounds[:, 1] - bounds[:, 0]).numpy()
+    kernel = SMCKernel.fit(population, bounds)
     # the logit's slope at the centre is 4 / width
-    floor = np.full_like(width, 4.0) if space == "logit" else width
+    floor = np.full(3, 4.0)
     for p in range(3):
         member = np.isfinite(population["score"][p].numpy())
-        theta = population["theta"][p, member, :-1].numpy()
-        if space == "logit":
-            theta = _logit(theta, bounds)
+        theta = _logit(population["theta"][p, member, :-1].numpy(), bounds)
         w = np.exp(population["theta"][p, member, -1].numpy())
         expected = 2 * np.cov(theta.T, aweights=w, bias=True)
         expected += np.diag((smc.KERNEL_FLOOR * floor) ** 2)
@@ -113,41 +115,95 @@ def test_kernel_is_twice_the_weighted_covariance(space):
         np.testing.assert_allclose(kernel.log_w[p, member].exp().sum(), 1.0)
 
 
-@pytest.mark.parametrize("space", ["logit", "box"])
-def test_log_prior_ratio_matches_a_scipy_mixture(space, monkeypatch):
-    """log r = log prior - log proposal density, both in the kernel's space (the
-    logit's prior density: prod s(z) (1 - s(z))); in blocks as in one piece."""
-    population, bounds = _population()
-    kernel = SMCKernel.fit(population, bounds, space=space)
-    g = torch.Generator().manual_seed(5)
-    pair = torch.tensor([0, 1, 2, 2, 1, 0])
-    start = population["theta"][pair, 0, :-1]
-    theta = start + 0.2 * torch.randn(6, 3, generator=g).double()
-    monkeypatch.setattr(kernel_module, "WEIGHT_ROWS", 4)  # two blocks, one short
-    got = kernel.log_prior_ratio(theta, pair)
-    volume = float(torch.prod(bounds[:, 1] - bounds[:, 0]))
-    for q in range(6):
+def _scipy_log_prior_ratio(kernel, theta, pair, log_prior_of, free_of):
+    """(Q,) log prior - log proposal density by SciPy's Gaussians, at ``theta``
+    (Q, K) in the box, both in the kernel's coordinates (``free_of``)."""
+    out = []
+    for q in range(theta.shape[0]):
         p = int(pair[q])
         sigma = (kernel.chol[p] @ kernel.chol[p].T).numpy()
-        at = theta[q].numpy()
-        if space == "logit":
-            at = _logit(at, bounds)
-            log_prior = float(np.sum(-np.logaddexp(0, at) - np.logaddexp(0, -at)))
-        else:
-            log_prior = -math.log(volume)
+        at = free_of(theta[q].numpy())
         density = sum(
             float(torch.exp(kernel.log_w[p, i]))
             * multivariate_normal(kernel.theta[p, i].numpy(), sigma).pdf(at)
             for i in range(kernel.theta.shape[1])
             if math.isfinite(float(kernel.log_w[p, i]))
         )
-        assert float(got[q]) == pytest.approx(log_prior - math.log(density), rel=1e-10)
+        out.append(log_prior_of(at) - math.log(density))
+    return out
+
+
+def test_log_prior_ratio_matches_a_scipy_mixture(monkeypatch):
+    """log r = log prior - log proposal density, both in the logit space (the
+    prior's density there: prod s(z) (1 - s(z))); in blocks as in one piece."""
+    population, bounds = _population()
+    kernel = SMCKernel.fit(population, bounds)
+    g = torch.Generator().manual_seed(5)
+    pair = torch.tensor([0, 1, 2, 2, 1, 0])
+    start = population["theta"][pair, 0, :-1]
+    theta = start + 0.2 * torch.randn(6, 3, generator=g).double()
+    monkeypatch.setattr(kernel_module, "WEIGHT_ROWS", 4)  # two blocks, one short
+    got = kernel.log_prior_ratio(theta, pair)
+    expected = _scipy_log_prior_ratio(
+        kernel,
+        theta,
+        pair,
+        lambda z: float(np.sum(-np.logaddexp(0, z) - np.logaddexp(0, -z))),
+        lambda at: _logit(at, bounds),
+    )
+    assert got.tolist() == pytest.approx(expected, rel=1e-10)
+
+
+def test_the_benchmarks_box_kernel(bench, mixture):
+    """tools/bench_smc.py's box kernel (the design before): the engine's kernel
+    in the box's own coordinates, twice the weighted covariance plus 1e-3 of
+    each width, the prior's density one over the volume, about half of a
+    corner parent's steps outside the box; run by the engine, those are
+    counted in the budget and never simulated."""
+    population, bounds = _population()
+    kernel = bench.BoxKernel.fit(population, bounds)
+    width = (bounds[:, 1] - bounds[:, 0]).numpy()
+    for p in range(3):
+        member = np.isfinite(population["score"][p].numpy())
+        theta = population["theta"][p, member, :-1].numpy()
+        w = np.exp(population["theta"][p, member, -1].numpy())
+        expected = 2 * np.cov(theta.T, aweights=w, bias=True)
+        expected += np.diag((smc.KERNEL_FLOOR * width) ** 2)
+        np.testing.assert_allclose(kernel.covariance[p].numpy(), expected, rtol=1e-12)
+    pair = torch.tensor([0, 1, 2, 2, 1, 0])
+    g = torch.Generator().manual_seed(5)
+    theta = population["theta"][pair, 0, :-1] + 0.2 * torch.randn(6, 3, generator=g)
+    volume = float(torch.prod(bounds[:, 1] - bounds[:, 0]))
+    expected = _scipy_log_prior_ratio(
+        kernel, theta, pair, lambda z: -math.log(volume), lambda at: at
+    )
+    assert kernel.log_prior_ratio(theta, pair).tolist() == pytest.approx(
+        expected, rel=1e-10
+    )
+    corner, bounds = _population(n_pairs=1, pop=1, k=2)
+    corner["score"][:] = 1.0
+    corner["theta"][0, 0, :2] = torch.tensor([float(bounds[0, 0]), 0.0])
+    u = torch.rand(20_000, 3, generator=torch.Generator().manual_seed(2)).double()
+    steps = bench.BoxKernel.fit(corner, bounds).propose(u, torch.zeros(20_000).long())
+    assert 0.4 < float(bench.inside_box(steps, bounds).double().mean()) < 0.6
+    settings = SMCSettings(population=10, rounds=2)
+    rollout = Rollout(mixture, dtype=torch.float64, compile="off")
+    idm = get_model("idm")
+    buffer = TopN(mixture.n_pairs, 5, 7)
+    state = new_state(mixture.n_pairs, settings, 6)
+    stream = prior_stream(idm, idm.prior_bounds(torch.float64), 1, rollout)
+    with bench.BoxKernelRuns() as tally:
+        run_smc(stream, buffer, rollout, 2000, settings, ModelProgress(), state)
+    assert smc.SMCKernel is SMCKernel  # the engine's own again
+    budget = smc_budget(2000, mixture.n_pairs, settings)
+    assert tally.proposed == budget.total - budget.prior and 0 < tally.outside
+    kept = buffer.theta[torch.isfinite(buffer.score)][:, :-1]
+    assert bool(bench.inside_box(kept, idm.prior_bounds(torch.float64)).all())
 
 
 def test_proposals_move_around_their_parents_and_stay_in_the_box():
-    """The logit kernel: every proposal inside the box, Gaussian steps around
-    the parent in the logit space; the box kernel loses about half of a corner
-    parent's steps outside."""
+    """Every proposal inside the box, even from a parent at a bound; Gaussian
+    steps around the parent in the logit space."""
     population, bounds = _population(n_pairs=2, pop=1, k=2)
     population["score"][:] = 1.0
     low = bounds[0, 0] + 1e-6 * (bounds[0, 1] - bounds[0, 0])  # near the bound
@@ -155,50 +211,36 @@ def test_proposals_move_around_their_parents_and_stay_in_the_box():
     n = 20_000
     u = torch.rand(n, 3, generator=torch.Generator().manual_seed(2)).double()
     pair = torch.arange(n) % 2
-    corner, inner = pair == 0, pair == 1
-    for space in ("logit", "box"):
-        kernel = SMCKernel.fit(population, bounds, space=space)
-        theta, log_r = kernel.propose(u, pair)
-        inside = torch.isfinite(log_r)
-        in_box = (theta >= bounds[:, 0]) & (theta <= bounds[:, 1])
-        assert bool(in_box[inside].all())
-        if space == "logit":
-            assert bool(inside.all())
-            steps = _logit(theta[inner].numpy(), bounds) - kernel.theta[1, 0].numpy()
-        else:
-            # from the bound of the first parameter (the middle of the second)
-            # about half the steps leave the box
-            assert 0.4 < float(inside[corner].double().mean()) < 0.6
-            steps = (theta[inner] - kernel.theta[1, 0]).numpy()
-        sigma = (kernel.chol[1] @ kernel.chol[1].T).numpy()
-        assert (np.abs(steps.mean(0)) < 4 * np.sqrt(np.diag(sigma) / n)).all()
-        scale = np.sqrt(np.outer(np.diag(sigma), np.diag(sigma)))
-        np.testing.assert_allclose(np.cov(steps.T) / scale, sigma / scale, atol=0.05)
+    inner = pair == 1
+    kernel = SMCKernel.fit(population, bounds)
+    theta = kernel.propose(u, pair)
+    assert bool(((theta >= bounds[:, 0]) & (theta <= bounds[:, 1])).all())
+    steps = _logit(theta[inner].numpy(), bounds) - kernel.theta[1, 0].numpy()
+    sigma = (kernel.chol[1] @ kernel.chol[1].T).numpy()
+    assert (np.abs(steps.mean(0)) < 4 * np.sqrt(np.diag(sigma) / n)).all()
+    scale = np.sqrt(np.outer(np.diag(sigma), np.diag(sigma)))
+    np.testing.assert_allclose(np.cov(steps.T) / scale, sigma / scale, atol=0.05)
 
 
-@pytest.mark.parametrize("space", ["logit", "box"])
-def test_a_known_population_gives_its_covariance(space):
-    """Two equally weighted members at +-d of a point (in the kernel's space):
+def test_a_known_population_gives_its_covariance():
+    """Two equally weighted members at +-d of a point in the logit space:
     Sigma = 2 d d^T plus the floor; one member alone: the floor alone."""
     bounds = torch.tensor([[0.0, 4.0], [10.0, 30.0]], dtype=torch.float64)
     width = bounds[:, 1] - bounds[:, 0]
-    floor = torch.full_like(width, 4.0) if space == "logit" else width
-    centre = bounds.mean(1)  # z = 0 in the logit space
+    floor = torch.full_like(width, 4.0)
     d = torch.tensor([0.5, 2.0], dtype=torch.float64)
-    if space == "logit":  # the members at z = +-d, mapped to the box
-        theta = bounds[:, 0] + width * torch.sigmoid(torch.stack((d, -d)))
-    else:
-        theta = torch.stack((centre + d, centre - d))
+    # the members at z = +-d, mapped to the box
+    theta = bounds[:, 0] + width * torch.sigmoid(torch.stack((d, -d)))
     population = {
         "theta": torch.cat((theta, torch.zeros(2, 1).double()), 1)[None],
         "score": torch.tensor([[0.1, 0.2]], dtype=torch.float64),
     }
-    kernel = SMCKernel.fit(population, bounds, space=space)
+    kernel = SMCKernel.fit(population, bounds)
     expected = 2 * torch.outer(d, d) + torch.diag((smc.KERNEL_FLOOR * floor) ** 2)
     torch.testing.assert_close(kernel.covariance[0], expected, rtol=1e-9, atol=1e-12)
     assert kernel.log_w[0].exp().tolist() == pytest.approx([0.5, 0.5])
     population["score"][0, 1] = math.inf  # one member: collapsed
-    kernel = SMCKernel.fit(population, bounds, space=space)
+    kernel = SMCKernel.fit(population, bounds)
     floor_only = torch.diag((smc.KERNEL_FLOOR * floor) ** 2)
     torch.testing.assert_close(kernel.covariance[0], floor_only)
 
@@ -215,9 +257,8 @@ def test_logit_proposals_stay_in_the_box_and_weigh_finite():
     u[:10, 1:] = 0.0
     u[10:20, 1:] = 1.0 - 1e-16
     pair = torch.arange(3000) % 3
-    theta, log_r = kernel.propose(u, pair)
+    theta = kernel.propose(u, pair)
     assert bool(((theta >= bounds[:, 0]) & (theta <= bounds[:, 1])).all())
-    assert bool((log_r == 0).all())
     assert bool(torch.isfinite(kernel.log_prior_ratio(theta, pair)).all())
 
 
@@ -228,11 +269,10 @@ def test_proposals_are_a_pure_function_of_their_uniforms():
     kernel = SMCKernel.fit(population, bounds)
     u = torch.rand(50, 4, generator=torch.Generator().manual_seed(6)).double()
     pair = torch.arange(50) % 3
-    theta, log_r = kernel.propose(u, pair)
+    theta = kernel.propose(u, pair)
     parts = [kernel.propose(u[a:b], pair[a:b]) for a, b in ((0, 7), (7, 31), (31, 50))]
-    assert torch.equal(torch.cat([t for t, _ in parts]), theta)
-    assert torch.equal(torch.cat([r for _, r in parts]), log_r)
-    again = SMCKernel.fit(population, bounds).propose(u, pair)[0]
+    assert torch.equal(torch.cat(parts), theta)
+    again = SMCKernel.fit(population, bounds).propose(u, pair)
     assert torch.equal(again, theta)
     whole = kernel.log_prior_ratio(theta, pair)
     # rows 0..47 as a grid: pair p holds rows p, p + 3, ... (C = 16 per pair)
@@ -442,9 +482,9 @@ def test_a_pair_without_population_draws_from_the_prior():
     assert kernel.empty.tolist() == [False, True]
     u = torch.rand(4000, 4, generator=torch.Generator().manual_seed(8)).double()
     pair = torch.ones(4000, dtype=torch.int64)
-    theta, log_r = kernel.propose(u, pair)
+    theta = kernel.propose(u, pair)
     expected = bounds[:, 0] + (bounds[:, 1] - bounds[:, 0]) * u[:, 1:]
-    assert torch.equal(theta, expected) and bool((log_r == 0).all())
+    assert torch.equal(theta, expected)
     assert bool((kernel.log_prior_ratio(theta[:5], pair[:5]) == 0).all())
 
 
@@ -452,7 +492,7 @@ def test_the_attribution_can_draw_its_arms_with_smc(mixture):
     """diagnose.method = 'smc': the small ABC of an arm is an SMC run at each
     budget, a variant's shared value is appended unsearched, and its per-pair
     best beat rejection's at the same budget on the pairs the model drove."""
-    from torchcf.diagnose.candidates import prior_particles
+    from torchcf.diagnose.arms.candidates import prior_particles
 
     settings = SMCSettings(**SETTINGS)
     rollout = Rollout(mixture, dtype=torch.float64, compile="off")

@@ -4,6 +4,7 @@ pairs), it is deterministic, and a resumed run ends identical."""
 from __future__ import annotations
 
 import signal
+from dataclasses import asdict
 
 import pytest
 import torch
@@ -12,7 +13,10 @@ from torchcf.amortised import (
     CheckpointError,
     Session,
     TrainingSettings,
+    estimator_fingerprint,
+    fingerprint_noise,
     infer,
+    load_trained,
     new_estimator,
     train_estimator,
 )
@@ -188,6 +192,43 @@ def test_a_checkpoint_of_another_training_is_refused(space, simulator, tmp_path)
             other,
             Session(checkpoint, resume=True, progress_bar=False),
         )
+
+
+def test_the_fingerprint_is_plain_data_and_an_older_format_is_refused(
+    space, simulator, tmp_path
+):
+    """The checkpoint's fingerprint holds the settings as plain data: the noise
+    read back by ``fingerprint_noise``, the estimator's sizes matched by a new
+    estimator's fingerprint. A checkpoint of format /1 (settings as their
+    ``repr``) is refused in one line, resumed or reused."""
+    checkpoint = tmp_path / "amortised.pt"
+    one_epoch = TrainingSettings(
+        simulations_per_epoch=100, max_epochs=1, validation_simulations=50
+    )
+    estimator = new_estimator(space, TINY, seed=0)
+    train_estimator(
+        estimator, simulator, one_epoch, Session(checkpoint, progress_bar=False)
+    )
+    raw = torch.load(checkpoint, weights_only=True)
+    assert fingerprint_noise(raw["fingerprint"]) == simulator.settings.noise
+    assert raw["fingerprint"]["estimator"] == asdict(TINY)
+    fresh = estimator_fingerprint(new_estimator(space, TINY, seed=3))
+    assert load_trained(checkpoint, fresh)["fingerprint"] == raw["fingerprint"]
+    raw["format"] = "torchcf.amortised.checkpoint/1"
+    raw["fingerprint"]["noise"] = repr(simulator.settings.noise)
+    raw["fingerprint"]["estimator"] = repr(TINY)
+    old = tmp_path / "old.pt"
+    torch.save(raw, old)
+    resume = Session(old, resume=True, progress_bar=False)
+    for read in (
+        lambda: load_trained(old, fresh),
+        lambda: train_estimator(estimator, simulator, one_epoch, resume),
+    ):
+        with pytest.raises(CheckpointError, match=r"checkpoint/1: .*train the") as e:
+            read()
+        assert "\n" not in str(e.value)
+    with pytest.raises(CheckpointError, match="older torchcf"):
+        fingerprint_noise(raw["fingerprint"])
 
 
 def test_early_stopping_and_the_time_budget_end_a_training(space, simulator):

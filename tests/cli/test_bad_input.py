@@ -24,8 +24,8 @@ import torch
 from tests.runs import run_module, write_config, write_data
 from torchcf.abc.rounds import PILOT_ROUND
 from torchcf.cli import evaluate as evaluate_cli
+from torchcf.cli import train as train_cli
 from torchcf.posterior import Posterior
-from torchcf.train import __main__ as train_cli
 
 #: Files whose presence says a run (or its evaluation) finished.
 FINISHED = ("posterior.pt", "summary.json", "metrics.json")
@@ -79,7 +79,7 @@ def test_malformed_json(tmp_path):
     config = tmp_path / "bad.json"
     config.write_text('{"data": {"path": "x"},\n  "abc": {"n_particles": 5,}}')
     out = tmp_path / "run"
-    result = run_module("torchcf.train", str(config), "--out", str(out))
+    result = run_module("torchcf", "train", str(config), "--out", str(out))
     assert result.returncode == 2
     assert result.stderr.count("\n") == 1
     one_error_line(result.stderr, "bad.json", "not valid JSON", "line 2")

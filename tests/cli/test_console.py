@@ -1,13 +1,15 @@
 """``torchcf COMMAND``: one entry to every command line (:mod:`torchcf.cli`).
 
 The dispatcher (``torchcf/cli/main.py``), the commands' modules, ``train``
-(training only) against ``study`` (the chain), and the old entries: every
-``python -m torchcf.<x>`` and the names imported from them.
+(the study, ``--no-eval`` training only), and the one entry rule: ``torchcf
+COMMAND`` and ``python -m torchcf COMMAND``, no ``python -m torchcf.<package>``.
 """
 
 from __future__ import annotations
 
+import ast
 import importlib
+import importlib.util
 import subprocess
 import sys
 import tomllib
@@ -21,20 +23,11 @@ from tests.runs import write_config, write_data
 from torchcf import cli
 from torchcf.cli import train as train_cli
 from torchcf.cli.main import COMMANDS, main
-from torchcf.train import __main__ as old_train
 
 ROOT = Path(__file__).resolve().parents[2]
 
-#: Every ``python -m torchcf.<x>`` that runs a command (and ``python -m torchcf``).
-PYTHON_M = [
-    "torchcf",
-    "torchcf.train",
-    "torchcf.diagnose",
-    "torchcf.data",
-    "torchcf.config",
-    "torchcf.posterior",
-    "torchcf.sumo",
-]
+#: The packages that had their own ``python -m torchcf.<package>`` entry.
+FORMER_ENTRIES = ["train", "diagnose", "data", "config", "posterior", "sumo"]
 
 
 def test_the_console_script_is_this_entry():
@@ -70,11 +63,11 @@ def test_help_lists_train_with_one_line(capsys):
 
 
 def test_a_command_gets_the_rest_of_the_arguments(capsys):
-    """``torchcf config --help`` is ``python -m torchcf.config --help``."""
+    """``torchcf config --help`` is the config command's help."""
     with pytest.raises(SystemExit) as stop:
         main(["config", "--help"])
     assert stop.value.code == 0
-    assert "python -m torchcf.config" in capsys.readouterr().out
+    assert capsys.readouterr().out.startswith("usage: torchcf config")
 
 
 @pytest.mark.parametrize(
@@ -107,9 +100,10 @@ def test_python_dash_m_torchcf_runs_a_command():
     assert "\n" not in done.stderr.strip()
 
 
-#: Runs each ``python -m`` entry of argv[1:] with ``--help`` as ``python -m``
-#: does (:func:`runpy.run_module` as ``__main__``) in one process (torch is
-#: imported once) and prints ``<module> <exit code>`` per entry.
+#: Runs each module of argv[1:] with ``--help`` as ``python -m`` does
+#: (:func:`runpy.run_module` as ``__main__``) in one process (torch is imported
+#: once) and prints ``<module> <exit code>`` per module, or ``<module>
+#: refused`` where Python will not run it (a package without ``__main__``).
 RUN_HELPS = """
 import contextlib, io, runpy, sys
 for module in sys.argv[1:]:
@@ -120,53 +114,72 @@ for module in sys.argv[1:]:
             code = "no exit"
         except SystemExit as stop:
             code = stop.code
-    print(module, code if out.getvalue().startswith("usage: ") else "no usage")
+        except ImportError as error:
+            code = "refused" if "cannot be directly executed" in str(error) else error
+    usage = out.getvalue().startswith("usage: ")
+    print(module, code if code == "refused" or usage else "no usage")
 """
 
 
-def test_every_python_dash_m_entry_still_answers_help():
+def test_python_dash_m_runs_torchcf_alone():
+    """``python -m torchcf --help`` answers; ``python -m torchcf.train`` and the
+    other former package entries are refused by Python itself ("... is a
+    package and cannot be directly executed")."""
+    former = [f"torchcf.{package}" for package in FORMER_ENTRIES]
     done = subprocess.run(
-        [sys.executable, "-c", RUN_HELPS, *PYTHON_M],
+        [sys.executable, "-c", RUN_HELPS, "torchcf", *former],
         capture_output=True,
         text=True,
         check=False,
         timeout=300,
     )
     assert done.returncode == 0, done.stderr
-    assert done.stdout.splitlines() == [f"{module} 0" for module in PYTHON_M]
+    expected = ["torchcf 0"] + [f"{module} refused" for module in former]
+    assert done.stdout.splitlines() == expected
 
 
-def test_train_is_one_command_under_both_names(capsys):
-    """``torchcf train`` and ``python -m torchcf.train`` are one command (the
-    study; ``--no-eval`` trains only): the same help but its name."""
-    helps = {}
-    for name, run in (
-        ("torchcf train", train_cli.main),
-        ("python -m torchcf.train", old_train.main),
-    ):
+def test_only_torchcf_main_is_a_main_module():
+    """One entry rule: no ``__main__`` module under a package of torchcf, and
+    no module but ``torchcf/__main__.py`` runs as a script (an ``if __name__ ==
+    "__main__"`` block)."""
+    for package in FORMER_ENTRIES:
+        assert importlib.util.find_spec(f"torchcf.{package}.__main__") is None
+    scripts = []
+    for path in sorted((ROOT / "torchcf").rglob("*.py")):
+        for node in ast.parse(path.read_text()).body:
+            test = node.test if isinstance(node, ast.If) else None
+            if (
+                isinstance(test, ast.Compare)
+                and isinstance(test.left, ast.Name)
+                and test.left.id == "__name__"
+            ):
+                scripts.append(str(path.relative_to(ROOT)))
+    assert scripts == ["torchcf/__main__.py"]
+
+
+def test_train_is_one_command(capsys):
+    """``torchcf train`` through the dispatcher (as ``python -m torchcf train``
+    and ``torchrun ... -m torchcf train`` run it) is :mod:`torchcf.cli.train`:
+    the study, ``--no-eval`` training only."""
+    helps = []
+    for run in (lambda argv: main(["train", *argv]), train_cli.main):
         with pytest.raises(SystemExit) as stop:
             run(["--help"])
         assert stop.value.code == 0
-        helps[name] = " ".join(capsys.readouterr().out.split())
-    for name, text in helps.items():
-        assert text.startswith(f"usage: {name}")
-        assert "then the test-split evaluation" in text and "--no-eval" in text
-    assert helps["torchcf train"].replace("torchcf train", "X") == helps[
-        "python -m torchcf.train"
-    ].replace("python -m torchcf.train", "X")
+        helps.append(" ".join(capsys.readouterr().out.split()))
+    assert helps[0] == helps[1]
+    assert helps[0].startswith("usage: torchcf train")
+    assert "then the test-split evaluation" in helps[0] and "--no-eval" in helps[0]
+    assert "-m torchcf train CONFIG" in helps[0]  # torchrun's form
     assert "study" not in COMMANDS  # one name, one meaning
 
 
 def test_the_command_modules_are_reached_through_cli_only():
     """No plumbing through :mod:`torchcf.cli`, no ``main`` left in the
-    library modules that had one; each package's ``python -m`` entry runs its
-    command."""
+    library modules that had one."""
     assert not hasattr(cli, "run_main")
     for module in ("evaluation.evaluate", "study.crossval", "study.demo"):
         assert not hasattr(importlib.import_module(f"torchcf.{module}"), "main")
-    for package in ("train", "diagnose", "data", "config", "posterior", "sumo"):
-        entry = importlib.import_module(f"torchcf.{package}.__main__")
-        assert callable(entry.main)
 
 
 @pytest.fixture(scope="module")
@@ -204,7 +217,7 @@ def test_train_trains_and_evaluates(config, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_train_closes_the_loop_where_the_config_asks(config, tmp_path, capsys):
-    """The whole chain, as ``python -m torchcf.train`` runs it (about 20 s)."""
+    """The whole chain, as ``torchcf train`` runs it (about 20 s)."""
     out = tmp_path / "run"
     assert main(["train", str(config), "--out", str(out)]) == 0
     for name in ("summary.json", "metrics.json", "loop.json"):

@@ -339,7 +339,7 @@ def test_main_bad_config(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "torchcf.config", *args],
+        [sys.executable, "-m", "torchcf", "config", *args],
         capture_output=True,
         text=True,
         timeout=120,

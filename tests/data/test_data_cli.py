@@ -1,4 +1,4 @@
-"""``python -m torchcf.data extract`` and a training config naming a raw source.
+"""``torchcf data extract`` and a training config naming a raw source.
 
 The raw file is a generic long CSV written here: four leader-follower couples in
 four lanes for 60 s, positions in feet and speeds in km/h, as a user's own log
@@ -17,10 +17,10 @@ import pytest
 from tests.cli.test_bad_input import one_error_line
 from tests.data.test_extract import couple_rows
 from tests.runs import exit_code
+from torchcf.cli import train as train_cli
 from torchcf.cli.data import main as data_main
 from torchcf.config import ConfigError, load_split, validate_config
 from torchcf.data import load_pairs
-from torchcf.train import __main__ as train_cli
 
 FOOT = 0.3048
 COLUMNS = "vehicle=ID,time=t,position=y,speed=kmh,leader=ahead,lane=lane,gap=space"
@@ -80,7 +80,7 @@ def test_extract_writes_a_loadable_folder(tmp_path, capsys) -> None:
         assert (out / name).is_file()
     assert (out / "Trajectory").is_dir() and (out / "Testing").is_dir()
     record = json.loads((out / "extract.json").read_text())
-    assert record["command"].startswith("python -m torchcf.data extract")
+    assert record["command"].startswith("torchcf data extract")
     assert record["raw"]["speed_unit"] == "km/h"
     index = pd.read_csv(out / "index.csv", keep_default_na=False)
     # the follower ids split whole: three windows each, one follower tested

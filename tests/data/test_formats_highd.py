@@ -430,7 +430,7 @@ def test_small_recording_end_to_end(tmp_path: Path) -> None:
 
 
 def test_the_command_line_reads_a_recording(tmp_path: Path) -> None:
-    """``python -m torchcf.data extract DIR --format highd`` with its options;
+    """``torchcf data extract DIR --format highd`` with its options;
     an option of another format is refused in one line."""
     from torchcf.cli.data import main
 

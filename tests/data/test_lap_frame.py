@@ -189,7 +189,7 @@ def test_extract_writes_the_period_and_the_loop_reads_it(campaign, tmp_path, cap
     """``data extract --lap-frame`` records the lap in meta.json; the pairs read
     back carry it, and a bare grade becomes a profile round the lap."""
     from torchcf.data import load_pairs
-    from torchcf.diagnose.arms import resolve_effect
+    from torchcf.diagnose.arms.arena import resolve_effect
 
     out = tmp_path / "pairs"
     argv = ["extract", str(campaign), "--format", "openacc", "--lap-frame"]

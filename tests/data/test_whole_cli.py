@@ -1,4 +1,4 @@
-"""``python -m torchcf.data extract --window whole`` and ``--test-fraction 0``,
+"""``torchcf data extract --window whole`` and ``--test-fraction 0``,
 then training on what it wrote.
 
 The raw file is the user's CSV of :mod:`tests.data.test_data_cli` (feet, km/h)
@@ -20,10 +20,10 @@ from tests.data.test_data_cli import FOOT, extract_args, raw_config
 from tests.data.test_extract import couple_rows
 from tests.runs import exit_code
 from torchcf.cli import evaluate as evaluate_cli
+from torchcf.cli import train as train_cli
 from torchcf.cli.data import main as data_main
 from torchcf.config import load_split, validate_config
 from torchcf.data import DataError, load_pairs
-from torchcf.train import __main__ as train_cli
 
 #: follower -> duration [s] of its couple
 DURATIONS = {"F0": 60.0, "F1": 35.0, "F2": 22.0, "F3": 6.0}

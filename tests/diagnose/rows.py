@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from torchcf.diagnose.tested import EffectTest
+from torchcf.diagnose.selection.tested import EffectTest
 from torchcf.models.effects import parse_effect
 
 

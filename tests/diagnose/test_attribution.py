@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import torch
 
-import torchcf.diagnose.attribution as attribution
-import torchcf.diagnose.ledger as ledger
-import torchcf.diagnose.search as search_module
+import torchcf.diagnose.arms.ledger as ledger
+import torchcf.diagnose.arms.search as search_module
+import torchcf.diagnose.selection.attribution as attribution
 from torchcf.abc.particles import Particles
 from torchcf.config import validate_config
 from torchcf.diagnose import (
@@ -28,8 +28,8 @@ from torchcf.diagnose import (
     sign_flip_test,
     step_levels,
 )
-from torchcf.diagnose.absorption import profile_values
-from torchcf.diagnose.arms import (
+from torchcf.diagnose.arms.absorption import profile_values
+from torchcf.diagnose.arms.arena import (
     Arena,
     Arm,
     base_arm,
@@ -41,14 +41,12 @@ from torchcf.diagnose.arms import (
     predicted,
     profile_interval,
 )
-from torchcf.diagnose.attribution import _fit_statistic, attribute_effects
-from torchcf.diagnose.candidates import attribution_rollout
-from torchcf.diagnose.population import pick_scores, rescore
-from torchcf.diagnose.recalibrate import recalibrate, recalibration_config
-from torchcf.diagnose.road import one_step_residual
-from torchcf.diagnose.search import Noise, lift, local_search, model_bounds
-from torchcf.diagnose.series import residual_series
-from torchcf.diagnose.signatures import (
+from torchcf.diagnose.arms.candidates import attribution_rollout
+from torchcf.diagnose.arms.population import pick_scores, rescore
+from torchcf.diagnose.arms.search import Noise, lift, local_search, model_bounds
+from torchcf.diagnose.recalibration import recalibration_config
+from torchcf.diagnose.selection.attribution import _fit_statistic, attribute_effects
+from torchcf.diagnose.signatures.families import (
     POINTS_TO,
     Signature,
     family_of,
@@ -56,12 +54,12 @@ from torchcf.diagnose.signatures import (
     signatures,
     simulated_covariates,
 )
+from torchcf.diagnose.signatures.road import one_step_residual
+from torchcf.diagnose.signatures.series import residual_series
 from torchcf.diagnose.significance import comparable, fallback_weights
 from torchcf.models import get_model
 from torchcf.models.effects import EFFECTS, parse_effect
-from torchcf.posterior import Posterior
 from torchcf.sim.synthetic import synthetic_pairs
-from torchcf.train import train
 
 from .rows import row_of
 
@@ -601,25 +599,6 @@ def test_the_effect_arms_are_the_same_in_worker_processes(validation):
 
 
 # ------------------------------------------------------------ re-calibration
-@pytest.mark.slow  # a re-calibration
-def test_the_recalibration_holds_the_reference_which_holds_the_run(tmp_path):
-    pairs = synthetic_pairs(
-        get_model("idm+delay"), IDM + [0.8], 6, 200, seed=6, noise=0.05
-    )
-    cfg = _config()
-    train(cfg, tmp_path / "run", pairs=(pairs, pairs))
-    posterior = Posterior.load(tmp_path / "run" / "posterior.pt")
-    reference, after = recalibrate(
-        cfg, posterior, [DELAY], {}, [get_model("idm")], pairs
-    )
-    run = posterior.buffers["idm"]["score"][:, : reference.size]
-    assert bool((reference.score <= run).all())
-    assert bool((after.score <= reference.score).all())
-    assert any("delay" in m.name for m in after.models)
-    names = [m.name for m in recalibration_config(cfg, after.models, {}).models]
-    assert names[0] == "idm" and "idm+delay" in names
-
-
 def test_road_effects_come_last_in_a_name_and_recording_effects_are_shared():
     scopes = [cls.scope for cls in EFFECTS.values()]
     assert scopes.index("road") > max(
@@ -713,7 +692,7 @@ def test_an_effect_seeds_the_random_numbers_as_its_token_did():
     """Random draws are keyed by labels: an effect object stands for its token,
     wherever it sits in the labels, so a search's numbers do not depend on
     whether the effect travels as an object or as its name."""
-    from torchcf.diagnose.search import derive_seed
+    from torchcf.diagnose.arms.search import derive_seed
 
     grade = parse_effect("grade(start=0,end=900,knots=4)")
     assert derive_seed(1, "step", DELAY, 3) == derive_seed(1, "step", "delay", 3)

@@ -12,7 +12,7 @@ from torchcf.abc.particles import Particles
 from torchcf.abc.rejection import Rollout
 from torchcf.config import validate_config
 from torchcf.diagnose import Population
-from torchcf.diagnose.refit import (
+from torchcf.diagnose.arms.refit import (
     Exclusion,
     Layout,
     Pin,
@@ -21,7 +21,7 @@ from torchcf.diagnose.refit import (
     sourced_candidates,
     start,
 )
-from torchcf.diagnose.validation import design, free_effect_windows, pair_groups
+from torchcf.diagnose.arms.validation import design, free_effect_windows, pair_groups
 from torchcf.models import get_model
 from torchcf.models.effects import parse_effect
 from torchcf.sim.synthetic import synthetic_pairs

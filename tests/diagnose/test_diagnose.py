@@ -35,13 +35,13 @@ from torchcf.diagnose import (
     reusable,
     split_in_time,
 )
-from torchcf.diagnose.candidates import (
+from torchcf.diagnose.arms.candidates import (
     attribution_rollout,
     attribution_seed,
     prior_particles,
 )
-from torchcf.diagnose.road import profile_agreement
-from torchcf.diagnose.search import Noise, model_bounds
+from torchcf.diagnose.arms.search import Noise, model_bounds
+from torchcf.diagnose.signatures.road import profile_agreement
 from torchcf.models import AugmentedModel, get_model, parse_effect, split_name
 from torchcf.posterior import Posterior
 from torchcf.sim.synthetic import Gipps, Scene, synthetic_pairs
@@ -402,7 +402,7 @@ def test_select_takes_the_best_per_pair_over_sets():
 
 
 def test_jitter_stays_in_the_prior_and_keeps_fixed_parameters():
-    from torchcf.diagnose.search import LOCAL_SCALES, jitter
+    from torchcf.diagnose.arms.search import LOCAL_SCALES, jitter
 
     theta = torch.tensor([[0.5, 2.0, 1.0], [0.0, 3.0, 1.0]], dtype=torch.float64)
     bounds = torch.tensor([[0.0, 1.0], [0.0, 10.0], [1.0, 1.0]], dtype=torch.float64)
@@ -417,7 +417,7 @@ def test_jitter_stays_in_the_prior_and_keeps_fixed_parameters():
 
 
 def test_local_search_spends_its_budget_and_never_loses_a_fit(monkeypatch):
-    import torchcf.diagnose.search as search
+    import torchcf.diagnose.arms.search as search
 
     pairs = synthetic_pairs(get_model("idm"), IDM_TRUTH, 4, 150, seed=9)
     cfg = _config(population=3, local_copies=5, rounds=2)
@@ -469,7 +469,7 @@ def test_diagnose_seed_replaces_the_runs_seed_in_the_attribution():
 def test_shared_value_finds_a_constant_grade():
     """Data from LLCTG on a 4 % grade; members = the true LLCTG parameters: the
     joint search over pairs returns a grade near 4 %."""
-    from torchcf.diagnose.search import effect_prior, shared_value
+    from torchcf.diagnose.arms.search import effect_prior, shared_value
 
     effect = parse_effect("grade(start=0,end=1000,knots=1)")
     model = f"llctg+{effect.token}"

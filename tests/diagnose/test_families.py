@@ -1,4 +1,4 @@
-"""Twins tested as one family (torchcf.diagnose.attribution._judge with
+"""Twins tested as one family (torchcf.diagnose.selection.attribution._judge with
 diagnose.families "signature"; significance.max_flip_test)."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import pytest
 
 from tests.diagnose.rows import row_of
 from torchcf.config import validate_config
-from torchcf.diagnose.attribution import _judge, families
+from torchcf.diagnose.selection.attribution import _judge, families
 from torchcf.diagnose.significance import max_flip_test, sign_flip_test
 
 

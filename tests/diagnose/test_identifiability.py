@@ -1,4 +1,4 @@
-"""Identifiability of a found effect (torchcf.diagnose.identifiability): the
+"""Identifiability of a found effect (torchcf.diagnose.arms.identifiability): the
 within-pair correlation against NumPy, and a case where an effect trades off
 against a model parameter (LLCS perceives s + d_offset - s0: only the difference
 is identified)."""
@@ -12,7 +12,7 @@ import torch
 
 from torchcf.abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
 from torchcf.abc.topn import TopN
-from torchcf.diagnose.identifiability import (
+from torchcf.diagnose.arms.identifiability import (
     effect_identifiability,
     within_pair_correlation,
 )

@@ -1,4 +1,4 @@
-"""The model class judged on the test split (torchcf.diagnose.on_test)."""
+"""The model class judged on the test split (torchcf.diagnose.selection.on_test)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import torch
 from torchcf.abc.particles import Particles
 from torchcf.config import validate_config
 from torchcf.diagnose import Population
-from torchcf.diagnose.on_test import chosen_value, class_on_test
-from torchcf.diagnose.refit import Pin
+from torchcf.diagnose.arms.refit import Pin
+from torchcf.diagnose.selection.on_test import chosen_value, class_on_test
 from torchcf.models import get_model
 from torchcf.models.effects import parse_effect
 from torchcf.sim.synthetic import DriverMixture, heterogeneous_pairs

@@ -1,4 +1,4 @@
-"""What the data could have shown (torchcf.diagnose.power): the sizes tried,
+"""What the data could have shown (torchcf.diagnose.selection.power): the sizes tried,
 the bisection of the ladder, and the rows it fills, with a judge whose
 refitted scores are made here (the refits themselves: tests/diagnose/
 test_refit.py)."""
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchcf.diagnose.power import LADDER, Ladder, detectable_sizes, size_path
+from torchcf.diagnose.selection.power import LADDER, Ladder, detectable_sizes, size_path
 from torchcf.models.effects import parse_effect
 
 from .rows import row_of

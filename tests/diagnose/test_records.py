@@ -9,26 +9,25 @@ import json
 
 import pytest
 
-from torchcf.diagnose.absorption import (
+from torchcf.diagnose.arms.absorption import (
     Absorption,
     Profile,
     ProfileAbsorption,
     SteadyShift,
     absorbed_from_json,
 )
-from torchcf.diagnose.identifiability import Partner
-from torchcf.diagnose.loop import read_evaluation
-from torchcf.diagnose.outcome import (
+from torchcf.diagnose.arms.identifiability import Partner
+from torchcf.diagnose.report.outcome import (
     ChangeOnTest,
     EffectPosterior,
     ParamSpread,
     SearchBudget,
     Unexplained,
 )
-from torchcf.diagnose.series import ResidualRow
-from torchcf.diagnose.signatures import SignatureRow
+from torchcf.diagnose.selection.tested import Detectable, EffectTest, Rung, SharedValue
+from torchcf.diagnose.signatures.families import SignatureRow
+from torchcf.diagnose.signatures.series import ResidualRow
 from torchcf.diagnose.significance import PairedChange
-from torchcf.diagnose.tested import Detectable, EffectTest, Rung, SharedValue
 from torchcf.runs.directory import RunDir
 from torchcf.system.files import RunFileError
 
@@ -226,4 +225,4 @@ def test_the_loop_reads_a_runs_metrics_as_its_evaluation(tmp_path):
     that says what to do."""
     (tmp_path / "metrics.json").write_text('{"hybrid": {"ws": 1.0}}')
     with pytest.raises(RunFileError, match="evaluate the run again"):
-        read_evaluation(RunDir(tmp_path))
+        RunDir(tmp_path).read_metrics()

@@ -1,4 +1,4 @@
-"""Held-out pairs refitted (torchcf.diagnose.refit, validation "refit"): the
+"""Held-out pairs refitted (torchcf.diagnose.arms.refit, validation "refit"): the
 effect pinned at one value, the model's own parameters refitted per pair, both
 sides with common random numbers."""
 
@@ -13,8 +13,8 @@ from torchcf.abc.particles import Particles
 from torchcf.abc.rejection import Rollout
 from torchcf.config import validate_config
 from torchcf.diagnose import Population
-from torchcf.diagnose.arms import Arena
-from torchcf.diagnose.refit import (
+from torchcf.diagnose.arms.arena import Arena
+from torchcf.diagnose.arms.refit import (
     Pin,
     RefitBudget,
     candidates,
@@ -22,8 +22,8 @@ from torchcf.diagnose.refit import (
     refit_scores,
     start,
 )
-from torchcf.diagnose.search import CONVERGED
-from torchcf.diagnose.validation import design
+from torchcf.diagnose.arms.search import CONVERGED
+from torchcf.diagnose.arms.validation import design
 from torchcf.models import get_model
 from torchcf.models.effects import parse_effect
 from torchcf.sim.synthetic import DriverMixture, heterogeneous_pairs, synthetic_pairs

@@ -11,7 +11,7 @@ import pytest
 import torch
 from scipy import stats
 
-from torchcf.diagnose import residuals as rs
+from torchcf.diagnose.signatures import residuals as rs
 
 DT = 0.1
 

@@ -1,5 +1,5 @@
 """The response times of the data and of the calibrated models
-(torchcf.diagnose.response)."""
+(torchcf.diagnose.signatures.response)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchcf.data import PairSet
-from torchcf.diagnose.response import (
+from torchcf.diagnose.signatures.response import (
     Perturbation,
     braking_onsets,
     event_shifts,

@@ -1,4 +1,5 @@
-"""Road effects at the data's resolution (torchcf.diagnose.road): the road-frame
+"""Road effects at the data's resolution (torchcf.diagnose.signatures.road): the
+road-frame
 decision, the knot spacing chosen by cross-validation, the grade seed from the
 residual regression, and road_frame in meta.json."""
 
@@ -16,7 +17,8 @@ from torchcf.config import validate_config
 from torchcf.data import DataError, load_pairs
 from torchcf.data.reader import FILES
 from torchcf.diagnose import candidate_effects
-from torchcf.diagnose.road import (
+from torchcf.diagnose.signatures.families import road_share
+from torchcf.diagnose.signatures.road import (
     BEND_SEED_MARGIN,
     MIN_LAP_KNOTS,
     ROAD_SPACINGS,
@@ -27,7 +29,6 @@ from torchcf.diagnose.road import (
     profile_agreement,
     shares_road_frame,
 )
-from torchcf.diagnose.signatures import road_share
 from torchcf.models import get_model
 from torchcf.models.effects import GRAVITY, Grade, parse_effect
 from torchcf.sim.synthetic import Scene, synthetic_pairs
@@ -288,7 +289,7 @@ def test_a_grade_under_an_actuation_lag_is_whole_in_the_one_step_residual(lag):
     next step's speed only as ~dt / (2 lag) of itself, but the command-space
     residual (the acceleration missed, over da/du) carries it whole, so the
     grade seed recovers the planted knots."""
-    from torchcf.diagnose.road import one_step_residual
+    from torchcf.diagnose.signatures.road import one_step_residual
 
     effect = parse_effect("grade(start=0,end=1200,knots=7)")
     truth = np.array([0.02, -0.03, 0.03, -0.01, 0.025, -0.02, 0.01])

@@ -1,4 +1,4 @@
-"""The search's early rejection (torchcf.diagnose.search): copies stopped above
+"""The search's early rejection (torchcf.diagnose.arms.search): copies stopped above
 their pair's admission ceiling leave every population as a search that runs
 them to the end."""
 
@@ -9,18 +9,18 @@ import math
 import pytest
 import torch
 
-import torchcf.diagnose.search as search
+import torchcf.diagnose.arms.search as search
 from torchcf.abc.particles import Particles
 from torchcf.abc.rejection import prior_stream
 from torchcf.config import validate_config
 from torchcf.diagnose import Population
-from torchcf.diagnose.candidates import (
+from torchcf.diagnose.arms.candidates import (
     attribution_rollout,
     attribution_seed,
     prior_particles,
 )
-from torchcf.diagnose.population import merge
-from torchcf.diagnose.search import Noise, admission_ceiling, model_bounds
+from torchcf.diagnose.arms.population import merge
+from torchcf.diagnose.arms.search import Noise, admission_ceiling, model_bounds
 from torchcf.models import get_model
 from torchcf.sim.synthetic import synthetic_pairs
 

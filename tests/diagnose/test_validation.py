@@ -1,6 +1,6 @@
 """The attribution's out-of-sample judges: validation windows in time (plain, and
 begun early with the early steps unscored) and held-out pairs
-(:mod:`torchcf.diagnose.validation`)."""
+(:mod:`torchcf.diagnose.arms.validation`)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from torchcf.abc.particles import Particles
 from torchcf.abc.rejection import Rollout
 from torchcf.config import TrainConfig
 from torchcf.diagnose import DiagnoseError, Population
-from torchcf.diagnose.validation import (
+from torchcf.diagnose.arms.validation import (
     Validation,
     WarmedRollout,
     coverage_scores,

@@ -294,7 +294,7 @@ def test_hybrid_coverage_equals_its_own_rollout_and_bands(evaluated):
 
 @pytest.mark.slow  # the smoke study end to end
 def test_smoke_config_end_to_end(tmp_path):
-    """configs/smoke.json through `python -m torchcf.train`: metrics.json
+    """configs/smoke.json through `torchcf train`: metrics.json
     carries the coverage and bootstrap keys (real data: skips without
     TORCHCF_DATA)."""
     import json
@@ -346,13 +346,21 @@ def test_slicing_the_particles_changes_neither_costs_nor_coverage(
     posterior = Posterior.load(out / "posterior.pt")
     whole: dict = {}
     _, costs = evaluate.evaluate_posterior(
-        posterior, test, cfg, progress=False, predictive=whole
+        posterior,
+        test,
+        evaluate.EvaluationSettings.of(cfg),
+        progress=False,
+        predictive=whole,
     )
     per_particle = 6 * test.n_steps * test.n_pairs * 4
     monkeypatch.setattr(evaluate, "TRAJECTORY_BYTES", 3 * per_particle)
     sliced: dict = {}
     _, costs_sliced = evaluate.evaluate_posterior(
-        posterior, test, cfg, progress=False, predictive=sliced
+        posterior,
+        test,
+        evaluate.EvaluationSettings.of(cfg),
+        progress=False,
+        predictive=sliced,
     )
     for name in costs:
         for key in costs[name]:

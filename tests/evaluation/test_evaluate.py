@@ -10,9 +10,11 @@ import pytest
 import torch
 
 from tests.conftest import synthetic_pairs
+from tests.runs import evaluation, set_metrics
 from torchcf.cli.evaluate import main as evaluate_command
 from torchcf.config import TrainConfig
 from torchcf.evaluation.evaluate import (
+    EvaluationSettings,
     cost_matrices,
     evaluate_posterior,
     evaluate_run,
@@ -20,10 +22,11 @@ from torchcf.evaluation.evaluate import (
     single_model_particles,
 )
 from torchcf.evaluation.metrics import evaluate_costs, sinkhorn
-from torchcf.evaluation.results import Evaluation
 from torchcf.models import get_model
 from torchcf.posterior import Posterior
-from torchcf.study.crossval import CrossvalResult, aggregate, crossval, fold_config
+from torchcf.runs.directory import RunDir
+from torchcf.runs.metrics import CrossvalResult, Evaluation
+from torchcf.study.crossval import aggregate, crossval, fold_config
 from torchcf.system.files import json_safe
 from torchcf.train import train
 
@@ -85,7 +88,9 @@ def test_hybrid_costs_equal_their_own_rollout(trained):
     cfg, out, _, test_pairs = trained
     cfg = cfg.model_copy(update={"dtype": "float64"})
     posterior = Posterior.load(out / "posterior.pt")
-    _, costs = evaluate_posterior(posterior, test_pairs, cfg, progress=False)
+    _, costs = evaluate_posterior(
+        posterior, test_pairs, EvaluationSettings.of(cfg), progress=False
+    )
     direct = [
         cost_matrices(
             get_model(name),
@@ -115,7 +120,9 @@ def test_a_global_selection_particle_outside_the_first_n_is_simulated(trained):
         hybrid.param_names, hybrid.theta, hybrid.score, hybrid.pair_ids, moved
     )
     assert hybrid_rows_in_single(posterior, name)[1] == -1
-    _, costs = evaluate_posterior(posterior, test_pairs, cfg, progress=False)
+    _, costs = evaluate_posterior(
+        posterior, test_pairs, EvaluationSettings.of(cfg), progress=False
+    )
     first = sum(
         len(posterior.hybrid[m])
         for m in posterior.models[: posterior.models.index(name)]
@@ -188,6 +195,7 @@ def test_metrics_json_is_the_evaluation_and_reads_back(trained):
     assert json.dumps(json_safe(result.to_json()), indent=2) + "\n" == text
     back = Evaluation.from_json(json.loads(text))
     assert json.dumps(json_safe(back.to_json()), indent=2) + "\n" == text
+    assert RunDir(out).read_metrics().to_json() == back.to_json()  # the run's
     assert list(back.sets) == ["idm", "llctg", "hybrid"]
     assert back.hybrid.metrics == result.hybrid.metrics
     assert back.shares == result.shares and back.bootstrap == result.bootstrap
@@ -221,7 +229,9 @@ def test_sinkhorn_iteration_cap_comes_from_the_config(trained, capsys):
         update={"eval": cfg.eval.model_copy(update={"sinkhorn_max_iter": 3})}
     )
     posterior = Posterior.load(out / "posterior.pt")
-    metrics, costs = evaluate_posterior(posterior, test_pairs, capped, progress=True)
+    metrics, costs = evaluate_posterior(
+        posterior, test_pairs, EvaluationSettings.of(capped), progress=True
+    )
     err = capsys.readouterr().err
     assert "evaluate: simulate" in err and "evaluate: metrics" in err
     for entry, m in metrics.items():
@@ -242,8 +252,8 @@ def test_evaluate_cli_refuses_an_unfinished_run(tmp_path, capsys):
 
 def test_aggregate_is_the_mean_over_folds_and_keeps_inf():
     folds = [
-        {"hybrid": {"ws": 1.0, "min": 0.5}, "n_test": 3},
-        {"hybrid": {"ws": 3.0, "min": "inf"}, "n_test": 3},
+        evaluation({"hybrid": set_metrics(ws=1.0, min=0.5)}),
+        evaluation({"hybrid": set_metrics(ws=3.0, min=math.inf)}),
     ]
     result = aggregate(folds)
     assert result.folds == 2
@@ -257,14 +267,16 @@ def test_aggregate_is_the_mean_over_folds_and_keeps_inf():
     assert json_safe(CrossvalResult.from_json(on_disk).to_json()) == on_disk
 
 
-def test_aggregate_skips_the_blocks_that_are_no_learned_set():
-    fold = {
-        "hybrid": {"ws": 1.0},
-        "bootstrap": {"resamples": 10},
-        "hybrid_minus": {"idm": {"ws": {"value": -0.1}}},
-        "shares": {"idm": {"share": 1.0}},
-    }
-    assert set(aggregate([fold, fold]).to_json()) == {"folds", "hybrid"}
+def test_aggregate_averages_the_learned_sets_alone():
+    """The sets of the first fold, in its order; a set missing from a fold
+    makes its means non-finite, counted as no finite fold."""
+    both = evaluation({"idm": set_metrics(ws=2.0), "hybrid": set_metrics()})
+    alone = evaluation({"hybrid": set_metrics(ws=0.5)})
+    result = aggregate([both, alone])
+    assert list(result.to_json()) == ["folds", "idm", "hybrid"]
+    assert math.isnan(result.entries["idm"].ws)
+    assert result.entries["idm"].ws_folds_finite == 1
+    assert result.entries["hybrid"].ws == 1.0
 
 
 def test_fold_config():

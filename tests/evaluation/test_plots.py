@@ -4,6 +4,7 @@ metrics tables match hand-computed examples."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -24,6 +25,7 @@ from torchcf.evaluation.report import (
     plausibility_table,
     relative_difference,
 )
+from torchcf.runs.summary import PlausibilitySettings, PlausibilitySummary
 
 MODELS = ("ovm", "gfm", "fvdm", "idm", "llctg", "llcs", "hl", "mpc", "hybrid")
 
@@ -186,12 +188,16 @@ def test_metrics_table_notes_ws_without_the_particles_never_valid() -> None:
 
 
 def test_plausibility_table() -> None:
-    row = {
-        "n_particles": 40, "collided": 0.25, "string_unstable": 0.5,
-        "no_equilibrium": 0.0, "min_ttc_median": None,
-        "settings": {"speed": 29.4, "decelerations": [4.0, 8.0]},
-    }  # fmt: skip
-    table = plausibility_table({"hl": row, "idm": {**row, "collided": 0.0}})
+    row = PlausibilitySummary(
+        n_particles=40, collided=0.25, per_scenario={"brake_4": 0.25},
+        string_unstable=0.5, string_untested=0.0, no_equilibrium=0.0,
+        not_started=0.0, min_ttc_median=None, string_ratio_median=1.1,
+        settings=PlausibilitySettings(
+            speed=29.4, decelerations=(4.0, 8.0), collision_spacing=0.0,
+            platoon_size=10,
+        ),
+    )  # fmt: skip
+    table = plausibility_table({"hl": row, "idm": replace(row, collided=0.0)})
     assert "at 29.4 m/s" in table and "4 / 8 m/s^2" in table
     rows = _table_rows(table)
     assert rows[-2] == ["HL", "40", "25.0%", "50.0%", "0.0%", "–"]
@@ -202,7 +208,7 @@ def test_plausibility_table() -> None:
     assert '"plausibility": {"filter": true}' in table and "safety layer" in table
     assert "String-unstable particles (of each model's: HL 50%, IDM 50%)" in table
     assert "without an equilibrium" not in table
-    calm = {**row, "collided": 0.0, "string_unstable": 0.0}
+    calm = replace(row, collided=0.0, string_unstable=0.0)
     assert "No particle collided" in plausibility_table({"idm": calm})
 
 

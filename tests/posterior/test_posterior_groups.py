@@ -287,7 +287,7 @@ def test_locate_index_follows_the_data_section(tmp_path) -> None:
 def extracted_run(tmp_path_factory):
     """Twelve pairs extracted from four synthetic couples in two runs (a
     follower's three windows each, one follower's on the test side), the
-    folder written as ``python -m torchcf.data extract`` writes it, and a tiny
+    folder written as ``torchcf data extract`` writes it, and a tiny
     run trained on its own split."""
     root = tmp_path_factory.mktemp("groups")
     frames = []

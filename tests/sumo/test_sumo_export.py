@@ -116,7 +116,7 @@ def tiny_run(tmp_path_factory) -> Path:
         models=["idm", "hl"],
     )
     done = run_module(
-        "torchcf.train", str(config), "--out", str(folder / "run"), "--no-eval"
+        "torchcf", "train", str(config), "--out", str(folder / "run"), "--no-eval"
     )
     assert done.returncode == 0, done.stderr
     return folder / "run"
@@ -124,7 +124,9 @@ def tiny_run(tmp_path_factory) -> Path:
 
 @pytest.mark.slow  # a training and a SUMO export
 def test_export_command(tiny_run, tmp_path):
-    done = run_module("torchcf.sumo", "export", str(tiny_run), "--out", str(tmp_path))
+    done = run_module(
+        "torchcf", "sumo", "export", str(tiny_run), "--out", str(tmp_path)
+    )
     assert done.returncode == 0, done.stderr
     assert "not exported: hl" in done.stdout
     root = ET.parse(tmp_path / VTYPES_FILE).getroot()
@@ -147,7 +149,7 @@ def test_export_command(tiny_run, tmp_path):
 )
 def test_bad_input_is_one_line_and_exit_2(tiny_run, tmp_path, args, message):
     argv = [a.format(run=tiny_run, tmp=tmp_path) for a in args]
-    done = run_module("torchcf.sumo", *argv)
+    done = run_module("torchcf", "sumo", *argv)
     assert done.returncode == 2
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0]

@@ -111,7 +111,9 @@ def test_exported_idm_on_the_papers_data(tmp_path, data_root):
 
 @pytest.mark.slow  # a training and a SUMO verification
 def test_verify_command(tiny_run, tmp_path):  # noqa: F811
-    done = run_module("torchcf.sumo", "verify", str(tiny_run), "--out", str(tmp_path))
+    done = run_module(
+        "torchcf", "sumo", "verify", str(tiny_run), "--out", str(tmp_path)
+    )
     assert done.returncode == 0, done.stderr
     report = json.loads((tmp_path / "verify.json").read_text())
     cosim, vtypes = report["cosim"], report["vtypes"]

@@ -11,6 +11,7 @@ import torch
 from scipy.stats import chisquare
 
 from tests.conftest import prior_draws
+from tests.runs import run_summary
 from torchcf import HybridSampler, get_model
 from torchcf.models import FollowerState, Perception
 from torchcf.posterior import ModelParticles, Posterior
@@ -368,8 +369,8 @@ def test_from_file(tmp_path):
     sampler = HybridSampler.from_file(run)
     assert (sampler.dt, sampler.leader_length) == (0.05, 4.51)
     # the run's summary.json, which records its training pairs' constants, first
-    summary = {"dataset": "my-road", "pairwise": {}, "dt": 0.1, "leader_length": 4.2}
-    (run / "summary.json").write_text(json.dumps(summary))
+    summary = run_summary(dataset="my-road", dt=0.1, leader_length=4.2)
+    (run / "summary.json").write_text(json.dumps(summary.to_json()))
     sampler = HybridSampler.from_file(run)
     assert (sampler.dt, sampler.leader_length) == (0.1, 4.2)
 

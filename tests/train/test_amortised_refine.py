@@ -18,8 +18,8 @@ from tests.train.test_train import mixture_pairs
 from torchcf.abc.smc import SMCSettings, new_state, seed_population
 from torchcf.abc.topn import TopN
 from torchcf.posterior import Posterior
+from torchcf.runs.summary import RunSummary
 from torchcf.train import train
-from torchcf.train.summary import RunSummary
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -77,7 +77,7 @@ def test_the_refinement_spends_its_budget_and_says_what_it_changed(refined):
 
 
 def test_without_refinement_the_record_has_no_refinement_key(tmp_path):
-    from torchcf.train.summary import AmortisedResult
+    from torchcf.runs.summary import AmortisedResult
 
     record = AmortisedResult(40, (0.1, 0.1, 0.1), 3, "epochs", 10, 0, 1.0, 0.5, 0.9)
     assert "refinement" not in record.to_json()
@@ -119,12 +119,15 @@ def test_the_first_population_is_each_pairs_best_entries():
 def test_the_trained_estimator_is_read_back_from_the_run(refined, mixture):
     """The run's kept weights, read back, give the run's own samples."""
     from torchcf.amortised import infer
+    from torchcf.calibration.amortised import trained_estimator
+    from torchcf.calibration.of_config import method_of
     from torchcf.runs.directory import RunDir
-    from torchcf.train.amortised import trained_estimator
 
     out, summary, _ = refined
     cfg = config()
-    estimator = trained_estimator(cfg, RunDir(out))
+    priors = {spec.model: spec.bounds() for spec in cfg.models}
+    checkpoint = RunDir(out).amortised_checkpoint
+    estimator = trained_estimator(method_of(cfg), priors, checkpoint)
     samples = infer(estimator, mixture, AMORTISED["samples_per_pair"], seed=1)
     counts = torch.bincount(samples.model.reshape(-1), minlength=2)
     refine = summary.amortised.refinement.simulations // 2  # per model
@@ -134,8 +137,8 @@ def test_the_trained_estimator_is_read_back_from_the_run(refined, mixture):
 
 def test_the_networks_size_is_the_configs():
     from torchcf.amortised import EstimatorSettings
+    from torchcf.calibration.of_config import estimator_settings
     from torchcf.config import AmortisedNetworkConfig
-    from torchcf.train.amortised import estimator_settings
 
     assert estimator_settings(AmortisedNetworkConfig()) == EstimatorSettings()
     small = estimator_settings(

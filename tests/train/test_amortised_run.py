@@ -14,11 +14,12 @@ from tests.abc.interrupt import interrupt_after, same_buffers
 from tests.train.test_train import config as train_config
 from tests.train.test_train import mixture_pairs
 from torchcf.abc.rejection import Rollout
+from torchcf.calibration.amortised import amortised_samples
+from torchcf.calibration.of_config import method_of
 from torchcf.config import ConfigError, validate_config
 from torchcf.posterior import Posterior
+from torchcf.runs.summary import RunSummary
 from torchcf.train import train
-from torchcf.train.amortised import amortised_samples
-from torchcf.train.summary import RunSummary
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -80,7 +81,12 @@ def test_the_buffers_keep_each_pairs_best_samples(finished, mixture, tmp_path):
     particles do."""
     out, _ = finished
     cfg = config()
-    samples = amortised_samples(cfg, mixture, _Run(tmp_path), resume=False).samples
+    priors = {spec.model: spec.bounds() for spec in cfg.models}
+    checkpoint = tmp_path / "amortised.pt"
+    method = method_of(cfg)
+    samples = amortised_samples(
+        method, priors, mixture, cfg.abc.seed, checkpoint
+    ).samples
     rollout = Rollout(mixture, compile="off")
     posterior = Posterior.load(out / "posterior.pt")
     for m, spec in enumerate(cfg.models):
@@ -93,13 +99,6 @@ def test_the_buffers_keep_each_pairs_best_samples(finished, mixture, tmp_path):
             kept = buffer["score"][j, : best.numel()]
             finite = torch.isfinite(best)
             torch.testing.assert_close(kept[finite], best[finite])
-
-
-class _Run:
-    """A run directory's one file that :func:`amortised_samples` writes."""
-
-    def __init__(self, path):
-        self.amortised_checkpoint = path / "amortised.pt"
 
 
 @pytest.mark.parametrize("where", ["training", "streams"])

@@ -227,7 +227,7 @@ def write_config(path: Path, **abc) -> Path:
 def run_cli(*args: str, env_extra: dict | None = None) -> subprocess.CompletedProcess:
     env = {**os.environ, **(env_extra or {})}
     return subprocess.run(
-        [sys.executable, "-m", "torchcf.train", *args],
+        [sys.executable, "-m", "torchcf", "train", *args],
         capture_output=True,
         text=True,
         cwd=REPO,
@@ -243,7 +243,7 @@ def test_resume_after_kill_9_equals_an_uninterrupted_run(data_root, tmp_path):
     assert reference.returncode == 0, reference.stderr
     out = tmp_path / "killed"
     process = subprocess.Popen(
-        [sys.executable, "-m", "torchcf.train", str(cfg_path), "--out", str(out)],
+        [sys.executable, "-m", "torchcf", "train", str(cfg_path), "--out", str(out)],
         cwd=REPO,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
@@ -310,8 +310,8 @@ def test_cli_resume_with_a_different_config_is_refused(data_root, tmp_path):
 def test_cuda_chunks_are_larger_by_default():
     """On CUDA a chunk holds at least CUDA_CHUNK_CELLS cells (launch overhead),
     unless the config sets one; no GPU is touched."""
-    from torchcf.abc.configured import rollout_of
     from torchcf.abc.rejection import CUDA_CHUNK_CELLS
+    from torchcf.calibration.of_config import setup_of
     from torchcf.models import get_model
 
     pairs = synthetic_pairs(n_pairs=4, n_steps=50)
@@ -319,7 +319,7 @@ def test_cuda_chunks_are_larger_by_default():
     cuda, cpu = torch.device("cuda"), torch.device("cpu")
 
     def _chunk_size(cfg, model, pairs, compiled, device):
-        rollout = rollout_of(cfg, pairs, device)
+        rollout = setup_of(cfg, pairs, device).rollout
         return rollout.chunk(model, cfg.abc.n_particles, compiled)
 
     big = config(n_particles=10_000_000)

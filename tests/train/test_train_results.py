@@ -14,20 +14,23 @@ import torch
 from tests.conftest import synthetic_pairs
 from torchcf.abc.rejection import ModelProgress
 from torchcf.abc.topn import TopN
+from torchcf.calibration.state import StateError, build_buffers
 from torchcf.config import TrainConfig, config_hash
 from torchcf.models import get_model
 from torchcf.runs.directory import RunDir
-from torchcf.study.pipeline import StudyResult, train_and_evaluate
-from torchcf.traffic import PlausibilitySettings, PlausibilitySummary
-from torchcf.train import ModelResult, RunError, RunState, RunSummary, open_run
-from torchcf.train.checkpoint import CHECKPOINT_FORMAT, resume_note
-from torchcf.train.engine import build_buffers
-from torchcf.train.summary import (
+from torchcf.runs.summary import (
+    ModelResult,
     Pairwise,
+    PlausibilitySettings,
+    PlausibilitySummary,
+    RunSummary,
     SMCBudgetResult,
     SMCResult,
     Versions,
 )
+from torchcf.study.pipeline import StudyResult, train_and_evaluate
+from torchcf.train import RunError, RunState, open_run
+from torchcf.train.checkpoint import CHECKPOINT_FORMAT, resume_note
 
 MODELS = ["idm", "hl"]
 MODEL_OBJECTS = [get_model(name) for name in MODELS]
@@ -224,7 +227,7 @@ def test_the_summary_json_of_a_run_reads_back(trained):
     text = (out / "summary.json").read_text()
     on_disk = json.loads(text)
     assert json.dumps(summary.to_json(), indent=2) + "\n" == text  # order included
-    back = RunSummary.from_json(RunDir(out).read_summary())
+    back = RunDir(out).read_summary()
     assert back == summary and back.per_model == summary.per_model
     assert isinstance(back.per_model["idm"], ModelResult)
     assert back.per_model["idm"].particles == 800
@@ -252,11 +255,9 @@ def _checkpointed(tmp_path, cfg: TrainConfig, n_pairs: int = 3) -> RunDir:
     run = RunDir(tmp_path / "run")
     run.path.mkdir()
     state = RunState(config_hash(cfg))
-    build_buffers(
-        MODEL_OBJECTS, n_pairs, cfg.abc.buffer_size, None, state, run.checkpoint
-    )
-    state.progress["idm"] = ModelProgress(next=100, invalid=2, seconds=0.5)
-    state.buffers["idm"].score[0, 0] = 0.25
+    build_buffers(MODEL_OBJECTS, n_pairs, cfg.abc.buffer_size, None, state.calibration)
+    state.calibration.progress["idm"] = ModelProgress(next=100, invalid=2, seconds=0.5)
+    state.calibration.buffers["idm"].score[0, 0] = 0.25
     run.save_checkpoint(state.as_checkpoint())
     return run
 
@@ -265,17 +266,17 @@ def test_a_checkpoint_resumes_to_its_state(tmp_path):
     cfg = _config()
     run = _checkpointed(tmp_path, cfg)
     assert run.load_checkpoint()["format"] == CHECKPOINT_FORMAT
-    state = open_run(cfg, run.path, resume=True)
+    state = open_run(config_hash(cfg), run.path, resume=True).calibration
     assert state.progress["idm"] == ModelProgress(next=100, invalid=2, seconds=0.5)
-    build_buffers(MODEL_OBJECTS, 3, cfg.abc.buffer_size, None, state, run.checkpoint)
+    build_buffers(MODEL_OBJECTS, 3, cfg.abc.buffer_size, None, state)
     assert float(state.buffers["idm"].score[0, 0]) == 0.25
     assert isinstance(state.buffers["hl"], TopN)
 
 
 def test_resume_says_what_it_reuses():
     state = RunState("h")
-    state.progress["idm"] = ModelProgress(next=1000, done=True)
-    state.progress["gfm"] = ModelProgress(next=340)
+    state.calibration.progress["idm"] = ModelProgress(next=1000, done=True)
+    state.calibration.progress["gfm"] = ModelProgress(next=340)
     note = resume_note(state, ["idm", "gfm", "hl", "mpc"], 1000)
     assert note == (
         "resuming from checkpoint.pt: idm finished; gfm at 340 of 1,000; hl, mpc to run"
@@ -314,19 +315,17 @@ def test_a_corrupted_or_foreign_checkpoint_is_refused(tmp_path, damage, message)
     run = _checkpointed(tmp_path, cfg)
     run.save_checkpoint(damage(run.load_checkpoint()))
     with pytest.raises(RunError, match=message):
-        open_run(cfg, run.path, resume=True)
+        open_run(config_hash(cfg), run.path, resume=True)
 
 
 def test_a_checkpoint_of_other_buffers_is_refused_when_loaded(tmp_path):
     """Its format and config match, but its buffers are not this run's (other
-    pairs): refused when the buffers are built, naming the checkpoint."""
+    pairs): refused when the buffers are built, naming the model."""
     cfg = _config()
     run = _checkpointed(tmp_path, cfg, n_pairs=3)
-    state = open_run(cfg, run.path, resume=True)
-    with pytest.raises(RunError, match="does not match this run"):
-        build_buffers(
-            MODEL_OBJECTS, 4, cfg.abc.buffer_size, None, state, run.checkpoint
-        )
+    state = open_run(config_hash(cfg), run.path, resume=True).calibration
+    with pytest.raises(StateError, match="idm"):
+        build_buffers(MODEL_OBJECTS, 4, cfg.abc.buffer_size, None, state)
 
 
 def test_no_checkpoint_and_an_unreadable_one_are_refused(tmp_path):
@@ -334,7 +333,7 @@ def test_no_checkpoint_and_an_unreadable_one_are_refused(tmp_path):
     run = RunDir(tmp_path / "run")
     run.path.mkdir()
     with pytest.raises(RunError, match="no checkpoint.pt"):
-        open_run(cfg, run.path, resume=True)
+        open_run(config_hash(cfg), run.path, resume=True)
     run.checkpoint.write_bytes(b"not a pickle")
     with pytest.raises(RunError, match="start again with another --out"):
-        open_run(cfg, run.path, resume=True)
+        open_run(config_hash(cfg), run.path, resume=True)

@@ -46,6 +46,7 @@ from .rejection import (
     prior_stream,
     run_rejection,
 )
+from .smc import SMCSettings
 from .streams import ParticleStream
 from .topn import TopN, lexsort
 
@@ -59,6 +60,7 @@ __all__ = [
     "Particles",
     "RoundHooks",
     "Rollout",
+    "SMCSettings",
     "Selection",
     "TopN",
     "best_per_pair",

@@ -1,9 +1,9 @@
 """Sharding a training run over processes with torch.distributed (``torchrun``).
 
-    torchrun --standalone --nproc-per-node 4 -m torchcf.train configs/carII.json
+    torchrun --standalone --nproc-per-node 4 -m torchcf train configs/carII.json
     # on node 0 (HOST), then the same with --node-rank 1 on node 1
     torchrun --nnodes 2 --node-rank 0 --nproc-per-node 8 --master-addr HOST \\
-        --master-port 29500 -m torchcf.train configs/carII.json
+        --master-port 29500 -m torchcf train configs/carII.json
 
 :func:`init_from_env` reads the environment torchrun sets (``WORLD_SIZE``,
 ``RANK``, ``LOCAL_RANK``, ``MASTER_ADDR``, ``MASTER_PORT``) and joins the process

@@ -6,23 +6,22 @@
 and weighed as a unit here, apart from the rounds that use it:
 
 - **space**: the kernel steps in the logit of the prior box, ``z = logit((theta -
-  low) / width)`` per parameter (``space = "logit"``, the default), or in the box
-  itself (``"box"``, the design before, kept to compare). In the logit space every
-  proposal lies in the box and the steps shrink near a bound (the module
-  docstring of :mod:`torchcf.abc.smc` says why it matters);
+  low) / width)`` per parameter: every proposal lies in the box and the steps
+  shrink near a bound (the module docstring of :mod:`torchcf.abc.smc` says why
+  it matters);
 - **fit**: per pair ``p``, the members' normalised weights ``w ~ r`` (``log r``
   is the population's last column) and ``Sigma_p = scale Cov_w(z) +
-  (KERNEL_FLOOR x 4)^2 I`` in the logit space (``scale = 2``: Beaumont et al.'s
-  random-walk scale; 4 / width is the logit's slope at the box's centre, so the
-  floor is 1e-3 of the box's width there), ``(KERNEL_FLOOR width)^2`` in the box;
+  (KERNEL_FLOOR x 4)^2 I`` (``scale = 2``: Beaumont et al.'s random-walk scale;
+  4 / width is the logit's slope at the box's centre, so the floor is 1e-3 of
+  the box's width there);
 - **propose**: uniforms ``u`` (Q, 1 + K) pick a parent by the inverse CDF of the
   pair's weights (column 0) and a Gaussian step (columns 1..K, normal quantiles).
   A pair without a population draws from the prior instead;
 - **density**: ``log r = log pi_z(z) - log q(z)``, ``q(z) = sum_i w_i N(z; z_i,
   Sigma_p)``, ``pi_z(z) = prod_k s(z_k) (1 - s(z_k))`` the uniform prior's
-  density in the logit space (``s`` the logistic function; in the box, one over
-  its volume): the importance weight of the prior with respect to the proposal,
-  the same in either space.
+  density in the logit space (``s`` the logistic function): the importance
+  weight of the prior with respect to the proposal (the ratio of two densities,
+  the same in the box's coordinates).
 
 Shapes: N pairs, ``pop`` members per pair, K parameters, Q proposals
 (:mod:`torchcf.typing`). Everything is float64.
@@ -32,7 +31,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
 
 import torch
 from torch import Tensor
@@ -49,19 +47,17 @@ UNIFORM_EDGE = 1e-12
 #: ``WEIGHT_ROWS x pop``.
 WEIGHT_ROWS = 1 << 14
 
-Space = Literal["logit", "box"]
-
 
 @dataclass(frozen=True)
 class SMCKernel:
     """A round's proposal: per pair a Gaussian mixture around its population.
 
     Built by :meth:`fit`; ``theta``, ``chol`` and ``white`` are in the kernel's
-    ``space``.
+    space, the logit of the box (module docstring).
 
     Attributes:
         bounds: (K, 2) the prior box ``[low, high]`` per parameter.
-        theta: (N, pop, K) the population, in the kernel's space.
+        theta: (N, pop, K) the population, in the logit space.
         log_w: (N, pop) normalised log weights (``-inf``: no member).
         cum_w: (N, pop) cumulative weights (the parent's inverse CDF).
         chol: (N, K, K) lower Cholesky factor ``L`` of ``Sigma_p``.
@@ -70,7 +66,6 @@ class SMCKernel:
         white: (N, pop, K) the population whitened, ``L^-1 theta_i``.
         log_norm: (N,) ``log`` of the Gaussian's normalising constant.
         empty: (N,) bool, pairs without a population (they draw from the prior).
-        space: ``"logit"`` or ``"box"`` (module docstring).
     """
 
     bounds: Tensor
@@ -82,15 +77,10 @@ class SMCKernel:
     white: Tensor
     log_norm: Tensor
     empty: Tensor
-    space: Space = "logit"
 
     @classmethod
     def fit(
-        cls,
-        population: dict[str, Tensor],
-        bounds: Tensor,
-        scale: float = 2.0,
-        space: Space = "logit",
+        cls, population: dict[str, Tensor], bounds: Tensor, scale: float = 2.0
     ) -> SMCKernel:
         """The proposal around ``population`` (module docstring).
 
@@ -99,9 +89,8 @@ class SMCKernel:
                 and ``score`` (N, pop), ``+inf`` where a pair has no member.
             bounds: (K, 2) float64 prior box.
             scale: the covariance over the population's weighted one.
-            space: where the kernel steps.
         """
-        theta = _free(population["theta"][..., :-1], bounds, space)  # (N, pop, K)
+        theta = cls._free(population["theta"][..., :-1], bounds)  # (N, pop, K)
         member = torch.isfinite(population["score"])  # (N, pop)
         log_r = torch.where(member, population["theta"][..., -1], -math.inf)
         log_w = log_r - torch.logsumexp(log_r, dim=1, keepdim=True)  # (N, pop)
@@ -111,9 +100,7 @@ class SMCKernel:
         mean = (w[..., None] * theta).sum(1, keepdim=True)  # (N, 1, K)
         centred = torch.where(member[..., None], theta - mean, 0.0)
         cov = torch.einsum("np,npk,npl->nkl", w, centred, centred)  # (N, K, K)
-        width = bounds[:, 1] - bounds[:, 0]  # (K,)
-        if space != "box":  # the logit's slope at the box's centre: 4 / width
-            width = torch.full_like(width, 4.0)
+        width = cls._centre_width(bounds)  # (K,)
         sigma = scale * cov + torch.diag((KERNEL_FLOOR * width) ** 2)
         chol = torch.linalg.cholesky(sigma)  # (N, K, K)
         k = theta.shape[-1]
@@ -123,16 +110,14 @@ class SMCKernel:
         whiten = torch.linalg.solve_triangular(chol, eye, upper=False)  # (N, K, K)
         white = torch.einsum("nkl,npl->npk", whiten, theta)  # (N, pop, K)
         cum_w = torch.cumsum(w, dim=1)
-        return cls(
-            bounds, theta, log_w, cum_w, chol, whiten, white, log_norm, empty, space
-        )
+        return cls(bounds, theta, log_w, cum_w, chol, whiten, white, log_norm, empty)
 
     @property
     def covariance(self) -> Tensor:
         """(N, K, K) ``Sigma_p`` per pair, in the kernel's space."""
         return self.chol @ self.chol.transpose(1, 2)
 
-    def propose(self, u: Tensor, pair: Tensor) -> tuple[Tensor, Tensor]:
+    def propose(self, u: Tensor, pair: Tensor) -> Tensor:
         """Proposals from uniforms ``u`` (Q, 1 + K) on pairs ``pair`` (Q,).
 
         Column 0 picks the parent (inverse CDF of the pair's weights), columns
@@ -140,9 +125,9 @@ class SMCKernel:
         draws from the prior instead (columns 1..K as a prior draw).
 
         Returns:
-            ``theta`` (Q, K) in the box's coordinates and ``log r`` (Q,): 0, or
-            ``-inf`` outside the prior box (the box kernel only). The weight
-            proper is :meth:`log_prior_ratio`'s, taken once a round ends.
+            ``theta`` (Q, K) in the box's coordinates, every row inside the
+            box. Its importance weight is :meth:`log_prior_ratio`'s, taken once
+            a round ends.
         """
         rows = u.shape[0]
         # Padded to whole vector lanes: CPU kernels of a transcendental function
@@ -164,20 +149,18 @@ class SMCKernel:
         step = chol[:, :, 0] * z[:, :1]  # (Q, K)
         for column in range(1, z.shape[1]):
             step = step + chol[:, :, column] * z[:, column : column + 1]
-        theta = _boxed(self.theta[pair, parent] + step, self.bounds, self.space)
+        theta = self._boxed(self.theta[pair, parent] + step, self.bounds)
         prior_draw = low + (high - low) * u[:, 1:]
         from_prior = self.empty[pair]
         theta = torch.where(from_prior[:, None], prior_draw, theta)
-        inside = ((theta >= low) & (theta <= high)).all(dim=1)
-        log_r = torch.where(inside, 0.0, -math.inf)
-        return theta[:rows], log_r[:rows]
+        return theta[:rows]
 
     def log_prior_ratio(self, theta: Tensor, pair: Tensor) -> Tensor:
         """``log pi(theta) - log q(theta)`` (Q,) of proposals ``theta`` (Q, K) on
         pairs ``pair`` (Q,): the importance weight of the uniform prior with
         respect to the proposal (0 where the pair drew from the prior). Both
-        densities are taken in the kernel's space; their ratio is the same in
-        any.
+        densities are taken in the logit space; their ratio is the same in the
+        box's coordinates.
 
         The proposals are laid out per pair (:meth:`grid_log_prior_ratio`)."""
         n_pairs = self.theta.shape[0]
@@ -205,10 +188,8 @@ class SMCKernel:
         step = max(1, WEIGHT_ROWS // max(width, 1))
         for first in range(0, n_pairs, step):
             block = slice(first, first + step)
-            free = _free(theta[block], self.bounds, self.space)  # (B, C, K)
-            log_prior = _log_prior(
-                free.reshape(-1, free.shape[-1]), self.bounds, self.space
-            )
+            free = self._free(theta[block], self.bounds)  # (B, C, K)
+            log_prior = self._log_prior(free.reshape(-1, free.shape[-1]), self.bounds)
             z = torch.einsum("bkl,bcl->bck", self.whiten[block], free)  # (B, C, K)
             members = self.white[block]  # (B, pop, K)
             # |z - z_i|^2 expanded: one batched product per pair, not C x pop.
@@ -223,16 +204,33 @@ class SMCKernel:
             out[block] = torch.where(self.empty[block, None], 0.0, ratio)
         return out
 
+    # ------------------------------------------- the kernel's space: the logit
+    @staticmethod
+    def _free(theta: Tensor, bounds: Tensor) -> Tensor:
+        """Parameters ``theta`` (..., K) in the kernel's space: the logit of their
+        place in the box (a bound itself is read 1e-12 of the width inside)."""
+        low, width = bounds[:, 0], bounds[:, 1] - bounds[:, 0]
+        unit = ((theta - low) / width).clamp(UNIFORM_EDGE, 1 - UNIFORM_EDGE)
+        return torch.logit(unit)
 
-def _free(theta: Tensor, bounds: Tensor, space: str) -> Tensor:
-    """Parameters ``theta`` (..., K) in the kernel's space: the logit of their
-    place in the box (a bound itself is read 1e-12 of the width inside), or the
-    box itself."""
-    if space == "box":
-        return theta
-    low, width = bounds[:, 0], bounds[:, 1] - bounds[:, 0]
-    unit = ((theta - low) / width).clamp(UNIFORM_EDGE, 1 - UNIFORM_EDGE)
-    return torch.logit(unit)
+    @staticmethod
+    def _boxed(z: Tensor, bounds: Tensor) -> Tensor:
+        """The inverse of :meth:`_free`: parameters (..., K) in the box."""
+        low, width = bounds[:, 0], bounds[:, 1] - bounds[:, 0]
+        return low + width * torch.sigmoid(z)
+
+    @staticmethod
+    def _log_prior(z: Tensor, bounds: Tensor) -> Tensor:
+        """(Q,) log density of the uniform prior at ``z`` (Q, K) in the kernel's
+        space, ``sum_k log s(z_k) (1 - s(z_k))``."""
+        f = torch.nn.functional.softplus
+        return -(f(z) + f(-z)).sum(1)
+
+    @staticmethod
+    def _centre_width(bounds: Tensor) -> Tensor:
+        """(K,) the box's width in the kernel's space, read at its centre: 4
+        (the logit's slope there is 4 / width), the scale of the floor."""
+        return torch.full_like(bounds[:, 0], 4.0)
 
 
 #: Rows a proposal batch is padded to a multiple of (whole vector lanes of the
@@ -240,22 +238,4 @@ def _free(theta: Tensor, bounds: Tensor, space: str) -> Tensor:
 LANES = 32
 
 
-def _boxed(z: Tensor, bounds: Tensor, space: str) -> Tensor:
-    """The inverse of :func:`_free`: parameters (..., K) in the box."""
-    if space == "box":
-        return z
-    low, width = bounds[:, 0], bounds[:, 1] - bounds[:, 0]
-    return low + width * torch.sigmoid(z)
-
-
-def _log_prior(z: Tensor, bounds: Tensor, space: str) -> Tensor:
-    """(Q,) log density of the uniform prior at ``z`` (Q, K) in the kernel's
-    space (inside the box)."""
-    width = bounds[:, 1] - bounds[:, 0]
-    if space == "box":
-        return (-torch.log(width).sum()).expand(z.shape[0])
-    f = torch.nn.functional.softplus
-    return -(f(z) + f(-z)).sum(1)
-
-
-__all__ = ["KERNEL_FLOOR", "UNIFORM_EDGE", "WEIGHT_ROWS", "SMCKernel", "Space"]
+__all__ = ["KERNEL_FLOOR", "UNIFORM_EDGE", "WEIGHT_ROWS", "SMCKernel"]

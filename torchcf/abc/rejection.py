@@ -1,7 +1,7 @@
 """The rejection engine: draw -> simulate -> keep the n best per pair (SPEC section 5).
 
 One engine serves every caller — training (:mod:`torchcf.train`), cross-validation
-and the diagnosis loop's attribution (:mod:`torchcf.diagnose.attribution`):
+and the diagnosis loop's attribution (:mod:`torchcf.diagnose.selection.attribution`):
 
 - :class:`Rollout`: how particles are simulated and scored (the pairs, the
   layout, the precision, the chunk);

@@ -55,9 +55,7 @@ uninterrupted one.
 **Budget** (per model): ``n_particles`` proposals in all: ``n_0 = round(
 prior_fraction n_particles)`` prior draws, then ``q = floor((n_particles - n_0) /
 (rounds N))`` per pair and round; the rest (fewer than ``rounds N``) is not spent.
-Every proposal is simulated (the logit kernel never leaves the box; the
-engine's ``space = "box"`` variant, kept for comparison, counts a proposal
-outside the box without simulating it).
+Every proposal is simulated (the kernel never leaves the box).
 
 **Evidence**: for every buffer entry ``r`` is an importance weight of the prior
 with respect to its proposal, so ``P_m,p(score <= tau) ~ (1 / M_m,p) sum r
@@ -75,6 +73,8 @@ and the round's accepted set below the threshold); at a round's end it weighs th
 round's particles and makes the next population.
 
 Shapes: N pairs, K parameters, ``pop`` = ``population`` (:mod:`torchcf.typing`).
+
+Design record (the designs tried and what chose these): ``reports/smc/design.md``.
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -106,6 +106,11 @@ from .rounds import (
 from .streams import ParticleStream, uniforms
 from .topn import TopN
 
+#: The kernel's space a checkpoint records (:class:`SMCState`): one written
+#: before the refinement stepped in the logit of the box (no entry: the box
+#: itself) does not continue.
+KERNEL_SPACE = "logit"
+
 
 @dataclass(frozen=True)
 class SMCSettings:
@@ -116,11 +121,8 @@ class SMCSettings:
         rounds: refinement rounds after the prior round.
         prior_fraction: share of the budget drawn from the prior (round 0).
         quantile: the next threshold is this quantile of a population's scores.
-        kernel_scale: the kernel's covariance over the population's (2).
-        space: where the kernel steps: ``"logit"`` (the default, module
-            docstring) or ``"box"`` (the prior box itself, proposals outside it
-            counted unsimulated: the design before, kept to compare). These two
-            are the engine's, not the config's.
+        kernel_scale: the kernel's covariance over the population's (2; the
+            engine's, not the config's).
     """
 
     population: int = 50
@@ -128,7 +130,6 @@ class SMCSettings:
     prior_fraction: float = 0.25
     quantile: float = 0.5
     kernel_scale: float = 2.0
-    space: Literal["logit", "box"] = "logit"
 
 
 @dataclass(frozen=True)
@@ -192,8 +193,6 @@ class SMCState:
         population: the previous round's accepted particles (empty in round 0
             and once finished): ``theta`` (N, pop, K + 1), ``score`` (N, pop),
             ``+inf`` where a pair has fewer, and their particle ``index`` (N, pop).
-        space: the kernel's space (:class:`SMCSettings`): a checkpoint of the
-            other kernel does not continue this one.
     """
 
     round: int = 0
@@ -201,7 +200,6 @@ class SMCState:
     shape: tuple[int, int, int] = (1, 1, 1)
     accepted: TopN | None = None
     population: dict[str, Tensor] = field(default_factory=dict)
-    space: str = "logit"
 
     def state_dict(self) -> dict[str, Any]:
         return {
@@ -209,7 +207,7 @@ class SMCState:
             "next": self.next,
             "accepted": None if self.accepted is None else self.accepted.state_dict(),
             "population": dict(self.population),
-            "space": self.space,
+            "space": KERNEL_SPACE,
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -217,10 +215,10 @@ class SMCState:
         kernel are not this run's)."""
         # Checkpoints from before the logit kernel carry no space: the box's.
         saved = state.get("space", "box")
-        if saved != self.space:
+        if saved != KERNEL_SPACE:
             raise ValueError(
                 f"its refinement steps in the {saved!r} space, this version's in "
-                f"the {self.space!r} space; start the run again"
+                f"the {KERNEL_SPACE!r} space; start the run again"
             )
         self.round = int(state["round"])
         self.next = int(state["next"])
@@ -240,9 +238,7 @@ class SMCState:
 
 def new_state(n_pairs: int, settings: SMCSettings, n_params: int) -> SMCState:
     """A refinement at its start (round 0); its buffers are built when it runs."""
-    return SMCState(
-        shape=(n_pairs, settings.population, n_params + 1), space=settings.space
-    )
+    return SMCState(shape=(n_pairs, settings.population, n_params + 1))
 
 
 def parameter_buffer(buffer: TopN) -> TopN:
@@ -317,7 +313,7 @@ def refine_population(
 ) -> None:
     """Refine, per pair, particles a buffer already holds: SMC's rounds ``1 ..
     budget.rounds`` after a round 0 made elsewhere (an amortised estimator's
-    samples, :mod:`torchcf.train.refinement`).
+    samples, :mod:`torchcf.calibration.refinement`).
 
     Round 0 is the buffer's content: per pair its ``population`` best entries
     form the first population (:func:`seed_population`), with the ``log r`` its
@@ -385,9 +381,7 @@ def _run_from(
 
     while state.round <= budget.rounds:
         kernel = (
-            SMCKernel.fit(
-                state.population, bounds, settings.kernel_scale, settings.space
-            )
+            SMCKernel.fit(state.population, bounds, settings.kernel_scale)
             if state.round
             else None
         )
@@ -434,10 +428,10 @@ def _round_proposals(
 ) -> Propose:
     """Round ``t``'s proposals for the round loop (:data:`~torchcf.abc.rounds.
     Propose`): round 0 the prior stream's particles (their pairs drawn by the
-    stream, ``r = 1``), later rounds the kernel's (:func:`_proposals`). Only the
-    proposals inside the box are simulated; a batch is padded with copies of the
-    first. The buffers hold the searched parameters and a ``log r`` column,
-    filled in at the end of the round (:func:`_weigh_round`)."""
+    stream, ``r = 1``), later rounds the kernel's (:func:`_proposals`). A batch
+    is padded with copies of the first. The buffers hold the searched parameters
+    and a ``log r`` column, filled in at the end of the round
+    (:func:`_weigh_round`)."""
     first_index = budget.first_index(t)
 
     def propose(start: int, stop: int, batch: int | None) -> Chunk:
@@ -445,13 +439,10 @@ def _round_proposals(
             theta, pair = stream.draw(start, stop)
         else:
             key = f"{stream.model.name}/smc{t}"
-            theta, log_r, pair = _proposals(
+            theta, pair = _proposals(
                 kernel, stream.seed, key, start, stop, budget.per_pair
             )
         index = first_index + start + torch.arange(theta.shape[0])
-        if kernel is not None:  # the box kernel's steps outside are not simulated
-            inside = torch.isfinite(log_r).nonzero().squeeze(1)
-            theta, pair, index = theta[inside], pair[inside], index[inside]
         real = theta.shape[0]
         if not real:
             return Chunk(theta, pair, index)
@@ -474,29 +465,18 @@ def _proposals(
     start: int,
     stop: int,
     per_pair: int,
-) -> tuple[Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor]:
     """A refinement round's proposals ``start .. stop - 1``, pair-major (``per_pair``
     per pair), from the round's own counter-based uniforms (``stream_key`` =
     ``"<model>/smc<t>"``).
 
     Returns:
-        ``theta`` (Q, K), ``log r`` (Q,) (``-inf`` outside the prior box, else 0),
-        ``pair`` (Q,).
+        ``theta`` (Q, K), ``pair`` (Q,).
     """
     k = kernel.bounds.shape[0]
     u = uniforms(seed, stream_key, start, stop, 1 + k)  # (Q, 1 + K)
     pair = torch.arange(start, stop) // per_pair
-    theta, log_r = _propose(kernel, kernel.bounds, u, pair)
-    return theta, log_r, pair
-
-
-def _propose(
-    kernel: SMCKernel, bounds: Tensor, u: Tensor, pair: Tensor
-) -> tuple[Tensor, Tensor]:
-    """:meth:`SMCKernel.propose` (``bounds`` are the kernel's), called through
-    this module so that a tool can wrap it (``tools/bench_smc.py`` counts the
-    proposals outside the box)."""
-    return kernel.propose(u, pair)
+    return kernel.propose(u, pair), pair
 
 
 def _round_sinks(buffer: TopN, state: SMCState, settings: SMCSettings) -> list[Sink]:

@@ -44,6 +44,7 @@ from .training import (
     TrainingResult,
     TrainingSettings,
     estimator_fingerprint,
+    fingerprint_noise,
     train_estimator,
     validation_scores,
 )
@@ -69,6 +70,7 @@ __all__ = [
     "TrajectoryEncoder",
     "channel_features",
     "estimator_fingerprint",
+    "fingerprint_noise",
     "infer",
     "load_trained",
     "new_estimator",

@@ -3,13 +3,19 @@
 A checkpoint is a dict written atomically by ``torch.save``::
 
     {
-        "format": "torchcf.amortised.checkpoint/1",
+        "format": "torchcf.amortised.checkpoint/2",
         "fingerprint": {...},        # what the run trains: models, sizes, settings
         "estimator": state_dict,     # the networks' weights
         "optimiser": state_dict,     # Adam's moments and step counts
         "best": state_dict | None,   # the weights of the best validation loss
         "progress": {...},           # TrainingProgress.as_dict()
     }
+
+The fingerprint is plain data (lists, numbers, and the settings' dataclasses
+as dicts: ``"noise": {"position": .., "speed": .., "acceleration": ..}``,
+read back by :func:`~torchcf.amortised.fingerprint_noise`). A checkpoint of
+format ``/1`` (its settings written as their ``repr``) is refused with a
+one-line error.
 
 No random generator's state is saved: every random number of the training (a
 simulated set, the order of an epoch's batches) is a function of the seed and
@@ -28,7 +34,11 @@ from typing import Any
 from ..system.errors import TorchcfError
 from ..system.files import atomic_torch_save, read_torch
 
-CHECKPOINT_FORMAT = "torchcf.amortised.checkpoint/1"
+CHECKPOINT_FORMAT = "torchcf.amortised.checkpoint/2"
+#: Formats no longer read, and why.
+FORMER_FORMATS = {
+    "torchcf.amortised.checkpoint/1": "its fingerprint holds settings as text",
+}
 
 
 class CheckpointError(TorchcfError, ValueError):
@@ -124,9 +134,7 @@ def load_checkpoint(path: Path, fingerprint: dict[str, Any]) -> dict[str, Any]:
         CheckpointError: another format, or another training's (its
             fingerprint differs: the first differing entry is named).
     """
-    raw = read_torch(path)
-    if not isinstance(raw, dict) or raw.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointError(f"{path}: not an amortised training checkpoint")
+    raw = _read(path)
     saved = raw.get("fingerprint", {})
     if saved != fingerprint:
         keys = sorted(set(saved) | set(fingerprint))
@@ -153,9 +161,7 @@ def load_trained(path: Path, estimator: dict[str, Any]) -> dict[str, Any]:
         CheckpointError: another format, another estimator (the first
             differing entry named) or a training not finished.
     """
-    raw = read_torch(path)
-    if not isinstance(raw, dict) or raw.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointError(f"{path}: not an amortised training checkpoint")
+    raw = _read(path)
     saved = raw.get("fingerprint", {})
     for key, value in estimator.items():
         if saved.get(key) != value:
@@ -170,6 +176,20 @@ def load_trained(path: Path, estimator: dict[str, Any]) -> dict[str, Any]:
         raise CheckpointError(
             f"{path}: its training has not finished; resume its run first"
         )
+    return raw
+
+
+def _read(path: Path) -> dict[str, Any]:
+    """The checkpoint at ``path``, of this format (CheckpointError if not)."""
+    raw = read_torch(path)
+    found = raw.get("format") if isinstance(raw, dict) else None
+    if found in FORMER_FORMATS:
+        raise CheckpointError(
+            f"{path}: an amortised training checkpoint of an older torchcf "
+            f"({found}: {FORMER_FORMATS[found]}); train the estimator again"
+        )
+    if found != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path}: not an amortised training checkpoint")
     return raw
 
 

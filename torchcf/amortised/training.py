@@ -34,7 +34,8 @@ from __future__ import annotations
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, NamedTuple, Protocol
 
@@ -45,6 +46,7 @@ from tqdm import tqdm
 from ..abc.streams import block_seed
 from ..system.console import bar_interval
 from .checkpoint import (
+    CheckpointError,
     EpochRecord,
     TrainingProgress,
     copy_state,
@@ -52,7 +54,7 @@ from .checkpoint import (
     save_checkpoint,
 )
 from .estimator import AmortisedEstimator
-from .simulations import SimulatedSet, TrainingSimulator
+from .simulations import NoiseLevels, SimulatedSet, TrainingSimulator
 
 
 @dataclass(frozen=True)
@@ -399,14 +401,33 @@ def _epoch_order(seed: int, epoch: int, n: int) -> Tensor:
 def estimator_fingerprint(estimator: AmortisedEstimator) -> dict[str, Any]:
     """What a trained estimator must match to be reused by another run: the
     models and their boxes, the networks' sizes (a checkpoint's
-    fingerprint's first entries)."""
+    fingerprint's first entries; plain data, as every entry)."""
     space = estimator.space
     return {
         "models": list(space.names),
         "low": space.low.nan_to_num(0.0).tolist(),
         "high": space.high.nan_to_num(0.0).tolist(),
-        "estimator": repr(estimator.settings),
+        "estimator": asdict(estimator.settings),
     }
+
+
+def fingerprint_noise(fingerprint: Mapping[str, Any]) -> NoiseLevels:
+    """The measurement noise a checkpoint's estimator was trained with: its
+    fingerprint's ``noise``, ``{"position": .., "speed": .., "acceleration":
+    ..}`` (:class:`~torchcf.amortised.NoiseLevels`' fields).
+
+    Raises:
+        CheckpointError: no such entry (a checkpoint of an older format, read
+            without :func:`~torchcf.amortised.load_trained`'s check).
+    """
+    noise = fingerprint.get("noise")
+    names = [f.name for f in fields(NoiseLevels)]
+    if not isinstance(noise, Mapping) or sorted(noise) != sorted(names):
+        raise CheckpointError(
+            f"the fingerprint's noise is {noise!r}, not NoiseLevels' fields: "
+            "a checkpoint of an older torchcf; train the estimator again"
+        )
+    return NoiseLevels(**{name: float(noise[name]) for name in names})
 
 
 def _fingerprint(
@@ -425,7 +446,7 @@ def _fingerprint(
     return {
         **estimator_fingerprint(estimator),
         "window_steps": sim.window_steps,
-        "noise": repr(sim.noise),
+        "noise": asdict(sim.noise),
         "chunk_size": sim.chunk_size,
         "simulator_seed": simulator.seed,
         "pairs": [simulator.pairs.name, simulator.pairs.n_pairs],
@@ -439,6 +460,7 @@ __all__ = [
     "TrainingResult",
     "TrainingSettings",
     "estimator_fingerprint",
+    "fingerprint_noise",
     "train_estimator",
     "validation_scores",
 ]

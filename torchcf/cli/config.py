@@ -1,9 +1,8 @@
-"""``torchcf config`` (``python -m torchcf.config``): validate a run
-configuration, or print the schema.
+"""``torchcf config``: validate a run configuration, or print the schema.
 
     torchcf config configs/carII.json --set abc.seed=3   # resolved + hash
     torchcf config --schema                              # every field
-    python -m torchcf.config --schema                    # the same
+    python -m torchcf config --schema                    # the same
 
 Exit codes (:mod:`torchcf.system.console`): 0 done; 2 a bad configuration (one line on
 stderr) or bad arguments.
@@ -25,14 +24,14 @@ from ..system.console import (
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m torchcf.config``: print the schema, or a resolved config.
+    """``torchcf config``: print the schema, or a resolved config.
 
     Returns:
         0 on success, 2 on a bad configuration (``error: <one line>`` on stderr).
     """
     parser = OneLineParser(
         formatter_class=DefaultsHelpFormatter,
-        prog="python -m torchcf.config",
+        prog="torchcf config",
         description=(
             "Validate a torchcf run configuration and print it resolved (every "
             "default filled in) with its hash, or print the JSON schema."
@@ -57,7 +56,3 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
 
     return run_main(body)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

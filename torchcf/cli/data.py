@@ -1,22 +1,21 @@
-"""``torchcf data extract`` (``python -m torchcf.data extract``): raw trajectories
-to a six-CSV pair folder.
+"""``torchcf data extract``: raw trajectories to a six-CSV pair folder.
 
-    python -m torchcf.data extract openacc/ --format openacc --out pairs/openacc
-    python -m torchcf.data extract trajectories-0400-0415.txt --format ngsim \\
+    torchcf data extract openacc/ --format openacc --out pairs/openacc
+    torchcf data extract trajectories-0400-0415.txt --format ngsim \\
         --out pairs/i80
-    python -m torchcf.data extract log.csv --format csv \\
+    torchcf data extract log.csv --format csv \\
         --columns vehicle=id,time=t,position=x,speed=v,leader=lead \\
         --speed-unit km/h --out pairs/mine
-    python -m torchcf.data extract ultra-av/ --format pairs --out pairs/ultra
-    python -m torchcf.data extract couples.csv --format pairs \\
+    torchcf data extract ultra-av/ --format pairs --out pairs/ultra
+    torchcf data extract couples.csv --format pairs \\
         --columns pair=id,time=frame,x_lead=xl,x_follow=xf,gap=s \\
         --time-unit frame --frame-rate 25 --out pairs/video
-    python -m torchcf.data extract punzo/ --format punzo --out pairs/punzo
-    python -m torchcf.data extract log.csv --format csv --window whole \\
+    torchcf data extract punzo/ --format punzo --out pairs/punzo
+    torchcf data extract log.csv --format csv --window whole \\
         --test-fraction 0 --out pairs/whole
 
 The folder it writes (:mod:`torchcf.data.writer`) is a ``data.path`` for
-``python -m torchcf.train``; a config's ``data.raw`` section runs the same
+``torchcf train``; a config's ``data.raw`` section runs the same
 extraction when the run starts. With ``--test-fraction 0`` the folder has no
 test split (no ``Testing/``): a run trains on it and skips the evaluation.
 Exit codes: 0 done, 2 bad input (one line on stderr), 130 interrupted.
@@ -114,7 +113,7 @@ def _window(text: str) -> float | str:
 
 def _parser() -> argparse.ArgumentParser:
     parser = OneLineParser(
-        prog="python -m torchcf.data",
+        prog="torchcf data",
         description="Raw trajectory data to torchcf's pair layout.",
         formatter_class=DefaultsHelpFormatter,
     )
@@ -416,7 +415,7 @@ def _whole_line(summary: dict) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m torchcf.data``. Returns the exit code."""
+    """``torchcf data``. Returns the exit code."""
     args = _parser().parse_args(argv)
 
     def body() -> int:
@@ -429,7 +428,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             options=raw.extract_options(),
         )
         record = {
-            "command": "python -m torchcf.data "
+            "command": "torchcf data "
             + " ".join(sys.argv[1:] if argv is None else argv),
             "raw": raw.model_dump(),
         }
@@ -440,7 +439,3 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
 
     return run_main(body)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

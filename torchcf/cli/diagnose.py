@@ -1,6 +1,5 @@
-"""``torchcf diagnose RUN_DIR [--set diagnose.KEY=VALUE ...]`` (``python -m
-torchcf.diagnose``): close the loop on a finished, evaluated run
-(:func:`torchcf.study.pipeline.close_loop`).
+"""``torchcf diagnose RUN_DIR [--set diagnose.KEY=VALUE ...]``: close the loop
+on a finished, evaluated run (:func:`torchcf.study.pipeline.close_loop`).
 
     torchcf diagnose runs/carII --set diagnose.n_particles=100000
 
@@ -14,14 +13,13 @@ attribution continues after its last finished arm,
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Sequence
 from operator import attrgetter
 
 import torch
 
-from ..diagnose.outcome import LoopResult
-from ..diagnose.report import fmt
+from ..diagnose.report.markdown import fmt
+from ..diagnose.report.outcome import LoopResult
 from ..runs.directory import RunDir
 from ..study.pipeline import close_loop
 from ..system.console import (
@@ -36,7 +34,7 @@ from ..system.console import (
 def _parser() -> argparse.ArgumentParser:
     parser = OneLineParser(
         formatter_class=DefaultsHelpFormatter,
-        prog="python -m torchcf.diagnose",
+        prog="torchcf diagnose",
         description="Close the loop on a finished run: residual diagnosis, effect "
         "attribution, re-calibration; writes RUN_DIR/loop.json and loop.md.",
     )
@@ -47,7 +45,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m torchcf.diagnose``.
+    """``torchcf diagnose``.
 
     Returns:
         0 done; 2 an error of the user's making or of the machine; 130
@@ -124,7 +122,3 @@ def _print_result(result: LoopResult, run_dir: str) -> None:
             line += f", searched as after {fmt(metric(done.before_same_search))}"
         print(f"{line}, after {fmt(metric(result.after))}")
     print(f"wrote {RunDir(run_dir).loop_json} and loop.md")
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -20,8 +20,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from ..evaluation.evaluate import evaluate_run
-from ..evaluation.results import Evaluation
 from ..runs.directory import RunDir
+from ..runs.metrics import Evaluation
 from ..system.console import (
     DefaultsHelpFormatter,
     OneLineParser,

@@ -4,16 +4,19 @@ entry to every command line.
     torchcf --help
     torchcf train configs/carII.json
     torchcf evaluate runs/carII
+    python -m torchcf train configs/carII.json    # the same command
+    torchrun --standalone --nproc-per-node 4 -m torchcf train configs/carII.json
 
 Each command is a module of :mod:`torchcf.cli` whose ``main`` gets the rest of
-the arguments; ``python -m torchcf.<x>`` runs the same ``main`` (``torchcf
-evaluate RUN`` is ``torchcf evaluate RUN``: the same options, help,
-output and exit codes). A command's module is imported only when it is run, so
-``torchcf --help`` answers at once.
+the arguments. These two are the only entries: the console script
+``torchcf`` and ``python -m torchcf`` (:mod:`torchcf.__main__`), the same
+dispatcher (the same options, help, output and exit codes); no package below
+``torchcf`` runs under ``python -m``. A command's module is imported only when
+it is run, so ``torchcf --help`` answers at once.
 
 ``train`` runs the study of a config (training, the test-split evaluation and,
 where ``diagnose.run_after_training`` asks, the loop; ``--no-eval``: training
-only), as ``python -m torchcf.train`` does.
+only).
 
 Exit codes: the command's own; 0 for ``--help``; 2 for a missing or unknown
 command (one line on stderr).
@@ -62,11 +65,7 @@ def usage() -> str:
         "commands:",
     ]
     lines += [f"  {name:<{width}}  {text}" for name, (_, text) in COMMANDS.items()]
-    lines += [
-        "",
-        "python -m torchcf.<package> runs the same commands (train, data, diagnose,",
-        "config, posterior, sumo).",
-    ]
+    lines += ["", "python -m torchcf COMMAND runs the same commands."]
     return "\n".join(lines)
 
 
@@ -91,7 +90,3 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USER_ERROR
     module = importlib.import_module(COMMANDS[name][0])
     return int(module.main(rest))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

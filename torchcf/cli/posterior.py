@@ -1,14 +1,14 @@
-"""``torchcf posterior RUN`` (``python -m torchcf.posterior RUN``): the calibrated
-parameters of a run, and its shares per group of pairs.
+"""``torchcf posterior RUN``: the calibrated parameters of a run, and its shares
+per group of pairs.
 
-    python -m torchcf.posterior runs/carII            # Markdown tables, to stdout
-    python -m torchcf.posterior runs/carII --csv      # RUN/report/parameters.{csv,md}
-    python -m torchcf.posterior runs/carII --csv out.csv
-    python -m torchcf.posterior runs/carII --csv -    # the CSV to stdout
+    torchcf posterior runs/carII            # Markdown tables, to stdout
+    torchcf posterior runs/carII --csv      # RUN/report/parameters.{csv,md}
+    torchcf posterior runs/carII --csv out.csv
+    torchcf posterior runs/carII --csv -    # the CSV to stdout
 
-    python -m torchcf.posterior runs/zz --by mode        # shares per index.csv mode
-    python -m torchcf.posterior runs/zz --by mode --csv  # report/shares_by_mode.*
-    python -m torchcf.posterior runs/zz --groups makes.csv --cluster run,follower
+    torchcf posterior runs/zz --by mode        # shares per index.csv mode
+    torchcf posterior runs/zz --by mode --csv  # report/shares_by_mode.*
+    torchcf posterior runs/zz --groups makes.csv --cluster run,follower
 
 Reads ``RUN/posterior.pt`` (a finished training; :mod:`torchcf.posterior.tables`
 says what the tables hold). Training writes the parameter tables into
@@ -72,7 +72,7 @@ DEFAULT = "report"
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = OneLineParser(
-        prog="python -m torchcf.posterior",
+        prog="torchcf posterior",
         description="The calibrated parameters of a trained run: a Markdown table "
         "per model (median and 5-95% range), or one CSV row per accepted particle; "
         "with --by or --groups, the hybrid's shares per group of training pairs.",
@@ -222,7 +222,3 @@ def _grouped(
 
 
 __all__ = ["main"]
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -194,7 +194,3 @@ def print_summary(summary: PredictionSummary) -> None:
 
 def _f(value) -> str:
     return "-" if value is None else f"{value:.3f}"
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,5 +1,5 @@
 """``torchcf sumo export RUN --out DIR`` and ``torchcf sumo verify RUN [--out
-DIR]`` (``python -m torchcf.sumo ...``): the learned hybrid in Eclipse SUMO.
+DIR]``: the learned hybrid in Eclipse SUMO.
 
 - ``export``: the hybrid's particles of the models SUMO has (IDM) as a SUMO
   additional file ``DIR/hybrid.vtypes.add.xml`` (a ``vTypeDistribution``, one
@@ -19,7 +19,6 @@ corrupted file, bad arguments, SUMO not installed (the message names the extra
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Sequence
 
 from ..runs.directory import RunDir
@@ -37,7 +36,7 @@ from ..system.console import (
 def _parser() -> argparse.ArgumentParser:
     parser = OneLineParser(
         formatter_class=DefaultsHelpFormatter,
-        prog="python -m torchcf.sumo",
+        prog="torchcf sumo",
         description="The learned hybrid in Eclipse SUMO.",
     )
     commands = parser.add_subparsers(dest="command", required=True)
@@ -90,7 +89,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m torchcf.sumo``.
+    """``torchcf sumo``.
 
     Returns:
         0 done; 2 an error of the user's making or of the machine; 130
@@ -154,7 +153,3 @@ def _verify(args: argparse.Namespace) -> int:
     out = args.out if args.out is not None else f"{args.run_dir}/sumo"
     print(f"wrote {out}/verify.json and verify.md")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

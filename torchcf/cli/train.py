@@ -1,4 +1,4 @@
-"""``torchcf train CONFIG`` (and ``python -m torchcf.train CONFIG``): the study of
+"""``torchcf train CONFIG`` (and ``python -m torchcf train CONFIG``): the study of
 a config, alone or under torchrun: training, then the test-split evaluation, then
 the loop where configured.
 
@@ -6,7 +6,7 @@ the loop where configured.
     torchcf train configs/smoke.json --set abc.n_particles=50000 --out runs/smoke
     torchcf train configs/carII.json --resume      # after a crash or kill -9
     torchcf train configs/carII.json --no-eval     # training only
-    torchrun --standalone --nproc-per-node 4 -m torchcf.train configs/carII.json
+    torchrun --standalone --nproc-per-node 4 -m torchcf train configs/carII.json
 
 Runs :func:`torchcf.study.pipeline.run_study` (the output directory, data and
 budget checked first, then :func:`torchcf.train.train`, then the test-split
@@ -36,6 +36,7 @@ from ..abc.distributed import SINGLE, Group, init_from_env
 from ..config import TrainConfig, load_config
 from ..posterior.tables import piled_at_bounds
 from ..runs.directory import RunDir
+from ..runs.summary import RunSummary
 from ..study.pipeline import StudyResult, run_study
 from ..system.console import (
     DefaultsHelpFormatter,
@@ -45,7 +46,6 @@ from ..system.console import (
     one_line,
     run_main,
 )
-from ..train import RunSummary
 
 #: A command's work on a loaded config: (cfg, out, resume, group) -> its result.
 Step = Callable[[TrainConfig, Path, bool, Group], StudyResult]
@@ -88,13 +88,12 @@ DESCRIPTION = (
 )
 
 
-def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
-    """The command's parser, named ``prog`` (``torchcf train`` or ``python -m
-    torchcf.train``: the same command)."""
+def build_parser() -> argparse.ArgumentParser:
+    """The command's parser."""
     parser = run_parser(
-        prog,
+        PROG,
         DESCRIPTION,
-        "Distributed: torchrun --standalone --nproc-per-node K -m torchcf.train "
+        "Distributed: torchrun --standalone --nproc-per-node K -m torchcf train "
         "CONFIG (docs/training.md, 'Distributed runs').",
     )
     parser.add_argument(
@@ -106,16 +105,16 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
-    """``torchcf train`` (``python -m torchcf.train``), alone or under
-    ``torchrun``: training, evaluation, and the loop if configured
+def main(argv: Sequence[str] | None = None) -> int:
+    """``torchcf train``, alone or under ``torchrun`` (``torchrun ... -m
+    torchcf train CONFIG``): training, evaluation, and the loop if configured
     (:mod:`torchcf.study.pipeline`); training only with ``--no-eval``.
 
     Returns:
         0 done; 2 an error of the user's making or of the machine (one line on
         stderr); 130 interrupted.
     """
-    parser = build_parser(prog)
+    parser = build_parser()
     args = parser.parse_args(argv)
     evaluate = not args.no_eval
 
@@ -217,12 +216,12 @@ def print_result(
         shown = ", ".join(f"{m} {v:.1%}" for m, v in evidence.items() if v >= 0.0005)
         print(f"evidence shares (prior mass within the hybrid's thresholds): {shown}")
     if evaluated and run.is_evaluated():
-        metrics = run.read_metrics()
-        hybrid = {k: _fmt(v) for k, v in metrics["hybrid"].items()}
-        took = f" ({metrics['seconds']:.1f} s)" if "seconds" in metrics else ""
+        evaluation = run.read_metrics()
+        hybrid = evaluation.hybrid.metrics
         print(
-            f"test split ({metrics['n_test']} pairs), hybrid: WS {hybrid['ws']}, "
-            f"0.15-WS {hybrid['beta_ws']}, minimum distance {hybrid['min']}{took}"
+            f"test split ({evaluation.n_test} pairs), hybrid: WS {_fmt(hybrid.ws)}, "
+            f"0.15-WS {_fmt(hybrid.beta_ws)}, minimum distance {_fmt(hybrid.min)} "
+            f"({evaluation.seconds:.1f} s)"
         )
     if wrote:
         print(f"wrote {run.path}")
@@ -251,9 +250,5 @@ def report_error(error: BaseException, group: Group) -> None:
 
 
 def _fmt(value: Any) -> str:
-    """A metric for the console: 3 decimals, or as stored ("inf")."""
+    """A metric for the console: 3 decimals ("inf", "nan" as such)."""
     return f"{value:.3f}" if isinstance(value, int | float) else str(value)
-
-
-if __name__ == "__main__":  # torchrun -m torchcf.cli.train
-    raise SystemExit(main())

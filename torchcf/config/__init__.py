@@ -5,8 +5,8 @@ with its ABC methods' settings in :mod:`torchcf.config.methods`, the loop's in
 :mod:`torchcf.config.loading` (its loader and hash),
 :mod:`torchcf.config.overrides` (``--set key=VALUE``),
 :mod:`torchcf.config.pairs` (the ``data`` section to its pairs: :func:`load_split`),
-:mod:`torchcf.config.messages` (one-line errors) and ``python -m torchcf.config``
-(:mod:`torchcf.config.__main__`).
+:mod:`torchcf.config.messages` (one-line errors) and the ``torchcf config``
+command (:mod:`torchcf.cli.config`).
 
 Re-exports only.
 """

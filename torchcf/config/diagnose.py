@@ -16,7 +16,7 @@ __all__ = ["DiagnoseConfig"]
 
 
 class DiagnoseConfig(BaseModel):
-    """Close the loop after training (``python -m torchcf.diagnose RUN_DIR``).
+    """Close the loop after training (``torchcf diagnose RUN_DIR``).
 
     Residual diagnosis of the run's hybrid, attribution of candidate effects by
     their out-of-sample gain in small ABC runs, re-calibration with the chosen
@@ -231,24 +231,13 @@ class DiagnoseConfig(BaseModel):
             "abc.seed. Another seed checks that the answer is not luck."
         ),
     )
-    recalibration: Literal["train", "search"] = Field(
-        "train",
-        description=(
-            "How the chosen effects are re-calibrated on the whole training "
-            "windows: 'train' trains every pool model's variant as the run "
-            "trained its models (abc.method, abc.n_particles, beside the run's "
-            "buffers) against the pool given the same draws again; 'search' "
-            "refines the run's best particles by local search, with and without "
-            "the effects."
-        ),
-    )
     detectable: bool = Field(
         True,
         description=(
             "Where the loop chooses nothing (its first step), estimate per "
             "tested effect the "
             "smallest size its test would have found in these data "
-            "(:mod:`torchcf.diagnose.power`; one refit per size tried). Off "
+            "(:mod:`torchcf.diagnose.selection.power`; one refit per size tried). Off "
             "only to save that time where the sizes are not read (a power "
             "study)."
         ),

@@ -79,7 +79,7 @@ class AmortisedNetworkConfig(BaseModel):
 class RefineConfig(BaseModel):
     """The optional refinement of an amortised run: per model and training
     pair, a short SMC (:mod:`torchcf.abc.smc`) whose first population is the
-    pair's best amortised samples (:mod:`torchcf.train.refinement`)."""
+    pair's best amortised samples (:mod:`torchcf.calibration.refinement`)."""
 
     model_config = STRICT
 

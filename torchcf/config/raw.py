@@ -2,7 +2,7 @@
 
     "data": {"raw": {"source": "openacc/", "format": "openacc", "window": 40}}
 
-The same settings as ``python -m torchcf.data extract`` (the command line builds a
+The same settings as ``torchcf data extract`` (the command line builds a
 :class:`RawSource` too), so a study run from a config and a folder extracted by
 hand hold the same pairs. Reading and extraction live in :mod:`torchcf.data`:
 :func:`torchcf.data.importer.extract_source`.

@@ -1,4 +1,4 @@
-"""The configuration of a training run: ``python -m torchcf.train CONFIG``.
+"""The configuration of a training run: ``torchcf train CONFIG``.
 
 A run is described by one JSON object, validated by :class:`TrainConfig`::
 
@@ -18,10 +18,10 @@ message that names the key, e.g. ``abc.n_particles: must be > 0, got -5``. The
 ``--set`` syntax lives in :mod:`torchcf.config.overrides`, the one-line messages
 in :mod:`torchcf.config.messages`.
 
-Command line (:mod:`torchcf.config.__main__`)::
+Command line (:mod:`torchcf.cli.config`)::
 
-    python -m torchcf.config --schema                  # the JSON schema
-    python -m torchcf.config CONFIG [--set k=v ...]    # resolved config and hash
+    torchcf config --schema                  # the JSON schema
+    torchcf config CONFIG [--set k=v ...]    # resolved config and hash
 """
 
 from __future__ import annotations
@@ -88,8 +88,8 @@ class DataConfig(BaseModel):
         None,
         description=(
             "A raw trajectory file or folder, extracted into pairs when the run "
-            "starts (torchcf.data.extract; the same settings as python -m "
-            "torchcf.data extract). Exactly one of name, path and raw."
+            "starts (torchcf.data.extract; the same settings as torchcf data "
+            "extract). Exactly one of name, path and raw."
         ),
     )
     root: str | None = Field(
@@ -591,7 +591,7 @@ def _models_schema(schema: JSON) -> None:
 
 
 class TrainConfig(BaseModel):
-    """A whole training run: ``python -m torchcf.train CONFIG``."""
+    """A whole training run: ``torchcf train CONFIG``."""
 
     model_config = STRICT
 

@@ -113,6 +113,16 @@ class ExtractOptions:
         test_fraction: share of the pairs to put in the test split, in [0, 1).
         seed: seed of the split's random order of groups.
         name: name of the pair set (defaults to the table's source).
+
+    Examples:
+        >>> from torchcf.data.extract import ExtractOptions
+        >>> options = ExtractOptions(window=10.0, test_fraction=0.0)  # 10 s pairs
+        >>> options.stride, options.split_by
+        (None, 'follower')
+        >>> ExtractOptions(window="whole", stride=5.0)
+        Traceback (most recent call last):
+            ...
+        torchcf.data.pairset.DataError: stride is not used with window 'whole': ...
     """
 
     window: float | Literal["auto", "whole"] = DEFAULT_WINDOW
@@ -185,6 +195,25 @@ class Extraction:
             data.
         whole: the pairs are whole couples of their own lengths (ragged:
             ``pairs.mask``), not windows of one length.
+
+    Examples:
+        >>> import numpy as np
+        >>> import pandas as pd
+        >>> from torchcf.data.extract import ExtractOptions, extract_pairs
+        >>> from torchcf.data.trajectory import TrajectoryTable
+        >>> t = np.round(np.arange(0.0, 30.0, 0.1), 10)  # 30 s at 0.1 s
+        >>> car = {"time": t, "speed": 15.0, "acceleration": 0.0, "length": 5.0}
+        >>> leader = pd.DataFrame({"vehicle": "L", "position": 30.0 + 15.0 * t, **car})
+        >>> follower = pd.DataFrame({"vehicle": "F", "position": 15.0 * t, **car})
+        >>> follower["leader"] = "L"  # 30 m behind it, both at 15 m/s
+        >>> rows = pd.concat([leader, follower])
+        >>> table = TrajectoryTable.from_frame(rows, source="demo")
+        >>> options = ExtractOptions(window=10.0, test_fraction=0.0)  # 10 s pairs
+        >>> found = extract_pairs(table, options)
+        >>> found.train.n_pairs, found.test, round(found.dt, 3)
+        (3, None, 0.1)
+        >>> list(found.index["t_start"])  # [s]
+        [0.0, 10.0, 20.0]
     """
 
     pairs: PairSet
@@ -256,6 +285,26 @@ def extract_pairs(
             lasting one window (or :data:`MIN_WHOLE_LENGTH` for whole couples),
             no window or stretch passing the filters (the message counts what
             each filter removed), or a split that cannot keep groups apart.
+
+    Examples:
+        >>> import numpy as np
+        >>> import pandas as pd
+        >>> from torchcf.data.extract import ExtractOptions, extract_pairs
+        >>> from torchcf.data.trajectory import TrajectoryTable
+        >>> t = np.round(np.arange(0.0, 30.0, 0.1), 10)  # 30 s at 0.1 s
+        >>> car = {"time": t, "speed": 15.0, "acceleration": 0.0, "length": 5.0}
+        >>> leader = pd.DataFrame({"vehicle": "L", "position": 30.0 + 15.0 * t, **car})
+        >>> follower = pd.DataFrame({"vehicle": "F", "position": 15.0 * t, **car})
+        >>> follower["leader"] = "L"  # 30 m behind it, both at 15 m/s
+        >>> rows = pd.concat([leader, follower])
+        >>> table = TrajectoryTable.from_frame(rows, source="demo")
+        >>> options = ExtractOptions(window=10.0, test_fraction=0.0)  # 10 s pairs
+        >>> found = extract_pairs(table, options)
+        >>> found.pairs.n_pairs, found.pairs.n_steps  # three 10 s windows
+        (3, 100)
+        >>> spacing = found.pairs.x_lead - found.pairs.x_follow  # [m]
+        >>> round(float(spacing.min()), 3), round(float(spacing.max()), 3)
+        (30.0, 30.0)
     """
     options = options or ExtractOptions()
     table = fill_derivatives(
@@ -846,6 +895,16 @@ def group_split(
 
     Raises:
         DataError: a test share is asked for but there is only one group.
+
+    Examples:
+        >>> import pandas as pd
+        >>> from torchcf.data.extract import ExtractOptions, group_split
+        >>> index = pd.DataFrame(
+        ...     {"pair": [0, 1, 2, 3], "run": "r", "follower": ["A", "A", "B", "C"]}
+        ... )
+        >>> index, train, test = group_split(index, ExtractOptions(test_fraction=0.25))
+        >>> len(train) + len(test), list(index["split"]).count("test") == len(test)
+        (4, True)
     """
     keys = {
         "follower": ["run", "follower"],

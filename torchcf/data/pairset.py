@@ -55,7 +55,7 @@ class PairSet:
     Build one with :meth:`from_arrays` (converts, pads, validates) or through
     ``torchcf.data.load_pairs``; the constructor validates but converts nothing.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torchcf import PairSet
         >>> t = torch.arange(50, dtype=torch.float64)[:, None] * 0.1  # (T, 1) [s]
@@ -85,7 +85,7 @@ class PairSet:
             road (road effects such as a grade profile are then shared by the
             pairs), False when each pair has its own frame, None when the data
             do not say (``meta.json``'s ``"road_frame"``; the diagnosis then
-            decides, :func:`torchcf.diagnose.road.shares_road_frame`).
+            decides, :func:`torchcf.diagnose.signatures.road.shares_road_frame`).
         road_period: the lap length [m] when that road is a closed track
             (positions are then odometers round it and a road profile is
             periodic, :class:`torchcf.models.effects.RoadProfile`); None for

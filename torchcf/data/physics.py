@@ -20,7 +20,7 @@ acceleration    99 % of the recorded ones under             flagged in the notes
 
 A refusal is a :class:`~torchcf.data.pairset.DataError` naming the column and
 the unit it most likely is; a flag is a note of the extraction, printed by
-``python -m torchcf.data extract``.
+``torchcf data extract``.
 """
 
 from __future__ import annotations

@@ -64,6 +64,11 @@ def unit_factor(units: str) -> float:
 
     Raises:
         DataError: unknown unit system.
+
+    Examples:
+        >>> from torchcf.data.reader import unit_factor
+        >>> unit_factor("ft"), unit_factor("m")  # to metres
+        (0.3048, 1.0)
     """
     if units not in UNITS:
         valid = ", ".join(repr(u) for u in UNITS)
@@ -97,6 +102,20 @@ def read_six_csv(
             and column of the problem), files of different shapes, an invalid
             ``units``/``dt``/``leader_length``, or data that is not a valid
             PairSet (e.g. non-positive spacing, in metres).
+
+    Examples:
+        >>> import tempfile
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]  # a, b, v0, T, s0, delta (SI)
+        >>> pairs = synthetic_pairs(get_model("idm"), idm, n_pairs=4, n_steps=50)
+        >>> from torchcf.data import read_six_csv
+        >>> from torchcf.data.writer import write_six_csv
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     write_six_csv(pairs, folder)
+        ...     back = read_six_csv(folder, dt=0.1, name="demo")
+        >>> back.name, back.n_steps, back.n_pairs, bool(back.x_lead.equal(pairs.x_lead))
+        ('demo', 50, 4, True)
     """
     folder = Path(folder)
     factor = unit_factor(units)

@@ -59,7 +59,8 @@ Any other folder in the six-CSV layout loads by path: units default to "m", and
 ``dt`` comes from the argument or from a ``meta.json`` beside the files
 (``{"dt": 0.1, "units": "m", "leader_length": 5.0, "road_frame": true}``;
 ``road_frame``: whether all pairs' positions are on one road, which road effects
-need, see :func:`torchcf.diagnose.road.shares_road_frame`; ``road_period``, with
+need, see :func:`torchcf.diagnose.signatures.road.shares_road_frame`; ``road_period``,
+with
 it: the lap length [m] of a closed track, whose road profiles are periodic;
 ``pairs``, which reading ignores: an extraction of whole couples says so, with
 their lengths). A folder with ``Trajectory/`` but no ``Testing/`` (extracted with
@@ -134,6 +135,12 @@ class DatasetSpec:
         description: one line for humans.
         road_frame: whether the positions of all pairs are on one road (None:
             the source does not say).
+
+    Examples:
+        >>> from torchcf.data import DATASETS
+        >>> spec = DATASETS["ngsim-i80"]
+        >>> spec.folder, spec.units, spec.dt, spec.leader_length  # dt [s], length [m]
+        ('HDV/NGSIM I_80', 'ft', 0.1, 5.0)
     """
 
     folder: str
@@ -155,6 +162,23 @@ class Cleaning:
         min_spacing: drop pairs whose minimum front-to-front spacing
             ``x_lead - x_follow`` over valid steps is under this value [m];
             None drops none for it.
+
+    Examples:
+        >>> import tempfile
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]  # a, b, v0, T, s0, delta (SI)
+        >>> pairs = synthetic_pairs(get_model("idm"), idm, n_pairs=4, n_steps=50)
+        >>> from torchcf.data import Cleaning, load_pairs
+        >>> from torchcf.data.writer import write_six_csv
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     write_six_csv(pairs.subset([0, 0, 1]), folder)  # pair 0 twice
+        ...     kept = load_pairs(folder, dt=0.1)
+        ...     every = load_pairs(
+        ...         folder, dt=0.1, cleaning=Cleaning(drop_duplicates=False)
+        ...     )
+        >>> kept.n_pairs, every.n_pairs
+        (2, 3)
     """
 
     drop_duplicates: bool = True
@@ -220,6 +244,20 @@ def load_pairs(
     Raises:
         DataError: unknown name, bad split/units/dt, missing or malformed files,
             or data that cannot be found or downloaded.
+
+    Examples:
+        >>> import tempfile
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]  # a, b, v0, T, s0, delta (SI)
+        >>> pairs = synthetic_pairs(get_model("idm"), idm, n_pairs=4, n_steps=50)
+        >>> from torchcf.data import load_pairs
+        >>> from torchcf.data.writer import write_six_csv
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     write_six_csv(pairs, folder)  # a six-CSV folder, SI units
+        ...     loaded = load_pairs(folder, dt=0.1)
+        >>> loaded.n_steps, loaded.n_pairs, loaded.split, loaded.dtype
+        (50, 4, None, torch.float64)
     """
     if split not in SPLITS:
         raise DataError(f"split must be None, 'train' or 'test', got {split!r}")
@@ -726,6 +764,21 @@ def resolve_data_root(
     Raises:
         DataError: the files are nowhere and cannot be downloaded, a download
             fails its checksum, or ``data_root`` lacks a file.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]  # a, b, v0, T, s0, delta (SI)
+        >>> pairs = synthetic_pairs(get_model("idm"), idm, n_pairs=4, n_steps=50)
+        >>> from torchcf.data import resolve_data_root
+        >>> from torchcf.data.writer import write_six_csv
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     write_six_csv(pairs, Path(folder, "AV", "CAR MODEL I"))  # the full set
+        ...     root = resolve_data_root("car-model-1", data_root=folder)
+        ...     print(root == Path(folder))
+        True
     """
     if name not in DATASETS:
         raise DataError(f"unknown dataset {name!r}: one of {', '.join(DATASETS)}")

@@ -36,7 +36,17 @@ __all__ = ["has_test_split", "kfold_split", "split_pairs"]
 def has_test_split(source: str | os.PathLike[str]) -> bool:
     """Whether ``split="dataset"`` has test pairs: a named data set always
     has them; a folder has them in ``Testing/``, which an extraction with
-    ``--test-fraction 0`` does not write (its training split is all of it)."""
+    ``--test-fraction 0`` does not write (its training split is all of it).
+
+    Examples:
+        >>> import tempfile
+        >>> from torchcf.data.splits import has_test_split
+        >>> has_test_split("car-model-1")  # a named data set
+        True
+        >>> with tempfile.TemporaryDirectory() as folder:  # no Testing/ in it
+        ...     print(has_test_split(folder))
+        False
+    """
     if isinstance(source, str) and source in DATASETS:
         return True
     return (Path(source) / SPLITS["test"]).is_dir()
@@ -66,6 +76,18 @@ def kfold_split(
     Raises:
         DataError: ``folds < 2``, ``fold`` out of range, or fewer pairs than folds
             (a fold would be empty).
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]  # a, b, v0, T, s0, delta (SI)
+        >>> pairs = synthetic_pairs(get_model("idm"), idm, n_pairs=4, n_steps=50)
+        >>> from torchcf.data import kfold_split
+        >>> train, test = kfold_split(pairs, folds=2, fold=0, seed=0)
+        >>> train.n_pairs, test.n_pairs, train.split, test.split
+        (2, 2, 'train', 'test')
+        >>> sorted(train.pair_ids + test.pair_ids)
+        [0, 1, 2, 3]
     """
     if folds < 2:
         raise DataError(f"folds must be >= 2, got {folds}")
@@ -121,6 +143,26 @@ def split_pairs(
     Raises:
         DataError: the data cannot be loaded, the split is unknown, the k-fold
             split is impossible, or test pairs are required and there are none.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]  # a, b, v0, T, s0, delta (SI)
+        >>> pairs = synthetic_pairs(get_model("idm"), idm, n_pairs=4, n_steps=50)
+        >>> from torchcf.data import split_pairs
+        >>> from torchcf.data.writer import write_six_csv
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     write_six_csv(pairs, folder)  # the full set
+        ...     write_six_csv(pairs.subset([0, 1, 2]), Path(folder) / "Trajectory")
+        ...     write_six_csv(pairs.subset([3]), Path(folder) / "Testing")
+        ...     train, test = split_pairs(folder, dt=0.1)
+        ...     folded = split_pairs(folder, "kfold", folds=2, fold=1, seed=0, dt=0.1)
+        >>> train.n_pairs, test.n_pairs
+        (3, 1)
+        >>> [part.n_pairs for part in folded]
+        [2, 2]
     """
     if split == "dataset":
         train = load_pairs(source, "train", **load_options)

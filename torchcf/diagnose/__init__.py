@@ -1,41 +1,45 @@
 """Close the loop: residual -> missing effect -> augmented models -> error before/after.
 
-``python -m torchcf.diagnose RUN_DIR [--set diagnose.key=VALUE ...]`` (or
+``torchcf diagnose RUN_DIR [--set diagnose.key=VALUE ...]`` (or
 ``diagnose.run_after_training`` in the run's config) takes a finished, evaluated
-run through the loop (:func:`torchcf.study.pipeline.close_loop`). Its concerns:
+run through the loop (:func:`torchcf.study.pipeline.close_loop`). Its rooms,
+by the loop's stage:
 
-- :mod:`.series`: the best hybrid particle per pair, its residual series and
-  their structure tests (:mod:`.residuals`, the statistics);
-- :mod:`.signatures`: what the residual of the fit windows points to;
-- :mod:`.candidates`: the attribution's start, drawn by the ABC engine
-  (:mod:`torchcf.abc.rejection`);
-- :mod:`.population`: an arm's particles, per pair S slots;
-- :mod:`.search`: local search with common random numbers, nested starts, a
-  shared effect's one value;
-- :mod:`.significance`: the sign-flip test, the fallback procedure and the
-  paired comparison of two runs on the test pairs;
-- :mod:`.absorption`: which of a model's own parameters takes an effect up;
-- :mod:`.arms`: the base, placebo and effect arms of a step;
-- :mod:`.attribution`: forward selection of nested arms;
-- :mod:`.tested`: one effect's test at one step (a row of the selection);
-- :mod:`.retrain`: the chosen effects on the whole training windows, trained by
-  the run's own sampler (``diagnose.recalibration = "train"``);
-- :mod:`.recalibrate`: the same by local search (``"search"``), and the run
-  directories of a re-calibration;
-- :mod:`.loop`: the loop's steps (:func:`plan_loop`, :func:`run_recalibration`,
+- :mod:`.signatures` (step 1, what the residual points to): :mod:`.series`
+  (the best hybrid particle per pair, its residual series and their structure
+  tests, :mod:`.residuals`' statistics), :mod:`.families` (the signatures and
+  the effects each points to), :mod:`.road` (road effects at the data's
+  resolution), :mod:`.response` (response times, data and models);
+- :mod:`.arms` (step 2, fitting an effect beside the pool): :mod:`.candidates`
+  (the attribution's start, drawn by the ABC engine), :mod:`.population`
+  (an arm's particles, per pair S slots), :mod:`.search` (local search with
+  common random numbers), :mod:`.refit` (per-pair refits), :mod:`.arena` (the
+  base, placebo and effect arms of a step), :mod:`.absorption` (which of a
+  model's own parameters takes an effect up), :mod:`.identifiability`,
+  :mod:`.validation` (how an arm is judged out of sample), :mod:`.ledger`
+  (finished fits kept for a resume);
+- :mod:`.selection` (step 2, the decisions): :mod:`.attribution` (forward
+  selection of nested arms), :mod:`.tested` (one effect's test at one step),
+  :mod:`.power` (the detectable sizes), :mod:`.on_test` (the model class
+  judged on the test pairs);
+- :mod:`.recalibration` (step 3): the chosen effects on the whole training
+  windows, trained by the run's own sampler, and the run directories of the
+  re-calibration;
+- :mod:`.report` (step 4): :mod:`.outcome` (the loop's result,
+  :class:`LoopResult`, ``loop.json``), :mod:`.markdown` (``loop.md`` and its
+  figures), :mod:`.method` (the method's text);
+- shared: :mod:`.significance` (the sign-flip test, the fallback procedure,
+  the paired comparison of two runs), :mod:`.workers` (the process pool),
+  :mod:`.loop` (the steps: :func:`plan_loop`, :func:`run_recalibration`,
   :func:`finish_loop`);
-- :mod:`.outcome`: the loop's result (:class:`LoopResult`, ``loop.json``);
-- :mod:`.road`: road effects at the data's resolution (frame, knot spacing);
-- :mod:`.validation`: how an arm is judged out of sample (in time, or on
-  held-out pairs);
-- :mod:`.report`: ``loop.md``, its figures and ``loop.json``;
-- :mod:`.__main__`: the command line.
+- the command line: :mod:`torchcf.cli.diagnose` (``torchcf diagnose``).
 
 Re-exports only.
 """
 
-from .arms import resolve_effect
-from .attribution import EffectSelection, attribute_effects
+from .arms.arena import resolve_effect
+from .arms.population import Population, merge
+from .arms.validation import split_by_pair, split_in_time
 from .loop import (
     Candidates,
     LoopPlan,
@@ -47,10 +51,11 @@ from .loop import (
     reusable,
     run_recalibration,
 )
-from .outcome import LoopResult, Recalibrated
-from .population import Population, merge
-from .report import loop_markdown
-from .series import (
+from .report.markdown import loop_markdown
+from .report.outcome import LoopResult, Recalibrated
+from .selection.attribution import EffectSelection, attribute_effects
+from .selection.tested import EffectTest
+from .signatures.series import (
     DiagnoseError,
     best_particles,
     diagnose_residuals,
@@ -58,8 +63,6 @@ from .series import (
     residual_tests,
 )
 from .significance import fallback_levels, paired_change, sign_flip_test, step_levels
-from .tested import EffectTest
-from .validation import split_by_pair, split_in_time
 
 __all__ = [
     "Candidates",

@@ -3,17 +3,17 @@
 The loop takes a finished, evaluated run and
 
 1. **diagnoses** the residuals of every training pair driven by its best hybrid
-   particle (:mod:`torchcf.diagnose.series`);
+   particle (:mod:`torchcf.diagnose.signatures.series`);
 2. **attributes**: traces the residual's signatures to the effects they point
    to and chooses effects by forward selection of nested arms on their
-   out-of-sample gain (:mod:`torchcf.diagnose.signatures`,
-   :mod:`torchcf.diagnose.attribution`);
+   out-of-sample gain (:mod:`torchcf.diagnose.signatures.families`,
+   :mod:`torchcf.diagnose.selection.attribution`);
 3. **re-calibrates** the run's particles with the chosen effects on the whole
    training windows, beside the run's particles searched the same way without
-   them (:mod:`torchcf.diagnose.recalibrate`; ``RUN_DIR/loop/after`` and
+   them (:mod:`torchcf.diagnose.recalibration`; ``RUN_DIR/loop/after`` and
    ``RUN_DIR/loop/reference``, each evaluated on the test split);
 4. **reports** ``RUN_DIR/loop.json`` and ``RUN_DIR/loop.md`` with figures in
-   ``RUN_DIR/loop/`` (:mod:`torchcf.diagnose.report`).
+   ``RUN_DIR/loop/`` (:mod:`torchcf.diagnose.report.markdown`).
 
 :func:`plan_loop` does steps 1-2, :func:`run_recalibration` step 3 (the caller,
 :func:`torchcf.study.pipeline.close_loop`, evaluates its runs) and :func:`finish_loop`
@@ -45,18 +45,28 @@ from ..config import (
     validate_config,
 )
 from ..data import PairSet
-from ..evaluation.results import Evaluation
 from ..models import CFModel, get_model
 from ..models.effects import Effect, RoadProfile, parse_effect
 from ..posterior import Posterior
 from ..runs.directory import RunDir
-from ..system.files import RunFileError
-from .arms import spanning
-from .attribution import EffectSelection, RoadStart, attribute_effects
-from .candidates import attribution_seed
-from .identifiability import effect_identifiability
-from .on_test import ClassOnTest, chosen_value, class_on_test
-from .outcome import (
+from ..runs.metrics import Evaluation
+from .arms.arena import spanning
+from .arms.candidates import attribution_seed
+from .arms.identifiability import effect_identifiability
+from .arms.refit import Pin
+from .arms.validation import fit_part, pair_groups
+from .recalibration import (
+    Buffers,
+    FinalModel,
+    buffers_in_order,
+    recalibration_config,
+    retrain,
+    variants_of,
+    wrapped,
+    write_run,
+)
+from .report.markdown import write_report
+from .report.outcome import (
     ChangeOnTest,
     EffectPosterior,
     LoopResult,
@@ -65,29 +75,23 @@ from .outcome import (
     SearchBudget,
     Unexplained,
 )
-from .population import Population
-from .recalibrate import (
-    model_buffers,
-    recalibrate,
-    recalibration_config,
-    write_run,
+from .selection.attribution import EffectSelection, RoadStart, attribute_effects
+from .selection.on_test import ClassOnTest, chosen_value, class_on_test
+from .signatures.families import family_of
+from .signatures.response import ResponseTimes, response_times
+from .signatures.road import (
+    RoadOffer,
+    choose_spacing,
+    one_step_residual,
+    shares_road_frame,
 )
-from .refit import Pin
-from .report import write_report
-from .response import ResponseTimes, response_times
-from .retrain import (
-    Buffers,
-    FinalModel,
-    buffers_in_order,
-    retrain,
-    variants_of,
-    wrapped,
+from .signatures.series import (
+    DiagnoseError,
+    ResidualRow,
+    best_particles,
+    diagnose_residuals,
 )
-from .road import RoadOffer, choose_spacing, one_step_residual, shares_road_frame
-from .series import DiagnoseError, ResidualRow, best_particles, diagnose_residuals
-from .signatures import family_of
 from .significance import paired_change
-from .validation import fit_part, pair_groups
 
 Series = dict[str, list[np.ndarray]]
 
@@ -197,15 +201,15 @@ def candidate_effects(
     """The effects the attribution tries, resolved on the training pairs.
 
     Args:
-        series: the one-step residual (:func:`~torchcf.diagnose.road.
+        series: the one-step residual (:func:`~torchcf.diagnose.signatures.road.
             one_step_residual`) of the run's best particle per pair.
 
     Road effects (``scope = "road"``) only where the pairs share one road frame
-    (:func:`~torchcf.diagnose.road.shares_road_frame`); a bare ``grade`` or
+    (:func:`~torchcf.diagnose.signatures.road.shares_road_frame`); a bare ``grade`` or
     ``bend`` spans the pairs' road section with its knot spacing chosen by
     cross-validation on the one-step residuals of the part the arms are fitted
-    on (:func:`~torchcf.diagnose.validation.fit_part`)
-    (:func:`~torchcf.diagnose.road.choose_spacing`).
+    on (:func:`~torchcf.diagnose.arms.validation.fit_part`)
+    (:func:`~torchcf.diagnose.signatures.road.choose_spacing`).
     """
     frame, reason = shares_road_frame(train_pairs)
     fit_series = fit_part(cfg, attribution_seed(cfg), train_pairs.n_steps, series)
@@ -334,7 +338,7 @@ def plan_loop(
     run = RunDir(run_dir)
     cfg, posterior, summary = run.load_run()
     cfg = _with_overrides(cfg, overrides)
-    before = read_evaluation(run)
+    before = run.read_metrics()
     train_pairs, test_pairs = load_split(cfg.data) if pairs is None else pairs
     if tuple(train_pairs.pair_ids) != tuple(posterior.train_pair_ids.tolist()):
         raise DiagnoseError("the training pairs differ from the run's posterior")
@@ -373,9 +377,7 @@ def plan_loop(
         run=run,
         cfg=cfg,
         posterior=posterior,
-        # summary.json's content, read at the file's edge: the loop keeps its
-        # label alone (the training summary's record belongs to a later stage)
-        dataset=summary["dataset"],
+        dataset=summary.dataset,
         before=before,
         train_pairs=train_pairs,
         test_pairs=test_pairs,
@@ -390,23 +392,6 @@ def plan_loop(
         response_before=response_times(best_before, series_before, train_pairs),
         class_on_test=on_test,
     )
-
-
-def read_evaluation(run: RunDir) -> Evaluation:
-    """The run's ``metrics.json`` as its record.
-
-    Raises:
-        RunFileError: missing, unreadable or corrupted, or not an evaluation
-            (one written by another release: evaluate the run again).
-    """
-    raw = run.read_metrics()
-    try:
-        return Evaluation.from_json(raw)
-    except ValueError as error:
-        raise RunFileError(
-            f"{run.metrics_json}: {error}; evaluate the run again "
-            f"(torchcf evaluate {run.path})"
-        ) from None
 
 
 def _with_overrides(cfg: TrainConfig, overrides: Sequence[str]) -> TrainConfig:
@@ -426,28 +411,20 @@ def run_recalibration(
 ) -> None:
     """Loop step 3: the reference and after, written as run directories
     (evaluation is the caller's: :func:`torchcf.study.pipeline.close_loop`), by the
-    run's own sampler (``diagnose.recalibration = "train"``,
-    :mod:`torchcf.diagnose.retrain`, with the run's plausibility filter
-    ``screen``, built by the caller) or by local search (``"search"``,
-    :mod:`torchcf.diagnose.recalibrate`). Nothing to do when nothing is chosen
-    or both are there already."""
+    run's own sampler (:mod:`torchcf.diagnose.recalibration`, with the run's
+    plausibility filter ``screen``, built by the caller). Nothing to do when
+    nothing is chosen or both are there already."""
     if plan.recalibration is None or plan.resume_recalibration:
         return
     models = [spec.model for spec in plan.recalibration.models]
     reference_cfg = recalibration_config(plan.cfg, [], {})
     run_models = [spec.model for spec in reference_cfg.models]
     names, run_names = [m.name for m in models], [m.name for m in run_models]
-    if plan.cfg.diagnose.recalibration == "train":
-        reference, after = _trained_buffers(plan, progress, screen)
-        references = buffers_in_order(reference, run_names)
-        afters = buffers_in_order(after, names)
-        how = "the run's buffers, then the pool's variants trained by the run's "
-        how += "sampler (torchcf.diagnose.retrain)"
-    else:
-        before, now = _searched_populations(plan, progress)
-        references = model_buffers(plan.posterior, before, run_models)
-        afters = model_buffers(plan.posterior, now, models)
-        how = "the run's buffers, then local search (torchcf.diagnose.recalibrate)"
+    reference, after = _trained_buffers(plan, progress, screen)
+    references = buffers_in_order(reference, run_names)
+    afters = buffers_in_order(after, names)
+    how = "the run's buffers, then the pool's variants trained by the run's "
+    how += "sampler (torchcf.diagnose.recalibration)"
     for directory in (plan.reference_dir, plan.recalibration_dir):
         if directory.exists():
             shutil.rmtree(directory)
@@ -472,7 +449,7 @@ def run_recalibration(
 def _trained_buffers(
     plan: LoopPlan, progress: bool, screen: PlausibilityScreen | None
 ) -> tuple[Buffers, Buffers]:
-    """:func:`~torchcf.diagnose.retrain.retrain` with a progress bar in
+    """:func:`~torchcf.diagnose.recalibration.retrain` with a progress bar in
     particles (the reference's and every variant's)."""
     final = FinalModel.of(plan.selection)
     variants = variants_of(final.models, plan.posterior.models)
@@ -493,29 +470,6 @@ def _trained_buffers(
         )
 
 
-def _searched_populations(
-    plan: LoopPlan, progress: bool
-) -> tuple[Population, Population]:
-    """:func:`~torchcf.diagnose.recalibrate.recalibrate` with a progress bar in
-    search rounds."""
-    settings = plan.cfg.diagnose
-    with tqdm(
-        total=settings.max_rounds * (1 + len(plan.chosen)),
-        desc="re-calibration",
-        unit="round",
-        disable=not progress,
-    ) as bar:
-        return recalibrate(
-            plan.cfg,
-            plan.posterior,
-            plan.chosen,
-            plan.selection.shared,
-            plan.pool,
-            plan.train_pairs,
-            tick=bar.update,
-        )
-
-
 def finish_loop(plan: LoopPlan) -> LoopResult:
     """Step 4 of the loop, after the re-calibration was written and evaluated in
     :attr:`LoopPlan.recalibration_dir` and :attr:`LoopPlan.reference_dir` (or
@@ -523,7 +477,7 @@ def finish_loop(plan: LoopPlan) -> LoopResult:
     ``loop.md`` with its figures, the TensorBoard text and, last, ``loop.json``.
 
     Returns:
-        the loop result (:meth:`~torchcf.diagnose.outcome.LoopResult.to_json`
+        the loop result (:meth:`~torchcf.diagnose.report.outcome.LoopResult.to_json`
         is ``RUN_DIR/loop.json``).
 
     Raises:
@@ -605,10 +559,10 @@ def _recalibrated(plan: LoopPlan) -> tuple[Recalibrated | None, Series | None]:
         return None, None
     after = RunDir(plan.recalibration_dir)
     posterior = after.load_posterior()
-    metrics = read_evaluation(after)
+    metrics = after.read_metrics()
     residuals, series = diagnose_residuals(posterior, plan.train_pairs)
     best = best_particles(posterior, plan.train_pairs)
-    reference = read_evaluation(RunDir(plan.reference_dir))
+    reference = RunDir(plan.reference_dir).read_metrics()
     return Recalibrated(
         after_run=after.path,
         reference_run=plan.reference_dir,
@@ -647,7 +601,6 @@ __all__ = [
     "effect_posterior",
     "finish_loop",
     "plan_loop",
-    "read_evaluation",
     "reusable",
     "run_recalibration",
     "unexplained",

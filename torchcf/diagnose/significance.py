@@ -13,7 +13,7 @@ particles, the order of the tests below).
 
 **The procedure** (:func:`fallback_levels`). The effects of a step are tested in
 an order fixed by the fit windows (the residual signatures, then the in-sample
-gain: :func:`torchcf.diagnose.attribution.test_order`), with the *fallback
+gain: :func:`torchcf.diagnose.selection.attribution.test_order`), with the *fallback
 procedure* (Wiens 2003; Wiens & Dmitrienko 2005): the i-th effect of the order
 gets the weight ``w_i = 2^-i / (1 - 2^-E)`` (i = 1..E) of the step's level
 ``alpha_s``, and is tested at ``alpha_i = w_i alpha_s``, plus ``alpha_(i-1)``

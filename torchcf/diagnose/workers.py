@@ -2,7 +2,7 @@
 
 The effect arms of a step are independent of one another (each a pure function
 of the step's start, its base and placebo arms and its own seeded random
-numbers: :mod:`torchcf.diagnose.arms`), so they can run in several processes at
+numbers: :mod:`torchcf.diagnose.arms.arena`), so they can run in several processes at
 once. On a CPU the rollouts of an arm simulate a few thousand particles per
 call, where most of a call's time is the fixed cost of every operation, not the
 arithmetic: one thread per process does nearly as much as two, and two

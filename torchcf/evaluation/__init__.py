@@ -13,5 +13,11 @@
 - :mod:`torchcf.evaluation.bootstrap`: bootstrap over test pairs, percentile
   intervals of the metrics recomputed on each resample, paired differences;
 - :mod:`torchcf.evaluation.uncertainty`: both assembled into the keys of
-  ``metrics.json``, the report and TensorBoard.
+  ``metrics.json``, the report and TensorBoard;
+- :mod:`torchcf.evaluation.evaluate`: :func:`~torchcf.evaluation.evaluate.evaluate_run`,
+  a run's test-split evaluation, its report and ``metrics.json``.
+
+The records of ``metrics.json`` (:class:`~torchcf.runs.metrics.Evaluation` and
+its parts, :class:`~torchcf.runs.metrics.SetMetrics` among them) are
+:mod:`torchcf.runs.metrics`'s.
 """

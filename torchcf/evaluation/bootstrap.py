@@ -30,29 +30,15 @@ from __future__ import annotations
 import zlib
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import NamedTuple
 
 import numpy as np
 import torch
 
+from ..runs.metrics import METRICS, Interval
 from .metrics import beta_wasserstein, wasserstein
 
-#: The metrics resampled, in report order (keys of metrics.json).
-METRICS = ("min", "beta_ws", "ws")
 #: Those that need an LP per resample.
 TRANSPORT = ("beta_ws", "ws")
-
-
-class Interval(NamedTuple):
-    """A point estimate and its percentile bootstrap interval (NaN: none)."""
-
-    value: float
-    low: float
-    high: float
-
-    def excludes_zero(self) -> bool:
-        """Whether the interval lies strictly on one side of 0."""
-        return bool(self.low > 0 or self.high < 0)
 
 
 def resample_counts(
@@ -62,6 +48,12 @@ def resample_counts(
 
     The draws come from ``(seed, crc32(stream))``, so each kind of resample
     (test pairs, training pairs) has its own stream of the run's seed.
+
+    Examples:
+        >>> from torchcf.evaluation.bootstrap import resample_counts
+        >>> counts = resample_counts(3, n_bootstrap=5, seed=0, stream="test pairs")
+        >>> counts.shape, counts.sum(axis=1).tolist()  # each resample draws 3 pairs
+        ((5, 3), [3, 3, 3, 3, 3])
     """
     rng = np.random.default_rng([seed, zlib.crc32(stream.encode("utf-8"))])
     if n_bootstrap == 0 or n_units == 0:
@@ -76,6 +68,13 @@ def percentile_interval(
 
     An infinite draw stays in (an infeasible resample is a real outcome); a
     NaN one (inf - inf) makes the interval NaN. No draws: NaN.
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchcf.evaluation.bootstrap import percentile_interval
+        >>> low, high = percentile_interval(np.arange(1.0, 102.0), level=0.9)
+        >>> round(float(low), 3), round(float(high), 3)
+        (6.0, 96.0)
     """
     if draws.shape[0] == 0:
         nan = np.full(draws.shape[1:], np.nan)
@@ -100,7 +99,16 @@ def cost_with_invalid(
     score: np.ndarray, e_p: np.ndarray, e_v: np.ndarray, e_a: np.ndarray
 ) -> np.ndarray:
     """(P, N) float64 score with every invalid cell at ``+inf`` (as
-    :func:`torchcf.evaluation.metrics.evaluate_costs` sees it)."""
+    :func:`torchcf.evaluation.metrics.evaluate_costs` sees it).
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchcf.evaluation.bootstrap import cost_with_invalid
+        >>> score = np.array([[1.0, 2.0], [0.5, 3.0]])  # (P, N)
+        >>> e_p = np.array([[0.1, np.nan], [0.2, 0.3]])  # [m]; NaN: an invalid rollout
+        >>> cost_with_invalid(score, e_p, e_p, e_p).tolist()
+        [[1.0, inf], [0.5, 3.0]]
+    """
     cost = np.asarray(score, dtype=np.float64)
     valid = np.isfinite(cost)
     for e in (e_p, e_v, e_a):
@@ -122,6 +130,15 @@ def metric_draws(
     Returns:
         ``{"min": (n_bootstrap,), "beta_ws": (n_transport,), "ws": (n_transport,)}``
         (``n_transport`` capped at ``n_bootstrap``).
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchcf.evaluation.bootstrap import metric_draws
+        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N) costs
+        >>> counts = np.array([[1, 1, 1], [3, 0, 0], [0, 0, 3]])  # 3 resamples of N = 3
+        >>> draws = metric_draws(C, counts, beta=0.15, n_transport=2)
+        >>> draws["min"].round(3).tolist(), draws["ws"].round(3).tolist()
+        ([0.833, 1.0, 0.5], [1.0, 1.5])
     """
     n_test = cost.shape[1]
     best = cost.min(axis=0)  # (N,)
@@ -155,7 +172,16 @@ def side_by_side(solve: Callable[[np.ndarray], float], items: Sequence) -> list:
 def intervals(
     values: Mapping[str, float], draws: Mapping[str, np.ndarray], level: float
 ) -> dict[str, Interval]:
-    """``{metric: Interval}`` from the full-sample values and their draws."""
+    """``{metric: Interval}`` from the full-sample values and their draws.
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchcf.evaluation.bootstrap import intervals
+        >>> draws = {"min": np.array([0.5, 1.0, 0.8])}  # 3 resamples
+        >>> found = intervals({"min": 0.8}, draws, level=0.9)
+        >>> found["min"].value, round(found["min"].low, 3), round(found["min"].high, 3)
+        (0.8, 0.53, 0.98)
+    """
     out = {}
     for key, value in values.items():
         low, high = percentile_interval(np.asarray(draws[key]), level)
@@ -185,6 +211,19 @@ def paired_differences(
     Returns:
         ``{other: {metric: Interval(reference - other, low, high)}}``; a
         negative difference of a distance favours the reference.
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchcf.evaluation.bootstrap import paired_differences
+        >>> values = {"hybrid": {"min": 0.8}, "idm": {"min": 1.0}}
+        >>> draws = {
+        ...     "hybrid": {"min": np.array([0.7, 0.8, 0.9])},  # the same 3 resamples
+        ...     "idm": {"min": np.array([1.0, 1.1, 1.2])},
+        ... }
+        >>> found = paired_differences(values, draws, "hybrid", ["idm"], 0.9, ["min"])
+        >>> difference = found["idm"]["min"]
+        >>> round(difference.value, 3), difference.excludes_zero()  # the hybrid leads
+        (-0.2, True)
     """
     out: dict[str, dict[str, Interval]] = {}
     for other in others:
@@ -200,9 +239,7 @@ def paired_differences(
 
 
 __all__ = [
-    "METRICS",
     "TRANSPORT",
-    "Interval",
     "cost_with_invalid",
     "intervals",
     "metric_draws",

@@ -57,6 +57,22 @@ class CoverageCounts(NamedTuple):
         points: (N,) int64 observed points of each pair (the same for every
             variable and level).
         pairs_without_draws: test pairs on which no particle is valid.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.evaluation.coverage import PredictiveCDF, scored_steps
+        >>> spacing = torch.tensor([[30.0], [31.0], [32.0]])  # (T, N) observed [m]
+        >>> speed = torch.full((3, 1), 20.0)  # [m/s]
+        >>> offset = torch.tensor([-2.0, -1.0, 1.0, 2.0])[None, :, None]  # P = 4 draws
+        >>> draws = [spacing[:, None] + offset, speed[:, None] + offset.abs()]
+        >>> valid = torch.ones(4, 1, dtype=torch.bool)  # (P, N)
+        >>> cdf = PredictiveCDF([spacing, speed], scored_steps(torch.ones(3, 1).bool()))
+        >>> cdf.add(draws, valid)
+        >>> counts = cdf.counts([0.5, 0.9])
+        >>> counts.points.tolist(), counts.inside[:, :, 0].tolist()  # steps 1 and 2
+        ([2], [[2, 2], [0, 0]])
+        >>> counts.fractions().tolist()  # (spacing, speed) x levels
+        [[1.0, 1.0], [0.0, 0.0]]
     """
 
     levels: np.ndarray
@@ -72,13 +88,32 @@ class CoverageCounts(NamedTuple):
 def observed(
     x_lead: Tensor, x_follow: Tensor, v_follow: Tensor
 ) -> tuple[Tensor, Tensor]:
-    """The observed ``(spacing, speed)``, (T, N) each, from a pair set's columns."""
+    """The observed ``(spacing, speed)``, (T, N) each, from a pair set's columns.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.evaluation.coverage import observed
+        >>> x_lead, x_follow = torch.tensor([[40.0]]), torch.tensor([[10.0]])  # [m]
+        >>> spacing, speed = observed(x_lead, x_follow, torch.tensor([[20.0]]))
+        >>> spacing.tolist(), speed.tolist()  # [m], [m/s]
+        ([[30.0]], [[20.0]])
+    """
     return x_lead - x_follow, v_follow
 
 
 def predicted(x_lead: Tensor, x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
     """The simulated ``(spacing, speed)``, (T, P, N) each, of trajectories
-    ``x, v`` (T, P, N) on leaders ``x_lead`` (T, N)."""
+    ``x, v`` (T, P, N) on leaders ``x_lead`` (T, N).
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.evaluation.coverage import predicted
+        >>> x_lead = torch.tensor([[40.0]])  # (T, N) [m]
+        >>> x = torch.tensor([[[10.0], [12.0]]])  # (T, P, N): two particles [m]
+        >>> spacing, speed = predicted(x_lead, x, torch.full_like(x, 20.0))
+        >>> spacing[0, :, 0].tolist()
+        [30.0, 28.0]
+    """
     return x_lead[:, None, :] - x, v  # (T, P, N)
 
 
@@ -93,6 +128,22 @@ class PredictiveCDF:
     Args:
         targets: per variable, the observations (T, N).
         mask: (T, N) bool, the observed steps to score (:func:`scored_steps`).
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.evaluation.coverage import PredictiveCDF, scored_steps
+        >>> spacing = torch.tensor([[30.0], [31.0], [32.0]])  # (T, N) observed [m]
+        >>> speed = torch.full((3, 1), 20.0)  # [m/s]
+        >>> offset = torch.tensor([-2.0, -1.0, 1.0, 2.0])[None, :, None]  # P = 4 draws
+        >>> draws = [spacing[:, None] + offset, speed[:, None] + offset.abs()]
+        >>> valid = torch.ones(4, 1, dtype=torch.bool)  # (P, N)
+        >>> cdf = PredictiveCDF([spacing, speed], scored_steps(torch.ones(3, 1).bool()))
+        >>> cdf.add(draws, valid)
+        >>> below, at_or_below = cdf.cdf()  # F(y-), F(y): (2, T, N)
+        >>> below[0, :, 0].tolist(), at_or_below[1, :, 0].tolist()
+        ([0.5, 0.5, 0.5], [0.0, 0.0, 0.0])
+        >>> cdf.counts([0.5]).fractions().tolist()  # the speeds all overshoot
+        [[1.0], [0.0]]
     """
 
     def __init__(self, targets: Sequence[Tensor], mask: Tensor) -> None:
@@ -156,6 +207,22 @@ def add_draws(
         feeds: ``(cdf, weights)``; weights (P,) non-negative (None: 1 each).
         draws: per variable, (T, P, N) simulated values.
         valid: (P, N) bool, the rollout is valid on that pair.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.evaluation.coverage import PredictiveCDF, scored_steps
+        >>> spacing = torch.tensor([[30.0], [31.0], [32.0]])  # (T, N) observed [m]
+        >>> speed = torch.full((3, 1), 20.0)  # [m/s]
+        >>> offset = torch.tensor([-2.0, -1.0, 1.0, 2.0])[None, :, None]  # P = 4 draws
+        >>> draws = [spacing[:, None] + offset, speed[:, None] + offset.abs()]
+        >>> valid = torch.ones(4, 1, dtype=torch.bool)  # (P, N)
+        >>> cdf = PredictiveCDF([spacing, speed], scored_steps(torch.ones(3, 1).bool()))
+        >>> from torchcf.evaluation.coverage import add_draws
+        >>> kept = PredictiveCDF([spacing, speed], cdf.mask)  # draws 1 and 2 only
+        >>> weights = torch.tensor([0.0, 1.0, 1.0, 0.0])  # (P,)
+        >>> add_draws([(cdf, None), (kept, weights)], draws, valid)
+        >>> cdf.weight.tolist(), kept.weight.tolist()
+        ([4.0], [2.0])
     """
     n_particles = valid.shape[0]
     cells = torch.stack(
@@ -208,7 +275,18 @@ def thresholds(y: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
     ``x`` of ``dtype``: ``upper`` the largest value of ``dtype`` ``<= y``,
     ``lower`` the largest ``< y``. The draws (float32 in a float32 run) are
     then compared in their own dtype, exactly as with the float64 ``y``,
-    without casting every draw up."""
+    without casting every draw up.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.evaluation.coverage import thresholds
+        >>> y = torch.tensor([0.1, 0.5], dtype=torch.float64)
+        >>> lower, upper = thresholds(y, torch.float32)
+        >>> (upper.double() <= y).tolist()  # x <= y iff x <= upper, in float32
+        [True, True]
+        >>> (lower < upper).tolist()  # 0.1 is no float32: x < y iff x <= y there
+        [False, True]
+    """
     y = y.double()
     upper = y.to(dtype)  # nearest: one step above y at most
     down = torch.tensor(-math.inf, dtype=dtype)
@@ -218,7 +296,15 @@ def thresholds(y: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
 
 
 def scored_steps(mask: Tensor) -> Tensor:
-    """(T, N) bool: the observed steps whose coverage counts (``t >= 1``)."""
+    """(T, N) bool: the observed steps whose coverage counts (``t >= 1``).
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.evaluation.coverage import scored_steps
+        >>> mask = torch.tensor([[True], [True], [False]])  # (T, N): 2 valid steps
+        >>> scored_steps(mask)[:, 0].tolist()  # step 0 is the given start
+        [False, True, False]
+    """
     out = mask.bool().clone()
     out[0] = False
     return out
@@ -236,6 +322,16 @@ def coverage_fractions(
 
     Returns:
         (...) or, with ``counts``, (n_bootstrap, ...) fractions; NaN without points.
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchcf.evaluation.coverage import coverage_fractions
+        >>> inside, points = np.array([2, 1]), np.array([2, 2])  # per pair, N = 2
+        >>> float(coverage_fractions(inside, points))
+        0.75
+        >>> resamples = np.array([[2, 0], [0, 2]])  # each pair drawn twice
+        >>> coverage_fractions(inside, points, resamples).tolist()
+        [1.0, 0.5]
     """
     if counts is None:
         total = points.sum()
@@ -262,6 +358,16 @@ def weighted_quantiles(
 
     Returns:
         (len(probs), T, N) quantiles.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.evaluation.coverage import weighted_quantiles
+        >>> draws = torch.tensor([[[1.0], [2.0], [3.0], [4.0]]])  # (T, P, N)
+        >>> weighted_quantiles(draws, [0.25, 0.5, 1.0]).flatten().tolist()
+        [1.0, 2.0, 4.0]
+        >>> weights = torch.tensor([0.0, 0.0, 1.0, 1.0])  # (P,)
+        >>> weighted_quantiles(draws, [0.5], weights).flatten().tolist()
+        [3.0]
     """
     n_particles = draws.shape[1]
     w = (

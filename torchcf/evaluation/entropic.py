@@ -80,6 +80,16 @@ class EntropicPlan(NamedTuple):
         n_iter: Sinkhorn iterations (one row and one column update each).
         marginal_error: L2 norm of ``gamma^T 1 - b`` at the last iteration.
         omega: the over-relaxation parameter in use at the end (1 = plain).
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchcf.evaluation.entropic import sinkhorn_log
+        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N) costs
+        >>> (found,) = sinkhorn_log([C], reg=0.05)
+        >>> round(found.value, 3), found.converged, bool(found.omega >= 1.0)
+        (1.0, True, True)
+        >>> found.plan.sum(axis=0).round(3).tolist()  # each pair's mass, 1/N
+        [0.333, 0.333, 0.333]
     """
 
     plan: np.ndarray
@@ -93,7 +103,17 @@ class EntropicPlan(NamedTuple):
 @contextmanager
 def limit_threads(cells: int) -> Iterator[None]:
     """Run torch on one thread while the work is below :data:`SINGLE_THREAD_CELLS`
-    elements per call (restores the caller's setting afterwards)."""
+    elements per call (restores the caller's setting afterwards).
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.evaluation.entropic import limit_threads
+        >>> before = torch.get_num_threads()
+        >>> with limit_threads(cells=100):  # a small problem: one thread
+        ...     inside = torch.get_num_threads()
+        >>> inside, torch.get_num_threads() == before
+        (1, True)
+    """
     before = torch.get_num_threads()
     if cells >= SINGLE_THREAD_CELLS or before == 1:
         yield
@@ -107,7 +127,13 @@ def limit_threads(cells: int) -> Iterator[None]:
 
 def sor_omega(theta: float) -> float:
     """Young's optimal SOR parameter for a Gauss-Seidel contraction ``theta``:
-    ``omega = 2 / (1 + sqrt(1 - theta))``, capped at :data:`OMEGA_MAX`."""
+    ``omega = 2 / (1 + sqrt(1 - theta))``, capped at :data:`OMEGA_MAX`.
+
+    Examples:
+        >>> from torchcf.evaluation.entropic import sor_omega
+        >>> sor_omega(0.0), round(sor_omega(0.75), 3), sor_omega(1.0)  # 1.0: plain
+        (1.0, 1.333, 1.0)
+    """
     if not 0.0 <= theta < 1.0:
         return 1.0
     return min(2.0 / (1.0 + math.sqrt(1.0 - theta)), OMEGA_MAX)
@@ -263,6 +289,17 @@ def sinkhorn_log(
 
     Returns:
         one :class:`EntropicPlan` per cost matrix, in order.
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchcf.evaluation.entropic import sinkhorn_log
+        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N) costs
+        >>> plans = sinkhorn_log([C, C[:, :2]], reg=0.05)  # two shapes, one call
+        >>> [p.plan.shape for p in plans], [round(p.value, 3) for p in plans]
+        ([(2, 3), (2, 2)], [1.0, 1.0])
+        >>> C[0, 0] = np.inf  # a forbidden cell: no mass on it
+        >>> float(sinkhorn_log([C], reg=0.05)[0].plan[0, 0])
+        0.0
     """
     if not (reg > 0.0 and math.isfinite(reg)):
         raise ValueError(f"reg must be a finite number > 0, got {reg}")

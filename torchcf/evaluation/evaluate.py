@@ -42,6 +42,7 @@ import math
 import sys
 from collections.abc import Sequence
 from contextlib import nullcontext
+from dataclasses import dataclass
 from pathlib import Path
 from time import perf_counter
 from typing import TypedDict
@@ -56,6 +57,8 @@ from ..data import PairSet
 from ..models import CFModel, get_model, require_model
 from ..posterior import Posterior
 from ..runs.directory import RunDir
+from ..runs.metrics import Evaluation, SetEvaluation, SetMetrics
+from ..runs.summary import RunSummary
 from ..runs.tensorboard import RunLogger
 from ..sim.rollout import Execution, simulate
 from ..system.console import bar_interval
@@ -69,7 +72,7 @@ from .coverage import (
     scored_steps,
 )
 from .entropic import limit_threads
-from .metrics import SetMetrics, evaluate_cost_sets
+from .metrics import evaluate_cost_sets
 from .plots import (
     calibration_figure,
     error_evolution_figure,
@@ -88,7 +91,6 @@ from .report import (
     plausibility_table,
     shares_interval_table,
 )
-from .results import Evaluation, SetEvaluation
 from .uncertainty import tensorboard_scalars, uncertainty
 
 #: Bytes of trajectories one rollout may hold for the predictive coverage
@@ -102,6 +104,51 @@ class RolloutOptions(TypedDict):
     dtype: torch.dtype
     device: torch.device | str
     weights: Sequence[float]
+
+
+@dataclass(frozen=True)
+class EvaluationSettings:
+    """How a learned set is evaluated: its rollouts and its metrics.
+
+    Attributes:
+        dtype: the rollouts' precision.
+        device: where they run.
+        weights: score weights of (position, speed, acceleration).
+        beta: the beta of beta-WS.
+        sinkhorn_reg: the entropic regularisation of the Sinkhorn solve.
+        sinkhorn_max_iter: its iteration cap.
+
+    Examples:
+        >>> EvaluationSettings(beta=0.15).rollout["dtype"]
+        torch.float32
+    """
+
+    dtype: torch.dtype = torch.float32
+    device: str = "cpu"
+    weights: tuple[float, float, float] = (0.5, 0.3, 0.2)
+    beta: float = 0.15
+    sinkhorn_reg: float = 0.05
+    sinkhorn_max_iter: int = 10_000
+
+    @classmethod
+    def of(cls, cfg: TrainConfig) -> EvaluationSettings:
+        """The settings of a run config (``dtype``, ``device``,
+        ``abc.weights``, ``eval``)."""
+        return cls(
+            dtype=getattr(torch, cfg.dtype),
+            device=cfg.device,
+            weights=tuple(cfg.abc.weights),
+            beta=cfg.eval.beta,
+            sinkhorn_reg=cfg.eval.sinkhorn_reg,
+            sinkhorn_max_iter=cfg.eval.sinkhorn_max_iter,
+        )
+
+    @property
+    def rollout(self) -> RolloutOptions:
+        """The keywords :func:`cost_matrices` takes."""
+        return RolloutOptions(
+            dtype=self.dtype, device=self.device, weights=self.weights
+        )
 
 
 class EvaluationError(TorchcfError, RuntimeError):
@@ -275,7 +322,7 @@ def _bar(total: int, desc: str, unit: str, progress: bool) -> tqdm:
 def evaluate_posterior(
     posterior: Posterior,
     test: PairSet,
-    cfg: TrainConfig,
+    settings: EvaluationSettings,
     *,
     progress: bool = True,
     predictive: dict[str, PredictiveCDF] | None = None,
@@ -289,7 +336,7 @@ def evaluate_posterior(
     Args:
         posterior: the learned set.
         test: the test pairs.
-        cfg: the run's config (dtype, device, score weights, ``eval``).
+        settings: the rollouts' and the metrics' settings.
         progress: show the progress bars (stderr).
         predictive: filled with each set's :class:`PredictiveCDF` at the
             observed spacing and speed (:mod:`torchcf.evaluation.coverage`),
@@ -303,8 +350,7 @@ def evaluate_posterior(
     Raises:
         EvaluationError: the hybrid particle set is empty.
     """
-    dtype = getattr(torch, cfg.dtype)
-    kwargs = RolloutOptions(dtype=dtype, device=cfg.device, weights=cfg.abc.weights)
+    kwargs = settings.rollout
     models = {name: get_model(name) for name in posterior.models}  # names enter
     singles = {
         name: single_model_particles(posterior, name) for name in posterior.models
@@ -355,17 +401,17 @@ def evaluate_posterior(
                 )
                 bar.update(len(missing[name]))
     costs["hybrid"] = _stack(hybrid_parts)
-    return simulated_metrics(costs, cfg, progress=progress), costs
+    return simulated_metrics(costs, settings, progress=progress), costs
 
 
 def simulated_metrics(
     costs: dict[str, dict[str, np.ndarray]],
-    cfg: TrainConfig,
+    settings: EvaluationSettings,
     *,
     progress: bool = True,
 ) -> dict[str, SetMetrics]:
     """:func:`~torchcf.evaluation.metrics.evaluate_costs` of every set, with
-    ``cfg.eval``'s beta, Sinkhorn regularisation and iteration cap; all sets'
+    ``settings``' beta, Sinkhorn regularisation and iteration cap; all sets'
     Sinkhorn problems are solved in one batched call (they share ``reg``).
 
     One particle invalid on every test pair makes WS and beta-WS (beta > 0)
@@ -375,7 +421,7 @@ def simulated_metrics(
 
     Args:
         costs: per set, its (P_s, n_test) ``score, e_p, e_v, e_a``.
-        cfg: the run's config.
+        settings: the metrics' beta and Sinkhorn settings.
         progress: a bar over the sets' exact metrics, then their Sinkhorn.
 
     Returns:
@@ -394,9 +440,9 @@ def simulated_metrics(
 
         results = evaluate_cost_sets(
             [tuple(costs[n][k] for k in ("score", "e_p", "e_v", "e_a")) for n in names],
-            beta=cfg.eval.beta,
-            sinkhorn_reg=cfg.eval.sinkhorn_reg,
-            sinkhorn_max_iter=cfg.eval.sinkhorn_max_iter,
+            beta=settings.beta,
+            sinkhorn_reg=settings.sinkhorn_reg,
+            sinkhorn_max_iter=settings.sinkhorn_max_iter,
             callback=advance,
         )
         bar.update(2 * len(names) - bar.n)
@@ -404,7 +450,7 @@ def simulated_metrics(
 
 
 def position_errors(
-    posterior: Posterior, test: PairSet, pair: int, cfg: TrainConfig
+    posterior: Posterior, test: PairSet, pair: int, settings: EvaluationSettings
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fig. 4 data: simulated minus observed follower position of every hybrid
     particle on test pair ``pair``.
@@ -414,7 +460,7 @@ def position_errors(
         invalid rollouts; scores (P,).
     """
     one = test.subset([pair])
-    dtype = getattr(torch, cfg.dtype)
+    dtype = settings.dtype
     errors, scores = [], []
     for name in posterior.models:
         theta = posterior.hybrid[name].theta
@@ -427,8 +473,8 @@ def position_errors(
                 one,
                 dtype=dtype,
                 return_traj=True,
-                weights=cfg.abc.weights,
-                execution=Execution(device=cfg.device),
+                weights=settings.weights,
+                execution=Execution(device=settings.device),
             )
         x = out.x[:, :, 0].double().cpu()  # (T, P)
         err = (x - one.x_follow[:, :1]).T.numpy()  # (P, T)
@@ -506,8 +552,9 @@ def _evaluate_held(
     # this one and pass for its result.
     run.discard_metrics()
     predictive: dict[str, PredictiveCDF] = {}
+    settings = EvaluationSettings.of(cfg)
     metrics, costs = evaluate_posterior(
-        posterior, test, cfg, progress=progress, predictive=predictive
+        posterior, test, settings, progress=progress, predictive=predictive
     )
     entries = [*[m for m in posterior.models if m in metrics], "hybrid"]
     seed = cfg.abc.seed if cfg.eval.seed is None else cfg.eval.seed
@@ -518,11 +565,15 @@ def _evaluate_held(
     # each set's metrics.json keys, the rows of the report's tables and figures
     rows = {entry: sets[entry].to_json() for entry in entries}
     best = costs["hybrid"]["score"].min(axis=0)  # (n_test,) the hybrid's per pair
+    # a re-calibration's summary records no battery
+    plausibility = (
+        summary.plausibility if isinstance(summary, RunSummary) else None
+    ) or {}
 
     ensure_directory(report, "report directory")
     atomic_write_text(
         report / "table.md",
-        f"# {summary['dataset']}: test-split evaluation\n\n"
+        f"# {summary.dataset}: test-split evaluation\n\n"
         f"{test.n_pairs} test pairs; single models: each model's own "
         f"{posterior.top_n} best particles per training pair; hybrid: "
         f"{sum(len(p) for p in posterior.hybrid.values())} particles.\n\n"
@@ -537,7 +588,7 @@ def _evaluate_held(
         + "\n## Predictive coverage\n\n"
         + coverage_table(rows, entries, cfg.eval.coverage_levels)
         + "\nCalibration curves: `calibration.png`.\n\n"
-        + plausibility_table(summary.get("plausibility", {}))
+        + plausibility_table(plausibility)
         + "\nThe calibrated parameters per model: `parameters.md` (one row per "
         "particle: `parameters.csv`).\n",
     )
@@ -546,7 +597,7 @@ def _evaluate_held(
         figure_pair = int(
             np.argmin(np.abs(finite - np.median(best[np.isfinite(best)])))
         )
-    time, errors, scores = position_errors(posterior, test, figure_pair, cfg)
+    time, errors, scores = position_errors(posterior, test, figure_pair, settings)
     pair_id = int(test.pair_ids[figure_pair])
     figures = {
         "error_evolution": error_evolution_figure(
@@ -565,9 +616,10 @@ def _evaluate_held(
     trained = ("shares", "pairwise")
     in_run = report.resolve() == run.report_dir.resolve()
     if not (in_run and all((report / f"{n}.png").is_file() for n in trained)):
-        pairwise = summary["pairwise"]
         figures["shares"] = shares_figure(posterior.shares)
-        figures["pairwise"] = pairwise_figure(pairwise["models"], pairwise["table"])
+        figures["pairwise"] = pairwise_figure(
+            summary.pairwise.models, summary.pairwise.table
+        )
     # Each figure is drawn once (the draw is most of its cost), for its PNG and
     # TensorBoard (where training already put the shares and pairwise figures).
     with _bar(
@@ -592,7 +644,7 @@ def _evaluate_held(
                 logger.evaluation({}, tensorboard_scalars(honest))
             bar.update()
     result = Evaluation(
-        dataset=summary["dataset"],
+        dataset=summary.dataset,
         n_test=test.n_pairs,
         test_pair_ids=tuple(int(i) for i in test.pair_ids),
         beta=cfg.eval.beta,
@@ -608,7 +660,7 @@ def _evaluate_held(
         # training's per-model seconds in summary.json
         seconds=round(perf_counter() - started, 3),
     )
-    run.write_metrics(result.to_json())
+    run.write_metrics(result)
     return result
 
 

@@ -13,7 +13,8 @@ torch, see :mod:`torchcf.evaluation.entropic`).
 - :func:`min_distance`: ``beta = 0``, the mean over pairs of the best particle's cost;
 - :func:`sinkhorn`: the entropic approximation of WS, with its gap to the exact value
   (:func:`sinkhorn_many`: several cost matrices in one batched solve);
-- :func:`evaluate_costs`: all of the above as one :class:`SetMetrics` record
+- :func:`evaluate_costs`: all of the above as one
+  :class:`~torchcf.runs.metrics.SetMetrics` record
   (:func:`evaluate_cost_sets`: several learned sets, their Sinkhorn batched).
 
 **Invalid cells.** An invalid rollout scores ``+inf`` (NaN is read the same way). No
@@ -33,7 +34,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import fields
 from typing import NamedTuple
 
 import numpy as np
@@ -41,7 +42,7 @@ import ot
 import torch
 from torch import Tensor
 
-from ..system.records import Record
+from ..runs.metrics import SetMetrics
 from .entropic import sinkhorn_log
 
 #: Mass on a forbidden cell above this proves infeasibility (below it is rounding).
@@ -65,6 +66,16 @@ class TransportResult(NamedTuple):
         feasible: whether a plan avoiding every invalid cell exists.
         particle_mass: (P,) row sums of ``plan`` (which particles carry mass), or
             ``None`` when infeasible.
+
+    Examples:
+        >>> import numpy as np
+        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N): 2 particles
+        >>> from torchcf.evaluation.metrics import wasserstein
+        >>> result = wasserstein(C)
+        >>> round(result.value, 3), result.feasible, result.invalid_cells
+        (1.0, True, 0)
+        >>> result.plan.round(3).tolist()  # each particle 1/2, each pair 1/3
+        [[0.333, 0.167, 0.0], [0.0, 0.167, 0.333]]
     """
 
     value: float
@@ -90,6 +101,16 @@ class SinkhornResult(NamedTuple):
         reg: the entropic regularisation used, in the units of ``C``.
         plan: (P, N) entropic plan, or ``None`` when infeasible.
         invalid_cells: number of invalid cells of ``C``.
+
+    Examples:
+        >>> import numpy as np
+        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N): 2 particles
+        >>> from torchcf.evaluation.metrics import sinkhorn
+        >>> result = sinkhorn(C, reg=0.05)
+        >>> round(result.value, 3), round(result.ws, 3), result.converged
+        (1.0, 1.0, True)
+        >>> bool(abs(result.gap) < 1e-6), result.plan.shape
+        (True, (2, 3))
     """
 
     value: float
@@ -101,53 +122,6 @@ class SinkhornResult(NamedTuple):
     reg: float
     plan: np.ndarray | None
     invalid_cells: int
-
-
-@dataclass(frozen=True)
-class SetMetrics(Record):
-    """Every SPEC section 6 metric of one learned set on one test split
-    (:func:`evaluate_costs`); its JSON object is the set's first keys in
-    ``metrics.json``, in this order.
-
-    Attributes:
-        e_p: mean position RMSE over the valid cells [m] (NaN: none valid).
-        e_v: mean speed RMSE [m/s]; e_a: mean acceleration RMSE [m/s^2].
-        valid_cells: (particle, test pair) cells whose rollout is valid.
-        invalid_cells: the others (excluded from the means, forbidden in the
-            transport metrics).
-        min: the minimum distance.
-        beta_ws: the beta-WS (``inf``: infeasible).
-        ws: the exact WS (``inf``: infeasible).
-        sinkhorn: the entropic plan's transport cost.
-        sinkhorn_gap: ``sinkhorn - ws`` (NaN when infeasible).
-        sinkhorn_iterations: iterations of the Sinkhorn solve (0: WS infeasible).
-        sinkhorn_converged: whether its pair marginals met the tolerance.
-        sinkhorn_marginal_error: the L2 error of its pair marginals.
-        n_particles: particles P; n_test: test pairs N.
-        ws_valid: WS over the particles valid on some test pair.
-        beta_ws_valid: beta-WS over them.
-        particles_never_valid: particles invalid on every test pair (dropped
-            from ``ws_valid`` and ``beta_ws_valid``).
-    """
-
-    e_p: float
-    e_v: float
-    e_a: float
-    valid_cells: int
-    invalid_cells: int
-    min: float
-    beta_ws: float
-    ws: float
-    sinkhorn: float
-    sinkhorn_gap: float
-    sinkhorn_iterations: int
-    sinkhorn_converged: bool
-    sinkhorn_marginal_error: float
-    n_particles: int
-    n_test: int
-    ws_valid: float
-    beta_ws_valid: float
-    particles_never_valid: int
 
 
 # ---------------------------------------------------------------------------
@@ -292,6 +266,15 @@ def average_errors(e_p: CostMatrix, e_v: CostMatrix, e_a: CostMatrix) -> dict:
     Returns:
         ``{"e_p", "e_v", "e_a"}`` means (float, NaN when no cell is valid) and
         ``{"valid_cells", "invalid_cells"}`` (int).
+
+    Examples:
+        >>> import numpy as np
+        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N): 2 particles
+        >>> from torchcf.evaluation.metrics import average_errors
+        >>> C[0, 0] = np.inf  # an invalid rollout: excluded, and counted
+        >>> means = average_errors(C, C / 10, C / 100)  # e_p [m], e_v [m/s], e_a
+        >>> round(means["e_p"], 3), means["valid_cells"], means["invalid_cells"]
+        (1.7, 5, 1)
     """
     errors = _stack_errors(e_p, e_v, e_a)  # (3, P, N)
     return _masked_means(errors, np.isfinite(errors).all(axis=0))
@@ -343,6 +326,16 @@ def wasserstein(
     Returns:
         :class:`TransportResult`; ``value = inf, feasible = False`` when no plan
         avoids the invalid cells (e.g. a particle whose every cell is invalid).
+
+    Examples:
+        >>> import numpy as np
+        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N): 2 particles
+        >>> from torchcf.evaluation.metrics import wasserstein
+        >>> round(wasserstein(C).value, 3)
+        1.0
+        >>> C[:, 0] = np.inf  # a pair no particle follows validly: infeasible
+        >>> wasserstein(C).value, wasserstein(C).feasible
+        (inf, False)
     """
     cost = _as_matrix(C, "C")
     n_particles, n_test = cost.shape
@@ -407,6 +400,15 @@ def beta_wasserstein(
         :class:`TransportResult` whose ``plan`` is the lifted (P, N) plan and
         ``particle_mass`` its row sums: ``beta/P`` plus the free mass of the pairs
         for which the particle is the (lowest-index) best.
+
+    Examples:
+        >>> import numpy as np
+        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N): 2 particles
+        >>> from torchcf.evaluation.metrics import beta_wasserstein
+        >>> [round(beta_wasserstein(C, beta).value, 3) for beta in (0.0, 0.5, 1.0)]
+        [0.833, 0.833, 1.0]
+        >>> beta_wasserstein(C, 0.5).particle_mass.round(3).tolist()  # each >= 0.25
+        [0.333, 0.667]
     """
     beta = _check_beta(beta)
     if beta == 1.0:
@@ -481,6 +483,13 @@ def min_distance(C: CostMatrix) -> float:
 
     Returns:
         The mean; ``inf`` when some pair has no valid cell.
+
+    Examples:
+        >>> import numpy as np
+        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N): 2 particles
+        >>> from torchcf.evaluation.metrics import min_distance
+        >>> round(min_distance(C), 3)  # (1 + 1 + 0.5) / 3
+        0.833
     """
     cost = _as_matrix(C, "C")
     return float(cost.min(axis=0).mean())
@@ -517,6 +526,14 @@ def sinkhorn(
     Returns:
         :class:`SinkhornResult`; ``converged=False`` when ``max_iter`` ran out
         (the value is still the last iterate's transport cost).
+
+    Examples:
+        >>> import numpy as np
+        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N): 2 particles
+        >>> from torchcf.evaluation.metrics import sinkhorn
+        >>> result = sinkhorn(C, reg=0.05)  # reg in the units of C
+        >>> round(result.value, 3), result.converged
+        (1.0, True)
     """
     return sinkhorn_many([C], reg, max_iter=max_iter, stop_thr=stop_thr)[0]
 
@@ -543,6 +560,14 @@ def sinkhorn_many(
 
     Returns:
         one :class:`SinkhornResult` per matrix, in order.
+
+    Examples:
+        >>> import numpy as np
+        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N): 2 particles
+        >>> from torchcf.evaluation.metrics import sinkhorn_many
+        >>> results = sinkhorn_many([C, C[:, :2]], reg=0.05)  # any shapes
+        >>> [round(r.value, 3) for r in results], [r.converged for r in results]
+        ([1.0, 1.0], [True, True])
     """
     reg = _check_reg(reg)
     matrices = [_as_matrix(c, "C") for c in costs]
@@ -623,6 +648,16 @@ def evaluate_costs(
         ``beta_ws_valid`` (equal to ``ws`` and ``beta_ws`` when no particle is
         dropped; ``inf`` still where a test pair has no valid particle), with
         ``particles_never_valid`` (int) the number dropped.
+
+    Examples:
+        >>> import numpy as np
+        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N): 2 particles
+        >>> from torchcf.evaluation.metrics import evaluate_costs
+        >>> metrics = evaluate_costs(C, e_p=C, e_v=C / 10, e_a=C / 100)
+        >>> round(metrics.ws, 3), round(metrics.beta_ws, 3), round(metrics.min, 3)
+        (1.0, 0.833, 0.833)
+        >>> metrics.n_particles, metrics.n_test, metrics.invalid_cells
+        (2, 3, 0)
     """
     return evaluate_cost_sets(
         [(score, e_p, e_v, e_a)],
@@ -654,6 +689,15 @@ def evaluate_cost_sets(
 
     Returns:
         one :func:`evaluate_costs` record per set, in order.
+
+    Examples:
+        >>> import numpy as np
+        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N): 2 particles
+        >>> from torchcf.evaluation.metrics import evaluate_cost_sets
+        >>> one, other = C, C[:1]  # two learned sets: 2 and 1 particles
+        >>> found = evaluate_cost_sets([(one,) * 4, (other,) * 4])
+        >>> [round(m.ws, 3) for m in found], [m.n_particles for m in found]
+        ([1.0, 2.0], [2, 1])
     """
     beta = _check_beta(beta)
     sinkhorn_reg = _check_reg(sinkhorn_reg)
@@ -729,7 +773,6 @@ def _exact_metrics(
 __all__ = [
     "EMD_MAX_ITER",
     "FORBIDDEN_MASS_TOL",
-    "SetMetrics",
     "SinkhornResult",
     "TransportResult",
     "average_errors",

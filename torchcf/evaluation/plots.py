@@ -102,6 +102,13 @@ def shares_figure(
 
     Returns:
         The figure (y axis fixed to [0, 1], each bar labelled with its value).
+
+    Examples:
+        >>> from torchcf.evaluation.plots import shares_figure
+        >>> fig = shares_figure({"idm": 0.75, "ovm": 0.25})
+        >>> low, high = fig.axes[0].get_ylim()
+        >>> [ax.get_title() for ax in fig.axes], float(low), float(high)
+        (['Hybrid model shares'], 0.0, 1.08)
     """
     names = list(shares)
     values = [float(shares[name]) for name in names]
@@ -132,6 +139,12 @@ def pairwise_figure(
     Returns:
         The figure: rows ``"<m> (row)"``, columns ``"against <m>"``, each cell
         annotated with two decimals, colour scale [0, 1].
+
+    Examples:
+        >>> from torchcf.evaluation.plots import pairwise_figure
+        >>> fig = pairwise_figure(["idm", "ovm"], [[1.0, 0.7], [0.3, 1.0]])
+        >>> [label.get_text() for label in fig.axes[0].get_yticklabels()]
+        ['idm (row)', 'ovm (row)']
     """
     if isinstance(table, Tensor):
         table = table.detach().cpu().numpy()
@@ -186,6 +199,13 @@ def radar_values(
 
     Returns:
         entry name -> one value in [0, 1] per key, entries in the order of ``metrics``.
+
+    Examples:
+        >>> from torchcf.evaluation.plots import radar_values
+        >>> idm, hybrid = {"min": 0.5, "ws": 1.0}, {"min": 0.5, "ws": 0.5}
+        >>> metrics = {"idm": idm, "hybrid": hybrid}
+        >>> radar_values(metrics, keys=("min", "ws"))  # 1: best, 0: worst
+        {'idm': [1.0, 0.0], 'hybrid': [1.0, 1.0]}
     """
     names = list(metrics)
     # (len(names), len(keys)) raw values; a missing key (or None) reads as NaN:
@@ -213,6 +233,11 @@ def radar_area_share(values: Sequence[float]) -> float:
     With ``n`` vertices at equal angles, the polygon of radii ``r_i`` has area
     ``sin(2 pi / n) / 2 * sum_i r_i r_{i+1}`` (cyclic) and the unit polygon
     ``sin(2 pi / n) / 2 * n``, so the share is ``sum_i r_i r_{i+1} / n``.
+
+    Examples:
+        >>> from torchcf.evaluation.plots import radar_area_share
+        >>> radar_area_share([1.0] * 6), radar_area_share([1.0, 0.5] * 3)
+        (1.0, 0.5)
     """
     radii = np.asarray(values, dtype=np.float64)
     if radii.ndim != 1 or radii.size < 3:
@@ -243,6 +268,14 @@ def radar_figure(
 
     Returns:
         The figure.
+
+    Examples:
+        >>> from torchcf.evaluation.plots import radar_figure
+        >>> idm = dict(e_p=1.0, e_v=0.2, e_a=0.3, min=0.8, beta_ws=0.9, ws=1.0)
+        >>> hybrid = dict(e_p=0.8, e_v=0.2, e_a=0.2, min=0.7, beta_ws=0.8, ws=0.9)
+        >>> fig = radar_figure({"idm": idm, "hybrid": hybrid})
+        >>> [ax.get_title() for ax in fig.axes]  # one panel each, its area share
+        ['idm  (overall 0.00)', 'hybrid  (overall 1.00)']
     """
     if not metrics:
         raise ValueError("radar_figure needs at least one entry")
@@ -317,6 +350,13 @@ def calibration_figure(
     Args:
         curves: set -> ``{"levels": (L,), <variable>: (L,) observed fractions}``.
         variables: the panels.
+
+    Examples:
+        >>> from torchcf.evaluation.plots import calibration_figure
+        >>> curve = {"levels": [0.5, 0.9], "spacing": [0.4, 0.85], "speed": [0.5, 0.9]}
+        >>> fig = calibration_figure({"hybrid": curve})
+        >>> [ax.get_xlabel() != "" for ax in fig.axes], len(fig.axes)
+        ([True, True], 2)
     """
     # Fixed margins, no constrained layout: the layout pass is most of the draw.
     fig = Figure(figsize=(4.2 * len(variables) + 1.8, 4.2), dpi=_DPI)
@@ -374,6 +414,16 @@ def error_evolution_figure(
 
     Returns:
         The figure.
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchcf.evaluation.plots import error_evolution_figure
+        >>> time = np.arange(5) * 0.1  # (T,) [s]
+        >>> errors = np.array([[0.0, 0.1, 0.2, 0.3, 0.4]] * 3)  # (P, T) [m]
+        >>> scores = np.array([0.3, 0.1, 0.2])  # (P,)
+        >>> fig = error_evolution_figure(time, errors, scores)
+        >>> fig.axes[0].get_ylabel()
+        'position error [m]'
     """
     time = _as_array(time)
     errors = _as_array(errors)
@@ -436,6 +486,16 @@ def effects_figure(ranked: Sequence[Mapping[str, object]]) -> Figure:
     Args:
         ranked: rows with ``effect``, ``gain`` (relative drop [1]), ``p_value`` and
             ``significant`` (``torchcf.diagnose.attribute_effects``).
+
+    Examples:
+        >>> from torchcf.evaluation.plots import effects_figure
+        >>> ranked = [
+        ...     {"effect": "delay", "gain": 0.1, "p_value": 0.01, "significant": True},
+        ...     {"effect": "lag", "gain": 0.01, "p_value": 0.4, "significant": False},
+        ... ]
+        >>> fig = effects_figure(ranked)
+        >>> [label.get_text() for label in fig.axes[0].get_xticklabels()]
+        ['delay', 'lag']
     """
     labels = [str(r["effect"]) for r in ranked]
     gains = [100.0 * float(r["gain"]) for r in ranked]
@@ -460,7 +520,14 @@ def effects_figure(ranked: Sequence[Mapping[str, object]]) -> Figure:
 def before_after_figure(
     before: Mapping[str, float | None], after: Mapping[str, float | None]
 ) -> Figure:
-    """Test-split metrics of the hybrid before and after the loop, side by side."""
+    """Test-split metrics of the hybrid before and after the loop, side by side.
+
+    Examples:
+        >>> from torchcf.evaluation.plots import before_after_figure
+        >>> fig = before_after_figure({"min": 1.0, "ws": 2.0}, {"min": 0.8, "ws": 1.5})
+        >>> [label.get_text() for label in fig.axes[0].get_xticklabels()]
+        ['minimum distance', 'WS']
+    """
     keys = [k for k in RADAR_KEYS if k in before]
     fig = _new_figure(max(5.0, 1.1 * len(keys) + 1.5), 3.4)
     ax = fig.add_subplot()
@@ -493,7 +560,16 @@ def residuals_figure(
     n_pairs: int = 3,
     unit: str = "m",
 ) -> Figure:
-    """Residual series of the first ``n_pairs`` pairs, before (and after) the loop."""
+    """Residual series of the first ``n_pairs`` pairs, before (and after) the loop.
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchcf.evaluation.plots import residuals_figure
+        >>> before = [np.zeros(10), np.ones(10)]  # per pair, spacing residual [m]
+        >>> fig = residuals_figure(before, after=None, dt=0.1)
+        >>> len(fig.axes), fig.axes[-1].get_xlabel()
+        (2, 'time [s]')
+    """
     shown = min(n_pairs, len(before))
     fig = _new_figure(7.0, 1.9 * max(shown, 1) + 0.6)
     for i in range(shown):
@@ -519,7 +595,18 @@ def loop_figures(
     series_after: Mapping[str, Sequence[np.ndarray]] | None,
     dt: float,
 ) -> dict[str, Figure]:
-    """The figures of ``loop.md``: effects, before_after, residuals."""
+    """The figures of ``loop.md``: effects, before_after, residuals.
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchcf.evaluation.plots import loop_figures
+        >>> delay = dict(effect="delay", gain=0.1, p_value=0.01, significant=True)
+        >>> result = {"effects_ranked": [delay], "before": {"min": 1.0}}
+        >>> result["after"] = {"min": 0.8}
+        >>> figures = loop_figures(result, {"spacing": [np.zeros(10)]}, None, dt=0.1)
+        >>> sorted(figures)
+        ['before_after', 'effects', 'residuals']
+    """
     return {
         "effects": effects_figure(result["effects_ranked"]),
         "before_after": before_after_figure(result["before"], result["after"]),
@@ -538,7 +625,16 @@ def hybrid_images(
 ) -> dict[str, np.ndarray]:
     """The training's figures, rendered once: ``"shares"`` (:func:`shares_figure`)
     and ``"pairwise"`` (:func:`pairwise_figure`), each ``(H, W, 3)`` uint8, for
-    the report's PNGs and TensorBoard alike."""
+    the report's PNGs and TensorBoard alike.
+
+    Examples:
+        >>> from torchcf.evaluation.plots import hybrid_images
+        >>> images = hybrid_images(
+        ...     {"idm": 0.75, "ovm": 0.25}, ["idm", "ovm"], [[1.0, 0.7], [0.3, 1.0]]
+        ... )
+        >>> {name: image.shape[2] for name, image in images.items()}  # (H, W, 3) RGB
+        {'shares': 3, 'pairwise': 3}
+    """
     return {
         "shares": figure_to_array(shares_figure(shares)),
         "pairwise": figure_to_array(pairwise_figure(pairwise_models, pairwise_table)),
@@ -550,6 +646,12 @@ def figure_to_array(fig: Figure) -> np.ndarray:
 
     Returns:
         (H, W, 3) uint8 RGB image (alpha dropped).
+
+    Examples:
+        >>> from torchcf.evaluation.plots import figure_to_array, shares_figure
+        >>> image = figure_to_array(shares_figure({"idm": 1.0}))  # 4 x 3.5 in, 100 dpi
+        >>> image.shape, image.dtype
+        ((350, 400, 3), dtype('uint8'))
     """
     canvas = fig.canvas
     if not isinstance(canvas, FigureCanvasAgg):
@@ -561,7 +663,17 @@ def figure_to_array(fig: Figure) -> np.ndarray:
 
 
 def save_figure(fig: Figure, path: str | os.PathLike[str]) -> None:
-    """Write the figure as a PNG atomically (see :func:`save_image`)."""
+    """Write the figure as a PNG atomically (see :func:`save_image`).
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchcf.evaluation.plots import save_figure, shares_figure
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     save_figure(shares_figure({"idm": 1.0}), Path(folder) / "shares.png")
+        ...     print(sorted(p.name for p in Path(folder).iterdir()))
+        ['shares.png']
+    """
     save_image(figure_to_array(fig), path)
 
 
@@ -573,6 +685,17 @@ def save_image(image: np.ndarray, path: str | os.PathLike[str]) -> None:
     most of a figure's cost, and ``savefig`` would draw it again. The image goes
     to a temporary file in the destination folder, which then replaces ``path``
     in one rename, so a reader never sees a half-written file.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> import numpy as np
+        >>> from torchcf.evaluation.plots import save_image
+        >>> image = np.zeros((4, 6, 3), dtype=np.uint8)  # (H, W, 3)
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     save_image(image, Path(folder) / "figures" / "black.png")
+        ...     print((Path(folder) / "figures" / "black.png").is_file())
+        True
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

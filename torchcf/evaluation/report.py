@@ -10,7 +10,8 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 
-from .results import BootstrapSettings, Difference, ShareInterval
+from ..runs.metrics import BootstrapSettings, Difference, ShareInterval
+from ..runs.summary import PlausibilitySummary
 
 __all__ = [
     "INTERVAL_COLUMNS",
@@ -183,12 +184,13 @@ def relative_difference(
     return result
 
 
-def plausibility_table(per_model: Mapping[str, Mapping[str, object]]) -> str:
+def plausibility_table(per_model: Mapping[str, PlausibilitySummary]) -> str:
     """Markdown table of the plausibility battery on the hybrid's particles.
 
     Args:
-        per_model: model -> :meth:`torchcf.traffic.Plausibility.summary` (the
-            ``plausibility`` entry of summary.json).
+        per_model: model -> its particles' record
+            (:meth:`torchcf.traffic.battery.Plausibility.summary`; the
+            ``plausibility`` of the run's summary).
 
     Returns:
         A heading line, the battery's settings, and one row per model, ending
@@ -196,14 +198,14 @@ def plausibility_table(per_model: Mapping[str, Mapping[str, object]]) -> str:
     """
     if not per_model:
         return ""
-    settings = next(iter(per_model.values()))["settings"]
-    decels = " / ".join(f"{d:g}" for d in settings["decelerations"])
+    settings = next(iter(per_model.values())).settings
+    decels = " / ".join(f"{d:g}" for d in settings.decelerations)
     lines = [
         "## Plausibility in closed loop",
         "",
         "The hybrid's particles through the battery "
         "(`torchcf.traffic.check_plausibility`) at "
-        f"{settings['speed']:.1f} m/s: the share that collide (leader braking to "
+        f"{settings.speed:.1f} m/s: the share that collide (leader braking to "
         f"a stop at {decels} m/s^2, stop-and-go, a cut-in, a standstill start), "
         "that amplify a disturbance down a platoon of their own kind, that have "
         "no equilibrium at some speed up to it, and the median least time to "
@@ -214,26 +216,26 @@ def plausibility_table(per_model: Mapping[str, Mapping[str, object]]) -> str:
         "|---|---|---|---|---|---|",
     ]
     for name, row in per_model.items():
-        ttc = row.get("min_ttc_median")
+        ttc = row.min_ttc_median
         lines.append(
-            f"| {_display_name(name)} | {row['n_particles']} | "
-            f"{row['collided']:.1%} | {row['string_unstable']:.1%} | "
-            f"{row['no_equilibrium']:.1%} | "
+            f"| {_display_name(name)} | {row.n_particles} | "
+            f"{row.collided:.1%} | {row.string_unstable:.1%} | "
+            f"{row.no_equilibrium:.1%} | "
             f"{_MISSING if ttc is None else f'{ttc:.2f}'} |"
         )
     return "\n".join(lines + ["", *plausibility_meaning(per_model)]) + "\n"
 
 
-def plausibility_meaning(per_model: Mapping[str, Mapping[str, object]]) -> list[str]:
+def plausibility_meaning(per_model: Mapping[str, PlausibilitySummary]) -> list[str]:
     """What the battery's table means for using the hybrid, and what to do:
     a paragraph per finding (collisions, string instability, no equilibrium),
     naming the models concerned; one line when nothing was found."""
 
     def which(key: str) -> str:
         found = [
-            f"{_display_name(m)} {float(r[key]):.0%}"
+            f"{_display_name(m)} {getattr(r, key):.0%}"
             for m, r in per_model.items()
-            if m.lower() != _HYBRID and float(r[key]) > 0.0
+            if m.lower() != _HYBRID and getattr(r, key) > 0.0
         ]
         return ", ".join(found)
 

@@ -49,6 +49,14 @@ def sbc_ranks(
     Returns:
         (N, K) int64 ranks in ``0 .. L``: draws strictly below the truth, plus a
         uniform share of the ties.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.evaluation.sbc import sbc_ranks
+        >>> truth = torch.tensor([[0.5], [2.5]])  # (N, K): 2 replicates, 1 parameter
+        >>> draws = torch.tensor([[0.0, 1.0, 2.0, 3.0]] * 2)[:, :, None]  # (N, L, K)
+        >>> sbc_ranks(truth, draws)[:, 0].tolist()  # draws below each truth
+        [1, 3]
     """
     if truth.ndim != 2 or draws.ndim != 3 or draws.shape[::2] != truth.shape:
         raise ValueError(
@@ -74,6 +82,16 @@ def rank_pit(
 
     Returns:
         (N, K) float64 in (0, 1), uniform under calibration.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.evaluation.sbc import sbc_ranks
+        >>> truth = torch.tensor([[0.5], [2.5]])  # (N, K): 2 replicates, 1 parameter
+        >>> draws = torch.tensor([[0.0, 1.0, 2.0, 3.0]] * 2)[:, :, None]  # (N, L, K)
+        >>> from torchcf.evaluation.sbc import rank_pit
+        >>> pit = rank_pit(sbc_ranks(truth, draws), n_draws=4)  # (r + U) / (L + 1)
+        >>> pit.shape, bool(0.2 <= pit[0, 0] < 0.4), bool(0.6 <= pit[1, 0] < 0.8)
+        (torch.Size([2, 1]), True, True)
     """
     unit = torch.rand(ranks.shape, generator=generator, dtype=torch.float64)
     return (ranks.to(torch.float64) + unit) / (n_draws + 1)
@@ -89,6 +107,13 @@ def central_coverage(pit: Tensor, levels: Sequence[float]) -> Tensor:
     Returns:
         (levels, K) float64 observed coverage; ``> q``: the posterior is too wide,
         ``< q``: too narrow or biased.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.evaluation.sbc import central_coverage
+        >>> pit = torch.tensor([[0.5], [0.1]])  # (N, K)
+        >>> central_coverage(pit, [0.5, 0.9])[:, 0].tolist()  # 0.1 is only in the 90 %
+        [0.5, 1.0]
     """
     level = torch.as_tensor(list(levels), dtype=torch.float64)  # (levels,)
     distance = (pit.to(torch.float64) - 0.5).abs()  # (N, K)
@@ -96,13 +121,31 @@ def central_coverage(pit: Tensor, levels: Sequence[float]) -> Tensor:
 
 
 def rank_histogram(ranks: Tensor, n_draws: int) -> Tensor:
-    """(L + 1, K) int64 counts of each rank per parameter."""
+    """(L + 1, K) int64 counts of each rank per parameter.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.evaluation.sbc import sbc_ranks
+        >>> truth = torch.tensor([[0.5], [2.5]])  # (N, K): 2 replicates, 1 parameter
+        >>> draws = torch.tensor([[0.0, 1.0, 2.0, 3.0]] * 2)[:, :, None]  # (N, L, K)
+        >>> from torchcf.evaluation.sbc import rank_histogram
+        >>> rank_histogram(sbc_ranks(truth, draws), n_draws=4)[:, 0].tolist()
+        [0, 1, 0, 1, 0]
+    """
     columns = [torch.bincount(r, minlength=n_draws + 1) for r in ranks.T]
     return torch.stack(columns, 1)
 
 
 def uniformity_pvalue(ranks: Tensor, n_draws: int) -> np.ndarray:
-    """(K,) chi-square p-values of the ranks against a uniform on ``0 .. L``."""
+    """(K,) chi-square p-values of the ranks against a uniform on ``0 .. L``.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.evaluation.sbc import uniformity_pvalue
+        >>> ranks = torch.arange(5)[:, None]  # every rank of 0 .. 4 once
+        >>> uniformity_pvalue(ranks, n_draws=4).round(3).tolist()
+        [1.0]
+    """
     counts = rank_histogram(ranks, n_draws).numpy()
     return np.asarray(stats.chisquare(counts, axis=0).pvalue, dtype=np.float64)
 
@@ -112,6 +155,15 @@ def interval_width(draws: Tensor, level: float) -> Tensor:
 
     With a handful of draws this is a rough estimate of the posterior's width;
     divide by the prior's width for a scale-free number.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.evaluation.sbc import sbc_ranks
+        >>> truth = torch.tensor([[0.5], [2.5]])  # (N, K): 2 replicates, 1 parameter
+        >>> draws = torch.tensor([[0.0, 1.0, 2.0, 3.0]] * 2)[:, :, None]  # (N, L, K)
+        >>> from torchcf.evaluation.sbc import interval_width
+        >>> interval_width(draws, level=0.5)[:, 0].tolist()  # quartiles 0.75 and 2.25
+        [1.5, 1.5]
     """
     lo, hi = (1.0 - level) / 2.0, (1.0 + level) / 2.0
     q = torch.tensor([lo, hi], dtype=draws.dtype)
@@ -126,6 +178,13 @@ def gaussian_coverage(scale: float, level: float, n_draws: int) -> float:
 
     ``scale = 1`` gives ``level`` exactly; the coverage rises with ``scale`` (to
     the binomial ranks' limit at ``scale -> inf``) and falls to 0 as it shrinks.
+
+    Examples:
+        >>> from torchcf.evaluation.sbc import gaussian_coverage
+        >>> round(gaussian_coverage(1.0, 0.9, n_draws=10), 3)  # the exact width
+        0.9
+        >>> round(gaussian_coverage(2.0, 0.9, n_draws=10), 3)  # twice as wide
+        0.98
     """
     z = np.linspace(-9.0, 9.0, 3601)  # the truth, standardised
     weight = stats.norm.pdf(z) * (z[1] - z[0])
@@ -147,7 +206,15 @@ def width_factor(coverage: float, level: float, n_draws: int) -> float:
     """How many times wider than the exact posterior the draws are, read from an
     observed coverage under the Gaussian model of :func:`gaussian_coverage`
     (``< 1``: narrower). ``inf`` or ``0`` where the coverage lies beyond what any
-    scale gives (the ranks' limits with few draws)."""
+    scale gives (the ranks' limits with few draws).
+
+    Examples:
+        >>> from torchcf.evaluation.sbc import width_factor
+        >>> round(width_factor(0.9, 0.9, n_draws=10), 3)  # nominal coverage: width 1
+        1.0
+        >>> round(width_factor(0.98, 0.9, n_draws=10), 1)
+        2.0
+    """
     low, high = np.log(1e-3), np.log(1e3)
     if coverage >= gaussian_coverage(np.exp(high), level, n_draws):
         return math.inf
@@ -164,7 +231,15 @@ def width_factor(coverage: float, level: float, n_draws: int) -> float:
 
 def pair_shares(slots: Tensor | np.ndarray) -> np.ndarray:
     """(N, M) each pair's share of its kept particles by model (rows sum to 1;
-    a pair with no finite fit gets a row of NaN)."""
+    a pair with no finite fit gets a row of NaN).
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchcf.evaluation.sbc import pair_shares
+        >>> slots = np.array([[3, 1], [0, 0]])  # (N, M) kept particles by model
+        >>> pair_shares(slots).tolist()  # the second pair has no fit
+        [[0.75, 0.25], [nan, nan]]
+    """
     counts = np.asarray(slots, dtype=np.float64)
     total = counts.sum(1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -182,6 +257,13 @@ def confusion_matrix(
         shares: (N, M) per-pair shares (:func:`pair_shares`).
         label: (N,) generating model of each pair, in ``0 .. n_labels - 1``.
         n_labels: number of generating models.
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchcf.evaluation.sbc import confusion_matrix
+        >>> shares = np.array([[0.75, 0.25], [0.25, 0.75], [1.0, 0.0]])  # (N, M)
+        >>> confusion_matrix(shares, label=[0, 1, 0], n_labels=2).tolist()
+        [[0.875, 0.125], [0.25, 0.75]]
     """
     label = np.asarray(label)
     out = np.full((n_labels, shares.shape[1]), np.nan)

@@ -2,8 +2,8 @@
 
 Assembles, from what :func:`torchcf.evaluation.evaluate.evaluate_posterior` already
 simulated (no second rollout), the numbers metrics.json, the report and
-TensorBoard carry (an :class:`~torchcf.evaluation.results.Uncertainty`; here by
-their keys in metrics.json):
+TensorBoard carry (an :class:`Uncertainty`, of the records of
+:mod:`torchcf.runs.metrics`; here by their keys in metrics.json):
 
 - per learned set (a model or ``"hybrid"``), flat keys added to its metrics:
   ``<metric>_low, <metric>_high`` for ``min, beta_ws, ws``: the percentile
@@ -26,16 +26,25 @@ their keys in metrics.json):
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..config import EvalConfig
 from ..posterior import Posterior
 from ..posterior.tables import ALL, Bootstrap, grouped_shares
-from .bootstrap import (
+from ..runs.metrics import (
     METRICS,
-    TRANSPORT,
+    BootstrapSettings,
+    CoverageCurve,
+    Difference,
     Interval,
+    SetMetrics,
+    SetUncertainty,
+    ShareInterval,
+)
+from .bootstrap import (
+    TRANSPORT,
     cost_with_invalid,
     intervals,
     metric_draws,
@@ -44,23 +53,69 @@ from .bootstrap import (
     resample_counts,
 )
 from .coverage import VARIABLES, PredictiveCDF, coverage_fractions
-from .metrics import SetMetrics
-from .results import (
-    BootstrapSettings,
-    CoverageCurve,
-    Difference,
-    SetUncertainty,
-    ShareInterval,
-    Uncertainty,
-)
 
 #: Streams of the run's seed, one per kind of resample.
 TEST_STREAM, TRAIN_STREAM = "test pairs", "training pairs"
 HYBRID = "hybrid"
 
 
+@dataclass(frozen=True)
+class Uncertainty:
+    """The coverage and bootstrap numbers of an evaluation
+    (:func:`torchcf.evaluation.uncertainty.uncertainty`).
+
+    Attributes:
+        per_set: set -> its intervals and coverage.
+        hybrid_minus: model -> metric -> the hybrid minus the model.
+        shares: model -> the hybrid's share with its interval.
+        bootstrap: how the intervals were made.
+
+    Examples:
+        >>> import numpy as np
+        >>> import torch
+        >>> from torchcf.config import EvalConfig
+        >>> from torchcf.evaluation.metrics import evaluate_costs
+        >>> from torchcf.evaluation.uncertainty import uncertainty
+        >>> from torchcf.posterior import ModelParticles, Posterior
+        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N) costs
+        >>> costs = {
+        ...     "idm": dict(score=C, e_p=C, e_v=C, e_a=C),
+        ...     "hybrid": dict(score=C[1:], e_p=C[1:], e_v=C[1:], e_a=C[1:]),
+        ... }
+        >>> metrics = {name: evaluate_costs(**c) for name, c in costs.items()}
+        >>> idm = ModelParticles(
+        ...     ("a", "b", "v0", "T", "s0", "delta"),
+        ...     theta=torch.tensor([[1.5, 2.0, 33.0, 1.2, 2.0, 4.0]] * 2).double(),
+        ...     score=torch.tensor([0.4, 0.6]).double(),
+        ...     pair_ids=torch.tensor([0, 1]),
+        ...     particle_index=torch.tensor([7, 3]),
+        ... )
+        >>> posterior = Posterior(
+        ...     "demo", "per_pair", 1, ("idm",), {"idm": 1.0}, torch.tensor([0, 1]),
+        ...     {"idm": idm}, {"idm": {}},
+        ... )
+        >>> settings = EvalConfig(bootstrap=50, bootstrap_transport=10)
+        >>> found = uncertainty(costs, metrics, {}, posterior, settings, seed=0)
+        >>> sorted(found.per_set), list(found.hybrid_minus)
+        (['hybrid', 'idm'], ['idm'])
+        >>> found.bootstrap.resamples, found.bootstrap.resamples_transport
+        (50, 10)
+    """
+
+    per_set: dict[str, SetUncertainty]
+    hybrid_minus: dict[str, dict[str, Difference]]
+    shares: dict[str, ShareInterval]
+    bootstrap: BootstrapSettings
+
+
 def level_key(variable: str, level: float) -> str:
-    """``coverage_<variable>_<pct>``, e.g. ``coverage_spacing_90``."""
+    """``coverage_<variable>_<pct>``, e.g. ``coverage_spacing_90``.
+
+    Examples:
+        >>> from torchcf.evaluation.uncertainty import level_key
+        >>> level_key("spacing", 0.9)
+        'coverage_spacing_90'
+    """
     return f"coverage_{variable}_{round(100 * level):d}"
 
 
@@ -89,6 +144,40 @@ def uncertainty(
     Returns:
         per set its intervals and coverage, the hybrid minus each model, the
         shares with their intervals, and the bootstrap's settings.
+
+    Examples:
+        >>> import numpy as np
+        >>> import torch
+        >>> from torchcf.config import EvalConfig
+        >>> from torchcf.evaluation.metrics import evaluate_costs
+        >>> from torchcf.evaluation.uncertainty import uncertainty
+        >>> from torchcf.posterior import ModelParticles, Posterior
+        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N) costs
+        >>> costs = {
+        ...     "idm": dict(score=C, e_p=C, e_v=C, e_a=C),
+        ...     "hybrid": dict(score=C[1:], e_p=C[1:], e_v=C[1:], e_a=C[1:]),
+        ... }
+        >>> metrics = {name: evaluate_costs(**c) for name, c in costs.items()}
+        >>> idm = ModelParticles(
+        ...     ("a", "b", "v0", "T", "s0", "delta"),
+        ...     theta=torch.tensor([[1.5, 2.0, 33.0, 1.2, 2.0, 4.0]] * 2).double(),
+        ...     score=torch.tensor([0.4, 0.6]).double(),
+        ...     pair_ids=torch.tensor([0, 1]),
+        ...     particle_index=torch.tensor([7, 3]),
+        ... )
+        >>> posterior = Posterior(
+        ...     "demo", "per_pair", 1, ("idm",), {"idm": 1.0}, torch.tensor([0, 1]),
+        ...     {"idm": idm}, {"idm": {}},
+        ... )
+        >>> settings = EvalConfig(bootstrap=50, bootstrap_transport=10)
+        >>> found = uncertainty(costs, metrics, {}, posterior, settings, seed=0)
+        >>> interval = found.per_set["idm"].intervals["min"]
+        >>> round(interval.value, 3), interval.low <= interval.value <= interval.high
+        (0.833, True)
+        >>> round(found.hybrid_minus["idm"]["min"].value, 3)  # the hybrid minus IDM
+        0.333
+        >>> found.shares["idm"].share
+        1.0
     """
     beta, n_bootstrap, level = settings.beta, settings.bootstrap, settings.level
     n_transport = settings.bootstrap_transport
@@ -207,7 +296,39 @@ def tensorboard_scalars(result: Uncertainty) -> dict[str, dict[str, float]]:
     :meth:`torchcf.runs.tensorboard.RunLogger.evaluation` (tags
     ``eval/<key>/<model>``): the hybrid's differences as
     ``hybrid_minus_<metric>[_low|_high]`` and the shares as ``share[_low|_high]``;
-    the per-set keys travel with the set's metrics."""
+    the per-set keys travel with the set's metrics.
+
+    Examples:
+        >>> import numpy as np
+        >>> import torch
+        >>> from torchcf.config import EvalConfig
+        >>> from torchcf.evaluation.metrics import evaluate_costs
+        >>> from torchcf.evaluation.uncertainty import uncertainty
+        >>> from torchcf.posterior import ModelParticles, Posterior
+        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N) costs
+        >>> costs = {
+        ...     "idm": dict(score=C, e_p=C, e_v=C, e_a=C),
+        ...     "hybrid": dict(score=C[1:], e_p=C[1:], e_v=C[1:], e_a=C[1:]),
+        ... }
+        >>> metrics = {name: evaluate_costs(**c) for name, c in costs.items()}
+        >>> idm = ModelParticles(
+        ...     ("a", "b", "v0", "T", "s0", "delta"),
+        ...     theta=torch.tensor([[1.5, 2.0, 33.0, 1.2, 2.0, 4.0]] * 2).double(),
+        ...     score=torch.tensor([0.4, 0.6]).double(),
+        ...     pair_ids=torch.tensor([0, 1]),
+        ...     particle_index=torch.tensor([7, 3]),
+        ... )
+        >>> posterior = Posterior(
+        ...     "demo", "per_pair", 1, ("idm",), {"idm": 1.0}, torch.tensor([0, 1]),
+        ...     {"idm": idm}, {"idm": {}},
+        ... )
+        >>> settings = EvalConfig(bootstrap=50, bootstrap_transport=10)
+        >>> found = uncertainty(costs, metrics, {}, posterior, settings, seed=0)
+        >>> from torchcf.evaluation.uncertainty import tensorboard_scalars
+        >>> scalars = tensorboard_scalars(found)
+        >>> round(scalars["idm"]["hybrid_minus_min"], 3), scalars["idm"]["share"]
+        (0.333, 1.0)
+    """
     out: dict[str, dict[str, float]] = {}
     for model, row in result.hybrid_minus.items():
         for key, d in row.items():
@@ -221,4 +342,4 @@ def tensorboard_scalars(result: Uncertainty) -> dict[str, dict[str, float]]:
     return out
 
 
-__all__ = ["HYBRID", "level_key", "tensorboard_scalars", "uncertainty"]
+__all__ = ["HYBRID", "Uncertainty", "level_key", "tensorboard_scalars", "uncertainty"]

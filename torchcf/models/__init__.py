@@ -47,7 +47,7 @@ def get_model(name_or_model: str | CFModel) -> CFModel:
     the effects of :mod:`torchcf.models.effects`; its canonical name (effects in
     their canonical order) is the returned model's ``name``.
 
-    Example:
+    Examples:
         >>> from torchcf import get_model
         >>> get_model("IDM").param_names
         ('a', 'b', 'v0', 'T', 's0', 'delta')
@@ -91,6 +91,16 @@ def require_model(model: object, caller: str) -> CFModel:
     Args:
         model: what the caller was given.
         caller: the public function's name, for the message (``"simulate"``).
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> from torchcf.models import require_model
+        >>> require_model(get_model("idm"), "simulate").name
+        'idm'
+        >>> require_model("idm", "simulate")
+        Traceback (most recent call last):
+            ...
+        TypeError: simulate takes a model object, e.g. torchcf.get_model('idm'), ...
     """
     if isinstance(model, CFModel):
         return model
@@ -112,6 +122,13 @@ def augment(model: CFModel, *effects: Effect) -> CFModel:
     Raises:
         UnknownModelError: an effect cannot wrap the model (``lag`` on HL, which
             has its own actuation lag) or is listed twice.
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> from torchcf.models import augment
+        >>> from torchcf.models.effects import parse_effect
+        >>> augment(get_model("idm"), parse_effect("delay")) is get_model("idm+delay")
+        True
     """
     if not effects:
         return model
@@ -137,7 +154,13 @@ for _kind in (*(type(m) for m in MODELS.values()), AugmentedModel):
 def split_name(key: str) -> list[str]:
     """Split ``"idm+grade(end=600,knots=4)+lag"`` at the '+' outside parentheses:
     the base model, then each effect's token (an option such as ``end=1e+06``
-    keeps its '+')."""
+    keeps its '+').
+
+    Examples:
+        >>> from torchcf.models import split_name
+        >>> split_name("idm+grade(end=600,knots=4)+lag")
+        ['idm', 'grade(end=600,knots=4)', 'lag']
+    """
     parts, depth, current = [], 0, ""
     for char in key:
         depth += (char == "(") - (char == ")")

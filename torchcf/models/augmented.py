@@ -24,6 +24,14 @@ class AugmentedModel(CFModel):
     Args:
         base: the wrapped model (not itself augmented).
         effects: at most one of each kind and at most one realisation effect.
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> model = get_model("idm+lag")
+        >>> type(model).__name__, model.pool_model.name, model.effect_kinds
+        ('AugmentedModel', 'idm', ('lag',))
+        >>> model.param_names[-1], model.acceleration_is_state
+        ('t_lag', True)
     """
 
     def __init__(self, base: CFModel, effects: list[Effect]) -> None:

@@ -29,7 +29,14 @@ from torch import Tensor
 
 
 class ParamSpec(NamedTuple):
-    """One model parameter: its name, unit and default uniform prior bounds."""
+    """One model parameter: its name, unit and default uniform prior bounds.
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> spec = get_model("idm").param_specs[0]
+        >>> spec.name, spec.unit, spec.lower, spec.upper
+        ('a', 'm/s^2', 0.5, 2.0)
+    """
 
     name: str
     unit: str
@@ -50,6 +57,22 @@ class Perception(NamedTuple):
         position: own front-bumper position along the road [m], in the data's
             frame (what a road-grade profile is a function of); None where the
             caller has no road frame (models must not need it).
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> from torchcf.models import Perception
+        >>> idm = get_model("idm")
+        >>> p = idm.unpack(torch.tensor([[1.5, 2.0, 33.0, 1.2, 2.0, 4.0]]))
+        >>> obs = Perception(
+        ...     spacing=torch.tensor([40.0]),  # [m]
+        ...     v=torch.tensor([20.0]),  # [m/s]
+        ...     v_lead=torch.tensor([20.0]),
+        ...     a=torch.tensor([0.0]),  # [m/s^2]
+        ...     leader_length=5.0,
+        ... )
+        >>> round(idm.command(p, obs).item(), 3)  # [m/s^2]
+        0.664
     """
 
     spacing: Tensor
@@ -61,7 +84,16 @@ class Perception(NamedTuple):
 
 
 class FollowerState(NamedTuple):
-    """The simulated follower: position [m], speed [m/s], acceleration [m/s^2]."""
+    """The simulated follower: position [m], speed [m/s], acceleration [m/s^2].
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.models import FollowerState, point_mass_advance
+        >>> x, v = torch.zeros(2), torch.full((2,), 20.0)  # [m], [m/s]
+        >>> state = FollowerState(x=x, v=v, a=torch.zeros(2))
+        >>> point_mass_advance(state, torch.ones(2), dt=0.1).v  # [m/s]
+        tensor([20.1000, 20.1000])
+    """
 
     x: Tensor
     v: Tensor
@@ -72,6 +104,15 @@ def point_mass_advance(state: FollowerState, u: Tensor, dt: float) -> FollowerSt
     """Constant-acceleration step over ``dt`` (SPEC section 2, point-mass models).
 
     ``a(t) = u``, ``v(t+1) = v + u dt``, ``x(t+1) = x + v dt + u dt^2 / 2``.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.models import FollowerState, point_mass_advance
+        >>> one = torch.tensor([1.0])
+        >>> state = FollowerState(x=0.0 * one, v=20.0 * one, a=0.0 * one)  # [m], [m/s]
+        >>> after = point_mass_advance(state, one, dt=0.1)  # u = 1 m/s^2
+        >>> round(after.x.item(), 3), round(after.v.item(), 3), after.a.item()
+        (2.005, 20.1, 1.0)
     """
     return FollowerState(
         x=state.x + state.v * dt + u * (0.5 * dt * dt),
@@ -95,6 +136,15 @@ def first_order_lag_advance(
         u: command held over the step [m/s^2].
         lag: time constant ``TT`` [s], broadcastable to the state.
         dt: step [s].
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.models import FollowerState, first_order_lag_advance
+        >>> one = torch.tensor([1.0])
+        >>> state = FollowerState(x=0.0 * one, v=20.0 * one, a=0.0 * one)  # [m], [m/s]
+        >>> after = first_order_lag_advance(state, one, lag=0.5 * one, dt=0.1)
+        >>> round(after.a.item(), 3)  # [m/s^2], lagging the 1 m/s^2 command
+        0.181
     """
     decay = torch.exp(-dt / lag)
     gap_to_command = state.a - u
@@ -123,6 +173,14 @@ class CFModel:
     Subclasses set :attr:`name`, :attr:`Params` (a NamedTuple whose fields are the
     parameter names, in the prior files' order), :attr:`param_specs` and implement
     :meth:`command`.
+
+    Examples:
+        >>> from torchcf import CFModel, get_model
+        >>> idm = get_model("idm")
+        >>> isinstance(idm, CFModel), idm.n_params, tuple(idm.prior_bounds().shape)
+        (True, 6, (6, 2))
+        >>> idm
+        IDM(a, b, v0, T, s0, delta)
     """
 
     name: ClassVar[str]

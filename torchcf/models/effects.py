@@ -65,6 +65,14 @@ class Effect:
     the hook of their stage. ``q`` below is the tuple of the effect's own parameter
     tensors (in :attr:`param_specs` order, each broadcast to the state's shape), as
     returned by :meth:`prepare`.
+
+    Examples:
+        >>> from torchcf.models import EFFECTS
+        >>> delay = EFFECTS["delay"]()
+        >>> delay.name, delay.stage, [spec.name for spec in delay.param_specs]
+        ('delay', 'perception', ['t_delay'])
+        >>> delay.neutral  # no delay: the model itself
+        (0.0,)
     """
 
     name: ClassVar[str]

@@ -7,7 +7,7 @@
   range, with units); the hybrid's shares per group of training pairs (a
   column of the data's ``index.csv`` or a mapping file), with bootstrap
   intervals.
-* ``python -m torchcf.posterior RUN`` (:mod:`torchcf.posterior.__main__`): the
+* ``torchcf posterior RUN`` (:mod:`torchcf.cli.posterior`): the
   tables from an existing run (``--by COLUMN`` / ``--groups FILE``: the shares
   per group).
 """

@@ -41,7 +41,21 @@ FORMAT = "torchcf.posterior/1"
 
 @dataclass(frozen=True)
 class ModelParticles:
-    """One model's particles in the hybrid."""
+    """One model's particles in the hybrid.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.posterior import ModelParticles
+        >>> idm = ModelParticles(
+        ...     param_names=("a", "b", "v0", "T", "s0", "delta"),
+        ...     theta=torch.tensor([[1.5, 2.0, 33.0, 1.2, 2.0, 4.0]] * 2).double(),
+        ...     score=torch.tensor([0.4, 0.6], dtype=torch.float64),
+        ...     pair_ids=torch.tensor([0, 1]),  # the training pair each was kept for
+        ...     particle_index=torch.tensor([7, 3]),
+        ... )
+        >>> len(idm), idm.theta.shape
+        (2, torch.Size([2, 6]))
+    """
 
     param_names: tuple[str, ...]
     theta: Tensor  # (h, K) float64
@@ -55,7 +69,32 @@ class ModelParticles:
 
 @dataclass(frozen=True)
 class Posterior:
-    """``Theta_hybrid`` with the shares and the buffers it came from."""
+    """``Theta_hybrid`` with the shares and the buffers it came from.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> import torch
+        >>> from torchcf.posterior import ModelParticles
+        >>> idm = ModelParticles(
+        ...     param_names=("a", "b", "v0", "T", "s0", "delta"),
+        ...     theta=torch.tensor([[1.5, 2.0, 33.0, 1.2, 2.0, 4.0]] * 2).double(),
+        ...     score=torch.tensor([0.4, 0.6], dtype=torch.float64),
+        ...     pair_ids=torch.tensor([0, 1]),  # the training pair each was kept for
+        ...     particle_index=torch.tensor([7, 3]),
+        ... )
+        >>> from torchcf.posterior import Posterior
+        >>> posterior = Posterior(
+        ...     dataset="demo", selection="per_pair", top_n=1, models=("idm",),
+        ...     shares={"idm": 1.0}, train_pair_ids=torch.tensor([0, 1]),
+        ...     hybrid={"idm": idm}, buffers={"idm": {}},
+        ... )
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     posterior.save(Path(folder) / "posterior.pt")
+        ...     back = Posterior.load(Path(folder) / "posterior.pt")
+        >>> back.models, len(back.hybrid["idm"]), back.shares
+        (('idm',), 2, {'idm': 1.0})
+    """
 
     dataset: str
     selection: str

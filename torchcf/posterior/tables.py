@@ -281,7 +281,7 @@ def locate_index(
 
     - ``data.raw`` (extracted when the run started): ``RUN/data/index.csv``;
       the run's pair ids are its ``pair`` column.
-    - ``data.path`` (a folder, as ``python -m torchcf.data extract`` writes
+    - ``data.path`` (a folder, as ``torchcf data extract`` writes
       it): ``PATH/index.csv`` (a relative path from the working directory, as
       training read it); with ``split = "dataset"`` the ids are positions in
       ``Trajectory/`` (:class:`PairIndex`), with ``"kfold"`` full-set columns,

@@ -14,7 +14,7 @@ field scores calibrations.
 * :mod:`torchcf.predict.files`: ``predict.json``, ``predict.md``, the
   per-pair table and the trajectories.
 
-Example:
+Examples:
     >>> from torchcf.predict import PredictSettings, TrainedRun, predict
     >>> run = TrainedRun.load("runs/carII")  # doctest: +SKIP
     >>> found = predict(run, run.train, PredictSettings(draws=50))  # doctest: +SKIP

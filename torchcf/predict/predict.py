@@ -63,6 +63,16 @@ class PredictSettings:
         objective: the population model's pooled objective, ``"spacing"``
             (mean spacing RMSE) or ``"score"`` (SPEC section 4's).
         seed: seeds every draw and search.
+
+    Examples:
+        >>> from torchcf.predict import PredictError, PredictSettings
+        >>> settings = PredictSettings(draws=50, history=None)  # no history
+        >>> settings.draws, settings.objective
+        (50, 'spacing')
+        >>> PredictSettings(conditioning="oracle")
+        Traceback (most recent call last):
+            ...
+        torchcf.predict.trained.PredictError: conditioning must be one of auto, ...
     """
 
     draws: int = 200
@@ -104,6 +114,13 @@ class PopulationResult(Record):
         fits: every model's pooled vector.
         spacing_rmse: the chosen model's on the pairs, whole.
         by_model: every model's pooled vector's on the pairs, whole.
+
+    Examples:
+        What the record holds (:func:`predict`'s example makes one):
+
+        >>> import dataclasses
+        >>> [field.name for field in dataclasses.fields(PopulationResult)]
+        ['chosen', 'fits', 'spacing_rmse', 'by_model']
     """
 
     chosen: str
@@ -126,6 +143,14 @@ class BandsResult(Record):
         coverage_50, coverage_90: the share of recorded steps within the 50 %
             and 90 % bands.
         collisions: the share of draws that collided.
+
+    Examples:
+        What the record holds (:func:`predict`'s example makes one):
+
+        >>> import dataclasses
+        >>> [field.name for field in dataclasses.fields(BandsResult)]
+        ['draws', 'median', 'per_draw', 'min_ade', 'min_fde', 'coverage_50',
+         'coverage_90', 'collisions']
     """
 
     draws: int
@@ -158,6 +183,14 @@ class HistoryResult(Record):
         change: ``conditioned.mean / population.mean - 1``.
         collisions: the share of a posterior's particles that collided on the
             rest.
+
+    Examples:
+        What the record holds (:func:`predict`'s example makes one):
+
+        >>> import dataclasses
+        >>> [field.name for field in dataclasses.fields(HistoryResult)]
+        ['history', 'design', 'source', 'judged_on_train', 'pairs', 'too_short',
+         'conditioned', 'population', 'change', 'collisions']
     """
 
     history: float
@@ -174,7 +207,16 @@ class HistoryResult(Record):
 
 @dataclass(frozen=True)
 class PredictionSummary(Record):
-    """What :func:`predict` found (``predict.json``)."""
+    """What :func:`predict` found (``predict.json``).
+
+    Examples:
+        What the record holds (:func:`predict`'s example makes one):
+
+        >>> import dataclasses
+        >>> [field.name for field in dataclasses.fields(PredictionSummary)]
+        ['run', 'data', 'pairs', 'seconds_of_data', 'dt', 'leader_length',
+         'settings', 'population', 'bands', 'history', 'seconds']
+    """
 
     run: str
     data: str
@@ -202,6 +244,13 @@ class Prediction:
             the history's end and for pairs not predicted; None without a
             history.
         per_pair: per pair (in pair order), its scores.
+
+    Examples:
+        What the record holds (:func:`predict`'s example makes one):
+
+        >>> import dataclasses
+        >>> [field.name for field in dataclasses.fields(Prediction)]
+        ['summary', 'pairs', 'population', 'bands', 'conditioned', 'per_pair']
     """
 
     summary: PredictionSummary
@@ -225,6 +274,38 @@ def predict(
 
     Raises:
         PredictError: the pairs' time step or leader length is not the run's.
+
+    Examples:
+        >>> from pathlib import Path
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> from torchcf.config import TrainConfig
+        >>> from torchcf.posterior import ModelParticles, Posterior
+        >>> from torchcf.predict import PredictSettings, TrainedRun, predict
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm, truth = get_model("idm"), [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]
+        >>> pairs = synthetic_pairs(idm, truth, n_pairs=6, n_steps=200)  # 20 s each
+        >>> train, test = pairs.subset([0, 1, 2, 3]), pairs.subset([4, 5])
+        >>> low, high = idm.prior_bounds().unbind(1)
+        >>> g = torch.Generator().manual_seed(0)
+        >>> theta = low + (high - low) * torch.rand(8, 6, generator=g).double()
+        >>> theta[0] = torch.tensor(truth)  # the hybrid holds the true driver
+        >>> hybrid = {"idm": ModelParticles(
+        ...     idm.param_names, theta, torch.zeros(8).double(),
+        ...     pair_ids=torch.arange(8) % 4, particle_index=torch.arange(8),
+        ... )}
+        >>> posterior = Posterior(
+        ...     "demo", "per_pair", 2, ("idm",), {"idm": 1.0}, torch.arange(4),
+        ...     hybrid, buffers={},
+        ... )
+        >>> config = TrainConfig(data={"path": "demo"}, models=["idm"])
+        >>> priors = {"idm": idm.prior_bounds()}
+        >>> run = TrainedRun(Path("demo"), config, posterior, train, priors)
+        >>> found = predict(run, test, PredictSettings(draws=10, history=None))
+        >>> found.summary.population.chosen, found.bands.median.shape  # (T, N)
+        ('idm', torch.Size([200, 2]))
+        >>> found.conditioned is None
+        True
     """
     run.check(pairs)
     began = time.perf_counter()

@@ -20,6 +20,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from ..calibration.amortised import trained_estimator
+from ..calibration.of_config import method_of
 from ..config import DataConfig, TrainConfig
 from ..config.pairs import load_split
 from ..data import PairSet, load_pairs
@@ -49,6 +51,43 @@ class TrainedRun:
         priors: model name -> ``(K, 2)`` float64 prior box ``[low, high]``.
         estimator: the amortised estimator of an ``abc.method = "amortised"``
             run, else None.
+
+    Examples:
+        >>> from pathlib import Path
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> from torchcf.config import TrainConfig
+        >>> from torchcf.posterior import ModelParticles, Posterior
+        >>> from torchcf.predict import PredictSettings, TrainedRun, predict
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm, truth = get_model("idm"), [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]
+        >>> pairs = synthetic_pairs(idm, truth, n_pairs=6, n_steps=200)  # 20 s each
+        >>> train, test = pairs.subset([0, 1, 2, 3]), pairs.subset([4, 5])
+        >>> low, high = idm.prior_bounds().unbind(1)
+        >>> g = torch.Generator().manual_seed(0)
+        >>> theta = low + (high - low) * torch.rand(8, 6, generator=g).double()
+        >>> theta[0] = torch.tensor(truth)  # the hybrid holds the true driver
+        >>> hybrid = {"idm": ModelParticles(
+        ...     idm.param_names, theta, torch.zeros(8).double(),
+        ...     pair_ids=torch.arange(8) % 4, particle_index=torch.arange(8),
+        ... )}
+        >>> posterior = Posterior(
+        ...     "demo", "per_pair", 2, ("idm",), {"idm": 1.0}, torch.arange(4),
+        ...     hybrid, buffers={},
+        ... )
+        >>> config = TrainConfig(data={"path": "demo"}, models=["idm"])
+        >>> priors = {"idm": idm.prior_bounds()}
+        >>> run = TrainedRun(Path("demo"), config, posterior, train, priors)
+        >>> run.dt, run.leader_length, [model.name for model in run.models]  # [s], [m]
+        (0.1, 5.0, ['idm'])
+        >>> run.particles(idm).shape  # the hybrid's IDM particles
+        torch.Size([8, 6])
+        >>> coarse = synthetic_pairs(idm, truth, n_pairs=1, n_steps=50, dt=0.2)
+        >>> run.check(coarse)
+        Traceback (most recent call last):
+            ...
+        torchcf.predict.trained.PredictError: the pairs' time step is 0.2 s, ...
+        >>> run = TrainedRun.load("runs/demo")  # doctest: +SKIP
     """
 
     path: Path
@@ -119,9 +158,11 @@ class TrainedRun:
         priors = {spec.name: spec.bounds(torch.float64) for spec in cfg.models}
         estimator = None
         if cfg.abc.method == "amortised" and run.amortised_checkpoint.is_file():
-            from ..train import trained_estimator  # the run's own network
-
-            estimator = trained_estimator(cfg, run)
+            estimator = trained_estimator(  # the run's own network
+                method_of(cfg),
+                {spec.model: spec.bounds(torch.float64) for spec in cfg.models},
+                run.amortised_checkpoint,
+            )
         return cls(run.path, cfg, posterior, train, priors, estimator)
 
     def check(self, pairs: PairSet) -> None:

@@ -140,6 +140,18 @@ class BoxQP:
     Attributes:
         P: (B, n, n) the Hessians as given.
         settings: the solver settings.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.qp import BoxQP
+        >>> P = torch.eye(2, dtype=torch.float64).expand(3, 2, 2)  # (B, n, n)
+        >>> q = torch.tensor([[-1.0, -1.0], [-3.0, 0.0], [1.0, -0.5]]).double()
+        >>> l, u = torch.zeros(3, 2).double(), torch.ones(3, 2).double()  # 0 <= x <= 1
+        >>> result = BoxQP(P).solve(q, l, u)
+        >>> result.x.tolist()  # -q clipped to the box, as P = I
+        [[1.0, 1.0], [1.0, 0.0], [0.0, 0.5]]
+        >>> result.status.tolist(), result.n_iter.tolist()  # solved exactly, no ADMM
+        ([0, 0, 0], [0, 0, 0])
     """
 
     def __init__(self, P: Tensor, settings: QPSettings | None = None) -> None:

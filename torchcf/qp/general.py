@@ -51,6 +51,24 @@ def solve_qp_batch(
 
     Returns:
         :class:`QPResult` in the dtype and on the device of ``q``.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.qp import INFTY, QPStatus, solve_qp_batch
+        >>> P = torch.eye(2, dtype=torch.float64)[None]  # (B, n, n), B = 1
+        >>> q = torch.tensor([[-1.0, -1.0]], dtype=torch.float64)
+        >>> A = torch.ones(1, 1, 2, dtype=torch.float64)  # one row: x1 + x2
+        >>> l, u = torch.tensor([[-1.0]]).double(), torch.tensor([[1.0]]).double()
+        >>> result = solve_qp_batch(P, q, A, l, u)  # x1 + x2 <= 1
+        >>> [round(x, 3) for x in result.x[0].tolist()]
+        [0.5, 0.5]
+        >>> QPStatus(int(result.status[0])).name
+        'SOLVED'
+        >>> A2 = torch.ones(1, 2, 2, dtype=torch.float64)  # x1 + x2 >= 2 and <= 1
+        >>> l2 = torch.tensor([[2.0, -INFTY]]).double()
+        >>> u2 = torch.tensor([[INFTY, 1.0]]).double()
+        >>> QPStatus(int(solve_qp_batch(P, q, A2, l2, u2).status[0])).name
+        'PRIMAL_INFEASIBLE'
     """
     settings = settings or QPSettings()
     batch, n = q.shape

@@ -38,7 +38,13 @@ ROUNDOFF_ULPS = 100
 
 
 class QPStatus(IntEnum):
-    """Per-instance outcome of a solve."""
+    """Per-instance outcome of a solve.
+
+    Examples:
+        >>> from torchcf.qp import QPStatus
+        >>> QPStatus(2).name, int(QPStatus.SOLVED)  # QPResult.status holds the values
+        ('PRIMAL_INFEASIBLE', 0)
+    """
 
     SOLVED = 0
     MAX_ITER = 1
@@ -65,6 +71,19 @@ class QPSettings:
         adaptive_rho_tolerance: refactorise only when the new rho differs from the
             current one by more than this factor.
         polish: refine solved instances by an exact solve on the guessed active set.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.qp import INFTY, QPStatus, solve_qp_batch
+        >>> P = torch.eye(2, dtype=torch.float64)[None]  # (B, n, n), B = 1
+        >>> q = torch.tensor([[-1.0, -1.0]], dtype=torch.float64)
+        >>> A = torch.ones(1, 1, 2, dtype=torch.float64)  # one row: x1 + x2
+        >>> from torchcf.qp import QPSettings
+        >>> l, u = torch.tensor([[-1.0]]).double(), torch.tensor([[1.0]]).double()
+        >>> few = QPSettings(max_iter=10, polish=False)  # too few ADMM iterations
+        >>> result = solve_qp_batch(P, q, A, l, u, settings=few)
+        >>> QPStatus(int(result.status[0])).name, result.n_iter.tolist()
+        ('MAX_ITER', [10])
     """
 
     rho: float = 0.1
@@ -113,6 +132,18 @@ class QPResult(NamedTuple):
         status: (B,) int64 :class:`QPStatus` values.
         polished: (B,) bool, True where the returned point is an exact solve on an
             active set (the polish after ADMM, or BoxQP's active-set stage).
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.qp import BoxQP
+        >>> P = torch.eye(2, dtype=torch.float64).expand(3, 2, 2)  # (B, n, n)
+        >>> q = torch.tensor([[-1.0, -1.0], [-3.0, 0.0], [1.0, -0.5]]).double()
+        >>> l, u = torch.zeros(3, 2).double(), torch.ones(3, 2).double()  # 0 <= x <= 1
+        >>> result = BoxQP(P).solve(q, l, u)
+        >>> result.x.shape, result.y.shape, result.status.dtype  # (B, n), (B, m)
+        (torch.Size([3, 2]), torch.Size([3, 2]), torch.int64)
+        >>> result.y.tolist()  # > 0 at an active upper bound, < 0 at a lower one
+        [[0.0, 0.0], [2.0, 0.0], [-1.0, 0.0]]
     """
 
     x: Tensor

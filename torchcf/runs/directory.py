@@ -24,6 +24,11 @@ A cross-validation (``torchcf crossval``) writes one run directory per
 fold, ``OUT/fold<i>/``, then the folds' mean in ``OUT/report/table.md`` and, last,
 ``OUT/metrics.json``.
 
+What ``summary.json`` and ``metrics.json`` hold is typed once, here: their
+records are :mod:`torchcf.runs.summary`'s and :mod:`torchcf.runs.metrics`'s, and
+:class:`RunDir` writes and reads the records (the JSON objects are the files'
+edge alone).
+
 Each step's last file marks its completion, so a directory never looks more
 finished than it is: every file is written atomically (:mod:`torchcf.system.files`: a
 temporary file renamed into place; a full disk keeps the previous checkpoint
@@ -69,6 +74,8 @@ from ..system.files import (
     remove_file,
     write_json,
 )
+from .metrics import CrossvalResult, Evaluation
+from .summary import RecalibrationSummary, RunSummary
 
 #: The lock file of a run directory (:meth:`RunDir.locked`).
 LOCK_NAME = ".lock"
@@ -96,7 +103,9 @@ SUMMARY_KEYS = ("dataset", "pairwise")
 #: Settings earlier releases wrote to ``config.json`` that no longer exist; a run
 #: directory holding them is read without them (they changed nothing a finished
 #: run holds).
-RETIRED_KEYS = {"diagnose": ("recalibrate_particles", "recalibrate_method")}
+RETIRED_KEYS = {
+    "diagnose": ("recalibrate_particles", "recalibrate_method", "recalibration")
+}
 
 
 def _without_retired(raw: JSON) -> JSON:
@@ -392,49 +401,90 @@ class RunDir:
         return Posterior.load(self.posterior_pt)
 
     # ---------------------------------------------------------------- summary
-    def write_summary(self, summary: JSON) -> None:
-        """``summary.json``, the last file of training (a summary's ``to_json``)."""
-        write_json(self.summary_json, summary)
+    def write_summary(self, summary: RunSummary | RecalibrationSummary | JSON) -> None:
+        """``summary.json``, the last file of training (a training's
+        :class:`~torchcf.runs.summary.RunSummary`) or of a re-calibration
+        (:class:`~torchcf.runs.summary.RecalibrationSummary`)."""
+        if isinstance(summary, dict):
+            # TEMPORARY: train/run.py still writes ``summary.to_json()``; goes
+            # once it writes the record.
+            summary = RunSummary.from_json(summary)
+        write_json(self.summary_json, summary.to_json())
 
-    def read_summary(self) -> JSON:
-        """The training summary, as the file holds it (a training's
-        :class:`~torchcf.train.summary.RunSummary`, or a re-calibration's).
+    def read_summary(self) -> RunSummary | RecalibrationSummary:
+        """The summary: a training's :class:`~torchcf.runs.summary.RunSummary`,
+        or a re-calibration's :class:`~torchcf.runs.summary.RecalibrationSummary`
+        (the one whose file holds a ``recalibration`` entry).
 
         Raises:
             RunFileError: missing (the run is not trained), unreadable,
-                truncated, not an object, or without its ``dataset`` or
-                ``pairwise`` entry.
+                truncated, not an object, without its ``dataset`` or
+                ``pairwise`` entry, or not a summary this release reads.
         """
         self._require(self.summary_json, self._unfinished("summary.json"))
-        summary = read_json_object(self.summary_json)
+        raw = read_json_object(self.summary_json)
         for key in SUMMARY_KEYS:
-            if key not in summary:
+            if key not in raw:
                 raise RunFileError(f"{self.summary_json}: no {key!r} entry")
-        return summary
+        kind = RecalibrationSummary if "recalibration" in raw else RunSummary
+        try:
+            return kind.from_json(raw)
+        except ValueError as error:
+            raise RunFileError(f"{self.summary_json}: {error}") from None
 
     # ---------------------------------------------------------------- metrics
-    def write_metrics(self, metrics: JSON) -> None:
-        """``metrics.json``, the last file of the evaluation (an evaluation's
-        ``to_json``, or a cross-validation's)."""
-        write_json(self.metrics_json, metrics)
+    def write_metrics(self, metrics: Evaluation | CrossvalResult) -> None:
+        """``metrics.json``, the last file of the evaluation (an
+        :class:`~torchcf.runs.metrics.Evaluation`) or of a cross-validation
+        (its :class:`~torchcf.runs.metrics.CrossvalResult`, in its folder)."""
+        write_json(self.metrics_json, metrics.to_json())
 
-    def read_metrics(self) -> JSON:
-        """The evaluation's metrics, as the file holds them
-        (:meth:`torchcf.evaluation.results.Evaluation.from_json` reads them).
+    def read_metrics(self) -> Evaluation:
+        """The run's evaluation (:class:`~torchcf.runs.metrics.Evaluation`).
 
         Raises:
             RunFileError: missing (not evaluated), unreadable, truncated, not an
-                object, or without its ``hybrid`` entry.
+                object, without its ``hybrid`` entry, or not an evaluation this
+                release reads (one written by another release: evaluate the
+                run again).
         """
         self._require(
             self.metrics_json,
             f"{self._path} is not evaluated (no metrics.json); run "
             f"torchcf evaluate {self._path}",
         )
-        metrics = read_json_object(self.metrics_json)
-        if not isinstance(metrics.get("hybrid"), dict):
+        raw = read_json_object(self.metrics_json)
+        if not isinstance(raw.get("hybrid"), dict):
             raise RunFileError(f"{self.metrics_json} is corrupted: no 'hybrid' entry")
-        return metrics
+        try:
+            return Evaluation.from_json(raw)
+        except ValueError as error:
+            raise RunFileError(
+                f"{self.metrics_json}: {error}; evaluate the run again "
+                f"(torchcf evaluate {self._path})"
+            ) from None
+
+    def read_crossval(self) -> CrossvalResult:
+        """A cross-validation's mean over its folds (its folder's
+        ``metrics.json``: :class:`~torchcf.runs.metrics.CrossvalResult`).
+
+        Raises:
+            RunFileError: missing (the cross-validation has not finished),
+                unreadable, truncated, not an object, or not a
+                cross-validation's.
+        """
+        self._require(
+            self.metrics_json,
+            f"{self._path}: the cross-validation has not finished (no metrics.json)",
+        )
+        raw = read_json_object(self.metrics_json)
+        try:
+            return CrossvalResult.from_json(raw)
+        except (KeyError, TypeError, ValueError, AttributeError) as error:
+            raise RunFileError(
+                f"{self.metrics_json}: not a cross-validation's metrics "
+                f"({type(error).__name__}: {error})"
+            ) from None
 
     def discard_metrics(self) -> None:
         """Remove ``metrics.json``: a stale evaluation must not outlive a failure
@@ -465,14 +515,18 @@ class RunDir:
         return read_json_object(self.loop_json)
 
     # --------------------------------------------------------------- the run
-    def load_run(self) -> tuple[TrainConfig, Posterior, JSON]:
-        """The configuration, posterior and summary of a finished run.
+    def load_run(
+        self,
+    ) -> tuple[TrainConfig, Posterior, RunSummary | RecalibrationSummary]:
+        """The configuration, posterior and summary of a finished run (a
+        re-calibration's summary in the diagnosis loop's run directories).
 
         ``config.json`` must be the configuration the run was trained with:
         its hash (:func:`~torchcf.config.config_hash`, which leaves out what
         does not change the result, ``eval`` and ``output`` among them) must be
-        the one ``summary.json`` recorded, so that an edited config cannot
-        evaluate or diagnose the particles on other data under its label.
+        the one ``summary.json`` recorded (a training's), so that an edited
+        config cannot evaluate or diagnose the particles on other data under
+        its label.
 
         Raises:
             RunFileError: one of the three missing (the run is not finished),
@@ -483,13 +537,12 @@ class RunDir:
         for path in (self.config_json, self.posterior_pt, self.summary_json):
             self._require(path, self._unfinished(path.name))
         cfg, summary = self.read_config(), self.read_summary()
-        trained = summary.get("config_hash")
-        if trained is not None and config_hash(cfg) != trained:
+        if isinstance(summary, RunSummary) and config_hash(cfg) != summary.config_hash:
             raise RunFileError(
                 f"{self.config_json} is not the config {self._path} was trained "
-                f"with (hash {config_hash(cfg)}, trained {trained}): it was edited "
-                "after training (or written by another torchcf version); restore "
-                "it, or train a new run"
+                f"with (hash {config_hash(cfg)}, trained {summary.config_hash}): it "
+                "was edited after training (or written by another torchcf "
+                "version); restore it, or train a new run"
             )
         return cfg, self.load_posterior(), summary
 

@@ -38,12 +38,13 @@ import threading
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from torch import Tensor
 
 from ..system.files import RunFileError, writing
+from .summary import PlausibilitySummary, RunSummary
 
 if TYPE_CHECKING:
     from torch.utils.tensorboard import SummaryWriter
@@ -51,16 +52,6 @@ if TYPE_CHECKING:
 __all__ = ["RunLogger", "markdown_summary"]
 
 HParamValue = float | int | str | bool
-
-
-class BatteryShares(Protocol):
-    """What :meth:`RunLogger.plausibility` reads of one model's battery record
-    (:class:`torchcf.traffic.battery.PlausibilitySummary`): shares in [0, 1]."""
-
-    collided: float
-    string_unstable: float
-    no_equilibrium: float
-    not_started: float
 
 
 def _quiet_writer_threads() -> None:
@@ -257,7 +248,7 @@ class RunLogger:
                     self._writer.add_scalar(f"eval/{key}/{entry}", float(value))
 
     @_reports_write_errors
-    def plausibility(self, per_model: Mapping[str, BatteryShares]) -> None:
+    def plausibility(self, per_model: Mapping[str, PlausibilitySummary]) -> None:
         """The hybrid's plausibility battery: per model, the shares of particles
         that collided, are string-unstable and have no equilibrium, as scalars
         ``plausibility/<share>/<model>``."""
@@ -387,26 +378,26 @@ _PER_MODEL_COLUMNS = (
 )
 
 
-def markdown_summary(summary: Mapping[str, Any]) -> str:
+def markdown_summary(summary: RunSummary | Mapping[str, Any]) -> str:
     """Render a run summary as Markdown for TensorBoard's TEXT tab.
 
     Args:
-        summary: ``{"dataset", "n_train", "shares": {model: fraction}, "per_model":
-            {model: {"best_score", "threshold", "invalid", "particles", "seconds",
-            "particles_per_s"}}, "sensitivity": {n: {model: share}}}``; every key
-            is optional, missing values show as "–".
+        summary: the run's summary (its dataset, training pairs, shares, each
+            model's record and the shares' sensitivity to N). (TEMPORARY: its
+            JSON object too, as train/run.py still passes it.)
 
     Returns:
         Markdown: a header line, one table with a row per model and, with
         ``sensitivity``, a second table with a column per top-N size ``n``.
     """
-    shares: Mapping[str, Any] = summary.get("shares") or {}
-    per_model: Mapping[str, Mapping[str, Any]] = summary.get("per_model") or {}
-    sensitivity: Mapping[Any, Mapping[str, Any]] = summary.get("sensitivity") or {}
+    if isinstance(summary, Mapping):
+        summary = RunSummary.from_json(summary)
+    shares, per_model = summary.shares, summary.per_model
+    sensitivity = summary.sensitivity
 
     lines = [
-        f"**dataset:** {_fmt(summary.get('dataset'))} · "
-        f"**training pairs:** {_fmt(summary.get('n_train'))}",
+        f"**dataset:** {_fmt(summary.dataset)} · "
+        f"**training pairs:** {_fmt(summary.n_train)}",
         "",
     ]
     # Models in first-seen order: the shares first, then any model only in per_model.
@@ -415,14 +406,17 @@ def markdown_summary(summary: Mapping[str, Any]) -> str:
         header = ["model", "share", *(label for _, label in _PER_MODEL_COLUMNS)]
         lines += [_row(header), _row(["---"] + ["---:"] * (len(header) - 1))]
         for model in models:
-            stats = per_model.get(model) or {}
-            cells = [_fmt(stats.get(key)) for key, _ in _PER_MODEL_COLUMNS]
+            stats = per_model.get(model)
+            cells = [
+                _fmt(None if stats is None else getattr(stats, key))
+                for key, _ in _PER_MODEL_COLUMNS
+            ]
             lines.append(_row([_fmt(model), _fmt_share(shares.get(model)), *cells]))
     else:
         lines.append("_no model results_")
 
     if sensitivity:
-        ns = sorted(sensitivity, key=_sort_key)
+        ns = sorted(sensitivity)
         sens_models = list(
             dict.fromkeys([*models, *(m for n in ns for m in sensitivity[n])])
         )
@@ -441,11 +435,3 @@ def markdown_summary(summary: Mapping[str, Any]) -> str:
 
 def _row(cells: Sequence[str]) -> str:
     return "| " + " | ".join(cells) + " |"
-
-
-def _sort_key(n: Any) -> tuple[int, float | str]:
-    # Keys n may come back from JSON as strings; numeric ones sort numerically.
-    try:
-        return (0, float(n))
-    except (TypeError, ValueError):
-        return (1, str(n))

@@ -30,13 +30,10 @@ from .step import _Accumulators, _block, _draft_step, _finish_step
 
 #: Below this many simulated particle-steps, ``compile="auto"`` stays eager on
 #: the CPU: the one-off compilation (seconds) would cost more than it saves
-#: (``reports/bench/compile.md``: IDM, HL, LLCTG pay from 1.5e8-3e8 on 2 cores).
+#: (measured: ``reports/performance.md``, "Rollout throughput").
 COMPILE_MIN_STEPS = 2e8
-#: The same on CUDA, where eager rollouts are fast too: on one H100 compiling
-#: an 8-step block pays from 1.6e8-2e8 particles of 576 steps (IDM and HL), about
-#: 1e11 particle-steps (``reports/bench/compile_cuda_h100_8m.md``); the
-#: paper-scale study (5.8e8) runs eager there, faster than compiled on an empty
-#: cache and on a full one (``reports/bench/train_carII_cuda_h100*``).
+#: The same on CUDA, where eager rollouts are fast too, so the paper-scale study
+#: runs eager there (measured: ``reports/performance.md``, "On a GPU").
 COMPILE_MIN_STEPS_CUDA = 1e11
 
 
@@ -257,15 +254,14 @@ def _probe_vector_isa() -> str | None:
     """Probe the one vector ISA inductor's CPU kernels will use; returns its name
     (None: inductor is left to probe as it does).
 
-    Inductor checks every ISA the CPU reports (AVX2, AVX-512, AVX-512 VNNI on an
-    EPYC): it builds a test library per ISA and loads each in a child Python, so
+    Inductor checks every ISA the CPU reports (e.g. AVX2, AVX-512, AVX-512
+    VNNI): it builds a test library per ISA and loads each in a child Python, so
     that an ISA the compiler or the OS cannot run never reaches a kernel. The
     kernels then use the first of the list alone (``pick_vec_isa``). So that
     first ISA is probed here, with inductor's own check; where it passes,
     ``vec_isa_ok`` tells inductor not to probe the others, which are never used.
-    The kernels are the same, and a process's probe takes about half as long on
-    an empty compile cache and a third on a full one, on a CPU reporting AVX2,
-    AVX-512 and AVX-512 VNNI (``reports/performance.md``, "The whole study").
+    The kernels are the same, and a process's probe is shorter (measured:
+    ``reports/performance.md``, "The whole study").
 
     Where the first ISA fails, or the user chose an ISA (``ATEN_CPU_CAPABILITY``,
     inductor's ``cpp.simdlen`` or ``cpp.vec_isa_ok``), or the CPU is not x86,

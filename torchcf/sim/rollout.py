@@ -60,9 +60,9 @@ from .step import (  # noqa: F401 - realise: sim's API
 
 #: Steps per block function call (the unit that ``torch.compile`` fuses). The
 #: compile time grows with the steps unrolled, the throughput with fewer trips
-#: to memory: on 2 CPU cores (``reports/bench/compile.md``, IDM, HL, LLCTG) 8
-#: steps compile sooner than 16 at the same throughput (-7 % to +58 % per model),
-#: 4 only a little sooner at 10-20 % less; compiled results do not depend on it.
+#: to memory: 8 steps compile sooner than 16 at the same throughput, 4 only a
+#: little sooner at less (measured: ``reports/performance.md``, "Rollout
+#: throughput"); compiled results do not depend on it.
 BLOCK_STEPS = 8
 #: With compilation or early rejection, chunks are a multiple of this: every
 #: element then takes the vectorised path of a kernel, never a scalar tail
@@ -109,6 +109,20 @@ class SimOutput(NamedTuple):
             rollout, its score sure to exceed the ceiling given to
             :func:`simulate` (:attr:`Execution.ceiling`; score and errors
             ``+inf``; ``valid`` as far as it ran); None without a ceiling.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import get_model, simulate
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]  # a, b, v0, T, s0, delta (SI)
+        >>> pairs = synthetic_pairs(get_model("idm"), idm, n_pairs=3, n_steps=50)
+        >>> other = [1.0, 1.5, 30.0, 1.6, 2.5, 4.0]
+        >>> theta = torch.tensor([idm, other], dtype=torch.float64)
+        >>> out = simulate(get_model("idm"), theta, pairs)  # every particle, every pair
+        >>> out.score.shape, out.x, out.pruned
+        (torch.Size([2, 3]), None, None)
+        >>> round(float(out.e_p[0].max()), 3)  # the particle that drove them [m]
+        0.0
     """
 
     score: Tensor
@@ -150,6 +164,17 @@ def score_so_far(
     square root, product with a positive weight and sum are each monotone, so the
     final score (the same expression of the final sums, :func:`simulate`) is at
     least this value.
+
+    Examples:
+        >>> from types import SimpleNamespace
+        >>> import torch
+        >>> from torchcf.sim.rollout import score_so_far
+        >>> sums = SimpleNamespace(  # squared errors summed over the steps run so far
+        ...     sq_x=torch.tensor([4.0]), sq_v=torch.tensor([1.0]), sq_a=torch.zeros(1)
+        ... )
+        >>> bound = score_so_far(sums, torch.tensor([4.0]), weights=(0.5, 0.3, 0.2))
+        >>> round(float(bound), 3)  # 0.5 sqrt(4 / 4) + 0.3 sqrt(1 / 4)
+        0.65
     """
     w_p, w_v, w_a = (float(w) for w in weights)
     return (
@@ -385,7 +410,15 @@ def _run_pruned(
 
 def cell_budget(model: CFModel, device: torch.device) -> int:
     """Simulated cells (particles x pairs) per chunk by default: the model's CPU
-    budget, at least :data:`CUDA_CHUNK_CELLS` on CUDA."""
+    budget, at least :data:`CUDA_CHUNK_CELLS` on CUDA.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.rollout import cell_budget
+        >>> cell_budget(get_model("idm"), torch.device("cpu")), 2**18
+        (262144, 262144)
+    """
     if device.type == "cuda":
         return max(model.chunk_cells, CUDA_CHUNK_CELLS)
     return model.chunk_cells
@@ -425,7 +458,18 @@ def _observation_table(pairs: PairSet, dtype: torch.dtype, device: torch.device)
 
 def check_theta(model: CFModel, theta: Tensor, what: str = "theta") -> None:
     """ValueError (one line, naming ``what``) unless ``theta`` is a finite
-    (P, K) particle matrix of ``model`` (K = ``model.n_params``)."""
+    (P, K) particle matrix of ``model`` (K = ``model.n_params``).
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.rollout import check_theta
+        >>> check_theta(get_model("idm"), torch.ones(3, 6))  # (P, K): fine
+        >>> check_theta(get_model("idm"), torch.ones(3, 4))
+        Traceback (most recent call last):
+            ...
+        ValueError: theta must be (P, 6) for idm (a, b, v0, T, s0, delta), got (3, 4)
+    """
     if theta.ndim != 2 or theta.shape[1] != model.n_params:
         raise ValueError(
             f"{what} must be (P, {model.n_params}) for {model.name} "
@@ -460,6 +504,20 @@ class Execution:
             its particles (:attr:`CFModel.prunable`), without ``return_traj``;
             elsewhere every cell runs to the end (``pruned`` all False). None:
             no early rejection (``pruned`` None).
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import Execution, get_model, simulate
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]
+        >>> pairs = synthetic_pairs(get_model("idm"), idm, n_pairs=3, n_steps=50)
+        >>> other = [1.0, 1.5, 30.0, 1.6, 2.5, 4.0]
+        >>> theta = torch.tensor([idm, other], dtype=torch.float64)
+        >>> one_by_one = Execution(chunk_size=1, compile=False)
+        >>> a = simulate(get_model("idm"), theta, pairs, execution=one_by_one)
+        >>> b = simulate(get_model("idm"), theta, pairs)
+        >>> torch.equal(a.score, b.score)  # chunking does not change a result
+        True
     """
 
     device: torch.device | str | None = None
@@ -510,7 +568,7 @@ def simulate(
     Returns:
         :class:`SimOutput` with ``(P, N)`` (full) or ``(P,)`` (paired) fields.
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torchcf import PairSet, get_model, simulate
         >>> t = torch.arange(50, dtype=torch.float64)[:, None] * 0.1

@@ -35,6 +35,17 @@ from .rollout import simulate
 
 
 class GippsParams(NamedTuple):
+    """:class:`Gipps`'s parameters, each broadcast to the state: ``a``, ``b``,
+    ``b_lead`` [m/s^2], ``v0`` [m/s], ``tau`` [s], ``size`` [m].
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.sim.synthetic import Gipps
+        >>> p = Gipps().unpack(torch.tensor([[1.5, 3.0, 3.0, 30.0, 0.8, 7.0]]))
+        >>> type(p).__name__, p.tau.shape, round(float(p.tau), 3)  # tau [s], (P,)
+        ('GippsParams', torch.Size([1]), 0.8)
+    """
+
     a: Tensor
     b: Tensor
     b_lead: Tensor
@@ -59,6 +70,14 @@ class Gipps(CFModel):
     length with the standstill margin [m]; a negative root argument (a spacing
     too short to stop) reads 0. Not in the registry: no pool model is Gipps, so
     it stands for the unknown truth of measured data.
+
+    Examples:
+        >>> from torchcf.sim.synthetic import Gipps, synthetic_pairs
+        >>> gipps = Gipps()  # a, b, b_lead, v0, tau, size (SI)
+        >>> theta = [1.5, 3.0, 3.0, 30.0, 0.8, 7.0]
+        >>> pairs = synthetic_pairs(gipps, theta, n_pairs=2, n_steps=50)
+        >>> gipps.name, gipps.n_params, pairs.n_pairs
+        ('gipps', 6, 2)
     """
 
     name = "gipps"
@@ -104,6 +123,12 @@ def leader_profiles(
     Args:
         cruise: range of the cruise speed [m/s].
         start: range of the leader's initial road position [m].
+
+    Examples:
+        >>> from torchcf.sim.synthetic import leader_profiles
+        >>> x, v, a = leader_profiles(n_pairs=2, n_steps=100, dt=0.1, seed=0)
+        >>> x.shape, x.dtype, bool((v >= 0).all())  # x [m], v [m/s], a [m/s^2]
+        (torch.Size([100, 2]), torch.float64, True)
     """
     g = torch.Generator().manual_seed(seed)
 
@@ -148,6 +173,15 @@ class Scene:
             starts at its leader's speed, ``gap * v + 8`` m behind it.
         name: the PairSet's name; None: the generator's own
             (``"synthetic"``, ``"heterogeneous"``).
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import Scene, synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]
+        >>> road = Scene(start=(0.0, 500.0), name="one road")  # leaders 0-500 m
+        >>> pairs = synthetic_pairs(get_model("idm"), idm, 2, n_steps=50, scene=road)
+        >>> pairs.name, bool((pairs.x_lead[0] <= 500.0).all())
+        ('one road', True)
     """
 
     start: tuple[float, float] = (0.0, 0.0)
@@ -184,6 +218,16 @@ def synthetic_pairs(
 
     Returns:
         A PairSet; ``notes`` record the generating model.
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]  # a, b, v0, T, s0, delta (SI)
+        >>> pairs = synthetic_pairs(get_model("idm+delay"), idm + [0.5], 3, n_steps=50)
+        >>> pairs.n_steps, pairs.n_pairs, pairs.dt, pairs.name  # dt [s]
+        (50, 3, 0.1, 'synthetic')
+        >>> pairs.notes
+        ('followers: idm+delay theta=[1.5, 2.0, 33.0, 1.2, 2.0, 4.0, 0.5]',)
     """
     cf_model = require_model(model, "synthetic_pairs")
     theta = torch.as_tensor(theta, dtype=torch.float64)
@@ -257,6 +301,13 @@ class Drivers(NamedTuple):
             (``"idm+delay"``).
         theta: (N, K) float64 its parameters, in that model's order; NaN past its
             own K (K: the widest model's).
+
+    Examples:
+        >>> from torchcf.sim.synthetic import DriverMixture, heterogeneous_pairs
+        >>> mixture = DriverMixture(["idm", "ovm"])
+        >>> pairs, drivers = heterogeneous_pairs(mixture, n_pairs=3, n_steps=50)
+        >>> drivers.model, drivers.theta.shape
+        (('idm', 'ovm', 'idm'), torch.Size([3, 6]))
     """
 
     model: tuple[str, ...]
@@ -276,6 +327,12 @@ class DriverMixture:
         effect_values: (K_E,) the effect's values, the same in every driver.
         boxes: per model, the (K, 2) box its parameters are drawn over; a
             model not in it (or None): its prior.
+
+    Examples:
+        >>> from torchcf.sim.synthetic import DriverMixture
+        >>> mixture = DriverMixture(["idm", "ovm"], effect="delay", effect_values=[0.5])
+        >>> mixture.names  # a 0.5 s perception delay in every driver
+        ['idm+delay', 'ovm+delay']
     """
 
     models: Sequence[str]
@@ -337,6 +394,17 @@ def heterogeneous_pairs(
     Raises:
         ValueError: no plausible driver in many draws (the box or the effect
             leaves none).
+
+    Examples:
+        >>> from torchcf.sim.synthetic import DriverMixture, heterogeneous_pairs
+        >>> mixture = DriverMixture(["idm", "ovm"], effect="delay", effect_values=[0.5])
+        >>> pairs, drivers = heterogeneous_pairs(
+        ...     mixture, n_pairs=4, n_steps=50, lengths=(0.5, 1.0), seed=0
+        ... )
+        >>> pairs.n_pairs, pairs.name, drivers.model[:2]
+        (4, 'heterogeneous', ('idm+delay', 'ovm+delay'))
+        >>> bool((pairs.mask.sum(0) >= 25).all())  # ragged: each 25 to 50 steps
+        True
     """
     models = mixture.models
     if not models:

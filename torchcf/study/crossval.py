@@ -8,94 +8,27 @@ aggregates the folds' metrics by the mean, as the paper does (SPEC section 6),
 into ``OUT/report/table.md`` and, last, ``OUT/metrics.json``. Each fold is an
 ordinary run directory: an interrupted cross-validation continues with
 ``--resume`` (finished folds are kept, the unfinished one resumes from its
-checkpoint). The layout is :mod:`torchcf.runs.directory`'s.
+checkpoint). The layout is :mod:`torchcf.runs.directory`'s; the result, and
+``OUT/metrics.json``, a :class:`~torchcf.runs.metrics.CrossvalResult`.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from ..config import TrainConfig
 from ..evaluation.report import metrics_table
 from ..runs.directory import RunDir
+from ..runs.metrics import CrossvalResult, Evaluation, FoldMeans
 from ..system.errors import first_names
-from ..system.files import (
-    JSON,
-    RunFileError,
-    atomic_write_text,
-    ensure_directory,
-    from_json_safe,
-)
-from ..system.records import Record
+from ..system.files import RunFileError, atomic_write_text, ensure_directory
 from .pipeline import run_study
 
+#: The metrics averaged over the folds (those of
+#: :class:`~torchcf.runs.metrics.FoldMeans`, each with its ``_folds_finite``).
 METRIC_KEYS = ("e_p", "e_v", "e_a", "min", "beta_ws", "ws", "sinkhorn")
-
-
-@dataclass(frozen=True)
-class FoldMeans(Record):
-    """One learned set's metrics averaged over the folds (an entry of the
-    cross-validation's ``metrics.json``): per metric of :data:`METRIC_KEYS`
-    its mean (non-finite if any fold's is, or the entry is missing from a fold)
-    and ``<metric>_folds_finite``, the folds whose value was finite."""
-
-    e_p: float
-    e_p_folds_finite: int
-    e_v: float
-    e_v_folds_finite: int
-    e_a: float
-    e_a_folds_finite: int
-    min: float
-    min_folds_finite: int
-    beta_ws: float
-    beta_ws_folds_finite: int
-    ws: float
-    ws_folds_finite: int
-    sinkhorn: float
-    sinkhorn_folds_finite: int
-
-
-@dataclass(frozen=True)
-class CrossvalResult:
-    """A cross-validation's result: the content of ``OUT/metrics.json``.
-
-    Attributes:
-        folds: the folds averaged.
-        entries: learned set (the models, then ``"hybrid"``) -> its means
-            (each a top-level key of the file, after ``folds``).
-    """
-
-    folds: int
-    entries: dict[str, FoldMeans]
-
-    def to_json(self) -> JSON:
-        """The content of ``OUT/metrics.json``, key order included."""
-        return {
-            "folds": self.folds,
-            **{name: means.to_json() for name, means in self.entries.items()},
-        }
-
-    @classmethod
-    def from_json(cls, raw: Mapping[str, Any]) -> CrossvalResult:
-        """The result of ``OUT/metrics.json``'s content (as read: the strings
-        ``"inf"`` and ``"nan"`` the file holds are numbers again).
-
-        Raises:
-            KeyError, ValueError: a key is missing or unknown.
-        """
-        raw = from_json_safe(dict(raw))
-        return cls(
-            folds=raw["folds"],
-            entries={
-                name: FoldMeans.from_json(value)
-                for name, value in raw.items()
-                if name != "folds"
-            },
-        )
 
 
 def fold_config(cfg: TrainConfig, folds: int, fold: int) -> TrainConfig:
@@ -104,39 +37,33 @@ def fold_config(cfg: TrainConfig, folds: int, fold: int) -> TrainConfig:
     return cfg.model_copy(update={"data": data})
 
 
-def aggregate(fold_metrics: Sequence[JSON]) -> CrossvalResult:
-    """Mean over folds of every metric of every entry (models and "hybrid").
+def aggregate(evaluations: Sequence[Evaluation]) -> CrossvalResult:
+    """Mean over folds of every metric of every learned set (models and
+    "hybrid").
 
     Args:
-        fold_metrics: each fold's ``metrics.json`` content, as read.
+        evaluations: each fold's evaluation (its ``metrics.json``).
 
-    An entry missing from a fold, or a non-finite value in any fold, makes that
+    A set missing from a fold, or a non-finite value in any fold, makes that
     mean non-finite (reported, never dropped); ``folds_finite`` counts the folds
     that contributed finite values.
     """
-    # a learned set's entry holds its metrics; the other blocks of metrics.json
-    # (bootstrap, hybrid_minus, shares) are no entries
-    entries = [
-        k for k, v in fold_metrics[0].items() if isinstance(v, dict) and "ws" in v
-    ]
     result = {}
-    for entry in entries:
+    for entry in evaluations[0].sets:
         means: dict[str, float | int] = {}
         for key in METRIC_KEYS:
-            values = [_number(m.get(entry, {}).get(key)) for m in fold_metrics]
+            values = [_value(evaluation, entry, key) for evaluation in evaluations]
             finite = [v for v in values if math.isfinite(v)]
             means[key] = sum(values) / len(values)
             means[f"{key}_folds_finite"] = len(finite)
         result[entry] = FoldMeans(**means)
-    return CrossvalResult(folds=len(fold_metrics), entries=result)
+    return CrossvalResult(folds=len(evaluations), entries=result)
 
 
-def _number(value: Any) -> float:
-    if value is None:
-        return math.nan
-    if isinstance(value, str):  # "inf" / "nan" in metrics.json
-        return float(value)
-    return float(value)
+def _value(evaluation: Evaluation, entry: str, key: str) -> float:
+    """A set's metric in one fold (NaN: the fold has no such set)."""
+    found = evaluation.sets.get(entry)
+    return math.nan if found is None else float(getattr(found.metrics, key))
 
 
 def _check_folder(out: RunDir, resume: bool) -> None:
@@ -202,5 +129,5 @@ def crossval(
         + "\n",
     )
     # last: its presence says the cross-validation ended
-    out.write_metrics(result.to_json())
+    out.write_metrics(result)
     return result

@@ -5,7 +5,7 @@ Each stage is a library function that does its own work only:
 evaluate_run` the test-split metrics, :mod:`torchcf.diagnose.loop` the diagnosis
 (:func:`~torchcf.diagnose.loop.plan_loop` up to the choice of effects,
 :func:`~torchcf.diagnose.loop.finish_loop` after the re-calibration). This module
-chains them; the command lines (``python -m torchcf.train``, ``crossval``,
+chains them; the command lines (``torchcf train``, ``crossval``,
 ``diagnose``) call it, and nothing below it runs another stage.
 
 The run directory (:class:`~torchcf.runs.directory.RunDir`) is held and the
@@ -13,7 +13,7 @@ pairs are loaded once (on rank 0, after the output directory has been checked),
 and both are handed to every stage.
 
 :func:`train_and_evaluate` and :func:`run_study` return a :class:`StudyResult`:
-the training summary (:class:`~torchcf.train.summary.RunSummary`) and what the
+the training summary (:class:`~torchcf.runs.summary.RunSummary`) and what the
 call did (evaluated, closed the loop); callers read its attributes
 (``result.summary.shares``, ``result.summary.smc``).
 """
@@ -30,15 +30,17 @@ from typing import Any
 from torch import Tensor
 
 from ..abc.distributed import SINGLE, Group
-from ..config import TrainConfig, load_split
+from ..calibration.of_config import setup_of
+from ..config import TrainConfig, config_hash, load_split
 from ..data import PairSet
 from ..data.registry import notes_deferred
 from ..diagnose.loop import finish_loop, plan_loop, run_recalibration
-from ..diagnose.outcome import LoopResult
+from ..diagnose.report.outcome import LoopResult
 from ..evaluation.evaluate import evaluate_run
 from ..runs.directory import RunDir
+from ..runs.summary import RunSummary
 from ..traffic.configured import plausibility_screen
-from ..train import RunSummary, check_budget, open_run, run_device, train
+from ..train import check_setup, open_run, run_device, train
 
 
 @dataclass(frozen=True)
@@ -79,11 +81,11 @@ def _checked_pairs(
     directory is known to be usable (fail fast: :func:`torchcf.train.open_run`;
     training checks it again, cheaply, as it must when called alone). Test
     None: the data have no test split, which training does not need."""
-    group.on_main(open_run, cfg, run.path, resume)
-    run_device(cfg, group)  # a missing GPU is said before the data are read
+    group.on_main(open_run, config_hash(cfg), run.path, resume)
+    run_device(cfg.device, group)  # a missing GPU is said before the data are read
     with notes_deferred():  # a budget short for these pairs: the error alone
         pairs = group.on_main(partial(load_split, require_test=False), cfg.data)
-        check_budget(cfg, pairs[0])
+        check_setup(setup_of(cfg, pairs[0]), run, resume, group)
     return pairs
 
 

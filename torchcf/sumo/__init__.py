@@ -10,7 +10,7 @@
   SUMO's floating car data read back;
 - :mod:`torchcf.sumo.verify`: the test split replayed in SUMO and scored with
   torchcf's metrics beside torchcf's own rollout;
-- ``python -m torchcf.sumo export|verify RUN`` (:mod:`torchcf.sumo.__main__`).
+- ``torchcf sumo export|verify RUN``: the command (:mod:`torchcf.cli.sumo`).
 
 Importing this package imports no SUMO module; the first use does.
 """

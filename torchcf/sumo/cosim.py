@@ -82,6 +82,18 @@ class Perceived(NamedTuple):
         position: lane position plus ``position_offset`` [m].
         free_spacing: the free-road ghost's spacing [m].
         v_free: the ghost's speed, the allowed speed [m/s].
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.sumo import Perceived
+        >>> seen = Perceived(
+        ...     present=torch.tensor([True]), spacing=torch.tensor([30.0]),  # [m]
+        ...     v=torch.tensor([20.0]), v_leader=torch.tensor([19.0]),  # [m/s]
+        ...     position=torch.tensor([100.0]), free_spacing=torch.tensor([1000.0]),
+        ...     v_free=torch.tensor([33.3]),
+        ... )
+        >>> seen._fields[:3]
+        ('present', 'spacing', 'v')
     """
 
     present: Tensor
@@ -130,6 +142,22 @@ class CoSimulation:
     Raises:
         SumoError: the sampler's vehicles or step do not match SUMO's, or SUMO
             does not run the ballistic update.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import HybridSampler, get_model
+        >>> from torchcf.sumo import CoSimulation
+        >>> from torchcf.sumo.backend import running
+        >>> idm = torch.tensor([[1.5, 2.0, 33.0, 1.2, 2.0, 4.0]])
+        >>> sampler = HybridSampler([get_model("idm")], [idm], dt=0.1)
+        >>> _ = sampler.sample(2)  # one particle per SUMO vehicle
+        >>> options = ["-n", "net.xml", "-r", "routes.xml", "--step-length", "0.1"]
+        >>> options += ["--step-method.ballistic", "true"]
+        >>> with running(options) as sumo:  # doctest: +SKIP
+        ...     sumo.simulationStep()  # insert the vehicles
+        ...     cosim = CoSimulation(sumo, sampler, ["veh0", "veh1"])
+        ...     for _ in range(100):
+        ...         perceived = cosim.step()  # decide, act, SUMO's step
     """
 
     def __init__(

@@ -1,4 +1,4 @@
-"""The hybrid's particles as SUMO vehicle types (``python -m torchcf.sumo export``).
+"""The hybrid's particles as SUMO vehicle types (``torchcf sumo export``).
 
 SUMO has one of torchcf's eight models natively: the IDM. The others are listed,
 never silently dropped:
@@ -48,7 +48,7 @@ With ``--step-method.ballistic true`` (SUMO's global option; an additional file
 cannot set it) SUMO moves a vehicle by ``(v + v') dt / 2``, which is SPEC's
 ``v dt + a dt^2 / 2`` with ``a = (v' - v) / dt``; SUMO's default (semi-implicit
 Euler, ``v' dt``) is not. Where the two still differ, measured by
-``python -m torchcf.sumo verify`` and ``tests/sumo/test_sumo_verify.py``:
+``torchcf sumo verify`` and ``tests/sumo/test_sumo_verify.py``:
 
 - the spacing: SUMO's IDM reads ``g = s - length_lead``, so it equals SPEC's IDM
   only where the leader's length is 0 for its follower (``verify`` places each
@@ -124,6 +124,14 @@ def idm_vtype(
 
     Returns:
         attribute -> value, floats at full precision.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.sumo import idm_vtype
+        >>> theta = torch.tensor([1.5, 2.0, 33.0, 1.2, 2.0, 4.0], dtype=torch.float64)
+        >>> vtype = idm_vtype(theta, dt=0.1, length=5.0, emergency_decel=9.0)
+        >>> vtype["carFollowModel"], vtype["tau"], vtype["minGap"], vtype["decel"]
+        ('IDM', 1.2, 2.0, 2.0)
     """
     a, b, v0, T, s0, delta = (float(x) for x in theta.tolist())
     return {
@@ -226,6 +234,31 @@ class Export(NamedTuple):
         xml: the SUMO additional file (a ``vTypeDistribution``).
         manifest: what it carries (``export.json``): the models exported and
             left out, the share exported, each vType's origin, the settings.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.posterior import ModelParticles, Posterior
+        >>> def particles(theta):  # one model's particles in the hybrid (SI)
+        ...     n = len(theta)
+        ...     return ModelParticles(
+        ...         ("a", "b", "v0", "T", "s0", "delta")[: len(theta[0])],
+        ...         torch.tensor(theta).double(), torch.zeros(n).double(),
+        ...         torch.arange(n), torch.arange(n),
+        ...     )
+        >>> hybrid = {
+        ...     "idm": particles([[1.5, 2.0, 33.0, 1.2, 2.0, 4.0]] * 3),
+        ...     "ovm": particles([[0.8, 1.5, 30.0, 20.0]]),  # OVM's four parameters
+        ... }
+        >>> posterior = Posterior(
+        ...     "demo", "per_pair", 1, ("idm", "ovm"), {"idm": 0.75, "ovm": 0.25},
+        ...     torch.arange(4), hybrid, {"idm": {}, "ovm": {}},
+        ... )
+        >>> from torchcf.sumo import export_hybrid
+        >>> export = export_hybrid(posterior, dt=0.1, length=5.0)  # [s], [m]
+        >>> export.xml.count("<vType "), export.manifest.exported
+        (3, {'idm': 3})
+        >>> export.manifest.not_exported["ovm"].reason
+        'SUMO has no optimal velocity model'
     """
 
     xml: str
@@ -256,6 +289,31 @@ def export_hybrid(
 
     Raises:
         SumoError: bad settings, or no particle of a model SUMO has.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.posterior import ModelParticles, Posterior
+        >>> def particles(theta):  # one model's particles in the hybrid (SI)
+        ...     n = len(theta)
+        ...     return ModelParticles(
+        ...         ("a", "b", "v0", "T", "s0", "delta")[: len(theta[0])],
+        ...         torch.tensor(theta).double(), torch.zeros(n).double(),
+        ...         torch.arange(n), torch.arange(n),
+        ...     )
+        >>> hybrid = {
+        ...     "idm": particles([[1.5, 2.0, 33.0, 1.2, 2.0, 4.0]] * 3),
+        ...     "ovm": particles([[0.8, 1.5, 30.0, 20.0]]),  # OVM's four parameters
+        ... }
+        >>> posterior = Posterior(
+        ...     "demo", "per_pair", 1, ("idm", "ovm"), {"idm": 0.75, "ovm": 0.25},
+        ...     torch.arange(4), hybrid, {"idm": {}, "ovm": {}},
+        ... )
+        >>> from torchcf.sumo import export_hybrid
+        >>> export = export_hybrid(posterior, dt=0.1, length=5.0, emergency_decel=9.0)
+        >>> export.manifest.share, sorted(export.manifest.vtypes)  # 3 of 4 particles
+        (0.75, ['idm_0', 'idm_1', 'idm_2'])
+        >>> export.manifest.step_length, export.manifest.step_method
+        (0.1, 'ballistic')
     """
     for name, value in (("dt", dt), ("length", length)):
         if not (math.isfinite(value) and value > 0):
@@ -372,6 +430,32 @@ def write_export(export: Export, out_dir: str | os.PathLike[str]) -> tuple[Path,
 
     Returns:
         the two paths.
+
+    Examples:
+        >>> import tempfile
+        >>> import torch
+        >>> from torchcf.posterior import ModelParticles, Posterior
+        >>> def particles(theta):  # one model's particles in the hybrid (SI)
+        ...     n = len(theta)
+        ...     return ModelParticles(
+        ...         ("a", "b", "v0", "T", "s0", "delta")[: len(theta[0])],
+        ...         torch.tensor(theta).double(), torch.zeros(n).double(),
+        ...         torch.arange(n), torch.arange(n),
+        ...     )
+        >>> hybrid = {
+        ...     "idm": particles([[1.5, 2.0, 33.0, 1.2, 2.0, 4.0]] * 3),
+        ...     "ovm": particles([[0.8, 1.5, 30.0, 20.0]]),  # OVM's four parameters
+        ... }
+        >>> posterior = Posterior(
+        ...     "demo", "per_pair", 1, ("idm", "ovm"), {"idm": 0.75, "ovm": 0.25},
+        ...     torch.arange(4), hybrid, {"idm": {}, "ovm": {}},
+        ... )
+        >>> from torchcf.sumo import export_hybrid, write_export
+        >>> export = export_hybrid(posterior, dt=0.1, length=5.0)
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     paths = write_export(export, folder)
+        ...     print([path.name for path in paths])
+        ['hybrid.vtypes.add.xml', 'export.json']
     """
     out = Path(out_dir)
     ensure_directory(out, "export directory")

@@ -35,6 +35,24 @@ class Fcd(NamedTuple):
         pos: lane position [m]; NaN where the vehicle is not in the network.
         speed: [m/s]; NaN where absent.
         acceleration: [m/s^2]; NaN where absent.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchcf.sumo import read_fcd
+        >>> xml = (  # SUMO's --fcd-output: F0 at two steps
+        ...     '<fcd-export><timestep time="0.00">'
+        ...     '<vehicle id="F0" pos="10.0" speed="20.0" acceleration="0.0"/>'
+        ...     '</timestep><timestep time="0.10">'
+        ...     '<vehicle id="F0" pos="12.0" speed="20.1" acceleration="1.0"/>'
+        ...     "</timestep></fcd-export>"
+        ... )
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     path = Path(folder) / "fcd.xml"
+        ...     _ = path.write_text(xml)
+        ...     fcd = read_fcd(path, ["F0", "F1"], begin=0.0, dt=0.1, n_steps=2)
+        >>> fcd.pos.shape, fcd.time.tolist()  # (T, V), [s]
+        (torch.Size([2, 2]), [0.0, 0.1])
     """
 
     time: Tensor
@@ -65,6 +83,26 @@ def read_fcd(
 
     Raises:
         SumoError: the file cannot be read or parsed.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchcf.sumo import read_fcd
+        >>> xml = (  # SUMO's --fcd-output: F0 at two steps
+        ...     '<fcd-export><timestep time="0.00">'
+        ...     '<vehicle id="F0" pos="10.0" speed="20.0" acceleration="0.0"/>'
+        ...     '</timestep><timestep time="0.10">'
+        ...     '<vehicle id="F0" pos="12.0" speed="20.1" acceleration="1.0"/>'
+        ...     "</timestep></fcd-export>"
+        ... )
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     path = Path(folder) / "fcd.xml"
+        ...     _ = path.write_text(xml)
+        ...     fcd = read_fcd(path, ["F0", "F1"], begin=0.0, dt=0.1, n_steps=2)
+        >>> fcd.pos[:, 0].tolist(), fcd.speed[:, 0].tolist()  # F0 [m], [m/s]
+        ([10.0, 12.0], [20.0, 20.1])
+        >>> fcd.pos[:, 1].isnan().all().item()  # F1 never in the network
+        True
     """
     column = {vid: i for i, vid in enumerate(vehicles)}
     shape = (n_steps, len(vehicles))

@@ -49,6 +49,14 @@ def straight_edges(
     Raises:
         SumoError: bad sizes, or netconvert failed (its last message).
         SumoMissingError: SUMO is not installed.
+
+    Examples:
+        >>> import tempfile
+        >>> from torchcf.sumo import straight_edges
+        >>> with tempfile.TemporaryDirectory() as folder:  # doctest: +SKIP
+        ...     net = straight_edges(2, length=500.0, out_dir=folder)  # runs netconvert
+        ...     print(net.name)
+        straight.net.xml
     """
     if n_edges < 1:
         raise SumoError(f"a network needs at least one edge, got {n_edges}")

@@ -1,4 +1,4 @@
-"""Verify the learned hybrid inside SUMO (``python -m torchcf.sumo verify RUN``).
+"""Verify the learned hybrid inside SUMO (``torchcf sumo verify RUN``).
 
 The test split's pairs are replayed in SUMO and scored with torchcf's own metric
 (SPEC sections 4 and 6), next to torchcf's own rollout of the same particles:
@@ -53,9 +53,10 @@ from tqdm import tqdm
 
 from ..config import load_split
 from ..data import PairSet
-from ..evaluation.metrics import SetMetrics, evaluate_costs
+from ..evaluation.metrics import evaluate_costs
 from ..models import get_model
 from ..runs.directory import RunDir
+from ..runs.metrics import SetMetrics
 from ..sim.rollout import DEFAULT_WEIGHTS, SimOutput, simulate
 from ..system.console import bar_interval
 from ..system.files import (
@@ -96,6 +97,17 @@ class Replay(NamedTuple):
             (module docstring); NaN where SUMO had no such vehicle.
         collisions: SUMO's count of colliding vehicles, summed over the steps.
         emergency_stops: SUMO's count of emergency-braking vehicles, summed.
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]
+        >>> test = synthetic_pairs(get_model("idm"), idm, n_pairs=2, n_steps=50)
+        >>> from torchcf.sumo import Replay, score_cells
+        >>> own = Replay(test.x_follow, test.v_follow, test.a_follow, 0, 0)  # (T, C)
+        >>> cells = score_cells(own.x, own.v, own.a, test, pair_index=[0, 1])
+        >>> cells["valid"].tolist(), [round(e, 3) for e in cells["e_p"].tolist()]
+        ([True, True], [0.0, 0.0])
     """
 
     x: Tensor
@@ -148,6 +160,21 @@ def replay(
 
     Returns:
         :class:`Replay`, ``(T, C)``.
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]
+        >>> test = synthetic_pairs(get_model("idm"), idm, n_pairs=2, n_steps=50)
+        >>> import tempfile
+        >>> from torchcf.sumo import replay
+        >>> with tempfile.TemporaryDirectory() as folder:  # doctest: +SKIP
+        ...     found = replay(
+        ...         test, [0, 1], workdir=folder, vtypes=["idm_0", "idm_0"],
+        ...         additional="hybrid.vtypes.add.xml",  # write_export's file
+        ...     )
+        ...     print(found.x.shape)
+        torch.Size([50, 2])
     """
     if (vtypes is None) == (sampler is None):
         raise SumoError("replay needs vtypes or a sampler, one of them")
@@ -272,6 +299,19 @@ def score_cells(
 
     Returns:
         ``score, e_p, e_v, e_a``: ``(C,)`` float64 each, and ``valid`` bool.
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]
+        >>> test = synthetic_pairs(get_model("idm"), idm, n_pairs=2, n_steps=50)
+        >>> from torchcf.sumo import score_cells
+        >>> x = test.x_follow - 1.0  # every follower 1 m behind its record [m]
+        >>> cells = score_cells(x, test.v_follow, test.a_follow, test, [0, 1])
+        >>> [round(e, 3) for e in cells["e_p"].tolist()]  # position RMSE [m]
+        [1.0, 1.0]
+        >>> [round(s, 3) for s in cells["score"].tolist()]  # 0.5 e_p + 0.3 e_v + ...
+        [0.5, 0.5]
     """
     index = torch.as_tensor(list(pair_index), dtype=torch.long)
     mask = test.mask[:, index]  # (T, C)
@@ -437,6 +477,10 @@ def verify_run(
     Raises:
         RunFileError, ConfigError, DataError: the run or its data.
         SumoError, SumoMissingError: SUMO.
+
+    Examples:
+        >>> from torchcf.sumo import verify_run
+        >>> report = verify_run("runs/demo", max_particles=10)  # doctest: +SKIP
     """
     if max_particles is not None and max_particles < 1:
         raise SumoError(f"max particles must be >= 1, got {max_particles}")

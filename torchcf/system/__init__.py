@@ -7,7 +7,8 @@ written safely, signals, the process's memory settings and the console.
 - :mod:`.signals`: SIGTERM/SIGINT turned into a clean stop;
 - :mod:`.process`: glibc's allocator thresholds for batched CPU work;
 - :mod:`.console`: the command lines' shared plumbing (exit codes, checked
-  argument types, progress-bar pacing, one-line errors).
+  argument types, progress-bar pacing, one-line errors);
+- :mod:`.version`: the package's version (``torchcf.__version__``).
 
 Imports nothing of torchcf but itself.
 """

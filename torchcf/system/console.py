@@ -1,4 +1,4 @@
-"""One policy for every command line (``torchcf COMMAND``, ``python -m torchcf.<x>``).
+"""One policy for every command line (``torchcf COMMAND``, ``python -m torchcf ...``).
 
 The plumbing the commands share, low in the house so that any module may use it
 (:mod:`torchcf.cli` holds the commands themselves, at the top, and re-exports
@@ -40,7 +40,18 @@ EXIT_INTERRUPTED = 130
 class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """``--help`` that shows each option's default, where it has one worth
     saying (not for a required option, a flag, or a default of None, which the
-    help text explains)."""
+    help text explains).
+
+    Examples:
+        >>> import argparse
+        >>> from torchcf.system.console import DefaultsHelpFormatter
+        >>> parser = argparse.ArgumentParser(formatter_class=DefaultsHelpFormatter)
+        >>> _ = parser.add_argument("--draws", type=int, default=200, help="draws")
+        >>> _ = parser.add_argument("--out", help="output folder")
+        >>> text = parser.format_help()
+        >>> "(default: 200)" in text, "(default: None)" in text
+        (True, False)
+    """
 
     def _get_help_string(self, action: argparse.Action) -> str:
         if action.required or action.default in (None, False, argparse.SUPPRESS):
@@ -51,7 +62,24 @@ class DefaultsHelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 class OneLineParser(argparse.ArgumentParser):
     """``argparse.ArgumentParser`` whose usage errors are one line: ``error:
     <what>`` and where the usage is (``PROG --help``), exit code 2, like every
-    other error of the commands (the whole usage block is ``--help``'s)."""
+    other error of the commands (the whole usage block is ``--help``'s).
+
+    Examples:
+        >>> import contextlib, io
+        >>> from torchcf.system.console import OneLineParser
+        >>> parser = OneLineParser(prog="torchcf predict")
+        >>> _ = parser.add_argument("--draws", type=int)
+        >>> err = io.StringIO()
+        >>> with contextlib.redirect_stderr(err):
+        ...     try:
+        ...         parser.parse_args(["--draws", "many"])
+        ...     except SystemExit as exit:
+        ...         print(exit.code)
+        2
+        >>> text = err.getvalue()
+        >>> text.count("\\n"), "(usage: torchcf predict --help)" in text
+        (1, True)
+    """
 
     def error(self, message: str) -> NoReturn:
         self.exit(EXIT_USER_ERROR, f"error: {message} (usage: {self.prog} --help)\n")
@@ -66,7 +94,15 @@ LONGEST_ERROR = 400
 def one_line(error: BaseException) -> str:
     """The error's message on one line (its class name when it has none), at
     most :data:`LONGEST_ERROR` characters: a longer one keeps its first and last
-    part around ``[... N characters ...]``."""
+    part around ``[... N characters ...]``.
+
+    Examples:
+        >>> from torchcf.system.console import one_line
+        >>> one_line(ValueError("bad value\\n   in row 3"))
+        'bad value in row 3'
+        >>> one_line(KeyError())  # no message: the class name
+        'KeyError'
+    """
     text = " ".join(str(error).split()) or type(error).__name__
     if len(text) <= LONGEST_ERROR:
         return text
@@ -76,13 +112,33 @@ def one_line(error: BaseException) -> str:
 
 
 def print_error(message: str) -> None:
-    """``error: <message>`` on stderr."""
+    """``error: <message>`` on stderr.
+
+    Examples:
+        >>> import contextlib, io
+        >>> from torchcf.system.console import print_error
+        >>> err = io.StringIO()
+        >>> with contextlib.redirect_stderr(err):
+        ...     print_error("no such file: config.json")
+        >>> err.getvalue()
+        'error: no such file: config.json\\n'
+    """
     print(f"error: {message}", file=sys.stderr)
 
 
 def add_overrides(parser: argparse.ArgumentParser, metavar: str, example: str) -> None:
     """The ``--set KEY=VALUE`` option every command shares (repeatable; the value
-    is JSON, or a plain string), collected in ``args.overrides``."""
+    is JSON, or a plain string), collected in ``args.overrides``.
+
+    Examples:
+        >>> import argparse
+        >>> from torchcf.system.console import add_overrides
+        >>> parser = argparse.ArgumentParser()
+        >>> add_overrides(parser, "KEY=VALUE", "abc.seed=1")
+        >>> args = parser.parse_args(["--set", "abc.seed=1", "--set", "eval.beta=0.2"])
+        >>> args.overrides
+        ['abc.seed=1', 'eval.beta=0.2']
+    """
     parser.add_argument(
         "--set",
         dest="overrides",
@@ -100,7 +156,13 @@ LOG_INTERVAL = 9.0
 
 def bar_interval() -> float:
     """tqdm's ``mininterval`` for a bar on stderr: live on a terminal, a line
-    every :data:`LOG_INTERVAL` seconds otherwise."""
+    every :data:`LOG_INTERVAL` seconds otherwise.
+
+    Examples:
+        >>> from torchcf.system.console import bar_interval
+        >>> bar_interval() in (0.1, 9.0)  # [s]: 0.1 on a terminal, 9 in a log file
+        True
+    """
     return 0.1 if sys.stderr.isatty() else LOG_INTERVAL
 
 
@@ -171,6 +233,18 @@ def run_main(
 
     Returns:
         the exit code.
+
+    Examples:
+        >>> import contextlib, io
+        >>> from torchcf.system.console import run_main
+        >>> from torchcf.system.errors import TorchcfError
+        >>> def body():
+        ...     raise TorchcfError("data: no such folder")
+        >>> err = io.StringIO()
+        >>> with contextlib.redirect_stderr(err):
+        ...     codes = run_main(lambda: 0), run_main(body)
+        >>> codes, err.getvalue()
+        ((0, 2), 'error: data: no such folder\\n')
     """
     try:
         with terminate_as_interrupt():

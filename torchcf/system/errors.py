@@ -2,7 +2,7 @@
 
 An error of the user's making (config, data, arguments, a run directory) or of the
 machine (a full disk, an unreachable process group) is a :class:`TorchcfError`;
-every ``python -m torchcf.<x>`` prints it as ``error: <one line>`` and exits with
+every ``torchcf COMMAND`` prints it as ``error: <one line>`` and exits with
 code 2 (:mod:`torchcf.system.console`). Anything else is a bug and keeps its traceback.
 
 Each module's own error derives from it (and, where callers catch a builtin,
@@ -21,14 +21,28 @@ class TorchcfError(Exception):
 def did_you_mean(word: str, choices: Iterable[str]) -> str:
     """``" (did you mean 'idm'?)"`` for a mistyped name close to one of
     ``choices`` (difflib's ratio >= 0.6), else ``""``: the tail of a one-line
-    message."""
+    message.
+
+    Examples:
+        >>> from torchcf.system.errors import did_you_mean
+        >>> "unknown model 'imd'" + did_you_mean("imd", ["idm", "ovm", "gfm"])
+        "unknown model 'imd' (did you mean 'idm'?)"
+        >>> did_you_mean("xyz", ["idm", "ovm"])
+        ''
+    """
     close = difflib.get_close_matches(str(word).lower(), list(choices), n=1)
     return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 def first_names(names: Sequence[str], shown: int = 3) -> str:
     """``"a, b, c, ... 4 more"``: the first ``shown`` of ``names`` for a one-line
-    message, and how many more."""
+    message, and how many more.
+
+    Examples:
+        >>> from torchcf.system.errors import first_names
+        >>> first_names(["idm", "ovm", "gfm", "fvdm", "hl"])
+        'idm, ovm, gfm, ... 2 more'
+    """
     more = f", ... {len(names) - shown} more" if len(names) > shown else ""
     return ", ".join(names[:shown]) + more
 

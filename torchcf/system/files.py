@@ -54,6 +54,15 @@ def atomic_write_text(path: StrPath, text: str) -> None:
 
     Raises:
         RunFileError: it cannot be written (``path`` is left as it was).
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchcf.system.files import atomic_write_text
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     atomic_write_text(Path(folder) / "notes.md", "# Notes\\n")
+        ...     print(sorted(p.name for p in Path(folder).iterdir()))  # no temporary
+        ['notes.md']
     """
     _atomic_write(Path(path), lambda handle: handle.write(text), binary=False)
 
@@ -68,6 +77,17 @@ def atomic_torch_save(obj: Any, path: StrPath) -> None:
     Raises:
         RunFileError: any failure of the write (``path`` keeps its previous
             content, loadable; no temporary file is left).
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> import torch
+        >>> from torchcf.system.files import atomic_torch_save, read_torch
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     atomic_torch_save({"theta": torch.ones(2, 6)}, Path(folder, "state.pt"))
+        ...     loaded = read_torch(Path(folder) / "state.pt")
+        >>> loaded["theta"].shape
+        torch.Size([2, 6])
     """
     _atomic_write(Path(path), lambda handle: torch.save(obj, handle), binary=True)
 
@@ -77,6 +97,15 @@ def write_json(path: StrPath, obj: Any) -> None:
 
     Raises:
         RunFileError: it cannot be written (``path`` is left as it was).
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchcf.system.files import read_json_object, write_json
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     write_json(Path(folder) / "metrics.json", {"ws": float("inf"), "n": 3})
+        ...     print(read_json_object(Path(folder) / "metrics.json"))
+        {'ws': 'inf', 'n': 3}
     """
     text = json.dumps(json_safe(obj), indent=2, allow_nan=False) + "\n"
     atomic_write_text(path, text)
@@ -86,7 +115,17 @@ def write_json(path: StrPath, obj: Any) -> None:
 def writing(path: StrPath) -> Iterator[None]:
     """Report an ``OSError`` raised inside the block as a :class:`RunFileError`
     (``cannot write PATH: reason``), for writers that are not this module's (a
-    figure's ``savefig``)."""
+    figure's ``savefig``).
+
+    Examples:
+        >>> from torchcf.system.files import RunFileError, writing
+        >>> try:
+        ...     with writing("figure.png"):
+        ...         raise PermissionError(13, "Permission denied")
+        ... except RunFileError as error:
+        ...     print(error)
+        cannot write figure.png: Permission denied
+    """
     try:
         yield
     except OSError as error:
@@ -112,6 +151,15 @@ def ensure_directory(
     Raises:
         RunFileError: ``path`` exists and is not a directory, cannot be created,
             or cannot be written.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchcf.system.files import ensure_directory
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     out = ensure_directory(Path(folder, "run", "report"))
+        ...     print(out.is_dir(), list(out.iterdir()))  # the probe file is gone
+        True []
     """
     path = Path(path)
     if path.exists() and not path.is_dir():
@@ -152,6 +200,21 @@ def no_empty_folder_left(path: StrPath) -> Iterator[None]:
     there: on any failure, the directories under ``path`` (and ``path``) that
     hold no file are removed, if ``path`` did not exist before. A folder that
     holds a file (a checkpoint to resume from) stays as it is.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchcf.system.files import no_empty_folder_left
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     out = Path(folder) / "run"
+        ...     try:
+        ...         with no_empty_folder_left(out):
+        ...             (out / "tensorboard").mkdir(parents=True)
+        ...             raise ValueError("bad config")
+        ...     except ValueError:
+        ...         pass
+        ...     print(out.exists())
+        False
     """
     path = Path(path)
     existed = path.exists()
@@ -170,6 +233,18 @@ def remove_file(path: StrPath) -> None:
 
     Raises:
         RunFileError: it exists and cannot be removed.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchcf.system.files import remove_file
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     path = Path(folder) / "stale.lock"
+        ...     _ = path.write_text("")
+        ...     remove_file(path)
+        ...     remove_file(path)  # already gone: nothing to do
+        ...     print(path.exists())
+        False
     """
     try:
         Path(path).unlink(missing_ok=True)
@@ -223,6 +298,19 @@ def read_json_object(path: StrPath) -> JSON:
     Raises:
         RunFileError: missing, unreadable, not UTF-8, not JSON (truncated) or not
             a JSON object.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchcf.system.files import RunFileError, read_json_object
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     path = Path(folder) / "summary.json"
+        ...     _ = path.write_text('{"pairs": 4')  # truncated
+        ...     try:
+        ...         read_json_object(path)
+        ...     except RunFileError as error:
+        ...         print(type(error).__name__)
+        RunFileError
     """
     path = Path(path)
     try:
@@ -251,6 +339,16 @@ def read_torch(path: StrPath) -> Any:
     Raises:
         RunFileError: missing, unreadable, truncated or corrupted, or holding
             more than tensors and plain data.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> import torch
+        >>> from torchcf.system.files import read_torch
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     torch.save({"step": torch.tensor(3)}, Path(folder) / "checkpoint.pt")
+        ...     print(int(read_torch(Path(folder) / "checkpoint.pt")["step"]))
+        3
     """
     path = Path(path)
     try:
@@ -271,7 +369,14 @@ def read_torch(path: StrPath) -> Any:
 # ------------------------------------------------------------------- helpers
 def json_safe(value: Any) -> Any:
     """``value`` with non-finite floats as the strings "inf", "-inf", "nan" (JSON has
-    no such numbers) and numpy scalars as Python numbers, recursively."""
+    no such numbers) and numpy scalars as Python numbers, recursively.
+
+    Examples:
+        >>> import numpy as np
+        >>> from torchcf.system.files import json_safe
+        >>> json_safe({"ws": float("inf"), "e_p": np.float64(0.5), "e": [float("nan")]})
+        {'ws': 'inf', 'e_p': 0.5, 'e': ['nan']}
+    """
     if isinstance(value, dict):
         return {k: json_safe(v) for k, v in value.items()}
     if isinstance(value, list | tuple):

@@ -8,7 +8,7 @@ per 4 KiB on first touch: measured here, an 8 MiB elementwise operation costs ab
 3 ms that way against 0.5 ms from reused memory, and the box-QP active-set stage ran
 twice as fast with reuse. :func:`tune_malloc` keeps those blocks in the heap.
 
-The entry points (``python -m torchcf.train``, ``torchcf.study.demo``, the benchmarks in
+The entry points (``torchcf train``, ``torchcf.study.demo``, the benchmarks in
 ``tools/``) call it; a program that imports torchcf as a library may call it once at
 start-up. It only changes glibc's thresholds: freed memory is kept for reuse instead
 of being returned to the system at once, so the resident size stays at its peak.
@@ -39,6 +39,11 @@ def tune_malloc() -> bool:
 
     Returns:
         True if both thresholds were set.
+
+    Examples:
+        >>> from torchcf.system.process import tune_malloc
+        >>> tune_malloc() in (True, False)  # True on glibc; idempotent
+        True
     """
     global _tuned
     if _tuned is not None:

@@ -24,7 +24,13 @@ from .files import JSON
 def to_json_value(value: Any) -> Any:
     """``value`` as JSON content: records (anything with a ``to_json``) by their
     ``to_json``, tuples as lists, mapping keys as strings; a fresh copy of every
-    container."""
+    container.
+
+    Examples:
+        >>> from torchcf.system.records import to_json_value
+        >>> to_json_value({"levels": (0.5, 0.9), 1: [(1, 2)]})
+        {'levels': [0.5, 0.9], '1': [[1, 2]]}
+    """
     if isinstance(value, Record) or callable(getattr(value, "to_json", None)):
         return value.to_json()
     if isinstance(value, list | tuple):
@@ -35,14 +41,28 @@ def to_json_value(value: Any) -> Any:
 
 
 def frozen(value: Any) -> Any:
-    """JSON content with its lists as tuples (a record's sequences)."""
+    """JSON content with its lists as tuples (a record's sequences).
+
+    Examples:
+        >>> from torchcf.system.records import frozen
+        >>> frozen([0.5, [1, 2]])
+        (0.5, (1, 2))
+    """
     if isinstance(value, list | tuple):
         return tuple(frozen(v) for v in value)
     return value
 
 
 def copy_json(value: Any) -> Any:
-    """A deep copy of JSON content (its containers, not its scalars)."""
+    """A deep copy of JSON content (its containers, not its scalars).
+
+    Examples:
+        >>> from torchcf.system.records import copy_json
+        >>> raw = {"pairs": [1, 2]}
+        >>> copied = copy_json(raw)
+        >>> copied == raw, copied["pairs"] is raw["pairs"]
+        (True, False)
+    """
     if isinstance(value, Mapping):
         return {k: copy_json(v) for k, v in value.items()}
     if isinstance(value, list):
@@ -52,7 +72,21 @@ def copy_json(value: Any) -> Any:
 
 class Record:
     """A frozen record whose JSON object is its fields, in order (a base of
-    frozen dataclasses)."""
+    frozen dataclasses).
+
+    Examples:
+        >>> from dataclasses import dataclass
+        >>> from torchcf.system.records import Record
+        >>> @dataclass(frozen=True)
+        ... class Band(Record):
+        ...     level: float
+        ...     bounds: tuple[float, float]
+        >>> band = Band(0.9, (1.5, 2.5))
+        >>> band.to_json()
+        {'level': 0.9, 'bounds': [1.5, 2.5]}
+        >>> Band.from_json(band.to_json()) == band
+        True
+    """
 
     def to_json(self) -> JSON:
         """The JSON object: every field, in the declared order."""

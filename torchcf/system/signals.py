@@ -53,7 +53,17 @@ def _in_main_thread() -> bool:
 @contextmanager
 def terminate_as_interrupt() -> Iterator[None]:
     """SIGTERM raises :class:`Stopped` (a ``KeyboardInterrupt``) while the
-    block runs, so a terminated command unwinds as an interrupted one does."""
+    block runs, so a terminated command unwinds as an interrupted one does.
+
+    Examples:
+        >>> import signal
+        >>> from torchcf.system.signals import terminate_as_interrupt
+        >>> before = signal.getsignal(signal.SIGTERM)
+        >>> with terminate_as_interrupt():  # SIGTERM here raises Stopped
+        ...     pass
+        >>> signal.getsignal(signal.SIGTERM) is before  # restored
+        True
+    """
     if not _in_main_thread():
         yield
         return
@@ -75,6 +85,18 @@ class StopRequest:
     work checks :attr:`requested` at its safe points (the training: after each
     round, where it writes a checkpoint when a stop is requested) and calls
     :meth:`stop`. A second signal raises :class:`Stopped` at once.
+
+    Examples:
+        >>> import signal
+        >>> from torchcf.system.signals import StopRequest, Stopped
+        >>> with StopRequest() as stop:
+        ...     stop.stop()  # no signal yet: goes on
+        ...     stop.signum = signal.SIGTERM  # as the first SIGTERM records it
+        ...     try:
+        ...         stop.stop()  # the next safe point
+        ...     except Stopped as stopped:
+        ...         print(stopped.signum == signal.SIGTERM, stopped.checkpointed)
+        True True
     """
 
     def __init__(self, what: str = "writing a checkpoint at the end of this round"):

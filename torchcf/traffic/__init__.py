@@ -16,8 +16,6 @@ Re-exports only.
 from .battery import (
     Battery,
     Plausibility,
-    PlausibilitySettings,
-    PlausibilitySummary,
     battery_speed,
     check_plausibility,
 )
@@ -38,8 +36,6 @@ __all__ = [
     "Battery",
     "HybridSampler",
     "Plausibility",
-    "PlausibilitySettings",
-    "PlausibilitySummary",
     "RingStart",
     "RingState",
     "SafetyLayer",

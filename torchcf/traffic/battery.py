@@ -50,14 +50,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
-from typing import Any, NamedTuple
+from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from ..models import CFModel, FollowerState, require_model
-from ..system.records import Record
+from ..runs.summary import PlausibilitySettings, PlausibilitySummary
 from .sampler import HybridSampler
 from .scenarios import platoon
 
@@ -96,6 +96,12 @@ class Battery:
         dt: step [s] (the data's).
         leader_length: the leader length [m] the models perceive (net gaps
             above are added to it).
+
+    Examples:
+        >>> from torchcf.traffic import Battery
+        >>> battery = Battery(speed=10.0, decelerations=(4.0, 8.0))  # [m/s], [m/s^2]
+        >>> battery.scenarios
+        ['brake_4', 'brake_8', 'stop_and_go', 'cut_in', 'standstill']
     """
 
     speed: float = 25.0
@@ -132,61 +138,6 @@ class Battery:
         return [*brakes, "stop_and_go", "cut_in", "standstill"]
 
 
-@dataclass(frozen=True)
-class PlausibilitySettings(Record):
-    """The battery's settings a summary records (``settings``): cruise speed
-    [m/s], the braking leader's decelerations [m/s^2], the collision spacing
-    [m] and the platoon's vehicles."""
-
-    speed: float
-    decelerations: tuple[float, ...]
-    collision_spacing: float
-    platoon_size: int
-
-
-@dataclass(frozen=True)
-class PlausibilitySummary(Record):
-    """A model's particles through the battery, as shares over them
-    (:meth:`Plausibility.summary`; ``summary.json``'s ``plausibility[model]``).
-
-    Attributes:
-        n_particles: the particles P.
-        collided: share that collided in some scenario (``string`` excluded).
-        per_scenario: scenario name -> share that collided there.
-        string_unstable: share whose platoon amplifies a disturbance.
-        string_untested: share without a string-stability ratio.
-        no_equilibrium: share without an equilibrium at some speed of the grid.
-        not_started: share that did not pull away from standstill.
-        min_ttc_median: median least time to collision [s] over the particles
-            that closed in (None: none did).
-        string_ratio_median: median string-stability ratio (None: none).
-        settings: the battery's settings.
-    """
-
-    n_particles: int
-    collided: float
-    per_scenario: dict[str, float]
-    string_unstable: float
-    string_untested: float
-    no_equilibrium: float
-    not_started: float
-    min_ttc_median: float | None
-    string_ratio_median: float | None
-    settings: PlausibilitySettings
-
-    @classmethod
-    def from_json(cls, raw: Mapping[str, Any]) -> PlausibilitySummary:
-        """The record of a ``plausibility[model]`` object.
-
-        Raises:
-            KeyError: a key is missing.
-            ValueError: an unknown key.
-        """
-        settings = PlausibilitySettings.from_json(raw["settings"])
-        read = super().from_json({**raw, "per_scenario": dict(raw["per_scenario"])})
-        return replace(read, settings=settings)
-
-
 @dataclass
 class Plausibility:
     """A model's particles through the battery; every tensor is ``(P,)``.
@@ -201,6 +152,20 @@ class Plausibility:
             equilibrium at ``speed`` to start from, or the platoon collided).
         equilibrium: an equilibrium at every speed of the grid.
         started: pulled away from standstill.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> from torchcf.traffic import Battery, check_plausibility
+        >>> idm = torch.tensor(
+        ...     [[1.5, 2.0, 33.0, 1.2, 2.0, 4.0], [1.0, 1.5, 30.0, 1.6, 2.5, 4.0]]
+        ... )
+        >>> battery = Battery(speed=10.0, decelerations=(6.0,), platoon_size=3)
+        >>> found = check_plausibility(get_model("idm"), idm, battery)
+        >>> found.n_particles, found.collided.tolist(), found.equilibrium.tolist()
+        (2, [False, False], [True, True])
+        >>> found.string_unstable().tolist()  # a 3-vehicle platoon at 10 m/s
+        [False, False]
     """
 
     collided: Tensor
@@ -256,7 +221,15 @@ class Plausibility:
 def battery_speed(v_lead: Tensor, mask: Tensor | None = None) -> float:
     """The battery's cruise speed from the data: the 95th percentile of the
     leaders' speeds [m/s] (``v_lead`` (T, N), over ``mask``'s valid steps),
-    at least 5 m/s."""
+    at least 5 m/s.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.traffic import battery_speed
+        >>> v_lead = torch.tensor([[10.0, 20.0], [15.0, 25.0]])  # (T, N) [m/s]
+        >>> round(battery_speed(v_lead), 3)  # the 95th percentile [m/s]
+        24.25
+    """
     speeds = v_lead[mask] if mask is not None else v_lead.reshape(-1)
     speeds = speeds[torch.isfinite(speeds)].double()
     if speeds.numel() == 0:
@@ -332,6 +305,21 @@ def check_plausibility(
 
     Returns:
         :class:`Plausibility`, ``(P,)`` per outcome, on the CPU.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> from torchcf.traffic import Battery, check_plausibility
+        >>> idm = torch.tensor(
+        ...     [[1.5, 2.0, 33.0, 1.2, 2.0, 4.0], [1.0, 1.5, 30.0, 1.6, 2.5, 4.0]]
+        ... )
+        >>> battery = Battery(speed=10.0, decelerations=(6.0,), platoon_size=3)
+        >>> found = check_plausibility(get_model("idm"), idm, battery)
+        >>> found.collided.tolist(), found.started.tolist()
+        ([False, False], [True, True])
+        >>> summary = found.summary()
+        >>> summary.n_particles, summary.collided, summary.per_scenario["brake_6"]
+        (2, 0.0, 0.0)
     """
     model = require_model(model, "check_plausibility")
     theta = _particles(model, theta, chunk)
@@ -614,8 +602,6 @@ def rejects(battery: Battery, reject_string_unstable: bool = False):
 __all__ = [
     "Battery",
     "Plausibility",
-    "PlausibilitySettings",
-    "PlausibilitySummary",
     "battery_speed",
     "braking_leader",
     "check_plausibility",

@@ -22,14 +22,9 @@ from ..config import PlausibilityConfig
 from ..data import PairSet
 from ..models import get_model
 from ..posterior import Posterior
+from ..runs.summary import PlausibilitySummary
 from ..system.console import bar_interval
-from .battery import (
-    Battery,
-    PlausibilitySummary,
-    battery_speed,
-    check_plausibility,
-    rejects,
-)
+from .battery import Battery, battery_speed, check_plausibility, rejects
 
 #: Particles per battery call on the hybrid after training. The battery holds
 #: about 350 KiB per particle at its peak (the scenarios' recorded series): its

@@ -61,6 +61,16 @@ class SafetyLayer:
             leader [m/s^2].
         stop_spacing: front-to-front spacing [m] kept behind a stopped leader;
             None: the leader length (bumper contact).
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.traffic import SafetyLayer
+        >>> layer = SafetyLayer(max_decel=8.0, leader_decel=8.0)  # [m/s^2]
+        >>> spacing = torch.tensor([30.0, 20.0])  # [m]
+        >>> v, v_leader = torch.tensor([20.0, 20.0]), torch.tensor([20.0, 0.0])
+        >>> v_safe = layer.safe_speed(spacing, v, v_leader, dt=0.1, leader_length=5.0)
+        >>> [round(s, 3) for s in v_safe.tolist()]  # [m/s]; the second must brake
+        [27.603, 14.572]
     """
 
     max_decel: float = 8.0
@@ -163,6 +173,25 @@ def interventions_per_model(
         interventions: steps overridden per vehicle, the same shape.
         model_names: the sampler's ``model_names``.
         moving: ``TrafficOutput.interventions_moving``, the same shape.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import HybridSampler, get_model
+        >>> idm = torch.tensor(
+        ...     [[1.5, 2.0, 33.0, 1.2, 2.0, 4.0], [1.0, 1.5, 30.0, 1.6, 2.5, 4.0]]
+        ... )
+        >>> sampler = HybridSampler([get_model("idm")], [idm], dt=0.1)
+        >>> _ = sampler.sample((2, 3), generator=torch.Generator().manual_seed(0))
+        >>> t = torch.arange(50)[:, None] * 0.1  # (T, 1) [s]
+        >>> x_leader = (100.0 + 20.0 * t).expand(50, 2)  # (T, S) [m]: 20 m/s
+        >>> v_leader = torch.full((50, 2), 20.0)  # [m/s]
+        >>> from torchcf.traffic import interventions_per_model, platoon
+        >>> out = platoon(sampler, x_leader, v_leader)
+        >>> counts = interventions_per_model(
+        ...     sampler.vehicle_model, out.interventions, sampler.model_names
+        ... )
+        >>> counts["idm"]["vehicles"], counts["idm"]["per_vehicle"]
+        (6, 0.0)
     """
     out: dict[str, dict[str, float]] = {}
     flat_model = vehicle_model.reshape(-1).cpu()

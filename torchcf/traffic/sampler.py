@@ -51,6 +51,7 @@ from ..data.registry import read_meta
 from ..models import CFModel, FollowerState, Perception, get_model, require_model
 from ..posterior import Posterior
 from ..runs.directory import RunDir
+from ..runs.summary import RunSummary
 from ..sim.rollout import check_theta, realise
 from ..system.files import RunFileError, TorchPayload
 
@@ -95,7 +96,7 @@ class HybridSampler(nn.Module):
         x, v, a = sampler.advance(x, v, a, u)             # one step of dt
         sampler.tick()                                    # clock, redraws
 
-    Example:
+    Examples:
         >>> import torch
         >>> from torchcf import HybridSampler, get_model
         >>> idm = torch.tensor(
@@ -786,10 +787,15 @@ def _data_constants(dataset: str, run_dir: Path) -> tuple[float | None, float | 
     run = RunDir(run_dir)
     try:
         summary = run.read_summary()
-        if summary.get("dt") is not None and summary.get("leader_length") is not None:
-            return summary["dt"], summary["leader_length"]
     except RunFileError:
-        pass
+        summary = None
+    # a training's summary (a re-calibration's records neither)
+    if (
+        isinstance(summary, RunSummary)
+        and summary.dt is not None
+        and summary.leader_length is not None
+    ):
+        return summary.dt, summary.leader_length
     if dataset in DATASETS:
         spec = DATASETS[dataset]
         return spec.dt, spec.leader_length

@@ -73,6 +73,19 @@ class RingState(NamedTuple):
         v: speed [m/s].
         a: realised acceleration [m/s^2].
         position: ring coordinate in ``[0, L)`` [m].
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import HybridSampler, get_model
+        >>> idm = torch.tensor(
+        ...     [[1.5, 2.0, 33.0, 1.2, 2.0, 4.0], [1.0, 1.5, 30.0, 1.6, 2.5, 4.0]]
+        ... )
+        >>> sampler = HybridSampler([get_model("idm")], [idm], dt=0.1)
+        >>> _ = sampler.sample((2, 3), generator=torch.Generator().manual_seed(0))
+        >>> from torchcf.traffic import ring_initial_state
+        >>> state = ring_initial_state(sampler, 120.0)  # a 120 m ring
+        >>> state.spacing.shape, [round(s, 3) for s in state.spacing.sum(1).tolist()]
+        (torch.Size([2, 3]), [120.0, 120.0])
     """
 
     spacing: Tensor
@@ -91,6 +104,22 @@ class RingStart:
             common speed with its own steady spacing); a speed [m/s], a number
             or ``(S,)``: equal spacings ``L / n`` at that speed.
         perturbation: vehicle 0 moved this far back [m].
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import HybridSampler, get_model
+        >>> idm = torch.tensor(
+        ...     [[1.5, 2.0, 33.0, 1.2, 2.0, 4.0], [1.0, 1.5, 30.0, 1.6, 2.5, 4.0]]
+        ... )
+        >>> sampler = HybridSampler([get_model("idm")], [idm], dt=0.1)
+        >>> _ = sampler.sample((2, 3), generator=torch.Generator().manual_seed(0))
+        >>> from torchcf.traffic import RingStart, ring_road
+        >>> start = RingStart(v_init=5.0, perturbation=2.0)  # [m/s], [m]
+        >>> out = ring_road(sampler, 120.0, n_steps=10, initial=start)
+        >>> [round(v, 3) for v in out.v[0, 0].tolist()]  # at t = 0 [m/s]
+        [5.0, 5.0, 5.0]
+        >>> [round(s, 3) for s in out.spacing[0, 0].tolist()]  # 120 m / 3, shifted 2 m
+        [42.0, 40.0, 38.0]
     """
 
     v_init: float | Tensor | None = None
@@ -121,6 +150,21 @@ class TrafficOutput(NamedTuple):
             vehicle moved (speed over :data:`MOVING_SPEED` before the step);
             the rest held a standing vehicle back (a model that creeps forward
             at a stop, as SPEC's IDM with its front-to-front ``s0`` does).
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import HybridSampler, get_model
+        >>> idm = torch.tensor(
+        ...     [[1.5, 2.0, 33.0, 1.2, 2.0, 4.0], [1.0, 1.5, 30.0, 1.6, 2.5, 4.0]]
+        ... )
+        >>> sampler = HybridSampler([get_model("idm")], [idm], dt=0.1)
+        >>> _ = sampler.sample((2, 3), generator=torch.Generator().manual_seed(0))
+        >>> from torchcf.traffic import ring_road
+        >>> out = ring_road(sampler, 120.0, n_steps=100, record_every=10)
+        >>> out.time.shape, out.x.shape, out.collision_step.shape  # (T', S, n)
+        (torch.Size([10]), torch.Size([10, 2, 3]), torch.Size([2, 3]))
+        >>> out.valid.tolist(), int(out.interventions.sum())
+        ([True, True], 0)
     """
 
     time: Tensor | None
@@ -256,6 +300,18 @@ def pair_leader(
     Returns:
         leader position ``(T, S)`` [m] and speed ``(T, S)`` [m/s], and follower 0's
         observed initial state (each ``(S,)``), all in the pairs' dtype.
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> from torchcf.traffic import pair_leader
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]
+        >>> pairs = synthetic_pairs(get_model("idm"), idm, n_pairs=4, n_steps=50)
+        >>> x_leader, v_leader, start = pair_leader(pairs, [0, 2])  # two scenarios
+        >>> x_leader.shape, v_leader.shape, start.x.shape
+        (torch.Size([50, 2]), torch.Size([50, 2]), torch.Size([2]))
+        >>> bool((start.x == pairs.x_follow[0, [0, 2]]).all())
+        True
     """
     index = torch.as_tensor(index, dtype=torch.long)
     if index.ndim == 0:  # one pair: one scenario
@@ -335,6 +391,24 @@ def platoon(
     Returns:
         :class:`TrafficOutput` with ``(T', S, n)`` road positions; ``final`` is
         the followers' state at T-1.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import HybridSampler, get_model
+        >>> idm = torch.tensor(
+        ...     [[1.5, 2.0, 33.0, 1.2, 2.0, 4.0], [1.0, 1.5, 30.0, 1.6, 2.5, 4.0]]
+        ... )
+        >>> sampler = HybridSampler([get_model("idm")], [idm], dt=0.1)
+        >>> _ = sampler.sample((2, 3), generator=torch.Generator().manual_seed(0))
+        >>> t = torch.arange(50)[:, None] * 0.1  # (T, 1) [s]
+        >>> x_leader = (100.0 + 20.0 * t).expand(50, 2)  # (T, S) [m]: 20 m/s
+        >>> v_leader = torch.full((50, 2), 20.0)  # [m/s]
+        >>> from torchcf.traffic import platoon
+        >>> out = platoon(sampler, x_leader, v_leader)  # 3 followers in each
+        >>> out.x.shape, out.valid.tolist()  # (T, S, n) positions [m]
+        (torch.Size([50, 2, 3]), [True, True])
+        >>> bool((out.spacing > 0).all())
+        True
     """
     n_scenarios, n_followers = _scenario_shape(sampler)
     _check_record_every(record_every)
@@ -471,6 +545,21 @@ def ring_initial_state(
     Raises:
         ValueError: a spacing would be ``<= 0`` (the ring is too short for its
             vehicles, or the perturbation too large).
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import HybridSampler, get_model
+        >>> idm = torch.tensor(
+        ...     [[1.5, 2.0, 33.0, 1.2, 2.0, 4.0], [1.0, 1.5, 30.0, 1.6, 2.5, 4.0]]
+        ... )
+        >>> sampler = HybridSampler([get_model("idm")], [idm], dt=0.1)
+        >>> _ = sampler.sample((2, 3), generator=torch.Generator().manual_seed(0))
+        >>> from torchcf.traffic import ring_initial_state
+        >>> state = ring_initial_state(sampler, 120.0, perturbation=1.0)  # [m]
+        >>> [round(s, 3) for s in state.spacing.sum(1).tolist()]  # the ring's length
+        [120.0, 120.0]
+        >>> bool((state.v == state.v[:, :1]).all())  # one speed per ring
+        True
     """
     n_scenarios, n_vehicles = _scenario_shape(sampler)
     dtype, device = sampler.dtype, sampler.device
@@ -579,6 +668,21 @@ def ring_road(
     Returns:
         :class:`TrafficOutput`; ``x`` is the ring coordinate in ``[0, L)``,
         ``final`` the :class:`RingState` after ``n_steps`` steps.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import HybridSampler, get_model
+        >>> idm = torch.tensor(
+        ...     [[1.5, 2.0, 33.0, 1.2, 2.0, 4.0], [1.0, 1.5, 30.0, 1.6, 2.5, 4.0]]
+        ... )
+        >>> sampler = HybridSampler([get_model("idm")], [idm], dt=0.1)
+        >>> _ = sampler.sample((2, 3), generator=torch.Generator().manual_seed(0))
+        >>> from torchcf.traffic import ring_road
+        >>> out = ring_road(sampler, length=120.0, n_steps=100)  # 10 s on a 120 m ring
+        >>> out.x.shape, out.valid.tolist()
+        (torch.Size([100, 2, 3]), [True, True])
+        >>> [round(s, 3) for s in out.final.spacing.sum(1).tolist()]  # [m]
+        [120.0, 120.0]
     """
     n_scenarios, n_vehicles = _scenario_shape(sampler)
     _check_record_every(record_every)

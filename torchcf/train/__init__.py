@@ -1,35 +1,18 @@
-"""A training run: checkpoints, progress, ranks around the ABC engine.
+"""A training run: a calibration (:mod:`torchcf.calibration`) with a run
+directory around it (checkpoints, progress, TensorBoard, the summary), alone
+or across the processes of a ``torchrun`` group.
 
-- :mod:`torchcf.train.run`: :func:`train` (one run of a config into a directory,
-  resumable, under ``torchrun`` or alone), the orchestration;
+- :mod:`torchcf.train.run`: :func:`train` (one run of a config into a
+  directory, resumable), the config translated once and the calibration
+  tracked;
 - :mod:`torchcf.train.checkpoint`: the checkpoint's format, resuming, the
-  checkpointer;
-- :mod:`torchcf.train.engine`: the config translated for the ABC engine (device,
-  budgets, buffers, the rollout);
-- :mod:`torchcf.train.summary`: the results and ``summary.json``
-  (:class:`RunSummary`);
-- :mod:`torchcf.train.amortised`: the amortised method's estimator in a run
-  (:func:`trained_estimator`: the one a finished run trained);
-- :mod:`torchcf.train.__main__`: ``python -m torchcf.train CONFIG``, which runs the
-  study (:mod:`torchcf.study.pipeline`).
+  checkpointer, the device;
+- :mod:`torchcf.train.summary`: ``summary.json``'s record of a calibration.
 
 Re-exports only.
 """
 
-from .amortised import trained_estimator
-from .checkpoint import RunError, RunState, open_run
-from .engine import check_budget, run_device
-from .run import train
-from .summary import ModelResult, RunSummary
+from .checkpoint import RunError, RunState, open_run, run_device
+from .run import check_setup, train
 
-__all__ = [
-    "ModelResult",
-    "RunError",
-    "RunState",
-    "RunSummary",
-    "check_budget",
-    "open_run",
-    "run_device",
-    "train",
-    "trained_estimator",
-]
+__all__ = ["RunError", "RunState", "check_setup", "open_run", "run_device", "train"]

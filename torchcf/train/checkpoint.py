@@ -1,4 +1,5 @@
-"""The run's checkpoint: its file format, resuming from it, and the checkpointer.
+"""The run's checkpoint: its file format, resuming from it, and the
+checkpointer; and the device the run's process simulates on.
 
 ``checkpoint.pt`` (:meth:`torchcf.runs.directory.RunDir.save_checkpoint`) is a dict::
 
@@ -18,7 +19,7 @@ SMC and an amortised run's refinement), for ``N`` training pairs and ``B =
 abc.buffer_size`` slots. ``refinement_before`` (an amortised run with
 ``abc.amortised.refine``, once every model's samples are scored) holds per model
 its share and median best score before the refinement
-(:mod:`torchcf.train.refinement`).
+(:mod:`torchcf.calibration.refinement`).
 
 :func:`open_run` checks the output directory against ``--resume`` and, resuming,
 reads the checkpoint into a :class:`RunState` (refusing one of another format,
@@ -39,9 +40,8 @@ import torch
 
 from ..abc.distributed import Group
 from ..abc.rejection import ModelProgress
-from ..abc.smc import SMCState
-from ..abc.topn import TopN
-from ..config import TrainConfig, config_hash
+from ..calibration import CalibrationState
+from ..config import ConfigError
 from ..runs.directory import RunDir
 from ..system.console import one_line
 from ..system.errors import TorchcfError, first_names
@@ -59,45 +59,28 @@ class RunError(TorchcfError, RuntimeError):
 
 @dataclass
 class RunState:
-    """Everything a checkpoint holds: per model, its progress and its buffer."""
+    """Everything a checkpoint holds: the config's hash and the calibration's
+    state (per model, its progress, buffer and refinement state)."""
 
     config_hash: str
-    progress: dict[str, ModelProgress] = field(default_factory=dict)
-    buffers: dict[str, TopN] = field(default_factory=dict)
-    #: the refinement's state per model (``abc.method = "smc"`` only)
-    smc: dict[str, SMCState] = field(default_factory=dict)
-    #: buffer and refinement state dicts read from a checkpoint, until the
-    #: buffers are built
-    saved_buffers: dict[str, TorchPayload] = field(default_factory=dict)
-    saved_smc: dict[str, TorchPayload] = field(default_factory=dict)
-    #: per model, its share and median best score on the amortised samples,
-    #: before the refinement (an amortised run's refinement only)
-    refinement_before: dict[str, dict[str, float | None]] | None = None
+    calibration: CalibrationState = field(default_factory=CalibrationState)
 
     def as_checkpoint(self) -> TorchPayload:
         """The checkpoint's content (the module docstring's format)."""
-        checkpoint = {
+        return {
             "format": CHECKPOINT_FORMAT,
             "config_hash": self.config_hash,
-            "progress": {k: v.as_dict() for k, v in self.progress.items()},
-            "buffers": {k: b.state_dict() for k, b in self.buffers.items()},
+            **self.calibration.as_payload(),
         }
-        if self.smc:
-            checkpoint["smc"] = {k: v.state_dict() for k, v in self.smc.items()}
-        if self.refinement_before is not None:
-            checkpoint["refinement_before"] = {
-                k: dict(v) for k, v in self.refinement_before.items()
-            }
-        return checkpoint
 
 
-def open_run(cfg: TrainConfig, out: Path, resume: bool) -> RunState:
+def open_run(digest: str, out: Path, resume: bool) -> RunState:
     """Check the output directory against ``--resume``, before any data is loaded.
 
     Probes that the directory can be created and written (leaving nothing
     behind: a bad config or data set found next must not leave an empty run
     directory); with ``resume`` loads the checkpoint and checks it was written
-    with this very config.
+    with this very config (its hash ``digest``, :func:`torchcf.config.config_hash`).
 
     Raises:
         RunError: a run is there and ``resume`` is not asked, or ``resume`` is
@@ -107,7 +90,6 @@ def open_run(cfg: TrainConfig, out: Path, resume: bool) -> RunState:
         RunFileError: the directory cannot be created or written.
     """
     run = RunDir(out)
-    digest = config_hash(cfg)
     if resume:
         state = resume_state(run, digest)
         run.probe()
@@ -141,7 +123,7 @@ def resume_note(state: RunState, models: list[str], n_particles: int | None) -> 
             samples of the model, then its refinement): the note gives the
             particles done alone.
     """
-    progress = state.progress
+    progress = state.calibration.progress
     done = [m for m in models if m in progress and progress[m].done]
     partial = [
         m for m in models if m in progress and not progress[m].done and progress[m].next
@@ -191,13 +173,14 @@ def checkpoint_state(raw: Mapping[str, Any], digest: str, path: Path) -> RunStat
 
     Checks the shape of the content only (progress records, the buffers'
     tensors); whether the buffers fit this run is checked when they are loaded
-    (:func:`torchcf.train.engine.build_buffers`).
+    (:func:`torchcf.calibration.state.build_buffers`).
     """
     state = RunState(digest)
+    kept = state.calibration
     try:
         for name, progress in raw["progress"].items():
-            state.progress[name] = ModelProgress(**progress)
-            if not 0 <= state.progress[name].next:
+            kept.progress[name] = ModelProgress(**progress)
+            if not 0 <= kept.progress[name].next:
                 raise ValueError(f"{name}: negative progress")
         buffers = raw["buffers"]
         for name, buffer in buffers.items():
@@ -210,12 +193,27 @@ def checkpoint_state(raw: Mapping[str, Any], digest: str, path: Path) -> RunStat
             f"--resume: {path} is corrupted ({type(error).__name__}: {error}); "
             "start again with another --out"
         ) from None
-    state.saved_buffers = buffers
-    state.saved_smc = raw.get("smc", {})
+    kept.saved_buffers = buffers
+    kept.saved_smc = raw.get("smc", {})
     before = raw.get("refinement_before")
     if before is not None:
-        state.refinement_before = {k: dict(v) for k, v in before.items()}
+        kept.refinement_before = {k: dict(v) for k, v in before.items()}
     return state
+
+
+def run_device(device: str, group: Group) -> torch.device:
+    """The device this process simulates on (the config's ``device``, under
+    ``torchrun`` this rank's GPU); ConfigError if it is not there."""
+    chosen = group.run_device(device)
+    if chosen.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device: {device!r} asked for but CUDA is not available")
+        if chosen.index is not None and chosen.index >= torch.cuda.device_count():
+            raise ConfigError(
+                f"device: {str(chosen)!r} asked for but only "
+                f"{torch.cuda.device_count()} CUDA device(s) are visible"
+            )
+    return chosen
 
 
 class Checkpointer:
@@ -258,4 +256,5 @@ __all__ = [
     "checkpoint_state",
     "open_run",
     "resume_state",
+    "run_device",
 ]

@@ -1,30 +1,26 @@
-"""A training run (the library behind ``python -m torchcf.train CONFIG``).
+"""A training run: a calibration (:func:`torchcf.calibration.calibrate`) with
+a run directory around it.
 
-    python -m torchcf.train configs/carII.json
-    python -m torchcf.train configs/smoke.json --set abc.n_particles=50000
-    python -m torchcf.train configs/carII.json --resume      # after a crash or kill -9
-    torchrun --standalone --nproc-per-node 4 -m torchcf.train configs/carII.json
+    torchcf train configs/carII.json
+    torchcf train configs/smoke.json --set abc.n_particles=50000
+    torchcf train configs/carII.json --resume      # after a crash or kill -9
+    torchrun --standalone --nproc-per-node 4 -m torchcf train configs/carII.json
 
-The ABC itself is :mod:`torchcf.abc`: for every model of the config, its prior
-stream is run through its per-pair top-N buffer (:func:`torchcf.abc.run_rejection`)
-and the hybrid is read from the buffers (:mod:`torchcf.abc.hybrid`). With
-``abc.method = "amortised"`` an estimator is trained first and its samples for
-the training pairs are the streams (:mod:`torchcf.train.amortised`), refined
-per pair with ``abc.amortised.refine`` (:mod:`torchcf.train.refinement`). This module
-is the run's orchestration: :func:`train` streams each model (with a progress
-bar, TensorBoard scalars and checkpoints), then selects the hybrid and writes the
-outputs, across the processes of a ``torchrun`` group (rank 0 reads and writes,
-every rank holds the merged buffers). Its parts, by concern:
+:func:`train` translates the config once (:func:`torchcf.calibration.of_config.
+setup_of`: the rollout, the prior boxes, the sampler, the selection), checks
+the budget before any output, and runs the calibration with a
+:class:`RunTracker`: a progress bar per model, TensorBoard scalars, and
+checkpoints (``abc.checkpoint_every`` seconds and after each model, so that
+``--resume`` ends identical to an uninterrupted run), across the processes of a
+``torchrun`` group (rank 0 reads and writes, every rank holds the merged
+buffers). Then it writes the outputs. Its parts, by concern:
 
-- :mod:`torchcf.train.checkpoint`: the checkpoint's format, resuming from it
-  (``abc.checkpoint_every`` seconds and after each model, so that ``--resume``
-  ends identical to an uninterrupted run), the checkpointer;
-- :mod:`torchcf.train.engine`: the config translated for the engine (device,
-  budgets, SMC settings, buffers, the rollout);
-- :mod:`torchcf.train.summary`: the results and ``summary.json``
-  (:class:`~torchcf.train.summary.RunSummary`).
+- :mod:`torchcf.train.checkpoint`: the checkpoint's format, resuming from it,
+  the checkpointer, the device;
+- :mod:`torchcf.train.summary`: ``summary.json``'s record
+  (:class:`~torchcf.runs.summary.RunSummary`) of a calibration.
 
-The command line (:mod:`torchcf.train.__main__`) runs the study
+The command line (:mod:`torchcf.cli.train`) runs the study
 (:func:`torchcf.study.pipeline.run_study`): training, then the test-split evaluation
 (unless ``--no-eval``) and, with ``diagnose.run_after_training``, the diagnosis
 loop.
@@ -43,7 +39,9 @@ from __future__ import annotations
 
 import sys
 import time
-from contextlib import nullcontext
+from collections.abc import Iterator
+from contextlib import contextmanager, nullcontext
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
@@ -51,169 +49,104 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..abc.configured import rollout_of, smc_settings
 from ..abc.distributed import SINGLE, Group
-from ..abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
-from ..abc.rounds import RoundHooks
-from ..abc.smc import refine_population, run_smc
-from ..amortised import PairPosteriors, run_amortised
-from ..config import ModelSpec, TrainConfig, load_split, resolved_json
+from ..abc.rejection import ModelProgress, Rollout
+from ..calibration import (
+    Amortised,
+    CalibrationError,
+    CalibrationSetup,
+    Tracker,
+)
+from ..calibration.amortised import parameter_space, reused_checkpoint, reused_source
+from ..calibration.of_config import setup_of
+from ..calibration.state import StateError
+from ..config import ConfigError, TrainConfig, config_hash, load_split, resolved_json
 from ..data import PairSet
 from ..data.importer import record_extraction
 from ..evaluation.plots import hybrid_images, save_image
 from ..posterior import Posterior
 from ..posterior.tables import parameters_markdown, write_parameter_tables
 from ..runs.directory import RunDir
+from ..runs.summary import RunSummary
 from ..runs.tensorboard import RunLogger, markdown_summary
 from ..system.console import bar_interval
 from ..system.files import ensure_directory, writing
 from ..system.process import tune_malloc
 from ..system.signals import StopRequest
 from ..traffic.configured import hybrid_plausibility, plausibility_screen
-from .amortised import amortised_samples, reused_checkpoint, reused_source
 from .checkpoint import (
     Checkpointer,
     RunError,
     RunState,
     open_run,
     resume_note,
-)
-from .engine import (
-    build_buffers,
-    check_budget,
-    refine_settings,
     run_device,
-    weighted_buffers,
 )
-from .refinement import refine_budget, refinement_result, scores_before
-from .summary import RunSummary, read_results
+from .summary import dataset_label, run_summary
 
 # --------------------------------------------------------------------------------------
-# One model's stream, with checkpoints and progress
+# The calibration's tracker: progress bars, TensorBoard, checkpoints
 
 
-def _stream_model(
-    cfg: TrainConfig,
-    spec: ModelSpec,
-    rollout: Rollout,
-    state: RunState,
-    checkpointer: Checkpointer,
-    logger: RunLogger,
-    group: Group,
-    samples: PairPosteriors | None = None,
-    refining: bool = False,
-) -> None:
-    """Run one model's particles through its buffer (rejection, SMC or the
-    amortised samples), with a progress bar, TensorBoard scalars and
-    checkpoints between rounds.
+class RunTracker(Tracker):
+    """A training run's :class:`~torchcf.calibration.Tracker`: the state is the
+    checkpoint's (:class:`~torchcf.train.checkpoint.RunState`), every model a
+    progress bar (rank 0) and TensorBoard scalars, a checkpoint every
+    ``abc.checkpoint_every`` seconds and after each model."""
 
-    ``spec`` is the model's config entry (its model object and prior box); its
-    buffer, progress and refinement state in ``state`` are keyed by its name;
-    ``samples``: the training pairs' amortised samples (``abc.method =
-    "amortised"`` only). With ``abc.amortised.refine`` a model is streamed
-    twice: its samples (the model left unfinished, since the shares before
-    the refinement need every model's), then, ``refining``, its refinement
-    (:mod:`torchcf.train.refinement`).
-    """
-    name = spec.name
-    buffer, progress = state.buffers[name], state.progress[name]
-    if progress.done:
-        return
-    n_total = cfg.abc.n_particles
-    own = refine = None
-    if samples is not None:  # the model's samples are its stream
-        own = samples.of_model([s.name for s in cfg.models].index(name))
-        n_total = own[0].shape[0]
-        if refine_settings(cfg) is not None:
-            refine = refine_budget(cfg, n_total, rollout.pairs.n_pairs)
-            n_total = refine.total
-    bar = _progress_bar(name, n_total, progress.next, enabled=group.is_main)
-    screen = plausibility_screen(cfg.plausibility, rollout.pairs)
+    def __init__(
+        self,
+        run: RunDir,
+        state: RunState,
+        checkpointer: Checkpointer,
+        logger: RunLogger,
+        group: Group,
+        screened: bool,
+        resume: bool,
+    ) -> None:
+        super().__init__(
+            state.calibration,
+            estimator_checkpoint=run.amortised_checkpoint,
+            resume=resume,
+            stop=checkpointer.stop,
+        )
+        self.checkpointer, self.logger, self.group = checkpointer, logger, group
+        self.screened = screened
+        self.bar: tqdm | None = None
 
-    def after_round(progress: ModelProgress, due: bool) -> None:
-        bar.update(progress.next - bar.n)
-        invalid_rate = progress.invalid / (progress.next * rollout.cells_per_particle)
-        postfix = f"invalid {invalid_rate:.1%}"
-        if screen is not None:
-            postfix += f", implausible {progress.implausible}"
-        if rollout.early_rejection:
-            cells = progress.next * rollout.cells_per_particle
-            postfix += f", rejected early {progress.stopped / cells:.0%}"
-        bar.set_postfix_str(postfix, refresh=False)
-        logger.progress(
+    @contextmanager
+    def model(self, name: str, total: int, done: int) -> Iterator[None]:
+        with _progress_bar(name, total, done, self.group.is_main) as bar:
+            self.bar = bar
+            yield
+        self.bar = None
+
+    def round(self, name: str, progress: ModelProgress, rollout: Rollout) -> None:
+        bar = self.bar
+        cells_per_particle = rollout.cells_per_particle
+        invalid_rate = progress.invalid / (progress.next * cells_per_particle)
+        if bar is not None:
+            bar.update(progress.next - bar.n)
+            postfix = f"invalid {invalid_rate:.1%}"
+            if self.screened:
+                postfix += f", implausible {progress.implausible}"
+            if rollout.early_rejection:
+                cells = progress.next * cells_per_particle
+                postfix += f", rejected early {progress.stopped / cells:.0%}"
+            bar.set_postfix_str(postfix, refresh=False)
+        self.logger.progress(
             name,
             particles=progress.next,
-            threshold=float(buffer.threshold().mean()),
+            threshold=float(self.state.buffers[name].threshold().mean()),
             particles_per_s=progress.next / max(progress.seconds, 1e-9),
             invalid_rate=invalid_rate,
         )
-        if due:
-            checkpointer.save()
 
-    stream = prior_stream(spec.model, spec.bounds(torch.float64), cfg.abc.seed, rollout)
-    hooks = RoundHooks(group, screen, checkpointer.due, after_round)
-    with bar:
-        if refine is not None and refining:
-            refine_population(
-                stream,
-                buffer,
-                rollout,
-                refine,
-                refine_settings(cfg),
-                progress,
-                state.smc[name],
-                hooks=hooks,
-            )
-        elif own is not None:
-            if progress.next < own[0].shape[0]:
-                run_amortised(
-                    spec.model,
-                    own,
-                    buffer,
-                    rollout,
-                    progress,
-                    hooks=hooks,
-                    weight_column=refine is not None,
-                )
-            if refine is not None:  # refined once every model's samples are in
-                checkpointer.save()
-                return
-        elif cfg.abc.method == "smc":
-            run_smc(
-                stream,
-                buffer,
-                rollout,
-                n_total,
-                smc_settings(cfg),
-                progress,
-                state.smc[name],
-                hooks=hooks,
-            )
-        else:
-            run_rejection(stream, buffer, rollout, n_total, progress, hooks=hooks)
-    progress.done = True
-    checkpointer.save()
+    def due(self) -> bool:
+        return self.checkpointer.due()
 
-
-def _refine_models(
-    cfg: TrainConfig,
-    rollout: Rollout,
-    state: RunState,
-    checkpointer: Checkpointer,
-    logger: RunLogger,
-    group: Group,
-    samples: PairPosteriors,
-) -> None:
-    """Every model's refinement, after the record of the shares and scores
-    before it (kept in the checkpoint, so that a resumed run reports the
-    same)."""
-    if state.refinement_before is None:
-        state.refinement_before = scores_before(cfg, state.buffers)
-        checkpointer.save()
-    for spec in cfg.models:
-        _stream_model(
-            cfg, spec, rollout, state, checkpointer, logger, group, samples, True
-        )
+    def save(self) -> None:
+        self.checkpointer.save()
 
 
 def _progress_bar(name: str, total: int, initial: int, enabled: bool) -> tqdm:
@@ -264,7 +197,7 @@ def train(
 
     Returns:
         The summary (also written to ``out/summary.json``), on every rank: a
-        :class:`~torchcf.train.summary.RunSummary` (``summary.shares``;
+        :class:`~torchcf.runs.summary.RunSummary` (``summary.shares``;
         ``summary.to_json()`` is the file's content).
 
     Raises:
@@ -272,12 +205,29 @@ def train(
             checkpoint.
         RunFileError: an output could not be written (a full disk: the previous
             checkpoint is kept intact).
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchcf import get_model
+        >>> from torchcf.config import TrainConfig
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]  # a, b, v0, T, s0, delta (SI)
+        >>> pairs = synthetic_pairs(get_model("idm"), idm, n_pairs=3, n_steps=60)
+        >>> cfg = TrainConfig(data={"path": "demo"}, models=["idm", "ovm"],
+        ...                   abc={"n_particles": 600, "sensitivity_n": [5]},
+        ...                   plausibility={"report": False})
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     summary = train(cfg, Path(folder) / "run", pairs=(pairs, None))
+        ...     finished = (Path(folder) / "run" / "summary.json").is_file()
+        >>> finished, summary.n_train, sorted(summary.shares)
+        (True, 3, ['idm', 'ovm'])
     """
     began = time.perf_counter()
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     tune_malloc()
-    device = run_device(cfg, group)
+    device = run_device(cfg.device, group)
     run = RunDir(out)
     with run.locked() if group.is_main else nullcontext():
         return _train_held(cfg, run, resume, pairs, group, device, began)
@@ -296,7 +246,7 @@ def _train_held(
     trains into it meanwhile)."""
     # Rank 0 reads the checkpoint and the data and sends them to the others:
     # only rank 0 needs the output directory and the data files.
-    state = group.on_main(open_run, cfg, run.path, resume)  # before the data
+    state = group.on_main(open_run, config_hash(cfg), run.path, resume)
     finished = group.on_main(_finished_summary, run, resume)
     if finished is not None:  # resumed after it ended: nothing left to do
         return finished
@@ -308,58 +258,36 @@ def _train_held(
     if pairs is None:  # training needs no test pairs
         pairs = group.on_main(partial(load_split, require_test=False), cfg.data)
     train_pairs, test_pairs = pairs
-    check_budget(cfg, train_pairs)
-    if cfg.abc.method == "amortised" and cfg.abc.amortised.estimator is not None:
-        # a bad estimator found before any output
-        group.on_main(reused_checkpoint, cfg, reused_source(cfg, run, resume))
-    _prepare(cfg, run, group)
-    smc = weighted_buffers(cfg)
-    build_buffers(
-        [spec.model for spec in cfg.models],
-        train_pairs.n_pairs,
-        cfg.abc.buffer_size,
-        smc,
-        state,
-        run.checkpoint,
-    )
-    rollout = rollout_of(cfg, train_pairs, device)
+    # the posterior is labelled by its pairs' name: the run's data set
+    train_pairs = replace(train_pairs, name=dataset_label(cfg.data))
+    screen = plausibility_screen(cfg.plausibility, train_pairs)
+    setup = setup_of(cfg, train_pairs, device, screen)
+    check_setup(setup, run, resume, group)
+    group.on_main(run.prepare)
+    group.on_main(run.write_config, resolved_json(cfg))
+    if cfg.data.raw is not None:  # where the pairs came from, what was dropped
+        group.on_main(record_extraction, cfg.data.raw, run.data_dir)
     stop = StopRequest()
     checkpointer = Checkpointer(run, state, cfg.abc.checkpoint_every, group, stop)
 
     with RunLogger(run.tb_dir, enabled=group.is_main) as logger:
+        tracker = RunTracker(
+            run, state, checkpointer, logger, group, screen is not None, resume
+        )
         with stop:  # a signal stops the stream at its next checkpoint
-            amortised = None
-            if cfg.abc.method == "amortised":
-                # the run's checkpoint first: a run stopped while its estimator
-                # trains is a run to resume
-                checkpointer.save()
-                amortised = group.on_main(
-                    amortised_samples, cfg, train_pairs, run, resume, stop
-                )
-            samples = amortised.samples if amortised is not None else None
-            for spec in cfg.models:
-                _stream_model(
-                    cfg, spec, rollout, state, checkpointer, logger, group, samples
-                )
-            if samples is not None and refine_settings(cfg) is not None:
-                _refine_models(
-                    cfg, rollout, state, checkpointer, logger, group, samples
-                )
+            try:
+                calibration = setup.run(group=group, tracker=tracker)
+            except StateError as error:
+                raise RunError(
+                    f"--resume: {run.checkpoint} does not match this run ({error})"
+                ) from None
         # Every rank holds the same buffers now; the selection is cheap and
         # deterministic, so each computes it and only rank 0 writes.
         wall = time.perf_counter() - began
-        posterior, summary = read_results(
-            cfg, train_pairs, test_pairs, state, wall, group.world_size
+        summary = run_summary(
+            cfg, calibration, train_pairs, test_pairs, wall, group.world_size
         )
-        if amortised is not None:
-            record = amortised.record
-            if state.refinement_before is not None:
-                record = record.with_refinement(
-                    refinement_result(
-                        cfg, state.refinement_before, state.buffers, train_pairs.n_pairs
-                    )
-                )
-            summary = summary.with_amortised(record)
+        posterior = calibration.posterior
         if cfg.plausibility.report and group.is_main:
             report = hybrid_plausibility(
                 cfg.plausibility, train_pairs, posterior, progress=True
@@ -372,19 +300,40 @@ def _train_held(
             images = hybrid_images(
                 posterior.shares, pairwise["models"], pairwise["table"]
             )
-        _log_results(cfg, logger, posterior, summary, images)
+        _log_results(logger, posterior, summary, images, hparams(cfg))
     if group.is_main:
         _write_outputs(run, posterior, summary, images)
     return summary
 
 
-def _prepare(cfg: TrainConfig, run: RunDir, group: Group) -> None:
-    """The run directory made (rank 0) with the resolved ``config.json`` and,
-    for a raw source, the extraction's record."""
-    group.on_main(run.prepare)
-    group.on_main(run.write_config, resolved_json(cfg))
-    if cfg.data.raw is not None:  # where the pairs came from, what was dropped
-        group.on_main(record_extraction, cfg.data.raw, run.data_dir)
+def check_setup(
+    setup: CalibrationSetup, run: RunDir, resume: bool, group: Group
+) -> None:
+    """The budget, and a reused estimator, checked before any output: a
+    ConfigError naming the config's setting (the study checks before it reads
+    the test pairs, training again, cheaply, as it must when called alone)."""
+    try:
+        setup.check(prefix="abc.")
+        method = setup.method
+        if isinstance(method, Amortised) and method.estimator is not None:
+            source = reused_source(method, run.amortised_checkpoint, resume)
+            space = parameter_space(setup.priors)
+            group.on_main(reused_checkpoint, method, space, source)
+    except CalibrationError as error:
+        where = "abc.amortised." if str(error).startswith("estimator:") else ""
+        raise ConfigError(f"{where}{error}") from None
+
+
+def hparams(cfg: TrainConfig) -> dict[str, str | int | float]:
+    """The run's settings TensorBoard's hparams table shows."""
+    return {
+        "dataset": dataset_label(cfg.data),
+        "layout": cfg.abc.layout,
+        "n_particles": cfg.abc.n_particles,
+        "top_n": cfg.abc.top_n,
+        "seed": cfg.abc.seed,
+        "dtype": cfg.dtype,
+    }
 
 
 def _write_outputs(
@@ -422,14 +371,15 @@ def _finished_summary(run: RunDir, resume: bool) -> RunSummary | None:
 
 
 def _log_results(
-    cfg: TrainConfig,
     logger: RunLogger,
     posterior: Posterior,
     summary: RunSummary,
     images: dict[str, np.ndarray] | None,
+    settings: dict[str, str | int | float],
 ) -> None:
     """The accepted parameters, the shares and the summary in TensorBoard;
-    ``images``: the hybrid's figures, rendered once for here and the report."""
+    ``images``: the hybrid's figures, rendered once for here and the report;
+    ``settings``: the hparams table's (:func:`hparams`)."""
     names = list(posterior.models)
     for name in names:
         particles = posterior.hybrid[name]
@@ -440,17 +390,9 @@ def _log_results(
     logger.text("summary", markdown_summary(summary.to_json()))
     logger.text("parameters", parameters_markdown(posterior))
     logger.hparams(
-        {
-            "dataset": summary.dataset,
-            "layout": cfg.abc.layout,
-            "n_particles": cfg.abc.n_particles,
-            "top_n": cfg.abc.top_n,
-            "seed": cfg.abc.seed,
-            "dtype": cfg.dtype,
-            "models": ",".join(names),
-        },
+        settings | {"models": ",".join(names)},
         {f"share/{name}": share for name, share in posterior.shares.items()},
     )
 
 
-__all__ = ["train"]
+__all__ = ["RunTracker", "check_setup", "hparams", "train"]

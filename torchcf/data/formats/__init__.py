@@ -32,7 +32,7 @@ parameters), so a new reader is one line in :data:`FORMATS`. A reader may group
 options that travel together in a settings object (``units``, a
 :class:`~torchcf.data.formats.generic.TableUnits`): a keyword-only parameter
 whose default is a dataclass. Its fields are the options then, by their own
-names, as ``data.raw`` and ``python -m torchcf.data extract`` spell them
+names, as ``data.raw`` and ``torchcf data extract`` spell them
 (``length_unit``, ``time_unit``...); :func:`read_trajectories` puts them back
 into the object.
 """
@@ -84,6 +84,20 @@ def read_trajectories(
 
     Raises:
         DataError: unknown format, or what the reader raises.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchcf.data.formats import read_trajectories
+        >>> lines = [  # t [s], x_lead, x_fol [m], v_lead, v_fol [m/s], L_lead [m]
+        ...     f"{0.1 * k:.1f},{30.0 + 1.5 * k},{1.5 * k},15,15,5" for k in range(20)
+        ... ]
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     path = Path(folder) / "pair.txt"
+        ...     _ = path.write_text("\\n".join(lines) + "\\n")
+        ...     table = read_trajectories(path, "punzo")
+        >>> table.format, table.n_vehicles, len(table.frame)
+        ('punzo', 2, 40)
     """
     reader = _reader(format)
     return reader(source, **_grouped(reader, options))
@@ -95,6 +109,11 @@ def reader_options(format: str) -> tuple[str, ...]:
 
     Raises:
         DataError: unknown format.
+
+    Examples:
+        >>> from torchcf.data.formats import reader_options
+        >>> reader_options("punzo")
+        ('length_unit', 'speed_unit', 'time_unit', 'frame_rate', 'length_tolerance')
     """
     names: list[str] = []
     for parameter in _keyword_only(_reader(format)):

@@ -144,8 +144,8 @@ def parse_column_map(text: str, known: Iterable[str] = COLUMNS) -> dict[str, str
 @dataclass(frozen=True)
 class TableUnits:
     """The units of a table's columns (the module docstring's table). The
-    fields are named as the options of ``data.raw`` and ``python -m
-    torchcf.data extract`` (:func:`torchcf.data.formats.reader_options`).
+    fields are named as the options of ``data.raw`` and ``torchcf data
+    extract`` (:func:`torchcf.data.formats.reader_options`).
 
     Attributes:
         length_unit: unit of position, length and gap, a key of

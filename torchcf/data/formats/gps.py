@@ -180,7 +180,7 @@ class ReferencePath:
 @dataclass(frozen=True)
 class GpsUnits:
     """How a GPS log's times and speeds read. The fields are named as the
-    options of ``data.raw`` and ``python -m torchcf.data extract``
+    options of ``data.raw`` and ``torchcf data extract``
     (:func:`torchcf.data.formats.reader_options`).
 
     Attributes:
