@@ -57,6 +57,7 @@ MODULES = [
     "torchcf.calibration.calibrate",
     "torchcf.calibration.methods",
     "torchcf.calibration.of_config",
+    "torchcf.calibration.priors",
     "torchcf.calibration.results",
     "torchcf.calibration.state",
     "torchcf.evaluation.evaluate",

@@ -132,3 +132,24 @@ def test_bad_requests_are_refused_in_one_line(pairs):
         Rejection(0)
     with pytest.raises(ValueError, match="mode must be"):
         SelectionRule(mode="best")
+
+
+@pytest.mark.parametrize("method", ["rejection", "smc"])
+def test_a_boxs_last_rows_of_zero_width_are_held(pairs, method):
+    """idm+delay with its delay held at 0.4 s: every kept particle carries it,
+    the others drawn inside their boxes (a shared effect's one value)."""
+    model = get_model("idm+delay")
+    box = model.prior_bounds(torch.float64)
+    box[-1] = torch.tensor([0.4, 0.4], dtype=torch.float64)
+    sampler = (
+        SMC(1200, SMCSettings(population=5, rounds=2))
+        if method == "smc"
+        else Rejection(600)
+    )
+    result = calibrate(pairs, {model: box}, sampler, selection=SelectionRule(3, (3,)))
+    theta = result.posterior.buffers[model.name]["theta"]  # (N, B, K)
+    assert theta.shape[-1] == model.n_params
+    kept = result.posterior.hybrid[model.name].theta
+    assert bool((kept[:, -1] == 0.4).all())
+    inside = (kept[:, :-1] >= box[:-1, 0]) & (kept[:, :-1] <= box[:-1, 1])
+    assert bool(inside.all())

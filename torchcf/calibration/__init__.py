@@ -7,6 +7,7 @@
   :class:`Tracker` of its state, progress and checkpoints;
 - :mod:`torchcf.calibration.results`: the :class:`Calibration` record;
 - :mod:`torchcf.calibration.budget`: the budget checked before any simulation;
+- :mod:`torchcf.calibration.priors`: the models' prior boxes, held parameters;
 - :mod:`torchcf.calibration.state`: the resumable state;
 - :mod:`torchcf.calibration.amortised`, :mod:`torchcf.calibration.refinement`:
   the amortised sampler's estimator and samples, and their refinement.
@@ -17,8 +18,9 @@ loop's re-calibration is this calibration of the chosen effects.
 """
 
 from .budget import CalibrationError, check_budget
-from .calibrate import CalibrationSetup, Tracker, calibrate, prior_boxes
+from .calibrate import CalibrationSetup, Tracker, calibrate
 from .methods import SMC, Amortised, Method, Refinement, Rejection, SelectionRule
+from .priors import prior_boxes
 from .results import Calibration
 from .state import CalibrationState
 

@@ -29,7 +29,6 @@ from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import torch
 from torch import Tensor
 
 from ..abc.distributed import SINGLE, Group
@@ -39,11 +38,12 @@ from ..abc.screen import PlausibilityScreen
 from ..abc.smc import refine_population, run_smc
 from ..amortised import run_amortised
 from ..data import PairSet
-from ..models import CFModel, require_model
+from ..models import CFModel
 from ..system.signals import StopRequest
 from .amortised import AmortisedSamples, amortised_samples
 from .budget import check_budget
 from .methods import SMC, Amortised, Method, Rejection, SelectionRule, weighted
+from .priors import drawn_and_held, held_values, prior_boxes
 from .refinement import refinement_result, scores_before
 from .results import Calibration, read_calibration
 from .state import CalibrationState, build_buffers
@@ -119,7 +119,9 @@ def calibrate(
             defaults (paired, float32, CPU).
         models: the candidate models, each over its default prior box
             (:meth:`CFModel.prior_bounds <torchcf.models.CFModel.prior_bounds>`),
-            or a mapping of each model to its box ``(K, 2)`` [SI units].
+            or a mapping of each model to its box ``(K, 2)`` [SI units]; a
+            box's last rows of zero width hold those parameters at that value
+            (rejection and SMC; a shared effect's one value).
         method: the sampler and its budget; default :class:`Rejection`.
         selection: how the hybrid is read (N, the other N reported, the mode);
             default :class:`SelectionRule`.
@@ -163,9 +165,12 @@ def calibrate(
     tracker = tracker if tracker is not None else Tracker()
     check_budget(method, selection, rollout.pairs, rollout.paired)
     state = tracker.state
+    held = {model.name: len(held_values(box)) for model, box in priors.items()}
+    if isinstance(method, Amortised) and any(held.values()):
+        raise ValueError("calibrate: the amortised sampler holds no parameter")
     build_buffers(
         list(priors), rollout.pairs.n_pairs, selection.buffer_size,
-        weighted(method), state,
+        weighted(method), state, held,
     )  # fmt: skip
     amortised = None
     if isinstance(method, Amortised):
@@ -280,40 +285,6 @@ class CalibrationSetup:
         )  # fmt: skip
 
 
-def prior_boxes(
-    models: Sequence[CFModel] | Mapping[CFModel, Tensor],
-) -> dict[CFModel, Tensor]:
-    """Every model's prior box ``(K, 2)`` float64: its own default, or the
-    mapping's; ValueError for a name that is not a model or a box of another
-    shape.
-
-    Examples:
-        >>> from torchcf import get_model
-        >>> boxes = prior_boxes([get_model("idm"), get_model("ovm")])
-        >>> [(model.name, tuple(box.shape)) for model, box in boxes.items()]
-        [('idm', (6, 2)), ('ovm', (5, 2))]
-    """
-    if isinstance(models, Mapping):
-        boxes = {}
-        for model, box in models.items():
-            model = require_model(model, "calibrate")
-            box = torch.as_tensor(box, dtype=torch.float64)
-            if box.shape != (model.n_params, 2):
-                raise ValueError(
-                    f"{model.name}: prior box of shape {tuple(box.shape)}, "
-                    f"expected ({model.n_params}, 2)"
-                )
-            boxes[model] = box
-    else:
-        names = [require_model(m, "calibrate").name for m in models]
-        if len(set(names)) != len(names):
-            raise ValueError(f"calibrate: a model is given twice ({names})")
-        boxes = {m: m.prior_bounds(torch.float64) for m in models}
-    if not boxes:
-        raise ValueError("calibrate: no model given")
-    return boxes
-
-
 class _Streams:
     """The models' streams of one calibration, each through its buffer."""
 
@@ -364,7 +335,8 @@ class _Streams:
             if due:
                 tracker.save()
 
-        stream = prior_stream(model, self.priors[model], self.seed, rollout)
+        drawn, fixed = drawn_and_held(self.priors[model])
+        stream = prior_stream(model, drawn, self.seed, rollout, fixed)
         hooks = RoundHooks(self.group, self.screen, tracker.due, after_round)
         with tracker.model(name, n_total, progress.next):
             if refine is not None and refining:
@@ -409,4 +381,4 @@ class _Streams:
         tracker.save()
 
 
-__all__ = ["CalibrationSetup", "Tracker", "calibrate", "prior_boxes"]
+__all__ = ["CalibrationSetup", "Tracker", "calibrate"]

@@ -36,6 +36,7 @@ from ..models import CFModel
 from ..posterior import Posterior
 from ..runs.summary import AmortisedResult, ModelResult, SMCBudgetResult, SMCResult
 from .methods import SMC, Method, SelectionRule, weighted
+from .priors import held_values
 from .state import CalibrationState
 
 
@@ -136,8 +137,9 @@ def smc_result(
     member = torch.where(chosen.member, scores, -math.inf)
     tau = member.amax(dim=(0, 2))  # (N,) the hybrid's worst member per pair
     masses = []
-    for model, bounds in priors.items():
-        proposals = proposals_per_pair(model, bounds, seed, budget)
+    for model, box in priors.items():
+        drawn = box[: box.shape[0] - held_values(box).numel()]
+        proposals = proposals_per_pair(model, drawn, seed, budget)
         masses.append(prior_mass(buffers[model.name], proposals, tau))
     return SMCResult(
         settings=dict(settings.__dict__),
@@ -150,6 +152,19 @@ def smc_result(
         ),
         evidence_shares=evidence_shares(names, masses),
     )
+
+
+def with_held(buffer: TopN, box: Tensor) -> TopN:
+    """A buffer of the drawn parameters with the held ones (the box's last
+    rows of zero width) appended to every slot's ``theta`` (N, B, K)."""
+    held = held_values(box)
+    if not held.numel():
+        return buffer
+    full = TopN(buffer.n_pairs, buffer.capacity, buffer.theta.shape[-1] + held.numel())
+    full.score, full.index = buffer.score, buffer.index
+    tail = held.to(buffer.theta).expand(*buffer.theta.shape[:2], -1)
+    full.theta = torch.cat((buffer.theta, tail), dim=-1)
+    return full
 
 
 def read_calibration(
@@ -178,7 +193,10 @@ def read_calibration(
     names = [model.name for model in models]
     buffers = [state.buffers[name] for name in names]
     if weighted(method) is not None:  # the hybrid reads the parameters alone
-        buffers = [parameter_buffer(b) for b in buffers]
+        buffers = [
+            with_held(parameter_buffer(buffer), priors[model])
+            for buffer, model in zip(buffers, models, strict=True)
+        ]
     how = {"mode": selection.mode, "global_size": selection.global_size}
     chosen = select(buffers, names, selection.top_n, **how)
     table = pairwise_table(buffers, names, selection.top_n, **how)

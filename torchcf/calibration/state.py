@@ -14,7 +14,7 @@ buffers it makes.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 from ..abc.rejection import ModelProgress
@@ -81,6 +81,7 @@ def build_buffers(
     buffer_size: int,
     smc: SMCSettings | None,
     state: CalibrationState,
+    held: Mapping[str, int] | None = None,
 ) -> None:
     """Every model's buffer into ``state`` (from its saved state where it has
     one), its progress and, with ``smc``, its refinement state, whose buffer
@@ -92,6 +93,8 @@ def build_buffers(
         buffer_size: slots per pair ``B``.
         smc: the refinement's settings; None for rejection.
         state: the state; its saved buffers (a resumed run) are loaded.
+        held: per model name, its last parameters held at one value (not
+            drawn): an SMC buffer and population hold the drawn ones alone.
 
     Raises:
         StateError: a saved buffer or refinement state does not fit.
@@ -99,6 +102,8 @@ def build_buffers(
     for model in models:
         name = require_model(model, "build_buffers").name
         n_params = len(model.param_names)
+        if smc is not None:  # SMC moves the drawn parameters alone
+            n_params -= (held or {}).get(name, 0)
         buffer = TopN(n_pairs, buffer_size, n_params + (smc is not None))
         refinement = None if smc is None else new_state(n_pairs, smc, n_params)
         try:

@@ -70,9 +70,8 @@ from ..abc.hybrid import hybrid_posterior, pairwise_table, select
 from ..abc.rejection import ModelProgress, Rollout, prior_stream, run_rejection
 from ..abc.rounds import RoundHooks
 from ..abc.screen import PlausibilityScreen
-from ..abc.smc import new_state, run_smc
 from ..abc.topn import TopN
-from ..calibration import SMC
+from ..calibration import SMC, Rejection, Tracker, calibrate
 from ..calibration.of_config import setup_of
 from ..config import TrainConfig, validate_config
 from ..data import PairSet
@@ -261,44 +260,41 @@ def _trained(
     fixed: Tensor | None = None,
 ) -> dict[str, Tensor]:
     """``model``'s buffer after ``N`` particles from its stream of ``seed``,
-    by the run's sampler, as :func:`torchcf.train.train` does for a model (an
-    amortised run's: rejection, module docstring); with
-    ``fixed``, its last parameters held there (in the buffer's ``theta``)."""
-    n_pairs, capacity = rollout.pairs.n_pairs, cfg.abc.buffer_size
-    k = bounds.shape[0]
-    progress = ModelProgress()
-    stream = prior_stream(model, bounds, seed, rollout, fixed)
-    hooks = RoundHooks(screen=screen, after_round=_ticker(tick, start=0))
-    method = setup_of(cfg, rollout.pairs).method
-    if isinstance(method, SMC):
-        settings = method.settings
-        buffer = TopN(n_pairs, capacity, k + 1)  # SMC keeps log r beside theta
-        run_smc(
-            stream,
-            buffer,
-            rollout,
-            cfg.abc.n_particles,
-            settings,
-            progress,
-            new_state(n_pairs, settings, k),
-            hooks=hooks,
-        )
-        state = _cpu(buffer.state_dict())
-        state["theta"] = state["theta"][..., :k].contiguous()
-        return _with_fixed(state, fixed)
-    buffer = TopN(n_pairs, capacity, model.n_params)  # fixed ones too
-    run_rejection(stream, buffer, rollout, cfg.abc.n_particles, progress, hooks=hooks)
-    return _cpu(buffer.state_dict())
+    calibrated by the run's sampler (:func:`torchcf.calibration.calibrate`, as
+    :func:`torchcf.train.train` calibrates a model; an amortised run's:
+    rejection, module docstring) over ``bounds``, ``(K_drawn, 2)``; with
+    ``fixed``, its last parameters held there (appended to every slot's
+    ``theta``)."""
+    setup = setup_of(cfg, rollout.pairs)
+    method = setup.method
+    if not isinstance(method, SMC):
+        method = Rejection(cfg.abc.n_particles)
+    box = bounds if fixed is None else torch.cat((bounds, fixed[:, None].expand(-1, 2)))
+    result = calibrate(
+        rollout,
+        {model: box},
+        method,
+        selection=setup.selection,
+        seed=seed,
+        screen=screen,
+        tracker=_Ticking(tick),
+    )
+    buffer = result.posterior.buffers[model.name]
+    return _cpu({key: buffer[key] for key in ("score", "index", "theta")})
 
 
-def _with_fixed(state: dict[str, Tensor], fixed: Tensor | None) -> dict[str, Tensor]:
-    """An SMC buffer of the searched parameters with the fixed ones appended to
-    every slot's ``theta`` (N, C, K); rejection's buffers hold them already."""
-    if fixed is None:
-        return state
-    theta = state["theta"]
-    tail = fixed.to(theta).expand(*theta.shape[:2], -1)
-    return state | {"theta": torch.cat((theta, tail), dim=-1)}
+class _Ticking(Tracker):
+    """A calibration's tracker that reports the particles done since the last
+    call to ``tick`` (None: nothing)."""
+
+    def __init__(self, tick: Callable[[int], None] | None) -> None:
+        super().__init__()
+        self.tick, self.done = tick, 0
+
+    def round(self, name: str, progress: ModelProgress, rollout: Rollout) -> None:
+        if self.tick is not None:
+            self.tick(progress.next - self.done)
+        self.done = progress.next
 
 
 def searched_box(
