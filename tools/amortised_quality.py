@@ -61,7 +61,7 @@ from sbc_study import LEVELS, MODELS, accepted_draws, join, prior_pairs, sbc_of 
 
 from torchcf.amortised import AmortisedEstimator, pair_features  # noqa: E402
 from torchcf.amortised.space import latent_to_unit  # noqa: E402
-from torchcf.calibration.amortised import trained_estimator  # noqa: E402
+from torchcf.calibration.estimator_samples import trained_estimator  # noqa: E402
 from torchcf.calibration.of_config import method_of  # noqa: E402
 from torchcf.config import TrainConfig, load_config, validate_config  # noqa: E402
 from torchcf.data import PairSet  # noqa: E402

@@ -119,7 +119,7 @@ def test_the_first_population_is_each_pairs_best_entries():
 def test_the_trained_estimator_is_read_back_from_the_run(refined, mixture):
     """The run's kept weights, read back, give the run's own samples."""
     from torchcf.amortised import infer
-    from torchcf.calibration.amortised import trained_estimator
+    from torchcf.calibration.estimator_samples import trained_estimator
     from torchcf.calibration.of_config import method_of
     from torchcf.runs.directory import RunDir
 

@@ -14,7 +14,7 @@ from tests.abc.interrupt import interrupt_after, same_buffers
 from tests.train.test_train import config as train_config
 from tests.train.test_train import mixture_pairs
 from torchcf.abc.rejection import Rollout
-from torchcf.calibration.amortised import amortised_samples
+from torchcf.calibration.estimator_samples import amortised_samples
 from torchcf.calibration.of_config import method_of
 from torchcf.config import ConfigError, validate_config
 from torchcf.posterior import Posterior

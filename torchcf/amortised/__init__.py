@@ -15,7 +15,7 @@ simulate afresh for every pair. Modules, each importing only those above it:
   with global pooling (:class:`TrajectoryEncoder`);
 - :mod:`~torchcf.amortised.estimator`: the model head and one zuko flow per
   model (:class:`AmortisedEstimator`);
-- :mod:`~torchcf.amortised.checkpoint`: the training's checkpoint;
+- :mod:`~torchcf.amortised.training_state`: the training's checkpoint;
 - :mod:`~torchcf.amortised.training`: the training loop, its budget, early
   stopping, checkpoints and resume (:func:`train_estimator`);
 - :mod:`~torchcf.amortised.inference`: every pair of a pair set, in chunks
@@ -26,7 +26,6 @@ simulate afresh for every pair. Modules, each importing only those above it:
 Re-exports only.
 """
 
-from .checkpoint import CheckpointError, EpochRecord, TrainingProgress, load_trained
 from .encoder import EncoderSettings, TrajectoryEncoder
 from .estimator import AmortisedEstimator, Draws, EstimatorSettings, new_estimator
 from .features import CHANNELS, channel_features, pair_features
@@ -48,6 +47,7 @@ from .training import (
     train_estimator,
     validation_scores,
 )
+from .training_state import CheckpointError, EpochRecord, TrainingProgress, load_trained
 
 __all__ = [
     "CHANNELS",

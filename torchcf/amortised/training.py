@@ -23,7 +23,7 @@ reuse)`` simulations plus the validation set, and optionally ``max_seconds``
 of training (which ends the epoch early and makes the result depend on the
 machine's speed).
 
-Checkpoints (:mod:`torchcf.amortised.checkpoint`) are written every
+Checkpoints (:mod:`torchcf.amortised.training_state`) are written every
 ``checkpoint_every`` seconds between batches, at the end of every epoch when
 due, when a stop is requested and at the end; a run resumed from one ends
 identical to an uninterrupted run (deterministic on the CPU for a seed).
@@ -45,7 +45,9 @@ from tqdm import tqdm
 
 from ..abc.streams import block_seed
 from ..system.console import bar_interval
-from .checkpoint import (
+from .estimator import AmortisedEstimator
+from .simulations import NoiseLevels, SimulatedSet, TrainingSimulator
+from .training_state import (
     CheckpointError,
     EpochRecord,
     TrainingProgress,
@@ -53,8 +55,6 @@ from .checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
-from .estimator import AmortisedEstimator
-from .simulations import NoiseLevels, SimulatedSet, TrainingSimulator
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@
 - :mod:`torchcf.calibration.budget`: the budget checked before any simulation;
 - :mod:`torchcf.calibration.priors`: the models' prior boxes, held parameters;
 - :mod:`torchcf.calibration.state`: the resumable state;
-- :mod:`torchcf.calibration.amortised`, :mod:`torchcf.calibration.refinement`:
+- :mod:`torchcf.calibration.estimator_samples`, :mod:`torchcf.calibration.refinement`:
   the amortised sampler's estimator and samples, and their refinement.
 
 A training run (:func:`torchcf.train.train`) is this calibration with a run

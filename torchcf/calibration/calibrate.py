@@ -40,8 +40,8 @@ from ..amortised import run_amortised
 from ..data import PairSet
 from ..models import CFModel
 from ..system.signals import StopRequest
-from .amortised import AmortisedSamples, amortised_samples
 from .budget import check_budget
+from .estimator_samples import AmortisedSamples, amortised_samples
 from .methods import SMC, Amortised, Method, Rejection, SelectionRule, weighted
 from .priors import drawn_and_held, held_values, prior_boxes
 from .refinement import refinement_result, scores_before

@@ -125,7 +125,7 @@ class Amortised:
             training checkpoint (``amortised.pt``) or a run directory holding
             one, of the same models, boxes and network.
         compile: compile the flows' sampling: ``"on"``, ``"off"`` or
-            ``"auto"`` (from :data:`~torchcf.calibration.amortised.
+            ``"auto"`` (from :data:`~torchcf.calibration.estimator_samples.
             COMPILE_MIN_SAMPLES` samples on, where a C++ compiler is there).
 
     Examples:

@@ -1,7 +1,7 @@
 """The refinement of an amortised calibration (``Amortised.refine``).
 
 The amortised samples of a model, scored into its per-pair buffer
-(:mod:`torchcf.calibration.amortised`), are round 0 of a short SMC per training
+(:mod:`torchcf.calibration.estimator_samples`), are round 0 of a short SMC per training
 pair (:func:`torchcf.abc.smc.refine_population`): per pair the ``population``
 best samples of the model form the first population, and ``rounds`` rounds of
 ``per_pair`` proposals each move it with SMC's kernel, every proposal scored and

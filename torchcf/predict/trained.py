@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..calibration.amortised import trained_estimator
+from ..calibration.estimator_samples import trained_estimator
 from ..calibration.of_config import method_of
 from ..config import DataConfig, TrainConfig
 from ..config.pairs import load_split

@@ -206,7 +206,7 @@ class RefinementResult(Record):
 @dataclass(frozen=True)
 class AmortisedResult(Record):
     """The amortised estimator's training and sampling (``abc.method =
-    "amortised"``, :mod:`torchcf.calibration.amortised`).
+    "amortised"``, :mod:`torchcf.calibration.estimator_samples`).
 
     Attributes:
         samples_per_pair: samples drawn per training pair, over all models.

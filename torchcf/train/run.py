@@ -57,7 +57,11 @@ from ..calibration import (
     CalibrationSetup,
     Tracker,
 )
-from ..calibration.amortised import parameter_space, reused_checkpoint, reused_source
+from ..calibration.estimator_samples import (
+    parameter_space,
+    reused_checkpoint,
+    reused_source,
+)
 from ..calibration.of_config import setup_of
 from ..calibration.state import StateError
 from ..config import ConfigError, TrainConfig, config_hash, load_split, resolved_json
