@@ -212,5 +212,3 @@ def test_markdown_summary_renders_the_runs_summary() -> None:
     assert "| gfm | 25.0 % | 1.1 | – |" in text  # no finite threshold
     assert "N=100" in text and "N=200" in text
     assert "sensitivity" not in markdown_summary(replace(SUMMARY, sensitivity={}))
-    # TEMPORARY: its JSON object renders the same (train/run.py passes it)
-    assert markdown_summary(SUMMARY.to_json()) == text

@@ -401,14 +401,10 @@ class RunDir:
         return Posterior.load(self.posterior_pt)
 
     # ---------------------------------------------------------------- summary
-    def write_summary(self, summary: RunSummary | RecalibrationSummary | JSON) -> None:
+    def write_summary(self, summary: RunSummary | RecalibrationSummary) -> None:
         """``summary.json``, the last file of training (a training's
         :class:`~torchcf.runs.summary.RunSummary`) or of a re-calibration
         (:class:`~torchcf.runs.summary.RecalibrationSummary`)."""
-        if isinstance(summary, dict):
-            # TEMPORARY: train/run.py still writes ``summary.to_json()``; goes
-            # once it writes the record.
-            summary = RunSummary.from_json(summary)
         write_json(self.summary_json, summary.to_json())
 
     def read_summary(self) -> RunSummary | RecalibrationSummary:

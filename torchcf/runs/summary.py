@@ -427,11 +427,6 @@ class RunSummary(Record):
         Raises:
             ValueError: a key of the summary is missing or malformed.
         """
-        if isinstance(raw, RunSummary):
-            # TEMPORARY: train/run.py reads ``RunSummary.from_json(run.read_summary())``
-            # from when RunDir returned the JSON object; goes when it reads
-            # ``run.read_summary()`` alone.
-            return raw
         names = {f.name for f in fields(cls)} - {"extra"}
         try:
             smc, plausibility = raw.get("smc"), raw.get("plausibility")

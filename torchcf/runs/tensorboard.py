@@ -378,20 +378,17 @@ _PER_MODEL_COLUMNS = (
 )
 
 
-def markdown_summary(summary: RunSummary | Mapping[str, Any]) -> str:
+def markdown_summary(summary: RunSummary) -> str:
     """Render a run summary as Markdown for TensorBoard's TEXT tab.
 
     Args:
         summary: the run's summary (its dataset, training pairs, shares, each
-            model's record and the shares' sensitivity to N). (TEMPORARY: its
-            JSON object too, as train/run.py still passes it.)
+            model's record and the shares' sensitivity to N).
 
     Returns:
         Markdown: a header line, one table with a row per model and, with
         ``sensitivity``, a second table with a column per top-N size ``n``.
     """
-    if isinstance(summary, Mapping):
-        summary = RunSummary.from_json(summary)
     shares, per_model = summary.shares, summary.per_model
     sensitivity = summary.sensitivity
 

@@ -73,8 +73,8 @@ from ..posterior.tables import parameters_markdown, write_parameter_tables
 from ..runs.directory import RunDir
 from ..runs.summary import RunSummary
 from ..runs.tensorboard import RunLogger, markdown_summary
-from ..system.console import bar_interval
-from ..system.files import ensure_directory, writing
+from ..system.console import bar_interval, one_line
+from ..system.files import RunFileError, ensure_directory, writing
 from ..system.process import tune_malloc
 from ..system.signals import StopRequest
 from ..traffic.configured import hybrid_plausibility, plausibility_screen
@@ -355,7 +355,7 @@ def _write_outputs(
         path = report / f"{name}.png"
         with writing(path):
             save_image(image, path)
-    run.write_summary(summary.to_json())  # last: its presence says it finished
+    run.write_summary(summary)  # last: its presence says it finished
 
 
 def _finished_summary(run: RunDir, resume: bool) -> RunSummary | None:
@@ -364,14 +364,17 @@ def _finished_summary(run: RunDir, resume: bool) -> RunSummary | None:
     selection and the battery, and log every result to TensorBoard twice.
 
     Raises:
-        RunError: its ``summary.json`` is not a run summary.
+        RunError: its ``summary.json`` is not a training's run summary.
     """
     if not (resume and run.is_trained()):
         return None
     try:
-        return RunSummary.from_json(run.read_summary())
-    except ValueError as error:
-        raise RunError(f"--resume: {run.summary_json}: {error}") from None
+        summary = run.read_summary()
+    except RunFileError as error:
+        raise RunError(f"--resume: {one_line(error)}") from None
+    if not isinstance(summary, RunSummary):
+        raise RunError(f"--resume: {run.summary_json} is a re-calibration's summary")
+    return summary
 
 
 def _log_results(
@@ -391,7 +394,7 @@ def _log_results(
     sensitivity = dict(summary.sensitivity)
     if images is not None:  # rendered on rank 0, whose logger writes
         logger.hybrid(posterior.shares, images, sensitivity)
-    logger.text("summary", markdown_summary(summary.to_json()))
+    logger.text("summary", markdown_summary(summary))
     logger.text("parameters", parameters_markdown(posterior))
     logger.hparams(
         settings | {"models": ",".join(names)},
