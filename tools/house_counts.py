@@ -21,11 +21,12 @@ Prints one JSON object:
 
 from __future__ import annotations
 
-import argparse
 import ast
 import json
 from collections import Counter
 from pathlib import Path
+
+from torchcf.system.console import OneLineParser, run_main
 
 EDGE = {"config", "cli", "study", "train", "predict", "__main__"}
 RECORD_MODULES = {"runs/summary.py", "runs/metrics.py"}
@@ -103,11 +104,15 @@ def counts(root: Path) -> dict:
     }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main() -> int:
+    parser = OneLineParser(description=__doc__.splitlines()[0])
     parser.add_argument("--root", type=Path, default=Path(__file__).parents[1])
-    print(json.dumps(counts(parser.parse_args().root), indent=2))
+    root = parser.parse_args().root
+    if not (root / "torchcf").is_dir():
+        raise FileNotFoundError(f"--root {root}: no torchcf package there")
+    print(json.dumps(counts(root), indent=2))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(run_main(main))

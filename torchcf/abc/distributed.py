@@ -68,6 +68,13 @@ class Group:
         world_size: number of processes.
         local_rank: this process on its node (its GPU in a CUDA run).
         device: where collective tensors live (CPU for gloo, the GPU for nccl).
+
+    Examples:
+        >>> SINGLE.world_size, SINGLE.is_main
+        (1, True)
+        >>> group = Group(rank=1, world_size=4)  # the second of four processes
+        >>> group.is_main, group.shard(first=0, stop=1000, chunk=100)
+        (False, (100, 200))
     """
 
     rank: int = 0
@@ -211,6 +218,11 @@ def init_from_env(device: str = "cpu") -> Group:
     Raises:
         GroupError: a malformed environment, CUDA asked for but absent, or a
             process group that cannot be joined.
+
+    Examples:
+        >>> group = init_from_env("cpu")  # no torchrun: a single process
+        >>> group is SINGLE, group.world_size
+        (True, 1)
     """
     try:
         world_size = int(os.environ.get("WORLD_SIZE", "1"))

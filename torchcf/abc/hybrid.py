@@ -40,6 +40,13 @@ class Selection:
         member: (M, N, n) bool, entry ``[m, p, r]`` = the ``r``-th best
             particle of model ``m`` on pair ``p`` is in the hybrid.
         models: the model names, in buffer order.
+
+    Examples:
+        >>> import torch
+        >>> member = torch.tensor([[[True], [True]], [[False], [True]]])  # (2, 2, 1)
+        >>> hybrid = Selection(member, ("idm", "ovm"))
+        >>> hybrid.counts(), {m: round(s, 2) for m, s in hybrid.shares().items()}
+        (tensor([2, 1]), {'idm': 0.67, 'ovm': 0.33})
     """
 
     member: Tensor
@@ -82,6 +89,15 @@ def rank_per_pair(
     Returns:
         ``member`` (Q,) bool: among the ``n`` best of its pair and finite; and
         ``order`` (Q,) int64: the candidates sorted by pair, then the tie rule.
+
+    Examples:
+        >>> import torch
+        >>> score = torch.tensor([1.0, 1.0, 1.0, 4.0])  # a three-way tie on pair 0
+        >>> index, source = torch.tensor([5, 2, 2, 0]), torch.tensor([0, 1, 0, 0])
+        >>> pair = torch.tensor([0, 0, 0, 1])
+        >>> member, order = rank_per_pair(score, index, source, pair, n=1)
+        >>> member, order  # pair 0: index 2 beats 5, then source 0 beats 1
+        (tensor([False, False,  True,  True]), tensor([2, 1, 0, 3]))
     """
     order = lexsort(pair, score, index, source)  # (Q,) pair-major
     sorted_pair = pair[order]
@@ -104,6 +120,17 @@ def select_per_pair(
         buffers: one :class:`TopN` per model (same pairs, capacity >= n).
         models: their names.
         n: entries kept per pair (the top-N size).
+
+    Examples:
+        >>> import torch
+        >>> a, b = TopN(n_pairs=2, capacity=1, n_params=1), TopN(2, 1, 1)
+        >>> pair, index, theta = torch.arange(2), torch.arange(2), torch.zeros(2, 1)
+        >>> a.push(pair, torch.tensor([1.0, 4.0]), index, theta)  # scores on pairs 0, 1
+        2
+        >>> b.push(pair, torch.tensor([2.0, 3.0]), index, theta)
+        2
+        >>> select_per_pair([a, b], ["idm", "ovm"], n=1).shares()  # a pair each
+        {'idm': 0.5, 'ovm': 0.5}
     """
     scores, indices = _stack(buffers, n)  # (M, N, n)
     model = torch.arange(scores.shape[0])[:, None, None].expand_as(scores)
@@ -117,7 +144,19 @@ def select_per_pair(
 def select_global(
     buffers: Sequence[TopN], models: Sequence[str], n: int, size: int
 ) -> Selection:
-    """Global hybrid: the ``size`` (``N^A``) best of all models' per-pair ``n`` best."""
+    """Global hybrid: the ``size`` (``N^A``) best of all models' per-pair ``n`` best.
+
+    Examples:
+        >>> import torch
+        >>> a, b = TopN(n_pairs=2, capacity=1, n_params=1), TopN(2, 1, 1)
+        >>> pair, index, theta = torch.arange(2), torch.arange(2), torch.zeros(2, 1)
+        >>> a.push(pair, torch.tensor([1.0, 4.0]), index, theta)  # scores on pairs 0, 1
+        2
+        >>> b.push(pair, torch.tensor([2.0, 3.0]), index, theta)
+        2
+        >>> select_global([a, b], ["idm", "ovm"], n=1, size=1).shares()  # score 1.0
+        {'idm': 1.0, 'ovm': 0.0}
+    """
     if size < 1:
         raise ValueError(f"size (N^A) must be >= 1, got {size}")
     scores, indices = _stack(buffers, n)  # (M, N, n)
@@ -140,7 +179,20 @@ def select(
     global_size: int | None = None,
 ) -> Selection:
     """:func:`select_per_pair` or :func:`select_global` (``global_size`` default
-    ``n x n_pairs``)."""
+    ``n x n_pairs``).
+
+    Examples:
+        >>> import torch
+        >>> a, b = TopN(n_pairs=2, capacity=1, n_params=1), TopN(2, 1, 1)
+        >>> pair, index, theta = torch.arange(2), torch.arange(2), torch.zeros(2, 1)
+        >>> a.push(pair, torch.tensor([1.0, 4.0]), index, theta)  # scores on pairs 0, 1
+        2
+        >>> b.push(pair, torch.tensor([2.0, 3.0]), index, theta)
+        2
+        >>> select([a, b], ["idm", "ovm"], 1, mode="global").member.squeeze(2)
+        tensor([[ True, False],
+                [ True, False]])
+    """
     if mode == "per_pair":
         return select_per_pair(buffers, models, n)
     if mode == "global":
@@ -161,6 +213,18 @@ def pairwise_table(
 
     The diagonal is 1 (a model alone); ``[i, j] + [j, i] = 1`` where that hybrid is
     not empty.
+
+    Examples:
+        >>> import torch
+        >>> a, b = TopN(n_pairs=2, capacity=1, n_params=1), TopN(2, 1, 1)
+        >>> pair, index, theta = torch.arange(2), torch.arange(2), torch.zeros(2, 1)
+        >>> a.push(pair, torch.tensor([1.0, 4.0]), index, theta)  # scores on pairs 0, 1
+        2
+        >>> b.push(pair, torch.tensor([2.0, 3.0]), index, theta)
+        2
+        >>> pairwise_table([a, b], ["idm", "ovm"], 1, mode="global", global_size=1)
+        tensor([[1., 1.],
+                [0., 1.]], dtype=torch.float64)
     """
     n_models = len(buffers)
     table = torch.ones(n_models, n_models, dtype=torch.float64)
@@ -203,6 +267,19 @@ def hybrid_posterior(
         train_pair_ids: (N,) int64 data-set ids of the training pairs.
         dataset: the data set's label.
         mode: the selection mode ("per_pair" or "global").
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> buffer = TopN(n_pairs=2, capacity=1, n_params=6)  # the IDM's K = 6
+        >>> buffer.push(torch.arange(2), torch.tensor([1.0, 2.0]), torch.arange(2),
+        ...             torch.full((2, 6), 1.5, dtype=torch.float64))
+        2
+        >>> hybrid = select([buffer], ["idm"], n=1)
+        >>> posterior = hybrid_posterior([buffer], [get_model("idm")], hybrid, 1,
+        ...     torch.tensor([7, 9]), dataset="demo", mode="per_pair")
+        >>> posterior.shares, posterior.hybrid["idm"].pair_ids
+        ({'idm': 1.0}, tensor([7, 9]))
     """
     models = [require_model(model, "hybrid_posterior") for model in models]
     hybrid = {}

@@ -35,6 +35,15 @@ class Particles:
         score: (Q,) float64 score on its pair (``+inf``: invalid).
         index: (Q,) int64 particle index, the tie-breaker among equal scores: the
             stream index of a prior draw; a perturbed copy inherits its parent's.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> pair, score = torch.tensor([0, 0, 1]), torch.tensor([2.0, 1.0, 3.0])
+        >>> found = Particles(get_model("idm"), torch.zeros(3, 6), pair, score,
+        ...                   torch.arange(3))
+        >>> len(found), found.take(found.pair == 0).score
+        (3, tensor([2., 1.]))
     """
 
     model: CFModel
@@ -82,6 +91,17 @@ def best_per_pair(sets: Sequence[Particles], n: int) -> list[Particles]:
     first appear when the chosen particles are listed pair by pair, best first;
     within a set, particles are in that order too, so a caller that walks the
     result draws its random numbers in a fixed order.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> idm, ovm = get_model("idm"), get_model("ovm")
+        >>> mine = Particles(idm, torch.zeros(2, 6), torch.tensor([0, 1]),
+        ...                  torch.tensor([1.0, 5.0]), torch.arange(2))
+        >>> theirs = Particles(ovm, torch.zeros(2, 5), torch.tensor([0, 1]),
+        ...                    torch.tensor([2.0, 3.0]), torch.arange(2))
+        >>> [(s.model.name, s.pair.tolist()) for s in best_per_pair([mine, theirs], 1)]
+        [('idm', [0]), ('ovm', [1])]
     """
     if not sets:
         return []

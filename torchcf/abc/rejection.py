@@ -84,6 +84,17 @@ class Rollout:
         early_rejection: the round loop hands every chunk its buffers'
             thresholds as a ceiling (:func:`torchcf.abc.rounds.offer_chunk`): a
             rollout stops once its score is sure to exceed it.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm, truth = get_model("idm"), [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]
+        >>> rollout = Rollout(synthetic_pairs(idm, truth, n_pairs=4, n_steps=50))
+        >>> theta = torch.tensor([truth, [0.5, 1.0, 20.0, 2.5, 3.0, 2.0]])
+        >>> score, valid = rollout.score(idm, theta, pair=torch.tensor([0, 1]))
+        >>> score.round(decimals=2), valid
+        (tensor([0.0000, 2.3400], dtype=torch.float64), tensor([True, True]))
     """
 
     pairs: PairSet
@@ -197,7 +208,17 @@ def prior_stream(
 ) -> ParticleStream:
     """The model's prior stream for the rollout's layout (a pair per particle when
     paired); ``fixed``: the values of its last parameters where they are held
-    (:class:`~torchcf.abc.streams.ParticleStream`)."""
+    (:class:`~torchcf.abc.streams.ParticleStream`).
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = get_model("idm")
+        >>> pairs = synthetic_pairs(idm, [1.5, 2.0, 33.0, 1.2, 2.0, 4.0], 4, n_steps=50)
+        >>> stream = prior_stream(idm, idm.prior_bounds(), 0, Rollout(pairs))  # seed 0
+        >>> stream.n_pairs, stream.draw(0, 3)[1].shape  # a pair per particle
+        (4, torch.Size([3]))
+    """
     model = require_model(model, "prior_stream")
     n_pairs = rollout.pairs.n_pairs if rollout.paired else None
     return ParticleStream(model, bounds, seed, n_pairs, fixed)
@@ -232,6 +253,18 @@ def run_rejection(
             smallest wastes no simulation at the earlier stops).
         hooks: the processes sharing the stream, the plausibility filter and
             what runs between rounds (:class:`~torchcf.abc.rounds.RoundHooks`).
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = get_model("idm")
+        >>> pairs = synthetic_pairs(idm, [1.5, 2.0, 33.0, 1.2, 2.0, 4.0], 4, n_steps=50)
+        >>> rollout, buffer, progress = Rollout(pairs), TopN(4, 5, 6), ModelProgress()
+        >>> stream = prior_stream(idm, idm.prior_bounds(), seed=0, rollout=rollout)
+        >>> run_rejection(stream, buffer, rollout, n_particles=200, progress=progress)
+        >>> progress.next, buffer.score.shape, bool(buffer.score.isfinite().all())
+        (200, torch.Size([4, 5]), True)
     """
     simulated = stream.model
     planned = plan_particles if plan_particles is not None else n_particles

@@ -66,6 +66,12 @@ class ModelProgress:
             was sure to exceed their buffer's threshold
             (:attr:`Rollout.early_rejection <torchcf.abc.rejection.Rollout>`);
             ``invalid`` then counts the invalid rollouts among the others.
+
+    Examples:
+        >>> progress = ModelProgress(next=4096, invalid=3)
+        >>> progress.as_dict()
+        {'next': 4096, 'invalid': 3, 'seconds': 0.0, 'done': False, 'implausible': 0,
+         'stopped': 0}
     """
 
     next: int = 0
@@ -191,6 +197,13 @@ class RoundHooks:
             learns rank 0's answer); None: never due.
         after_round: called after every round with the progress and whether a
             checkpoint is due; None: nothing.
+
+    Examples:
+        >>> hooks = RoundHooks(after_round=lambda progress, due: print(progress.next))
+        >>> hooks.group is SINGLE, hooks.screen is None  # one process, no screen
+        (True, True)
+        >>> hooks.after_round(ModelProgress(next=512), False)
+        512
     """
 
     group: Group = SINGLE

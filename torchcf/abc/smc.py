@@ -123,6 +123,13 @@ class SMCSettings:
         quantile: the next threshold is this quantile of a population's scores.
         kernel_scale: the kernel's covariance over the population's (2; the
             engine's, not the config's).
+
+    Examples:
+        >>> SMCSettings(population=20, rounds=4)
+        SMCSettings(population=20, rounds=4, prior_fraction=0.25, quantile=0.5,
+                    kernel_scale=2.0)
+        >>> smc_budget(100_000, n_pairs=10, settings=SMCSettings(rounds=5)).per_pair
+        1500
     """
 
     population: int = 50

@@ -91,6 +91,17 @@ class ParticleStream:
         n_pairs: training pairs for the paired layout, or None (full layout).
         fixed: (K - K_drawn,) float64 values of the model's last parameters,
             the same for every particle; None: every parameter is drawn.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> idm = get_model("idm")
+        >>> stream = ParticleStream(idm, idm.prior_bounds(), seed=0, n_pairs=3)
+        >>> theta, pair = stream.draw(0, 5)  # particles 0 .. 4
+        >>> theta.shape, pair.shape
+        (torch.Size([5, 6]), torch.Size([5]))
+        >>> torch.equal(stream.draw(2, 4)[0], theta[2:4])  # whatever the chunking
+        True
     """
 
     def __init__(

@@ -29,6 +29,12 @@ def lexsort(*keys: Tensor) -> Tensor:
 
     Stable sorts from the least significant key up (like ``numpy.lexsort`` with
     the keys reversed).
+
+    Examples:
+        >>> import torch
+        >>> pair, score = torch.tensor([1, 0, 1]), torch.tensor([2.0, 5.0, 1.0])
+        >>> lexsort(pair, score)  # by pair, then by score
+        tensor([1, 2, 0])
     """
     order = torch.arange(keys[0].shape[0], device=keys[0].device)
     for key in reversed(keys):
@@ -50,6 +56,16 @@ class TopN:
         score: (N, capacity) float64, ascending per pair; ``+inf`` = empty.
         index: (N, capacity) int64 particle index; ``-1`` = empty.
         theta: (N, capacity, K) float64 parameters.
+
+    Examples:
+        >>> import torch
+        >>> buffer = TopN(n_pairs=2, capacity=2, n_params=1)
+        >>> pair, score = torch.tensor([0, 0, 0, 1]), torch.tensor([3.0, 1.0, 2.0, 5.0])
+        >>> buffer.push(pair, score, torch.arange(4), torch.zeros(4, 1))
+        4
+        >>> buffer.index  # per pair, the best particles; -1: an empty slot
+        tensor([[ 1,  2],
+                [ 3, -1]])
     """
 
     def __init__(

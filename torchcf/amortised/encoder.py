@@ -37,6 +37,10 @@ class EncoderSettings:
         strided: the first ones halve the time axis (stride 2).
         kernel: kernel length [steps] (odd).
         embedding: E, the output's width.
+
+    Examples:
+        >>> EncoderSettings(width=8, depth=2, strided=1, embedding=4)
+        EncoderSettings(channels=5, width=8, depth=2, strided=1, kernel=5, embedding=4)
     """
 
     channels: int = 5
@@ -57,7 +61,19 @@ class EncoderSettings:
 
 
 class TrajectoryEncoder(nn.Module):
-    """Masked 1-D CNN with global mean and max pooling (module docstring)."""
+    """Masked 1-D CNN with global mean and max pooling (module docstring).
+
+    Args:
+        settings: the encoder's size.
+
+    Examples:
+        >>> import torch
+        >>> small = EncoderSettings(width=8, depth=2, strided=1, embedding=4)
+        >>> encoder = TrajectoryEncoder(small)
+        >>> features = torch.randn(3, 5, 40)  # 3 series of 40 steps, 5 channels
+        >>> encoder(features, lengths=torch.tensor([40, 25, 10])).shape  # (J, E)
+        torch.Size([3, 4])
+    """
 
     def __init__(self, settings: EncoderSettings = EncoderSettings()) -> None:
         super().__init__()

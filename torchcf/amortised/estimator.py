@@ -48,6 +48,11 @@ class EstimatorSettings:
         transforms: spline coupling layers per flow.
         flow_width: hidden units of each layer's two-layer conditioner.
         bins: spline bins.
+
+    Examples:
+        >>> tiny = EstimatorSettings(EncoderSettings(width=8), transforms=1)
+        >>> tiny.encoder.width, tiny.transforms, tiny.head_width
+        (8, 1, 64)
     """
 
     encoder: EncoderSettings = field(default_factory=EncoderSettings)
@@ -64,6 +69,13 @@ class Draws(NamedTuple):
         model: (J, n) int64, the model's position in the space.
         theta: (J, n, K) parameters [SI] inside the model's box, NaN past its
             own K_m; float32.
+
+    Examples:
+        >>> import torch
+        >>> draws = Draws(model=torch.tensor([[0, 1]]), theta=torch.zeros(1, 2, 6))
+        >>> model, theta = draws  # a named tuple
+        >>> model.shape, theta.shape
+        (torch.Size([1, 2]), torch.Size([1, 2, 6]))
     """
 
     model: Tensor
@@ -76,6 +88,18 @@ class AmortisedEstimator(nn.Module):
     Args:
         space: the models and their prior boxes (the flows' sizes follow it).
         settings: the networks' sizes.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> from torchcf.amortised import ParameterSpace
+        >>> estimator = AmortisedEstimator(ParameterSpace([get_model("idm")]))
+        >>> features, lengths = torch.zeros(2, 5, 30), torch.tensor([30, 20])
+        >>> estimator.model_probabilities(features, lengths)  # one model: certain
+        tensor([[1.],
+                [1.]])
+        >>> estimator.sample(features, lengths, n=4).theta.shape  # (J, n, K)
+        torch.Size([2, 4, 6])
     """
 
     def __init__(
@@ -265,7 +289,17 @@ def new_estimator(
     seed: int = 0,
 ) -> AmortisedEstimator:
     """A freshly initialised estimator, its weights a function of ``seed``
-    alone (the global random state is left as it was)."""
+    alone (the global random state is left as it was).
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> from torchcf.amortised import ParameterSpace
+        >>> space = ParameterSpace([get_model("idm"), get_model("ovm")])
+        >>> one, two = new_estimator(space, seed=1), new_estimator(space, seed=1)
+        >>> all(torch.equal(p, q) for p, q in zip(one.parameters(), two.parameters()))
+        True
+    """
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         return AmortisedEstimator(space, settings)

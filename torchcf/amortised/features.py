@@ -65,6 +65,14 @@ def channel_features(
 
     Returns:
         (N, C, T) float32, zero on padded steps.
+
+    Examples:
+        >>> import torch
+        >>> x_lead, v = torch.full((3, 2), 60.0), torch.full((3, 2), 15.0)  # (T, N)
+        >>> a = torch.zeros(3, 2)
+        >>> features = channel_features(x_lead, v, a, (x_lead - 30.0, v, a))
+        >>> features.shape, float(features.abs().max())  # 30 m at 15 m/s: the centre
+        (torch.Size([2, 5, 3]), 0.0)
     """
     x_follow, v_follow, a_follow = follower
     values = (
@@ -91,6 +99,17 @@ def pair_features(pairs: PairSet) -> tuple[Tensor, Tensor]:
     Returns:
         features: (N, C, T) float32 (:func:`channel_features`);
         lengths: (N,) int64 valid steps of each pair.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import PairSet
+        >>> t = torch.arange(100, dtype=torch.float64)[:, None] * 0.1  # (T, 1) [s]
+        >>> x_lead, v = 40.0 + 15.0 * t, torch.full_like(t, 15.0)
+        >>> a = torch.zeros_like(t)
+        >>> pairs = PairSet.from_arrays([x_lead, v, a, x_lead - 30.0, v, a], dt=0.1)
+        >>> features, lengths = pair_features(pairs)
+        >>> features.shape, lengths
+        (torch.Size([1, 5, 100]), tensor([100]))
     """
     features = channel_features(
         pairs.x_lead,

@@ -35,6 +35,17 @@ class PairPosteriors(NamedTuple):
         theta: (N, n, K) float32 the sampled parameters [SI], each inside its
             model's prior box, NaN past the model's own K_m.
         n_params: (K_m,) per model of the space.
+
+    Examples:
+        >>> import torch
+        >>> theta = torch.tensor([[[1.0, 2.0], [3.0, float("nan")], [5.0, 6.0]]])
+        >>> model = torch.tensor([[0, 1, 0]])  # (N, n): one pair, 3 samples
+        >>> posteriors = PairPosteriors(torch.tensor([[0.75, 0.25]]), model, theta,
+        ...                             n_params=(2, 1))
+        >>> pair, samples = posteriors.of_model(0)  # 3 samples, 2 of model 0
+        >>> pair, samples
+        (tensor([0, 0]), tensor([[1., 2.],
+                [5., 6.]]))
     """
 
     probabilities: Tensor
@@ -72,6 +83,17 @@ def infer(
 
     Returns:
         :class:`PairPosteriors`.
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> from torchcf.amortised import ParameterSpace, new_estimator
+        >>> idm = get_model("idm")
+        >>> pairs = synthetic_pairs(idm, [1.5, 2.0, 33.0, 1.2, 2.0, 4.0], 4, n_steps=50)
+        >>> estimator = new_estimator(ParameterSpace([idm, get_model("ovm")]))
+        >>> posteriors = infer(estimator, pairs, n_samples=8)  # an untrained estimator
+        >>> posteriors.probabilities.shape, posteriors.theta.shape  # (N, M), (N, n, K)
+        (torch.Size([4, 2]), torch.Size([4, 8, 6]))
     """
     if n_samples < 1 or chunk_size < 1:
         raise ValueError(

@@ -58,6 +58,17 @@ def run_amortised(
         weight_column: the buffer holds one more column, SMC's ``log r``
             (a refinement follows, :func:`torchcf.abc.smc.refine_population`):
             the samples enter with ``log r = 0``, equally weighted.
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm, truth = get_model("idm"), [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]
+        >>> pairs = synthetic_pairs(idm, truth, n_pairs=4, n_steps=50)
+        >>> samples = (torch.arange(8) % 4, torch.tensor(truth).repeat(8, 1))  # (Q,)
+        >>> buffer, progress = TopN(n_pairs=4, capacity=2, n_params=6), ModelProgress()
+        >>> run_amortised(idm, samples, buffer, Rollout(pairs), progress)
+        >>> progress.next, bool(buffer.score.isfinite().all())
+        (8, True)
     """
     model = require_model(model, "run_amortised")
     if not rollout.paired:

@@ -59,6 +59,12 @@ class NoiseLevels:
         position: [m].
         speed: [m/s].
         acceleration: [m/s^2].
+
+    Examples:
+        >>> NoiseLevels()
+        NoiseLevels(position=0.005, speed=0.03, acceleration=1.0)
+        >>> NoiseLevels(position=0.0, speed=0.0, acceleration=0.0)  # noise-free
+        NoiseLevels(position=0.0, speed=0.0, acceleration=0.0)
     """
 
     position: float = 0.005
@@ -100,6 +106,11 @@ class SimulationSettings:
             of a set's definition.
         execution: how the rollouts run (device, compilation; the rollout's
             chunks), :class:`torchcf.sim.rollout.Execution`.
+
+    Examples:
+        >>> settings = SimulationSettings(window_steps=100, chunk_size=256)  # 10 s
+        >>> settings.window_steps, settings.noise.acceleration
+        (100, 1.0)
     """
 
     window_steps: int = 300
@@ -124,6 +135,15 @@ class SimulatedSet(NamedTuple):
             (:mod:`~torchcf.amortised.space`), NaN past the model's own K_m.
         drawn: (M,) int64 examples drawn per model, valid or not.
         invalid: (M,) int64 examples discarded per model (invalid rollouts).
+
+    Examples:
+        >>> import torch
+        >>> one = SimulatedSet(torch.zeros(2, 5, 30), torch.tensor([0, 1]),
+        ...                    torch.full((2, 6), 0.5, dtype=torch.float64),
+        ...                    drawn=torch.tensor([1, 2]), invalid=torch.tensor([0, 1]))
+        >>> both = SimulatedSet.concat([one, one])
+        >>> len(both), both.n_drawn, both.n_invalid
+        (4, 6, 2)
     """
 
     features: Tensor
@@ -178,6 +198,18 @@ class TrainingSimulator:
 
     Raises:
         ValueError: no pair is ``window_steps`` valid steps long.
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> from torchcf.amortised import ParameterSpace
+        >>> idm = get_model("idm")
+        >>> pairs = synthetic_pairs(idm, [1.5, 2.0, 33.0, 1.2, 2.0, 4.0], 4, n_steps=50)
+        >>> space = ParameterSpace([idm, get_model("ovm")])
+        >>> settings = SimulationSettings(window_steps=40)  # 4 s windows
+        >>> examples = TrainingSimulator(space, pairs, settings).draw("set-0", 32)
+        >>> examples.features.shape[1:], examples.n_drawn  # (C, T_w), drawn
+        (torch.Size([5, 40]), 32)
     """
 
     def __init__(

@@ -41,6 +41,15 @@ class ParameterSpace:
         names: their names.
         low, high: (M, K) float64 box bounds, NaN past a model's own K_m.
         n_params: (K_m,) per model.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> space = ParameterSpace([get_model("idm"), get_model("ovm")])
+        >>> space.names, space.n_params, space.width
+        (('idm', 'ovm'), (6, 5), 6)
+        >>> space.to_theta(0, torch.full((6,), 0.5))  # the centre of the IDM's box
+        tensor([ 1.2500,  2.5000, 30.0000,  1.6500,  1.7500,  3.5000])
     """
 
     def __init__(

@@ -74,6 +74,12 @@ class TrainingSettings:
         seed: every set, every epoch's order (and, through
             :func:`~torchcf.amortised.estimator.new_estimator`, the initial
             weights) is a function of it.
+
+    Examples:
+        >>> settings = TrainingSettings(simulations_per_epoch=1_000, max_epochs=5,
+        ...                             validation_simulations=200)
+        >>> settings.simulation_budget  # 5 sets of 1 000, and the validation set
+        5200
     """
 
     simulations_per_epoch: int = 20_000
@@ -125,6 +131,10 @@ class TrainingResult(NamedTuple):
         progress: epochs, simulations, seconds and the history.
         best_loss: the lowest validation loss.
         validation_accuracy: the model head's accuracy at that epoch.
+
+    Examples:
+        >>> TrainingResult._fields  # train_estimator's example makes one
+        ('progress', 'best_loss', 'validation_accuracy')
     """
 
     progress: TrainingProgress
@@ -141,6 +151,12 @@ class Session:
         resume: continue from ``checkpoint`` (which must exist).
         stop: a stop request checked between batches; None: none.
         progress_bar: show a tqdm bar on stderr.
+
+    Examples:
+        >>> from pathlib import Path
+        >>> Session(checkpoint=Path("amortised.pt"), resume=True)
+        Session(checkpoint=PosixPath('amortised.pt'), resume=True, stop=None,
+                progress_bar=True)
     """
 
     checkpoint: Path | None = None
@@ -168,6 +184,24 @@ def train_estimator(
         CheckpointError: ``session.resume`` from another training's checkpoint.
         RunFileError: the checkpoint cannot be read or written.
         Stopped: a stop was requested (a checkpoint was written first).
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> from torchcf.amortised import (EncoderSettings, EstimatorSettings,
+        ...     ParameterSpace, SimulationSettings, new_estimator)
+        >>> idm = get_model("idm")
+        >>> pairs = synthetic_pairs(idm, [1.5, 2.0, 33.0, 1.2, 2.0, 4.0], 4, n_steps=50)
+        >>> space = ParameterSpace([idm, get_model("ovm")])
+        >>> simulator = TrainingSimulator(space, pairs, SimulationSettings(40))
+        >>> encoder = EncoderSettings(width=8, depth=2, strided=1, embedding=8)
+        >>> tiny = EstimatorSettings(encoder, head_width=8, transforms=1, flow_width=8)
+        >>> settings = TrainingSettings(simulations_per_epoch=32, max_epochs=2,
+        ...                             validation_simulations=16, batch_size=16)
+        >>> result = train_estimator(new_estimator(space, tiny), simulator, settings,
+        ...                          Session(progress_bar=False))
+        >>> result.progress.epoch, result.progress.finished, result.progress.simulations
+        (2, 'epochs', 80)
     """
     if simulator.space.names != estimator.space.names:
         raise ValueError(
@@ -371,7 +405,20 @@ def validation_scores(
     estimator: AmortisedEstimator, data: SimulatedSet, batch_size: int
 ) -> tuple[float, float]:
     """The mean loss of ``data``'s examples and the share whose most probable
-    model is the true one, in batches of ``batch_size``."""
+    model is the true one, in batches of ``batch_size``.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf import get_model
+        >>> from torchcf.amortised import ParameterSpace, new_estimator
+        >>> estimator = new_estimator(ParameterSpace([get_model("idm")]))
+        >>> data = SimulatedSet(torch.zeros(4, 5, 30), torch.zeros(4, dtype=torch.long),
+        ...     torch.full((4, 6), 0.5, dtype=torch.float64), torch.tensor([4]),
+        ...     torch.tensor([0]))
+        >>> loss, accuracy = validation_scores(estimator, data, batch_size=2)
+        >>> accuracy  # one model: always the true one
+        1.0
+    """
     estimator.eval()
     total, correct = 0.0, 0
     with torch.no_grad():
@@ -401,7 +448,16 @@ def _epoch_order(seed: int, epoch: int, n: int) -> Tensor:
 def estimator_fingerprint(estimator: AmortisedEstimator) -> dict[str, Any]:
     """What a trained estimator must match to be reused by another run: the
     models and their boxes, the networks' sizes (a checkpoint's
-    fingerprint's first entries; plain data, as every entry)."""
+    fingerprint's first entries; plain data, as every entry).
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> from torchcf.amortised import ParameterSpace, new_estimator
+        >>> estimator = new_estimator(ParameterSpace([get_model("idm")]))
+        >>> fingerprint = estimator_fingerprint(estimator)
+        >>> sorted(fingerprint), fingerprint["models"]
+        (['estimator', 'high', 'low', 'models'], ['idm'])
+    """
     space = estimator.space
     return {
         "models": list(space.names),
@@ -419,6 +475,11 @@ def fingerprint_noise(fingerprint: Mapping[str, Any]) -> NoiseLevels:
     Raises:
         CheckpointError: no such entry (a checkpoint of an older format, read
             without :func:`~torchcf.amortised.load_trained`'s check).
+
+    Examples:
+        >>> noise = {"position": 0.01, "speed": 0.05, "acceleration": 0.5}
+        >>> fingerprint_noise({"models": ["idm"], "noise": noise})
+        NoiseLevels(position=0.01, speed=0.05, acceleration=0.5)
     """
     noise = fingerprint.get("noise")
     names = [f.name for f in fields(NoiseLevels)]

@@ -57,6 +57,12 @@ class EpochRecord:
         validation_accuracy: share of validation examples whose most probable
             model is the true one.
         seconds: training time when it ended [s].
+
+    Examples:
+        >>> EpochRecord(epoch=0, train_loss=1.25, validation_loss=1.5,
+        ...             validation_accuracy=0.75, seconds=3.0)
+        EpochRecord(epoch=0, train_loss=1.25, validation_loss=1.5,
+                    validation_accuracy=0.75, seconds=3.0)
     """
 
     epoch: int
@@ -84,6 +90,15 @@ class TrainingProgress:
         history: the finished epochs.
         finished: why it ended ("" while it runs: "epochs", "patience",
             "seconds").
+
+    Examples:
+        >>> first = EpochRecord(0, 1.2, 1.5, 0.6, 2.0)
+        >>> second = EpochRecord(1, 1.0, 1.4, 0.7, 4.0)
+        >>> progress = TrainingProgress(epoch=2, history=[first, second])
+        >>> progress.best_accuracy  # the epoch of the lowest validation loss
+        0.7
+        >>> TrainingProgress.from_dict(progress.as_dict()) == progress
+        True
     """
 
     epoch: int = 0
@@ -160,6 +175,17 @@ def load_trained(path: Path, estimator: dict[str, Any]) -> dict[str, Any]:
         RunFileError: the file is missing, unreadable or corrupted.
         CheckpointError: another format, another estimator (the first
             differing entry named) or a training not finished.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> finished = {"fingerprint": {"models": ["idm"], "pairs": ["carII", 500]},
+        ...     "estimator": {}, "best": None, "progress": {"finished": "epochs"}}
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     save_checkpoint(Path(tmp) / "amortised.pt", finished)
+        ...     raw = load_trained(Path(tmp) / "amortised.pt", {"models": ["idm"]})
+        >>> raw["progress"]["finished"]  # other leaders: the estimator is reused
+        'epochs'
     """
     raw = _read(path)
     saved = raw.get("fingerprint", {})

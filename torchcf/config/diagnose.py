@@ -21,6 +21,12 @@ class DiagnoseConfig(BaseModel):
     Residual diagnosis of the run's hybrid, attribution of candidate effects by
     their out-of-sample gain in small ABC runs, re-calibration with the chosen
     effects and evaluation on the test split (:mod:`torchcf.diagnose`).
+
+    Examples:
+        >>> from torchcf.config import DiagnoseConfig
+        >>> diagnose = DiagnoseConfig(models="all", min_share=0.1)
+        >>> diagnose.run_after_training, diagnose.models, diagnose.min_share
+        (False, 'all', 0.1)
     """
 
     model_config = STRICT

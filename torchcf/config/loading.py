@@ -35,6 +35,19 @@ def load_config(path: str | Path, overrides: Sequence[str] = ()) -> TrainConfig:
     Raises:
         ConfigError: unreadable file, invalid JSON, not an object, a bad override
             or an invalid configuration.
+
+    Examples:
+        >>> import json
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchcf.config import load_config
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     path = Path(folder) / "smoke.json"
+        ...     raw = {"data": {"path": "demo"}, "models": ["idm"]}
+        ...     _ = path.write_text(json.dumps(raw))
+        ...     cfg = load_config(path, ["abc.n_particles=600"])
+        >>> cfg.abc.n_particles, cfg.output
+        (600, 'runs/smoke')
     """
     path = Path(path)
     try:
@@ -59,7 +72,19 @@ def load_config(path: str | Path, overrides: Sequence[str] = ()) -> TrainConfig:
 
 
 def validate_config(raw: JSON) -> TrainConfig:
-    """Validate a configuration object, every error as one :class:`ConfigError`."""
+    """Validate a configuration object, every error as one :class:`ConfigError`.
+
+    Examples:
+        >>> from torchcf.config import ConfigError, validate_config
+        >>> cfg = validate_config({"data": {"path": "demo"}, "models": ["IDM"]})
+        >>> cfg.models[0].name
+        'idm'
+        >>> try:
+        ...     validate_config({"data": {"path": "demo"}, "abc": {"n_particle": 600}})
+        ... except ConfigError as error:
+        ...     print(str(error).split(" (")[0])
+        abc.n_particle: unknown key
+    """
     try:
         return TrainConfig.model_validate(raw)
     except ValidationError as err:
@@ -92,6 +117,13 @@ def config_hash(cfg: TrainConfig) -> str:
 
     Returns:
         The first 16 hex digits of the SHA-256 of the canonical JSON.
+
+    Examples:
+        >>> from torchcf.config import TrainConfig, config_hash
+        >>> cfg = TrainConfig(data={"path": "demo"}, models=["idm"])
+        >>> moved = cfg.model_copy(update={"output": "elsewhere"})  # not hashed
+        >>> len(config_hash(cfg)), config_hash(moved) == config_hash(cfg)
+        (16, True)
     """
     payload = cfg.model_dump(mode="json", exclude=_NOT_HASHED)
     method = payload["abc"]["method"]
@@ -114,5 +146,13 @@ def config_hash(cfg: TrainConfig) -> str:
 
 def resolved_json(cfg: TrainConfig) -> JSON:
     """The configuration as plain JSON data (models as objects), every default
-    filled in; :func:`load_config` of it gives ``cfg`` back."""
+    filled in; :func:`load_config` of it gives ``cfg`` back.
+
+    Examples:
+        >>> from torchcf.config import TrainConfig, resolved_json, validate_config
+        >>> cfg = TrainConfig(data={"path": "demo"}, models=["idm"])
+        >>> raw = resolved_json(cfg)
+        >>> raw["models"], raw["abc"]["n_particles"], validate_config(raw) == cfg
+        ([{'name': 'idm', 'prior': None}], 1000000, True)
+    """
     return cfg.model_dump(mode="json")

@@ -13,7 +13,14 @@ __all__ = ["AmortisedConfig", "AmortisedNetworkConfig", "RefineConfig", "SMCConf
 
 
 class SMCConfig(BaseModel):
-    """The sequential refinement (``abc.method = "smc"``, :mod:`torchcf.abc.smc`)."""
+    """The sequential refinement (``abc.method = "smc"``, :mod:`torchcf.abc.smc`).
+
+    Examples:
+        >>> from torchcf.config import SMCConfig
+        >>> smc = SMCConfig(rounds=4)
+        >>> smc.population, smc.rounds, smc.prior_fraction
+        (50, 4, 0.25)
+    """
 
     model_config = STRICT
 
@@ -44,7 +51,14 @@ class SMCConfig(BaseModel):
 
 class AmortisedNetworkConfig(BaseModel):
     """The amortised estimator's size (:class:`torchcf.amortised.
-    EstimatorSettings`): the trajectory encoder, the model head and the flows."""
+    EstimatorSettings`): the trajectory encoder, the model head and the flows.
+
+    Examples:
+        >>> from torchcf.config import AmortisedNetworkConfig
+        >>> network = AmortisedNetworkConfig(encoder_width=16, embedding=32)
+        >>> network.encoder_depth, network.embedding, network.bins
+        (4, 32, 8)
+    """
 
     model_config = STRICT
 
@@ -79,7 +93,14 @@ class AmortisedNetworkConfig(BaseModel):
 class RefineConfig(BaseModel):
     """The optional refinement of an amortised run: per model and training
     pair, a short SMC (:mod:`torchcf.abc.smc`) whose first population is the
-    pair's best amortised samples (:mod:`torchcf.calibration.refinement`)."""
+    pair's best amortised samples (:mod:`torchcf.calibration.refinement`).
+
+    Examples:
+        >>> from torchcf.config import RefineConfig
+        >>> refine = RefineConfig(rounds=3)
+        >>> refine.rounds * refine.per_pair  # simulations per pair and model
+        150
+    """
 
     model_config = STRICT
 
@@ -118,7 +139,14 @@ class AmortisedConfig(BaseModel):
     :mod:`torchcf.amortised`): one estimator of (model, parameters) given a
     pair's series, trained on simulations behind the training pairs' leaders,
     whose samples for every training pair are scored and kept as rejection's
-    particles are."""
+    particles are.
+
+    Examples:
+        >>> from torchcf.config import AmortisedConfig
+        >>> amortised = AmortisedConfig(samples_per_pair=100, refine={"rounds": 2})
+        >>> amortised.refine.rounds, amortised.network.bins, amortised.noise
+        (2, 8, None)
+    """
 
     model_config = STRICT
 

@@ -39,6 +39,14 @@ def apply_overrides(raw: JSON, overrides: Sequence[str]) -> JSON:
     Raises:
         ConfigError: an item without ``=``, an empty key or component, or a path
             through a value that is neither an object nor a list.
+
+    Examples:
+        >>> from torchcf.config import apply_overrides
+        >>> raw = {"data": {"name": "car-model-1"}, "abc": {"top_n": 5}}
+        >>> apply_overrides(raw, ["abc.n_particles=600", "data.path=demo",
+        ...                 "device=cpu"])
+        {'data': {'path': 'demo'}, 'abc': {'top_n': 5, 'n_particles': 600},
+         'device': 'cpu'}
     """
     out = copy.deepcopy(raw)
     for item in overrides:

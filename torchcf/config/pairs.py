@@ -26,7 +26,19 @@ def load_index(data: DataConfig, split: str = "train") -> pd.DataFrame | None:
     a pair's id in the full set; a folder's ``index.csv`` rows of ``split``,
     in the order of its files, which is a pair's id there. None where the
     data keep no index (a named data set, a folder without ``index.csv``) or
-    it cannot be read."""
+    it cannot be read.
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchcf.config import DataConfig, load_index
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     rows = "run,follower,split\\n1,7,train\\n1,8,test\\n2,9,train\\n"
+        ...     _ = (Path(folder) / "index.csv").write_text(rows)
+        ...     index = load_index(DataConfig(path=folder))
+        >>> index["follower"].tolist(), load_index(DataConfig(name="car-model-1"))
+        ([7, 9], None)
+    """
     if data.raw is not None:
         raw = data.raw
         index = extract_source(
@@ -75,6 +87,20 @@ def load_split(
     Raises:
         DataError: the data cannot be loaded, test pairs are required and there
             are none, or the k-fold split is impossible.
+
+    Examples:
+        >>> import tempfile
+        >>> from torchcf import get_model
+        >>> from torchcf.config import DataConfig, load_split
+        >>> from torchcf.data.writer import write_six_csv
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]  # a, b, v0, T, s0, delta (SI)
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     write_six_csv(synthetic_pairs(get_model("idm"), idm, 4, 60), folder)
+        ...     data = DataConfig(path=folder, dt=0.1, split="kfold", folds=2)
+        ...     train, test = load_split(data)
+        >>> train.n_pairs, test.n_pairs
+        (2, 2)
     """
     if data.raw is not None:
         raw = data.raw

@@ -65,7 +65,14 @@ __all__ = [
 
 # --------------------------------------------------------------------- sections
 class DataConfig(BaseModel):
-    """Which observed pairs to train and test on (:func:`torchcf.config.load_split`)."""
+    """Which observed pairs to train and test on (:func:`torchcf.config.load_split`).
+
+    Examples:
+        >>> from torchcf.config import DataConfig
+        >>> data = DataConfig(path="data/extracted", split="kfold", folds=5, fold=2)
+        >>> data.name, data.split, data.folds, data.fold
+        (None, 'kfold', 5, 2)
+    """
 
     model_config = STRICT
 
@@ -211,7 +218,14 @@ class DataConfig(BaseModel):
 
 
 class ModelSpec(BaseModel):
-    """One car-following model to calibrate, with optional prior overrides."""
+    """One car-following model to calibrate, with optional prior overrides.
+
+    Examples:
+        >>> from torchcf.config import ModelSpec
+        >>> spec = ModelSpec(name="IDM", prior={"T": (0.5, 2.0)})  # T: time headway [s]
+        >>> spec.name, tuple(spec.bounds().shape), spec.bounds()[3].tolist()
+        ('idm', (6, 2), [0.5, 2.0])
+    """
 
     model_config = STRICT
 
@@ -301,7 +315,14 @@ MAX_PARTICLES = 10**12
 
 
 class ABCConfig(BaseModel):
-    """ABC rejection sampling: particles, buffers and selection (SPEC section 5)."""
+    """ABC rejection sampling: particles, buffers and selection (SPEC section 5).
+
+    Examples:
+        >>> from torchcf.config import ABCConfig
+        >>> abc = ABCConfig(n_particles=600, top_n=5, sensitivity_n=[5, 20])
+        >>> abc.method, abc.buffer_size
+        ('rejection', 20)
+    """
 
     model_config = STRICT
 
@@ -438,7 +459,14 @@ class ABCConfig(BaseModel):
 
 
 class EvalConfig(BaseModel):
-    """Evaluation of the learned particle set on the test pairs (SPEC section 6)."""
+    """Evaluation of the learned particle set on the test pairs (SPEC section 6).
+
+    Examples:
+        >>> from torchcf.config import EvalConfig
+        >>> evaluation = EvalConfig(bootstrap=200, coverage_levels=[0.9, 0.5, 0.9])
+        >>> evaluation.bootstrap_transport, evaluation.coverage_levels  # sorted, unique
+        (100, [0.5, 0.9])
+    """
 
     model_config = STRICT
 
@@ -522,6 +550,12 @@ class PlausibilityConfig(BaseModel):
     battery (emergency braking to a stop, stop-and-go, a cut-in, a standstill
     start) before they enter the buffers, as if their rollout were invalid
     (:mod:`torchcf.abc.screen`).
+
+    Examples:
+        >>> from torchcf.config import PlausibilityConfig
+        >>> screen = PlausibilityConfig(filter=True, decelerations=[6.0])  # [m/s^2]
+        >>> screen.report, screen.filter, screen.decelerations
+        (True, True, [6.0])
     """
 
     model_config = STRICT
@@ -591,7 +625,14 @@ def _models_schema(schema: JSON) -> None:
 
 
 class TrainConfig(BaseModel):
-    """A whole training run: ``torchcf train CONFIG``."""
+    """A whole training run: ``torchcf train CONFIG``.
+
+    Examples:
+        >>> from torchcf.config import TrainConfig
+        >>> cfg = TrainConfig(data={"path": "demo"}, models=["idm", "ovm"])
+        >>> [m.name for m in cfg.models], cfg.abc.n_particles, cfg.device
+        (['idm', 'ovm'], 1000000, 'cpu')
+    """
 
     model_config = STRICT
 

@@ -123,6 +123,21 @@ class RunDir:
 
     Args:
         path: the directory; nothing is touched until a method reads or writes.
+
+    Examples:
+        >>> import tempfile
+        >>> from torchcf.config import TrainConfig
+        >>> from torchcf.runs.directory import RunDir
+        >>> from torchcf.runs.summary import Pairwise, RecalibrationSummary
+        >>> pairwise = Pairwise(("idm",), ((1.0,),))
+        >>> summary = RecalibrationSummary("demo", {"idm": 1.0}, 5, pairwise, "smc")
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     run = RunDir(folder).fold(0).prepare()
+        ...     run.write_config(TrainConfig(data={"path": "demo"}, models=["idm"]))
+        ...     run.write_summary(summary)
+        ...     print(run.is_trained(), run.read_config().models[0].name,
+        ...           run.read_summary() == summary, run.summary_json.name)
+        True idm True summary.json
     """
 
     __slots__ = ("_path",)

@@ -44,7 +44,15 @@ METRICS = ("min", "beta_ws", "ws")
 
 
 class Interval(NamedTuple):
-    """A point estimate and its percentile bootstrap interval (NaN: none)."""
+    """A point estimate and its percentile bootstrap interval (NaN: none).
+
+    Examples:
+        >>> from torchcf.runs.metrics import Interval
+        >>> Interval(0.8, 0.5, 1.1).excludes_zero()  # value, low, high
+        True
+        >>> Interval(0.1, -0.2, 0.4).excludes_zero()
+        False
+    """
 
     value: float
     low: float
@@ -80,6 +88,12 @@ class SetMetrics(Record):
         beta_ws_valid: beta-WS over them.
         particles_never_valid: particles invalid on every test pair (dropped
             from ``ws_valid`` and ``beta_ws_valid``).
+
+    Examples:
+        >>> from dataclasses import fields
+        >>> from torchcf.runs.metrics import SetMetrics
+        >>> [f.name for f in fields(SetMetrics)][:8]
+        ['e_p', 'e_v', 'e_a', 'valid_cells', 'invalid_cells', 'min', 'beta_ws', 'ws']
     """
 
     e_p: float
@@ -111,7 +125,14 @@ _COVERAGE_CURVE = "coverage_curve"
 class CoverageCurve(Record):
     """The calibration curve of a set's predictive bands (``coverage_curve``):
     at each nominal level, the fraction of observed points inside the central
-    band, per variable."""
+    band, per variable.
+
+    Examples:
+        >>> from torchcf.runs.metrics import CoverageCurve
+        >>> curve = CoverageCurve((0.5, 0.9), (0.48, 0.87), (0.52, 0.91))
+        >>> curve.to_json()["speed"], CoverageCurve.from_json(curve.to_json()) == curve
+        ([0.52, 0.91], True)
+    """
 
     levels: tuple[float, ...]
     spacing: tuple[float, ...]
@@ -133,6 +154,11 @@ class SetUncertainty:
         coverage_points: the observed points scored (None: no coverage).
         coverage_pairs_without_draws: test pairs no particle drew a band on.
         coverage_curve: the calibration curve (None: no coverage).
+
+    Examples:
+        >>> from torchcf.runs.metrics import Interval, SetUncertainty
+        >>> SetUncertainty({"min": Interval(1.2, 1.0, 1.5)}).to_json()
+        {'min_low': 1.0, 'min_high': 1.5}
     """
 
     intervals: dict[str, Interval]
@@ -199,6 +225,14 @@ class SetEvaluation:
     Attributes:
         metrics: the set's SPEC section 6 metrics.
         uncertainty: its intervals and coverage (None: not computed).
+
+    Examples:
+        >>> from dataclasses import fields
+        >>> from torchcf.runs.metrics import SetEvaluation, SetMetrics
+        >>> metrics = SetMetrics(**{f.name: 0 for f in fields(SetMetrics)})  # all 0
+        >>> entry = SetEvaluation(metrics)
+        >>> len(entry.to_json()), SetEvaluation.from_json(entry.to_json()) == entry
+        (18, True)
     """
 
     metrics: SetMetrics
@@ -241,6 +275,11 @@ class Difference(Record):
         value: the difference on the test pairs.
         low, high: its percentile bootstrap interval.
         excludes_zero: the interval lies strictly on one side of 0.
+
+    Examples:
+        >>> from torchcf.runs.metrics import Difference, Interval
+        >>> Difference.of(Interval(-0.3, -0.5, -0.1))
+        Difference(value=-0.3, low=-0.5, high=-0.1, excludes_zero=True)
     """
 
     value: float
@@ -259,7 +298,13 @@ class Difference(Record):
 @dataclass(frozen=True)
 class ShareInterval(Record):
     """The hybrid's share of a model with its percentile bootstrap interval over
-    training pairs (``shares[model]``)."""
+    training pairs (``shares[model]``).
+
+    Examples:
+        >>> from torchcf.runs.metrics import ShareInterval
+        >>> ShareInterval(0.6, 0.45, 0.75).to_json()
+        {'share': 0.6, 'low': 0.45, 'high': 0.75}
+    """
 
     share: float
     low: float
@@ -279,6 +324,15 @@ class BootstrapSettings(Record):
         level: the intervals' nominal coverage (``eval.level``).
         seed: the resamples' seed.
         method: ``"percentile"``.
+
+    Examples:
+        >>> from torchcf.runs.metrics import BootstrapSettings
+        >>> settings = BootstrapSettings("test pair", 1000, 100, ("ws", "beta_ws"),
+        ...                              0.95, 0, "percentile")
+        >>> settings.to_json()["transport_metrics"]
+        ['ws', 'beta_ws']
+        >>> BootstrapSettings.from_json(settings.to_json()) == settings
+        True
     """
 
     unit: str
@@ -310,6 +364,13 @@ class Evaluation:
         hybrid_min_by_pair: ``(n_test,)`` the hybrid's best score per test pair
             (None where no particle is valid).
         seconds: the evaluation's wall time (s, ms).
+
+    Examples:
+        >>> from dataclasses import fields
+        >>> from torchcf.runs.metrics import Evaluation
+        >>> [f.name for f in fields(Evaluation)][:6]
+        ['dataset', 'n_test', 'test_pair_ids', 'beta', 'sinkhorn_reg',
+         'sinkhorn_max_iter']
     """
 
     dataset: str
@@ -390,7 +451,14 @@ class FoldMeans(Record):
     cross-validation's ``metrics.json``): per metric of
     :data:`torchcf.study.crossval.METRIC_KEYS` its mean (non-finite if any
     fold's is, or the entry is missing from a fold) and
-    ``<metric>_folds_finite``, the folds whose value was finite."""
+    ``<metric>_folds_finite``, the folds whose value was finite.
+
+    Examples:
+        >>> from dataclasses import fields
+        >>> from torchcf.runs.metrics import FoldMeans
+        >>> [f.name for f in fields(FoldMeans)][:4]
+        ['e_p', 'e_p_folds_finite', 'e_v', 'e_v_folds_finite']
+    """
 
     e_p: float
     e_p_folds_finite: int
@@ -416,6 +484,14 @@ class CrossvalResult:
         folds: the folds averaged.
         entries: learned set (the models, then ``"hybrid"``) -> its means
             (each a top-level key of the file, after ``folds``).
+
+    Examples:
+        >>> from dataclasses import fields
+        >>> from torchcf.runs.metrics import CrossvalResult, FoldMeans
+        >>> means = FoldMeans(**{f.name: 0 for f in fields(FoldMeans)})  # all 0
+        >>> result = CrossvalResult(folds=3, entries={"hybrid": means})
+        >>> list(result.to_json()), CrossvalResult.from_json(result.to_json()) == result
+        (['folds', 'hybrid'], True)
     """
 
     folds: int

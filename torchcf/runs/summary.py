@@ -67,6 +67,13 @@ class ModelResult(Record):
         stopped: rollouts (cells) early rejection stopped above their buffer's
             threshold (``abc.early_rejection``); ``invalid`` then counts the
             invalid rollouts among the others.
+
+    Examples:
+        >>> from dataclasses import fields
+        >>> from torchcf.runs.summary import ModelResult
+        >>> [f.name for f in fields(ModelResult)][:6]
+        ['particles', 'invalid', 'invalid_rate', 'implausible', 'seconds',
+         'particles_per_s']
     """
 
     particles: int
@@ -86,7 +93,16 @@ class ModelResult(Record):
 @dataclass(frozen=True)
 class Pairwise(Record):
     """The pairwise table: ``table[i][j]`` is the share of ``models[i]`` in the
-    hybrid of models ``i`` and ``j`` alone (6 decimals; 1 on the diagonal)."""
+    hybrid of models ``i`` and ``j`` alone (6 decimals; 1 on the diagonal).
+
+    Examples:
+        >>> from torchcf.runs.summary import Pairwise
+        >>> pairwise = Pairwise(("idm", "ovm"), ((1.0, 0.7), (0.3, 1.0)))
+        >>> pairwise.to_json()["table"]
+        [[1.0, 0.7], [0.3, 1.0]]
+        >>> Pairwise.from_json(pairwise.to_json()) == pairwise
+        True
+    """
 
     models: tuple[str, ...]
     table: tuple[tuple[float, ...], ...]
@@ -95,7 +111,15 @@ class Pairwise(Record):
 
 @dataclass(frozen=True)
 class Versions(Record):
-    """The versions the run was made with."""
+    """The versions the run was made with.
+
+    Examples:
+        >>> import torch
+        >>> from torchcf.runs.summary import Versions
+        >>> versions = Versions.current()
+        >>> list(versions.to_json()), versions.torch == torch.__version__
+        (['torchcf', 'torch', 'numpy', 'python'], True)
+    """
 
     torchcf: str
     torch: str
@@ -116,7 +140,16 @@ class Versions(Record):
 @dataclass(frozen=True)
 class SMCBudgetResult(Record):
     """How each model's ``n_particles`` were spent by the refinement
-    (:class:`torchcf.abc.smc.Budget`): particles per model."""
+    (:class:`torchcf.abc.smc.Budget`): particles per model.
+
+    Examples:
+        >>> from torchcf.runs.summary import SMCBudgetResult
+        >>> budget = SMCBudgetResult(150, 15, 3, 450, 0)  # 600 particles, 10 pairs
+        >>> budget.prior_draws + budget.proposals + budget.unspent
+        600
+        >>> SMCBudgetResult.from_json(budget.to_json()) == budget
+        True
+    """
 
     prior_draws: int
     proposals_per_pair_and_round: int
@@ -129,7 +162,15 @@ class SMCBudgetResult(Record):
 class SMCResult(Record):
     """The refinement's settings (``abc.smc``, as :class:`~torchcf.abc.smc.
     SMCSettings` fields), budget and evidence shares (model -> share in [0, 1],
-    with the prior's Occam factor: :func:`torchcf.abc.smc.evidence_shares`)."""
+    with the prior's Occam factor: :func:`torchcf.abc.smc.evidence_shares`).
+
+    Examples:
+        >>> from torchcf.runs.summary import SMCBudgetResult, SMCResult
+        >>> budget = SMCBudgetResult(150, 15, 3, 450, 0)
+        >>> smc = SMCResult({"rounds": 3}, budget, {"idm": 0.8, "ovm": 0.2})
+        >>> list(smc.to_json()), SMCResult.from_json(smc.to_json()) == smc
+        (['settings', 'budget', 'evidence_shares', 'meaning'], True)
+    """
 
     settings: JSON
     budget: SMCBudgetResult
@@ -160,6 +201,12 @@ class RefinedModel(Record):
         median_best_before, median_best_after: the median over the training
             pairs of the pair's best score of the model (the run's distance;
             None where no pair has one).
+
+    Examples:
+        >>> from torchcf.runs.summary import RefinedModel
+        >>> RefinedModel(0.4, 0.55, 1.2, 0.9).to_json()
+        {'share_before': 0.4, 'share_after': 0.55, 'median_best_before': 1.2,
+         'median_best_after': 0.9}
     """
 
     share_before: float
@@ -180,6 +227,13 @@ class RefinementResult(Record):
         simulations: the refinement's simulations, all models and pairs.
         simulations_per_pair: of them, per training pair (all models).
         per_model: model -> :class:`RefinedModel`.
+
+    Examples:
+        >>> from torchcf.runs.summary import RefinedModel, RefinementResult
+        >>> idm = RefinedModel(0.4, 0.55, 1.2, 0.9)
+        >>> result = RefinementResult(2, 50, 20, 0.5, 2000, 200, {"idm": idm})
+        >>> RefinementResult.from_json(result.to_json()) == result
+        True
     """
 
     rounds: int
@@ -227,6 +281,15 @@ class AmortisedResult(Record):
         reused: where the estimator was read from
             (``abc.amortised.estimator``), its training figures above being
             that earlier run's; None (absent in the file): trained by this run.
+
+    Examples:
+        >>> from torchcf.runs.summary import AmortisedResult
+        >>> result = AmortisedResult(200, (0.05, 0.02, 0.1), 12, "patience", 84_000, 3,
+        ...                          41.2, -3.1, 0.91)
+        >>> "refinement" in result.to_json(), result.to_json()["noise"]
+        (False, [0.05, 0.02, 0.1])
+        >>> AmortisedResult.from_json(result.to_json()) == result
+        True
     """
 
     samples_per_pair: int
@@ -269,7 +332,14 @@ class PlausibilitySettings(Record):
     """The battery's settings a summary records (``settings``; those of
     :class:`torchcf.traffic.battery.Battery`): cruise speed
     [m/s], the braking leader's decelerations [m/s^2], the collision spacing
-    [m] and the platoon's vehicles."""
+    [m] and the platoon's vehicles.
+
+    Examples:
+        >>> from torchcf.runs.summary import PlausibilitySettings
+        >>> PlausibilitySettings(25.0, (4.0, 6.0, 8.0), 0.0, 8).to_json()
+        {'speed': 25.0, 'decelerations': [4.0, 6.0, 8.0], 'collision_spacing': 0.0,
+         'platoon_size': 8}
+    """
 
     speed: float
     decelerations: tuple[float, ...]
@@ -295,6 +365,12 @@ class PlausibilitySummary(Record):
             that closed in (None: none did).
         string_ratio_median: median string-stability ratio (None: none).
         settings: the battery's settings.
+
+    Examples:
+        >>> from dataclasses import fields
+        >>> from torchcf.runs.summary import PlausibilitySummary
+        >>> [f.name for f in fields(PlausibilitySummary)][:4]
+        ['n_particles', 'collided', 'per_scenario', 'string_unstable']
     """
 
     n_particles: int
@@ -359,6 +435,14 @@ class RunSummary(Record):
             recorded).
         extra: keys of the file this release does not know, kept in order after
             the known ones (none in the summaries it writes).
+
+    Examples:
+        >>> from dataclasses import fields
+        >>> from torchcf.runs.summary import RunSummary
+        >>> [f.name for f in fields(RunSummary)][:6]
+        ['dataset', 'layout', 'selection', 'top_n', 'n_particles', 'n_train']
+        >>> RunSummary.OPTIONAL[:3]  # written only when set
+        ('method', 'smc', 'amortised')
     """
 
     dataset: str
@@ -498,6 +582,13 @@ class RecalibrationSummary(Record):
         hybrid_size: particles in the hybrid, all models.
         pairwise: the pairwise table of its buffers.
         recalibration: how the buffers were made.
+
+    Examples:
+        >>> from torchcf.runs.summary import Pairwise, RecalibrationSummary
+        >>> pairwise = Pairwise(("idm",), ((1.0,),))
+        >>> summary = RecalibrationSummary("demo", {"idm": 1.0}, 5, pairwise, "smc")
+        >>> RecalibrationSummary.from_json(summary.to_json()) == summary
+        True
     """
 
     dataset: str

@@ -100,6 +100,19 @@ class RunLogger:
             evaluation in TensorBoard instead of adding a second copy of every
             scalar. None: the training's stream (a resumed run appends to it,
             ``purge_step`` dropping what a killed run wrote past its checkpoint).
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from torchcf.runs.tensorboard import RunLogger
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     with RunLogger(Path(folder) / "tb") as logger:
+        ...         logger.progress("idm", particles=600, threshold=1.2,
+        ...                         particles_per_s=4e4, invalid_rate=0.0)
+        ...     print([p.name[:20] for p in (Path(folder) / "tb").iterdir()])
+        ['events.out.tfevents.']
+        >>> RunLogger("unused", enabled=False).enabled  # a no-op; writes nothing
+        False
     """
 
     def __init__(
@@ -388,6 +401,14 @@ def markdown_summary(summary: RunSummary) -> str:
     Returns:
         Markdown: a header line, one table with a row per model and, with
         ``sensitivity``, a second table with a column per top-N size ``n``.
+
+    Examples:
+        >>> from types import SimpleNamespace
+        >>> from torchcf.runs.tensorboard import markdown_summary
+        >>> summary = SimpleNamespace(dataset="demo", n_train=3, shares={"idm": 0.75},
+        ...                           per_model={}, sensitivity={})  # what it reads
+        >>> print(markdown_summary(summary).splitlines()[0])
+        **dataset:** demo · **training pairs:** 3
     """
     shares, per_model = summary.shares, summary.per_model
     sensitivity = summary.sensitivity

@@ -32,7 +32,15 @@ METRIC_KEYS = ("e_p", "e_v", "e_a", "min", "beta_ws", "ws", "sinkhorn")
 
 
 def fold_config(cfg: TrainConfig, folds: int, fold: int) -> TrainConfig:
-    """``cfg`` for fold ``fold`` of ``folds``."""
+    """``cfg`` for fold ``fold`` of ``folds``.
+
+    Examples:
+        >>> from torchcf.config import TrainConfig
+        >>> from torchcf.study.crossval import fold_config
+        >>> cfg = fold_config(TrainConfig(data={"path": "demo"}), folds=3, fold=1)
+        >>> cfg.data.split, cfg.data.folds, cfg.data.fold
+        ('kfold', 3, 1)
+    """
     data = cfg.data.model_copy(update={"split": "kfold", "folds": folds, "fold": fold})
     return cfg.model_copy(update={"data": data})
 
@@ -47,6 +55,18 @@ def aggregate(evaluations: Sequence[Evaluation]) -> CrossvalResult:
     A set missing from a fold, or a non-finite value in any fold, makes that
     mean non-finite (reported, never dropped); ``folds_finite`` counts the folds
     that contributed finite values.
+
+    Examples:
+        >>> from dataclasses import fields
+        >>> from types import SimpleNamespace
+        >>> from torchcf.runs.metrics import SetEvaluation, SetMetrics
+        >>> def fold(value):  # a fold's evaluation (its sets are what is read)
+        ...     metrics = SetMetrics(**{f.name: value for f in fields(SetMetrics)})
+        ...     return SimpleNamespace(sets={"hybrid": SetEvaluation(metrics)})
+        >>> result = aggregate([fold(1.0), fold(2.0), fold(float("inf"))])
+        >>> hybrid = result.entries["hybrid"]  # a non-finite fold is reported
+        >>> hybrid.ws, hybrid.ws_folds_finite
+        (inf, 2)
     """
     result = {}
     for entry in evaluations[0].sets:
@@ -105,6 +125,23 @@ def crossval(
         RunFileError: a fold's files cannot be read (a corrupted metrics.json),
             or an output cannot be written.
         ConfigError, DataError, ...: as the training of a fold raises them.
+
+    Examples:
+        >>> import tempfile
+        >>> from torchcf import get_model
+        >>> from torchcf.config import TrainConfig
+        >>> from torchcf.data.writer import write_six_csv
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]  # a, b, v0, T, s0, delta (SI)
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     write_six_csv(synthetic_pairs(get_model("idm"), idm, 4, 60), folder)
+        ...     cfg = TrainConfig(data={"path": folder, "dt": 0.1}, models=["idm"],
+        ...                       abc={"n_particles": 600, "sensitivity_n": [5]},
+        ...                       eval={"bootstrap": 0, "bootstrap_transport": 0},
+        ...                       plausibility={"report": False})
+        ...     result = crossval(cfg, f"{folder}/cv", folds=2)
+        >>> result.folds, list(result.entries)
+        (2, ['idm', 'hybrid'])
     """
     out = RunDir(out)
     _check_folder(out, resume)

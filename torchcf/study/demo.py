@@ -25,7 +25,14 @@ from ..sim.rollout import simulate
 
 @dataclass(frozen=True)
 class DemoRow:
-    """One model's prior particles on the pairs."""
+    """One model's prior particles on the pairs.
+
+    Examples:
+        >>> from dataclasses import fields
+        >>> from torchcf.study.demo import DemoRow
+        >>> [f.name for f in fields(DemoRow)]
+        ['model', 'best', 'median', 'invalid', 'steps_per_second']
+    """
 
     model: str
     best: float  # the smallest valid score (inf: none valid)
@@ -36,7 +43,20 @@ class DemoRow:
 
 def prior_rollouts(pairs: PairSet, particles: int, seed: int = 0) -> Iterator[DemoRow]:
     """Per model, ``particles`` draws of its default prior simulated, each on one
-    random pair of ``pairs`` (one generator seeded ``seed`` for all models)."""
+    random pair of ``pairs`` (one generator seeded ``seed`` for all models).
+
+    Examples:
+        >>> from torchcf import get_model
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> from torchcf.study.demo import prior_rollouts
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]  # a, b, v0, T, s0, delta (SI)
+        >>> pairs = synthetic_pairs(get_model("idm"), idm, n_pairs=2, n_steps=60)
+        >>> rows = list(prior_rollouts(pairs, particles=200))
+        >>> [row.model for row in rows] == list(MODELS)  # each registered model
+        True
+        >>> all(0 <= row.invalid <= 1 for row in rows)  # invalid rollouts' share
+        True
+    """
     generator = torch.Generator().manual_seed(seed)
     for name, model in MODELS.items():
         bounds = model.prior_bounds(torch.float32)

@@ -57,6 +57,12 @@ class StudyResult:
         skipped: why the evaluation (and the loop) asked for did not run, one
             line (the data have no test split: :data:`NO_TEST_SPLIT`), else
             None.
+
+    Examples:
+        >>> from dataclasses import fields
+        >>> from torchcf.study.pipeline import StudyResult
+        >>> [f.name for f in fields(StudyResult)]
+        ['run', 'summary', 'evaluated', 'loop', 'skipped']
     """
 
     run: Path
@@ -121,6 +127,23 @@ def train_and_evaluate(
     Returns:
         the training summary (``summary.json``) and whether this call evaluated
         the run, on every rank (:class:`StudyResult`).
+
+    Examples:
+        >>> import tempfile
+        >>> from torchcf import get_model
+        >>> from torchcf.config import TrainConfig
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]  # a, b, v0, T, s0, delta (SI)
+        >>> train, test = (synthetic_pairs(get_model("idm"), idm, n_pairs=3, n_steps=60,
+        ...                                seed=seed) for seed in (0, 1))
+        >>> cfg = TrainConfig(data={"path": "demo"}, models=["idm", "ovm"],
+        ...                   abc={"n_particles": 600, "sensitivity_n": [5]},
+        ...                   eval={"bootstrap": 0, "bootstrap_transport": 0},
+        ...                   plausibility={"report": False})
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     result = train_and_evaluate(cfg, folder, pairs=(train, test))
+        ...     print(result.evaluated, sorted(RunDir(folder).read_metrics().sets))
+        True ['hybrid', 'idm', 'ovm']
     """
     run = RunDir(out)
     with _held(run, group):
@@ -165,6 +188,21 @@ def run_study(
     Returns:
         the training summary, whether this call evaluated the run and the loop's
         result if it closed the loop (:class:`StudyResult`), on every rank.
+
+    Examples:
+        >>> import tempfile
+        >>> from torchcf import get_model
+        >>> from torchcf.config import TrainConfig
+        >>> from torchcf.sim.synthetic import synthetic_pairs
+        >>> idm = [1.5, 2.0, 33.0, 1.2, 2.0, 4.0]  # a, b, v0, T, s0, delta (SI)
+        >>> pairs = synthetic_pairs(get_model("idm"), idm, n_pairs=3, n_steps=60)
+        >>> cfg = TrainConfig(data={"path": "demo"}, models=["idm", "ovm"],
+        ...                   abc={"n_particles": 600, "sensitivity_n": [5]},
+        ...                   plausibility={"report": False})
+        >>> with tempfile.TemporaryDirectory() as folder:  # no test pairs: trained only
+        ...     result = run_study(cfg, folder, pairs=(pairs, None))
+        >>> result.summary.models, result.evaluated, result.skipped == NO_TEST_SPLIT
+        (('idm', 'ovm'), False, True)
     """
     run = RunDir(out)
     with _held(run, group):
@@ -206,6 +244,13 @@ def close_loop(
 
     Returns:
         the loop result (also in ``RUN_DIR/loop.json``).
+
+    Examples:
+        >>> import inspect
+        >>> from torchcf.study.pipeline import close_loop
+        >>> list(inspect.signature(close_loop).parameters)
+        ['run_dir', 'overrides', 'pairs', 'groups', 'progress']
+        >>> loop = close_loop("runs/smoke", ["diagnose.models=all"])  # doctest: +SKIP
     """
     run = RunDir(run_dir)
     with run.locked():
