@@ -41,6 +41,7 @@ from bench_sim import bench_meta, provenance, write_report  # noqa: E402
 from torchcf.config import validate_config  # noqa: E402
 from torchcf.diagnose.arms.refit import Pin, RefitBudget, refit_scores  # noqa: E402
 from torchcf.diagnose.arms.validation import design  # noqa: E402
+from torchcf.diagnose.setup import LoopSetup  # noqa: E402
 from torchcf.models import get_model  # noqa: E402
 from torchcf.models.effects import parse_effect  # noqa: E402
 from torchcf.sim.synthetic import DriverMixture, heterogeneous_pairs  # noqa: E402
@@ -64,7 +65,7 @@ def held_out_rollout():
     cfg = validate_config(
         {"data": {"path": "synthetic"}, "models": list(POOL), "compile": "off"}
     )
-    _, validation = design(cfg, pairs, seed=0)
+    _, validation = design(LoopSetup.of(cfg), pairs, seed=0)
     priors = {spec.name: spec.bounds(torch.float64) for spec in cfg.models}
     return validation.rollout, priors
 

@@ -62,6 +62,7 @@ from torchcf.config import DiagnoseConfig, validate_config  # noqa: E402
 from torchcf.data import PairSet, load_pairs  # noqa: E402
 from torchcf.diagnose.loop import active_models  # noqa: E402
 from torchcf.diagnose.selection.attribution import RoadStart, attribute_effects  # noqa: E402
+from torchcf.diagnose.setup import LoopSetup  # noqa: E402
 from torchcf.diagnose.signatures.road import profile_agreement  # noqa: E402
 from torchcf.models import AugmentedModel, get_model, parse_effect  # noqa: E402
 from torchcf.models.effects import RoadProfile  # noqa: E402
@@ -382,7 +383,7 @@ def truth_seeded_arm(run_dir: Path, train: PairSet, grade: float) -> dict:
     token, values = road_profile(train, grade, seed=0)
     profile = parse_effect(token)
     selection = attribute_effects(
-        cfg,
+        LoopSetup.of(cfg),
         active_models(cfg, posterior),
         [profile],
         train,

@@ -41,11 +41,11 @@ from torchcf.diagnose.arms.arena import (
     predicted,
     profile_interval,
 )
-from torchcf.diagnose.arms.candidates import attribution_rollout
 from torchcf.diagnose.arms.population import pick_scores, rescore
 from torchcf.diagnose.arms.search import Noise, lift, local_search, model_bounds
 from torchcf.diagnose.recalibration import recalibration_config
 from torchcf.diagnose.selection.attribution import _fit_statistic, attribute_effects
+from torchcf.diagnose.setup import LoopSetup
 from torchcf.diagnose.signatures.families import (
     POINTS_TO,
     Signature,
@@ -140,7 +140,7 @@ def test_merge_keeps_a_particle_once_and_prefers_the_earlier_population():
 
 def test_pick_scores_are_medians_with_invalid_picks_counted_worst():
     pairs = synthetic_pairs(get_model("idm"), IDM, 2, 120, seed=1)
-    rollout = attribution_rollout(_config(dtype="float64"), pairs)
+    rollout = LoopSetup.of(_config(dtype="float64")).rollout(pairs)
     good = [IDM, [1.0, 2.5, 28.0, 1.5, 2.5, 4.0], [1.4, 1.5, 31.0, 1.1, 1.5, 4.0]]
     theta = good + [IDM]
     population = Population.from_particles(
@@ -214,7 +214,7 @@ def start():
         get_model("idm+delay"), IDM + [0.8], 6, 200, seed=3, noise=0.05
     )
     cfg = _config(models=("idm", "llcs"))
-    arena = Arena.of(cfg, pairs)
+    arena = Arena.of(LoopSetup.of(cfg), pairs)
     return arena, fit_pool(arena, POOL, lambda *_: None)
 
 
@@ -236,7 +236,7 @@ def test_an_effect_never_loses_in_sample(start, token, seed):
 )
 def test_an_effect_at_its_neutral_value_is_the_same_rollout(start, token):
     arena, arm = start
-    rollout = attribution_rollout(_config(dtype="float64"), arena.fit.pairs)
+    rollout = LoopSetup.of(_config(dtype="float64")).rollout(arena.fit.pairs)
     population = rescore(arm.population, rollout)
     neutral = torch.tensor(parse_effect(token).neutral, dtype=torch.float64)
     lifted, lifted_from = lift(population, parse_effect(token), neutral, rollout)
@@ -432,7 +432,7 @@ def test_an_offset_is_absorbed_by_the_standstill_gap():
     offset's profile says so: s0 follows the offset one for one."""
     pairs = synthetic_pairs(get_model("llcs"), LLCS, 6, 200, seed=2)
     cfg = _config(models=("llcs",), rounds=4, local_copies=8, population=5)
-    arena = Arena.of(cfg, pairs)
+    arena = Arena.of(LoopSetup.of(cfg), pairs)
     truth = _particles("llcs", [LLCS] * 6, range(6), [0.01] * 6)
     pool = Population.from_particles([truth], 6, 5)
     arm = Arm((), merge([rescore(pool, arena.fit)], 5), {})
@@ -484,7 +484,7 @@ def test_an_interrupted_attribution_resumes_to_the_same_result(tmp_path, monkeyp
     cfg = _config(max_effects=2)
     effects = [DELAY, OFFSET, parse_effect("lag")]
     whole = attribute_effects(
-        cfg,
+        LoopSetup.of(cfg),
         [get_model("idm")],
         effects,
         pairs,
@@ -503,7 +503,7 @@ def test_an_interrupted_attribution_resumes_to_the_same_result(tmp_path, monkeyp
     monkeypatch.setattr(attribution, "effect_arm", interrupted)
     with pytest.raises(KeyboardInterrupt):
         attribute_effects(
-            cfg,
+            LoopSetup.of(cfg),
             [get_model("idm")],
             effects,
             pairs,
@@ -512,7 +512,7 @@ def test_an_interrupted_attribution_resumes_to_the_same_result(tmp_path, monkeyp
         )
     monkeypatch.setattr(attribution, "effect_arm", real)
     resumed = attribute_effects(
-        cfg,
+        LoopSetup.of(cfg),
         [get_model("idm")],
         effects,
         pairs,
@@ -523,14 +523,14 @@ def test_an_interrupted_attribution_resumes_to_the_same_result(tmp_path, monkeyp
     assert resumed.steps == whole.steps
     assert "stages kept (pool" in attribution.resuming(
         attribution.Ledger(
-            tmp_path / "a.pt", attribution.ledger_key(cfg, ["idm"], effects)
+            tmp_path / "a.pt",
+            attribution.ledger_key(LoopSetup.of(cfg), ["idm"], effects),
         )
     )
     # another setting is another attribution: nothing is read back
     other = _config(max_effects=2, rounds=1)
-    assert attribution.ledger_key(other, ["idm"], effects) != attribution.ledger_key(
-        cfg, ["idm"], effects
-    )
+    mine = attribution.ledger_key(LoopSetup.of(cfg), ["idm"], effects)
+    assert attribution.ledger_key(LoopSetup.of(other), ["idm"], effects) != mine
 
 
 def test_an_interrupted_pool_fit_resumes_from_its_last_state(tmp_path, monkeypatch):
@@ -539,7 +539,7 @@ def test_an_interrupted_pool_fit_resumes_from_its_last_state(tmp_path, monkeypat
     state kept, not from the start, and ends where an uninterrupted fit ends."""
     pairs = synthetic_pairs(get_model("idm"), IDM, 6, 200, seed=4, noise=0.05)
     cfg = _config(max_rounds=6)
-    arena = Arena.of(cfg, pairs)
+    arena = Arena.of(LoopSetup.of(cfg), pairs)
     real = search_module.search_round
     calls = {"n": 0, "stop": 0}
 
@@ -585,7 +585,7 @@ def test_the_effect_arms_are_the_same_in_worker_processes(validation):
     effects = [DELAY, OFFSET, parse_effect("lag")]
     alone, side_by_side = (
         attribute_effects(
-            _config(max_effects=1, workers=w, validation=validation),
+            LoopSetup.of(_config(max_effects=1, workers=w, validation=validation)),
             [get_model("idm")],
             effects,
             pairs,

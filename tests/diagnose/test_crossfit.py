@@ -22,6 +22,7 @@ from torchcf.diagnose.arms.refit import (
     start,
 )
 from torchcf.diagnose.arms.validation import design, free_effect_windows, pair_groups
+from torchcf.diagnose.setup import LoopSetup
 from torchcf.models import get_model
 from torchcf.models.effects import parse_effect
 from torchcf.sim.synthetic import synthetic_pairs
@@ -109,14 +110,14 @@ def test_crossfit_judges_every_training_pair():
             "diagnose": {"validation": "crossfit"},
         }
     )
-    fit, validation = design(cfg, pairs, seed=0)
+    fit, validation = design(LoopSetup.of(cfg), pairs, seed=0)
     assert validation.kind == "crossfit"
     assert fit.pairs.n_pairs == validation.n_units == 16
     assert validation.groups.tolist() == list(range(16))
     assert "once" in validation.units
     one = torch.zeros(16, dtype=torch.int64)
     try:
-        design(cfg, pairs, seed=0, groups=one)
+        design(LoopSetup.of(cfg), pairs, seed=0, groups=one)
     except Exception as error:  # one group: nothing to hold out
         assert "crossfit" in str(error)
     else:  # pragma: no cover - the guard must fire

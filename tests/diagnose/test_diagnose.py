@@ -36,11 +36,10 @@ from torchcf.diagnose import (
     split_in_time,
 )
 from torchcf.diagnose.arms.candidates import (
-    attribution_rollout,
-    attribution_seed,
     prior_particles,
 )
 from torchcf.diagnose.arms.search import Noise, model_bounds
+from torchcf.diagnose.setup import LoopSetup
 from torchcf.diagnose.signatures.road import profile_agreement
 from torchcf.models import AugmentedModel, get_model, parse_effect, split_name
 from torchcf.posterior import Posterior
@@ -421,10 +420,10 @@ def test_local_search_spends_its_budget_and_never_loses_a_fit(monkeypatch):
 
     pairs = synthetic_pairs(get_model("idm"), IDM_TRUTH, 4, 150, seed=9)
     cfg = _config(population=3, local_copies=5, rounds=2)
-    rollout = attribution_rollout(cfg, pairs)
+    rollout = LoopSetup.of(cfg).rollout(pairs)
     models = [get_model(m) for m in ("idm", "llctg")]
     bounds = {m: model_bounds(m, {}) for m in models}
-    seed = attribution_seed(cfg)
+    seed = LoopSetup.of(cfg).seed
     streams = [prior_stream(m, bounds[m], seed, rollout) for m in models]
     sets = [prior_particles(stream, rollout, (200,), 3)[0] for stream in streams]
     start = Population.from_particles(sets, 4, 3)
@@ -454,8 +453,8 @@ def test_diagnose_seed_replaces_the_runs_seed_in_the_attribution():
 
     def drawn(**diagnose):
         cfg = _config(**diagnose)
-        rollout = attribution_rollout(cfg, pairs)
-        stream = prior_stream(get_model("idm"), bounds, attribution_seed(cfg), rollout)
+        rollout = LoopSetup.of(cfg).rollout(pairs)
+        stream = prior_stream(get_model("idm"), bounds, LoopSetup.of(cfg).seed, rollout)
         (particles,) = prior_particles(stream, rollout, (50,), 2)
         return particles
 
@@ -480,7 +479,7 @@ def test_shared_value_finds_a_constant_grade():
     )
     llctg = get_model("llctg")
     bounds = {llctg: model_bounds(llctg, {})}
-    rollout = attribution_rollout(cfg, pairs)
+    rollout = LoopSetup.of(cfg).rollout(pairs)
     value, box, tried = shared_value(
         effect, members, rollout, bounds, effect_prior(effect), (0,)
     )

@@ -9,6 +9,7 @@ from torchcf.config import validate_config
 from torchcf.diagnose import Population
 from torchcf.diagnose.arms.refit import Pin
 from torchcf.diagnose.selection.on_test import chosen_value, class_on_test
+from torchcf.diagnose.setup import LoopSetup
 from torchcf.models import get_model
 from torchcf.models.effects import parse_effect
 from torchcf.sim.synthetic import DriverMixture, heterogeneous_pairs
@@ -59,7 +60,7 @@ def test_the_class_with_a_true_delay_fits_new_delayed_drivers_better():
     delayed = torch.cat([theta, torch.full((64, 1), 0.8, dtype=torch.float64)], 1)
     final = _population("idm+delay", delayed, 16)
     pin = Pin(parse_effect("delay"), torch.tensor([0.8], dtype=torch.float64))
-    found = class_on_test(cfg, start, final, [pin], test)
+    found = class_on_test(LoopSetup.of(cfg), start, final, [pin], test)
     assert found.pairs == 16
     assert found.change < -0.1 and found.better >= 12
     assert found.p_value < 0.01

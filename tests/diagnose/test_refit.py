@@ -24,6 +24,7 @@ from torchcf.diagnose.arms.refit import (
 )
 from torchcf.diagnose.arms.search import CONVERGED
 from torchcf.diagnose.arms.validation import design
+from torchcf.diagnose.setup import LoopSetup
 from torchcf.models import get_model
 from torchcf.models.effects import parse_effect
 from torchcf.sim.synthetic import DriverMixture, heterogeneous_pairs, synthetic_pairs
@@ -142,10 +143,10 @@ def test_the_refit_design_judges_an_arm_against_the_placebo():
             "diagnose": {"validation": "refit", "refit_rounds": 1},
         }
     )
-    _, validation = design(cfg, pairs, seed=0)
+    _, validation = design(LoopSetup.of(cfg), pairs, seed=0)
     assert validation.kind == "refit" and validation.units == "held-out pairs"
     assert validation.budget.rounds == 1
-    arena = Arena.of(cfg, pairs)
+    arena = Arena.of(LoopSetup.of(cfg), pairs)
     box = PRIORS["idm"]
     theta = box.mean(1).repeat(arena.fit.pairs.n_pairs * 2, 1)
     placebo = _population(theta, arena.fit.pairs.n_pairs)

@@ -17,6 +17,7 @@ from torchcf.config import validate_config
 from torchcf.data import DataError, load_pairs
 from torchcf.data.reader import FILES
 from torchcf.diagnose import candidate_effects
+from torchcf.diagnose.setup import LoopSetup
 from torchcf.diagnose.signatures.families import road_share
 from torchcf.diagnose.signatures.road import (
     BEND_SEED_MARGIN,
@@ -202,12 +203,14 @@ def test_road_effects_are_not_offered_without_one_road():
         }
     )
     series = _series(lambda x: 0 * x, n_pairs=6)
-    apart = candidate_effects(cfg, dataclasses.replace(pairs, road_frame=False), series)
+    apart = candidate_effects(
+        LoopSetup.of(cfg), dataclasses.replace(pairs, road_frame=False), series
+    )
     tokens = [effect.token for effect in apart.effects]
     assert tokens == ["delay", "offset"] and apart.profile is None
     skipped = [effect.token for effect in apart.road.skipped]
     assert apart.road.frame is False and skipped == ["grade", "bend"]
-    shared = candidate_effects(cfg, pairs, series)
+    shared = candidate_effects(LoopSetup.of(cfg), pairs, series)
     effects = [effect.token for effect in shared.effects]
     road, seeds = shared.road, [effect.token for effect in shared.seeds]
     assert shared.profile is not None and shared.profile.token == effects[1]

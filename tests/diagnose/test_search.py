@@ -15,12 +15,11 @@ from torchcf.abc.rejection import prior_stream
 from torchcf.config import validate_config
 from torchcf.diagnose import Population
 from torchcf.diagnose.arms.candidates import (
-    attribution_rollout,
-    attribution_seed,
     prior_particles,
 )
 from torchcf.diagnose.arms.population import merge
 from torchcf.diagnose.arms.search import Noise, admission_ceiling, model_bounds
+from torchcf.diagnose.setup import LoopSetup
 from torchcf.models import get_model
 from torchcf.sim.synthetic import synthetic_pairs
 
@@ -39,10 +38,10 @@ def _start(n_pairs: int = 5, size: int = 4):
     pairs = synthetic_pairs(
         get_model("idm+delay"), IDM + [0.6], n_pairs, 200, seed=3, noise=0.05
     )
-    rollout = attribution_rollout(cfg, pairs)
+    rollout = LoopSetup.of(cfg).rollout(pairs)
     models = [get_model(m) for m in ("idm", "llctg")]
     bounds = {m: model_bounds(m, {}) for m in models}
-    seed = attribution_seed(cfg)
+    seed = LoopSetup.of(cfg).seed
     streams = [prior_stream(m, bounds[m], seed, rollout) for m in models]
     sets = [prior_particles(s, rollout, (150,), size)[0] for s in streams]
     return Population.from_particles(sets, n_pairs, size), rollout, bounds

@@ -27,6 +27,7 @@ from torchcf.diagnose.arms.validation import (
     validation_rollout,
     warmed_validation,
 )
+from torchcf.diagnose.setup import LoopSetup
 from torchcf.models import get_model
 from torchcf.sim.rollout import simulate
 
@@ -96,8 +97,8 @@ def test_the_warmed_windows_hold_the_pairs_of_the_plain_split():
 
 def test_no_warmup_is_the_plain_validation_window():
     pairs = synthetic_pairs(n_pairs=4, n_steps=200, seed=1)
-    assert validation_rollout(_config(0.0), pairs) is None
-    rollout = validation_rollout(_config(2.0), pairs)
+    assert validation_rollout(LoopSetup.of(_config(0.0)), pairs) is None
+    rollout = validation_rollout(LoopSetup.of(_config(2.0)), pairs)
     assert isinstance(rollout, WarmedRollout) and rollout.warm.n_steps == 20
     assert math.isclose(rollout.pairs.dt, pairs.dt)
 
@@ -153,13 +154,13 @@ def test_coverage_scores_are_the_minimum_distance_on_the_held_out_pairs():
 def test_the_design_follows_the_config():
     pairs = synthetic_pairs(n_pairs=10, n_steps=60)
     cfg = _config(0.0)
-    fit, validation = design(cfg, pairs, seed=0)
+    fit, validation = design(LoopSetup.of(cfg), pairs, seed=0)
     assert validation.kind == "time" and fit.pairs.n_pairs == pairs.n_pairs
     assert fit.pairs.n_steps == 36
     cfg = cfg.model_copy(
         update={"diagnose": cfg.diagnose.model_copy(update={"validation": "pairs"})}
     )
-    fit, validation = design(cfg, pairs, seed=0)
+    fit, validation = design(LoopSetup.of(cfg), pairs, seed=0)
     assert validation.kind == "pairs" and validation.units == "held-out pairs"
     assert (fit.pairs.n_pairs, validation.rollout.pairs.n_pairs) == (6, 4)
     assert fit.pairs.n_steps == pairs.n_steps
@@ -230,12 +231,16 @@ def test_what_is_decided_before_the_arms_sees_only_their_fit_part():
             update={"diagnose": cfg.diagnose.model_copy(update=update)}
         )
 
-    cut = fit_part(validation("time"), 0, pairs.n_steps, series)
+    cut = fit_part(LoopSetup.of(validation("time")), 0, pairs.n_steps, series)
     assert len(cut["x"]) == 40 and all(len(a) == 30 for a in cut["x"])
-    kept = fit_part(validation("refit"), 7, pairs.n_steps, series)  # 16 held out
+    kept = fit_part(
+        LoopSetup.of(validation("refit")), 7, pairs.n_steps, series
+    )  # 16 held out
     fit, _ = split_by_pair(pairs, 0.6, seed=7)
     assert len(kept["x"]) == fit.n_pairs == 24
     for array, i in zip(kept["x"], fit.pair_ids, strict=True):
         np.testing.assert_array_equal(array, series["x"][i])
-    whole = fit_part(validation("auto"), 7, pairs.n_steps, series)  # crossfit
+    whole = fit_part(
+        LoopSetup.of(validation("auto")), 7, pairs.n_steps, series
+    )  # crossfit
     assert len(whole["x"]) == 40 and all(len(a) == 50 for a in whole["x"])

@@ -51,7 +51,6 @@ from ..posterior import Posterior
 from ..runs.directory import RunDir
 from ..runs.metrics import Evaluation
 from .arms.arena import spanning
-from .arms.candidates import attribution_seed
 from .arms.identifiability import effect_identifiability
 from .arms.refit import Pin
 from .arms.validation import fit_part, pair_groups
@@ -77,6 +76,7 @@ from .report.outcome import (
 )
 from .selection.attribution import EffectSelection, RoadStart, attribute_effects
 from .selection.on_test import ClassOnTest, chosen_value, class_on_test
+from .setup import LoopSetup
 from .signatures.families import family_of
 from .signatures.response import ResponseTimes, response_times
 from .signatures.road import (
@@ -196,7 +196,7 @@ class Candidates:
 
 
 def candidate_effects(
-    cfg: TrainConfig, train_pairs: PairSet, series: Series
+    setup: LoopSetup, train_pairs: PairSet, series: Series
 ) -> Candidates:
     """The effects the attribution tries, resolved on the training pairs.
 
@@ -212,10 +212,10 @@ def candidate_effects(
     (:func:`~torchcf.diagnose.signatures.road.choose_spacing`).
     """
     frame, reason = shares_road_frame(train_pairs)
-    fit_series = fit_part(cfg, attribution_seed(cfg), train_pairs.n_steps, series)
+    fit_series = fit_part(setup, setup.seed, train_pairs.n_steps, series)
     effects, skipped, profiles, seeds = [], [], [], {}
     profile = None
-    for token in cfg.diagnose.effects:
+    for token in setup.settings.effects:
         effect = parse_effect(token)  # where the configured effects enter
         if effect.scope == "road" and not frame:
             skipped.append(effect)
@@ -347,9 +347,10 @@ def plan_loop(
     pool = tuple(active_models(cfg, posterior))
     best_before = best_particles(posterior, train_pairs)
     one_step = one_step_residual(best_before, train_pairs)
-    candidates = candidate_effects(cfg, train_pairs, one_step)
+    setup = LoopSetup.of(cfg)  # the config, once, for the stages below
+    candidates = candidate_effects(setup, train_pairs, one_step)
     selection = attribute_effects(
-        cfg,
+        setup,
         pool,
         candidates.effects,
         train_pairs,
@@ -366,7 +367,9 @@ def plan_loop(
             Pin(e, chosen_value(e, selection.shared, selection.estimates))
             for e in selection.chosen
         ]
-        on_test = class_on_test(cfg, selection.start, selection.final, pins, test_pairs)
+        on_test = class_on_test(
+            setup, selection.start, selection.final, pins, test_pairs
+        )
     if selection.chosen:
         run_models = [spec.model for spec in cfg.models]
         variants = [m for m in selection.models if m not in run_models]
@@ -584,7 +587,7 @@ def _paired_on_test(
     (their hybrids' minimum distance per pair: :func:`~torchcf.diagnose.
     significance.paired_change`)."""
     now = after.hybrid_min_by_pair
-    permutations, seed = plan.cfg.diagnose.permutations, attribution_seed(plan.cfg)
+    permutations, seed = plan.cfg.diagnose.permutations, LoopSetup.of(plan.cfg).seed
     return ChangeOnTest(
         *(
             paired_change(metrics.hybrid_min_by_pair, now, permutations, seed)

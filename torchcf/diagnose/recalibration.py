@@ -81,6 +81,7 @@ from ..runs.directory import RunDir
 from ..runs.summary import Pairwise, RecalibrationSummary
 from .arms.search import derive_seed, model_bounds
 from .selection.attribution import EffectSelection, Ledger, ledger_key
+from .setup import LoopSetup
 
 #: Buffers per model name, as TopN states (``score`` (N, C), ``index`` (N, C),
 #: ``theta`` (N, C, K)).
@@ -160,7 +161,8 @@ def retrain(
     priors = {spec.name: spec.bounds(torch.float64) for spec in cfg.models}
     shared = final.shared
     values = {k: torch.tensor(v, dtype=torch.float64) for k, v in shared.items()}
-    key = ledger_key(cfg, [m.name for m in pool], [m.name for m in final.models])
+    names = [m.name for m in final.models]
+    key = ledger_key(LoopSetup.of(cfg), [m.name for m in pool], names)
     book = Ledger(ledger, f"retrain|{key}|{json.dumps(shared, sort_keys=True)}")
     run_buffers = {m: _run_buffer(posterior, m) for m in run_models}
 

@@ -47,12 +47,12 @@ from torch import Tensor
 
 from ...abc.rejection import Rollout, prior_stream
 from ...abc.smc import SMCSettings
-from ...config import DiagnoseConfig, TrainConfig
+from ...config import DiagnoseConfig
 from ...data import PairSet
 from ...models import CFModel
 from ...models.effects import Effect, RoadProfile, parse_effect
 from ..arms.absorption import PROFILE_VALUES, profile_values
-from ..arms.candidates import attribution_seed, prior_particles
+from ..arms.candidates import prior_particles
 from ..arms.population import (
     Population,
     merge,
@@ -76,6 +76,7 @@ from ..arms.search import (
     shared_value,
 )
 from ..arms.validation import Validation, design
+from ..setup import LoopSetup
 
 #: Multiples of the secant the continuation's predictor tries (each a re-scoring
 #: of the start, far cheaper than a search round): the refit before is short of
@@ -130,7 +131,7 @@ class Arena:
         validation: judges an arm out of sample (:mod:`torchcf.diagnose.
             validation`).
         seed: the seed every random draw of the attribution derives from
-            (:func:`attribution_seed`).
+            (:attr:`LoopSetup.seed <torchcf.diagnose.setup.LoopSetup>`).
         priors: the run's prior box (K, 2) per pool model.
         top_n: N, the particles per pair an arm is judged by.
         smc: the small ABC's refinement when ``diagnose.method = "smc"``, else
@@ -153,27 +154,23 @@ class Arena:
     @classmethod
     def of(
         cls,
-        cfg: TrainConfig,
+        setup: LoopSetup,
         train_pairs: PairSet,
         groups: Tensor | None = None,
         **extra: Any,
     ) -> Arena:
-        """The arena of the run's config on its training pairs, split as
+        """The arena of the loop's setup on the training pairs, split as
         ``diagnose.validation`` asks (``groups``: (N,) the pairs' drivers or
         runs, which cross-fitting keeps apart; None: each pair its own)."""
-        settings = cfg.diagnose
-        seed = attribution_seed(cfg)
-        fit, validation = design(cfg, train_pairs, seed, groups)
+        fit, validation = design(setup, train_pairs, setup.seed, groups)
         return cls(
-            settings=settings,
+            settings=setup.settings,
             fit=fit,
             validation=validation,
-            seed=seed,
-            priors={spec.name: spec.bounds(torch.float64) for spec in cfg.models},
-            top_n=cfg.abc.top_n,
-            smc=SMCSettings(**cfg.abc.smc.model_dump())
-            if settings.method == "smc"
-            else None,
+            seed=setup.seed,
+            priors=setup.priors,
+            top_n=setup.top_n,
+            smc=setup.smc,
             **extra,
         )
 

@@ -21,26 +21,7 @@ from ...abc.rounds import RoundHooks
 from ...abc.smc import SMCSettings, new_state, parameter_buffer, run_smc, smc_budget
 from ...abc.streams import ParticleStream
 from ...abc.topn import TopN
-from ...config import ConfigError, TrainConfig
-from ...data import PairSet
-
-
-def attribution_rollout(cfg: TrainConfig, pairs: PairSet) -> Rollout:
-    """How the attribution simulates particles on ``pairs``: the run's precision,
-    device, score weights and compile choice, each particle on its own pair."""
-    return Rollout(
-        pairs,
-        True,
-        getattr(torch, cfg.dtype),
-        torch.device(cfg.device),
-        tuple(cfg.abc.weights),
-        cfg.compile,
-    )
-
-
-def attribution_seed(cfg: TrainConfig) -> int:
-    """``diagnose.seed``, or the run's ``abc.seed`` when it is not set."""
-    return cfg.abc.seed if cfg.diagnose.seed is None else cfg.diagnose.seed
+from ...config import ConfigError
 
 
 def prior_particles(
@@ -58,7 +39,8 @@ def prior_particles(
         stream: the model's prior stream on the rollout's pairs
             (:func:`~torchcf.abc.rejection.prior_stream` of the model, the
             prior box of the drawn parameters (K_drawn, 2), the seed
-            :func:`attribution_seed`, and the values (K - K_drawn,) of the last
+            the loop's seed (:attr:`~torchcf.diagnose.setup.LoopSetup.seed`),
+            and the values (K - K_drawn,) of the last
             parameters where they are held, the same for every particle: a
             shared effect's value).
         budgets: increasing particle counts; result ``i`` holds the ``keep`` best
@@ -131,7 +113,5 @@ def _refined_particles(
 
 
 __all__ = [
-    "attribution_rollout",
-    "attribution_seed",
     "prior_particles",
 ]

@@ -13,10 +13,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ...config import TrainConfig, config_hash
 from ...models.effects import Effect
 from ...system.files import RunFileError, TorchPayload, atomic_torch_save, read_torch
 from ..arms.arena import Checkpoints
+from ..setup import LoopSetup
 
 #: Ledger format (``RUN_DIR/loop/attribution.pt``).
 LEDGER_FORMAT = "torchcf.attribution/11"
@@ -115,15 +115,15 @@ class _Prefixed:
 
 
 def ledger_key(
-    cfg: TrainConfig, pool: list[str], tested: Sequence[Effect] | Sequence[str]
+    setup: LoopSetup, pool: list[str], tested: Sequence[Effect] | Sequence[str]
 ) -> str:
     """What a ledger's content depends on (its key): the run, the diagnose
     settings, the pool and what is tested, by name (the attribution's candidate
     effects, or the models a re-calibration trains)."""
-    settings = cfg.diagnose.model_dump(mode="json", exclude={"run_after_training"})
+    settings = setup.settings.model_dump(mode="json", exclude={"run_after_training"})
     text = json.dumps(settings, sort_keys=True)
     names = ",".join(map(str, tested))  # an effect's str is its token
-    return f"{config_hash(cfg)}|{text}|{','.join(pool)}|{names}"
+    return f"{setup.run_hash}|{text}|{','.join(pool)}|{names}"
 
 
 __all__ = [

@@ -67,10 +67,9 @@ import torch
 from torch import Tensor
 
 from ...abc.rejection import Rollout
-from ...config import DiagnoseConfig, TrainConfig
+from ...config import DiagnoseConfig
 from ...data import PairSet
 from ...models import CFModel
-from ..arms.candidates import attribution_rollout
 from ..arms.population import Population, pick_scores
 from ..arms.refit import (
     Exclusion,
@@ -82,6 +81,7 @@ from ..arms.refit import (
     refit_scores,
     sourced_candidates,
 )
+from ..setup import LoopSetup
 from ..signatures.series import DiagnoseError
 
 if TYPE_CHECKING:
@@ -186,15 +186,15 @@ class WarmedRollout(Rollout):
         return torch.where(valid, score, math.inf), valid
 
 
-def validation_rollout(cfg: TrainConfig, train_pairs: PairSet) -> Rollout | None:
+def validation_rollout(setup: LoopSetup, train_pairs: PairSet) -> Rollout | None:
     """The validation windows' :class:`WarmedRollout` when
     ``diagnose.validation_warmup`` asks for one, else None."""
-    settings = cfg.diagnose
+    settings = setup.settings
     steps = int(round(settings.validation_warmup / train_pairs.dt))
     if steps < 1:
         return None
     long, warm = warmed_validation(train_pairs, settings.fit_fraction, steps)
-    plain = attribution_rollout(cfg, long)
+    plain = setup.rollout(long)
     return WarmedRollout(**vars(plain), warm=warm)
 
 
@@ -231,13 +231,13 @@ def pair_split(n_pairs: int, fraction: float, seed: int) -> tuple[Tensor, Tensor
 
 
 def fit_part(
-    cfg: TrainConfig, seed: int, n_steps: int, series: dict[str, list[np.ndarray]]
+    setup: LoopSetup, seed: int, n_steps: int, series: dict[str, list[np.ndarray]]
 ) -> dict[str, list[np.ndarray]]:
     """The part of per-pair series (one array per training pair, in order) that
     the arms are fitted on: every pair's fit window, or the fit pairs whole; what
     is decided from it (a road profile's knot spacing) never sees the data the
     arms are judged on."""
-    settings = cfg.diagnose
+    settings = setup.settings
     n_pairs = len(next(iter(series.values()), []))
     kind = resolve_validation(settings, n_pairs)
     if kind == "crossfit":
@@ -503,7 +503,7 @@ class Judge:
 
 
 def design(
-    cfg: TrainConfig,
+    setup: LoopSetup,
     train_pairs: PairSet,
     seed: int,
     groups: Tensor | None = None,
@@ -511,10 +511,10 @@ def design(
     """The fit rollout and the :class:`Validation` of ``diagnose.validation``
     (``"auto"`` resolved by :func:`resolve_validation`); ``groups``: (N,) the
     pairs' cross-fitting groups (None: each pair its own)."""
-    settings = cfg.diagnose
+    settings = setup.settings
     kind = resolve_validation(settings, train_pairs.n_pairs)
     budget = refit_budget(settings)
-    priors = {spec.name: spec.bounds(torch.float64) for spec in cfg.models}
+    priors = setup.priors
     if kind == "crossfit":
         if groups is None:
             groups = torch.arange(train_pairs.n_pairs)
@@ -524,19 +524,19 @@ def design(
                 f"{MIN_PAIRS} groups (drivers or runs); these pairs are one "
                 "group: use diagnose.validation='time'"
             )
-        whole = attribution_rollout(cfg, train_pairs)
+        whole = setup.rollout(train_pairs)
         if settings.refit_effect == "free":
             judged, first, later = free_effect_windows(
                 train_pairs, settings.fit_fraction
             )
             return whole, Validation(
                 kind,
-                attribution_rollout(cfg, first),
+                setup.rollout(first),
                 budget,
                 priors,
                 seed,
                 groups,
-                attribution_rollout(cfg, later),
+                setup.rollout(later),
                 judged,
             )
         return whole, Validation(kind, whole, budget, priors, seed, groups)
@@ -544,22 +544,20 @@ def design(
         fit, held = split_by_pair(train_pairs, settings.fit_fraction, seed)
         if kind == "refit" and settings.refit_effect == "free":
             _, first, later = free_effect_windows(held, settings.fit_fraction)
-            return attribution_rollout(cfg, fit), Validation(
+            return setup.rollout(fit), Validation(
                 kind,
-                attribution_rollout(cfg, first),
+                setup.rollout(first),
                 budget,
                 priors,
                 seed,
-                scored_on=attribution_rollout(cfg, later),
+                scored_on=setup.rollout(later),
             )
-        return attribution_rollout(cfg, fit), Validation(
-            kind, attribution_rollout(cfg, held), budget, priors, seed
+        return setup.rollout(fit), Validation(
+            kind, setup.rollout(held), budget, priors, seed
         )
     fit, window = split_in_time(train_pairs, settings.fit_fraction)
-    rollout = validation_rollout(cfg, train_pairs) or attribution_rollout(cfg, window)
-    return attribution_rollout(cfg, fit), Validation(
-        "time", rollout, budget, priors, seed
-    )
+    rollout = validation_rollout(setup, train_pairs) or setup.rollout(window)
+    return setup.rollout(fit), Validation("time", rollout, budget, priors, seed)
 
 
 def free_effect_windows(

@@ -68,7 +68,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from ...config import DiagnoseConfig, TrainConfig
+from ...config import DiagnoseConfig
 from ...data import PairSet
 from ...models import CFModel, require_model
 from ...models.effects import Effect, RoadProfile
@@ -102,6 +102,7 @@ from ..arms.search import INVALID_RATIO
 from ..arms.validation import Judge, refits
 from ..selection.power import detectable_sizes
 from ..selection.tested import Detectable, EffectTest, SharedValue
+from ..setup import LoopSetup
 from ..signatures.families import Signature, SignatureRow, pointed_effects, signatures
 from ..signatures.road import one_step_residual
 from ..signatures.series import BestParticles, residual_series
@@ -377,7 +378,7 @@ class EffectSelection:
 
 
 def attribute_effects(
-    cfg: TrainConfig,
+    setup: LoopSetup,
     pool: Sequence[CFModel],
     effects: list[Effect],
     train_pairs: PairSet,
@@ -390,7 +391,7 @@ def attribute_effects(
     """Choose effects by forward selection of nested arms (module docstring).
 
     Args:
-        cfg: the run's config (its ``diagnose`` section sets the budgets).
+        setup: the loop's setup (its ``diagnose`` settings set the budgets).
         pool: the pool models that get the effects (model objects; the
             ledger is keyed by their names).
         effects: the candidate effects (options resolved, see
@@ -408,7 +409,7 @@ def attribute_effects(
         the :class:`EffectSelection`.
     """
     arena = Arena.of(
-        cfg,
+        setup,
         train_pairs,
         groups,
         road_seeds=dict(road.seeds) if road else {},
@@ -418,7 +419,7 @@ def attribute_effects(
     steps_at_most = min(settings.max_effects, len(effects))
     levels = step_levels(settings.alpha, steps_at_most)
     models = [require_model(m, "attribute_effects") for m in pool]
-    book = Ledger(ledger, ledger_key(cfg, [m.name for m in models], effects))
+    book = Ledger(ledger, ledger_key(setup, [m.name for m in models], effects))
     if progress and book.entries:
         print(resuming(book), file=sys.stderr, flush=True)
     units = {effect: arm_units(arena, effect) for effect in effects}

@@ -31,15 +31,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ...config import TrainConfig
 from ...data import PairSet
 from ...models.effects import Effect
 from ...system.records import Record
-from ..arms.candidates import attribution_rollout, attribution_seed
 from ..arms.population import Population
 from ..arms.refit import Pin, candidates, lifted, refit_scores
 from ..arms.search import INVALID_RATIO
 from ..arms.validation import refit_budget
+from ..setup import LoopSetup
 from ..significance import comparable, sign_flip_test
 
 
@@ -95,7 +94,7 @@ def chosen_value(
 
 
 def class_on_test(
-    cfg: TrainConfig,
+    setup: LoopSetup,
     without: Population,
     final: Population,
     pins: list[Pin],
@@ -104,17 +103,17 @@ def class_on_test(
     """Every test pair refitted without and with the chosen effects.
 
     Args:
-        cfg: the run's config (its ``diagnose`` section sets the refit).
+        setup: the loop's setup (its ``diagnose`` settings set the refit).
         without: the pool's converged fit on the training pairs (pool models).
         final: the final model's converged fit (the chosen variants).
         pins: the chosen effects in the order chosen, each at its value.
         test_pairs: the run's test pairs.
     """
-    settings = cfg.diagnose
-    seed, n = attribution_seed(cfg), cfg.abc.top_n
-    rollout = attribution_rollout(cfg, test_pairs)
+    settings = setup.settings
+    seed, n = setup.seed, setup.top_n
+    rollout = setup.rollout(test_pairs)
     budget = refit_budget(settings)
-    priors = {spec.name: spec.bounds(torch.float64) for spec in cfg.models}
+    priors = setup.priors
     key = (seed, "class-on-test")
     plain = candidates(without, n, {}, seed)
     pool_of = {m: m.pool_model for m in final.models}
