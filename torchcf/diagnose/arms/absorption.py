@@ -44,8 +44,8 @@ from ...models import CFModel
 from ...models.effects import Effect
 from ...models.steady import equilibrium_spacing, time_gap
 from ...system.records import Record
-from ..arms.identifiability import RIDGE_CORRELATION, within_pair_correlation
-from ..arms.population import Population
+from .identifiability import RIDGE_CORRELATION, within_pair_correlation
+from .population import Population
 
 #: Values of a shared effect's profile (spread evenly over its prior).
 PROFILE_VALUES = 7

@@ -51,9 +51,10 @@ from ...config import DiagnoseConfig
 from ...data import PairSet
 from ...models import CFModel
 from ...models.effects import Effect, RoadProfile, parse_effect
-from ..arms.absorption import PROFILE_VALUES, profile_values
-from ..arms.candidates import prior_particles
-from ..arms.population import (
+from ..setup import LoopSetup
+from .absorption import PROFILE_VALUES, profile_values
+from .candidates import prior_particles
+from .population import (
     Population,
     merge,
     particles_dict,
@@ -62,7 +63,7 @@ from ..arms.population import (
     population_of,
     rescore,
 )
-from ..arms.search import (
+from .search import (
     INVALID_RATIO,
     Converging,
     Limits,
@@ -75,8 +76,7 @@ from ..arms.search import (
     model_bounds,
     shared_value,
 )
-from ..arms.validation import Validation, design
-from ..setup import LoopSetup
+from .validation import Validation, design
 
 #: Multiples of the secant the continuation's predictor tries (each a re-scoring
 #: of the start, far cheaper than a search round): the refit before is short of

@@ -15,8 +15,8 @@ from typing import Any
 
 from ...models.effects import Effect
 from ...system.files import RunFileError, TorchPayload, atomic_torch_save, read_torch
-from ..arms.arena import Checkpoints
 from ..setup import LoopSetup
+from .arena import Checkpoints
 
 #: Ledger format (``RUN_DIR/loop/attribution.pt``).
 LEDGER_FORMAT = "torchcf.attribution/11"

@@ -55,8 +55,8 @@ from ...abc.particles import Particles
 from ...abc.rejection import Rollout
 from ...models import CFModel
 from ...models.effects import Effect
-from ..arms.population import Population, merge, rescore
-from ..arms.search import (
+from .population import Population, merge, rescore
+from .search import (
     Limits,
     Noise,
     converge,

@@ -55,7 +55,7 @@ from ...abc.rejection import Rollout
 from ...config import DiagnoseConfig
 from ...models import CFModel, UnknownModelError, augment
 from ...models.effects import Effect
-from ..arms.population import Population, merge, rescore, score_on
+from .population import Population, merge, rescore, score_on
 
 #: Standard deviations of the local search's steps, as fractions of each
 #: parameter's prior width (copy c uses entry c % 3).

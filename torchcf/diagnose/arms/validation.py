@@ -70,8 +70,10 @@ from ...abc.rejection import Rollout
 from ...config import DiagnoseConfig
 from ...data import PairSet
 from ...models import CFModel
-from ..arms.population import Population, pick_scores
-from ..arms.refit import (
+from ..setup import LoopSetup
+from ..signatures.series import DiagnoseError
+from .population import Population, pick_scores
+from .refit import (
     Exclusion,
     Layout,
     Pin,
@@ -81,8 +83,6 @@ from ..arms.refit import (
     refit_scores,
     sourced_candidates,
 )
-from ..setup import LoopSetup
-from ..signatures.series import DiagnoseError
 
 if TYPE_CHECKING:
     import pandas as pd

@@ -21,7 +21,7 @@ from ...models.effects import parse_effect
 from ...runs.directory import RunDir
 from ...runs.tensorboard import RunLogger
 from ...system.files import JSON, ensure_directory
-from ..report.method import method_text
+from .method import method_text
 
 Series = dict[str, list[np.ndarray]]
 

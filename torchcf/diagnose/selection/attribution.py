@@ -100,8 +100,6 @@ from ..arms.population import Population, population_dict, population_of
 from ..arms.refit import Pin
 from ..arms.search import INVALID_RATIO
 from ..arms.validation import Judge, refits
-from ..selection.power import detectable_sizes
-from ..selection.tested import Detectable, EffectTest, SharedValue
 from ..setup import LoopSetup
 from ..signatures.families import Signature, SignatureRow, pointed_effects, signatures
 from ..signatures.road import one_step_residual
@@ -116,6 +114,8 @@ from ..significance import (
 )
 from ..workers import ArmPool, worker_count
 from ..workers import tick as worker_tick
+from .power import detectable_sizes
+from .tested import Detectable, EffectTest, SharedValue
 
 
 # ---------------------------------------------------------------- the report

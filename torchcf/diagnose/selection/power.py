@@ -44,8 +44,8 @@ from ...models.effects import Effect, Grade
 from ..arms.refit import Pin
 from ..arms.search import INVALID_RATIO
 from ..arms.validation import Judge
-from ..selection.tested import Detectable, EffectTest, Rung
 from ..significance import comparable, sign_flip_test
+from .tested import Detectable, EffectTest, Rung
 
 #: The sizes tried, as shares of the way from the neutral value to each end of
 #: the effect's prior (a grade: of its prior's bound), smallest first.

@@ -303,7 +303,7 @@ def road_share(
     level weigh each pair by :func:`~torchcf.diagnose.signatures.road.pair_weights` (one
     pair with a residual of tens of m/s^2 would otherwise set the profile every
     other pair is judged by)."""
-    from ..signatures.road import (  # the profile's regression
+    from .road import (  # the profile's regression
         _basis,
         fit_profile,
         pair_weights,

@@ -58,8 +58,8 @@ from ...data import PairSet
 from ...models import CFModel
 from ...sim.rollout import simulate
 from ...system.records import Record
-from ..signatures.families import MAX_LAG_S, response_lags
-from ..signatures.series import BestParticles
+from .families import MAX_LAG_S, response_lags
+from .series import BestParticles
 
 #: Longest response time searched [s] (module docstring).
 RESPONSE_MAX_LAG_S = 2 * MAX_LAG_S

@@ -49,7 +49,7 @@ from ...models import FollowerState, Perception
 from ...models.effects import GRAVITY, Bend, Grade, RoadProfile, parse_effect
 from ...sim.rollout import realise
 from ...system.files import JSON
-from ..signatures.series import BestParticles
+from .series import BestParticles
 
 #: Knot spacings [m] a bare road effect chooses from (coarse to fine).
 ROAD_SPACINGS = (400.0, 200.0, 100.0, 50.0)
