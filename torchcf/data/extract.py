@@ -39,7 +39,7 @@ pair came from and of what was dropped and why:
    measured one; the index keeps ``L_i``.
 8. **Split.** Training and test pairs are split by source group (the follower
    vehicle by default, or the couple, or the run), so no group lands on both
-   sides (:func:`group_split`).
+   sides (:func:`torchcf.data.splits.group_split`).
 """
 
 from __future__ import annotations
@@ -57,6 +57,7 @@ from torchcf.data.derive import fill_derivatives
 from torchcf.data.pairset import DataError, PairSet
 from torchcf.data.physics import MAX_SPEED, check_time_step, check_units
 from torchcf.data.quality import FILTERS, QualityThresholds, Windows, first_failure
+from torchcf.data.splits import group_split
 from torchcf.data.trajectory import TrajectoryTable
 from torchcf.data.whole import MIN_WHOLE_LENGTH, CoupleSpan, whole_candidates
 
@@ -67,7 +68,6 @@ __all__ = [
     "ExtractOptions",
     "Extraction",
     "extract_pairs",
-    "group_split",
 ]
 
 
@@ -197,23 +197,11 @@ class Extraction:
             ``pairs.mask``), not windows of one length.
 
     Examples:
-        >>> import numpy as np
-        >>> import pandas as pd
-        >>> from torchcf.data.extract import ExtractOptions, extract_pairs
-        >>> from torchcf.data.trajectory import TrajectoryTable
-        >>> t = np.round(np.arange(0.0, 30.0, 0.1), 10)  # 30 s at 0.1 s
-        >>> car = {"time": t, "speed": 15.0, "acceleration": 0.0, "length": 5.0}
-        >>> leader = pd.DataFrame({"vehicle": "L", "position": 30.0 + 15.0 * t, **car})
-        >>> follower = pd.DataFrame({"vehicle": "F", "position": 15.0 * t, **car})
-        >>> follower["leader"] = "L"  # 30 m behind it, both at 15 m/s
-        >>> rows = pd.concat([leader, follower])
-        >>> table = TrajectoryTable.from_frame(rows, source="demo")
-        >>> options = ExtractOptions(window=10.0, test_fraction=0.0)  # 10 s pairs
-        >>> found = extract_pairs(table, options)
-        >>> found.train.n_pairs, found.test, round(found.dt, 3)
-        (3, None, 0.1)
-        >>> list(found.index["t_start"])  # [s]
-        [0.0, 10.0, 20.0]
+        What an extraction holds (:func:`extract_pairs`' example makes one):
+
+        >>> import dataclasses
+        >>> [f.name for f in dataclasses.fields(Extraction)][:4]
+        ['pairs', 'train', 'test', 'index']
     """
 
     pairs: PairSet
@@ -337,7 +325,9 @@ def extract_pairs(
         road_period=table.road_period,
     )
     index = _index(cut.meta, windows, cut.lengths, kept, table.source)
-    index, train_ids, test_ids = group_split(index, options)
+    index, train_ids, test_ids = group_split(
+        index, options.split_by, options.test_fraction, options.seed
+    )
     summary = {
         "dt": dt,
         "pairs_are": WHOLE_COUPLES if options.window == WHOLE else "windows",
@@ -875,67 +865,4 @@ def _pair_set(
         mask=torch.from_numpy(mask),
         leader_length=leader_length,
         name=name,
-    )
-
-
-# ----------------------------------------------------------------------- split
-def group_split(
-    index: pd.DataFrame, options: ExtractOptions
-) -> tuple[pd.DataFrame, list[int], list[int]]:
-    """Assign whole source groups to the test split until it holds its share.
-
-    Groups (``options.split_by``: the follower ``(run, follower)``, the couple
-    ``(run, follower, leader)`` or the ``run``) are visited in a random order
-    seeded with ``options.seed``; a group joins the test split while the test
-    split holds fewer than ``round(test_fraction * N)`` pairs (at least one)
-    and at least one group is left for training.
-
-    Returns:
-        ``(index with its 'split' column filled, train pair ids, test pair ids)``.
-
-    Raises:
-        DataError: a test share is asked for but there is only one group.
-
-    Examples:
-        >>> import pandas as pd
-        >>> from torchcf.data.extract import ExtractOptions, group_split
-        >>> index = pd.DataFrame(
-        ...     {"pair": [0, 1, 2, 3], "run": "r", "follower": ["A", "A", "B", "C"]}
-        ... )
-        >>> index, train, test = group_split(index, ExtractOptions(test_fraction=0.25))
-        >>> len(train) + len(test), list(index["split"]).count("test") == len(test)
-        (4, True)
-    """
-    keys = {
-        "follower": ["run", "follower"],
-        "couple": ["run", "follower", "leader"],
-        "run": ["run"],
-    }[options.split_by]
-    group = index.groupby(keys, sort=True).ngroup().to_numpy()
-    n_groups = int(group.max()) + 1
-    index = index.copy()
-    if options.test_fraction == 0:
-        index["split"] = "train"
-        return index, index["pair"].tolist(), []
-    if n_groups < 2:
-        raise DataError(
-            f"the pairs come from one {options.split_by} only: a split by "
-            f"{options.split_by} needs two (use --split-by couple or run, or "
-            "--test-fraction 0)"
-        )
-    target = max(1, int(round(options.test_fraction * len(index))))
-    order = np.random.default_rng(options.seed).permutation(n_groups)
-    test_groups: list[int] = []
-    in_test = 0
-    for g in order[:-1]:  # the last group always trains
-        if in_test >= target:
-            break
-        test_groups.append(int(g))
-        in_test += int((group == g).sum())
-    is_test = np.isin(group, test_groups)
-    index["split"] = np.where(is_test, "test", "train")
-    return (
-        index,
-        index.loc[~is_test, "pair"].tolist(),
-        index.loc[is_test, "pair"].tolist(),
     )

@@ -11,7 +11,7 @@ three ways:
   step that needs test pairs says there are none (:func:`has_test_split`).
 * ``raw``: a raw trajectory source, extracted when the run starts
   (:func:`torchcf.data.importer.extract_source`) and split by source group
-  (:func:`torchcf.data.extract.group_split`).
+  (:func:`group_split`).
 * ``split="kfold"``: the full set is cut into ``folds`` nearly equal parts by a
   seeded permutation of the pairs; part ``fold`` is the test set, the rest the
   training set (SPEC section 6, cross-validation).
@@ -25,12 +25,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 import torch
 
 from torchcf.data.pairset import DataError, PairSet
 from torchcf.data.registry import DATASETS, SPLITS, load_pairs
 
-__all__ = ["has_test_split", "kfold_split", "split_pairs"]
+__all__ = ["group_split", "has_test_split", "kfold_split", "split_pairs"]
 
 
 def has_test_split(source: str | os.PathLike[str]) -> bool:
@@ -180,3 +181,66 @@ def split_pairs(
         full = load_pairs(source, None, **load_options)
         return kfold_split(full, folds, fold, seed)
     raise DataError(f"split must be 'dataset' or 'kfold', got {split!r}")
+
+
+def group_split(
+    index: pd.DataFrame, split_by: str, test_fraction: float, seed: int = 0
+) -> tuple[pd.DataFrame, list[int], list[int]]:
+    """Assign whole source groups to the test split until it holds its share.
+
+    Groups (``split_by``: the follower ``(run, follower)``, the couple
+    ``(run, follower, leader)`` or the ``run``) of an extraction's pair index
+    (:func:`torchcf.data.extract.extract_pairs`) are visited in a random order
+    seeded with ``seed``; a group joins the test split while the test
+    split holds fewer than ``round(test_fraction * N)`` pairs (at least one)
+    and at least one group is left for training.
+
+    Returns:
+        ``(index with its 'split' column filled, train pair ids, test pair ids)``.
+
+    Raises:
+        DataError: a test share is asked for but there is only one group.
+
+    Examples:
+        >>> import pandas as pd
+        >>> from torchcf.data.splits import group_split
+        >>> index = pd.DataFrame(
+        ...     {"pair": [0, 1, 2, 3], "run": "r", "follower": ["A", "A", "B", "C"]}
+        ... )
+        >>> index, train, test = group_split(index, "follower", test_fraction=0.25)
+        >>> len(train) + len(test), list(index["split"]).count("test") == len(test)
+        (4, True)
+    """
+    keys = {
+        "follower": ["run", "follower"],
+        "couple": ["run", "follower", "leader"],
+        "run": ["run"],
+    }[split_by]
+    group = index.groupby(keys, sort=True).ngroup().to_numpy()
+    n_groups = int(group.max()) + 1
+    index = index.copy()
+    if test_fraction == 0:
+        index["split"] = "train"
+        return index, index["pair"].tolist(), []
+    if n_groups < 2:
+        raise DataError(
+            f"the pairs come from one {split_by} only: a split by "
+            f"{split_by} needs two (use --split-by couple or run, or "
+            "--test-fraction 0)"
+        )
+    target = max(1, int(round(test_fraction * len(index))))
+    order = np.random.default_rng(seed).permutation(n_groups)
+    test_groups: list[int] = []
+    in_test = 0
+    for g in order[:-1]:  # the last group always trains
+        if in_test >= target:
+            break
+        test_groups.append(int(g))
+        in_test += int((group == g).sum())
+    is_test = np.isin(group, test_groups)
+    index["split"] = np.where(is_test, "test", "train")
+    return (
+        index,
+        index.loc[~is_test, "pair"].tolist(),
+        index.loc[is_test, "pair"].tolist(),
+    )
