@@ -60,6 +60,11 @@ COMPILE_MIN_SAMPLES = 10_000_000
 ESTIMATOR_FILE = "amortised.pt"
 
 
+class EstimatorError(CalibrationError):
+    """A finished estimator to reuse that cannot be read or does not fit
+    (one-line message: ``estimator: ...``)."""
+
+
 class AmortisedSamples(NamedTuple):
     """The training pairs' samples and the estimator's record.
 
@@ -133,7 +138,7 @@ def reused_samples(
     run reads its copy).
 
     Raises:
-        CalibrationError: the estimator cannot be read or is not of these
+        EstimatorError: the estimator cannot be read or is not of these
             models, boxes and network (:func:`reused_checkpoint`).
     """
     source = reused_source(method, copy, resume)
@@ -163,7 +168,7 @@ def reused_checkpoint(
     the space's models, prior boxes and the network.
 
     Raises:
-        CalibrationError: missing, unreadable, not a finished training's, or
+        EstimatorError: missing, unreadable, not a finished training's, or
             another estimator's (the first differing entry named).
     """
     path = Path(source if source is not None else method.estimator)
@@ -173,7 +178,7 @@ def reused_checkpoint(
     try:
         return load_trained(path, fingerprint)
     except (RunFileError, CheckpointError) as error:
-        raise CalibrationError(f"estimator: {error}") from None
+        raise EstimatorError(f"estimator: {error}") from None
 
 
 def trained_estimator(
@@ -243,6 +248,7 @@ def _record(
 
 
 __all__ = [
+    "EstimatorError",
     "COMPILE_MIN_SAMPLES",
     "ESTIMATOR_FILE",
     "AmortisedSamples",

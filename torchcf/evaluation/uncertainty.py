@@ -71,35 +71,11 @@ class Uncertainty:
         bootstrap: how the intervals were made.
 
     Examples:
-        >>> import numpy as np
-        >>> import torch
-        >>> from torchcf.config import EvalConfig
-        >>> from torchcf.evaluation.metrics import evaluate_costs
-        >>> from torchcf.evaluation.uncertainty import uncertainty
-        >>> from torchcf.posterior import ModelParticles, Posterior
-        >>> C = np.array([[1.0, 2.0, 3.0], [2.0, 1.0, 0.5]])  # (P, N) costs
-        >>> costs = {
-        ...     "idm": dict(score=C, e_p=C, e_v=C, e_a=C),
-        ...     "hybrid": dict(score=C[1:], e_p=C[1:], e_v=C[1:], e_a=C[1:]),
-        ... }
-        >>> metrics = {name: evaluate_costs(**c) for name, c in costs.items()}
-        >>> idm = ModelParticles(
-        ...     ("a", "b", "v0", "T", "s0", "delta"),
-        ...     theta=torch.tensor([[1.5, 2.0, 33.0, 1.2, 2.0, 4.0]] * 2).double(),
-        ...     score=torch.tensor([0.4, 0.6]).double(),
-        ...     pair_ids=torch.tensor([0, 1]),
-        ...     particle_index=torch.tensor([7, 3]),
-        ... )
-        >>> posterior = Posterior(
-        ...     "demo", "per_pair", 1, ("idm",), {"idm": 1.0}, torch.tensor([0, 1]),
-        ...     {"idm": idm}, {"idm": {}},
-        ... )
-        >>> settings = EvalConfig(bootstrap=50, bootstrap_transport=10)
-        >>> found = uncertainty(costs, metrics, {}, posterior, settings, seed=0)
-        >>> sorted(found.per_set), list(found.hybrid_minus)
-        (['hybrid', 'idm'], ['idm'])
-        >>> found.bootstrap.resamples, found.bootstrap.resamples_transport
-        (50, 10)
+        What the record holds (:func:`uncertainty`'s example makes one):
+
+        >>> import dataclasses
+        >>> [f.name for f in dataclasses.fields(Uncertainty)]
+        ['per_set', 'hybrid_minus', 'shares', 'bootstrap']
     """
 
     per_set: dict[str, SetUncertainty]

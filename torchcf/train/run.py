@@ -58,6 +58,7 @@ from ..calibration import (
     Tracker,
 )
 from ..calibration.estimator_samples import (
+    EstimatorError,
     parameter_space,
     reused_checkpoint,
     reused_source,
@@ -323,9 +324,10 @@ def check_setup(
             source = reused_source(method, run.amortised_checkpoint, resume)
             space = parameter_space(setup.priors)
             group.on_main(reused_checkpoint, method, space, source)
-    except CalibrationError as error:
-        where = "abc.amortised." if str(error).startswith("estimator:") else ""
-        raise ConfigError(f"{where}{error}") from None
+    except EstimatorError as error:  # its setting is abc.amortised.estimator
+        raise ConfigError(f"abc.amortised.{error}") from None
+    except CalibrationError as error:  # the budget's names carry the prefix
+        raise ConfigError(str(error)) from None
 
 
 def hparams(cfg: TrainConfig) -> dict[str, str | int | float]:
